@@ -1,0 +1,121 @@
+//! Typed errors. Small, `Copy`, and carrying the rejected value so a log line can say why.
+
+use core::fmt;
+
+/// Why a wheel layout was refused by [`MecanumKinematics::new`](crate::MecanumKinematics::new)
+/// or [`MecanumKinematics::standard`](crate::MecanumKinematics::standard).
+///
+/// Values are widened to `f64` so that the error type does not depend on the scalar type.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
+pub enum GeometryError {
+    /// A parameter of wheel `wheel` is NaN or infinite.
+    NonFinite {
+        /// Index of the wheel in the layout (0 = FL for the standard layout).
+        wheel: usize,
+        /// Name of the parameter.
+        field: &'static str,
+    },
+    /// A wheel radius is zero or negative.
+    NonPositiveRadius {
+        /// Index of the wheel.
+        wheel: usize,
+        /// The rejected radius, metres.
+        radius: f64,
+    },
+    /// A roller axis is parallel to the wheel axle (`sin δ = 0`): the wheel cannot drive the
+    /// chassis at all (seed 001, eq. 3: effectiveness `sin δ`).
+    RollerParallelToAxle {
+        /// Index of the wheel.
+        wheel: usize,
+        /// The rejected roller angle δ, radians.
+        roller_angle: f64,
+    },
+    /// The wheel map has rank < 3, so some body motion is invisible to the wheels and forward
+    /// kinematics is not unique: the roller axes are concurrent or all parallel (seed 000,
+    /// Theorem 2). `condition` is the (dimensionless) condition number found, possibly infinite.
+    Singular {
+        /// Ratio of the largest to the smallest singular value of the scaled wheel map.
+        condition: f64,
+    },
+}
+
+impl fmt::Display for GeometryError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match *self {
+            Self::NonFinite { wheel, field } => {
+                write!(f, "wheel {wheel}: {field} is not finite")
+            }
+            Self::NonPositiveRadius { wheel, radius } => {
+                write!(f, "wheel {wheel}: radius {radius} m is not positive")
+            }
+            Self::RollerParallelToAxle {
+                wheel,
+                roller_angle,
+            } => write!(
+                f,
+                "wheel {wheel}: roller angle {roller_angle} rad is parallel to the axle (sin = 0)"
+            ),
+            Self::Singular { condition } => write!(
+                f,
+                "wheel layout is singular (condition number {condition:e}): roller axes are \
+                 concurrent or parallel, so forward kinematics is not unique"
+            ),
+        }
+    }
+}
+
+impl core::error::Error for GeometryError {}
+
+/// Why an encoder configuration or a raw counter reading was refused.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
+pub enum EncoderError {
+    /// The counter width must be 1 to 32 bits.
+    Bits {
+        /// The rejected width.
+        bits: u8,
+    },
+    /// Counts per revolution must be positive.
+    CountsPerRev {
+        /// The rejected value.
+        counts_per_rev: u32,
+    },
+    /// The gear ratio (motor turns per wheel turn) must be finite and positive.
+    GearRatio {
+        /// The rejected ratio.
+        gear_ratio: f64,
+    },
+    /// A raw reading does not fit the counter's width.
+    RawOutOfRange {
+        /// The rejected reading.
+        raw: u32,
+        /// The largest valid reading, `2^bits - 1`.
+        max: u32,
+    },
+}
+
+impl fmt::Display for EncoderError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match *self {
+            Self::Bits { bits } => write!(f, "encoder bits {bits} not in 1..=32"),
+            Self::CountsPerRev { counts_per_rev } => {
+                write!(
+                    f,
+                    "encoder counts_per_rev {counts_per_rev} must be positive"
+                )
+            }
+            Self::GearRatio { gear_ratio } => {
+                write!(
+                    f,
+                    "encoder gear_ratio {gear_ratio} must be finite and positive"
+                )
+            }
+            Self::RawOutOfRange { raw, max } => {
+                write!(f, "encoder reading {raw} out of range 0..={max}")
+            }
+        }
+    }
+}
+
+impl core::error::Error for EncoderError {}

@@ -1,0 +1,48 @@
+#!/usr/bin/env bash
+# The project's whole test suite: what CI runs and what a user runs (README, "Run the tests").
+# Each stage is a separate check that fails on its own; the script stops at the first failure
+# and names it. It installs what it needs: the thumbv7em target (rustup) and a Python virtual
+# environment for the Python tests (pip), into .venv beside this repository.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+THUMB=thumbv7em-none-eabihf
+# no_std crates that must build for the MCU target.
+NO_STD_CRATES=(kinematics)
+
+stage() { printf '\n==> %s\n' "$*"; }
+
+stage "toolchain: $(rustc --version); installing target $THUMB"
+rustup component add rustfmt clippy >/dev/null
+rustup target add "$THUMB"
+
+stage "fmt"
+cargo fmt --all -- --check
+
+stage "clippy (all targets, -D warnings)"
+cargo clippy --workspace --all-targets --locked -- -D warnings
+
+stage "tests"
+cargo test --workspace --locked
+
+stage "rustdoc (-D warnings)"
+RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --locked
+
+for crate in "${NO_STD_CRATES[@]}"; do
+    stage "no_std build: $crate for $THUMB"
+    cargo build -p "$crate" --target "$THUMB" --locked
+done
+
+stage "benchmarks compile"
+cargo bench --workspace --no-run --locked
+
+if [ -d tests ] && compgen -G "tests/test_*.py" >/dev/null; then
+    stage "python tests"
+    if [ ! -x .venv/bin/python ]; then
+        python3 -m venv .venv
+    fi
+    .venv/bin/python -m pip install --quiet --disable-pip-version-check -r tests/requirements.txt
+    .venv/bin/python -m pytest tests -q
+fi
+
+stage "all checks passed"
