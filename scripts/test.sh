@@ -8,7 +8,7 @@ cd "$(dirname "$0")/.."
 
 THUMB=thumbv7em-none-eabihf
 # no_std crates that must build for the MCU target.
-NO_STD_CRATES=(kinematics)
+NO_STD_CRATES=(kinematics firmware)
 
 stage() { printf '\n==> %s\n' "$*"; }
 
@@ -20,10 +20,10 @@ stage "fmt"
 cargo fmt --all -- --check
 
 stage "clippy (all targets, -D warnings)"
-cargo clippy --workspace --all-targets --locked -- -D warnings
+cargo clippy --workspace --all-targets --all-features --locked -- -D warnings
 
 stage "tests"
-cargo test --workspace --locked
+cargo test --workspace --all-features --locked
 
 stage "rustdoc (-D warnings)"
 RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --locked
@@ -42,6 +42,7 @@ if [ -d tests ] && compgen -G "tests/test_*.py" >/dev/null; then
         python3 -m venv .venv
     fi
     .venv/bin/python -m pip install --quiet --disable-pip-version-check -r tests/requirements.txt
+    cargo build -p firmware --features std --bin mecanum-codec --locked
     .venv/bin/python -m pytest tests -q
 fi
 

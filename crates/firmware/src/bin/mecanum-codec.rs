@@ -1,0 +1,684 @@
+//! `mecanum-codec`: the firmware's CAN codecs on the command line, for logs and for the Python
+//! cross-check against the DBC files (see `--help`).
+
+use std::fmt::Write as _;
+use std::io::{self, BufRead, Write};
+use std::process::ExitCode;
+
+use embedded_can::{ExtendedId, Frame, Id, StandardId};
+use firmware::CanFrame;
+use firmware::protocol::DecodeError;
+use firmware::protocol::dji::{self, EscGroup, EscId, EscModel};
+use firmware::protocol::odrive::{self, AxisState, ControlMode, InputMode, NodeId};
+use firmware::protocol::robot::{self, Fault, ModeRequest, RobotState};
+use firmware::protocol::wire::Field;
+
+const HELP: &str = "\
+mecanum-codec: decode CAN frames with the mecanum firmware's codecs, or print golden frames.
+
+USAGE:
+    mecanum-codec decode [--dji-model c620|c610]
+    mecanum-codec golden
+    mecanum-codec --help
+
+decode
+    Reads candump lines on stdin, one frame per line, in the log format
+        (1700000000.123456) vcan0 123#DEADBEEF
+    or bare (123#DEADBEEF, 123#R, 123#R8 for remote frames; 3 hex digits = standard id,
+    8 = extended id; bytes may be separated by '.'). Prints one JSON line per input line:
+        {\"id\":769,\"protocol\":\"robot\",\"message\":\"TWIST_CMD\",\"fields\":{\"vx\":0.5,...}}
+    or, for a frame the codecs reject or a line that does not parse,
+        {\"id\":769,\"error\":{\"kind\":\"wrong_dlc\",\"message\":\"...\",\"expected\":8,\"got\":7}}
+    and carries on with the next line. Field names are the DBC signal names, values are
+    physical (SI) values as the DBC scales them; enums are their numbers. `message` is the
+    DBC message name (ODrive messages carry a `node`, DJI feedback an `esc`).
+    Routing by id: 0x300-0x31F robot protocol, 0x1FF-0x208 DJI (C620 scale unless
+    --dji-model c610), 0x000-0x07F ODrive CAN Simple nodes 0-3; anything else is unknown_id.
+    Error kinds: unknown_id, extended_id, remote, wrong_dlc, non_finite, out_of_range, parse.
+
+golden
+    Prints a fixed set of frames built by the Rust encoders, one JSON line each, with the
+    candump text of the frame, the values given to the encoder (\"input\") and the values the
+    Rust decoder reads back (\"fields\"). The Python tests decode the candump text with
+    cantools and the DBC files and compare.
+
+Exit status: 0, or 2 for bad arguments.
+";
+
+fn main() -> ExitCode {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let mut model = EscModel::C620;
+    let mut command = None;
+    let mut it = args.iter();
+    while let Some(arg) = it.next() {
+        match arg.as_str() {
+            "-h" | "--help" | "help" => {
+                print!("{HELP}");
+                return ExitCode::SUCCESS;
+            }
+            "--dji-model" => match it.next().map(String::as_str) {
+                Some("c620") => model = EscModel::C620,
+                Some("c610") => model = EscModel::C610,
+                other => return usage(&format!("--dji-model takes c620 or c610, got {other:?}")),
+            },
+            "decode" | "golden" if command.is_none() => command = Some(arg.clone()),
+            other => return usage(&format!("unexpected argument {other:?}")),
+        }
+    }
+    let result = match command.as_deref() {
+        Some("decode") => decode_stdin(model),
+        Some("golden") => golden(),
+        _ => return usage("missing command"),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        // A closed pipe (`| head`) is not an error worth a message.
+        Err(e) if e.kind() == io::ErrorKind::BrokenPipe => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("mecanum-codec: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn usage(msg: &str) -> ExitCode {
+    eprintln!("mecanum-codec: {msg}\n\n{HELP}");
+    ExitCode::from(2)
+}
+
+// ---------------------------------------------------------------------------------------------
+// candump text
+
+fn parse_candump(line: &str) -> Result<CanFrame, String> {
+    let token = line
+        .split_whitespace()
+        .find(|t| t.contains('#'))
+        .ok_or_else(|| "no <id>#<data> token".to_owned())?;
+    let (id_text, data_text) = token.split_once('#').unwrap_or((token, ""));
+    if data_text.starts_with('#') {
+        return Err("CAN FD frames (##) are not supported".to_owned());
+    }
+    if id_text.is_empty() || !id_text.chars().all(|c| c.is_ascii_hexdigit()) {
+        return Err(format!("bad id {id_text:?}"));
+    }
+    let raw = u32::from_str_radix(id_text, 16).map_err(|e| format!("bad id {id_text:?}: {e}"))?;
+    let id: Id = match id_text.len() {
+        1..=3 => StandardId::new(u16::try_from(raw).unwrap_or(u16::MAX))
+            .ok_or_else(|| format!("standard id {raw:#x} above 0x7FF"))?
+            .into(),
+        8 => ExtendedId::new(raw)
+            .ok_or_else(|| format!("extended id {raw:#x} above 0x1FFFFFFF"))?
+            .into(),
+        n => {
+            return Err(format!(
+                "id must have 3 (standard) or 8 (extended) hex digits, got {n}"
+            ));
+        }
+    };
+    if let Some(rest) = data_text.strip_prefix(['R', 'r']) {
+        let dlc = match rest {
+            "" => 0,
+            d => d
+                .parse::<usize>()
+                .ok()
+                .filter(|d| *d <= 8)
+                .ok_or_else(|| format!("bad remote DLC {d:?}"))?,
+        };
+        return CanFrame::new_remote(id, dlc).ok_or_else(|| "bad remote frame".to_owned());
+    }
+    let hex: String = data_text.chars().filter(|c| *c != '.').collect();
+    if !hex.len().is_multiple_of(2) || !hex.chars().all(|c| c.is_ascii_hexdigit()) {
+        return Err(format!("bad data {data_text:?}"));
+    }
+    let bytes: Vec<u8> = (0..hex.len())
+        .step_by(2)
+        .map(|i| u8::from_str_radix(&hex[i..i + 2], 16).unwrap_or(0))
+        .collect();
+    CanFrame::new(id, &bytes).ok_or_else(|| format!("{} data bytes, at most 8", bytes.len()))
+}
+
+fn candump_text(frame: &CanFrame) -> String {
+    let mut s = match frame.id() {
+        Id::Standard(id) => format!("{:03X}#", id.as_raw()),
+        Id::Extended(id) => format!("{:08X}#", id.as_raw()),
+    };
+    if frame.is_remote_frame() {
+        s.push('R');
+        if frame.dlc() > 0 {
+            let _ = write!(s, "{}", frame.dlc());
+        }
+    } else {
+        for b in frame.data() {
+            let _ = write!(s, "{b:02X}");
+        }
+    }
+    s
+}
+
+// ---------------------------------------------------------------------------------------------
+// JSON (flat objects of numbers and strings: no dependency needed)
+
+fn json_str(s: &str) -> String {
+    let mut out = String::with_capacity(s.len() + 2);
+    out.push('"');
+    for c in s.chars() {
+        match c {
+            '"' => out.push_str("\\\""),
+            '\\' => out.push_str("\\\\"),
+            c if (c as u32) < 0x20 => {
+                let _ = write!(out, "\\u{:04x}", c as u32);
+            }
+            c => out.push(c),
+        }
+    }
+    out.push('"');
+    out
+}
+
+/// A JSON number. Floats print in Rust's shortest round-trip form (never exponent notation);
+/// the codecs never produce non-finite values, but guard anyway.
+#[derive(Clone, Copy)]
+enum Num {
+    Int(i64),
+    Float(f32),
+}
+
+impl Num {
+    fn json(self) -> String {
+        match self {
+            Self::Int(i) => i.to_string(),
+            Self::Float(f) if f.is_finite() => format!("{f:?}"),
+            Self::Float(_) => "null".to_owned(),
+        }
+    }
+}
+
+fn fields_json(fields: &[(&str, Num)]) -> String {
+    let body: Vec<String> = fields
+        .iter()
+        .map(|(k, v)| format!("{}:{}", json_str(k), v.json()))
+        .collect();
+    format!("{{{}}}", body.join(","))
+}
+
+/// One decoded message, protocol-independent.
+struct Decoded {
+    protocol: &'static str,
+    message: String,
+    extra: Vec<(&'static str, Num)>,
+    fields: Vec<(&'static str, Num)>,
+}
+
+impl Decoded {
+    fn new(protocol: &'static str, message: impl Into<String>) -> Self {
+        Self {
+            protocol,
+            message: message.into(),
+            extra: Vec::new(),
+            fields: Vec::new(),
+        }
+    }
+
+    fn extra(mut self, key: &'static str, value: i64) -> Self {
+        self.extra.push((key, Num::Int(value)));
+        self
+    }
+
+    fn f(mut self, field: &Field, value: f32) -> Self {
+        self.fields.push((field.name, Num::Float(value)));
+        self
+    }
+
+    fn i(mut self, field: &Field, value: impl Into<i64>) -> Self {
+        self.fields.push((field.name, Num::Int(value.into())));
+        self
+    }
+
+    fn head_json(&self, id: Id) -> String {
+        let mut s = format!(
+            "{{\"id\":{},\"protocol\":{},\"message\":{}",
+            raw_id(id),
+            json_str(self.protocol),
+            json_str(&self.message)
+        );
+        for (k, v) in &self.extra {
+            let _ = write!(s, ",{}:{}", json_str(k), v.json());
+        }
+        s
+    }
+}
+
+fn raw_id(id: Id) -> u32 {
+    match id {
+        Id::Standard(id) => u32::from(id.as_raw()),
+        Id::Extended(id) => id.as_raw(),
+    }
+}
+
+fn error_json(id: Option<Id>, kind: &str, message: &str, extra: &[(&str, String)]) -> String {
+    let mut s = String::from("{");
+    if let Some(id) = id {
+        let _ = write!(s, "\"id\":{},", raw_id(id));
+    }
+    let _ = write!(
+        s,
+        "\"error\":{{\"kind\":{},\"message\":{}",
+        json_str(kind),
+        json_str(message)
+    );
+    for (k, v) in extra {
+        let _ = write!(s, ",{}:{}", json_str(k), v);
+    }
+    s.push_str("}}");
+    s
+}
+
+fn decode_error_json(id: Id, e: &DecodeError) -> String {
+    let mut extra: Vec<(&str, String)> = Vec::new();
+    match *e {
+        DecodeError::WrongDlc { expected, got, .. } => {
+            extra.push(("expected", expected.to_string()));
+            extra.push(("got", got.to_string()));
+        }
+        DecodeError::NonFinite { field } => extra.push(("field", json_str(field))),
+        DecodeError::OutOfRange { field, value } => {
+            extra.push(("field", json_str(field)));
+            extra.push(("value", value.to_string()));
+        }
+        _ => {}
+    }
+    error_json(Some(id), e.kind().as_str(), &e.to_string(), &extra)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Messages to field lists (DBC signal names from the layout tables)
+
+fn robot_fields(msg: &robot::Message) -> Decoded {
+    use robot::layout as l;
+    use robot::{Command as C, Telemetry as T};
+    let d = Decoded::new("robot", msg.def().name);
+    match *msg {
+        robot::Message::Command(C::Estop) => d.i(&l::ESTOP_MAGIC, l::ESTOP_MAGIC_VALUE),
+        robot::Message::Command(C::Twist(t)) => d
+            .f(&l::TWIST_VX, t.vx)
+            .f(&l::TWIST_VY, t.vy)
+            .f(&l::TWIST_WZ, t.wz)
+            .i(&l::TWIST_SEQ, t.seq),
+        robot::Message::Command(C::Mode(m)) => d.i(&l::MODE_REQUEST, m.raw()),
+        robot::Message::Command(C::StatusRequest) => d,
+        robot::Message::Telemetry(T::OdomPosition(o)) => d.f(&l::ODOM_X, o.x).f(&l::ODOM_Y, o.y),
+        robot::Message::Telemetry(T::OdomVelocity(o)) => d
+            .f(&l::ODOM_HEADING, o.heading)
+            .f(&l::ODOM_VX, o.vx)
+            .f(&l::ODOM_VY, o.vy)
+            .f(&l::ODOM_WZ, o.wz),
+        robot::Message::Telemetry(T::Status(s)) => d
+            .i(&l::STATUS_STATE, s.state.raw())
+            .i(&l::STATUS_FAULT, s.fault.raw())
+            .i(&l::STATUS_RX_ERRORS, s.rx_errors)
+            .i(&l::STATUS_UNKNOWN_IDS, s.unknown_ids)
+            .i(&l::STATUS_MOTORS_ONLINE, s.motors_online)
+            .i(&l::STATUS_SEQ, s.seq),
+        robot::Message::Telemetry(T::Heartbeat(h)) => d
+            .i(&l::HEARTBEAT_UPTIME, h.uptime_ms)
+            .i(&l::HEARTBEAT_STATE, h.state.raw())
+            .i(&l::HEARTBEAT_VERSION, h.protocol_version),
+    }
+}
+
+fn odrive_fields(msg: &odrive::Message) -> Decoded {
+    use odrive::layout as l;
+    use odrive::{Command as C, Feedback as F};
+    let node = msg.node().get();
+    let d =
+        Decoded::new("odrive", format!("Axis{node}_{}", msg.def().name)).extra("node", node.into());
+    match *msg {
+        odrive::Message::Command(a) => match a.msg {
+            C::Estop => d,
+            C::GetError => d.extra("remote", 1),
+            C::SetAxisState(s) => d.i(&l::REQUESTED_STATE, s.raw()),
+            C::SetControllerMode {
+                control_mode,
+                input_mode,
+            } => d
+                .i(&l::CONTROL_MODE, control_mode.raw())
+                .i(&l::INPUT_MODE, input_mode.raw()),
+            C::SetInputVel { vel, torque_ff } => {
+                d.f(&l::INPUT_VEL, vel).f(&l::INPUT_TORQUE_FF, torque_ff)
+            }
+            C::ClearErrors { identify } => d.i(&l::IDENTIFY, identify),
+        },
+        odrive::Message::Feedback(a) => match a.msg {
+            F::Heartbeat(h) => d
+                .i(&l::HB_AXIS_ERROR, h.axis_error)
+                .i(&l::HB_AXIS_STATE, h.axis_state.raw())
+                .i(&l::HB_PROCEDURE_RESULT, h.procedure_result)
+                .i(&l::HB_TRAJECTORY_DONE, h.trajectory_done),
+            F::Error {
+                active_errors,
+                disarm_reason,
+            } => d
+                .i(&l::ERR_ACTIVE, active_errors)
+                .i(&l::ERR_DISARM_REASON, disarm_reason),
+            F::EncoderEstimates { pos, vel } => d.f(&l::POS_ESTIMATE, pos).f(&l::VEL_ESTIMATE, vel),
+        },
+    }
+}
+
+fn dji_fields(msg: &dji::Message) -> Decoded {
+    use dji::layout as l;
+    match msg {
+        dji::Message::Command(c) => {
+            let mut d = Decoded::new("dji", c.group.def().name);
+            for (field, amps) in c.group.fields().iter().zip(c.amps()) {
+                d = d.f(field, amps);
+            }
+            d
+        }
+        dji::Message::Feedback(fb) => {
+            Decoded::new("dji", format!("{}_{}", l::FEEDBACK.name, fb.esc.get()))
+                .extra("esc", fb.esc.get().into())
+                .i(&l::ROTOR_ANGLE, fb.rotor_angle)
+                .i(&l::ROTOR_SPEED, fb.rotor_speed_rpm)
+                .f(&l::TORQUE_CURRENT, fb.current_amps())
+                .i(&l::TEMPERATURE, fb.temperature_c)
+        }
+    }
+}
+
+/// Any decoded message.
+enum AnyMessage {
+    Robot(robot::Message),
+    Odrive(odrive::Message),
+    Dji(dji::Message),
+}
+
+impl AnyMessage {
+    fn fields(&self) -> Decoded {
+        match self {
+            Self::Robot(m) => robot_fields(m),
+            Self::Odrive(m) => odrive_fields(m),
+            Self::Dji(m) => dji_fields(m),
+        }
+    }
+
+    fn to_can_frame(&self) -> CanFrame {
+        match self {
+            Self::Robot(m) => m.to_can_frame(),
+            Self::Odrive(m) => m.to_can_frame(),
+            Self::Dji(m) => m.to_can_frame(),
+        }
+    }
+}
+
+/// Largest ODrive node routed to the ODrive codec (the DBC covers nodes 0-3).
+const ODRIVE_MAX_NODE: u16 = 3;
+
+fn route(frame: &CanFrame, model: EscModel) -> Result<AnyMessage, DecodeError> {
+    let id = match frame.id() {
+        Id::Standard(id) => id.as_raw(),
+        Id::Extended(id) => return Err(DecodeError::ExtendedId { id: id.as_raw() }),
+    };
+    if robot::in_block(id) {
+        robot::decode(frame).map(AnyMessage::Robot)
+    } else if dji::is_dji_id(id) {
+        dji::decode(frame, model).map(AnyMessage::Dji)
+    } else if id >> odrive::layout::CMD_BITS <= ODRIVE_MAX_NODE {
+        odrive::decode(frame).map(AnyMessage::Odrive)
+    } else {
+        Err(DecodeError::UnknownId { id: frame.id() })
+    }
+}
+
+fn decode_line(line: &str, model: EscModel) -> String {
+    let frame = match parse_candump(line) {
+        Ok(f) => f,
+        Err(msg) => return error_json(None, "parse", &msg, &[("line", json_str(line))]),
+    };
+    match route(&frame, model) {
+        Ok(msg) => {
+            let d = msg.fields();
+            format!(
+                "{},\"fields\":{}}}",
+                d.head_json(frame.id()),
+                fields_json(&d.fields)
+            )
+        }
+        Err(e) => decode_error_json(frame.id(), &e),
+    }
+}
+
+fn decode_stdin(model: EscModel) -> io::Result<()> {
+    let stdin = io::stdin();
+    let mut out = io::BufWriter::new(io::stdout().lock());
+    for line in stdin.lock().lines() {
+        let line = line?;
+        if line.trim().is_empty() {
+            continue;
+        }
+        writeln!(out, "{}", decode_line(line.trim(), model))?;
+    }
+    out.flush()
+}
+
+// ---------------------------------------------------------------------------------------------
+// Golden frames
+
+fn golden_set() -> Vec<AnyMessage> {
+    use odrive::{Addressed, Command as OC, Feedback as OF};
+    use robot::{Command as RC, Telemetry as RT};
+    let node = |n| NodeId::new(n).unwrap_or(NodeId::new(0).unwrap_or_else(|| unreachable!()));
+    let esc = |n| EscId::new(n).unwrap_or_else(|| unreachable!("ESC ids 1..=8"));
+    let mut v = vec![
+        AnyMessage::Robot(robot::Message::Command(RC::Estop)),
+        AnyMessage::Robot(robot::Message::Command(RC::Twist(robot::TwistCmd {
+            vx: 0.5,
+            vy: -0.25,
+            wz: 1.0,
+            seq: 7,
+        }))),
+        AnyMessage::Robot(robot::Message::Command(RC::Twist(robot::TwistCmd {
+            vx: 32.767,
+            vy: -32.767,
+            wz: 0.0004,
+            seq: 255,
+        }))),
+        AnyMessage::Robot(robot::Message::Command(RC::Twist(robot::TwistCmd {
+            vx: -1.2345,
+            vy: 2.0,
+            wz: -2.50137,
+            seq: 0,
+        }))),
+        AnyMessage::Robot(robot::Message::Command(RC::StatusRequest)),
+        AnyMessage::Robot(robot::Message::Telemetry(RT::OdomPosition(
+            robot::OdomPosition {
+                x: 12.3456,
+                y: -0.0001,
+            },
+        ))),
+        AnyMessage::Robot(robot::Message::Telemetry(RT::OdomPosition(
+            robot::OdomPosition {
+                x: -150_000.0,
+                y: 200_000.0,
+            },
+        ))),
+        AnyMessage::Robot(robot::Message::Telemetry(RT::OdomVelocity(
+            robot::OdomVelocity {
+                heading: 3.1234,
+                vx: 0.1,
+                vy: -0.2,
+                wz: 0.3,
+            },
+        ))),
+        AnyMessage::Robot(robot::Message::Telemetry(RT::OdomVelocity(
+            robot::OdomVelocity {
+                heading: -1.2345,
+                vx: -32.767,
+                vy: 32.767,
+                wz: -0.001,
+            },
+        ))),
+        AnyMessage::Robot(robot::Message::Telemetry(RT::Heartbeat(robot::Heartbeat {
+            uptime_ms: 4_000_000_000,
+            state: RobotState::Enabled,
+            protocol_version: robot::PROTOCOL_VERSION,
+        }))),
+    ];
+    for request in [
+        ModeRequest::Disable,
+        ModeRequest::Enable,
+        ModeRequest::Reset,
+    ] {
+        v.push(AnyMessage::Robot(robot::Message::Command(RC::Mode(
+            request,
+        ))));
+    }
+    for (state, fault) in [
+        (RobotState::Disabled, Fault::None),
+        (RobotState::Fault, Fault::MotorStale),
+        (RobotState::Fault, Fault::MotorMissing),
+        (RobotState::Fault, Fault::DriveError),
+        (RobotState::Disabled, Fault::Watchdog),
+        (RobotState::Fault, Fault::Config),
+        (RobotState::Estop, Fault::None),
+    ] {
+        v.push(AnyMessage::Robot(robot::Message::Telemetry(RT::Status(
+            robot::Status {
+                state,
+                fault,
+                rx_errors: 65535,
+                unknown_ids: 513,
+                motors_online: 0b1011,
+                seq: 42,
+            },
+        ))));
+    }
+    for n in 0..=3 {
+        let cmd =
+            |msg| AnyMessage::Odrive(odrive::Message::Command(Addressed { node: node(n), msg }));
+        let fb =
+            |msg| AnyMessage::Odrive(odrive::Message::Feedback(Addressed { node: node(n), msg }));
+        v.extend([
+            cmd(OC::Estop),
+            cmd(OC::GetError),
+            cmd(OC::SetAxisState(AxisState::ClosedLoopControl)),
+            cmd(OC::SetAxisState(AxisState::Idle)),
+            cmd(OC::SetControllerMode {
+                control_mode: ControlMode::VelocityControl,
+                input_mode: InputMode::VelRamp,
+            }),
+            cmd(OC::SetControllerMode {
+                control_mode: ControlMode::VelocityControl,
+                input_mode: InputMode::Passthrough,
+            }),
+            cmd(OC::SetInputVel {
+                vel: 12.5 * f32::from(n) - 3.25,
+                torque_ff: 0.1,
+            }),
+            cmd(OC::ClearErrors { identify: n == 1 }),
+            fb(OF::Heartbeat(odrive::Heartbeat {
+                axis_error: 0x0100_0000,
+                axis_state: AxisState::ClosedLoopControl,
+                procedure_result: 3 + n,
+                trajectory_done: true,
+            })),
+            fb(OF::Error {
+                active_errors: 0x0000_1000,
+                disarm_reason: 0x8000_0001,
+            }),
+            fb(OF::EncoderEstimates {
+                pos: -1234.5678,
+                vel: 1.0e-3 * f32::from(n),
+            }),
+        ]);
+    }
+    for group in [EscGroup::Esc1To4, EscGroup::Esc5To8] {
+        v.push(AnyMessage::Dji(dji::Message::Command(
+            dji::CurrentCommand::from_amps(EscModel::C620, group, [20.0, -20.0, 1.5, -0.0006]),
+        )));
+    }
+    for n in 1..=8u8 {
+        v.push(AnyMessage::Dji(dji::Message::Feedback(dji::Feedback {
+            model: EscModel::C620,
+            esc: esc(n),
+            rotor_angle: 1023 * u16::from(n),
+            rotor_speed_rpm: 1000 - 700 * i16::from(n),
+            torque_current: -2000 * i16::from(n),
+            temperature_c: 20 + 5 * n,
+        })));
+    }
+    v
+}
+
+fn golden() -> io::Result<()> {
+    let mut out = io::BufWriter::new(io::stdout().lock());
+    for msg in golden_set() {
+        let frame = msg.to_can_frame();
+        let input = msg.fields();
+        let line = match route(&frame, EscModel::C620) {
+            Ok(decoded) => {
+                let d = decoded.fields();
+                format!(
+                    "{},\"candump\":{},\"input\":{},\"fields\":{}}}",
+                    d.head_json(frame.id()),
+                    json_str(&candump_text(&frame)),
+                    fields_json(&input.fields),
+                    fields_json(&d.fields)
+                )
+            }
+            // A golden frame the decoder rejects is a bug; print it so the tests fail loudly.
+            Err(e) => decode_error_json(frame.id(), &e),
+        };
+        writeln!(out, "{line}")?;
+    }
+    out.flush()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use firmware::protocol::ErrorKind;
+
+    #[test]
+    fn parses_candump_forms() {
+        let f = parse_candump("(1700000000.123456) vcan0 123#DEADBEEF").unwrap();
+        assert_eq!(f.data(), &[0xDE, 0xAD, 0xBE, 0xEF]);
+        assert_eq!(candump_text(&f), "123#DEADBEEF");
+        let f = parse_candump("301#F4.01.06.FF.E8.03.07.00").unwrap();
+        assert_eq!(f.dlc(), 8);
+        let f = parse_candump("023#R8").unwrap();
+        assert!(f.is_remote_frame());
+        assert_eq!(candump_text(&f), "023#R8");
+        let f = parse_candump("12345678#").unwrap();
+        assert!(f.is_extended());
+        assert!(parse_candump("123#ABC").is_err());
+        assert!(parse_candump("823#00").is_err());
+        assert!(parse_candump("123#000000000000000000").is_err());
+        assert!(parse_candump("123##1").is_err());
+        assert!(parse_candump("hello").is_err());
+    }
+
+    #[test]
+    fn decode_line_reports_errors_and_values() {
+        let ok = decode_line("301#F40106FFE8030700", EscModel::C620);
+        assert!(ok.contains("\"message\":\"TWIST_CMD\""), "{ok}");
+        assert!(ok.contains("\"vx\":0.5"), "{ok}");
+        let err = decode_line("301#F40106FFE80307", EscModel::C620);
+        assert!(err.contains("\"kind\":\"wrong_dlc\""), "{err}");
+        let err = decode_line("garbage", EscModel::C620);
+        assert!(err.contains("\"kind\":\"parse\""), "{err}");
+        assert_eq!(ErrorKind::WrongDlc.as_str(), "wrong_dlc");
+    }
+
+    #[test]
+    fn every_golden_frame_decodes() {
+        for msg in golden_set() {
+            let frame = msg.to_can_frame();
+            assert!(
+                route(&frame, EscModel::C620).is_ok(),
+                "{}",
+                candump_text(&frame)
+            );
+        }
+    }
+}

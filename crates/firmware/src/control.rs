@@ -1,0 +1,798 @@
+//! The control core: a deterministic, fixed-step state machine from received frames and the
+//! time to frames to send.
+//!
+//! # One period
+//!
+//! ```text
+//! on_frame ─► decode (typed; errors counted) ─► robot commands │ motor feedback (encoders, speeds)
+//! step(now) ─► motor health (missing / stale / drive error → fault)
+//!           ─► command watchdog (expired → stop ramp → disable, latched)
+//!           ─► acceleration limits ─► inverse kinematics ─► desaturation
+//!           ─► per-wheel velocity PI (current drives) │ velocity setpoints (ODrive)
+//!           ─► odometry (encoder increments → forward kinematics → SE(2) exp)
+//!           ─► frames: motor commands every period, odometry / status / heartbeat at their rates
+//! ```
+//!
+//! # States
+//!
+//! | state | motors | leaves on |
+//! |---|---|---|
+//! | `Disabled` | no torque | `MODE_CMD enable` → `Enabled` |
+//! | `Enabled` | driven | `disable`, watchdog stop completed → `Disabled`; fault → `Fault`; e-stop → `Estop` |
+//! | `Fault` | no torque | `MODE_CMD reset` → `Disabled` |
+//! | `Estop` | no torque | `MODE_CMD reset` → `Disabled` |
+//!
+//! Only a valid `TWIST_CMD` received while enabled feeds the watchdog: status requests, mode
+//! commands and rejected twists never do. After an enable the robot holds still until a
+//! twist command arrives *after* the enable (a fresh command), so a stale setpoint can never
+//! restart motion. When the watchdog expires the commanded twist ramps to zero at
+//! [`Limits::stop_linear_decel`](crate::config::Limits) and the state then drops to
+//! `Disabled` with fault reason `Watchdog` reported: motion resumes only after an explicit
+//! enable and a fresh command.
+//!
+//! The core reads no clock and allocates nothing: time comes in as [`Instant`], frames go out
+//! through a fixed-capacity [`Outbox`]. The same inputs give the same frames, bit for bit, on
+//! every target.
+
+use embedded_can::Frame;
+use kinematics::{
+    ChassisVelocity, Encoder, EncoderConfig, MecanumKinematics, Odometry, Pose2, Real, WheelDeltas,
+    WheelSpeeds,
+};
+
+use crate::config::{Config, ConfigError, Drive, Gains, Limits};
+use crate::frame::CanFrame;
+use crate::protocol::dji::{self, CurrentCommand, EscGroup, EscId, EscModel};
+use crate::protocol::odrive::{self, AxisState, ControlMode, InputMode, NodeId};
+use crate::protocol::robot::{self, Command, ModeRequest, RobotState, TwistCmd};
+use crate::protocol::{DecodeError, RxErrorCounters};
+
+pub use crate::protocol::robot::Fault;
+
+/// A point in time, microseconds since an arbitrary epoch; monotonic. The core never reads a
+/// clock: the adapter (runner, board, simulator) passes it in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
+pub struct Instant(u64);
+
+impl Instant {
+    /// From microseconds.
+    #[must_use]
+    pub const fn from_micros(us: u64) -> Self {
+        Self(us)
+    }
+
+    /// From milliseconds.
+    #[must_use]
+    pub const fn from_millis(ms: u64) -> Self {
+        Self(ms * 1000)
+    }
+
+    /// Microseconds since the epoch.
+    #[must_use]
+    pub const fn as_micros(self) -> u64 {
+        self.0
+    }
+
+    /// Microseconds from `earlier` to `self`, zero if `earlier` is later.
+    #[must_use]
+    pub const fn micros_since(self, earlier: Self) -> u64 {
+        self.0.saturating_sub(earlier.0)
+    }
+}
+
+/// Most frames one [`Controller::step`] can emit: two DJI command frames or four ODrive axes
+/// times three commands, plus odometry (2), status and heartbeat (2).
+pub const OUTBOX_CAPACITY: usize = 20;
+
+/// The frames one step emits, in the order they should be sent.
+pub type Outbox = heapless::Vec<CanFrame, OUTBOX_CAPACITY>;
+
+/// Why [`Controller::new`] refused a configuration.
+pub type Error = ConfigError;
+
+/// What one wheel's motor has told us.
+#[derive(Debug, Clone, Copy)]
+struct Motor {
+    /// Time of the last feedback frame that counts for staleness.
+    last_seen: Option<Instant>,
+    /// DJI: rotor angle integrator. Unused for ODrive.
+    encoder: Encoder<f32>,
+    /// ODrive: last position estimate, motor turns.
+    last_pos: Option<f32>,
+    /// Wheel angle accumulated since the last step, rad (robot-forward positive).
+    pending: f32,
+    /// Latest wheel speed, rad/s (robot-forward positive).
+    speed: f32,
+    /// ODrive: latest heartbeat.
+    axis_error: u32,
+    axis_state: Option<AxisState>,
+    /// Velocity PI integrator, A.
+    integral: f32,
+}
+
+/// Snapshot of the controller for logs and tests.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Snapshot {
+    /// State.
+    pub state: RobotState,
+    /// Current fault, or the reason of the last watchdog stop.
+    pub fault: Fault,
+    /// Odometry pose.
+    pub pose: Pose2<f32>,
+    /// Body velocity measured by the wheels (forward kinematics).
+    pub measured: ChassisVelocity<f32>,
+    /// Body velocity being commanded after acceleration limits.
+    pub commanded: ChassisVelocity<f32>,
+    /// Wheel speed setpoints, rad/s.
+    pub wheel_setpoints: WheelSpeeds<f32, 4>,
+    /// Measured wheel speeds, rad/s.
+    pub wheel_speeds: WheelSpeeds<f32, 4>,
+    /// Motor currents commanded, A (current-mode drives; zero otherwise).
+    pub currents: [f32; 4],
+    /// Bit i set when wheel i's motor is online.
+    pub motors_online: u8,
+    /// Rejected frames by kind.
+    pub rx_errors: RxErrorCounters,
+    /// Steps run.
+    pub steps: u64,
+}
+
+/// The drive controller. See the [module documentation](self).
+#[derive(Debug, Clone)]
+pub struct Controller {
+    config: Config,
+    kin: MecanumKinematics<f32, 4>,
+    /// Per-wheel sign: -1 where the motor is mirrored.
+    sign: [f32; 4],
+    /// Seconds per control period.
+    dt: f32,
+    /// Expected feedback period of the motors, µs (staleness reference).
+    feedback_period_us: u64,
+    odom_every: u64,
+    status_every: u64,
+    setpoint_every: u64,
+
+    state: RobotState,
+    fault: Fault,
+    /// Time of the last valid twist command accepted while enabled (watchdog).
+    last_command: Option<Instant>,
+    target: ChassisVelocity<f32>,
+    commanded: ChassisVelocity<f32>,
+    /// Watchdog expired: ramping down, then disable.
+    stopping: bool,
+    /// ODrive: state requests owed to the drives (sent on the next step).
+    axis_request: Option<AxisState>,
+
+    motors: [Motor; 4],
+    odometry: Odometry<f32>,
+    measured: ChassisVelocity<f32>,
+    setpoints: WheelSpeeds<f32, 4>,
+    currents: [f32; 4],
+    rx_errors: RxErrorCounters,
+
+    boot: Option<Instant>,
+    steps: u64,
+    status_requested: bool,
+    status_seq: u8,
+}
+
+impl Controller {
+    /// A controller for a validated configuration, disabled, at pose zero.
+    ///
+    /// # Errors
+    /// The first [`ConfigError`] of [`Config::validate`].
+    pub fn new(config: &Config) -> Result<Self, Error> {
+        config.validate()?;
+        let kin = config.kinematics().map_err(|_| ConfigError {
+            field: "geometry",
+            value: f64::NAN,
+            expected: "a valid layout",
+        })?;
+        let t = &config.timing;
+        let (inverted, feedback_period_us, encoder_cfg) = match config.drive {
+            Drive::Dji {
+                model,
+                gear_ratio,
+                inverted,
+                ..
+            } => {
+                let mut e = match model {
+                    EscModel::C620 => EncoderConfig::dji_m3508(false),
+                    EscModel::C610 => EncoderConfig::dji_m2006(false),
+                };
+                e.gear_ratio = gear_ratio;
+                // DJI ESCs send feedback every millisecond.
+                (inverted, 1_000, e)
+            }
+            Drive::Odrive { inverted, .. } => {
+                // Encoder estimates every 10 ms (ODrive default); the encoder is unused.
+                (inverted, 10_000, EncoderConfig::dji_m3508(false))
+            }
+        };
+        let encoder = Encoder::new(&encoder_cfg).map_err(|_| ConfigError {
+            field: "drive.gear_ratio",
+            value: f64::from(encoder_cfg.gear_ratio),
+            expected: "a finite number > 0",
+        })?;
+        let motor = Motor {
+            last_seen: None,
+            encoder,
+            last_pos: None,
+            pending: 0.0,
+            speed: 0.0,
+            axis_error: 0,
+            axis_state: None,
+            integral: 0.0,
+        };
+        Ok(Self {
+            config: *config,
+            kin,
+            sign: inverted.map(|i| if i { -1.0 } else { 1.0 }),
+            dt: 1.0 / t.control_hz as f32,
+            feedback_period_us,
+            odom_every: u64::from(t.control_hz / t.odometry_hz),
+            status_every: u64::from(t.control_hz / t.status_hz),
+            setpoint_every: u64::from(t.control_hz / t.setpoint_hz),
+            state: RobotState::Disabled,
+            fault: Fault::None,
+            last_command: None,
+            target: ChassisVelocity::default(),
+            commanded: ChassisVelocity::default(),
+            stopping: false,
+            axis_request: None,
+            motors: [motor; 4],
+            odometry: Odometry::new(Pose2::default()),
+            measured: ChassisVelocity::default(),
+            setpoints: WheelSpeeds::zero(),
+            currents: [0.0; 4],
+            rx_errors: RxErrorCounters::new(),
+            boot: None,
+            steps: 0,
+            status_requested: false,
+            status_seq: 0,
+        })
+    }
+
+    /// The configuration in force.
+    #[must_use]
+    pub const fn config(&self) -> &Config {
+        &self.config
+    }
+
+    /// The control period, s.
+    #[must_use]
+    pub const fn period(&self) -> f32 {
+        self.dt
+    }
+
+    /// The control period, µs.
+    #[must_use]
+    pub const fn period_micros(&self) -> u64 {
+        1_000_000 / self.config.timing.control_hz as u64
+    }
+
+    /// Current state.
+    #[must_use]
+    pub const fn state(&self) -> RobotState {
+        self.state
+    }
+
+    /// Current fault (or the last watchdog stop's reason).
+    #[must_use]
+    pub const fn fault(&self) -> Fault {
+        self.fault
+    }
+
+    /// The odometry pose.
+    #[must_use]
+    pub const fn pose(&self) -> Pose2<f32> {
+        self.odometry.pose()
+    }
+
+    /// Sets the odometry pose (e.g. from a localisation fix).
+    pub fn set_pose(&mut self, pose: Pose2<f32>) {
+        self.odometry.set_pose(pose);
+    }
+
+    /// Everything a log or a test wants to see.
+    #[must_use]
+    pub fn snapshot(&self) -> Snapshot {
+        Snapshot {
+            state: self.state,
+            fault: self.fault,
+            pose: self.odometry.pose(),
+            measured: self.measured,
+            commanded: self.commanded,
+            wheel_setpoints: self.setpoints,
+            wheel_speeds: WheelSpeeds(self.motors.map(|m| m.speed)),
+            currents: self.currents,
+            motors_online: self.motors_online(),
+            rx_errors: self.rx_errors,
+            steps: self.steps,
+        }
+    }
+
+    /// Takes one received frame. Call for every frame between two steps, in arrival order.
+    pub fn on_frame<F: Frame>(&mut self, now: Instant, frame: &F) {
+        if let Err(e) = self.dispatch(now, frame) {
+            self.rx_errors.record(&e);
+        }
+    }
+
+    fn dispatch<F: Frame>(&mut self, now: Instant, frame: &F) -> Result<(), DecodeError> {
+        let raw_id = match frame.id() {
+            embedded_can::Id::Standard(id) => id.as_raw(),
+            embedded_can::Id::Extended(id) => {
+                return Err(DecodeError::ExtendedId { id: id.as_raw() });
+            }
+        };
+        if (robot::layout::ID_FIRST..=robot::layout::ID_LAST).contains(&raw_id) {
+            let cmd = Command::decode(frame)?;
+            self.on_command(now, cmd)
+        } else {
+            match self.config.drive {
+                Drive::Dji { model, .. } => self.on_dji(now, frame, model),
+                Drive::Odrive { .. } => self.on_odrive(now, frame),
+            }
+        }
+    }
+
+    fn on_command(&mut self, now: Instant, cmd: Command) -> Result<(), DecodeError> {
+        match cmd {
+            Command::Estop => {
+                self.state = RobotState::Estop;
+                self.halt();
+            }
+            Command::Twist(t) => {
+                let t = self.check_twist(t)?;
+                if self.state == RobotState::Enabled && !self.stopping {
+                    self.target = t;
+                    self.last_command = Some(now);
+                }
+            }
+            Command::Mode(ModeRequest::Enable) => {
+                if self.state == RobotState::Disabled {
+                    self.state = RobotState::Enabled;
+                    self.fault = Fault::None;
+                    self.halt();
+                    self.axis_request = self.odrive_axis(AxisState::ClosedLoopControl);
+                }
+            }
+            Command::Mode(ModeRequest::Disable) => {
+                if self.state == RobotState::Enabled {
+                    self.state = RobotState::Disabled;
+                    self.halt();
+                }
+            }
+            Command::Mode(ModeRequest::Reset) => {
+                if matches!(self.state, RobotState::Fault | RobotState::Estop) {
+                    self.state = RobotState::Disabled;
+                    self.fault = Fault::None;
+                    self.halt();
+                }
+            }
+            Command::StatusRequest => self.status_requested = true,
+        }
+        Ok(())
+    }
+
+    /// Rejects twists beyond the configured limits (the decoder already rejected the rest).
+    fn check_twist(&self, t: TwistCmd) -> Result<ChassisVelocity<f32>, DecodeError> {
+        let l = &self.config.limits;
+        let speed = (t.vx * t.vx + t.vy * t.vy).sqrt_libm();
+        if !(t.vx.is_finite() && t.vy.is_finite() && t.wz.is_finite()) {
+            return Err(DecodeError::NonFinite { field: "twist" });
+        }
+        if speed > l.max_linear_speed {
+            return Err(DecodeError::OutOfRange {
+                field: "vx,vy",
+                value: (speed * 1000.0) as i64,
+            });
+        }
+        if t.wz.abs() > l.max_angular_speed {
+            return Err(DecodeError::OutOfRange {
+                field: "wz",
+                value: (t.wz * 1000.0) as i64,
+            });
+        }
+        Ok(ChassisVelocity::new(t.vx, t.vy, t.wz))
+    }
+
+    /// Drops every motion target and the watchdog; the motors get zero on the next step.
+    fn halt(&mut self) {
+        self.target = ChassisVelocity::default();
+        self.commanded = ChassisVelocity::default();
+        self.last_command = None;
+        self.stopping = false;
+        for m in &mut self.motors {
+            m.integral = 0.0;
+        }
+        if self.state != RobotState::Enabled {
+            self.axis_request = self.odrive_axis(AxisState::Idle);
+        }
+    }
+
+    fn odrive_axis(&self, s: AxisState) -> Option<AxisState> {
+        matches!(self.config.drive, Drive::Odrive { .. }).then_some(s)
+    }
+
+    fn on_dji<F: Frame>(
+        &mut self,
+        now: Instant,
+        frame: &F,
+        model: EscModel,
+    ) -> Result<(), DecodeError> {
+        let Drive::Dji {
+            esc_ids,
+            gear_ratio,
+            ..
+        } = self.config.drive
+        else {
+            return Ok(());
+        };
+        let fb = dji::Feedback::decode(frame, model)?;
+        let Some(wheel) = esc_ids.iter().position(|&id| id == fb.esc.get()) else {
+            return Err(unknown(frame));
+        };
+        let sign = self.sign[wheel];
+        let m = &mut self.motors[wheel];
+        // The decoder has checked the angle range, so the encoder accepts it.
+        let counts = m.encoder.update(u32::from(fb.rotor_angle)).unwrap_or(0);
+        m.pending += sign * m.encoder.counts_to_radians(counts);
+        m.speed = sign * fb.rotor_speed_rad_s() / gear_ratio;
+        m.last_seen = Some(now);
+        Ok(())
+    }
+
+    fn on_odrive<F: Frame>(&mut self, now: Instant, frame: &F) -> Result<(), DecodeError> {
+        let Drive::Odrive {
+            node_ids,
+            gear_ratio,
+            ..
+        } = self.config.drive
+        else {
+            return Ok(());
+        };
+        let fb = odrive::Feedback::decode(frame)?;
+        let Some(wheel) = node_ids.iter().position(|&id| id == fb.node.get()) else {
+            return Err(unknown(frame));
+        };
+        let sign = self.sign[wheel];
+        let m = &mut self.motors[wheel];
+        match fb.msg {
+            odrive::Feedback::Heartbeat(hb) => {
+                m.axis_error = hb.axis_error;
+                m.axis_state = Some(hb.axis_state);
+            }
+            odrive::Feedback::EncoderEstimates { pos, vel } => {
+                let turns_to_rad = core::f32::consts::TAU / gear_ratio;
+                if let Some(last) = m.last_pos {
+                    m.pending += sign * (pos - last) * turns_to_rad;
+                }
+                m.last_pos = Some(pos);
+                m.speed = sign * vel * turns_to_rad;
+                m.last_seen = Some(now);
+            }
+            odrive::Feedback::Error { active_errors, .. } => {
+                m.axis_error |= active_errors;
+            }
+        }
+        Ok(())
+    }
+
+    fn motors_online(&self) -> u8 {
+        self.motors.iter().enumerate().fold(0, |bits, (i, m)| {
+            bits | (u8::from(m.last_seen.is_some()) << i)
+        })
+    }
+
+    /// Runs one control period at time `now` and returns the frames to send.
+    ///
+    /// Call it once per period (`1 / timing.control_hz`) with a monotonic `now`; frames
+    /// received since the previous call must have been passed to [`on_frame`](Self::on_frame).
+    pub fn step(&mut self, now: Instant) -> Outbox {
+        let boot = *self.boot.get_or_insert(now);
+        self.check_motors(now, boot);
+        self.run_watchdog(now);
+        self.ramp();
+        self.integrate_odometry();
+
+        let mut out = Outbox::new();
+        let enabled = self.state == RobotState::Enabled;
+        self.setpoints = if enabled {
+            self.kin
+                .inverse(self.commanded)
+                .desaturate(self.config.limits.max_wheel_speed)
+        } else {
+            WheelSpeeds::zero()
+        };
+        match self.config.drive {
+            Drive::Dji { model, esc_ids, .. } => self.emit_dji(&mut out, model, esc_ids, enabled),
+            Drive::Odrive {
+                node_ids,
+                gear_ratio,
+                vel_ramp,
+                ..
+            } => self.emit_odrive(&mut out, node_ids, gear_ratio, vel_ramp, enabled),
+        }
+        self.emit_telemetry(&mut out, now, boot);
+        self.steps += 1;
+        out
+    }
+
+    /// Disables the drive and returns the frames that leave the motors safe: zero current for
+    /// DJI ESCs; zero velocity and the idle state for ODrive axes. For a runner that is about
+    /// to exit (SIGINT/SIGTERM): send these, then stop.
+    pub fn shutdown(&mut self) -> Outbox {
+        if self.state == RobotState::Enabled {
+            self.state = RobotState::Disabled;
+        }
+        self.halt();
+        self.axis_request = self.odrive_axis(AxisState::Idle);
+        self.setpoints = WheelSpeeds::zero();
+        let mut out = Outbox::new();
+        match self.config.drive {
+            Drive::Dji { model, esc_ids, .. } => self.emit_dji(&mut out, model, esc_ids, false),
+            Drive::Odrive {
+                node_ids,
+                gear_ratio,
+                vel_ramp,
+                ..
+            } => self.emit_odrive(&mut out, node_ids, gear_ratio, vel_ramp, false),
+        }
+        out
+    }
+
+    fn check_motors(&mut self, now: Instant, boot: Instant) {
+        let t = &self.config.timing;
+        let stale_us = self.feedback_period_us * u64::from(t.stale_periods);
+        let boot_us = u64::from(t.boot_timeout_ms) * 1000;
+        let mut fault = Fault::None;
+        for m in &self.motors {
+            match m.last_seen {
+                None if now.micros_since(boot) > boot_us => fault = Fault::MotorMissing,
+                Some(seen) if now.micros_since(seen) > stale_us => fault = Fault::MotorStale,
+                _ if m.axis_error != 0 => fault = Fault::DriveError,
+                _ => {}
+            }
+            if fault != Fault::None {
+                break;
+            }
+        }
+        if fault != Fault::None && matches!(self.state, RobotState::Disabled | RobotState::Enabled)
+        {
+            self.state = RobotState::Fault;
+            self.fault = fault;
+            self.halt();
+        }
+    }
+
+    fn run_watchdog(&mut self, now: Instant) {
+        if self.state != RobotState::Enabled || self.stopping {
+            return;
+        }
+        let timeout_us = u64::from(self.config.timing.command_timeout_ms) * 1000;
+        if let Some(last) = self.last_command
+            && now.micros_since(last) > timeout_us
+        {
+            self.stopping = true;
+            self.fault = Fault::Watchdog;
+            self.target = ChassisVelocity::default();
+        }
+    }
+
+    /// Moves the commanded twist towards the target within the acceleration limits (the stop
+    /// deceleration while the watchdog stop runs), and completes a watchdog stop.
+    fn ramp(&mut self) {
+        if self.state != RobotState::Enabled {
+            self.commanded = ChassisVelocity::default();
+            return;
+        }
+        let l: &Limits = &self.config.limits;
+        let (lin, ang) = if self.stopping {
+            (l.stop_linear_decel, l.stop_angular_decel)
+        } else {
+            (l.max_linear_accel, l.max_angular_accel)
+        };
+        let (dvx, dvy) = (
+            self.target.vx - self.commanded.vx,
+            self.target.vy - self.commanded.vy,
+        );
+        let dv = (dvx * dvx + dvy * dvy).sqrt_libm();
+        let max_dv = lin * self.dt;
+        if dv <= max_dv {
+            self.commanded.vx = self.target.vx;
+            self.commanded.vy = self.target.vy;
+        } else {
+            let k = max_dv / dv;
+            self.commanded.vx += dvx * k;
+            self.commanded.vy += dvy * k;
+        }
+        let dw = self.target.wz - self.commanded.wz;
+        let max_dw = ang * self.dt;
+        self.commanded.wz = if dw.abs() <= max_dw {
+            self.target.wz
+        } else {
+            self.commanded.wz + max_dw.copysign(dw)
+        };
+        if self.stopping && self.commanded == ChassisVelocity::default() {
+            // Stop complete: disable, keep `Watchdog` as the reason until the next enable.
+            self.state = RobotState::Disabled;
+            self.stopping = false;
+            self.last_command = None;
+            self.axis_request = self.odrive_axis(AxisState::Idle);
+        }
+    }
+
+    fn integrate_odometry(&mut self) {
+        let deltas = WheelDeltas(self.motors.map(|m| m.pending));
+        for m in &mut self.motors {
+            m.pending = 0.0;
+        }
+        self.odometry.update(&self.kin, &deltas);
+        self.measured = self.kin.forward(&WheelSpeeds(self.motors.map(|m| m.speed)));
+    }
+
+    fn emit_dji(&mut self, out: &mut Outbox, model: EscModel, esc_ids: [u8; 4], enabled: bool) {
+        let g: Gains = self.config.gains;
+        let max = self.config.limits.max_current;
+        let mut groups = [
+            CurrentCommand::zero(model, EscGroup::Esc1To4),
+            CurrentCommand::zero(model, EscGroup::Esc5To8),
+        ];
+        let mut used = [false; 2];
+        for (wheel, &esc_id) in esc_ids.iter().enumerate() {
+            let current = if enabled {
+                pi_step(
+                    &mut self.motors[wheel],
+                    self.setpoints.0[wheel],
+                    &g,
+                    max,
+                    self.dt,
+                )
+            } else {
+                self.motors[wheel].integral = 0.0;
+                0.0
+            };
+            self.currents[wheel] = current;
+            // Validated at construction: every id is in 1..=8.
+            let Some(esc) = EscId::new(esc_id) else {
+                continue;
+            };
+            let gi = usize::from(esc.group() == EscGroup::Esc5To8);
+            used[gi] = true;
+            groups[gi].raw[esc.slot()] = model.amps_to_raw(self.sign[wheel] * current);
+        }
+        for (cmd, used) in groups.iter().zip(used) {
+            if used {
+                push(out, cmd.to_can_frame());
+            }
+        }
+    }
+
+    fn emit_odrive(
+        &mut self,
+        out: &mut Outbox,
+        node_ids: [u8; 4],
+        gear_ratio: f32,
+        vel_ramp: bool,
+        enabled: bool,
+    ) {
+        self.currents = [0.0; 4];
+        let nodes = node_ids.map(NodeId::new);
+        if let Some(state) = self.axis_request.take() {
+            for node in nodes.iter().flatten() {
+                if state == AxisState::ClosedLoopControl {
+                    let mode = odrive::Command::SetControllerMode {
+                        control_mode: ControlMode::VelocityControl,
+                        input_mode: if vel_ramp {
+                            InputMode::VelRamp
+                        } else {
+                            InputMode::Passthrough
+                        },
+                    };
+                    push(out, mode.to_can_frame(*node));
+                }
+                push(
+                    out,
+                    odrive::Command::SetInputVel {
+                        vel: 0.0,
+                        torque_ff: 0.0,
+                    }
+                    .to_can_frame(*node),
+                );
+                push(
+                    out,
+                    odrive::Command::SetAxisState(state).to_can_frame(*node),
+                );
+            }
+        }
+        if enabled && self.steps.is_multiple_of(self.setpoint_every) {
+            let rad_to_turns = gear_ratio / core::f32::consts::TAU;
+            for (wheel, node) in nodes.iter().enumerate() {
+                if let Some(node) = node {
+                    let vel = self.sign[wheel] * self.setpoints.0[wheel] * rad_to_turns;
+                    let cmd = odrive::Command::SetInputVel {
+                        vel,
+                        torque_ff: 0.0,
+                    };
+                    push(out, cmd.to_can_frame(*node));
+                }
+            }
+        }
+    }
+
+    fn emit_telemetry(&mut self, out: &mut Outbox, now: Instant, boot: Instant) {
+        if self.steps.is_multiple_of(self.odom_every) {
+            let p = self.odometry.pose();
+            push(
+                out,
+                robot::Telemetry::OdomPosition(robot::OdomPosition { x: p.x, y: p.y })
+                    .to_can_frame(),
+            );
+            push(
+                out,
+                robot::Telemetry::OdomVelocity(robot::OdomVelocity {
+                    heading: p.heading,
+                    vx: self.measured.vx,
+                    vy: self.measured.vy,
+                    wz: self.measured.wz,
+                })
+                .to_can_frame(),
+            );
+        }
+        let periodic = self.steps.is_multiple_of(self.status_every);
+        if periodic || self.status_requested {
+            self.status_requested = false;
+            let e = &self.rx_errors;
+            let rejected = e.total().saturating_sub(e.unknown_id);
+            push(
+                out,
+                robot::Telemetry::Status(robot::Status {
+                    state: self.state,
+                    fault: self.fault,
+                    rx_errors: u16::try_from(rejected).unwrap_or(u16::MAX),
+                    unknown_ids: u16::try_from(e.unknown_id).unwrap_or(u16::MAX),
+                    motors_online: self.motors_online(),
+                    seq: self.status_seq,
+                })
+                .to_can_frame(),
+            );
+            self.status_seq = self.status_seq.wrapping_add(1);
+        }
+        if periodic {
+            let uptime_ms = now.micros_since(boot) / 1000;
+            push(
+                out,
+                robot::Telemetry::Heartbeat(robot::Heartbeat {
+                    uptime_ms: u32::try_from(uptime_ms).unwrap_or(u32::MAX),
+                    state: self.state,
+                    protocol_version: robot::PROTOCOL_VERSION,
+                })
+                .to_can_frame(),
+            );
+        }
+    }
+}
+
+/// One step of the wheel velocity PI with conditional integration (anti-windup): the
+/// integrator only moves when the output is not saturated, or when the error would pull it
+/// back out of saturation.
+fn pi_step(m: &mut Motor, setpoint: f32, g: &Gains, max: f32, dt: f32) -> f32 {
+    let error = setpoint - m.speed;
+    let unclamped = g.kv * setpoint + g.kp * error + m.integral + g.ki * error * dt;
+    let saturated_same_way = unclamped.abs() > max && (unclamped > 0.0) == (error > 0.0);
+    if !saturated_same_way {
+        m.integral = (m.integral + g.ki * error * dt).clamp(-max, max);
+    }
+    (g.kv * setpoint + g.kp * error + m.integral).clamp(-max, max)
+}
+
+fn push(out: &mut Outbox, frame: CanFrame) {
+    // OUTBOX_CAPACITY covers the largest step; a full outbox drops the frame rather than panic.
+    let _ = out.push(frame);
+}
+
+fn unknown<F: Frame>(frame: &F) -> DecodeError {
+    DecodeError::UnknownId { id: frame.id() }
+}

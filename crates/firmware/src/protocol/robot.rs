@@ -1,0 +1,604 @@
+//! The robot's own protocol: twist setpoints in; odometry, status and heartbeat out.
+//!
+//! # The protocol
+//!
+//! Defined by `dbc/mecanum_robot.dbc` (the file is the specification; this module follows
+//! it). CAN 2.0A standard ids, little-endian ("Intel") fields, in the block `0x300..=0x31F`,
+//! chosen to stay clear of ODrive nodes 0-3 (`0x000..=0x07F`), CANopen (`0x000..=0x0FF`,
+//! `0x580..=0x77F`) and DJI ESCs (`0x1FF..=0x20B`). A lower id wins arbitration, so the
+//! e-stop is the block's lowest id.
+//!
+//! | id | message | dir | DLC | fields |
+//! |---|---|---|---|---|
+//! | `0x300` | `ESTOP` | host → robot | 1 | `magic` u8, must be `0xE5` |
+//! | `0x301` | `TWIST_CMD` | host → robot | 8 | `vx`, `vy` i16 0.001 m/s; `wz` i16 0.001 rad/s; `seq` u8; reserved u8 |
+//! | `0x302` | `MODE_CMD` | host → robot | 1 | `request` u8: 0 disable, 1 enable, 2 reset |
+//! | `0x303` | `STATUS_REQ` | host → robot | 0 | asks for an immediate `STATUS` |
+//! | `0x310` | `ODOM_POSITION` | robot → host | 8 | `x`, `y` i32 0.0001 m (odometry frame) |
+//! | `0x311` | `ODOM_VELOCITY` | robot → host | 8 | `heading` i16 0.0001 rad; `vx`, `vy` i16 0.001 m/s; `wz` i16 0.001 rad/s |
+//! | `0x312` | `STATUS` | robot → host | 8 | `state` u8, `fault` u8, `rx_errors` u16, `unknown_ids` u16, `motors_online` u8, `seq` u8 |
+//! | `0x31F` | `HEARTBEAT` | robot → host | 8 | `uptime_ms` u32, `state` u8, `protocol_version` u8 (= 1), reserved u16 |
+//!
+//! Velocities are in the body frame (x forward, y left, yaw counter-clockwise positive).
+//! The raw value `-32768` of the i16 velocity fields is reserved as "invalid" and rejected,
+//! so every range is symmetric (±32.767). `heading` is in `-π..=π` (raw `±31416`).
+//! `STATUS_REQ` never counts as a motion command. Reserved bytes are sent as 0 and ignored
+//! on receipt. Values of `state`, `fault` and `request` not listed are reserved for later
+//! versions and rejected.
+//!
+//! # Encoding and decoding
+//!
+//! Messages hold SI values ([`TwistCmd`] in m/s and rad/s, ...). Encoding rounds to the
+//! nearest raw value and saturates at the field's range; a NaN is sent as 0 and infinities
+//! saturate, so encoding never fails and never panics. Decoding returns SI values or a
+//! [`DecodeError`].
+
+use embedded_can::{Frame, StandardId};
+
+use super::error::DecodeError;
+use super::wire::{self, Payload};
+use crate::frame::CanFrame;
+
+/// The protocol version this module implements, sent in [`Heartbeat::protocol_version`].
+pub const PROTOCOL_VERSION: u8 = 1;
+
+/// The frame layout: the Rust mirror of `dbc/mecanum_robot.dbc`. Every id, DLC, offset,
+/// scale and range the codec uses is here.
+pub mod layout {
+    use crate::protocol::wire::{ByteOrder::Little, Field, MessageDef, WireType::*};
+
+    /// First id of the block.
+    pub const ID_FIRST: u16 = 0x300;
+    /// Last id of the block.
+    pub const ID_LAST: u16 = 0x31F;
+
+    /// `ESTOP`, host → robot.
+    pub const ESTOP: MessageDef = MessageDef {
+        name: "ESTOP",
+        id: 0x300,
+        dlc: 1,
+    };
+    /// `TWIST_CMD`, host → robot.
+    pub const TWIST_CMD: MessageDef = MessageDef {
+        name: "TWIST_CMD",
+        id: 0x301,
+        dlc: 8,
+    };
+    /// `MODE_CMD`, host → robot.
+    pub const MODE_CMD: MessageDef = MessageDef {
+        name: "MODE_CMD",
+        id: 0x302,
+        dlc: 1,
+    };
+    /// `STATUS_REQ`, host → robot.
+    pub const STATUS_REQ: MessageDef = MessageDef {
+        name: "STATUS_REQ",
+        id: 0x303,
+        dlc: 0,
+    };
+    /// `ODOM_POSITION`, robot → host.
+    pub const ODOM_POSITION: MessageDef = MessageDef {
+        name: "ODOM_POSITION",
+        id: 0x310,
+        dlc: 8,
+    };
+    /// `ODOM_VELOCITY`, robot → host.
+    pub const ODOM_VELOCITY: MessageDef = MessageDef {
+        name: "ODOM_VELOCITY",
+        id: 0x311,
+        dlc: 8,
+    };
+    /// `STATUS`, robot → host.
+    pub const STATUS: MessageDef = MessageDef {
+        name: "STATUS",
+        id: 0x312,
+        dlc: 8,
+    };
+    /// `HEARTBEAT`, robot → host.
+    pub const HEARTBEAT: MessageDef = MessageDef {
+        name: "HEARTBEAT",
+        id: 0x31F,
+        dlc: 8,
+    };
+
+    /// The e-stop magic byte.
+    pub const ESTOP_MAGIC_VALUE: u8 = 0xE5;
+    /// `ESTOP.magic`: only [`ESTOP_MAGIC_VALUE`] is accepted.
+    pub const ESTOP_MAGIC: Field = Field::int("magic", 0, U8, Little)
+        .range(ESTOP_MAGIC_VALUE as i64, ESTOP_MAGIC_VALUE as i64);
+
+    /// Linear velocity LSB, m/s.
+    pub const LINEAR_SCALE: f64 = 0.001;
+    /// Angular velocity LSB, rad/s.
+    pub const ANGULAR_SCALE: f64 = 0.001;
+    /// Symmetric raw limit of the i16 velocity fields (-32768 is reserved).
+    pub const VEL_RAW_MAX: i64 = 32767;
+
+    /// `TWIST_CMD.vx`, m/s.
+    pub const TWIST_VX: Field = Field::int("vx", 0, I16, Little)
+        .scaled(LINEAR_SCALE)
+        .range(-VEL_RAW_MAX, VEL_RAW_MAX);
+    /// `TWIST_CMD.vy`, m/s.
+    pub const TWIST_VY: Field = Field::int("vy", 2, I16, Little)
+        .scaled(LINEAR_SCALE)
+        .range(-VEL_RAW_MAX, VEL_RAW_MAX);
+    /// `TWIST_CMD.wz`, rad/s.
+    pub const TWIST_WZ: Field = Field::int("wz", 4, I16, Little)
+        .scaled(ANGULAR_SCALE)
+        .range(-VEL_RAW_MAX, VEL_RAW_MAX);
+    /// `TWIST_CMD.seq`, rolling counter.
+    pub const TWIST_SEQ: Field = Field::int("seq", 6, U8, Little);
+
+    /// `MODE_CMD.request`: 0 disable, 1 enable, 2 reset.
+    pub const MODE_REQUEST: Field = Field::int("request", 0, U8, Little).range(0, 2);
+
+    /// Position LSB, m.
+    pub const POSITION_SCALE: f64 = 0.0001;
+    /// `ODOM_POSITION.x`, m.
+    pub const ODOM_X: Field = Field::int("x", 0, I32, Little).scaled(POSITION_SCALE);
+    /// `ODOM_POSITION.y`, m.
+    pub const ODOM_Y: Field = Field::int("y", 4, I32, Little).scaled(POSITION_SCALE);
+
+    /// Heading LSB, rad.
+    pub const HEADING_SCALE: f64 = 0.0001;
+    /// Raw limit of the heading: round(π / 0.0001).
+    pub const HEADING_RAW_MAX: i64 = 31416;
+    /// `ODOM_VELOCITY.heading`, rad.
+    pub const ODOM_HEADING: Field = Field::int("heading", 0, I16, Little)
+        .scaled(HEADING_SCALE)
+        .range(-HEADING_RAW_MAX, HEADING_RAW_MAX);
+    /// `ODOM_VELOCITY.vx`, m/s.
+    pub const ODOM_VX: Field = Field::int("vx", 2, I16, Little)
+        .scaled(LINEAR_SCALE)
+        .range(-VEL_RAW_MAX, VEL_RAW_MAX);
+    /// `ODOM_VELOCITY.vy`, m/s.
+    pub const ODOM_VY: Field = Field::int("vy", 4, I16, Little)
+        .scaled(LINEAR_SCALE)
+        .range(-VEL_RAW_MAX, VEL_RAW_MAX);
+    /// `ODOM_VELOCITY.wz`, rad/s.
+    pub const ODOM_WZ: Field = Field::int("wz", 6, I16, Little)
+        .scaled(ANGULAR_SCALE)
+        .range(-VEL_RAW_MAX, VEL_RAW_MAX);
+
+    /// `STATUS.state`: 0 disabled, 1 enabled, 2 fault, 3 estop.
+    pub const STATUS_STATE: Field = Field::int("state", 0, U8, Little).range(0, 3);
+    /// `STATUS.fault`: 0 none .. 5 config.
+    pub const STATUS_FAULT: Field = Field::int("fault", 1, U8, Little).range(0, 5);
+    /// `STATUS.rx_errors`: rejected frames, saturating.
+    pub const STATUS_RX_ERRORS: Field = Field::int("rx_errors", 2, U16, Little);
+    /// `STATUS.unknown_ids`: frames with unknown ids, saturating.
+    pub const STATUS_UNKNOWN_IDS: Field = Field::int("unknown_ids", 4, U16, Little);
+    /// Bits of `STATUS.motors_online` in use: one per wheel.
+    pub const MOTORS_ONLINE_MASK: u8 = 0x0F;
+    /// `STATUS.motors_online`: bit i = wheel i (FL, FR, RL, RR); bits 4-7 must be 0.
+    pub const STATUS_MOTORS_ONLINE: Field =
+        Field::int("motors_online", 6, U8, Little).range(0, MOTORS_ONLINE_MASK as i64);
+    /// `STATUS.seq`: rolling counter.
+    pub const STATUS_SEQ: Field = Field::int("seq", 7, U8, Little);
+
+    /// `HEARTBEAT.uptime_ms`.
+    pub const HEARTBEAT_UPTIME: Field = Field::int("uptime_ms", 0, U32, Little);
+    /// `HEARTBEAT.state`, same values as `STATUS.state`.
+    pub const HEARTBEAT_STATE: Field = Field::int("state", 4, U8, Little).range(0, 3);
+    /// `HEARTBEAT.protocol_version`.
+    pub const HEARTBEAT_VERSION: Field = Field::int("protocol_version", 5, U8, Little);
+}
+
+/// What the host asks the robot to do with its enable latch (`MODE_CMD.request`).
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+#[repr(u8)]
+pub enum ModeRequest {
+    /// Stop and disable.
+    Disable = 0,
+    /// Enable (motion needs a fresh twist command afterwards).
+    Enable = 1,
+    /// Clear a fault or the e-stop latch; the robot ends up disabled.
+    Reset = 2,
+}
+
+/// The robot's state (`STATUS.state`, `HEARTBEAT.state`).
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+#[repr(u8)]
+pub enum RobotState {
+    /// Motors off; waiting for an enable.
+    Disabled = 0,
+    /// Following twist commands.
+    Enabled = 1,
+    /// Stopped by a fault (see [`Fault`]); needs a reset.
+    Fault = 2,
+    /// Stopped by an e-stop; needs a reset.
+    Estop = 3,
+}
+
+/// The latest fault (`STATUS.fault`). Raw values 6..=255 are reserved for later versions.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+#[repr(u8)]
+pub enum Fault {
+    /// No fault.
+    None = 0,
+    /// A motor's feedback stopped arriving in time.
+    MotorStale = 1,
+    /// A motor never reported.
+    MotorMissing = 2,
+    /// A drive reported an error.
+    DriveError = 3,
+    /// Informational: the command watchdog expired and the robot stopped.
+    Watchdog = 4,
+    /// The configuration was rejected.
+    Config = 5,
+}
+
+macro_rules! u8_enum {
+    ($ty:ident { $($variant:ident = $raw:literal),+ $(,)? }) => {
+        impl $ty {
+            /// The enum value for a raw byte; `None` for values not defined.
+            #[must_use]
+            pub const fn from_raw(raw: u8) -> Option<Self> {
+                match raw {
+                    $($raw => Some(Self::$variant),)+
+                    _ => None,
+                }
+            }
+
+            /// The raw byte.
+            #[must_use]
+            pub const fn raw(self) -> u8 {
+                self as u8
+            }
+        }
+    };
+}
+
+u8_enum!(ModeRequest { Disable = 0, Enable = 1, Reset = 2 });
+u8_enum!(RobotState { Disabled = 0, Enabled = 1, Fault = 2, Estop = 3 });
+u8_enum!(Fault { None = 0, MotorStale = 1, MotorMissing = 2, DriveError = 3, Watchdog = 4, Config = 5 });
+
+/// A twist setpoint (`TWIST_CMD`), body frame.
+#[derive(Clone, Copy, PartialEq, Debug, Default)]
+pub struct TwistCmd {
+    /// Forward velocity, m/s (±32.767, LSB 0.001).
+    pub vx: f32,
+    /// Leftward velocity, m/s (±32.767, LSB 0.001).
+    pub vy: f32,
+    /// Yaw rate, counter-clockwise positive, rad/s (±32.767, LSB 0.001).
+    pub wz: f32,
+    /// Rolling counter set by the host.
+    pub seq: u8,
+}
+
+/// A message from the host to the robot.
+#[derive(Clone, Copy, PartialEq, Debug)]
+pub enum Command {
+    /// `ESTOP`: stop now and latch until a reset.
+    Estop,
+    /// `TWIST_CMD`: a velocity setpoint.
+    Twist(TwistCmd),
+    /// `MODE_CMD`: enable, disable or reset.
+    Mode(ModeRequest),
+    /// `STATUS_REQ`: send a `STATUS` now. Not a motion command.
+    StatusRequest,
+}
+
+/// Odometry pose position (`ODOM_POSITION`), odometry frame.
+#[derive(Clone, Copy, PartialEq, Debug, Default)]
+pub struct OdomPosition {
+    /// x, m (LSB 0.0001).
+    pub x: f32,
+    /// y, m (LSB 0.0001).
+    pub y: f32,
+}
+
+/// Heading and measured body velocity (`ODOM_VELOCITY`).
+#[derive(Clone, Copy, PartialEq, Debug, Default)]
+pub struct OdomVelocity {
+    /// Heading in the odometry frame, rad in `-π..=π` (LSB 0.0001); encoding wraps it.
+    pub heading: f32,
+    /// Forward velocity, m/s (LSB 0.001).
+    pub vx: f32,
+    /// Leftward velocity, m/s (LSB 0.001).
+    pub vy: f32,
+    /// Yaw rate, rad/s (LSB 0.001).
+    pub wz: f32,
+}
+
+/// Robot status (`STATUS`).
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub struct Status {
+    /// Robot state.
+    pub state: RobotState,
+    /// Latest fault.
+    pub fault: Fault,
+    /// Count of rejected frames (saturating).
+    pub rx_errors: u16,
+    /// Count of frames with unknown ids (saturating).
+    pub unknown_ids: u16,
+    /// Bit i set = wheel i online, wheels in the order FL, FR, RL, RR. Bits 4-7 are reserved:
+    /// encoding clears them, decoding rejects a frame that sets them.
+    pub motors_online: u8,
+    /// Rolling counter.
+    pub seq: u8,
+}
+
+/// Robot heartbeat (`HEARTBEAT`).
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub struct Heartbeat {
+    /// Time since boot, ms (wraps after ~49.7 days).
+    pub uptime_ms: u32,
+    /// Robot state.
+    pub state: RobotState,
+    /// Protocol version ([`PROTOCOL_VERSION`] when sent by this crate; decoded as is).
+    pub protocol_version: u8,
+}
+
+/// A message from the robot to the host.
+#[derive(Clone, Copy, PartialEq, Debug)]
+pub enum Telemetry {
+    /// `ODOM_POSITION`.
+    OdomPosition(OdomPosition),
+    /// `ODOM_VELOCITY`.
+    OdomVelocity(OdomVelocity),
+    /// `STATUS`.
+    Status(Status),
+    /// `HEARTBEAT`.
+    Heartbeat(Heartbeat),
+}
+
+/// Any message of the protocol.
+#[derive(Clone, Copy, PartialEq, Debug)]
+pub enum Message {
+    /// Host → robot.
+    Command(Command),
+    /// Robot → host.
+    Telemetry(Telemetry),
+}
+
+/// Whether a raw 11-bit id lies in the protocol's block (`0x300..=0x31F`).
+#[must_use]
+pub const fn in_block(id: u16) -> bool {
+    id >= layout::ID_FIRST && id <= layout::ID_LAST
+}
+
+fn sid(raw: u16) -> StandardId {
+    // All ids of the layout table are below 0x800.
+    StandardId::new(raw).unwrap_or(StandardId::ZERO)
+}
+
+fn state_of(raw: i64) -> RobotState {
+    // Callers range-check first; the fallback is unreachable.
+    u8::try_from(raw)
+        .ok()
+        .and_then(RobotState::from_raw)
+        .unwrap_or(RobotState::Disabled)
+}
+
+/// Wraps an angle into `(-π, π]` unless it already lies within the field's range
+/// (±0.0001 · 31416, a hair wider than ±π, so a decoded ±31416 re-encodes unchanged). NaN stays
+/// NaN (the field encoder maps it to 0).
+fn wrap_pi(angle: f32) -> f32 {
+    use core::f32::consts::{PI, TAU};
+    let limit = (layout::HEADING_RAW_MAX as f64 * layout::HEADING_SCALE) as f32;
+    if angle.abs() <= limit {
+        return angle;
+    }
+    let a = angle % TAU;
+    if a > PI {
+        a - TAU
+    } else if a <= -PI {
+        a + TAU
+    } else {
+        a
+    }
+}
+
+impl Command {
+    /// The message's layout row.
+    #[must_use]
+    pub const fn def(&self) -> wire::MessageDef {
+        match self {
+            Self::Estop => layout::ESTOP,
+            Self::Twist(_) => layout::TWIST_CMD,
+            Self::Mode(_) => layout::MODE_CMD,
+            Self::StatusRequest => layout::STATUS_REQ,
+        }
+    }
+
+    /// Decodes a host → robot frame.
+    ///
+    /// # Errors
+    /// See [`DecodeError`]; `UnknownId` also for robot → host ids.
+    pub fn decode<F: Frame>(frame: &F) -> Result<Self, DecodeError> {
+        let id = wire::standard_id(frame)?;
+        let def = match id {
+            x if x == layout::ESTOP.id => layout::ESTOP,
+            x if x == layout::TWIST_CMD.id => layout::TWIST_CMD,
+            x if x == layout::MODE_CMD.id => layout::MODE_CMD,
+            x if x == layout::STATUS_REQ.id => layout::STATUS_REQ,
+            _ => return Err(wire::unknown(frame)),
+        };
+        let p = wire::data_payload(frame, id, &[def.dlc])?;
+        Ok(match id {
+            x if x == layout::ESTOP.id => {
+                layout::ESTOP_MAGIC.checked(&p)?;
+                Self::Estop
+            }
+            x if x == layout::TWIST_CMD.id => Self::Twist(TwistCmd {
+                vx: layout::TWIST_VX.physical(&p)?,
+                vy: layout::TWIST_VY.physical(&p)?,
+                wz: layout::TWIST_WZ.physical(&p)?,
+                seq: layout::TWIST_SEQ.raw(&p) as u8,
+            }),
+            x if x == layout::MODE_CMD.id => {
+                let raw = layout::MODE_REQUEST.raw(&p);
+                let request = u8::try_from(raw)
+                    .ok()
+                    .and_then(ModeRequest::from_raw)
+                    .ok_or(DecodeError::OutOfRange {
+                        field: layout::MODE_REQUEST.name,
+                        value: raw,
+                    })?;
+                Self::Mode(request)
+            }
+            _ => Self::StatusRequest,
+        })
+    }
+
+    /// Encodes into a [`CanFrame`] (rounding and saturating SI values).
+    #[must_use]
+    pub fn to_can_frame(&self) -> CanFrame {
+        let def = self.def();
+        let mut p = Payload::new();
+        match self {
+            Self::Estop => layout::ESTOP_MAGIC.put_raw(&mut p, layout::ESTOP_MAGIC_VALUE.into()),
+            Self::Twist(t) => {
+                layout::TWIST_VX.put_physical(&mut p, t.vx);
+                layout::TWIST_VY.put_physical(&mut p, t.vy);
+                layout::TWIST_WZ.put_physical(&mut p, t.wz);
+                layout::TWIST_SEQ.put_raw(&mut p, t.seq.into());
+            }
+            Self::Mode(m) => layout::MODE_REQUEST.put_raw(&mut p, m.raw().into()),
+            Self::StatusRequest => {}
+        }
+        CanFrame::from_buffer(sid(def.id), p.0, def.dlc)
+    }
+
+    /// Encodes into any [`Frame`] type; `None` only if that type rejects a valid frame.
+    #[must_use]
+    pub fn to_frame<F: Frame>(&self) -> Option<F> {
+        self.to_can_frame().convert()
+    }
+}
+
+impl Telemetry {
+    /// The message's layout row.
+    #[must_use]
+    pub const fn def(&self) -> wire::MessageDef {
+        match self {
+            Self::OdomPosition(_) => layout::ODOM_POSITION,
+            Self::OdomVelocity(_) => layout::ODOM_VELOCITY,
+            Self::Status(_) => layout::STATUS,
+            Self::Heartbeat(_) => layout::HEARTBEAT,
+        }
+    }
+
+    /// Decodes a robot → host frame.
+    ///
+    /// # Errors
+    /// See [`DecodeError`]; `UnknownId` also for host → robot ids.
+    pub fn decode<F: Frame>(frame: &F) -> Result<Self, DecodeError> {
+        let id = wire::standard_id(frame)?;
+        let def = match id {
+            x if x == layout::ODOM_POSITION.id => layout::ODOM_POSITION,
+            x if x == layout::ODOM_VELOCITY.id => layout::ODOM_VELOCITY,
+            x if x == layout::STATUS.id => layout::STATUS,
+            x if x == layout::HEARTBEAT.id => layout::HEARTBEAT,
+            _ => return Err(wire::unknown(frame)),
+        };
+        let p = wire::data_payload(frame, id, &[def.dlc])?;
+        Ok(match id {
+            x if x == layout::ODOM_POSITION.id => Self::OdomPosition(OdomPosition {
+                x: layout::ODOM_X.physical(&p)?,
+                y: layout::ODOM_Y.physical(&p)?,
+            }),
+            x if x == layout::ODOM_VELOCITY.id => Self::OdomVelocity(OdomVelocity {
+                heading: layout::ODOM_HEADING.physical(&p)?,
+                vx: layout::ODOM_VX.physical(&p)?,
+                vy: layout::ODOM_VY.physical(&p)?,
+                wz: layout::ODOM_WZ.physical(&p)?,
+            }),
+            x if x == layout::STATUS.id => {
+                let state = state_of(layout::STATUS_STATE.checked(&p)?);
+                let fault_raw = layout::STATUS_FAULT.checked(&p)?;
+                let fault = u8::try_from(fault_raw)
+                    .ok()
+                    .and_then(Fault::from_raw)
+                    .unwrap_or(Fault::None);
+                Self::Status(Status {
+                    state,
+                    fault,
+                    rx_errors: layout::STATUS_RX_ERRORS.raw(&p) as u16,
+                    unknown_ids: layout::STATUS_UNKNOWN_IDS.raw(&p) as u16,
+                    motors_online: layout::STATUS_MOTORS_ONLINE.checked(&p)? as u8,
+                    seq: layout::STATUS_SEQ.raw(&p) as u8,
+                })
+            }
+            _ => Self::Heartbeat(Heartbeat {
+                uptime_ms: layout::HEARTBEAT_UPTIME.raw(&p) as u32,
+                state: state_of(layout::HEARTBEAT_STATE.checked(&p)?),
+                protocol_version: layout::HEARTBEAT_VERSION.raw(&p) as u8,
+            }),
+        })
+    }
+
+    /// Encodes into a [`CanFrame`] (rounding and saturating SI values, wrapping the heading).
+    #[must_use]
+    pub fn to_can_frame(&self) -> CanFrame {
+        let def = self.def();
+        let mut p = Payload::new();
+        match self {
+            Self::OdomPosition(o) => {
+                layout::ODOM_X.put_physical(&mut p, o.x);
+                layout::ODOM_Y.put_physical(&mut p, o.y);
+            }
+            Self::OdomVelocity(o) => {
+                layout::ODOM_HEADING.put_physical(&mut p, wrap_pi(o.heading));
+                layout::ODOM_VX.put_physical(&mut p, o.vx);
+                layout::ODOM_VY.put_physical(&mut p, o.vy);
+                layout::ODOM_WZ.put_physical(&mut p, o.wz);
+            }
+            Self::Status(s) => {
+                layout::STATUS_STATE.put_raw(&mut p, s.state.raw().into());
+                layout::STATUS_FAULT.put_raw(&mut p, s.fault.raw().into());
+                layout::STATUS_RX_ERRORS.put_raw(&mut p, s.rx_errors.into());
+                layout::STATUS_UNKNOWN_IDS.put_raw(&mut p, s.unknown_ids.into());
+                layout::STATUS_MOTORS_ONLINE.put_raw(
+                    &mut p,
+                    (s.motors_online & layout::MOTORS_ONLINE_MASK).into(),
+                );
+                layout::STATUS_SEQ.put_raw(&mut p, s.seq.into());
+            }
+            Self::Heartbeat(h) => {
+                layout::HEARTBEAT_UPTIME.put_raw(&mut p, h.uptime_ms.into());
+                layout::HEARTBEAT_STATE.put_raw(&mut p, h.state.raw().into());
+                layout::HEARTBEAT_VERSION.put_raw(&mut p, h.protocol_version.into());
+            }
+        }
+        CanFrame::from_buffer(sid(def.id), p.0, def.dlc)
+    }
+
+    /// Encodes into any [`Frame`] type; `None` only if that type rejects a valid frame.
+    #[must_use]
+    pub fn to_frame<F: Frame>(&self) -> Option<F> {
+        self.to_can_frame().convert()
+    }
+}
+
+impl Message {
+    /// Encodes into a [`CanFrame`].
+    #[must_use]
+    pub fn to_can_frame(&self) -> CanFrame {
+        match self {
+            Self::Command(c) => c.to_can_frame(),
+            Self::Telemetry(t) => t.to_can_frame(),
+        }
+    }
+
+    /// The message's layout row.
+    #[must_use]
+    pub const fn def(&self) -> wire::MessageDef {
+        match self {
+            Self::Command(c) => c.def(),
+            Self::Telemetry(t) => t.def(),
+        }
+    }
+}
+
+/// Decodes any frame of the protocol, in either direction.
+///
+/// # Errors
+/// See [`DecodeError`].
+pub fn decode<F: Frame>(frame: &F) -> Result<Message, DecodeError> {
+    match Command::decode(frame) {
+        Err(DecodeError::UnknownId { .. }) => Telemetry::decode(frame).map(Message::Telemetry),
+        other => other.map(Message::Command),
+    }
+}

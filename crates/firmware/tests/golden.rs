@@ -1,0 +1,636 @@
+//! Golden frames: byte vectors written by hand from the protocol facts (DESIGN.md, the DBC
+//! files), not produced by the encoders. Each is decoded and compared with the expected message,
+//! and the message is encoded and compared with the bytes.
+
+use embedded_can::{ExtendedId, Frame, Id, StandardId};
+use firmware::CanFrame;
+use firmware::protocol::dji::{self, EscGroup, EscId, EscModel};
+use firmware::protocol::odrive::{
+    self, Addressed, AxisState, ControlMode, InputMode, NodeId, split_id,
+};
+use firmware::protocol::robot::{
+    self, Fault, Heartbeat, ModeRequest, OdomPosition, OdomVelocity, RobotState, Status, TwistCmd,
+};
+use firmware::protocol::{DecodeError, ErrorKind};
+
+fn sid(raw: u16) -> StandardId {
+    StandardId::new(raw).unwrap()
+}
+
+fn frame(id: u16, data: &[u8]) -> CanFrame {
+    CanFrame::standard(sid(id), data).unwrap()
+}
+
+fn assert_close(got: f32, want: f32, tol: f32) {
+    assert!(
+        (got - want).abs() <= tol,
+        "got {got}, want {want} (tolerance {tol})"
+    );
+}
+
+// ------------------------------------------------------------------------------------------
+// Robot protocol
+
+#[test]
+fn robot_estop() {
+    let f = frame(0x300, &[0xE5]);
+    assert_eq!(robot::Command::decode(&f), Ok(robot::Command::Estop));
+    assert_eq!(robot::Command::Estop.to_can_frame(), f);
+    assert_eq!(
+        robot::Command::decode(&frame(0x300, &[0xE4])),
+        Err(DecodeError::OutOfRange {
+            field: "magic",
+            value: 0xE4
+        })
+    );
+}
+
+#[test]
+fn robot_twist() {
+    // vx 500 mm/s = 0x01F4, vy -250 = 0xFF06, wz 1000 mrad/s = 0x03E8, seq 7, reserved 0.
+    let f = frame(0x301, &[0xF4, 0x01, 0x06, 0xFF, 0xE8, 0x03, 0x07, 0x00]);
+    let twist = TwistCmd {
+        vx: 0.5,
+        vy: -0.25,
+        wz: 1.0,
+        seq: 7,
+    };
+    assert_eq!(robot::Command::decode(&f), Ok(robot::Command::Twist(twist)));
+    assert_eq!(robot::Command::Twist(twist).to_can_frame(), f);
+    // The reserved byte is ignored on receipt.
+    let g = frame(0x301, &[0xF4, 0x01, 0x06, 0xFF, 0xE8, 0x03, 0x07, 0x55]);
+    assert_eq!(robot::Command::decode(&g), Ok(robot::Command::Twist(twist)));
+}
+
+#[test]
+fn robot_twist_extremes_and_reserved_raw() {
+    // ±32767 are the limits; -32768 (0x8000) is reserved and rejected.
+    let f = frame(0x301, &[0xFF, 0x7F, 0x01, 0x80, 0x00, 0x00, 0x00, 0x00]);
+    match robot::Command::decode(&f).unwrap() {
+        robot::Command::Twist(t) => {
+            assert_close(t.vx, 32.767, 1e-6);
+            assert_close(t.vy, -32.767, 1e-6);
+        }
+        other => panic!("{other:?}"),
+    }
+    for offset in [0, 2, 4] {
+        let mut data = [0u8; 8];
+        data[offset + 1] = 0x80;
+        let err = robot::Command::decode(&frame(0x301, &data)).unwrap_err();
+        assert_eq!(err.kind(), ErrorKind::OutOfRange);
+        assert!(matches!(err, DecodeError::OutOfRange { value: -32768, .. }));
+    }
+    // Encoding saturates symmetrically and maps NaN to 0.
+    let t = TwistCmd {
+        vx: 1e9,
+        vy: f32::NEG_INFINITY,
+        wz: f32::NAN,
+        seq: 0,
+    };
+    assert_eq!(
+        robot::Command::Twist(t).to_can_frame(),
+        frame(0x301, &[0xFF, 0x7F, 0x01, 0x80, 0x00, 0x00, 0x00, 0x00])
+    );
+}
+
+#[test]
+fn robot_mode_and_status_request() {
+    for (raw, req) in [
+        (0u8, ModeRequest::Disable),
+        (1, ModeRequest::Enable),
+        (2, ModeRequest::Reset),
+    ] {
+        let f = frame(0x302, &[raw]);
+        assert_eq!(robot::Command::decode(&f), Ok(robot::Command::Mode(req)));
+        assert_eq!(robot::Command::Mode(req).to_can_frame(), f);
+    }
+    assert_eq!(
+        robot::Command::decode(&frame(0x302, &[3])),
+        Err(DecodeError::OutOfRange {
+            field: "request",
+            value: 3
+        })
+    );
+    let f = frame(0x303, &[]);
+    assert_eq!(
+        robot::Command::decode(&f),
+        Ok(robot::Command::StatusRequest)
+    );
+    assert_eq!(robot::Command::StatusRequest.to_can_frame(), f);
+    assert_eq!(
+        robot::Command::decode(&frame(0x303, &[0])),
+        Err(DecodeError::WrongDlc {
+            id: 0x303,
+            expected: 0,
+            got: 1
+        })
+    );
+}
+
+#[test]
+fn robot_odom_position() {
+    // x 1.0 m = 10000 = 0x00002710, y -2.5 m = -25000 = 0xFFFF9E58.
+    let f = frame(0x310, &[0x10, 0x27, 0x00, 0x00, 0x58, 0x9E, 0xFF, 0xFF]);
+    let o = OdomPosition { x: 1.0, y: -2.5 };
+    assert_eq!(
+        robot::Telemetry::decode(&f),
+        Ok(robot::Telemetry::OdomPosition(o))
+    );
+    assert_eq!(robot::Telemetry::OdomPosition(o).to_can_frame(), f);
+}
+
+#[test]
+fn robot_odom_velocity() {
+    // heading 1.2345 rad = 12345 = 0x3039, vx -0.001 = 0xFFFF, vy 32.767 = 0x7FFF,
+    // wz -32.767 = 0x8001.
+    let f = frame(0x311, &[0x39, 0x30, 0xFF, 0xFF, 0xFF, 0x7F, 0x01, 0x80]);
+    let robot::Telemetry::OdomVelocity(o) = robot::Telemetry::decode(&f).unwrap() else {
+        panic!("not odometry velocity");
+    };
+    assert_close(o.heading, 1.2345, 1e-6);
+    assert_close(o.vx, -0.001, 1e-9);
+    assert_close(o.vy, 32.767, 1e-6);
+    assert_close(o.wz, -32.767, 1e-6);
+    let sent = OdomVelocity {
+        heading: 1.2345,
+        vx: -0.001,
+        vy: 32.767,
+        wz: -32.767,
+    };
+    assert_eq!(robot::Telemetry::OdomVelocity(sent).to_can_frame(), f);
+    // Headings are wrapped into -π..π when encoded: 2π + 1.2345 sends 1.2345.
+    let wrapped = OdomVelocity {
+        heading: 1.2345 + core::f32::consts::TAU,
+        ..sent
+    };
+    assert_eq!(robot::Telemetry::OdomVelocity(wrapped).to_can_frame(), f);
+    // Raw ±31416 (just over π) decode and re-encode unchanged.
+    for data in [
+        [0xB8u8, 0x7A, 0, 0, 0, 0, 0, 0],
+        [0x48, 0x85, 0, 0, 0, 0, 0, 0],
+    ] {
+        let m = robot::Telemetry::decode(&frame(0x311, &data)).unwrap();
+        assert_eq!(m.to_can_frame(), frame(0x311, &data));
+    }
+    // |heading| > π (raw 31417 = 0x7AB9) is rejected.
+    assert_eq!(
+        robot::Telemetry::decode(&frame(0x311, &[0xB9, 0x7A, 0, 0, 0, 0, 0, 0])),
+        Err(DecodeError::OutOfRange {
+            field: "heading",
+            value: 31417
+        })
+    );
+}
+
+#[test]
+fn robot_status() {
+    // state 1, fault 0, rx_errors 0x0102, unknown_ids 3, motors 0b1111, seq 0x80.
+    let f = frame(0x312, &[0x01, 0x00, 0x02, 0x01, 0x03, 0x00, 0x0F, 0x80]);
+    let s = Status {
+        state: RobotState::Enabled,
+        fault: Fault::None,
+        rx_errors: 0x0102,
+        unknown_ids: 3,
+        motors_online: 0x0F,
+        seq: 0x80,
+    };
+    assert_eq!(
+        robot::Telemetry::decode(&f),
+        Ok(robot::Telemetry::Status(s))
+    );
+    assert_eq!(robot::Telemetry::Status(s).to_can_frame(), f);
+    let faults = [
+        Fault::None,
+        Fault::MotorStale,
+        Fault::MotorMissing,
+        Fault::DriveError,
+        Fault::Watchdog,
+        Fault::Config,
+    ];
+    for (raw, fault) in faults.into_iter().enumerate() {
+        let f = frame(0x312, &[2, raw as u8, 0, 0, 0, 0, 0, 0]);
+        let robot::Telemetry::Status(s) = robot::Telemetry::decode(&f).unwrap() else {
+            panic!()
+        };
+        assert_eq!((s.state, s.fault), (RobotState::Fault, fault));
+    }
+    for (data, field, value) in [
+        ([4u8, 0, 0, 0, 0, 0, 0, 0], "state", 4),
+        ([0, 6, 0, 0, 0, 0, 0, 0], "fault", 6),
+        ([0, 0, 0, 0, 0, 0, 0x10, 0], "motors_online", 16),
+    ] {
+        assert_eq!(
+            robot::Telemetry::decode(&frame(0x312, &data)),
+            Err(DecodeError::OutOfRange { field, value })
+        );
+    }
+}
+
+#[test]
+fn robot_heartbeat() {
+    let f = frame(0x31F, &[0x78, 0x56, 0x34, 0x12, 0x03, 0x01, 0x00, 0x00]);
+    let h = Heartbeat {
+        uptime_ms: 0x1234_5678,
+        state: RobotState::Estop,
+        protocol_version: robot::PROTOCOL_VERSION,
+    };
+    assert_eq!(
+        robot::Telemetry::decode(&f),
+        Ok(robot::Telemetry::Heartbeat(h))
+    );
+    assert_eq!(robot::Telemetry::Heartbeat(h).to_can_frame(), f);
+}
+
+#[test]
+fn robot_rejections() {
+    // Wrong DLC, remote, extended, unknown, wrong direction.
+    assert_eq!(
+        robot::Command::decode(&frame(0x301, &[0; 7])),
+        Err(DecodeError::WrongDlc {
+            id: 0x301,
+            expected: 8,
+            got: 7
+        })
+    );
+    assert_eq!(
+        robot::Command::decode(&CanFrame::remote(sid(0x301), 8)),
+        Err(DecodeError::Remote { id: 0x301 })
+    );
+    let ext = <CanFrame as Frame>::new(ExtendedId::new(0x301).unwrap(), &[0; 8]).unwrap();
+    assert_eq!(
+        robot::decode(&ext),
+        Err(DecodeError::ExtendedId { id: 0x301 })
+    );
+    for id in [0x304, 0x31E, 0x123] {
+        assert_eq!(
+            robot::decode(&frame(id, &[0; 8])),
+            Err(DecodeError::UnknownId {
+                id: Id::Standard(sid(id))
+            })
+        );
+    }
+    assert!(matches!(
+        robot::Telemetry::decode(&frame(0x301, &[0; 8])),
+        Err(DecodeError::UnknownId { .. })
+    ));
+    assert!(robot::in_block(0x300) && robot::in_block(0x31F) && !robot::in_block(0x320));
+}
+
+// ------------------------------------------------------------------------------------------
+// ODrive CAN Simple (node 2: ids 0x40 | cmd)
+
+fn node2() -> NodeId {
+    NodeId::new(2).unwrap()
+}
+
+fn odrive_cmd(f: &CanFrame) -> Result<odrive::Command, DecodeError> {
+    odrive::Command::decode(f).map(|a| {
+        assert_eq!(a.node, node2());
+        a.msg
+    })
+}
+
+fn odrive_fb(f: &CanFrame) -> Result<odrive::Feedback, DecodeError> {
+    odrive::Feedback::decode(f).map(|a| {
+        assert_eq!(a.node, node2());
+        a.msg
+    })
+}
+
+#[test]
+fn node_id_range_and_split() {
+    assert_eq!(NodeId::new(63).map(NodeId::get), Some(63));
+    assert_eq!(NodeId::new(64), None);
+    assert_eq!(node2().can_id(0x0D), sid(0x4D));
+    assert_eq!(split_id(sid(0x7FF)), (NodeId::new(63).unwrap(), 31));
+}
+
+#[test]
+fn odrive_heartbeat() {
+    // Axis_Error 0x01000000 (watchdog), state 8, procedure result 0, trajectory done.
+    let f = frame(0x41, &[0x00, 0x00, 0x00, 0x01, 0x08, 0x00, 0x01, 0x00]);
+    let hb = odrive::Heartbeat {
+        axis_error: 0x0100_0000,
+        axis_state: AxisState::ClosedLoopControl,
+        procedure_result: 0,
+        trajectory_done: true,
+    };
+    assert_eq!(odrive_fb(&f), Ok(odrive::Feedback::Heartbeat(hb)));
+    assert_eq!(odrive::Feedback::Heartbeat(hb).to_can_frame(node2()), f);
+    assert_eq!(
+        odrive_fb(&frame(0x41, &[0, 0, 0, 0, 15, 0, 0, 0])),
+        Err(DecodeError::OutOfRange {
+            field: "Axis_State",
+            value: 15
+        })
+    );
+}
+
+#[test]
+fn odrive_estop_and_get_error() {
+    let f = frame(0x42, &[]);
+    assert_eq!(odrive_cmd(&f), Ok(odrive::Command::Estop));
+    assert_eq!(odrive::Command::Estop.to_can_frame(node2()), f);
+
+    let rtr = CanFrame::remote(sid(0x43), 8);
+    assert_eq!(odrive_cmd(&rtr), Ok(odrive::Command::GetError));
+    assert_eq!(odrive::Command::GetError.to_can_frame(node2()), rtr);
+    // Any DLC of the request is accepted.
+    assert_eq!(
+        odrive_cmd(&CanFrame::remote(sid(0x43), 0)),
+        Ok(odrive::Command::GetError)
+    );
+
+    let f = frame(0x43, &[0x01, 0x00, 0x00, 0x00, 0x40, 0x00, 0x00, 0x00]);
+    let e = odrive::Feedback::Error {
+        active_errors: 1,
+        disarm_reason: 0x40,
+    };
+    assert_eq!(odrive_fb(&f), Ok(e));
+    assert_eq!(e.to_can_frame(node2()), f);
+    // The response direction rejects the RTR as a data message.
+    assert_eq!(odrive_fb(&rtr), Err(DecodeError::Remote { id: 0x43 }));
+}
+
+#[test]
+fn odrive_set_axis_state() {
+    let f = frame(0x47, &[0x08, 0, 0, 0, 0, 0, 0, 0]);
+    let c = odrive::Command::SetAxisState(AxisState::ClosedLoopControl);
+    assert_eq!(odrive_cmd(&f), Ok(c));
+    assert_eq!(c.to_can_frame(node2()), f);
+    assert_eq!(
+        odrive_cmd(&frame(0x47, &[0x01, 0, 0, 0, 0, 0, 0, 0])),
+        Ok(odrive::Command::SetAxisState(AxisState::Idle))
+    );
+    // DLC 8 as in the official DBC; the 4-byte form is rejected.
+    assert_eq!(
+        odrive_cmd(&frame(0x47, &[0x08, 0, 0, 0])),
+        Err(DecodeError::WrongDlc {
+            id: 0x47,
+            expected: 8,
+            got: 4
+        })
+    );
+    assert_eq!(
+        odrive_cmd(&frame(0x47, &[0, 0, 0, 1, 0, 0, 0, 0])),
+        Err(DecodeError::OutOfRange {
+            field: "Axis_Requested_State",
+            value: 0x0100_0000
+        })
+    );
+}
+
+#[test]
+fn odrive_encoder_estimates() {
+    // pos 1.0 = 0x3F800000, vel -2.5 = 0xC0200000.
+    let f = frame(0x49, &[0x00, 0x00, 0x80, 0x3F, 0x00, 0x00, 0x20, 0xC0]);
+    let e = odrive::Feedback::EncoderEstimates {
+        pos: 1.0,
+        vel: -2.5,
+    };
+    assert_eq!(odrive_fb(&f), Ok(e));
+    assert_eq!(e.to_can_frame(node2()), f);
+    // +inf = 0x7F800000 in vel.
+    assert_eq!(
+        odrive_fb(&frame(0x49, &[0, 0, 0x80, 0x3F, 0x00, 0x00, 0x80, 0x7F])),
+        Err(DecodeError::NonFinite {
+            field: "Vel_Estimate"
+        })
+    );
+}
+
+#[test]
+fn odrive_set_controller_mode() {
+    let f = frame(0x4B, &[0x02, 0, 0, 0, 0x01, 0, 0, 0]);
+    let c = odrive::Command::SetControllerMode {
+        control_mode: ControlMode::VelocityControl,
+        input_mode: InputMode::Passthrough,
+    };
+    assert_eq!(odrive_cmd(&f), Ok(c));
+    assert_eq!(c.to_can_frame(node2()), f);
+    assert_eq!(
+        odrive_cmd(&frame(0x4B, &[0x02, 0, 0, 0, 0x02, 0, 0, 0])),
+        Ok(odrive::Command::SetControllerMode {
+            control_mode: ControlMode::VelocityControl,
+            input_mode: InputMode::VelRamp,
+        })
+    );
+    assert_eq!(
+        odrive_cmd(&frame(0x4B, &[0x04, 0, 0, 0, 0x01, 0, 0, 0])),
+        Err(DecodeError::OutOfRange {
+            field: "Control_Mode",
+            value: 4
+        })
+    );
+    assert_eq!(
+        odrive_cmd(&frame(0x4B, &[0x02, 0, 0, 0, 0x09, 0, 0, 0])),
+        Err(DecodeError::OutOfRange {
+            field: "Input_Mode",
+            value: 9
+        })
+    );
+}
+
+#[test]
+fn odrive_set_input_vel() {
+    // vel 10.0 = 0x41200000, torque_ff 0.5 = 0x3F000000.
+    let f = frame(0x4D, &[0x00, 0x00, 0x20, 0x41, 0x00, 0x00, 0x00, 0x3F]);
+    let c = odrive::Command::SetInputVel {
+        vel: 10.0,
+        torque_ff: 0.5,
+    };
+    assert_eq!(odrive_cmd(&f), Ok(c));
+    assert_eq!(c.to_can_frame(node2()), f);
+    // A NaN (0x7FC00000) is rejected.
+    assert_eq!(
+        odrive_cmd(&frame(0x4D, &[0x00, 0x00, 0xC0, 0x7F, 0, 0, 0, 0])),
+        Err(DecodeError::NonFinite { field: "Input_Vel" })
+    );
+    assert_eq!(
+        odrive_cmd(&frame(0x4D, &[0, 0, 0, 0, 0x00, 0x00, 0x80, 0xFF])),
+        Err(DecodeError::NonFinite {
+            field: "Input_Torque_FF"
+        })
+    );
+    // Encoding never puts NaN on the wire.
+    let nan = odrive::Command::SetInputVel {
+        vel: f32::NAN,
+        torque_ff: f32::INFINITY,
+    };
+    let Ok(odrive::Command::SetInputVel { vel, torque_ff }) =
+        odrive_cmd(&nan.to_can_frame(node2()))
+    else {
+        panic!()
+    };
+    assert_eq!((vel, torque_ff), (0.0, f32::MAX));
+}
+
+#[test]
+fn odrive_clear_errors() {
+    let f = frame(0x58, &[0x01]);
+    let c = odrive::Command::ClearErrors { identify: true };
+    assert_eq!(odrive_cmd(&f), Ok(c));
+    assert_eq!(c.to_can_frame(node2()), f);
+    assert_eq!(
+        odrive_cmd(&frame(0x58, &[])),
+        Ok(odrive::Command::ClearErrors { identify: false })
+    );
+    assert_eq!(
+        odrive_cmd(&frame(0x58, &[0, 0])),
+        Err(DecodeError::WrongDlc {
+            id: 0x58,
+            expected: 1,
+            got: 2
+        })
+    );
+}
+
+#[test]
+fn odrive_unknown_commands() {
+    // Get_Version (0x00), Set_Input_Pos (0x0C) and 0x1F are not implemented here.
+    for id in [0x40, 0x4C, 0x5F] {
+        assert!(matches!(
+            odrive::decode(&frame(id, &[0; 8])),
+            Err(DecodeError::UnknownId { .. })
+        ));
+    }
+    let m = odrive::decode(&frame(0x4D, &[0; 8])).unwrap();
+    assert_eq!(
+        m,
+        odrive::Message::Command(Addressed {
+            node: node2(),
+            msg: odrive::Command::SetInputVel {
+                vel: 0.0,
+                torque_ff: 0.0
+            }
+        })
+    );
+}
+
+// ------------------------------------------------------------------------------------------
+// DJI C620 / C610
+
+#[test]
+fn esc_id_range() {
+    assert_eq!(EscId::new(0), None);
+    assert_eq!(EscId::new(9), None);
+    let e = EscId::new(6).unwrap();
+    assert_eq!((e.group(), e.slot()), (EscGroup::Esc5To8, 1));
+    assert_eq!(e.feedback_id(), sid(0x206));
+    assert!(dji::is_dji_id(0x1FF) && dji::is_dji_id(0x208) && !dji::is_dji_id(0x209));
+}
+
+#[test]
+fn dji_current_command() {
+    // raw 1000 = 0x03E8, -1000 = 0xFC18, 16384 = 0x4000, -16384 = 0xC000, big-endian.
+    let data = [0x03, 0xE8, 0xFC, 0x18, 0x40, 0x00, 0xC0, 0x00];
+    let c = dji::CurrentCommand {
+        model: EscModel::C620,
+        group: EscGroup::Esc1To4,
+        raw: [1000, -1000, 16384, -16384],
+    };
+    let f = frame(0x200, &data);
+    assert_eq!(dji::CurrentCommand::decode(&f, EscModel::C620), Ok(c));
+    assert_eq!(c.to_can_frame(), f);
+    assert_eq!(c.amps(), [1.220_703_1, -1.220_703_1, 20.0, -20.0]);
+    let high = dji::CurrentCommand {
+        group: EscGroup::Esc5To8,
+        ..c
+    };
+    assert_eq!(high.to_can_frame(), frame(0x1FF, &data));
+    // From amperes: rounded and clamped to ±20 A.
+    let from_amps = dji::CurrentCommand::from_amps(
+        EscModel::C620,
+        EscGroup::Esc1To4,
+        [1.2207031, -1.2207031, 25.0, f32::NEG_INFINITY],
+    );
+    assert_eq!(from_amps, c);
+    // C610: ±10000 raw = ±10 A; 16384 is out of range for it.
+    assert_eq!(
+        dji::CurrentCommand::decode(&f, EscModel::C610),
+        Err(DecodeError::OutOfRange {
+            field: "current_3",
+            value: 16384
+        })
+    );
+    let c610 = dji::CurrentCommand::from_amps(
+        EscModel::C610,
+        EscGroup::Esc5To8,
+        [10.0, -10.0, 0.001, 11.0],
+    );
+    assert_eq!(c610.raw, [10000, -10000, 1, 10000]);
+    assert_eq!(
+        c610.to_can_frame(),
+        frame(0x1FF, &[0x27, 0x10, 0xD8, 0xF0, 0x00, 0x01, 0x27, 0x10])
+    );
+    // Encoding clamps raw values beyond the model's limit.
+    let over = dji::CurrentCommand {
+        model: EscModel::C620,
+        group: EscGroup::Esc1To4,
+        raw: [i16::MAX, i16::MIN, 0, 0],
+    };
+    assert_eq!(
+        over.to_can_frame(),
+        frame(0x200, &[0x40, 0x00, 0xC0, 0x00, 0, 0, 0, 0])
+    );
+}
+
+#[test]
+fn dji_feedback() {
+    // angle 8191 = 0x1FFF, speed 1000 rpm = 0x03E8, current -1000 = 0xFC18, 37 °C, unused.
+    let f = frame(0x203, &[0x1F, 0xFF, 0x03, 0xE8, 0xFC, 0x18, 0x25, 0x00]);
+    let fb = dji::Feedback {
+        model: EscModel::C620,
+        esc: EscId::new(3).unwrap(),
+        rotor_angle: 8191,
+        rotor_speed_rpm: 1000,
+        torque_current: -1000,
+        temperature_c: 37,
+    };
+    assert_eq!(dji::Feedback::decode(&f, EscModel::C620), Ok(fb));
+    assert_eq!(fb.to_can_frame(), f);
+    assert_close(fb.rotor_speed_rad_s(), 104.719_76, 1e-4);
+    assert_close(
+        fb.rotor_angle_rad(),
+        core::f32::consts::TAU * 8191.0 / 8192.0,
+        1e-6,
+    );
+    assert_close(fb.current_amps(), -1.220_703_1, 1e-6);
+    assert_eq!(
+        dji::decode(&f, EscModel::C620),
+        Ok(dji::Message::Feedback(fb))
+    );
+    // Angle 8192 is rejected.
+    assert_eq!(
+        dji::Feedback::decode(
+            &frame(0x203, &[0x20, 0x00, 0, 0, 0, 0, 0, 0]),
+            EscModel::C620
+        ),
+        Err(DecodeError::OutOfRange {
+            field: "rotor_angle",
+            value: 8192
+        })
+    );
+    // Unknown id, wrong DLC.
+    assert!(matches!(
+        dji::decode(&frame(0x209, &[0; 8]), EscModel::C620),
+        Err(DecodeError::UnknownId { .. })
+    ));
+    assert_eq!(
+        dji::decode(&frame(0x201, &[0; 6]), EscModel::C620),
+        Err(DecodeError::WrongDlc {
+            id: 0x201,
+            expected: 8,
+            got: 6
+        })
+    );
+}
+
+#[test]
+fn generic_frame_conversion() {
+    // The encoders build any Frame type; CanFrame converts to itself.
+    let f: Option<CanFrame> = robot::Command::StatusRequest.to_frame();
+    assert_eq!(f, Some(frame(0x303, &[])));
+    let g: Option<CanFrame> = odrive::Command::GetError.to_frame(node2());
+    assert!(g.unwrap().is_remote_frame());
+}
