@@ -27,6 +27,7 @@ cargo test --workspace --all-features --locked
 
 stage "rustdoc (-D warnings)"
 RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --locked
+RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --all-features --locked
 
 for crate in "${NO_STD_CRATES[@]}"; do
     stage "no_std build: $crate for $THUMB"

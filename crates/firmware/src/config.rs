@@ -2,7 +2,7 @@
 //! gains and rates.
 //!
 //! One plain-data [`Config`] serves every target. On the host it is read from TOML (feature
-//! `serde` derives `Deserialize`; the `std` feature adds [`Config::from_toml_str`]); on the MCU
+//! `serde` derives `Deserialize`; the `std` feature adds `Config::from_toml_str`); on the MCU
 //! it is built in code. Either way [`Config::validate`] checks it before a
 //! [`Controller`](crate::control::Controller) accepts it, and every error names the field and
 //! the value that is wrong.
