@@ -253,7 +253,14 @@ pub struct ConfigError {
 
 impl fmt::Display for ConfigError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "{} = {}: {}", self.field, self.value, self.expected)
+        // Values come from f32 fields or integers: print the shortest form that reads back.
+        #[allow(clippy::cast_possible_truncation)]
+        let narrow = self.value as f32;
+        if f64::from(narrow) == self.value {
+            write!(f, "{} = {}: {}", self.field, narrow, self.expected)
+        } else {
+            write!(f, "{} = {}: {}", self.field, self.value, self.expected)
+        }
     }
 }
 

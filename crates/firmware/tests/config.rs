@@ -1,0 +1,137 @@
+//! Configuration files: the examples load and equal the built-in examples; bad values are
+//! refused with the field and the value named.
+#![cfg(feature = "std")]
+
+use std::path::Path;
+
+use firmware::config::{Config, LoadError};
+
+fn repo_file(name: &str) -> std::path::PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../..")
+        .join(name)
+}
+
+#[test]
+fn example_files_match_the_built_in_examples() {
+    let dji = Config::from_toml_file(&repo_file("config/dji_m3508.toml")).unwrap();
+    assert_eq!(dji, Config::dji_m3508_example());
+    let odrive = Config::from_toml_file(&repo_file("config/odrive.toml")).unwrap();
+    assert_eq!(odrive, Config::odrive_example());
+}
+
+#[test]
+fn toml_round_trip() {
+    for c in [Config::dji_m3508_example(), Config::odrive_example()] {
+        assert_eq!(Config::from_toml_str(&c.to_toml_string()).unwrap(), c);
+    }
+}
+
+/// The DJI example with one line replaced.
+fn dji_with(from: &str, to: &str) -> String {
+    let text = std::fs::read_to_string(repo_file("config/dji_m3508.toml")).unwrap();
+    assert!(text.contains(from), "fixture line {from:?} missing");
+    text.replacen(from, to, 1)
+}
+
+fn invalid(text: &str) -> String {
+    match Config::from_toml_str(text) {
+        Err(e @ LoadError::Invalid { .. }) => e.to_string(),
+        other => panic!("expected a validation error, got {other:?}"),
+    }
+}
+
+#[test]
+fn out_of_range_values_name_field_and_value() {
+    let cases = [
+        (
+            "esc_ids = [1, 2, 3, 4]",
+            "esc_ids = [1, 2, 3, 9]",
+            "drive.esc_ids[3] (RR) = 9",
+        ),
+        (
+            "esc_ids = [1, 2, 3, 4]",
+            "esc_ids = [1, 1, 3, 4]",
+            "drive.esc_ids[1] (FR) = 1",
+        ),
+        (
+            "wheel_radius = 0.076",
+            "wheel_radius = -0.076",
+            "geometry.wheel_radius = -0.076",
+        ),
+        ("lx = 0.20", "lx = nan", "geometry.lx = NaN"),
+        (
+            "max_current = 16.0",
+            "max_current = 25.0",
+            "limits.max_current = 25",
+        ),
+        (
+            "max_wheel_speed = 45.0",
+            "max_wheel_speed = 0.0",
+            "limits.max_wheel_speed = 0",
+        ),
+        (
+            "odometry_hz = 100",
+            "odometry_hz = 300",
+            "timing.odometry_hz = 300",
+        ),
+        (
+            "command_timeout_ms = 100",
+            "command_timeout_ms = 0",
+            "timing.command_timeout_ms = 0",
+        ),
+        (
+            "stale_periods = 3",
+            "stale_periods = 1",
+            "timing.stale_periods = 1",
+        ),
+        ("kp = 1.2", "kp = -1.0", "gains.kp = -1"),
+    ];
+    for (from, to, want) in cases {
+        let msg = invalid(&dji_with(from, to));
+        assert!(msg.contains(want), "{to}: {msg}");
+        assert!(msg.starts_with("<string>:"), "{msg}");
+    }
+}
+
+#[test]
+fn infinite_stop_deceleration_is_allowed() {
+    let c = Config::from_toml_str(&dji_with(
+        "stop_linear_decel = 8.0",
+        "stop_linear_decel = inf",
+    ))
+    .unwrap();
+    assert!(c.limits.stop_linear_decel.is_infinite());
+}
+
+#[test]
+fn singular_layout_is_refused() {
+    let msg = invalid(&dji_with("lx = 0.20", "lx = 0.0").replace("ly = 0.18", "ly = 0.0"));
+    assert!(msg.contains("geometry"), "{msg}");
+}
+
+#[test]
+fn syntax_unknown_fields_and_types_are_toml_errors_with_a_line() {
+    for (from, to, want) in [
+        ("kp = 1.2", "kp = 1.2\nkd = 0.1", "kd"),
+        ("model = \"c620\"", "model = \"c999\"", "c999"),
+        ("control_hz = 1000", "control_hz = \"fast\"", "control_hz"),
+        ("[limits]", "[limits", "line"),
+    ] {
+        match Config::from_toml_str(&dji_with(from, to)) {
+            Err(e @ LoadError::Toml { .. }) => {
+                let msg = e.to_string();
+                assert!(msg.contains(want), "{to}: {msg}");
+                assert!(msg.contains("line"), "{to}: no line in {msg}");
+            }
+            other => panic!("{to}: expected a TOML error, got {other:?}"),
+        }
+    }
+}
+
+#[test]
+fn missing_file_is_an_io_error_naming_it() {
+    let e = Config::from_toml_file(Path::new("no/such/config.toml")).unwrap_err();
+    assert!(matches!(e, LoadError::Io { .. }));
+    assert!(e.to_string().contains("no/such/config.toml"));
+}

@@ -1,0 +1,699 @@
+//! The control core on a scripted bus: motor feedback is fed at the drives' real rates, robot
+//! commands at chosen times, and the frames the core emits are decoded with the same codecs
+//! the rest of the stack uses.
+
+// The scripted drives walk several per-wheel arrays in step.
+#![allow(clippy::needless_range_loop)]
+
+use firmware::CanFrame;
+use firmware::config::{Config, Drive};
+use firmware::control::{Controller, Instant, Outbox};
+use firmware::protocol::dji::{self, CurrentCommand, EscModel};
+use firmware::protocol::odrive::{self, AxisState, ControlMode, NodeId};
+use firmware::protocol::robot::{self, Command, Fault, ModeRequest, RobotState, TwistCmd};
+
+/// One millisecond of simulated time per tick (the default 1 kHz loop).
+const TICK_US: u64 = 1_000;
+
+/// A controller with scripted drives: each alive motor reports `speed` (wheel rad/s in the
+/// motor's own sign) at the drive's feedback rate, with a consistent angle.
+struct Rig {
+    ctl: Controller,
+    config: Config,
+    now_us: u64,
+    alive: [bool; 4],
+    /// Motor-side wheel speed each drive reports, rad/s.
+    speed: [f32; 4],
+    /// Motor-side rotor angle, counts (DJI) / turns (ODrive), unwrapped.
+    rotor: [f64; 4],
+    /// Every frame emitted, with its time.
+    log: Vec<(u64, CanFrame)>,
+}
+
+impl Rig {
+    fn new(config: Config) -> Self {
+        Self {
+            ctl: Controller::new(&config).expect("valid config"),
+            config,
+            now_us: 0,
+            alive: [true; 4],
+            speed: [0.0; 4],
+            rotor: [0.0; 4],
+            log: Vec::new(),
+        }
+    }
+
+    fn dji() -> Self {
+        Self::new(Config::dji_m3508_example())
+    }
+
+    /// ODrive example with the watchdog stop "at once", so setpoints reach zero in one period.
+    fn odrive() -> Self {
+        let mut c = Config::odrive_example();
+        c.limits.stop_linear_decel = f32::INFINITY;
+        c.limits.stop_angular_decel = f32::INFINITY;
+        Self::new(c)
+    }
+
+    fn now(&self) -> Instant {
+        Instant::from_micros(self.now_us)
+    }
+
+    fn send(&mut self, cmd: Command) {
+        let frame = cmd.to_can_frame();
+        self.ctl.on_frame(self.now(), &frame);
+    }
+
+    fn raw(&mut self, frame: CanFrame) {
+        self.ctl.on_frame(self.now(), &frame);
+    }
+
+    fn twist(&mut self, vx: f32, vy: f32, wz: f32) {
+        self.send(Command::Twist(TwistCmd { vx, vy, wz, seq: 0 }));
+    }
+
+    fn feed_motors(&mut self) {
+        let ms = self.now_us / 1000;
+        match self.config.drive {
+            Drive::Dji {
+                model,
+                esc_ids,
+                gear_ratio,
+                ..
+            } => {
+                for w in 0..4 {
+                    let rotor_rad_s = self.speed[w] * gear_ratio;
+                    self.rotor[w] += f64::from(rotor_rad_s) * 1e-3 * 8192.0 / std::f64::consts::TAU;
+                    if !self.alive[w] {
+                        continue;
+                    }
+                    let fb = dji::Feedback {
+                        model,
+                        esc: dji::EscId::new(esc_ids[w]).unwrap(),
+                        rotor_angle: self.rotor[w].rem_euclid(8192.0) as u16,
+                        rotor_speed_rpm: (rotor_rad_s * 60.0 / std::f32::consts::TAU).round()
+                            as i16,
+                        torque_current: 0,
+                        temperature_c: 30,
+                    };
+                    self.raw(fb.to_can_frame());
+                }
+            }
+            Drive::Odrive {
+                node_ids,
+                gear_ratio,
+                ..
+            } => {
+                for w in 0..4 {
+                    let turns_s = self.speed[w] * gear_ratio / std::f32::consts::TAU;
+                    self.rotor[w] += f64::from(turns_s) * 1e-3;
+                    if !self.alive[w] {
+                        continue;
+                    }
+                    let node = NodeId::new(node_ids[w]).unwrap();
+                    if ms.is_multiple_of(10) {
+                        let est = odrive::Feedback::EncoderEstimates {
+                            pos: self.rotor[w] as f32,
+                            vel: turns_s,
+                        };
+                        self.raw(est.to_can_frame(node));
+                    }
+                    if ms.is_multiple_of(100) {
+                        let hb = odrive::Feedback::Heartbeat(odrive::Heartbeat {
+                            axis_error: 0,
+                            axis_state: AxisState::ClosedLoopControl,
+                            procedure_result: 0,
+                            trajectory_done: true,
+                        });
+                        self.raw(hb.to_can_frame(node));
+                    }
+                }
+            }
+        }
+    }
+
+    /// Feeds this millisecond's motor feedback, runs one step, advances the clock.
+    fn tick(&mut self) -> Outbox {
+        self.feed_motors();
+        let out = self.ctl.step(self.now());
+        for f in &out {
+            self.log.push((self.now_us, *f));
+        }
+        self.now_us += TICK_US;
+        out
+    }
+
+    fn run_ms(&mut self, ms: u64) -> Vec<Outbox> {
+        (0..ms).map(|_| self.tick()).collect()
+    }
+
+    /// Runs until `pred` holds for a step's output; returns the time it first held.
+    fn run_until(&mut self, max_ms: u64, pred: impl Fn(&Rig, &Outbox) -> bool) -> Option<u64> {
+        for _ in 0..max_ms {
+            let t = self.now_us;
+            let out = self.tick();
+            if pred(self, &out) {
+                return Some(t);
+            }
+        }
+        None
+    }
+
+    fn enable(&mut self) {
+        self.send(Command::Mode(ModeRequest::Enable));
+    }
+
+    fn status(&self) -> robot::Status {
+        self.log
+            .iter()
+            .rev()
+            .find_map(|(_, f)| match robot::Telemetry::decode(f) {
+                Ok(robot::Telemetry::Status(s)) => Some(s),
+                _ => None,
+            })
+            .expect("a status frame was sent")
+    }
+}
+
+/// The ODrive velocity setpoints (rev/s) in a step's output, in wheel order; None if absent.
+fn odrive_vels(config: &Config, out: &Outbox) -> Option<[f32; 4]> {
+    let Drive::Odrive { node_ids, .. } = config.drive else {
+        panic!("not an ODrive config")
+    };
+    let mut vels = [f32::NAN; 4];
+    for f in out {
+        if let Ok(a) = odrive::Command::decode(f)
+            && let odrive::Command::SetInputVel { vel, .. } = a.msg
+            && let Some(w) = node_ids.iter().position(|&n| n == a.node.get())
+        {
+            vels[w] = vel;
+        }
+    }
+    vels.iter().all(|v| !v.is_nan()).then_some(vels)
+}
+
+/// The DJI currents (A, motor sign) in a step's output, ESC 1-4.
+fn dji_currents(out: &Outbox) -> Option<[f32; 4]> {
+    out.iter().find_map(|f| {
+        CurrentCommand::decode(f, EscModel::C620)
+            .ok()
+            .map(|c| c.amps())
+    })
+}
+
+fn all_zero(v: [f32; 4]) -> bool {
+    v.iter().all(|&x| x == 0.0)
+}
+
+#[test]
+fn odrive_enable_sends_mode_and_closed_loop_then_twist_gives_exact_setpoints() {
+    let mut rig = Rig::odrive();
+    rig.run_ms(20);
+    rig.enable();
+    let out = rig.tick();
+    let mut seen_mode = 0;
+    let mut seen_closed = 0;
+    for f in &out {
+        match odrive::Command::decode(f).map(|a| a.msg) {
+            Ok(odrive::Command::SetControllerMode { control_mode, .. }) => {
+                assert_eq!(control_mode, ControlMode::VelocityControl);
+                seen_mode += 1;
+            }
+            Ok(odrive::Command::SetAxisState(AxisState::ClosedLoopControl)) => seen_closed += 1,
+            _ => {}
+        }
+    }
+    assert_eq!((seen_mode, seen_closed), (4, 4), "{out:?}");
+
+    // Forward 0.5 m/s; ramp at 4 m/s² takes 125 ms. Keep commanding every 20 ms.
+    for _ in 0..10 {
+        rig.twist(0.5, 0.0, 0.0);
+        rig.run_ms(20);
+    }
+    rig.twist(0.5, 0.0, 0.0);
+    let vels = {
+        let mut v = None;
+        for _ in 0..5 {
+            let o = rig.tick();
+            if let Some(x) = odrive_vels(&rig.config, &o) {
+                v = Some(x);
+            }
+        }
+        v.expect("setpoints every 5 ms at 200 Hz")
+    };
+    // Wheel speed 0.5 / 0.05 = 10 rad/s; motor 10 * 5 / 2π rev/s; right side mirrored.
+    let want = 10.0 * 5.0 / std::f32::consts::TAU;
+    let expect = [want, -want, want, -want];
+    for (got, want) in vels.iter().zip(expect) {
+        assert!((got - want).abs() < 1e-4, "{vels:?} vs {expect:?}");
+    }
+}
+
+#[test]
+fn dji_twist_gives_currents_with_mounting_signs_and_pi_action() {
+    let mut rig = Rig::dji();
+    rig.run_ms(5);
+    rig.enable();
+    rig.twist(1.0, 0.0, 0.0);
+    // First step: commanded twist is one ramp increment, 4 m/s² * 1 ms = 4 mm/s.
+    let out = rig.tick();
+    let amps = dji_currents(&out).expect("a current frame every period");
+    let g = rig.config.gains;
+    let sp = 0.004 / 0.076; // wheel rad/s
+    let want = g.kp * sp + g.ki * sp * 1e-3;
+    // Motors report zero speed, so the error is the setpoint; right side mirrored.
+    let expect = [want, -want, want, -want];
+    for (got, want) in amps.iter().zip(expect) {
+        // The C620 resolution is 20/16384 A.
+        assert!(
+            (got - want).abs() <= 20.0 / 16384.0,
+            "{amps:?} vs {expect:?}"
+        );
+    }
+    // Held error: the integrator grows, the current rises, and it stops at max_current.
+    for _ in 0..50 {
+        rig.twist(1.0, 0.0, 0.0);
+        rig.run_ms(10);
+    }
+    let amps = dji_currents(&rig.tick()).unwrap();
+    let max = rig.config.limits.max_current;
+    for (i, a) in amps.iter().enumerate() {
+        let want = if i % 2 == 0 { max } else { -max };
+        assert!(
+            (a - want).abs() <= 20.0 / 16384.0,
+            "saturated at ±max: {amps:?}"
+        );
+    }
+}
+
+#[test]
+fn anti_windup_releases_at_once_when_the_wheel_catches_up() {
+    let mut rig = Rig::dji();
+    rig.run_ms(5);
+    rig.enable();
+    for _ in 0..100 {
+        rig.twist(1.0, 0.0, 0.0);
+        rig.run_ms(10);
+    }
+    // The wheels suddenly reach the setpoint (1 m/s / 0.076 m): with the integrator clamped
+    // at the output limit the current falls below the limit on the very next step.
+    let sp = 1.0 / 0.076;
+    rig.speed = [sp, -sp, sp, -sp];
+    rig.twist(1.0, 0.0, 0.0);
+    let amps = dji_currents(&rig.tick()).unwrap();
+    assert!(amps[0] <= rig.config.limits.max_current, "{amps:?}");
+    rig.speed = [sp + 2.0, -(sp + 2.0), sp + 2.0, -(sp + 2.0)];
+    rig.twist(1.0, 0.0, 0.0);
+    let amps = dji_currents(&rig.tick()).unwrap();
+    assert!(amps[0] < rig.config.limits.max_current - 1.0, "{amps:?}");
+}
+
+/// Drives forward, stops commanding at `t_last`, and returns the time zero setpoints first
+/// appear and the last nonzero one before that.
+fn watchdog_zero_time(rig: &mut Rig, with_status_polls: bool) -> (u64, u64) {
+    rig.run_ms(20);
+    rig.enable();
+    for _ in 0..30 {
+        rig.twist(0.3, 0.1, 0.2);
+        rig.run_ms(10);
+    }
+    rig.twist(0.3, 0.1, 0.2);
+    let t_last = rig.now_us;
+    let mut zero_at = None;
+    for ms in 0..400u32 {
+        if with_status_polls && ms.is_multiple_of(5) {
+            rig.send(Command::StatusRequest);
+        }
+        let t = rig.now_us;
+        let out = rig.tick();
+        if let Some(v) = odrive_vels(&rig.config, &out) {
+            if all_zero(v) {
+                zero_at.get_or_insert(t);
+            } else {
+                assert!(zero_at.is_none(), "motion resumed at {t}");
+            }
+        }
+    }
+    (t_last, zero_at.expect("zero setpoints were sent"))
+}
+
+#[test]
+fn commands_stop_zero_setpoints_within_timeout_plus_two_periods() {
+    let mut rig = Rig::odrive();
+    let (t_last, zero_at) = watchdog_zero_time(&mut rig, false);
+    let period = 1_000;
+    // ODrive setpoints go out at 200 Hz: allow that period as the "control period" here.
+    let setpoint_period = 5_000;
+    let bound = 100_000 + 2 * period.max(setpoint_period);
+    assert!(
+        zero_at - t_last <= bound,
+        "zero after {} us, bound {bound}",
+        zero_at - t_last
+    );
+    assert!(zero_at - t_last > 100_000, "not before the timeout");
+    assert_eq!(rig.ctl.state(), RobotState::Disabled);
+    assert_eq!(rig.ctl.fault(), Fault::Watchdog);
+    // Idle is requested once the stop completes.
+    let idle = rig.log.iter().any(|(_, f)| {
+        matches!(
+            odrive::Command::decode(f).map(|a| a.msg),
+            Ok(odrive::Command::SetAxisState(AxisState::Idle))
+        )
+    });
+    assert!(idle);
+}
+
+#[test]
+fn dji_zero_currents_within_timeout_plus_two_periods_with_an_instant_stop() {
+    let mut c = Config::dji_m3508_example();
+    c.limits.stop_linear_decel = f32::INFINITY;
+    c.limits.stop_angular_decel = f32::INFINITY;
+    let mut rig = Rig::new(c);
+    rig.run_ms(5);
+    rig.enable();
+    for _ in 0..20 {
+        rig.twist(0.5, 0.0, 0.0);
+        rig.run_ms(10);
+    }
+    rig.twist(0.5, 0.0, 0.0);
+    let t_last = rig.now_us;
+    let t_zero = rig
+        .run_until(300, |_, o| dji_currents(o).is_some_and(all_zero))
+        .expect("currents reach zero");
+    let dt = t_zero - t_last;
+    assert!(dt > 100_000 && dt <= 102_000, "zero currents after {dt} us");
+}
+
+#[test]
+fn finite_stop_deceleration_ramps_down_at_the_configured_limit() {
+    let mut c = Config::odrive_example();
+    c.limits.stop_linear_decel = 5.0; // m/s²: 0.5 m/s -> 0 in 100 ms
+    let mut rig = Rig::new(c);
+    rig.run_ms(20);
+    rig.enable();
+    for _ in 0..30 {
+        rig.twist(0.5, 0.0, 0.0);
+        rig.run_ms(10);
+    }
+    rig.twist(0.5, 0.0, 0.0);
+    let t_last = rig.now_us;
+    let t_zero = rig
+        .run_until(500, |r, o| odrive_vels(&r.config, o).is_some_and(all_zero))
+        .unwrap();
+    let dt = t_zero - t_last;
+    // Timeout 100 ms + 100 ms of ramp, within two setpoint periods.
+    assert!(
+        (200_000..=210_000).contains(&dt),
+        "zero after {dt} us, want 200-210 ms"
+    );
+}
+
+#[test]
+fn status_polls_and_mode_commands_do_not_keep_motion_alive() {
+    let mut quiet = Rig::odrive();
+    let (q_last, q_zero) = watchdog_zero_time(&mut quiet, false);
+    let mut polled = Rig::odrive();
+    let (p_last, p_zero) = watchdog_zero_time(&mut polled, true);
+    assert_eq!(
+        q_zero - q_last,
+        p_zero - p_last,
+        "status polls changed the stop time"
+    );
+    // Status requests were answered.
+    let statuses = polled
+        .log
+        .iter()
+        .filter(|(_, f)| matches!(robot::Telemetry::decode(f), Ok(robot::Telemetry::Status(_))))
+        .count();
+    let periodic = polled.log.last().unwrap().0 / 100_000 + 1;
+    assert!(statuses as u64 > periodic + 50, "{statuses} status frames");
+}
+
+/// `frame` with its data replaced: `edit` gets the 8-byte buffer, `dlc` sets the length.
+fn tampered(frame: CanFrame, dlc: u8, edit: impl FnOnce(&mut [u8; 8])) -> CanFrame {
+    let mut data = [0u8; 8];
+    let src = embedded_can::Frame::data(&frame);
+    data[..src.len()].copy_from_slice(src);
+    edit(&mut data);
+    let id = embedded_can::Frame::id(&frame);
+    let embedded_can::Id::Standard(id) = id else {
+        panic!("standard ids only")
+    };
+    CanFrame::from_buffer(id, data, dlc)
+}
+
+#[test]
+fn rejected_commands_are_counted_and_never_feed_the_watchdog() {
+    let twist = |vx| {
+        Command::Twist(TwistCmd {
+            vx,
+            vy: 0.0,
+            wz: 0.0,
+            seq: 1,
+        })
+    };
+    // Faster than limits.max_linear_speed (3 m/s): rejected by the core.
+    let too_fast = twist(5.0).to_can_frame();
+    // vx raw = -32768, reserved as invalid: rejected by the decoder.
+    let reserved = tampered(twist(0.1).to_can_frame(), 8, |d| {
+        d[0] = 0x00;
+        d[1] = 0x80;
+    });
+    // Wrong DLC.
+    let short = tampered(twist(0.1).to_can_frame(), 5, |_| {});
+
+    let mut rig = Rig::odrive();
+    rig.run_ms(20);
+    rig.enable();
+    rig.twist(0.3, 0.0, 0.0);
+    let t_cmd = rig.now_us;
+    let mut zero_at = None;
+    for _ in 0..300 {
+        rig.raw(too_fast);
+        rig.raw(reserved);
+        rig.raw(short);
+        let t = rig.now_us;
+        let out = rig.tick();
+        if odrive_vels(&rig.config, &out).is_some_and(all_zero) {
+            zero_at.get_or_insert(t);
+        }
+    }
+    let dt = zero_at.expect("watchdog stopped the robot") - t_cmd;
+    assert!(dt <= 110_000, "invalid commands kept it alive: {dt} us");
+    rig.send(Command::StatusRequest);
+    rig.tick();
+    let snap = rig.ctl.snapshot();
+    assert_eq!(snap.rx_errors.out_of_range, 600);
+    assert_eq!(snap.rx_errors.wrong_dlc, 300);
+    let status = rig.status();
+    assert_eq!(status.rx_errors, 900);
+    assert_eq!(status.unknown_ids, 0);
+}
+
+#[test]
+fn non_finite_feedback_is_rejected_and_counted() {
+    let mut rig = Rig::odrive();
+    rig.run_ms(20);
+    let node = NodeId::new(0).unwrap();
+    let est = odrive::Feedback::EncoderEstimates { pos: 1.0, vel: 0.0 }.to_can_frame(node);
+    let f = tampered(est, 8, |d| d[0..4].copy_from_slice(&f32::NAN.to_le_bytes()));
+    let pose_before = rig.ctl.pose();
+    rig.raw(f);
+    rig.run_ms(1);
+    assert_eq!(rig.ctl.snapshot().rx_errors.non_finite, 1);
+    assert_eq!(rig.ctl.pose(), pose_before);
+}
+
+#[test]
+fn unknown_ids_are_counted_separately() {
+    let mut rig = Rig::dji();
+    rig.run_ms(2);
+    for id in [0x123u16, 0x7FF, 0x209] {
+        rig.raw(CanFrame::from_buffer(
+            embedded_can::StandardId::new(id).unwrap(),
+            [0; 8],
+            8,
+        ));
+    }
+    rig.send(Command::StatusRequest);
+    rig.tick();
+    let s = rig.status();
+    assert_eq!((s.unknown_ids, s.rx_errors), (3, 0));
+    assert_eq!(s.motors_online, 0b1111);
+}
+
+#[test]
+fn a_stale_motor_faults_within_three_feedback_periods() {
+    let mut rig = Rig::dji();
+    rig.run_ms(10);
+    rig.enable();
+    rig.twist(0.2, 0.0, 0.0);
+    rig.run_ms(5);
+    rig.alive[2] = false; // RL goes silent
+    let t_silent = rig.now_us;
+    let t_fault = rig
+        .run_until(50, |r, _| r.ctl.state() == RobotState::Fault)
+        .expect("stale motor faults");
+    assert_eq!(rig.ctl.fault(), Fault::MotorStale);
+    // Last feedback at t_silent - 1 ms; stale after 3 ms; seen at the next step.
+    assert!(t_fault - t_silent <= 4_000, "{} us", t_fault - t_silent);
+    // Fault means no torque.
+    assert!(dji_currents(&rig.tick()).is_some_and(all_zero));
+    // Reset while the motor is still silent faults again; back alive, reset clears it.
+    rig.send(Command::Mode(ModeRequest::Reset));
+    rig.tick();
+    assert_eq!(rig.ctl.state(), RobotState::Fault);
+    rig.alive[2] = true;
+    rig.tick();
+    rig.send(Command::Mode(ModeRequest::Reset));
+    rig.run_ms(5);
+    assert_eq!(
+        (rig.ctl.state(), rig.ctl.fault()),
+        (RobotState::Disabled, Fault::None)
+    );
+}
+
+#[test]
+fn a_motor_never_seen_faults_after_the_boot_timeout() {
+    let mut rig = Rig::dji();
+    rig.alive[1] = false;
+    let t = rig
+        .run_until(2000, |r, _| r.ctl.state() == RobotState::Fault)
+        .expect("missing motor faults");
+    assert_eq!(rig.ctl.fault(), Fault::MotorMissing);
+    assert_eq!(
+        t, 1_001_000,
+        "boot timeout 1000 ms, detected on the next step"
+    );
+    assert_eq!(rig.status().motors_online, 0b1101);
+}
+
+#[test]
+fn the_latch_holds_until_enable_and_a_fresh_command() {
+    let mut rig = Rig::odrive();
+    let _ = watchdog_zero_time(&mut rig, false);
+    assert_eq!(rig.ctl.state(), RobotState::Disabled);
+    // Twists alone do nothing.
+    for _ in 0..20 {
+        rig.twist(0.4, 0.0, 0.0);
+        let out = rig.tick();
+        assert!(odrive_vels(&rig.config, &out).is_none_or(all_zero));
+    }
+    assert_eq!(rig.ctl.state(), RobotState::Disabled);
+    // Enable alone: enabled, but holding still (no fresh command yet).
+    rig.enable();
+    for _ in 0..50 {
+        let out = rig.tick();
+        assert!(odrive_vels(&rig.config, &out).is_none_or(all_zero));
+    }
+    assert_eq!(rig.ctl.state(), RobotState::Enabled);
+    // A fresh command after the enable moves it.
+    rig.twist(0.4, 0.0, 0.0);
+    let moved = rig.run_until(20, |r, o| {
+        odrive_vels(&r.config, o).is_some_and(|v| v[0] > 0.0)
+    });
+    assert!(moved.is_some());
+}
+
+#[test]
+fn estop_latches_until_reset_then_enable_and_a_fresh_command() {
+    let mut rig = Rig::dji();
+    rig.run_ms(5);
+    rig.enable();
+    for _ in 0..10 {
+        rig.twist(0.5, 0.0, 0.0);
+        rig.run_ms(10);
+    }
+    rig.send(Command::Estop);
+    let out = rig.tick();
+    assert!(
+        dji_currents(&out).is_some_and(all_zero),
+        "e-stop cuts torque at once"
+    );
+    assert_eq!(rig.ctl.state(), RobotState::Estop);
+    // Enable and twists are ignored while e-stopped.
+    rig.enable();
+    rig.twist(0.5, 0.0, 0.0);
+    rig.run_ms(20);
+    assert_eq!(rig.ctl.state(), RobotState::Estop);
+    rig.send(Command::StatusRequest);
+    rig.tick();
+    assert_eq!(rig.status().state, RobotState::Estop);
+    rig.send(Command::Mode(ModeRequest::Reset));
+    rig.tick();
+    assert_eq!(rig.ctl.state(), RobotState::Disabled);
+    rig.enable();
+    rig.twist(0.5, 0.0, 0.0);
+    let out = rig.tick();
+    assert!(dji_currents(&out).is_some_and(|a| a[0] > 0.0));
+}
+
+#[test]
+fn odometry_follows_the_wheels_and_is_published_at_100_hz() {
+    let mut rig = Rig::dji();
+    rig.run_ms(5);
+    // Wheels turning as for 0.5 m/s forward (motor sign: right side mirrored).
+    let w = 0.5 / 0.076;
+    rig.speed = [w, -w, w, -w];
+    let start = rig.log.len();
+    rig.run_ms(1000);
+    let pose = rig.ctl.pose();
+    assert!((pose.x - 0.5).abs() < 2e-3, "x = {}", pose.x);
+    assert!(pose.y.abs() < 1e-3 && pose.heading.abs() < 1e-3);
+    let positions: Vec<_> = rig.log[start..]
+        .iter()
+        .filter_map(|(t, f)| match robot::Telemetry::decode(f) {
+            Ok(robot::Telemetry::OdomPosition(p)) => Some((*t, p)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(positions.len(), 100);
+    let v = rig.ctl.snapshot().measured;
+    assert!((v.vx - 0.5).abs() < 0.01, "measured vx {}", v.vx);
+}
+
+#[test]
+fn same_inputs_same_frames_bit_for_bit() {
+    let run = || {
+        let mut rig = Rig::dji();
+        rig.run_ms(5);
+        rig.enable();
+        for k in 0..50 {
+            rig.twist(0.01 * k as f32, -0.005 * k as f32, 0.02 * k as f32);
+            rig.speed = [
+                k as f32 * 0.1,
+                -(k as f32) * 0.1,
+                k as f32 * 0.12,
+                -(k as f32) * 0.09,
+            ];
+            rig.run_ms(7);
+        }
+        rig.log
+    };
+    let (a, b) = (run(), run());
+    assert!(a.len() > 300);
+    assert_eq!(a, b);
+}
+
+#[test]
+fn shutdown_sends_zero_and_idle() {
+    let mut rig = Rig::odrive();
+    rig.run_ms(20);
+    rig.enable();
+    rig.twist(0.3, 0.0, 0.0);
+    rig.run_ms(50);
+    let out = rig.ctl.shutdown();
+    let mut zero = 0;
+    let mut idle = 0;
+    for f in &out {
+        match odrive::Command::decode(f).map(|a| a.msg) {
+            Ok(odrive::Command::SetInputVel { vel: 0.0, .. }) => zero += 1,
+            Ok(odrive::Command::SetAxisState(AxisState::Idle)) => idle += 1,
+            _ => {}
+        }
+    }
+    assert_eq!((zero, idle), (4, 4));
+    let mut dji = Rig::dji();
+    dji.run_ms(5);
+    assert!(dji_currents(&dji.ctl.shutdown()).is_some_and(all_zero));
+}
