@@ -1,0 +1,233 @@
+//! `mecanum-runner`: the firmware's control core on a Linux SocketCAN interface, at a fixed
+//! rate (see `--help`). The loop itself is `firmware::linux::run`; this file is the command
+//! line, signal handling and reporting around it.
+
+use std::fs::File;
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicUsize};
+
+use anyhow::{Context as _, Result};
+use clap::Parser;
+use firmware::config::Drive;
+use firmware::linux::{self, MonotonicClock, Report, RunOptions, SocketCanBus};
+use firmware::{Config, Controller};
+use signal_hook::consts::{SIGINT, SIGTERM};
+
+/// Exit status for a startup error (bad arguments, configuration or interface).
+const EXIT_STARTUP: u8 = 2;
+
+const ABOUT: &str = "\
+Runs the mecanum drive's control core on a SocketCAN interface at a fixed rate: it reads the
+motor feedback and the robot's commands from the bus, and sends the motor commands, odometry,
+status and heartbeat.";
+
+const LONG_ABOUT: &str = "\
+Runs the mecanum drive's control core on a SocketCAN interface at a fixed rate (the
+configuration's timing.control_hz, 1000 Hz in the examples): it reads the motor feedback and
+the robot's commands from the bus, and sends the motor commands, odometry, status and
+heartbeat. The same core runs on the motor-controller MCU and in the simulator.
+
+Robot protocol (dbc/mecanum_robot.dbc; CAN 2.0A, little-endian, ids 0x300-0x31F):
+  host -> robot   0x300 ESTOP (magic 0xE5)    0x301 TWIST_CMD (vx, vy, wz, seq)
+                  0x302 MODE_CMD (0 disable, 1 enable, 2 reset)    0x303 STATUS_REQ
+  robot -> host   0x310 ODOM_POSITION, 0x311 ODOM_VELOCITY (timing.odometry_hz, 100 Hz)
+                  0x312 STATUS, 0x31F HEARTBEAT (timing.status_hz, 10 Hz)
+Motor side: DJI C620/C610 current commands on 0x200 (ESC 1-4) / 0x1FF (ESC 5-8) every
+period, feedback on 0x201-0x208; or ODrive CAN Simple (node << 5 | command).
+The robot starts disabled: send MODE_CMD enable, then TWIST_CMD at least every
+timing.command_timeout_ms (100 ms), or it ramps to a stop and disables itself.
+
+Exit: on SIGINT or SIGTERM (or when --duration has elapsed) the runner stops the loop,
+sends the frames that leave the motors safe (DJI: zero current; ODrive: zero velocity, then
+the idle state), prints statistics to stderr (loop jitter p50/p99/max, frame counts, bus
+errors, the controller's state and rejected-frame counters) and exits 0. A second SIGINT or
+SIGTERM during that shutdown exits at once with status 1.
+Exit status: 0 after a clean stop; 1 if the shutdown frames could not all be sent or the
+statistics could not be written; 2 for a startup error (bad arguments, a configuration file
+that cannot be read or is invalid, a CAN interface that is missing or down).";
+
+#[derive(Debug, Parser)]
+#[command(name = "mecanum-runner", version, about = ABOUT, long_about = LONG_ABOUT)]
+struct Args {
+    /// SocketCAN interface to run on, e.g. vcan0 or can0. It must exist and be up.
+    #[arg(long, value_name = "IFACE")]
+    iface: String,
+
+    /// Drive configuration (TOML, as config/dji_m3508.toml or config/odrive.toml). Default:
+    /// the built-in DJI example, 4 x M3508 motors on C620 ESCs 1-4 at 1000 Hz (the same as
+    /// config/dji_m3508.toml).
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+
+    /// Stop after this many seconds (then shut down as on SIGINT). Default: run until
+    /// SIGINT/SIGTERM.
+    #[arg(long, value_name = "SECONDS", value_parser = parse_seconds, allow_hyphen_values = true)]
+    duration: Option<f64>,
+
+    /// Write the final statistics as JSON to FILE (created at startup, written on exit).
+    #[arg(long, value_name = "FILE")]
+    stats_json: Option<PathBuf>,
+
+    /// Busy-wait the last MICROS before each deadline instead of sleeping: lower jitter, more
+    /// CPU. Default 0 (sleep only).
+    #[arg(long, value_name = "MICROS", default_value_t = 0)]
+    spin_us: u64,
+
+    /// Print only errors (no start line, no statistics on stderr).
+    #[arg(long, short)]
+    quiet: bool,
+}
+
+fn parse_seconds(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if (0.0..1e9).contains(&v) => Ok(v),
+        Ok(v) => Err(format!("expected a number of seconds >= 0, got {v}")),
+        Err(e) => Err(format!("expected a number of seconds, got {s:?}: {e}")),
+    }
+}
+
+/// What `main` needs from the startup: everything is checked before the loop starts.
+struct Setup {
+    controller: Controller,
+    bus: SocketCanBus,
+    stats: Option<(PathBuf, File)>,
+    stop: Arc<AtomicUsize>,
+    summary: String,
+}
+
+fn main() -> ExitCode {
+    // clap exits with status 2 on bad arguments and 0 for --help / --version.
+    let args = Args::parse();
+    let setup = match startup(&args) {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("mecanum-runner: {}", render(&e));
+            return ExitCode::from(EXIT_STARTUP);
+        }
+    };
+    let Setup {
+        mut controller,
+        mut bus,
+        stats,
+        stop,
+        summary,
+    } = setup;
+    if !args.quiet {
+        eprintln!("mecanum-runner: {summary}; stop with Ctrl-C (SIGINT) or SIGTERM");
+    }
+    let options = RunOptions {
+        duration_us: args.duration.map(|s| (s * 1e6).round() as u64),
+        ..RunOptions::default()
+    };
+    let clock = MonotonicClock::new(args.spin_us);
+    let report = linux::run(&mut controller, &mut bus, &clock, &options, &stop);
+
+    let mut status = ExitCode::SUCCESS;
+    if !args.quiet {
+        eprintln!("mecanum-runner: {report}");
+    }
+    if report.shutdown.failed > 0 {
+        eprintln!(
+            "mecanum-runner: {} of {} shutdown frames NOT sent ({}): the motors may still be \
+             commanded",
+            report.shutdown.failed,
+            report.shutdown.frames,
+            report.last_error.as_deref().unwrap_or("no error recorded")
+        );
+        status = ExitCode::FAILURE;
+    }
+    if let Some((path, file)) = stats
+        && let Err(e) = write_stats(&path, file, &report)
+    {
+        eprintln!("mecanum-runner: {}", render(&e));
+        status = ExitCode::FAILURE;
+    }
+    status
+}
+
+fn startup(args: &Args) -> Result<Setup> {
+    let (config, source) = match &args.config {
+        Some(path) => (
+            // The error names the file, and the line or the field.
+            Config::from_toml_file(path)?,
+            path.display().to_string(),
+        ),
+        None => (
+            Config::dji_m3508_example(),
+            "built-in DJI M3508/C620 example".to_string(),
+        ),
+    };
+    let controller = Controller::new(&config)
+        .with_context(|| format!("configuration {source} rejected by the controller"))?;
+
+    // Signals before the socket: from here on SIGINT/SIGTERM stop the loop cleanly. The
+    // first one stores its number in `stop`; a second one while `stop` is set exits at once.
+    // (signal-hook runs the actions in registration order: the exit checks the flag before
+    // the same signal sets it.)
+    let stop = Arc::new(AtomicUsize::new(0));
+    let stopping = Arc::new(AtomicBool::new(false));
+    for signal in [SIGINT, SIGTERM] {
+        let number = usize::try_from(signal).unwrap_or(1);
+        signal_hook::flag::register_conditional_shutdown(signal, 1, Arc::clone(&stopping))
+            .and_then(|_| signal_hook::flag::register(signal, Arc::clone(&stopping)))
+            .and_then(|_| signal_hook::flag::register_usize(signal, Arc::clone(&stop), number))
+            .with_context(|| format!("cannot install the handler of signal {signal}"))?;
+    }
+
+    let bus = SocketCanBus::open(&args.iface)?;
+
+    // The statistics file is created before the loop starts (and after everything else
+    // checked), so a bad path fails now and not after a long run.
+    let stats = match &args.stats_json {
+        Some(path) => {
+            let file = File::create(path)
+                .with_context(|| format!("cannot create --stats-json file {}", path.display()))?;
+            Some((path.clone(), file))
+        }
+        None => None,
+    };
+    let drive = match config.drive {
+        Drive::Dji { model, esc_ids, .. } => format!("DJI {model:?} ESCs {esc_ids:?}"),
+        Drive::Odrive { node_ids, .. } => format!("ODrive nodes {node_ids:?}"),
+    };
+    let summary = format!(
+        "{} at {} Hz ({} µs period), {drive}, configuration: {source}",
+        args.iface,
+        config.timing.control_hz,
+        controller.period_micros()
+    );
+    Ok(Setup {
+        controller,
+        bus,
+        stats,
+        stop,
+        summary,
+    })
+}
+
+fn write_stats(path: &Path, mut file: File, report: &Report) -> Result<()> {
+    serde_json::to_writer_pretty(&mut file, report)
+        .map_err(anyhow::Error::from)
+        .and_then(|()| Ok(file.write_all(b"\n")?))
+        .with_context(|| format!("cannot write --stats-json file {}", path.display()))
+}
+
+/// An error and its causes on one line, each cause once: the library's errors already
+/// include their source in their own message, so a cause whose text is already there is
+/// skipped.
+fn render(error: &anyhow::Error) -> String {
+    let mut text = String::new();
+    for cause in error.chain() {
+        let cause = cause.to_string();
+        if text.is_empty() {
+            text = cause;
+        } else if !text.contains(&cause) {
+            text.push_str(": ");
+            text.push_str(&cause);
+        }
+    }
+    text
+}

@@ -1,0 +1,1406 @@
+//! The Linux runner: the control core at a fixed rate on a SocketCAN interface (feature
+//! `linux`).
+//!
+//! # What a runner does
+//!
+//! The [`Controller`] is a pure state machine: it reads no clock and does no I/O. A runner
+//! owns both. [`run`] is the runner's whole loop, written against two small traits so that it
+//! can be tested without a CAN interface or real time:
+//!
+//! - a [`Bus`]: non-blocking receive, send; [`SocketCanBus`] is the SocketCAN one;
+//! - a [`Clock`]: microseconds since an arbitrary epoch and "sleep until";
+//!   [`MonotonicClock`] is `CLOCK_MONOTONIC` (through [`std::time::Instant`]).
+//!
+//! The `mecanum-runner` binary is [`SocketCanBus`] + [`MonotonicClock`] + [`run`] + a
+//! command line and signal handling.
+//!
+//! # Scheduling
+//!
+//! Steps are due at absolute deadlines `start + k · period` (`period` from
+//! [`Controller::period_micros`]). A deadline is never computed from the previous wake-up,
+//! so lateness does not accumulate (no drift). For each step the loop:
+//!
+//! 1. sleeps until the deadline, then reads the clock once: `now`;
+//! 2. records the lateness `now - deadline` (see *Jitter*); when it exceeds one period the
+//!    step counts as an **overrun** and the schedule is re-anchored at `now`
+//!    (`start := now, k := 0`) instead of running a burst of catch-up steps;
+//! 3. drains every frame waiting on the bus (non-blocking reads, at most
+//!    [`RunOptions::max_rx_per_step`]) into [`Controller::on_frame`], all stamped `now`;
+//! 4. runs [`Controller::step`] at `now` and sends its frames in order.
+//!
+//! `now` is passed to the core as microseconds since the first step's clock reading, so the
+//! core's [`Instant`] starts near zero.
+//!
+//! # Sending
+//!
+//! A full transmit queue is normal on a busy bus: SocketCAN reports it as `ENOBUFS` (the
+//! interface queue is full) or `EAGAIN` (the socket buffer is full, non-blocking socket).
+//! Those are retried every [`RunOptions::retry_backoff_us`] until half a period after the
+//! step's deadline; a frame still not sent then is dropped and counted in
+//! [`Report::send_errors`]. Any other error (interface down, ...) is counted at once. Nothing
+//! on the bus ever stops the loop.
+//!
+//! # Stopping
+//!
+//! The loop stops when the `stop` flag becomes non-zero (the binary stores the signal number
+//! from SIGINT/SIGTERM there) or when [`RunOptions::duration_us`] has elapsed. It then sends
+//! [`Controller::shutdown`]'s frames (zero current for DJI ESCs; zero velocity and the idle
+//! state for ODrive axes), retrying busy errors for up to
+//! [`RunOptions::shutdown_budget_us`], and returns a [`Report`].
+//!
+//! # Jitter
+//!
+//! Jitter is measured as the **lateness of each step's start**: the clock reading after the
+//! sleep minus the step's deadline (never negative: a sleep never ends early). It is recorded
+//! in a fixed-size [`LatencyHistogram`] (exact below 2048 µs, within 0.1 % above), so a run
+//! of any length uses the same memory; [`Report::jitter`] has its p50, p99 and maximum. The
+//! time from wake-up to the last frame sent is recorded the same way
+//! ([`Report::step_time`]).
+
+use std::prelude::rust_2024::*;
+use std::{format, vec};
+
+use core::fmt;
+use core::sync::atomic::{AtomicUsize, Ordering};
+use std::io;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use embedded_can::Frame as _;
+use serde::Serialize;
+
+use crate::control::{Controller, Instant, Snapshot};
+use crate::frame::CanFrame;
+use crate::protocol::RxErrorCounters;
+
+/// A CAN bus as the runner needs it: a non-blocking receive and a send.
+pub trait Bus {
+    /// The next received frame, `Ok(None)` when none is waiting. Must not block.
+    ///
+    /// # Errors
+    /// Whatever the bus reports; the runner counts it and stops draining for this step.
+    fn try_recv(&mut self) -> io::Result<Option<CanFrame>>;
+
+    /// Queues one frame for sending. Should not block for long; a full queue is reported as
+    /// an error that [`is_busy`] recognises, and the runner retries it.
+    ///
+    /// # Errors
+    /// Whatever the bus reports.
+    fn send(&mut self, frame: &CanFrame) -> io::Result<()>;
+}
+
+/// A monotonic clock in microseconds that can sleep.
+pub trait Clock {
+    /// Microseconds since an arbitrary, fixed epoch; never decreases.
+    fn now_micros(&self) -> u64;
+
+    /// Returns when [`now_micros`](Self::now_micros) is at least `deadline_us` (at once if it
+    /// already is).
+    fn sleep_until(&self, deadline_us: u64);
+}
+
+/// `CLOCK_MONOTONIC` through [`std::time::Instant`], with an optional busy-wait before each
+/// deadline.
+///
+/// A plain sleep wakes up late by the kernel's timer slack (50 µs by default for normal
+/// threads) plus the scheduling latency. With `spin_us > 0` the clock sleeps until
+/// `spin_us` before the deadline and spins for the rest, which trades CPU time for a lower
+/// lateness.
+#[derive(Debug, Clone, Copy)]
+pub struct MonotonicClock {
+    epoch: std::time::Instant,
+    spin_us: u64,
+}
+
+impl MonotonicClock {
+    /// A clock whose epoch is now; `spin_us` as in the type's documentation (0: no spinning).
+    #[must_use]
+    pub fn new(spin_us: u64) -> Self {
+        Self {
+            epoch: std::time::Instant::now(),
+            spin_us,
+        }
+    }
+}
+
+impl Clock for MonotonicClock {
+    fn now_micros(&self) -> u64 {
+        u64::try_from(self.epoch.elapsed().as_micros()).unwrap_or(u64::MAX)
+    }
+
+    fn sleep_until(&self, deadline_us: u64) {
+        // `now_micros` rounds down, so sleeping `deadline - now` never wakes up early.
+        let remaining = deadline_us.saturating_sub(self.now_micros());
+        if remaining > self.spin_us {
+            std::thread::sleep(Duration::from_micros(remaining - self.spin_us));
+        }
+        while self.now_micros() < deadline_us {
+            core::hint::spin_loop();
+        }
+    }
+}
+
+/// Whether a send error means "the transmit queue is full, try again shortly": `ENOBUFS`
+/// (interface queue full) or `EAGAIN`/`EWOULDBLOCK` (socket buffer full).
+#[must_use]
+pub fn is_busy(error: &io::Error) -> bool {
+    error.kind() == io::ErrorKind::WouldBlock || error.raw_os_error() == Some(libc::ENOBUFS)
+}
+
+/// Tuning of [`run`]. [`Default`] is what the binary uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RunOptions {
+    /// Stop on the first deadline at least this long after the start; `None`: run until the
+    /// stop flag is set.
+    pub duration_us: Option<u64>,
+    /// Most frames passed to the controller before one step; the rest wait for the next step
+    /// (a flooded bus cannot starve the loop). Default 1024.
+    pub max_rx_per_step: usize,
+    /// Pause between two attempts to send a frame the bus reported busy. Default 20 µs.
+    pub retry_backoff_us: u64,
+    /// How long the shutdown frames may be retried in total. Default 100 ms.
+    pub shutdown_budget_us: u64,
+}
+
+impl Default for RunOptions {
+    fn default() -> Self {
+        Self {
+            duration_us: None,
+            max_rx_per_step: 1024,
+            retry_backoff_us: 20,
+            shutdown_budget_us: 100_000,
+        }
+    }
+}
+
+/// Why [`run`] stopped.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum StopReason {
+    /// The stop flag was set to this value (the binary stores the signal number).
+    Signal(usize),
+    /// [`RunOptions::duration_us`] elapsed.
+    Duration,
+}
+
+impl fmt::Display for StopReason {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match *self {
+            Self::Signal(2) => f.write_str("SIGINT"),
+            Self::Signal(15) => f.write_str("SIGTERM"),
+            Self::Signal(n) => write!(f, "stop flag {n}"),
+            Self::Duration => f.write_str("duration elapsed"),
+        }
+    }
+}
+
+/// A histogram of non-negative durations in microseconds with a fixed memory footprint
+/// (about 200 KiB) whatever the number of samples.
+///
+/// Values below 2048 µs have a bucket each (exact); above, each power-of-two range is split
+/// into 1024 buckets, so a reported value is within 0.1 % of the true one (and never below
+/// it). Values above 2³² µs (71 minutes) are clamped.
+#[derive(Clone)]
+pub struct LatencyHistogram {
+    buckets: Vec<u64>,
+    count: u64,
+    sum: u128,
+    max: u64,
+}
+
+/// Values with one bucket each: `0..EXACT`.
+const EXACT: u64 = 2048;
+/// Sub-buckets per power of two above [`EXACT`].
+const SUB: u64 = 1024;
+/// Largest value recorded; larger ones are clamped to it.
+const CLAMP: u64 = 1 << 32;
+
+impl LatencyHistogram {
+    /// An empty histogram.
+    #[must_use]
+    pub fn new() -> Self {
+        let len = usize::try_from(Self::index(CLAMP) + 1).unwrap_or(0);
+        Self {
+            buckets: vec![0; len],
+            count: 0,
+            sum: 0,
+            max: 0,
+        }
+    }
+
+    /// Bucket of a value: `SUB · s + (v >> s)` with `s` the number of bits above 11.
+    fn index(value: u64) -> u64 {
+        let bits = u64::from(u64::BITS - value.leading_zeros());
+        let shift = bits.saturating_sub(u64::from(EXACT.trailing_zeros()));
+        SUB * shift + (value >> shift)
+    }
+
+    /// The largest value that falls into bucket `index`.
+    fn upper(index: u64) -> u64 {
+        if index < EXACT {
+            return index;
+        }
+        let shift = index / SUB - 1;
+        let mantissa = index - SUB * shift;
+        ((mantissa + 1) << shift) - 1
+    }
+
+    /// Records one value.
+    pub fn record(&mut self, us: u64) {
+        let us = us.min(CLAMP);
+        let i = usize::try_from(Self::index(us)).unwrap_or(usize::MAX);
+        if let Some(b) = self.buckets.get_mut(i) {
+            *b += 1;
+        }
+        self.count += 1;
+        self.sum += u128::from(us);
+        self.max = self.max.max(us);
+    }
+
+    /// Number of values recorded.
+    #[must_use]
+    pub const fn count(&self) -> u64 {
+        self.count
+    }
+
+    /// Largest value recorded (exact); `None` when empty.
+    #[must_use]
+    pub fn max(&self) -> Option<u64> {
+        (self.count > 0).then_some(self.max)
+    }
+
+    /// Mean of the values recorded (exact); `None` when empty.
+    #[must_use]
+    pub fn mean(&self) -> Option<f64> {
+        (self.count > 0).then(|| self.sum as f64 / self.count as f64)
+    }
+
+    /// The `q`-quantile (`0 < q <= 1`; 0.99 for p99) by the nearest-rank method: the smallest
+    /// recorded value `v` such that at least `ceil(q · count)` values are `<= v`. Exact below
+    /// 2048 µs. `None` when empty.
+    #[must_use]
+    pub fn quantile(&self, q: f64) -> Option<u64> {
+        if self.count == 0 {
+            return None;
+        }
+        let rank = ((q.clamp(0.0, 1.0) * self.count as f64).ceil() as u64).clamp(1, self.count);
+        let mut seen = 0;
+        for (i, &n) in self.buckets.iter().enumerate() {
+            seen += n;
+            if seen >= rank {
+                return Some(Self::upper(i as u64).min(self.max));
+            }
+        }
+        Some(self.max)
+    }
+
+    /// p50, p99, max and mean.
+    #[must_use]
+    pub fn summary(&self) -> LatencySummary {
+        LatencySummary {
+            samples: self.count,
+            p50_us: self.quantile(0.50),
+            p99_us: self.quantile(0.99),
+            max_us: self.max(),
+            mean_us: self.mean(),
+        }
+    }
+}
+
+impl Default for LatencyHistogram {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl fmt::Debug for LatencyHistogram {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("LatencyHistogram")
+            .field("summary", &self.summary())
+            .finish()
+    }
+}
+
+/// Percentiles of a [`LatencyHistogram`], µs; `None` fields when nothing was recorded.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct LatencySummary {
+    /// Number of values.
+    pub samples: u64,
+    /// Median.
+    pub p50_us: Option<u64>,
+    /// 99th percentile.
+    pub p99_us: Option<u64>,
+    /// Maximum.
+    pub max_us: Option<u64>,
+    /// Mean.
+    pub mean_us: Option<f64>,
+}
+
+impl fmt::Display for LatencySummary {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match (self.p50_us, self.p99_us, self.max_us, self.mean_us) {
+            (Some(p50), Some(p99), Some(max), Some(mean)) => write!(
+                f,
+                "p50 {p50} µs, p99 {p99} µs, max {max} µs, mean {mean:.1} µs ({} samples)",
+                self.samples
+            ),
+            _ => f.write_str("no samples"),
+        }
+    }
+}
+
+/// The controller's rejected-frame counters, by kind (see [`RxErrorCounters`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct RxErrorReport {
+    /// Frames with an id no configured protocol carries.
+    pub unknown_id: u32,
+    /// Frames with an extended id.
+    pub extended_id: u32,
+    /// Remote frames where data was expected.
+    pub remote: u32,
+    /// Frames with a wrong DLC.
+    pub wrong_dlc: u32,
+    /// Frames with a NaN or infinite float.
+    pub non_finite: u32,
+    /// Frames with an out-of-range field.
+    pub out_of_range: u32,
+}
+
+impl From<RxErrorCounters> for RxErrorReport {
+    fn from(c: RxErrorCounters) -> Self {
+        Self {
+            unknown_id: c.unknown_id,
+            extended_id: c.extended_id,
+            remote: c.remote,
+            wrong_dlc: c.wrong_dlc,
+            non_finite: c.non_finite,
+            out_of_range: c.out_of_range,
+        }
+    }
+}
+
+/// The controller as the loop left it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct ControllerReport {
+    /// State when the loop stopped, before the shutdown (`Disabled`, `Enabled`, `Fault`,
+    /// `Estop`).
+    pub state_at_stop: &'static str,
+    /// Fault (or last watchdog stop reason) when the loop stopped.
+    pub fault_at_stop: &'static str,
+    /// State after [`Controller::shutdown`].
+    pub state_after_shutdown: &'static str,
+    /// Steps the controller ran.
+    pub steps: u64,
+    /// Bit i set when wheel i's motor had reported (FL, FR, RL, RR).
+    pub motors_online: u8,
+    /// Frames the controller rejected, by kind.
+    pub rx_errors: RxErrorReport,
+}
+
+/// The shutdown frames and how many went out.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct ShutdownReport {
+    /// Frames [`Controller::shutdown`] returned.
+    pub frames: usize,
+    /// Frames sent.
+    pub sent: usize,
+    /// Frames that could not be sent within [`RunOptions::shutdown_budget_us`].
+    pub failed: usize,
+}
+
+/// What [`run`] did. Serialises to the JSON of the binary's `--stats-json`.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Report {
+    /// Why the loop stopped.
+    pub stop: StopReason,
+    /// The control period, µs.
+    pub period_us: u64,
+    /// From the first deadline to the end of the shutdown, µs.
+    pub elapsed_us: u64,
+    /// Steps run.
+    pub steps: u64,
+    /// Steps that started more than one period late (the schedule was re-anchored).
+    pub overruns: u64,
+    /// Frames read from the bus and passed to the controller.
+    pub frames_received: u64,
+    /// Receive errors (the bus reported an error instead of a frame).
+    pub rx_errors: u64,
+    /// Steps that left frames on the bus because [`RunOptions::max_rx_per_step`] was reached.
+    pub rx_capped_steps: u64,
+    /// Frames sent by the loop (not counting the shutdown frames).
+    pub frames_sent: u64,
+    /// Send attempts repeated because the bus was busy (`ENOBUFS`, `EAGAIN`).
+    pub send_retries: u64,
+    /// Frames the loop could not send (dropped).
+    pub send_errors: u64,
+    /// The first bus error, with the frame id, for the log.
+    pub first_error: Option<String>,
+    /// The last bus error.
+    pub last_error: Option<String>,
+    /// Lateness of each step start after its deadline, µs.
+    pub jitter: LatencySummary,
+    /// Time from a step's start to its last frame sent, µs.
+    pub step_time: LatencySummary,
+    /// The shutdown frames.
+    pub shutdown: ShutdownReport,
+    /// The controller.
+    pub controller: ControllerReport,
+}
+
+impl fmt::Display for Report {
+    /// The human-readable summary the binary prints on exit.
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let c = &self.controller;
+        let e = &c.rx_errors;
+        writeln!(
+            f,
+            "stopped: {} after {:.3} s; {} steps of {} µs, {} overruns",
+            self.stop,
+            self.elapsed_us as f64 / 1e6,
+            self.steps,
+            self.period_us,
+            self.overruns
+        )?;
+        writeln!(f, "jitter (step start - deadline): {}", self.jitter)?;
+        writeln!(f, "step time (start - last frame sent): {}", self.step_time)?;
+        writeln!(
+            f,
+            "bus: {} frames received, {} sent, {} send retries, {} send errors, {} receive errors, {} capped drains",
+            self.frames_received,
+            self.frames_sent,
+            self.send_retries,
+            self.send_errors,
+            self.rx_errors,
+            self.rx_capped_steps
+        )?;
+        if let Some(first) = &self.first_error {
+            writeln!(f, "first bus error: {first}")?;
+        }
+        if let Some(last) = &self.last_error {
+            writeln!(f, "last bus error: {last}")?;
+        }
+        writeln!(
+            f,
+            "controller: {} (fault {}) at stop, {} after shutdown; {} steps; motors online {:04b} (bit 0 = FL)",
+            c.state_at_stop, c.fault_at_stop, c.state_after_shutdown, c.steps, c.motors_online
+        )?;
+        writeln!(
+            f,
+            "rejected frames: unknown_id {}, extended_id {}, remote {}, wrong_dlc {}, non_finite {}, out_of_range {}",
+            e.unknown_id, e.extended_id, e.remote, e.wrong_dlc, e.non_finite, e.out_of_range
+        )?;
+        write!(
+            f,
+            "shutdown: {} of {} frames sent",
+            self.shutdown.sent, self.shutdown.frames
+        )?;
+        if self.shutdown.failed > 0 {
+            write!(f, " ({} NOT sent)", self.shutdown.failed)?;
+        }
+        Ok(())
+    }
+}
+
+/// Counters the loop keeps.
+#[derive(Default)]
+struct Counters {
+    frames_received: u64,
+    rx_errors: u64,
+    rx_capped_steps: u64,
+    frames_sent: u64,
+    send_retries: u64,
+    send_errors: u64,
+    first_error: Option<String>,
+    last_error: Option<String>,
+}
+
+impl Counters {
+    fn error(&mut self, what: fmt::Arguments<'_>, e: &io::Error) {
+        let message = format!("{what}: {e}");
+        if self.first_error.is_none() {
+            self.first_error = Some(message.clone());
+        }
+        self.last_error = Some(message);
+    }
+}
+
+/// The id of a frame for a log line (`0x200`, `0x12345678`).
+fn id_of(frame: &CanFrame) -> String {
+    match frame.id() {
+        embedded_can::Id::Standard(id) => format!("{:#05x}", id.as_raw()),
+        embedded_can::Id::Extended(id) => format!("{:#010x}", id.as_raw()),
+    }
+}
+
+/// Sends one frame, retrying busy errors every `backoff_us` while the clock is before
+/// `give_up_us` (at least one attempt is always made).
+fn send_with_retry<B: Bus, C: Clock>(
+    bus: &mut B,
+    clock: &C,
+    frame: &CanFrame,
+    give_up_us: u64,
+    backoff_us: u64,
+    counters: &mut Counters,
+) -> io::Result<()> {
+    loop {
+        match bus.send(frame) {
+            Ok(()) => return Ok(()),
+            Err(e) if is_busy(&e) => {
+                let now = clock.now_micros();
+                if now.saturating_add(backoff_us) > give_up_us {
+                    return Err(e);
+                }
+                counters.send_retries += 1;
+                clock.sleep_until(now + backoff_us.max(1));
+            }
+            Err(e) => return Err(e),
+        }
+    }
+}
+
+fn state_name(s: &Snapshot) -> (&'static str, &'static str) {
+    use crate::control::Fault;
+    use crate::protocol::robot::RobotState;
+    let state = match s.state {
+        RobotState::Disabled => "Disabled",
+        RobotState::Enabled => "Enabled",
+        RobotState::Fault => "Fault",
+        RobotState::Estop => "Estop",
+    };
+    let fault = match s.fault {
+        Fault::None => "None",
+        Fault::MotorStale => "MotorStale",
+        Fault::MotorMissing => "MotorMissing",
+        Fault::DriveError => "DriveError",
+        Fault::Watchdog => "Watchdog",
+        Fault::Config => "Config",
+    };
+    (state, fault)
+}
+
+/// Runs `controller` on `bus` at its fixed rate until `stop` is non-zero or
+/// `options.duration_us` has elapsed, then sends the shutdown frames. See the
+/// [module documentation](self) for the schedule, the retry policy and what is measured.
+///
+/// Bus errors are counted in the [`Report`], never returned: the loop keeps running.
+pub fn run<B: Bus, C: Clock>(
+    controller: &mut Controller,
+    bus: &mut B,
+    clock: &C,
+    options: &RunOptions,
+    stop: &AtomicUsize,
+) -> Report {
+    let period = controller.period_micros().max(1);
+    let mut counters = Counters::default();
+    let mut jitter = LatencyHistogram::new();
+    let mut step_time = LatencyHistogram::new();
+    let mut overruns = 0;
+    let mut steps = 0;
+
+    let start = clock.now_micros();
+    let mut anchor = start;
+    let mut k: u64 = 0;
+    let stop_reason = loop {
+        let deadline = anchor.saturating_add(k.saturating_mul(period));
+        if let Some(reason) = stop_requested(stop) {
+            break reason;
+        }
+        if let Some(d) = options.duration_us
+            && deadline - start >= d
+        {
+            break StopReason::Duration;
+        }
+        clock.sleep_until(deadline);
+        // A signal that arrived during the sleep stops the loop now, not one step later.
+        if let Some(reason) = stop_requested(stop) {
+            break reason;
+        }
+        let woke = clock.now_micros();
+        let late = woke.saturating_sub(deadline);
+        jitter.record(late);
+        if late > period {
+            overruns += 1;
+            anchor = woke;
+            k = 0;
+        }
+        let now = Instant::from_micros(woke - start);
+
+        let mut drained = 0;
+        while drained < options.max_rx_per_step {
+            match bus.try_recv() {
+                Ok(Some(frame)) => {
+                    controller.on_frame(now, &frame);
+                    counters.frames_received += 1;
+                    drained += 1;
+                }
+                Ok(None) => break,
+                Err(e) => {
+                    counters.rx_errors += 1;
+                    counters.error(format_args!("receive"), &e);
+                    break;
+                }
+            }
+        }
+        if drained == options.max_rx_per_step {
+            counters.rx_capped_steps += 1;
+        }
+
+        let out = controller.step(now);
+        steps += 1;
+        let give_up = deadline.max(woke).saturating_add(period / 2);
+        for frame in &out {
+            match send_with_retry(
+                bus,
+                clock,
+                frame,
+                give_up,
+                options.retry_backoff_us,
+                &mut counters,
+            ) {
+                Ok(()) => counters.frames_sent += 1,
+                Err(e) => {
+                    counters.send_errors += 1;
+                    counters.error(format_args!("send {}", id_of(frame)), &e);
+                }
+            }
+        }
+        step_time.record(clock.now_micros().saturating_sub(woke));
+        k += 1;
+    };
+
+    let at_stop = controller.snapshot();
+    let frames = controller.shutdown();
+    let give_up = clock
+        .now_micros()
+        .saturating_add(options.shutdown_budget_us);
+    let mut sent = 0;
+    for frame in &frames {
+        match send_with_retry(
+            bus,
+            clock,
+            frame,
+            give_up,
+            options.retry_backoff_us,
+            &mut counters,
+        ) {
+            Ok(()) => sent += 1,
+            Err(e) => counters.error(format_args!("shutdown send {}", id_of(frame)), &e),
+        }
+    }
+    let after = controller.snapshot();
+    let (state_at_stop, fault_at_stop) = state_name(&at_stop);
+
+    Report {
+        stop: stop_reason,
+        period_us: period,
+        elapsed_us: clock.now_micros().saturating_sub(start),
+        steps,
+        overruns,
+        frames_received: counters.frames_received,
+        rx_errors: counters.rx_errors,
+        rx_capped_steps: counters.rx_capped_steps,
+        frames_sent: counters.frames_sent,
+        send_retries: counters.send_retries,
+        send_errors: counters.send_errors,
+        first_error: counters.first_error,
+        last_error: counters.last_error,
+        jitter: jitter.summary(),
+        step_time: step_time.summary(),
+        shutdown: ShutdownReport {
+            frames: frames.len(),
+            sent,
+            failed: frames.len() - sent,
+        },
+        controller: ControllerReport {
+            state_at_stop,
+            fault_at_stop,
+            state_after_shutdown: state_name(&after).0,
+            steps: after.steps,
+            motors_online: at_stop.motors_online,
+            rx_errors: at_stop.rx_errors.into(),
+        },
+    }
+}
+
+fn stop_requested(stop: &AtomicUsize) -> Option<StopReason> {
+    match stop.load(Ordering::Relaxed) {
+        0 => None,
+        n => Some(StopReason::Signal(n)),
+    }
+}
+
+/// Why a SocketCAN interface could not be opened.
+#[derive(Debug, thiserror::Error)]
+pub enum OpenError {
+    /// No interface of that name.
+    #[error(
+        "CAN interface {iface:?} does not exist ({source}); a virtual one: \
+         `ip link add dev {iface} type vcan && ip link set up {iface}`"
+    )]
+    NoSuchInterface {
+        /// The interface name.
+        iface: String,
+        /// The OS error.
+        source: io::Error,
+    },
+    /// The kernel has no SocketCAN (`EAFNOSUPPORT`).
+    #[error(
+        "cannot open CAN interface {iface:?}: no SocketCAN in this kernel, or the can and \
+         can_raw modules are not loaded ({source})"
+    )]
+    NoSocketCan {
+        /// The interface name.
+        iface: String,
+        /// The OS error.
+        source: io::Error,
+    },
+    /// The interface exists but is down.
+    #[error(
+        "CAN interface {iface:?} is down (flags {flags:#x} in {}); bring it up: \
+         `ip link set up {iface}`",
+        .path.display()
+    )]
+    Down {
+        /// The interface name.
+        iface: String,
+        /// The interface flags read.
+        flags: u32,
+        /// Where they were read.
+        path: PathBuf,
+    },
+    /// Any other error while opening or configuring the socket.
+    #[error("cannot open CAN interface {iface:?}: {source}")]
+    Io {
+        /// The interface name.
+        iface: String,
+        /// The OS error.
+        source: io::Error,
+    },
+}
+
+/// A raw SocketCAN socket on one interface, non-blocking, classic CAN frames.
+#[derive(Debug)]
+pub struct SocketCanBus {
+    socket: socketcan::CanSocket,
+}
+
+impl SocketCanBus {
+    /// Opens `iface` (e.g. `vcan0`, `can0`) in non-blocking mode and checks that it is up.
+    ///
+    /// # Errors
+    /// An [`OpenError`] naming the interface.
+    pub fn open(iface: &str) -> Result<Self, OpenError> {
+        use socketcan::Socket as _;
+        let socket = socketcan::CanSocket::open(iface).map_err(|source| {
+            let iface = iface.to_string();
+            match source.raw_os_error() {
+                Some(libc::ENODEV | libc::ENXIO) => OpenError::NoSuchInterface { iface, source },
+                Some(libc::EAFNOSUPPORT | libc::EPROTONOSUPPORT) => {
+                    OpenError::NoSocketCan { iface, source }
+                }
+                _ if source.kind() == io::ErrorKind::NotFound => {
+                    OpenError::NoSuchInterface { iface, source }
+                }
+                _ => OpenError::Io { iface, source },
+            }
+        })?;
+        socket
+            .set_nonblocking(true)
+            .map_err(|source| OpenError::Io {
+                iface: iface.to_string(),
+                source,
+            })?;
+        // Writes to a down interface fail with ENETDOWN: refuse at startup instead. The flags
+        // file may be unreadable (no sysfs): then the check is skipped.
+        let path = PathBuf::from(format!("/sys/class/net/{iface}/flags"));
+        if let Ok(text) = std::fs::read_to_string(&path)
+            && let Ok(flags) = u32::from_str_radix(text.trim().trim_start_matches("0x"), 16)
+            && flags & 1 == 0
+        {
+            return Err(OpenError::Down {
+                iface: iface.to_string(),
+                flags,
+                path,
+            });
+        }
+        Ok(Self { socket })
+    }
+}
+
+impl Bus for SocketCanBus {
+    fn try_recv(&mut self) -> io::Result<Option<CanFrame>> {
+        use socketcan::Socket as _;
+        match self.socket.read_frame() {
+            Ok(socketcan::CanFrame::Error(e)) => {
+                Err(io::Error::other(format!("error frame: {}", e.into_error())))
+            }
+            Ok(frame) => CanFrame::from_frame(&frame).map(Some).ok_or_else(|| {
+                io::Error::new(
+                    io::ErrorKind::InvalidData,
+                    format!("frame with DLC {} is not a classic CAN frame", frame.dlc()),
+                )
+            }),
+            Err(e) if e.kind() == io::ErrorKind::WouldBlock => Ok(None),
+            Err(e) => Err(e),
+        }
+    }
+
+    fn send(&mut self, frame: &CanFrame) -> io::Result<()> {
+        use socketcan::Socket as _;
+        let frame: socketcan::CanFrame = frame.convert().ok_or_else(|| {
+            io::Error::new(
+                io::ErrorKind::InvalidInput,
+                format!("socketcan rejected frame {}", id_of(frame)),
+            )
+        })?;
+        self.socket.write_frame(&frame)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::Config;
+    use crate::protocol::robot::{Command, ModeRequest, TwistCmd};
+    use core::cell::{Cell, RefCell};
+    use std::collections::VecDeque;
+    use std::rc::Rc;
+
+    /// Simulated time: `sleep_until` jumps to the deadline plus a scripted wake-up latency.
+    #[derive(Default)]
+    struct FakeClock {
+        now: Cell<u64>,
+        latencies: RefCell<VecDeque<u64>>,
+    }
+
+    impl FakeClock {
+        fn at(t: u64) -> Rc<Self> {
+            let c = Rc::new(Self::default());
+            c.now.set(t);
+            c
+        }
+        fn advance(&self, us: u64) {
+            self.now.set(self.now.get() + us);
+        }
+    }
+
+    impl Clock for FakeClock {
+        fn now_micros(&self) -> u64 {
+            self.now.get()
+        }
+        fn sleep_until(&self, deadline_us: u64) {
+            let late = self.latencies.borrow_mut().pop_front().unwrap_or(0);
+            self.now.set(self.now.get().max(deadline_us) + late);
+        }
+    }
+
+    /// A bus in memory: frames arrive at given times; sends are recorded with their time.
+    /// `busy` makes the next sends fail with ENOBUFS; `stop_at` sets the stop flag on the
+    /// first send at or after that time (a signal arriving while the loop runs).
+    struct MemoryBus {
+        clock: Rc<FakeClock>,
+        incoming: VecDeque<(u64, CanFrame)>,
+        sent: Vec<(u64, CanFrame)>,
+        busy: u64,
+        attempts: u64,
+        stop_at: Option<(u64, Rc<AtomicUsize>)>,
+    }
+
+    impl MemoryBus {
+        fn new(clock: &Rc<FakeClock>) -> Self {
+            Self {
+                clock: Rc::clone(clock),
+                incoming: VecDeque::new(),
+                sent: Vec::new(),
+                busy: 0,
+                attempts: 0,
+                stop_at: None,
+            }
+        }
+        fn sent_ids(&self) -> Vec<(u64, u16)> {
+            self.sent.iter().map(|(t, f)| (*t, raw_id(f))).collect()
+        }
+    }
+
+    impl Bus for MemoryBus {
+        fn try_recv(&mut self) -> io::Result<Option<CanFrame>> {
+            match self.incoming.front() {
+                Some(&(t, f)) if t <= self.clock.now_micros() => {
+                    self.incoming.pop_front();
+                    Ok(Some(f))
+                }
+                _ => Ok(None),
+            }
+        }
+        fn send(&mut self, frame: &CanFrame) -> io::Result<()> {
+            self.attempts += 1;
+            let now = self.clock.now_micros();
+            if let Some((t, flag)) = &self.stop_at
+                && now >= *t
+            {
+                flag.store(15, Ordering::Relaxed);
+            }
+            if self.busy > 0 {
+                self.busy -= 1;
+                return Err(io::Error::from_raw_os_error(libc::ENOBUFS));
+            }
+            self.sent.push((now, *frame));
+            Ok(())
+        }
+    }
+
+    fn raw_id(f: &CanFrame) -> u16 {
+        match f.id() {
+            embedded_can::Id::Standard(id) => id.as_raw(),
+            embedded_can::Id::Extended(_) => u16::MAX,
+        }
+    }
+
+    fn dji() -> Controller {
+        Controller::new(&Config::dji_m3508_example()).unwrap()
+    }
+
+    fn for_ms(ms: u64) -> RunOptions {
+        RunOptions {
+            duration_us: Some(ms * 1000),
+            ..RunOptions::default()
+        }
+    }
+
+    const T0: u64 = 7_000_000;
+
+    /// Times of the DJI command frames (0x200), one per step.
+    fn motor_times(bus: &MemoryBus) -> Vec<u64> {
+        bus.sent_ids()
+            .into_iter()
+            .filter(|&(_, id)| id == 0x200)
+            .map(|(t, _)| t)
+            .collect()
+    }
+
+    #[test]
+    fn steps_at_absolute_deadlines() {
+        let clock = FakeClock::at(T0);
+        let mut bus = MemoryBus::new(&clock);
+        let mut ctl = dji();
+        let r = run(
+            &mut ctl,
+            &mut bus,
+            &*clock,
+            &for_ms(10),
+            &AtomicUsize::new(0),
+        );
+        assert_eq!(r.stop, StopReason::Duration);
+        assert_eq!(r.period_us, 1000);
+        assert_eq!(r.steps, 10);
+        assert_eq!(r.controller.steps, 10);
+        assert_eq!(r.overruns, 0);
+        // 10 steps + the shutdown frame.
+        let expected: Vec<u64> = (0..10).map(|k| T0 + k * 1000).chain([T0 + 9000]).collect();
+        assert_eq!(motor_times(&bus), expected);
+        assert_eq!(r.jitter.samples, 10);
+        assert_eq!(r.jitter.max_us, Some(0));
+        // Step 0: motor command, odometry (2), status, heartbeat; steps 1-9: motor command.
+        assert_eq!(r.frames_sent, 5 + 9);
+        let first: Vec<u16> = bus.sent_ids().iter().take(5).map(|x| x.1).collect();
+        assert_eq!(first, [0x200, 0x310, 0x311, 0x312, 0x31F]);
+        assert_eq!(r.send_errors, 0);
+        assert_eq!(r.shutdown.sent, 1);
+    }
+
+    #[test]
+    fn a_late_wake_up_does_not_shift_the_schedule() {
+        let clock = FakeClock::at(T0);
+        clock.latencies.borrow_mut().extend([0, 300, 0, 999, 0]);
+        let mut bus = MemoryBus::new(&clock);
+        let r = run(
+            &mut dji(),
+            &mut bus,
+            &*clock,
+            &for_ms(5),
+            &AtomicUsize::new(0),
+        );
+        let t = motor_times(&bus);
+        assert_eq!(&t[..5], &[T0, T0 + 1300, T0 + 2000, T0 + 3999, T0 + 4000]);
+        assert_eq!(r.overruns, 0);
+        assert_eq!(r.jitter.max_us, Some(999));
+        assert_eq!(r.jitter.p50_us, Some(0));
+    }
+
+    #[test]
+    fn an_overrun_is_counted_and_re_anchors() {
+        let clock = FakeClock::at(T0);
+        clock.latencies.borrow_mut().extend([0, 0, 2500, 0, 0]);
+        let mut bus = MemoryBus::new(&clock);
+        let r = run(
+            &mut dji(),
+            &mut bus,
+            &*clock,
+            &for_ms(7),
+            &AtomicUsize::new(0),
+        );
+        let t = motor_times(&bus);
+        // Step 2 was due at +2000 and ran at +4500; the next steps follow it by one period,
+        // with no catch-up burst.
+        assert_eq!(&t[..5], &[T0, T0 + 1000, T0 + 4500, T0 + 5500, T0 + 6500]);
+        assert_eq!(r.overruns, 1);
+        assert_eq!(r.jitter.max_us, Some(2500));
+    }
+
+    #[test]
+    fn slow_steps_within_one_period_are_not_overruns() {
+        let clock = FakeClock::at(T0);
+        // Every step takes 1.2 periods in sends: each starts late, the lateness grows by
+        // 200 µs a step until it passes one period (step 6, 1200 µs late), then re-anchors.
+        struct Slow(MemoryBus);
+        impl Bus for Slow {
+            fn try_recv(&mut self) -> io::Result<Option<CanFrame>> {
+                self.0.try_recv()
+            }
+            fn send(&mut self, f: &CanFrame) -> io::Result<()> {
+                let sent = self.0.send(f);
+                if raw_id(f) == 0x200 {
+                    self.0.clock.advance(1200);
+                }
+                sent
+            }
+        }
+        let mut slow = Slow(MemoryBus::new(&clock));
+        let r = run(
+            &mut dji(),
+            &mut slow,
+            &*clock,
+            &for_ms(8),
+            &AtomicUsize::new(0),
+        );
+        assert_eq!(r.steps, 7);
+        assert_eq!(r.overruns, 1);
+        assert_eq!(r.jitter.max_us, Some(1200));
+        assert_eq!(r.step_time.p50_us, Some(1200));
+        // Step 6 was due at +6000 and started at +7200.
+        let t = motor_times(&slow.0);
+        assert_eq!(t[6], T0 + 7200);
+    }
+
+    #[test]
+    fn frames_received_before_a_step_are_fed_to_it() {
+        let clock = FakeClock::at(T0);
+        let mut bus = MemoryBus::new(&clock);
+        let status_req = Command::StatusRequest.to_can_frame();
+        bus.incoming.push_back((T0 + 2500, status_req));
+        let r = run(
+            &mut dji(),
+            &mut bus,
+            &*clock,
+            &for_ms(5),
+            &AtomicUsize::new(0),
+        );
+        let status: Vec<u64> = bus
+            .sent_ids()
+            .into_iter()
+            .filter(|&(_, id)| id == 0x312)
+            .map(|(t, _)| t)
+            .collect();
+        // The periodic status of step 0, then the requested one at the first step after the
+        // request arrived.
+        assert_eq!(status, [T0, T0 + 3000]);
+        assert_eq!(r.frames_received, 1);
+    }
+
+    #[test]
+    fn every_waiting_frame_is_drained_up_to_the_cap() {
+        let clock = FakeClock::at(T0);
+        let mut bus = MemoryBus::new(&clock);
+        // Unknown ids: counted by the controller as rejected.
+        let junk = CanFrame::standard(embedded_can::StandardId::new(0x123).unwrap(), &[1]).unwrap();
+        for _ in 0..10 {
+            bus.incoming.push_back((T0 + 500, junk));
+        }
+        let options = RunOptions {
+            max_rx_per_step: 4,
+            ..for_ms(5)
+        };
+        let r = run(
+            &mut dji(),
+            &mut bus,
+            &*clock,
+            &options,
+            &AtomicUsize::new(0),
+        );
+        assert_eq!(r.frames_received, 10);
+        assert_eq!(r.controller.rx_errors.unknown_id, 10);
+        // Steps 1 and 2 took 4 frames each, step 3 the last 2.
+        assert_eq!(r.rx_capped_steps, 2);
+    }
+
+    fn drive_frames(t: u64) -> [(u64, CanFrame); 2] {
+        [
+            (t, Command::Mode(ModeRequest::Enable).to_can_frame()),
+            (
+                t + 1,
+                Command::Twist(TwistCmd {
+                    vx: 1.0,
+                    vy: 0.0,
+                    wz: 0.0,
+                    seq: 0,
+                })
+                .to_can_frame(),
+            ),
+        ]
+    }
+
+    #[test]
+    fn a_stop_sends_the_shutdown_frames() {
+        let clock = FakeClock::at(T0);
+        let mut bus = MemoryBus::new(&clock);
+        bus.incoming.extend(drive_frames(T0 + 100));
+        let stop = Rc::new(AtomicUsize::new(0));
+        bus.stop_at = Some((T0 + 5000, Rc::clone(&stop)));
+        let mut ctl = dji();
+        let r = run(&mut ctl, &mut bus, &*clock, &RunOptions::default(), &stop);
+        assert_eq!(r.stop, StopReason::Signal(15));
+        assert_eq!(r.stop.to_string(), "SIGTERM");
+        assert_eq!(r.steps, 6);
+        assert_eq!(r.controller.state_at_stop, "Enabled");
+        assert_eq!(r.controller.state_after_shutdown, "Disabled");
+        let motor: Vec<&CanFrame> = bus
+            .sent
+            .iter()
+            .filter(|(_, f)| raw_id(f) == 0x200)
+            .map(|(_, f)| f)
+            .collect();
+        assert_eq!(motor.len(), 7);
+        // Driving before the stop; zero current after it.
+        assert_ne!(motor[5].data(), &[0; 8]);
+        assert_eq!(motor[6].data(), &[0; 8]);
+        assert_eq!(bus.sent.last().map(|(_, f)| *f), Some(*motor[6]));
+        assert_eq!(
+            r.shutdown,
+            ShutdownReport {
+                frames: 1,
+                sent: 1,
+                failed: 0
+            }
+        );
+    }
+
+    #[test]
+    fn odrive_shutdown_is_zero_velocity_then_idle_per_axis() {
+        let clock = FakeClock::at(T0);
+        let mut bus = MemoryBus::new(&clock);
+        let mut ctl = Controller::new(&Config::odrive_example()).unwrap();
+        let r = run(
+            &mut ctl,
+            &mut bus,
+            &*clock,
+            &for_ms(3),
+            &AtomicUsize::new(0),
+        );
+        assert_eq!(r.shutdown.frames, 8);
+        let tail: Vec<u16> = bus.sent_ids()[bus.sent.len() - 8..]
+            .iter()
+            .map(|x| x.1)
+            .collect();
+        // node << 5 | 0x0D (Set_Input_Vel), node << 5 | 0x07 (Set_Axis_State).
+        assert_eq!(tail, [0x0D, 0x07, 0x2D, 0x27, 0x4D, 0x47, 0x6D, 0x67]);
+    }
+
+    #[test]
+    fn busy_sends_are_retried() {
+        let clock = FakeClock::at(T0);
+        let mut bus = MemoryBus::new(&clock);
+        bus.busy = 3;
+        let r = run(
+            &mut dji(),
+            &mut bus,
+            &*clock,
+            &for_ms(3),
+            &AtomicUsize::new(0),
+        );
+        assert_eq!(r.send_retries, 3);
+        assert_eq!(r.send_errors, 0);
+        assert_eq!(r.frames_sent, 5 + 2);
+        // The first frame went out after three 20 µs back-offs.
+        assert_eq!(bus.sent[0], (T0 + 60, bus.sent[0].1));
+        assert!(r.first_error.is_none());
+    }
+
+    #[test]
+    fn a_bus_that_stays_busy_drops_frames_and_keeps_the_schedule() {
+        let clock = FakeClock::at(T0);
+        let mut bus = MemoryBus::new(&clock);
+        bus.busy = u64::MAX;
+        let r = run(
+            &mut dji(),
+            &mut bus,
+            &*clock,
+            &for_ms(4),
+            &AtomicUsize::new(0),
+        );
+        assert_eq!(r.steps, 4);
+        assert_eq!(r.overruns, 0);
+        assert_eq!(r.frames_sent, 0);
+        assert_eq!(r.send_errors, 5 + 3);
+        // Retries end half a period after the deadline.
+        assert!(r.jitter.max_us.unwrap() < 1000, "{r:?}");
+        assert_eq!(r.shutdown.failed, 1);
+        let e = r.first_error.as_deref().unwrap();
+        assert!(e.starts_with("send 0x200: "), "{e}");
+        // The shutdown was retried for its whole budget.
+        assert!(r.elapsed_us >= 3000 + RunOptions::default().shutdown_budget_us - 20);
+    }
+
+    #[test]
+    fn other_send_errors_are_counted_without_retry() {
+        struct Down;
+        impl Bus for Down {
+            fn try_recv(&mut self) -> io::Result<Option<CanFrame>> {
+                Err(io::Error::from_raw_os_error(libc::ENETDOWN))
+            }
+            fn send(&mut self, _: &CanFrame) -> io::Result<()> {
+                Err(io::Error::from_raw_os_error(libc::ENETDOWN))
+            }
+        }
+        let clock = FakeClock::at(T0);
+        let r = run(
+            &mut dji(),
+            &mut Down,
+            &*clock,
+            &for_ms(2),
+            &AtomicUsize::new(0),
+        );
+        assert_eq!(r.steps, 2);
+        assert_eq!(r.send_retries, 0);
+        assert_eq!(r.send_errors, 6);
+        assert_eq!(r.rx_errors, 2);
+        assert!(r.first_error.unwrap().starts_with("receive: "));
+        assert!(r.last_error.unwrap().starts_with("shutdown send 0x200: "));
+        assert_eq!(r.shutdown.failed, 1);
+    }
+
+    #[test]
+    fn a_stop_before_the_first_step_still_shuts_down() {
+        let clock = FakeClock::at(T0);
+        let mut bus = MemoryBus::new(&clock);
+        let r = run(
+            &mut dji(),
+            &mut bus,
+            &*clock,
+            &RunOptions::default(),
+            &AtomicUsize::new(2),
+        );
+        assert_eq!((r.stop, r.steps), (StopReason::Signal(2), 0));
+        assert_eq!(r.stop.to_string(), "SIGINT");
+        assert_eq!(r.jitter.p99_us, None);
+        assert_eq!(bus.sent_ids(), [(T0, 0x200)]);
+        assert_eq!(r.controller.rx_errors.unknown_id, 0);
+        let text = r.to_string();
+        assert!(
+            text.contains("jitter (step start - deadline): no samples"),
+            "{text}"
+        );
+        assert!(text.contains("shutdown: 1 of 1 frames sent"), "{text}");
+    }
+
+    #[test]
+    fn the_report_serialises_to_json() {
+        let clock = FakeClock::at(T0);
+        let mut bus = MemoryBus::new(&clock);
+        let r = run(
+            &mut dji(),
+            &mut bus,
+            &*clock,
+            &for_ms(2),
+            &AtomicUsize::new(0),
+        );
+        let v: serde_json::Value = serde_json::to_value(&r).unwrap();
+        assert_eq!(v["stop"], "duration");
+        assert_eq!(v["steps"], 2);
+        assert_eq!(v["jitter"]["p99_us"], 0);
+        assert_eq!(v["controller"]["state_at_stop"], "Disabled");
+        assert_eq!(v["controller"]["rx_errors"]["wrong_dlc"], 0);
+        assert_eq!(v["shutdown"]["sent"], 1);
+        let stopped = serde_json::to_value(StopReason::Signal(2)).unwrap();
+        assert_eq!(stopped, serde_json::json!({ "signal": 2 }));
+    }
+
+    #[test]
+    fn percentiles_of_a_known_sample() {
+        let mut h = LatencyHistogram::new();
+        assert_eq!(h.summary().p50_us, None);
+        // 1..=100 in reverse order: nearest rank p50 = 50, p99 = 99.
+        for v in (1..=100).rev() {
+            h.record(v);
+        }
+        let s = h.summary();
+        assert_eq!(
+            (s.p50_us, s.p99_us, s.max_us),
+            (Some(50), Some(99), Some(100))
+        );
+        assert_eq!(s.mean_us, Some(50.5));
+        assert_eq!(h.quantile(1.0), Some(100));
+        assert_eq!(h.quantile(0.0), Some(1));
+        // 99 zeros and one outlier: p99 stays 0, max shows it.
+        let mut h = LatencyHistogram::new();
+        for _ in 0..99 {
+            h.record(0);
+        }
+        h.record(5000);
+        let s = h.summary();
+        assert_eq!(
+            (s.p50_us, s.p99_us, s.max_us),
+            (Some(0), Some(0), Some(5000))
+        );
+    }
+
+    #[test]
+    fn histogram_buckets_are_exact_low_and_tight_high() {
+        // Exact below 2048.
+        for v in [0, 1, 1023, 1024, 2047] {
+            assert_eq!(LatencyHistogram::upper(LatencyHistogram::index(v)), v);
+        }
+        // Above: contiguous, monotonic, upper bound >= value and within 0.1 %.
+        let mut last = 0;
+        for v in (2048..200_000).step_by(7).chain([CLAMP - 1, CLAMP]) {
+            let i = LatencyHistogram::index(v);
+            assert!(i >= last);
+            last = i;
+            let up = LatencyHistogram::upper(i);
+            assert!(up >= v && (up - v) as f64 <= v as f64 * 1e-3, "{v} -> {up}");
+            // The bucket below ends below v.
+            assert!(LatencyHistogram::upper(i - 1) < v);
+        }
+        let mut h = LatencyHistogram::new();
+        for v in [3000, 3001, 3002, 1 << 40] {
+            h.record(v);
+        }
+        assert_eq!(h.quantile(0.5), Some(3001));
+        assert_eq!(h.max(), Some(CLAMP));
+    }
+
+    #[test]
+    fn busy_errors_are_enobufs_and_eagain() {
+        assert!(is_busy(&io::Error::from_raw_os_error(libc::ENOBUFS)));
+        assert!(is_busy(&io::Error::from_raw_os_error(libc::EAGAIN)));
+        assert!(!is_busy(&io::Error::from_raw_os_error(libc::ENETDOWN)));
+    }
+
+    #[test]
+    fn opening_a_missing_interface_names_it() {
+        let e = SocketCanBus::open("nosuchcan9").unwrap_err();
+        let text = e.to_string();
+        assert!(text.contains("\"nosuchcan9\""), "{text}");
+    }
+
+    #[test]
+    fn monotonic_clock_never_wakes_early() {
+        for spin in [0, 200] {
+            let c = MonotonicClock::new(spin);
+            let deadline = c.now_micros() + 1500;
+            c.sleep_until(deadline);
+            assert!(c.now_micros() >= deadline);
+            // A past deadline returns at once.
+            c.sleep_until(0);
+        }
+    }
+}
