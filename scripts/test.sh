@@ -34,8 +34,21 @@ for crate in "${NO_STD_CRATES[@]}"; do
     cargo build -p "$crate" --target "$THUMB" --locked
 done
 
+# The board crate is its own package (not a workspace member, its own Cargo.lock): its
+# commands run from its directory so that its .cargo/config.toml (target, linker script) applies.
+BOARD=boards/stm32f407
+stage "board $BOARD: fmt"
+cargo fmt --check --manifest-path "$BOARD/Cargo.toml"
+stage "board $BOARD: clippy (-D warnings)"
+(cd "$BOARD" && cargo clippy --release --locked -- -D warnings)
+stage "board $BOARD: release build for $THUMB"
+(cd "$BOARD" && cargo build --release --locked)
+stage "board $BOARD: flash and RAM (budgets 256 KiB flash, 32 KiB static RAM)"
+python3 "$BOARD/size.py" "$BOARD/target/$THUMB/release/board-stm32f407" \
+    --max-flash 262144 --max-ram 32768
+
 stage "benchmarks compile"
-cargo bench --workspace --no-run --locked
+cargo bench -p kinematics -p firmware --no-run --locked
 
 if [ -d tests ] && compgen -G "tests/test_*.py" >/dev/null; then
     stage "python tests"

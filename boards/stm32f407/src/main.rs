@@ -1,0 +1,211 @@
+//! The mecanum drive firmware on an STM32F407 (DJI RoboMaster development board type C).
+//!
+//! One embassy task runs the [`firmware`] control core at 1 kHz on CAN1:
+//!
+//! ```text
+//! CAN1 RX FIFO 0 ──(RX0 interrupt wakes the task)──► on_frame(arrival time, frame)
+//! TIM2 (embassy-time, 1 MHz) ──(1 kHz Ticker)──► drain FIFO 0 ─► step(now) ─► outbox
+//! outbox ─► TX queue (24 frames) ──(TX interrupt)──► 3 TX mailboxes (FIFO order) ─► CAN1
+//! ```
+//!
+//! See the README for the pins, clocks, bounds and how to flash it.
+
+#![no_std]
+#![no_main]
+
+mod clocks;
+mod counters;
+
+use core::num::{NonZeroU8, NonZeroU16};
+
+use defmt::{info, warn};
+use defmt_rtt as _;
+use embassy_executor::Spawner;
+use embassy_futures::select::{Either, select};
+use embassy_stm32::bind_interrupts;
+use embassy_stm32::can::enums::TryReadError;
+use embassy_stm32::can::filter::Mask32;
+use embassy_stm32::can::util::NominalBitTiming;
+use embassy_stm32::can::{
+    Can, CanRx, Fifo, Rx0InterruptHandler, Rx1InterruptHandler, SceInterruptHandler, StandardId,
+    TxBuf, TxInterruptHandler,
+};
+use embassy_stm32::peripherals::CAN1;
+use embassy_time::{Duration, Ticker};
+use firmware::{Config, Controller, Instant};
+use panic_probe as _;
+use static_cell::StaticCell;
+
+use crate::counters::Counters;
+
+bind_interrupts!(struct Irqs {
+    CAN1_RX0 => Rx0InterruptHandler<CAN1>;
+    CAN1_RX1 => Rx1InterruptHandler<CAN1>;
+    CAN1_SCE => SceInterruptHandler<CAN1>;
+    CAN1_TX => TxInterruptHandler<CAN1>;
+});
+
+/// Frames waiting for a TX mailbox. One step emits at most
+/// [`firmware::control::OUTBOX_CAPACITY`] (20) frames, so a whole outbox fits even when the
+/// three mailboxes are still busy with the previous step's frames.
+const TX_QUEUE_LEN: usize = 24;
+
+/// The TX queue the driver's TX interrupt drains into the mailboxes.
+static TX_QUEUE: StaticCell<TxBuf<TX_QUEUE_LEN>> = StaticCell::new();
+
+/// Log the counters once per this many steps (1 s at 1 kHz).
+const REPORT_EVERY_STEPS: u64 = 1000;
+
+/// CAN bit timing for 1 Mbit/s from the 42 MHz APB1 clock: 42 MHz / 3 = 14 MHz time quanta,
+/// 1 + 10 + 3 = 14 quanta per bit, sample point at 11/14 = 78.6 %, SJW 1. The same values as
+/// DJI's own examples for this board (CubeMX `MX_CAN1_Init`: prescaler 3, BS1 10 tq, BS2 3 tq).
+fn bit_timing_1mbit() -> NominalBitTiming {
+    const PRESCALER: NonZeroU16 = NonZeroU16::new(3).unwrap();
+    const BS1: NonZeroU8 = NonZeroU8::new(10).unwrap();
+    const BS2: NonZeroU8 = NonZeroU8::new(3).unwrap();
+    const SJW: NonZeroU8 = NonZeroU8::new(1).unwrap();
+    NominalBitTiming {
+        prescaler: PRESCALER,
+        seg1: BS1,
+        seg2: BS2,
+        sync_jump_width: SJW,
+    }
+}
+
+/// The core's clock: the embassy-time driver on TIM2 at 1 MHz. The driver extends the 16-bit
+/// counter with a 32-bit count of half-overflows (an interrupt every 32.768 ms), giving 64-bit
+/// microseconds that are read race-free and wrap only after 2^47 µs (4.4 years of uptime).
+fn now() -> Instant {
+    Instant::from_micros(embassy_time::Instant::now().as_micros())
+}
+
+/// The core's time for a frame's arrival stamp (taken in the RX path when the frame left the
+/// hardware FIFO).
+fn instant_of(ts: embassy_time::Instant) -> Instant {
+    Instant::from_micros(ts.as_micros())
+}
+
+/// The drive configuration, built in code (no file system on the MCU): the 4 x M3508/C620
+/// example chassis. Edit here for another robot; `Controller::new` validates it.
+fn drive_config() -> Config {
+    Config::dji_m3508_example()
+}
+
+#[embassy_executor::main]
+async fn main(_spawner: Spawner) {
+    let p = embassy_stm32::init(clocks::config());
+    info!("board-stm32f407: SYSCLK 168 MHz, APB1 42 MHz, CAN1 1 Mbit/s on PD0/PD1");
+
+    let config = drive_config();
+    let mut ctl = match Controller::new(&config) {
+        Ok(ctl) => ctl,
+        // Fields logged one by one: defmt formats the f64 on the host, so no float formatting
+        // code goes into flash.
+        Err(e) => defmt::panic!(
+            "configuration rejected: {=str} = {=f64}: {=str}",
+            e.field,
+            e.value,
+            e.expected
+        ),
+    };
+    let period = ctl.period_micros();
+
+    // CAN1: RX on PD0, TX on PD1 (AF9), as wired on the type C board's CAN1 connector.
+    let mut can = Can::new(p.CAN1, p.PD0, p.PD1, Irqs);
+    // Bank 0: every standard-id frame (data or remote) into FIFO 0; extended ids are dropped by
+    // the hardware, none of the three protocols uses them.
+    can.modify_filters().enable_bank(
+        0,
+        Fifo::Fifo0,
+        Mask32::frames_with_std_id(StandardId::ZERO, StandardId::ZERO),
+    );
+    can.modify_config()
+        .set_bit_timing(bit_timing_1mbit())
+        .set_loopback(false)
+        .set_silent(false)
+        .set_automatic_retransmit(true);
+    // Send in the order the core emitted the frames, not by id priority.
+    can.set_tx_fifo_scheduling(true);
+    can.enable().await;
+    info!("CAN1 enabled (bus idle seen)");
+
+    let (tx, mut rx) = can.split();
+    let tx = tx.buffered(TX_QUEUE.init(TxBuf::new()));
+    let mut sender = tx.writer();
+
+    let mut counters = Counters::default();
+    let mut ticker = Ticker::every(Duration::from_micros(period));
+    info!("control loop: {} us period", period);
+
+    loop {
+        match select(ticker.next(), rx.read()).await {
+            Either::First(()) => {
+                // Frames that arrived since the task last ran go in before the step.
+                drain_fifo(&mut rx, &mut ctl, &mut counters);
+                counters.check_fifo_overrun();
+                let now = now();
+                let outbox = ctl.step(now);
+                for frame in &outbox {
+                    let queued = frame
+                        .convert::<embassy_stm32::can::Frame>()
+                        .is_some_and(|f| sender.try_write(f).is_ok());
+                    counters.tx(queued);
+                }
+                counters.steps += 1;
+                if counters.steps.is_multiple_of(REPORT_EVERY_STEPS) {
+                    report(&ctl, &counters);
+                }
+            }
+            Either::Second(Ok(envelope)) => {
+                let (frame, ts) = envelope.parts();
+                ctl.on_frame(instant_of(ts), &frame);
+                counters.rx();
+            }
+            Either::Second(Err(e)) => {
+                counters.bus_error();
+                if counters.bus_errors.is_power_of_two() {
+                    warn!(
+                        "CAN bus error {} (total {})",
+                        defmt::Debug2Format(&e),
+                        counters.bus_errors
+                    );
+                }
+            }
+        }
+    }
+}
+
+/// Hands every frame still in RX FIFO 0 to the core, in arrival order.
+fn drain_fifo(rx: &mut CanRx<'_>, ctl: &mut Controller, counters: &mut Counters) {
+    loop {
+        match rx.try_read() {
+            Ok(envelope) => {
+                let (frame, ts) = envelope.parts();
+                ctl.on_frame(instant_of(ts), &frame);
+                counters.rx();
+            }
+            Err(TryReadError::BusError(_)) => counters.bus_error(),
+            Err(TryReadError::Empty) => break,
+        }
+    }
+}
+
+/// Logs the loop's counters and the core's state (once per second).
+fn report(ctl: &Controller, c: &Counters) {
+    let s = ctl.snapshot();
+    info!(
+        // State and fault as their protocol codes (dbc/, STATUS frame); the legend costs no
+        // flash, defmt keeps format strings on the host.
+        "steps {} state {=u8} (0 disabled 1 enabled 2 fault 3 e-stop) fault {=u8} (0 none 1 motor stale 2 motor missing 3 drive error 4 watchdog) motors {=u8:04b} | rx {} rejected {} overruns {} bus errors {} | tx {} dropped {}",
+        s.steps,
+        s.state as u8,
+        s.fault as u8,
+        s.motors_online,
+        c.rx_frames,
+        s.rx_errors.total(),
+        c.rx_overruns,
+        c.bus_errors,
+        c.tx_queued,
+        c.tx_dropped,
+    );
+}
