@@ -74,3 +74,22 @@ def dbs() -> dict[str, cantools.database.can.Database]:
         name: cantools.database.load_file(str(DBC_DIR / file), strict=True)
         for name, file in DBC_FILES.items()
     }
+
+
+@pytest.fixture(scope="session")
+def hostsim_bin() -> pathlib.Path:
+    """Path of `hostsim`: $HOSTSIM if set, else built with cargo (release: runs are long)."""
+    prebuilt = os.environ.get("HOSTSIM")
+    if prebuilt:
+        path = pathlib.Path(prebuilt)
+        assert path.is_file(), f"HOSTSIM={prebuilt} does not exist"
+        return path
+    subprocess.run(
+        ["cargo", "build", "--quiet", "--release", "-p", "hostsim", "--bin", "hostsim"],
+        cwd=ROOT,
+        check=True,
+        timeout=1800,
+    )
+    path = _target_dir() / "release" / ("hostsim" + (".exe" if os.name == "nt" else ""))
+    assert path.is_file(), f"cargo build did not produce {path}"
+    return path

@@ -1,0 +1,530 @@
+//! A simulated CAN bus: bit-accurate frame timing, arbitration by id, bus load, and seeded
+//! fault injection.
+//!
+//! # Timing
+//!
+//! A classic CAN data frame with an 11-bit id is SOF, id, RTR, IDE, r0, DLC, data and CRC-15,
+//! all subject to bit stuffing (after five equal bits the transmitter inserts the complement),
+//! then CRC delimiter, ACK slot and delimiter, seven EOF bits and three bits of intermission.
+//! [`frame_bits`] builds that bit sequence for the actual frame, CRC included, and counts the
+//! stuff bits, so a frame's duration is exact, not a worst-case estimate: at 1 Mbit/s an
+//! 8-byte frame takes 111 to 135 µs depending on its content.
+//!
+//! # Arbitration
+//!
+//! Each node queues the frames it wants to send and offers its lowest id first, as a CAN
+//! controller with priority-ordered mailboxes does. When the bus goes idle, the lowest id on
+//! offer from any node wins; the others wait. A frame is received by every other node at
+//! the end of its transmission.
+//!
+//! # Faults
+//!
+//! Each [`Fault`] applies to frames whose transmission ends inside its time window and, if
+//! given, that come from one node: random drops, total loss (a burst), extra delivery delay,
+//! a flipped byte. Random choices come from a SplitMix64 generator seeded by the scenario, so
+//! the same seed gives the same faults on every run and every machine.
+
+use std::collections::VecDeque;
+
+use embedded_can::{Frame, Id};
+use firmware::CanFrame;
+
+/// Who is on the bus.
+#[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Debug)]
+pub enum Node {
+    /// The firmware core.
+    Controller,
+    /// The motor drives (all of them: they share one node here for simplicity of ordering).
+    Drives,
+    /// The host that commands the robot.
+    Host,
+}
+
+impl Node {
+    /// Lower-case name, as used in logs and scenarios.
+    #[must_use]
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::Controller => "controller",
+            Self::Drives => "drives",
+            Self::Host => "host",
+        }
+    }
+}
+
+/// What a fault does to a frame.
+#[derive(Clone, Copy, PartialEq, Debug)]
+pub enum FaultKind {
+    /// Each frame is lost with this probability (0..=1).
+    Drop {
+        /// Probability of losing a frame.
+        rate: f64,
+    },
+    /// Every frame is lost (a burst of losses for the length of the window).
+    Burst,
+    /// Frames are delivered this much later than their end of transmission, µs.
+    Delay {
+        /// Extra latency, µs.
+        micros: u64,
+    },
+    /// With this probability a frame arrives with one data byte XORed by a random nonzero
+    /// mask (a faulty node's data; a bus error would have been caught by the CRC).
+    Corrupt {
+        /// Probability of corrupting a frame.
+        rate: f64,
+    },
+}
+
+/// A fault active in a time window.
+#[derive(Clone, Copy, PartialEq, Debug)]
+pub struct Fault {
+    /// What it does.
+    pub kind: FaultKind,
+    /// Window start, µs of simulated time (inclusive).
+    pub from_us: u64,
+    /// Window end, µs (exclusive).
+    pub until_us: u64,
+    /// Only frames sent by this node, or all.
+    pub sender: Option<Node>,
+}
+
+/// What happened to a frame on the bus.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub enum Fate {
+    /// Received intact by the other nodes.
+    Delivered,
+    /// Lost (drop or burst fault).
+    Dropped,
+    /// Received with a corrupted byte.
+    Corrupted,
+}
+
+/// One frame's transmission.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub struct Transmission {
+    /// Sender.
+    pub from: Node,
+    /// When the sender queued it, ns.
+    pub queued_ns: u64,
+    /// Start of frame on the wire, ns.
+    pub start_ns: u64,
+    /// When the receivers get it (end of frame plus any delay fault), ns.
+    pub delivered_ns: u64,
+    /// The frame as received (after any corruption); as sent if dropped.
+    pub frame: CanFrame,
+    /// Bits on the wire, stuff bits and intermission included.
+    pub bits: u32,
+    /// What happened to it.
+    pub fate: Fate,
+}
+
+/// Bus statistics.
+#[derive(Clone, Copy, PartialEq, Debug, Default)]
+pub struct BusStats {
+    /// Frames transmitted.
+    pub frames: u64,
+    /// Frames lost to faults.
+    pub dropped: u64,
+    /// Frames corrupted by faults.
+    pub corrupted: u64,
+    /// Time the bus was busy, ns.
+    pub busy_ns: u64,
+    /// Longest wait from queueing to start of frame, ns.
+    pub max_queue_ns: u64,
+}
+
+/// The simulated bus. See the [module documentation](self).
+#[derive(Debug, Clone)]
+pub struct Bus {
+    bit_ns: u64,
+    queues: [VecDeque<(u64, CanFrame)>; 3],
+    /// The bus is busy until this time, ns.
+    idle_at_ns: u64,
+    faults: Vec<Fault>,
+    rng: SplitMix64,
+    stats: BusStats,
+}
+
+fn node_index(n: Node) -> usize {
+    match n {
+        Node::Controller => 0,
+        Node::Drives => 1,
+        Node::Host => 2,
+    }
+}
+
+const NODES: [Node; 3] = [Node::Controller, Node::Drives, Node::Host];
+
+impl Bus {
+    /// A bus at `bitrate` bit/s with the given faults and fault seed.
+    ///
+    /// # Panics
+    /// Never; a zero bitrate is treated as 1 Mbit/s.
+    #[must_use]
+    pub fn new(bitrate: u32, faults: Vec<Fault>, seed: u64) -> Self {
+        let bitrate = if bitrate == 0 { 1_000_000 } else { bitrate };
+        Self {
+            bit_ns: 1_000_000_000 / u64::from(bitrate),
+            queues: Default::default(),
+            idle_at_ns: 0,
+            faults,
+            rng: SplitMix64(seed),
+            stats: BusStats::default(),
+        }
+    }
+
+    /// Queues `frame` for transmission by `from` at time `now_ns`.
+    pub fn send(&mut self, now_ns: u64, from: Node, frame: CanFrame) {
+        self.queues[node_index(from)].push_back((now_ns, frame));
+    }
+
+    /// Frames waiting to be sent, all nodes.
+    #[must_use]
+    pub fn pending(&self) -> usize {
+        self.queues.iter().map(VecDeque::len).sum()
+    }
+
+    /// Statistics so far.
+    #[must_use]
+    pub const fn stats(&self) -> BusStats {
+        self.stats
+    }
+
+    /// Bus load over `[0, until_ns)`: busy time over elapsed time.
+    #[must_use]
+    pub fn load(&self, until_ns: u64) -> f64 {
+        if until_ns == 0 {
+            0.0
+        } else {
+            self.stats.busy_ns as f64 / until_ns as f64
+        }
+    }
+
+    /// Runs the bus up to `until_ns`: every transmission that *starts* before then happens,
+    /// in arbitration order. Returns them in the order they went on the wire.
+    pub fn advance(&mut self, until_ns: u64) -> Vec<Transmission> {
+        let mut out = Vec::new();
+        // The earliest time a frame is on offer, not before the bus is idle.
+        while let Some(ready_ns) = self
+            .queues
+            .iter()
+            .filter_map(|q| q.iter().map(|(t, _)| *t).min())
+            .min()
+        {
+            let start_ns = ready_ns.max(self.idle_at_ns);
+            if start_ns >= until_ns {
+                break;
+            }
+            // Arbitration among the frames on offer at start_ns: each node offers its lowest
+            // id; the lowest id on the bus wins (ties: node order, i.e. a fixed priority).
+            let mut best: Option<(u16, usize, usize)> = None;
+            for (n, q) in self.queues.iter().enumerate() {
+                for (i, (t, f)) in q.iter().enumerate() {
+                    if *t <= start_ns {
+                        let id = raw_id(f);
+                        if best.is_none_or(|(b, _, _)| id < b) {
+                            best = Some((id, n, i));
+                        }
+                    }
+                }
+            }
+            let Some((_, n, i)) = best else { break };
+            let Some((queued_ns, frame)) = self.queues[n].remove(i) else {
+                break;
+            };
+            let bits = frame_bits(&frame);
+            let end_ns = start_ns + u64::from(bits) * self.bit_ns;
+            self.idle_at_ns = end_ns;
+            self.stats.frames += 1;
+            self.stats.busy_ns += end_ns - start_ns;
+            self.stats.max_queue_ns = self.stats.max_queue_ns.max(start_ns - queued_ns);
+            let from = NODES[n];
+            let (frame, fate, delay_ns) = self.apply_faults(end_ns, from, frame);
+            match fate {
+                Fate::Dropped => self.stats.dropped += 1,
+                Fate::Corrupted => self.stats.corrupted += 1,
+                Fate::Delivered => {}
+            }
+            out.push(Transmission {
+                from,
+                queued_ns,
+                start_ns,
+                delivered_ns: end_ns + delay_ns,
+                frame,
+                bits,
+                fate,
+            });
+        }
+        out
+    }
+
+    fn apply_faults(&mut self, end_ns: u64, from: Node, frame: CanFrame) -> (CanFrame, Fate, u64) {
+        let end_us = end_ns / 1000;
+        let mut frame = frame;
+        let mut fate = Fate::Delivered;
+        let mut delay_ns = 0;
+        for f in &self.faults {
+            if end_us < f.from_us || end_us >= f.until_us || f.sender.is_some_and(|s| s != from) {
+                continue;
+            }
+            match f.kind {
+                FaultKind::Burst => fate = Fate::Dropped,
+                FaultKind::Drop { rate } => {
+                    if self.rng.unit() < rate {
+                        fate = Fate::Dropped;
+                    }
+                }
+                FaultKind::Delay { micros } => delay_ns += micros * 1000,
+                FaultKind::Corrupt { rate } => {
+                    let dlc = frame.dlc();
+                    if dlc > 0 && self.rng.unit() < rate && fate == Fate::Delivered {
+                        let r = self.rng.next_u64();
+                        let byte = (r % dlc as u64) as usize;
+                        let mask = ((r >> 8) % 255 + 1) as u8;
+                        let mut data = [0u8; 8];
+                        data[..dlc].copy_from_slice(frame.data());
+                        data[byte] ^= mask;
+                        if let Id::Standard(id) = frame.id() {
+                            frame = CanFrame::from_buffer(id, data, dlc as u8);
+                        }
+                        fate = Fate::Corrupted;
+                    }
+                }
+            }
+        }
+        (frame, fate, delay_ns)
+    }
+}
+
+fn raw_id(frame: &CanFrame) -> u16 {
+    match frame.id() {
+        Id::Standard(id) => id.as_raw(),
+        // The project's frames are all standard; an extended id loses arbitration here.
+        Id::Extended(_) => u16::MAX,
+    }
+}
+
+/// Bits on the wire for a standard-id data (or remote) frame, including stuff bits, the
+/// fixed-form tail (CRC delimiter, ACK, EOF) and the 3-bit intermission.
+#[must_use]
+pub fn frame_bits(frame: &CanFrame) -> u32 {
+    let mut bits: Vec<bool> = Vec::with_capacity(128);
+    let push = |bits: &mut Vec<bool>, value: u32, n: u32| {
+        for i in (0..n).rev() {
+            bits.push((value >> i) & 1 == 1);
+        }
+    };
+    let id = u32::from(raw_id(frame) & 0x7FF);
+    let dlc = frame.dlc();
+    bits.push(false); // SOF
+    push(&mut bits, id, 11);
+    bits.push(frame.is_remote_frame()); // RTR
+    bits.push(false); // IDE
+    bits.push(false); // r0
+    push(&mut bits, dlc as u32, 4);
+    if !frame.is_remote_frame() {
+        for &b in frame.data() {
+            push(&mut bits, u32::from(b), 8);
+        }
+    }
+    let crc = crc15(&bits);
+    push(&mut bits, u32::from(crc), 15);
+    // Stuffing over SOF..CRC.
+    let mut stuffed = 0u32;
+    let mut run = 0u32;
+    let mut last = None;
+    for &b in &bits {
+        if Some(b) == last {
+            run += 1;
+        } else {
+            run = 1;
+            last = Some(b);
+        }
+        if run == 5 {
+            stuffed += 1;
+            // The stuff bit is the complement and starts a new run of length 1.
+            last = Some(!b);
+            run = 1;
+        }
+    }
+    // CRC delimiter 1, ACK slot 1, ACK delimiter 1, EOF 7, intermission 3.
+    bits.len() as u32 + stuffed + 13
+}
+
+/// CAN CRC-15 (polynomial 0x4599) over a bit sequence.
+fn crc15(bits: &[bool]) -> u16 {
+    let mut crc: u16 = 0;
+    for &b in bits {
+        let next = b ^ ((crc >> 14) & 1 == 1);
+        crc = (crc << 1) & 0x7FFF;
+        if next {
+            crc ^= 0x4599;
+        }
+    }
+    crc
+}
+
+/// SplitMix64: a tiny, fixed, seedable generator, so fault patterns never change with a
+/// dependency's version.
+#[derive(Debug, Clone)]
+pub struct SplitMix64(pub u64);
+
+impl SplitMix64 {
+    /// The next 64 random bits.
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in `[0, 1)` with 53 random bits.
+    pub fn unit(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use embedded_can::StandardId;
+
+    fn frame(id: u16, data: &[u8]) -> CanFrame {
+        CanFrame::standard(StandardId::new(id).unwrap(), data).unwrap()
+    }
+
+    #[test]
+    fn frame_lengths_match_hand_counts() {
+        // All-zero 8-byte frame with id 0: 34 + 64 unstuffed header/data bits of long zero
+        // runs; the exact count is what the stuffing rule gives.
+        let zeros = frame(0x000, &[0; 8]);
+        let n = frame_bits(&zeros);
+        // Unstuffed: 1 + 11 + 3 + 4 + 64 + 15 = 98, + 13 fixed = 111; zeros stuff heavily.
+        assert!(n > 111 + 15 && n <= 135, "{n}");
+        // Alternating bits never stuff: 0x2AA id pattern and 0x55 data.
+        let alt = frame(0x555, &[0x55; 8]);
+        assert!(frame_bits(&alt) >= 111 && frame_bits(&alt) < 120);
+        // A zero-length frame: 1 + 11 + 3 + 4 + 15 = 34 + 13 = 47 bits before stuffing.
+        let empty = frame(0x303, &[]);
+        assert!((47..=47 + 8).contains(&frame_bits(&empty)));
+    }
+
+    #[test]
+    fn crc15_of_known_vector() {
+        // CRC-15/CAN of the ASCII string "123456789" is 0x059E.
+        let mut bits = Vec::new();
+        for b in b"123456789" {
+            for i in (0..8).rev() {
+                bits.push((b >> i) & 1 == 1);
+            }
+        }
+        assert_eq!(crc15(&bits), 0x059E);
+    }
+
+    #[test]
+    fn lowest_id_wins_and_timing_is_exact() {
+        let mut bus = Bus::new(1_000_000, vec![], 1);
+        bus.send(0, Node::Drives, frame(0x201, &[1; 8]));
+        bus.send(0, Node::Controller, frame(0x200, &[2; 8]));
+        bus.send(0, Node::Host, frame(0x301, &[3; 8]));
+        let tx = bus.advance(1_000_000);
+        let ids: Vec<u16> = tx.iter().map(|t| raw_id(&t.frame)).collect();
+        assert_eq!(ids, [0x200, 0x201, 0x301]);
+        // Back to back: each starts when the previous ended.
+        for w in tx.windows(2) {
+            assert_eq!(w[1].start_ns, w[0].delivered_ns);
+        }
+        assert_eq!(tx[0].delivered_ns, u64::from(tx[0].bits) * 1000);
+        assert_eq!(
+            bus.stats().busy_ns,
+            tx.iter().map(|t| u64::from(t.bits) * 1000).sum::<u64>()
+        );
+    }
+
+    #[test]
+    fn a_frame_queued_later_waits_for_the_bus_even_with_a_lower_id() {
+        let mut bus = Bus::new(1_000_000, vec![], 1);
+        bus.send(0, Node::Drives, frame(0x201, &[0; 8]));
+        bus.send(10_000, Node::Controller, frame(0x100, &[0; 8]));
+        let tx = bus.advance(1_000_000);
+        assert_eq!(raw_id(&tx[0].frame), 0x201);
+        assert_eq!(tx[1].start_ns, tx[0].delivered_ns);
+        assert_eq!(
+            tx[1].start_ns - tx[1].queued_ns,
+            tx[0].delivered_ns - 10_000
+        );
+    }
+
+    #[test]
+    fn faults_are_seeded_and_windowed() {
+        let faults = vec![
+            Fault {
+                kind: FaultKind::Drop { rate: 0.5 },
+                from_us: 0,
+                until_us: 100_000,
+                sender: Some(Node::Drives),
+            },
+            Fault {
+                kind: FaultKind::Burst,
+                from_us: 200_000,
+                until_us: 300_000,
+                sender: None,
+            },
+        ];
+        let run = |seed| {
+            let mut bus = Bus::new(1_000_000, faults.clone(), seed);
+            for k in 0..400u64 {
+                bus.send(k * 1_000_000, Node::Drives, frame(0x201, &[k as u8; 8]));
+                bus.send(k * 1_000_000, Node::Host, frame(0x301, &[0; 8]));
+            }
+            bus.advance(u64::MAX)
+        };
+        let a = run(7);
+        assert_eq!(a, run(7), "same seed, same faults");
+        assert_ne!(a, run(8));
+        let dropped = |lo: u64, hi: u64, from: Node| {
+            a.iter()
+                .filter(|t| t.from == from && t.start_ns >= lo * 1000 && t.start_ns < hi * 1000)
+                .filter(|t| t.fate == Fate::Dropped)
+                .count()
+        };
+        // ~50 % of the 100 drive frames in the first window, none from the host.
+        let d = dropped(0, 100_000, Node::Drives);
+        assert!((30..=70).contains(&d), "{d}");
+        assert_eq!(dropped(0, 100_000, Node::Host), 0);
+        // Everything in the burst, nothing between the windows.
+        assert_eq!(dropped(200_000, 299_000, Node::Host), 99);
+        assert_eq!(dropped(100_000, 200_000, Node::Drives), 0);
+    }
+
+    #[test]
+    fn corruption_flips_one_byte_and_delay_shifts_delivery() {
+        let faults = vec![
+            Fault {
+                kind: FaultKind::Corrupt { rate: 1.0 },
+                from_us: 0,
+                until_us: u64::MAX,
+                sender: None,
+            },
+            Fault {
+                kind: FaultKind::Delay { micros: 250 },
+                from_us: 0,
+                until_us: u64::MAX,
+                sender: None,
+            },
+        ];
+        let mut bus = Bus::new(1_000_000, faults, 3);
+        let sent = frame(0x201, &[0; 8]);
+        bus.send(0, Node::Drives, sent);
+        let tx = bus.advance(u64::MAX);
+        let diff = sent
+            .data()
+            .iter()
+            .zip(tx[0].frame.data())
+            .filter(|(a, b)| a != b)
+            .count();
+        assert_eq!((tx[0].fate, diff), (Fate::Corrupted, 1));
+        assert_eq!(tx[0].delivered_ns, u64::from(tx[0].bits) * 1000 + 250_000);
+    }
+}

@@ -1,0 +1,158 @@
+//! The drives on the bus: the adapter between CAN frames and the [`plant`](crate::plant).
+//!
+//! Command frames addressed to the configured ESCs or ODrive nodes are decoded with the
+//! firmware crate's codecs (the same ones the firmware encodes with) and applied to the drive
+//! models; the drives' due feedback is encoded back into frames, timestamped when the drive
+//! sent it. Frames that are not for a configured drive are ignored, as a real drive would.
+
+use firmware::CanFrame;
+use firmware::config::{Config, Drive as DriveConfig};
+use firmware::protocol::dji::{CurrentCommand, EscId, EscModel};
+use firmware::protocol::odrive::{self, NodeId};
+
+use crate::plant::{DjiDrive, OdriveAxis, ParamError, Plant, Wheel};
+use crate::sim::SimPlant;
+
+/// A plant of one drive kind, with the ids its drives answer to.
+#[derive(Debug, Clone)]
+pub enum SimDrives {
+    /// C620 ESCs; `esc[i]` is wheel i's ESC.
+    Dji {
+        /// The plant.
+        plant: Box<Plant<DjiDrive>>,
+        /// ESC id per wheel.
+        esc: [EscId; 4],
+        /// ESC model (current scale).
+        model: EscModel,
+    },
+    /// ODrive axes; `node[i]` is wheel i's node.
+    Odrive {
+        /// The plant.
+        plant: Box<Plant<OdriveAxis>>,
+        /// Node id per wheel.
+        node: [NodeId; 4],
+    },
+}
+
+impl SimDrives {
+    /// The plant for a firmware configuration: its geometry, drives, ids and mounting signs.
+    ///
+    /// # Errors
+    /// [`ParamError`] naming the field the plant cannot model (e.g. a C610 configuration:
+    /// only the C620 + M3508 is modelled).
+    pub fn new(config: &Config) -> Result<Self, ParamError> {
+        let bad_id = |field| ParamError::new(field, f64::NAN, "a valid id");
+        match config.drive {
+            DriveConfig::Dji { model, esc_ids, .. } => {
+                let mut esc = [EscId::new(1).ok_or(bad_id("drive.esc_ids"))?; 4];
+                for (e, &id) in esc.iter_mut().zip(&esc_ids) {
+                    *e = EscId::new(id).ok_or(bad_id("drive.esc_ids"))?;
+                }
+                Ok(Self::Dji {
+                    plant: Box::new(Plant::dji_from_config(config)?),
+                    esc,
+                    model,
+                })
+            }
+            DriveConfig::Odrive { node_ids, .. } => {
+                let mut node = [NodeId::new(0).ok_or(bad_id("drive.node_ids"))?; 4];
+                for (n, &id) in node.iter_mut().zip(&node_ids) {
+                    *n = NodeId::new(id).ok_or(bad_id("drive.node_ids"))?;
+                }
+                Ok(Self::Odrive {
+                    plant: Box::new(Plant::odrive_from_config(config)?),
+                    node,
+                })
+            }
+        }
+    }
+}
+
+impl SimPlant for SimDrives {
+    fn on_frame(&mut self, _t_us: u64, frame: &CanFrame) {
+        match self {
+            Self::Dji { plant, esc, model } => {
+                let Ok(cmd) = CurrentCommand::decode(frame, *model) else {
+                    return;
+                };
+                for (wheel, id) in Wheel::ALL.into_iter().zip(*esc) {
+                    if id.group() == cmd.group && !plant.is_offline(wheel) {
+                        plant.drive_mut(wheel).set_current_raw(cmd.raw[id.slot()]);
+                    }
+                }
+            }
+            Self::Odrive { plant, node } => {
+                let Ok(addressed) = odrive::Command::decode(frame) else {
+                    return;
+                };
+                for (wheel, id) in Wheel::ALL.into_iter().zip(*node) {
+                    if id == addressed.node && !plant.is_offline(wheel) {
+                        // A reply (Get_Error) would go out with the next feedback; the
+                        // firmware does not ask for one.
+                        let _ = plant.drive_mut(wheel).apply(&addressed.msg);
+                    }
+                }
+            }
+        }
+    }
+
+    fn feedback(&mut self, until_ns: u64, out: &mut Vec<(u64, CanFrame)>) {
+        match self {
+            Self::Dji { plant, esc, .. } => {
+                for f in plant.take_feedback() {
+                    debug_assert!(f.time_ns <= until_ns);
+                    let frame = f.feedback.to_firmware(esc[f.wheel.index()]).to_can_frame();
+                    out.push((f.time_ns, frame));
+                }
+            }
+            Self::Odrive { plant, node } => {
+                for f in plant.take_feedback() {
+                    let frame = f.feedback.to_firmware().to_can_frame(node[f.wheel.index()]);
+                    out.push((f.time_ns, frame));
+                }
+            }
+        }
+        out.sort_by_key(|(t, _)| *t);
+    }
+
+    fn advance(&mut self, dt: f64) {
+        // Parameters were validated at construction; a step error would be a modelling bug
+        // (a non-finite state), which the summary would show as a frozen plant.
+        let _ = match self {
+            Self::Dji { plant, .. } => plant.step(dt),
+            Self::Odrive { plant, .. } => plant.step(dt),
+        };
+    }
+
+    fn truth(&self) -> [f64; 3] {
+        let p = match self {
+            Self::Dji { plant, .. } => plant.pose(),
+            Self::Odrive { plant, .. } => plant.pose(),
+        };
+        [p.x, p.y, p.heading]
+    }
+
+    fn truth_velocity(&self) -> [f64; 3] {
+        let v = match self {
+            Self::Dji { plant, .. } => plant.velocity(),
+            Self::Odrive { plant, .. } => plant.velocity(),
+        };
+        [v.vx, v.vy, v.wz]
+    }
+
+    fn set_faults(&mut self, stuck: [bool; 4], offline: [bool; 4]) {
+        for wheel in Wheel::ALL {
+            let i = wheel.index();
+            match self {
+                Self::Dji { plant, .. } => {
+                    plant.set_stuck_encoder(wheel, stuck[i]);
+                    plant.set_offline(wheel, offline[i]);
+                }
+                Self::Odrive { plant, .. } => {
+                    plant.set_stuck_encoder(wheel, stuck[i]);
+                    plant.set_offline(wheel, offline[i]);
+                }
+            }
+        }
+    }
+}

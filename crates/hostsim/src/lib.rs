@@ -1,0 +1,16 @@
+//! Host simulator of the mecanum drive.
+//!
+//! The real firmware core ([`firmware::control::Controller`], the same crate that runs on the
+//! MCU) runs in lockstep with a simulated plant (motors, drives, a chassis on mecanum rollers)
+//! over a simulated CAN bus, in simulated time. Every frame and state is logged to MCAP; a log
+//! can be replayed to check that the core still produces the same frames, bit for bit.
+
+pub mod bus;
+pub mod drives;
+pub mod kin;
+pub mod log;
+pub mod plant;
+pub mod plot;
+pub mod replay;
+pub mod scenario;
+pub mod sim;

@@ -1,0 +1,688 @@
+//! The chassis: a planar rigid body on four mecanum wheels, with friction-limited slip.
+//!
+//! # Model
+//!
+//! The body has mass `m` and yaw inertia `I`, a world pose `(x, y, θ)` and a body-frame
+//! velocity `v = (vx, vy)`, `ω = wz` (x forward, y left, yaw counter-clockwise). Wheel `i`
+//! sits at `a_i` in the body frame with the geometry of [`WheelGeometry`]: axle angle `α`,
+//! roller angle `δ`, radius `r` (seed 000, the same parameters the kinematics crate uses).
+//! Each wheel spins at `ω_i` (positive rolls the robot forward) with spin inertia `J_i` as
+//! seen at the wheel.
+//!
+//! Per wheel, in the body frame:
+//!
+//! ```text
+//! contact point          c_i  = a_i                      (nominal; see "ripple" below)
+//! contact velocity       v_c  = v + ω × c_i = (vx − ω c_y, vy + ω c_x)
+//! rolling direction      d    = (cos(α − π/2), sin(α − π/2))       (+x for α = π/2)
+//! roller axis (ground)   e_a  = (cos(α+δ), sin(α+δ))               constrained direction
+//! roller free direction  e_f  = (−sin(α+δ), cos(α+δ))              the roller spins along it
+//! slip of the contact    s    = v_c − r ω_i d                       (rim point vs ground)
+//! axial slip             s_a  = s·e_a = v_c·e_a + r ω_i sin δ       (d·e_a = −sin δ)
+//! roller spin speed      s_f  = s·e_f = v_c·e_f + r ω_i cos δ       (d·e_f = −cos δ)
+//! ```
+//!
+//! `s_a = 0` is exactly the wheel's row of the inverse kinematics (seed 000, eq. 16), so a
+//! chassis whose wheels turn at `MecanumKinematics::inverse(v)` moves at `v` without slip.
+//!
+//! **Contact force** (on the chassis, from the ground): anisotropic Coulomb friction with a
+//! smooth slip curve. Sliding along the roller axis is weighted 1, rolling the roller along
+//! its free direction is weighted `ε` (the rollers' rolling-to-sliding resistance ratio,
+//! [`ChassisParams::roller_drag`]):
+//!
+//! ```text
+//! F_i = −μ N_i · (s_a e_a + ε s_f e_f) / sqrt(s_a² + ε² s_f² + s0²)
+//! ```
+//!
+//! `|F_i| < μ N_i` always (the friction ellipse); below the slip velocity `s0` the force is
+//! linear in the slip (a stiff viscous contact, no stick-slip chatter), above it it saturates
+//! at the friction limit. Its power `F_i·s = −μN (s_a² + ε s_f²)/sqrt(…) ≤ 0`: the contact
+//! only dissipates.
+//!
+//! **Equations of motion** (body frame):
+//!
+//! ```text
+//! J_i ω̇_i = τ_i − r (F_i·d)                 wheel: drive torque against the ground reaction
+//! m (v̇ + ω × v) = Σ F_i                     chassis translation
+//! I ω̇ = Σ c_i × F_i                          chassis yaw
+//! pose ← pose · exp((vx, vy, ω) h)           exact SE(2) exponential (kinematics::Pose2::exp)
+//! ```
+//!
+//! integrated by semi-implicit (symplectic) Euler at a fixed substep: forces from the state at
+//! the start of the substep, velocities updated, then angles and the pose from the new
+//! velocities. The `ω × v` term is applied as an exact rotation of the body velocity by
+//! `−ω h`, so it never adds energy. The substep is at most
+//! [`ChassisParams::max_substep`] (100 µs by default) and is reduced automatically to a
+//! quarter of the stiffest contact time constant `1 / (k (r²/J + 4/m + 4|c|²/I))` with the
+//! contact stiffness `k = μN/s0`, which keeps the explicit force evaluation stable.
+//!
+//! # Why strafing is slower than driving forward (seed 004)
+//!
+//! Driving straight, every contact velocity is along `d`, so `s_f = 0`: the rollers do not
+//! spin and nothing but the axial traction acts. Strafing (or rotating), the rollers must
+//! spin: for the standard layout at strafe speed `V` commanded `V0`, each roller spins at
+//! `|s_f| = (V0 + V)/√2` and the roller drag pulls back along `e_f`. The wheels, held at their
+//! kinematic speeds by the velocity loop, push back only by slipping along their roller axes,
+//! `|s_a| = (V0 − V)/√2`. The lateral force balance `|s_a| = ε |s_f|` gives
+//!
+//! ```text
+//! V / V0 = (1 − ε) / (1 + ε)
+//! ```
+//!
+//! independent of speed, μ and s0. The default `ε = 1/7` puts a pure strafe at 75 % of
+//! forward speed, the middle of the 70-80 % that seed 004 reports. The price is real: at
+//! 1 m/s commanded the contacts slide at about 0.18 m/s along the roller axes and the wheels
+//! carry a steady torque (about 10 A per M3508 on the default 20 kg chassis), which shows up
+//! as motor current. Diagonal motion loses its lateral part the same way: wheel patterns
+//! that ask for 45° travel at `atan(0.75)` ≈ 36.9° from the x axis.
+//!
+//! Why one friction ellipse and not a separate roller resistance: with the traction saturated
+//! at `μN` and a Coulomb roller friction `μ_r N`, the balance fixes the *slip*, not the
+//! ratio (tuned to 75 % at 1 m/s, a strafe falls the same 0.25 m/s short at any speed: 17 %
+//! of the command at 0.3 m/s, 88 % at 2 m/s);
+//! with a viscous one `c_r s_f` the drag grows past `μN` and a fast strafe stalls. Weighting
+//! the slip keeps seed 004's ratio at every speed. Its limit: a roller spun much faster than
+//! `s0/ε` (0.35 m/s) along its free direction by a wheel that is *held* still drags with
+//! nearly the full `μN`, more than a real free roller would.
+//!
+//! # Contact-point ripple (seed 000, eq. 10 and 11)
+//!
+//! A real mecanum wheel touches the ground with one of its `k` rollers at a time, and the
+//! contact point is not under the wheel centre: with `u` the wheel's rotation angle measured
+//! from the moment the touching roller is centred (`|u| ≤ π/k`), and `d` the distance between
+//! the wheel axis and the roller axis (their common perpendicular), the contact point is
+//! (eq. 11)
+//!
+//! ```text
+//! c_x = a_x − d cos α cot δ tan u,        c_y = a_y − d sin α cot δ tan u
+//! ```
+//!
+//! and the roller axis `b(u) = (cos α cos δ − sin α sin δ cos u,
+//! sin α cos δ + cos α sin δ cos u, sin δ sin u)` (eq. 10) tilts, so its ground projection,
+//! which replaces `e_a`, turns: `tan δ_eff = tan δ cos u`. The contact slides along the axle
+//! by `±d cot δ tan(π/k)` and jumps back when the next roller takes over, once per roller
+//! pitch `2π/k`, and the effective rolling ratio `r sin δ_eff / sin δ` dips with the same
+//! period: a ripple in speed and yaw at `k` times the wheel frequency. Rolling straight is
+//! the exception: eq. 15 then reduces to `r u̇ = vx` whatever the tilt, and the left and right
+//! contacts shift symmetrically, so a pure forward run has no ripple; strafing does
+//! (`vy = r ω cos u` for forced wheels, a dip of `1 − cos(π/k)`), and so does turning.
+//! [`Ripple`] turns it on (off by default, where `c_i = a_i` and `e_a` is fixed, eq. 16's
+//! simplification). The wheel angle `u` is the same angle as the wheel's own (eq. 13 gives
+//! the rim velocity `−u̇ r d`, our positive rolling sense).
+
+use kinematics::{ChassisVelocity, MecanumKinematics, Pose2, Twist2, WheelGeometry, wrap_angle};
+
+use super::WHEELS;
+use super::error::{ParamError, finite, non_negative, positive};
+
+/// Standard gravity, m/s².
+pub const STANDARD_GRAVITY: f64 = 9.806_65;
+
+/// Contact-point ripple after seed 000, eq. 10-11 (see the [module docs](self)).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Ripple {
+    /// Number of rollers `k` per wheel (≥ 3; 8-12 is common).
+    pub rollers: u32,
+    /// Distance `d` between the wheel axis and a roller axis, m (`0 ≤ d < r`; the roller's
+    /// equator radius is `r − d`).
+    pub axis_offset: f64,
+    /// Per wheel, the wheel angle (rad) at which a roller is centred under the axle.
+    pub phase: [f64; WHEELS],
+}
+
+impl Ripple {
+    /// `rollers` rollers at axis distance `axis_offset` m, all wheels in phase.
+    #[must_use]
+    pub const fn new(rollers: u32, axis_offset: f64) -> Self {
+        Self {
+            rollers,
+            axis_offset,
+            phase: [0.0; WHEELS],
+        }
+    }
+
+    /// The roller pitch `2π/k`, rad.
+    #[must_use]
+    pub fn pitch(&self) -> f64 {
+        core::f64::consts::TAU / f64::from(self.rollers.max(1))
+    }
+
+    /// The wheel angle `u` of eq. 10-11: `wheel_angle − phase` wrapped to `[−π/k, π/k)`.
+    #[must_use]
+    pub fn local_angle(&self, wheel: usize, wheel_angle: f64) -> f64 {
+        let pitch = self.pitch();
+        let phase = self.phase.get(wheel).copied().unwrap_or(0.0);
+        let u = (wheel_angle - phase).rem_euclid(pitch);
+        if u >= 0.5 * pitch { u - pitch } else { u }
+    }
+}
+
+/// Chassis parameters. [`ChassisParams::default`] is a ~20 kg RoboMaster-like chassis with
+/// the geometry of `firmware::Config::dji_m3508_example()`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ChassisParams {
+    /// Mass, kg.
+    pub mass: f64,
+    /// Yaw inertia about the body origin, kg·m².
+    pub yaw_inertia: f64,
+    /// Wheel geometry, FL, FR, RL, RR (checked for rank 3 by the kinematics crate).
+    pub wheels: [WheelGeometry<f64>; WHEELS],
+    /// Spin inertia of each wheel as seen at the wheel, kg·m². A [`Plant`](super::Plant)
+    /// adds its drive's reflected rotor inertia (`J_rotor · gear²`) to this.
+    pub wheel_inertia: [f64; WHEELS],
+    /// Normal load per wheel, N; `None` for `m g / 4` each.
+    pub normal_load: Option<[f64; WHEELS]>,
+    /// Gravity, m/s² (used for the default normal load).
+    pub gravity: f64,
+    /// Friction coefficient `μ` of the roller on the ground.
+    pub friction: f64,
+    /// Slip velocity `s0` of the slip curve, m/s: the force reaches `μN/√2` at this slip.
+    pub slip_velocity: f64,
+    /// Roller drag `ε`: resistance to rolling a roller along its free direction relative to
+    /// sliding along its axis (0 = ideal free rollers). Pure strafe settles at
+    /// `(1 − ε)/(1 + ε)` of the commanded speed.
+    pub roller_drag: f64,
+    /// Contact-point ripple (seed 000, eq. 11); `None` (default) for the contact under the
+    /// wheel centre.
+    pub ripple: Option<Ripple>,
+    /// Largest integration substep, s (100 µs by default; reduced further if the contact is
+    /// stiffer than that can integrate).
+    pub max_substep: f64,
+}
+
+impl Default for ChassisParams {
+    fn default() -> Self {
+        Self::standard(0.20, 0.18, 0.076)
+    }
+}
+
+impl ChassisParams {
+    /// Default parameters on a standard layout: wheels at `(±lx, ±ly)`, radius `r`, 45°
+    /// rollers pointing to the centre seen from above (the kinematics crate's
+    /// `MecanumKinematics::standard`). A layout the kinematics crate refuses (non-finite,
+    /// `r <= 0`, singular) gives the defaults' geometry with those numbers anyway and fails
+    /// at [`Chassis::new`].
+    #[must_use]
+    pub fn standard(lx: f64, ly: f64, r: f64) -> Self {
+        let q = core::f64::consts::FRAC_PI_4;
+        let axle = core::f64::consts::FRAC_PI_2;
+        let wheels = [
+            WheelGeometry::new(lx, ly, axle, q, r),
+            WheelGeometry::new(lx, -ly, axle, -q, r),
+            WheelGeometry::new(-lx, ly, axle, -q, r),
+            WheelGeometry::new(-lx, -ly, axle, q, r),
+        ];
+        Self {
+            mass: 20.0,
+            // A 0.50 m x 0.45 m box of 20 kg: m (a² + b²) / 12.
+            yaw_inertia: 0.75,
+            wheels,
+            // A 152 mm mecanum wheel of ~0.6 kg, hub and rollers: ~0.6 · 0.5 · r² · 1.2.
+            wheel_inertia: [2.0e-3; WHEELS],
+            normal_load: None,
+            gravity: STANDARD_GRAVITY,
+            friction: 0.8,
+            slip_velocity: 0.05,
+            roller_drag: 1.0 / 7.0,
+            ripple: None,
+            max_substep: 100e-6,
+        }
+    }
+
+    /// Default parameters on the geometry of a firmware configuration (converted to `f64`).
+    /// Mass, inertias and contact stay the defaults; set them for another robot.
+    #[must_use]
+    pub fn from_config(config: &firmware::Config) -> Self {
+        use firmware::config::Geometry;
+        match config.geometry {
+            Geometry::Standard {
+                lx,
+                ly,
+                wheel_radius,
+            } => Self::standard(f64::from(lx), f64::from(ly), f64::from(wheel_radius)),
+            Geometry::General { wheels } => Self {
+                wheels: wheels.map(|w| {
+                    WheelGeometry::new(
+                        f64::from(w.x),
+                        f64::from(w.y),
+                        f64::from(w.axle_angle),
+                        f64::from(w.roller_angle),
+                        f64::from(w.radius),
+                    )
+                }),
+                ..Self::default()
+            },
+        }
+    }
+
+    /// The same parameters with ideal rollers (`roller_drag = 0`).
+    #[must_use]
+    pub const fn with_free_rollers(mut self) -> Self {
+        self.roller_drag = 0.0;
+        self
+    }
+
+    /// Normal load of each wheel, N.
+    #[must_use]
+    pub fn normal_loads(&self) -> [f64; WHEELS] {
+        self.normal_load
+            .unwrap_or([self.mass * self.gravity / WHEELS as f64; WHEELS])
+    }
+
+    /// The kinematics of this layout.
+    ///
+    /// # Errors
+    /// [`ParamError`] naming the geometry field the kinematics crate refused.
+    pub fn kinematics(&self) -> Result<MecanumKinematics<f64, WHEELS>, ParamError> {
+        MecanumKinematics::new(self.wheels).map_err(|e| {
+            use kinematics::GeometryError as G;
+            match e {
+                G::NonFinite { wheel, field } => {
+                    let w = self.wheels.get(wheel).copied();
+                    let v = w.map_or(f64::NAN, |w| match field {
+                        "x" => w.x,
+                        "y" => w.y,
+                        "axle_angle" => w.axle_angle,
+                        "roller_angle" => w.roller_angle,
+                        _ => w.radius,
+                    });
+                    ParamError::new("chassis.wheels", v, "finite geometry").at(wheel)
+                }
+                G::NonPositiveRadius { wheel, radius } => {
+                    ParamError::new("chassis.wheels.radius", radius, "a radius > 0").at(wheel)
+                }
+                G::RollerParallelToAxle {
+                    wheel,
+                    roller_angle,
+                } => ParamError::new(
+                    "chassis.wheels.roller_angle",
+                    roller_angle,
+                    "a roller not parallel to its axle",
+                )
+                .at(wheel),
+                G::Singular { condition } => ParamError::new(
+                    "chassis.wheels",
+                    condition,
+                    "a layout of rank 3 (roller axes neither concurrent nor parallel); \
+                     value is the condition number",
+                ),
+                _ => ParamError::new("chassis.wheels", f64::NAN, "a valid layout"),
+            }
+        })
+    }
+
+    /// Checks every field.
+    ///
+    /// # Errors
+    /// [`ParamError`] for the first field out of range.
+    pub fn validate(&self) -> Result<(), ParamError> {
+        positive("chassis.mass", self.mass)?;
+        positive("chassis.yaw_inertia", self.yaw_inertia)?;
+        positive("chassis.gravity", self.gravity)?;
+        positive("chassis.friction", self.friction)?;
+        positive("chassis.slip_velocity", self.slip_velocity)?;
+        non_negative("chassis.roller_drag", self.roller_drag)?;
+        positive("chassis.max_substep", self.max_substep)?;
+        if self.max_substep > 0.01 {
+            return Err(ParamError::new(
+                "chassis.max_substep",
+                self.max_substep,
+                "at most 0.01 s",
+            ));
+        }
+        for (i, &j) in self.wheel_inertia.iter().enumerate() {
+            positive("chassis.wheel_inertia", j).map_err(|e| e.at(i))?;
+        }
+        if let Some(loads) = self.normal_load {
+            for (i, &n) in loads.iter().enumerate() {
+                positive("chassis.normal_load", n).map_err(|e| e.at(i))?;
+            }
+        }
+        self.kinematics()?;
+        if let Some(ripple) = &self.ripple {
+            if ripple.rollers < 3 {
+                return Err(ParamError::new(
+                    "chassis.ripple.rollers",
+                    f64::from(ripple.rollers),
+                    "at least 3 rollers",
+                ));
+            }
+            non_negative("chassis.ripple.axis_offset", ripple.axis_offset)?;
+            for (i, w) in self.wheels.iter().enumerate() {
+                if ripple.axis_offset >= w.radius {
+                    return Err(ParamError::new(
+                        "chassis.ripple.axis_offset",
+                        ripple.axis_offset,
+                        "less than the wheel radius",
+                    )
+                    .at(i));
+                }
+                finite("chassis.ripple.phase", ripple.phase[i]).map_err(|e| e.at(i))?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// What drives a wheel during a step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum WheelInput {
+    /// A drive torque on the wheel, N·m, positive in the wheel's positive (forward) sense.
+    Torque(f64),
+    /// The wheel is held at this speed, rad/s (an ideal, infinitely stiff servo). The ground
+    /// reaction still acts on the chassis; the torque the servo needed is in
+    /// [`Contact::load_torque`].
+    Speed(f64),
+}
+
+/// The chassis state: ground truth.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ChassisState {
+    /// World pose; the heading is wrapped to `[−π, π]`.
+    pub pose: Pose2<f64>,
+    /// Heading, rad, not wrapped (total yaw since the start).
+    pub yaw: f64,
+    /// Body-frame velocity (m/s, m/s, rad/s).
+    pub velocity: ChassisVelocity<f64>,
+    /// Wheel speeds, rad/s, FL, FR, RL, RR (positive rolls forward).
+    pub wheel_speed: [f64; WHEELS],
+    /// Wheel angles, rad, not wrapped.
+    pub wheel_angle: [f64; WHEELS],
+}
+
+/// One wheel's contact during the last substep (body frame).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Contact {
+    /// Contact point `c_i`, m.
+    pub position: [f64; 2],
+    /// Force of the ground on the chassis, N.
+    pub force: [f64; 2],
+    /// Axial slip `s_a` (along the roller axis), m/s.
+    pub slip_axial: f64,
+    /// Roller spin speed `s_f` (along the free direction), m/s.
+    pub slip_free: f64,
+    /// Ground reaction torque on the wheel `r (F·d)`, N·m: the torque a drive must supply
+    /// to hold the wheel's speed.
+    pub load_torque: f64,
+}
+
+/// Per-wheel constants, precomputed.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct WheelConst {
+    ax: f64,
+    ay: f64,
+    /// Rolling direction d.
+    dx: f64,
+    dy: f64,
+    /// Nominal roller axis e_a.
+    eax: f64,
+    eay: f64,
+    /// Axle direction (cos α, sin α) and sin/cos of α, δ (for the ripple).
+    cos_a: f64,
+    sin_a: f64,
+    cos_d: f64,
+    sin_d: f64,
+    cot_d: f64,
+    r: f64,
+    mu_n: f64,
+    inv_j: f64,
+}
+
+/// A planar rigid body on four mecanum wheels (see the [module docs](self) for the model).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Chassis {
+    params: ChassisParams,
+    consts: [WheelConst; WHEELS],
+    substep: f64,
+    state: ChassisState,
+    contacts: [Contact; WHEELS],
+}
+
+impl Chassis {
+    /// A chassis at rest at the origin.
+    ///
+    /// # Errors
+    /// [`ParamError`] for the first parameter out of range.
+    pub fn new(params: ChassisParams) -> Result<Self, ParamError> {
+        params.validate()?;
+        let loads = params.normal_loads();
+        let consts = core::array::from_fn(|i| {
+            let w = params.wheels[i];
+            let (sin_a, cos_a) = w.axle_angle.sin_cos();
+            let (sin_d, cos_d) = w.roller_angle.sin_cos();
+            let (sin_ad, cos_ad) = (w.axle_angle + w.roller_angle).sin_cos();
+            WheelConst {
+                ax: w.x,
+                ay: w.y,
+                dx: sin_a,
+                dy: -cos_a,
+                eax: cos_ad,
+                eay: sin_ad,
+                cos_a,
+                sin_a,
+                cos_d,
+                sin_d,
+                cot_d: cos_d / sin_d,
+                r: w.radius,
+                mu_n: params.friction * loads[i],
+                inv_j: 1.0 / params.wheel_inertia[i],
+            }
+        });
+        let substep = stable_substep(&params, &consts);
+        Ok(Self {
+            params,
+            consts,
+            substep,
+            state: ChassisState::default(),
+            contacts: [Contact::default(); WHEELS],
+        })
+    }
+
+    /// The parameters.
+    #[must_use]
+    pub const fn params(&self) -> &ChassisParams {
+        &self.params
+    }
+
+    /// The substep used, s: `max_substep` or less if the contact is stiffer.
+    #[must_use]
+    pub const fn substep(&self) -> f64 {
+        self.substep
+    }
+
+    /// The state (ground truth).
+    #[must_use]
+    pub const fn state(&self) -> &ChassisState {
+        &self.state
+    }
+
+    /// Replaces the state (e.g. to start at a pose or a velocity). The heading is
+    /// `pose.heading` (wrapped); `yaw` is kept if it is the same angle unwrapped, else it
+    /// restarts at the heading.
+    ///
+    /// # Errors
+    /// [`ParamError`] if a value is not finite; the state is left unchanged.
+    pub fn set_state(&mut self, state: ChassisState) -> Result<(), ParamError> {
+        let s = &state;
+        for (f, v) in [
+            ("state.pose.x", s.pose.x),
+            ("state.pose.y", s.pose.y),
+            ("state.pose.heading", s.pose.heading),
+            ("state.yaw", s.yaw),
+            ("state.velocity.vx", s.velocity.vx),
+            ("state.velocity.vy", s.velocity.vy),
+            ("state.velocity.wz", s.velocity.wz),
+        ] {
+            finite(f, v)?;
+        }
+        for i in 0..WHEELS {
+            finite("state.wheel_speed", s.wheel_speed[i]).map_err(|e| e.at(i))?;
+            finite("state.wheel_angle", s.wheel_angle[i]).map_err(|e| e.at(i))?;
+        }
+        let pose = Pose2::new(state.pose.x, state.pose.y, state.pose.heading);
+        let same = (wrap_angle(state.yaw) - pose.heading).abs() < 1e-9;
+        self.state = ChassisState {
+            pose,
+            yaw: if same { state.yaw } else { pose.heading },
+            ..state
+        };
+        Ok(())
+    }
+
+    /// The contacts of the last substep.
+    #[must_use]
+    pub const fn contacts(&self) -> &[Contact; WHEELS] {
+        &self.contacts
+    }
+
+    /// Changes the friction coefficient `μ` (fault injection: a slippery patch).
+    ///
+    /// # Errors
+    /// [`ParamError`] unless `mu` is finite and `> 0`.
+    pub fn set_friction(&mut self, mu: f64) -> Result<(), ParamError> {
+        positive("chassis.friction", mu)?;
+        let mut params = self.params;
+        params.friction = mu;
+        let loads = params.normal_loads();
+        for (c, n) in self.consts.iter_mut().zip(loads) {
+            c.mu_n = mu * n;
+        }
+        self.params = params;
+        self.substep = stable_substep(&self.params, &self.consts);
+        Ok(())
+    }
+
+    /// Kinetic energy of body and wheels, J.
+    #[must_use]
+    pub fn kinetic_energy(&self) -> f64 {
+        let v = self.state.velocity;
+        let body = 0.5 * self.params.mass * (v.vx * v.vx + v.vy * v.vy)
+            + 0.5 * self.params.yaw_inertia * v.wz * v.wz;
+        let wheels: f64 = (0..WHEELS)
+            .map(|i| 0.5 * self.params.wheel_inertia[i] * self.state.wheel_speed[i].powi(2))
+            .sum();
+        body + wheels
+    }
+
+    /// The contact point and the roller-axis direction of wheel `i` at wheel angle `phi`.
+    fn contact_geometry(&self, i: usize, phi: f64) -> (f64, f64, f64, f64) {
+        let c = &self.consts[i];
+        match &self.params.ripple {
+            None => (c.ax, c.ay, c.eax, c.eay),
+            Some(ripple) => {
+                let u = ripple.local_angle(i, phi);
+                let (sin_u, cos_u) = u.sin_cos();
+                // Eq. 11: the contact slides along the axle.
+                let shift = -ripple.axis_offset * c.cot_d * sin_u / cos_u;
+                // Eq. 10: ground projection of the tilted roller axis.
+                let bx = c.cos_a * c.cos_d - c.sin_a * c.sin_d * cos_u;
+                let by = c.sin_a * c.cos_d + c.cos_a * c.sin_d * cos_u;
+                let n = (bx * bx + by * by).sqrt();
+                (
+                    c.ax + shift * c.cos_a,
+                    c.ay + shift * c.sin_a,
+                    bx / n,
+                    by / n,
+                )
+            }
+        }
+    }
+
+    /// Advances by `dt` seconds in equal substeps no longer than [`Self::substep`].
+    ///
+    /// # Errors
+    /// [`ParamError`] if `dt` is negative or not finite, or an input is not finite; the state
+    /// is left unchanged.
+    pub fn step(&mut self, dt: f64, inputs: &[WheelInput; WHEELS]) -> Result<(), ParamError> {
+        non_negative("dt", dt)?;
+        for (i, input) in inputs.iter().enumerate() {
+            let (WheelInput::Torque(v) | WheelInput::Speed(v)) = *input;
+            finite("wheel_input", v).map_err(|e| e.at(i))?;
+        }
+        if dt == 0.0 {
+            return Ok(());
+        }
+        let n = (dt / self.substep).ceil().max(1.0);
+        let h = dt / n;
+        // `n` is a small positive integer here (dt is finite, substep > 0).
+        #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+        for _ in 0..(n as u64) {
+            self.advance(h, inputs);
+        }
+        Ok(())
+    }
+
+    /// One substep of `h` seconds (`h` at most [`Self::substep`]; not checked).
+    pub(crate) fn advance(&mut self, h: f64, inputs: &[WheelInput; WHEELS]) {
+        let s = self.state;
+        let (vx, vy, wz) = (s.velocity.vx, s.velocity.vy, s.velocity.wz);
+        let eps = self.params.roller_drag;
+        let s0_sq = self.params.slip_velocity * self.params.slip_velocity;
+        let (mut fx, mut fy, mut mz) = (0.0, 0.0, 0.0);
+        let mut wheel_speed = s.wheel_speed;
+        for i in 0..WHEELS {
+            let c = self.consts[i];
+            let (cx, cy, eax, eay) = self.contact_geometry(i, s.wheel_angle[i]);
+            let (efx, efy) = (-eay, eax);
+            let rim = c.r * s.wheel_speed[i];
+            let sx = vx - wz * cy - rim * c.dx;
+            let sy = vy + wz * cx - rim * c.dy;
+            let sa = sx * eax + sy * eay;
+            let sf = sx * efx + sy * efy;
+            let wf = eps * sf;
+            let k = -c.mu_n / (sa * sa + wf * wf + s0_sq).sqrt();
+            let f = [k * (sa * eax + wf * efx), k * (sa * eay + wf * efy)];
+            let load = c.r * (f[0] * c.dx + f[1] * c.dy);
+            fx += f[0];
+            fy += f[1];
+            mz += cx * f[1] - cy * f[0];
+            self.contacts[i] = Contact {
+                position: [cx, cy],
+                force: f,
+                slip_axial: sa,
+                slip_free: sf,
+                load_torque: load,
+            };
+            wheel_speed[i] = match inputs[i] {
+                WheelInput::Torque(tau) => s.wheel_speed[i] + h * (tau - load) * c.inv_j,
+                WheelInput::Speed(w) => w,
+            };
+        }
+        // Velocity update: forces, then the frame rotation ω × v as an exact rotation.
+        let ux = vx + h * fx / self.params.mass;
+        let uy = vy + h * fy / self.params.mass;
+        let wz_new = wz + h * mz / self.params.yaw_inertia;
+        let (sin_r, cos_r) = (-wz * h).sin_cos();
+        let vx_new = cos_r * ux - sin_r * uy;
+        let vy_new = sin_r * ux + cos_r * uy;
+
+        let st = &mut self.state;
+        st.velocity = ChassisVelocity::new(vx_new, vy_new, wz_new);
+        st.wheel_speed = wheel_speed;
+        for (a, w) in st.wheel_angle.iter_mut().zip(wheel_speed) {
+            *a += h * w;
+        }
+        st.pose = st.pose.exp(Twist2::new(vx_new * h, vy_new * h, wz_new * h));
+        st.yaw += wz_new * h;
+    }
+}
+
+/// A quarter of the fastest contact time constant, capped at `max_substep`.
+fn stable_substep(params: &ChassisParams, consts: &[WheelConst; WHEELS]) -> f64 {
+    let mut h = params.max_substep;
+    for c in consts {
+        let k = c.mu_n / params.slip_velocity;
+        // Largest lever of the contact: the centre distance plus the ripple's shift along
+        // the axle, d |cot δ| tan(π/k).
+        let shift = params.ripple.map_or(0.0, |r| {
+            r.axis_offset * c.cot_d.abs() * (0.5 * r.pitch()).tan()
+        });
+        let lever_sq = (c.ax.hypot(c.ay) + shift).powi(2);
+        let rate = k
+            * (c.r * c.r * c.inv_j
+                + WHEELS as f64 / params.mass
+                + WHEELS as f64 * lever_sq / params.yaw_inertia);
+        h = h.min(0.25 / rate);
+    }
+    h
+}

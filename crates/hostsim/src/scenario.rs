@@ -1,0 +1,607 @@
+//! Scenarios: what the host does and what goes wrong, on a timeline.
+//!
+//! A scenario is a list of timed host [`Action`]s (enable, twist setpoints, e-stop, silence)
+//! and timed [`FaultSpec`]s (bus faults, a stuck encoder, a motor offline), plus the drive
+//! configuration and a seed. While a twist setpoint is active and the host is not silent,
+//! the host streams `TWIST_CMD` frames at `command_hz`, as a teleoperation or navigation
+//! stack would.
+//!
+//! Scenarios are written in TOML or taken from the built-ins ([`Scenario::builtin`]):
+//!
+//! ```toml
+//! name = "forward and stop"
+//! duration_s = 4.0
+//! seed = 1
+//! command_hz = 50.0
+//! config = "config/dji_m3508.toml"   # optional, relative to the scenario file
+//!
+//! [[actions]]
+//! at_s = 0.05
+//! enable = true
+//!
+//! [[actions]]
+//! at_s = 0.1
+//! twist = [0.5, 0.0, 0.0]   # vx m/s, vy m/s, wz rad/s (body frame)
+//!
+//! [[actions]]
+//! at_s = 2.0
+//! silence = true            # the host stops sending: the watchdog must stop the robot
+//!
+//! [[faults]]
+//! kind = "drop"             # drop | burst | delay | corrupt | stuck_encoder | motor_offline
+//! from_s = 1.0
+//! until_s = 1.5
+//! rate = 0.2                # drop, corrupt
+//! sender = "drives"         # optional: controller | drives | host
+//! ```
+
+use std::path::{Path, PathBuf};
+
+use firmware::Config;
+use serde::Deserialize;
+
+use crate::bus::{Fault, FaultKind, Node};
+
+/// What the host does at a moment.
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Action {
+    /// When, s of simulated time.
+    pub at_s: f64,
+    /// Send `MODE_CMD enable`.
+    #[serde(default)]
+    pub enable: bool,
+    /// Send `MODE_CMD disable`.
+    #[serde(default)]
+    pub disable: bool,
+    /// Send `MODE_CMD reset`.
+    #[serde(default)]
+    pub reset: bool,
+    /// Send `ESTOP`.
+    #[serde(default)]
+    pub estop: bool,
+    /// Send a `STATUS_REQ`.
+    #[serde(default)]
+    pub status_request: bool,
+    /// New twist setpoint `[vx, vy, wz]` (m/s, m/s, rad/s), streamed from now on.
+    #[serde(default)]
+    pub twist: Option<[f32; 3]>,
+    /// Stop streaming twist commands (the setpoint is kept for a later `resume`).
+    #[serde(default)]
+    pub silence: bool,
+    /// Resume streaming.
+    #[serde(default)]
+    pub resume: bool,
+}
+
+impl Action {
+    /// An action at `at_s` that does nothing yet; set one field.
+    #[must_use]
+    pub const fn at(at_s: f64) -> Self {
+        Self {
+            at_s,
+            enable: false,
+            disable: false,
+            reset: false,
+            estop: false,
+            status_request: false,
+            twist: None,
+            silence: false,
+            resume: false,
+        }
+    }
+
+    /// A twist setpoint at `at_s`.
+    #[must_use]
+    pub const fn twist(at_s: f64, vx: f32, vy: f32, wz: f32) -> Self {
+        let mut a = Self::at(at_s);
+        a.twist = Some([vx, vy, wz]);
+        a
+    }
+}
+
+/// A fault on the timeline, as written in a scenario.
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FaultSpec {
+    /// `drop`, `burst`, `delay`, `corrupt`, `stuck_encoder` or `motor_offline`.
+    pub kind: FaultName,
+    /// Start, s.
+    pub from_s: f64,
+    /// End, s (exclusive).
+    pub until_s: f64,
+    /// Probability for `drop` and `corrupt`.
+    #[serde(default)]
+    pub rate: Option<f64>,
+    /// Extra latency for `delay`, ms.
+    #[serde(default)]
+    pub delay_ms: Option<f64>,
+    /// Sender the bus fault applies to (all if absent).
+    #[serde(default)]
+    pub sender: Option<SenderName>,
+    /// Wheel (0 FL, 1 FR, 2 RL, 3 RR) for `stuck_encoder` and `motor_offline`.
+    #[serde(default)]
+    pub wheel: Option<usize>,
+}
+
+/// Fault kinds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FaultName {
+    /// Random frame loss.
+    Drop,
+    /// Total frame loss.
+    Burst,
+    /// Extra delivery latency.
+    Delay,
+    /// A flipped data byte.
+    Corrupt,
+    /// A wheel's encoder stops changing while the wheel turns.
+    StuckEncoder,
+    /// A drive sends nothing.
+    MotorOffline,
+}
+
+/// Bus nodes as named in scenarios.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SenderName {
+    /// The firmware core.
+    Controller,
+    /// The motor drives.
+    Drives,
+    /// The commanding host.
+    Host,
+}
+
+impl From<SenderName> for Node {
+    fn from(s: SenderName) -> Self {
+        match s {
+            SenderName::Controller => Self::Controller,
+            SenderName::Drives => Self::Drives,
+            SenderName::Host => Self::Host,
+        }
+    }
+}
+
+/// A plant-side fault: which wheel, when.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WheelFault {
+    /// Stuck encoder or offline.
+    pub kind: FaultName,
+    /// Wheel index.
+    pub wheel: usize,
+    /// Start, µs.
+    pub from_us: u64,
+    /// End, µs.
+    pub until_us: u64,
+}
+
+impl WheelFault {
+    /// Whether the fault is active at `t_us`.
+    #[must_use]
+    pub const fn active(&self, t_us: u64) -> bool {
+        self.from_us <= t_us && t_us < self.until_us
+    }
+}
+
+/// A complete scenario.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Scenario {
+    /// Name, for logs and reports.
+    pub name: String,
+    /// Simulated duration, s.
+    pub duration_s: f64,
+    /// Seed of every random choice (bus faults).
+    pub seed: u64,
+    /// Rate of streamed twist commands, Hz.
+    pub command_hz: f64,
+    /// The drive configuration the firmware and the plant use.
+    pub config: Config,
+    /// Host actions, sorted by time.
+    pub actions: Vec<Action>,
+    /// Bus faults.
+    pub bus_faults: Vec<Fault>,
+    /// Plant faults.
+    pub wheel_faults: Vec<WheelFault>,
+}
+
+/// Why a scenario could not be used.
+#[derive(Debug, thiserror::Error)]
+pub enum ScenarioError {
+    /// The file could not be read.
+    #[error("cannot read scenario {path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// Malformed TOML, unknown field or wrong type.
+    #[error("scenario {path}: {source}")]
+    Toml {
+        /// The file.
+        path: PathBuf,
+        /// Parser error with line and column.
+        source: toml::de::Error,
+    },
+    /// The drive configuration it names is not usable.
+    #[error("scenario {path}: {source}")]
+    Config {
+        /// The scenario file.
+        path: PathBuf,
+        /// The configuration error.
+        source: Box<firmware::config::LoadError>,
+    },
+    /// A value is out of range.
+    #[error("scenario {path}: {field} = {value}: {expected}")]
+    Invalid {
+        /// The scenario file.
+        path: PathBuf,
+        /// Which field.
+        field: String,
+        /// The value.
+        value: String,
+        /// What is expected.
+        expected: &'static str,
+    },
+    /// No built-in of that name.
+    #[error("no built-in scenario {0:?}; built-ins: {names}", names = Scenario::BUILTINS.join(", "))]
+    UnknownBuiltin(String),
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ScenarioFile {
+    name: Option<String>,
+    duration_s: f64,
+    #[serde(default)]
+    seed: u64,
+    #[serde(default = "default_command_hz")]
+    command_hz: f64,
+    config: Option<PathBuf>,
+    #[serde(default)]
+    actions: Vec<Action>,
+    #[serde(default)]
+    faults: Vec<FaultSpec>,
+}
+
+const fn default_command_hz() -> f64 {
+    50.0
+}
+
+fn secs_to_us(s: f64) -> u64 {
+    (s * 1e6).round().max(0.0) as u64
+}
+
+impl Scenario {
+    /// Names of the built-in scenarios.
+    pub const BUILTINS: [&'static str; 7] = [
+        "square",
+        "circle",
+        "strafe",
+        "spin",
+        "figure-eight",
+        "compass",
+        "watchdog",
+    ];
+
+    /// Loads a scenario file; a relative `config` path is taken from the file's folder.
+    ///
+    /// # Errors
+    /// [`ScenarioError`] naming the file and what is wrong.
+    pub fn from_file(path: &Path) -> Result<Self, ScenarioError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ScenarioError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::from_toml(&text, path)
+    }
+
+    /// Parses a scenario; `path` names it in errors and anchors a relative `config`.
+    ///
+    /// # Errors
+    /// [`ScenarioError`] naming the field and the value.
+    pub fn from_toml(text: &str, path: &Path) -> Result<Self, ScenarioError> {
+        let file: ScenarioFile = toml::from_str(text).map_err(|source| ScenarioError::Toml {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let invalid = |field: &str, value: String, expected| ScenarioError::Invalid {
+            path: path.to_path_buf(),
+            field: field.to_string(),
+            value,
+            expected,
+        };
+        if !(file.duration_s.is_finite() && file.duration_s > 0.0 && file.duration_s <= 86_400.0) {
+            return Err(invalid(
+                "duration_s",
+                file.duration_s.to_string(),
+                "a duration in (0, 86400] s",
+            ));
+        }
+        if !(file.command_hz.is_finite() && file.command_hz > 0.0 && file.command_hz <= 1000.0) {
+            return Err(invalid(
+                "command_hz",
+                file.command_hz.to_string(),
+                "a rate in (0, 1000] Hz",
+            ));
+        }
+        let config = match &file.config {
+            None => Config::dji_m3508_example(),
+            Some(p) => {
+                let p = path.parent().unwrap_or(Path::new(".")).join(p);
+                Config::from_toml_file(&p).map_err(|source| ScenarioError::Config {
+                    path: path.to_path_buf(),
+                    source: Box::new(source),
+                })?
+            }
+        };
+        for (i, a) in file.actions.iter().enumerate() {
+            if !(a.at_s.is_finite() && a.at_s >= 0.0) {
+                return Err(invalid(
+                    &format!("actions[{i}].at_s"),
+                    a.at_s.to_string(),
+                    "a time >= 0 s",
+                ));
+            }
+            if let Some(t) = a.twist
+                && t.iter().any(|v| !v.is_finite())
+            {
+                return Err(invalid(
+                    &format!("actions[{i}].twist"),
+                    format!("{t:?}"),
+                    "finite numbers",
+                ));
+            }
+        }
+        let mut bus_faults = Vec::new();
+        let mut wheel_faults = Vec::new();
+        for (i, f) in file.faults.iter().enumerate() {
+            if !(f.from_s.is_finite()
+                && f.until_s.is_finite()
+                && 0.0 <= f.from_s
+                && f.from_s < f.until_s)
+            {
+                return Err(invalid(
+                    &format!("faults[{i}].from_s..until_s"),
+                    format!("{}..{}", f.from_s, f.until_s),
+                    "0 <= from_s < until_s",
+                ));
+            }
+            let (from_us, until_us) = (secs_to_us(f.from_s), secs_to_us(f.until_s));
+            let rate = |f: &FaultSpec| match f.rate {
+                Some(r) if (0.0..=1.0).contains(&r) => Ok(r),
+                other => Err(invalid(
+                    &format!("faults[{i}].rate"),
+                    format!("{other:?}"),
+                    "a probability in 0..=1",
+                )),
+            };
+            let kind = match f.kind {
+                FaultName::Drop => Some(FaultKind::Drop { rate: rate(f)? }),
+                FaultName::Corrupt => Some(FaultKind::Corrupt { rate: rate(f)? }),
+                FaultName::Burst => Some(FaultKind::Burst),
+                FaultName::Delay => match f.delay_ms {
+                    Some(ms) if ms.is_finite() && (0.0..=10_000.0).contains(&ms) => {
+                        Some(FaultKind::Delay {
+                            micros: (ms * 1000.0).round() as u64,
+                        })
+                    }
+                    other => {
+                        return Err(invalid(
+                            &format!("faults[{i}].delay_ms"),
+                            format!("{other:?}"),
+                            "a delay in 0..=10000 ms",
+                        ));
+                    }
+                },
+                FaultName::StuckEncoder | FaultName::MotorOffline => None,
+            };
+            match kind {
+                Some(kind) => bus_faults.push(Fault {
+                    kind,
+                    from_us,
+                    until_us,
+                    sender: f.sender.map(Node::from),
+                }),
+                None => match f.wheel {
+                    Some(wheel) if wheel < 4 => wheel_faults.push(WheelFault {
+                        kind: f.kind,
+                        wheel,
+                        from_us,
+                        until_us,
+                    }),
+                    other => {
+                        return Err(invalid(
+                            &format!("faults[{i}].wheel"),
+                            format!("{other:?}"),
+                            "a wheel index 0..=3 (FL, FR, RL, RR)",
+                        ));
+                    }
+                },
+            }
+        }
+        let mut actions = file.actions;
+        actions.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
+        Ok(Self {
+            name: file.name.unwrap_or_else(|| {
+                path.file_stem()
+                    .map_or_else(String::new, |s| s.to_string_lossy().into_owned())
+            }),
+            duration_s: file.duration_s,
+            seed: file.seed,
+            command_hz: file.command_hz,
+            config,
+            actions,
+            bus_faults,
+            wheel_faults,
+        })
+    }
+
+    /// A built-in scenario on the DJI example chassis. See [`Scenario::BUILTINS`].
+    ///
+    /// - `square`: 1 m sides at 0.5 m/s, driving forward, left, back and right without
+    ///   turning (the mecanum party trick).
+    /// - `circle`: 0.5 m/s forward while turning at 0.5 rad/s, one full turn.
+    /// - `strafe`: 0.5 m/s to the left for 3 s, then back.
+    /// - `spin`: two turns on the spot at 1.5 rad/s.
+    /// - `figure-eight`: a left circle then a right circle.
+    /// - `compass`: the eight compass directions of seed 001 Table I in turn, 1.5 s each.
+    /// - `watchdog`: drive forward, then go silent: the firmware must stop and disable.
+    ///
+    /// # Errors
+    /// [`ScenarioError::UnknownBuiltin`] with the list of names.
+    pub fn builtin(name: &str) -> Result<Self, ScenarioError> {
+        let mut actions = vec![Action {
+            enable: true,
+            ..Action::at(0.05)
+        }];
+        let mut t = 0.1;
+        let leg = |actions: &mut Vec<Action>, t: &mut f64, dur: f64, vx: f32, vy: f32, wz: f32| {
+            actions.push(Action::twist(*t, vx, vy, wz));
+            *t += dur;
+        };
+        let tau = std::f64::consts::TAU;
+        match name {
+            "square" => {
+                for (vx, vy) in [(0.5, 0.0), (0.0, 0.5), (-0.5, 0.0), (0.0, -0.5)] {
+                    leg(&mut actions, &mut t, 2.0, vx, vy, 0.0);
+                }
+            }
+            "circle" => leg(&mut actions, &mut t, tau / 0.5, 0.5, 0.0, 0.5),
+            "strafe" => {
+                leg(&mut actions, &mut t, 3.0, 0.0, 0.5, 0.0);
+                leg(&mut actions, &mut t, 3.0, 0.0, -0.5, 0.0);
+            }
+            "spin" => leg(&mut actions, &mut t, 2.0 * tau / 1.5, 0.0, 0.0, 1.5),
+            "figure-eight" => {
+                leg(&mut actions, &mut t, tau / 0.6, 0.4, 0.0, 0.6);
+                leg(&mut actions, &mut t, tau / 0.6, 0.4, 0.0, -0.6);
+            }
+            "compass" => {
+                let s = std::f32::consts::FRAC_1_SQRT_2 * 0.5;
+                for (vx, vy) in [
+                    (0.5, 0.0),
+                    (s, -s),
+                    (0.0, -0.5),
+                    (-s, -s),
+                    (-0.5, 0.0),
+                    (-s, s),
+                    (0.0, 0.5),
+                    (s, s),
+                ] {
+                    leg(&mut actions, &mut t, 1.5, vx, vy, 0.0);
+                }
+            }
+            "watchdog" => {
+                leg(&mut actions, &mut t, 1.0, 0.8, 0.0, 0.0);
+                actions.push(Action {
+                    silence: true,
+                    ..Action::at(t)
+                });
+                t += 1.5;
+            }
+            other => return Err(ScenarioError::UnknownBuiltin(other.to_string())),
+        }
+        if name != "watchdog" {
+            leg(&mut actions, &mut t, 1.0, 0.0, 0.0, 0.0);
+        }
+        Ok(Self {
+            name: name.to_string(),
+            duration_s: t,
+            seed: 1,
+            command_hz: 50.0,
+            config: Config::dji_m3508_example(),
+            actions,
+            bus_faults: Vec::new(),
+            wheel_faults: Vec::new(),
+        })
+    }
+
+    /// Simulated duration, µs.
+    #[must_use]
+    pub fn duration_us(&self) -> u64 {
+        secs_to_us(self.duration_s)
+    }
+
+    /// Action times in µs, in order, with the action.
+    pub fn timed_actions(&self) -> impl Iterator<Item = (u64, &Action)> {
+        self.actions.iter().map(|a| (secs_to_us(a.at_s), a))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn builtins_exist_and_end_after_their_last_action() {
+        for name in Scenario::BUILTINS {
+            let s = Scenario::builtin(name).unwrap();
+            let last = s.actions.last().unwrap().at_s;
+            assert!(s.duration_s >= last, "{name}");
+        }
+        let e = Scenario::builtin("nope").unwrap_err().to_string();
+        assert!(e.contains("square") && e.contains("nope"), "{e}");
+    }
+
+    #[test]
+    fn toml_scenario_parses_and_validates() {
+        let text = r#"
+            duration_s = 3.0
+            seed = 9
+            [[actions]]
+            at_s = 0.1
+            enable = true
+            [[actions]]
+            at_s = 0.2
+            twist = [0.5, 0.0, 0.1]
+            [[faults]]
+            kind = "drop"
+            rate = 0.25
+            from_s = 1.0
+            until_s = 2.0
+            sender = "drives"
+            [[faults]]
+            kind = "stuck_encoder"
+            wheel = 2
+            from_s = 0.5
+            until_s = 0.7
+        "#;
+        let s = Scenario::from_toml(text, Path::new("x.toml")).unwrap();
+        assert_eq!((s.name.as_str(), s.seed, s.actions.len()), ("x", 9, 2));
+        assert_eq!(s.bus_faults[0].kind, FaultKind::Drop { rate: 0.25 });
+        assert_eq!(s.bus_faults[0].sender, Some(Node::Drives));
+        assert_eq!(
+            (s.wheel_faults[0].wheel, s.wheel_faults[0].from_us),
+            (2, 500_000)
+        );
+
+        for (bad, field) in [
+            ("duration_s = -1.0", "duration_s"),
+            (
+                "duration_s = 1.0\n[[faults]]\nkind = \"drop\"\nfrom_s = 0.0\nuntil_s = 1.0",
+                "rate",
+            ),
+            (
+                "duration_s = 1.0\n[[faults]]\nkind = \"motor_offline\"\nwheel = 4\nfrom_s = 0.0\nuntil_s = 1.0",
+                "wheel",
+            ),
+            (
+                "duration_s = 1.0\n[[faults]]\nkind = \"burst\"\nfrom_s = 2.0\nuntil_s = 1.0",
+                "from_s",
+            ),
+            ("duration_s = 1.0\n[[actions]]\nat_s = -0.5", "at_s"),
+        ] {
+            let e = Scenario::from_toml(bad, Path::new("bad.toml"))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(field) && e.contains("bad.toml"), "{bad}: {e}");
+        }
+        let e = Scenario::from_toml("duration_s = 1.0\nwarp = 9", Path::new("w.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("warp"), "{e}");
+    }
+}

@@ -1,0 +1,443 @@
+//! The lockstep runner: the real firmware core, a simulated plant and a host on one
+//! simulated bus, in simulated time.
+//!
+//! # One tick (one control period, 1 ms by default) at time `t`
+//!
+//! 1. The host acts: scenario actions due by `t`, and a `TWIST_CMD` when the stream is due.
+//! 2. The drives queue the feedback frames due at `t`.
+//! 3. The bus transmits everything that starts before `t` (arbitration, exact frame times,
+//!    faults); each frame reaches the other nodes at its end of transmission.
+//! 4. Frames delivered by `t` go to the firmware (`on_frame` with their delivery time) and to
+//!    the drives (commands).
+//! 5. The firmware steps at `t`; its frames are queued on the bus at `t`.
+//! 6. The plant advances one period.
+//!
+//! A frame the firmware sends at `t` therefore reaches the drives at `t + 1 ms`, and feedback
+//! measured at `t` reaches the firmware's step at `t + 1 ms`: one period of latency each way,
+//! as on a real loop that reads the bus at the top of its period.
+//!
+//! Nothing here reads a clock or draws an unseeded random number: the same scenario gives
+//! the same frames, bit for bit. The log's `/can/rx` stream and the configuration are all
+//! that [`crate::replay`] needs to run the firmware again.
+
+use std::collections::BTreeMap;
+
+use firmware::CanFrame;
+use firmware::control::{Controller, Instant, Snapshot};
+use firmware::protocol::robot::{Command, ModeRequest, RobotState, TwistCmd};
+
+use crate::bus::{Bus, BusStats, Fate, Node, Transmission};
+use crate::log::{Direction, LogError, McapLog};
+use crate::scenario::Scenario;
+
+/// The plant as the runner sees it: drives that take command frames and produce feedback
+/// frames, and a body with a true pose.
+pub trait SimPlant {
+    /// A frame from the bus (the drives pick out their commands; anything else is ignored).
+    fn on_frame(&mut self, t_us: u64, frame: &CanFrame);
+    /// Feedback frames the drives have sent up to `until_ns`, each with its send time (ns),
+    /// in time order; called once per tick.
+    fn feedback(&mut self, until_ns: u64, out: &mut Vec<(u64, CanFrame)>);
+    /// Advances the physics by `dt` seconds.
+    fn advance(&mut self, dt: f64);
+    /// Ground-truth pose `[x, y, heading]` in the world frame (m, m, rad).
+    fn truth(&self) -> [f64; 3];
+    /// Ground-truth body velocity `[vx, vy, wz]`.
+    fn truth_velocity(&self) -> [f64; 3];
+    /// Plant faults in force: `stuck[i]` freezes wheel i's encoder, `offline[i]` silences
+    /// its drive.
+    fn set_faults(&mut self, stuck: [bool; 4], offline: [bool; 4]);
+}
+
+/// What to log.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct LogOptions {
+    /// Log every bus transmission on `/can/bus` (all senders, dropped ones too).
+    pub bus: bool,
+    /// Log a firmware snapshot every this many steps (0: never).
+    pub snapshot_every: u32,
+    /// Log poses every this many steps (0: never).
+    pub pose_every: u32,
+}
+
+impl Default for LogOptions {
+    fn default() -> Self {
+        Self {
+            bus: true,
+            snapshot_every: 1,
+            pose_every: 10,
+        }
+    }
+}
+
+/// Figures of a finished run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RunSummary {
+    /// Scenario name.
+    pub scenario: String,
+    /// Simulated time, s.
+    pub duration_s: f64,
+    /// Control steps run.
+    pub steps: u64,
+    /// Frames the firmware sent.
+    pub tx_frames: u64,
+    /// Frames the firmware received.
+    pub rx_frames: u64,
+    /// Bus figures.
+    pub bus: BusStats,
+    /// Bus load over the run (0..1).
+    pub bus_load: f64,
+    /// Final ground-truth pose.
+    pub truth: [f64; 3],
+    /// Final odometry pose.
+    pub odometry: [f64; 3],
+    /// Final position error of odometry against ground truth, m.
+    pub final_position_error: f64,
+    /// Largest position error during the run, m.
+    pub max_position_error: f64,
+    /// Final heading error, rad.
+    pub final_heading_error: f64,
+    /// Final firmware snapshot.
+    pub last: Snapshot,
+    /// State changes `(time s, state, fault)`.
+    pub transitions: Vec<(f64, String, String)>,
+    /// FNV-1a hash of every frame the firmware sent, with its step time: equal hashes, equal
+    /// streams.
+    pub tx_hash: u64,
+    /// Ground truth and odometry every 10 ms, for plots.
+    pub track: Vec<crate::plot::TrackPoint>,
+}
+
+/// Hash of a frame stream, for quick bit-identity checks.
+#[derive(Debug, Clone, Copy)]
+pub struct StreamHash(u64);
+
+impl Default for StreamHash {
+    fn default() -> Self {
+        Self(0xcbf2_9ce4_8422_2325)
+    }
+}
+
+impl StreamHash {
+    /// Adds a frame sent at `t_us`.
+    pub fn add(&mut self, t_us: u64, frame: &CanFrame) {
+        use embedded_can::Frame;
+        let mut eat = |b: u8| {
+            self.0 ^= u64::from(b);
+            self.0 = self.0.wrapping_mul(0x0000_0100_0000_01B3);
+        };
+        for b in t_us.to_le_bytes() {
+            eat(b);
+        }
+        let id = match frame.id() {
+            embedded_can::Id::Standard(id) => u32::from(id.as_raw()),
+            embedded_can::Id::Extended(id) => id.as_raw() | 0x8000_0000,
+        };
+        for b in id.to_le_bytes() {
+            eat(b);
+        }
+        eat(frame.dlc() as u8);
+        for &b in frame.data() {
+            eat(b);
+        }
+    }
+
+    /// The hash value.
+    #[must_use]
+    pub const fn value(self) -> u64 {
+        self.0
+    }
+}
+
+/// Why a run failed.
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    /// The configuration was refused by the firmware.
+    #[error("configuration: {0}")]
+    Config(#[from] firmware::config::ConfigError),
+    /// The log could not be written.
+    #[error(transparent)]
+    Log(#[from] LogError),
+}
+
+/// The host side: streams twist commands and performs the scenario's actions.
+struct Host {
+    twist: [f32; 3],
+    streaming: bool,
+    seq: u8,
+    next_action: usize,
+    command_period_us: u64,
+    next_command_us: u64,
+}
+
+/// Runs `scenario` with `plant`, logging to `log` if given; `progress` is called with the
+/// simulated time (µs) every simulated 100 ms.
+///
+/// # Errors
+/// [`SimError`] if the configuration is refused or the log cannot be written.
+pub fn run<P: SimPlant>(
+    scenario: &Scenario,
+    plant: &mut P,
+    mut log: Option<&mut McapLog>,
+    options: LogOptions,
+    mut progress: impl FnMut(u64),
+) -> Result<RunSummary, SimError> {
+    let mut ctl = Controller::new(&scenario.config)?;
+    let period_us = ctl.period_micros();
+    let dt = period_us as f64 * 1e-6;
+    let mut bus = Bus::new(1_000_000, scenario.bus_faults.clone(), scenario.seed);
+    let mut host = Host {
+        twist: [0.0; 3],
+        streaming: false,
+        seq: 0,
+        next_action: 0,
+        command_period_us: (1e6 / scenario.command_hz).round().max(1.0) as u64,
+        next_command_us: 0,
+    };
+    let actions = expand_actions(scenario);
+    let duration_us = scenario.duration_us();
+    let mut in_flight: Vec<Transmission> = Vec::new();
+    let mut feedback = Vec::with_capacity(16);
+    let mut summary_tx = 0u64;
+    let mut summary_rx = 0u64;
+    let mut hash = StreamHash::default();
+    let mut max_err = 0.0f64;
+    let mut transitions = Vec::new();
+    let mut last_state = (RobotState::Disabled, firmware::control::Fault::None);
+    let mut t_us = 0u64;
+    let mut step = 0u64;
+    let mut track = Vec::with_capacity((duration_us / 10_000 + 2) as usize);
+
+    while t_us <= duration_us {
+        let t_ns = t_us * 1000;
+        // 1. Host.
+        while let Some(&(at_us, action)) = actions.get(host.next_action)
+            && at_us <= t_us
+        {
+            match action {
+                HostAction::Send(cmd) => bus.send(at_us * 1000, Node::Host, cmd.to_can_frame()),
+                HostAction::Twist(tw) => {
+                    host.twist = tw;
+                    host.streaming = true;
+                    host.next_command_us = at_us;
+                }
+                HostAction::Stream(on) => {
+                    host.streaming = on;
+                    host.next_command_us = at_us;
+                }
+            }
+            if let Some(l) = log.as_deref_mut()
+                && !matches!(action, HostAction::Send(_))
+            {
+                l.twist(at_us * 1000, host.twist, host.streaming)?;
+            }
+            host.next_action += 1;
+        }
+        if host.streaming && host.next_command_us <= t_us {
+            let [vx, vy, wz] = host.twist;
+            let frame = Command::Twist(TwistCmd {
+                vx,
+                vy,
+                wz,
+                seq: host.seq,
+            })
+            .to_can_frame();
+            host.seq = host.seq.wrapping_add(1);
+            bus.send(host.next_command_us * 1000, Node::Host, frame);
+            host.next_command_us += host.command_period_us;
+        }
+
+        // 2. Drives.
+        let stuck = wheel_flags(scenario, t_us, crate::scenario::FaultName::StuckEncoder);
+        let offline = wheel_flags(scenario, t_us, crate::scenario::FaultName::MotorOffline);
+        plant.set_faults(stuck, offline);
+        feedback.clear();
+        plant.feedback(t_ns, &mut feedback);
+        for &(at_ns, f) in &feedback {
+            bus.send(at_ns, Node::Drives, f);
+        }
+
+        // 3. Bus up to t.
+        in_flight.extend(bus.advance(t_ns + 1));
+        // 4. Deliveries due by t, in delivery order.
+        in_flight.sort_by_key(|tx| tx.delivered_ns);
+        let due = in_flight.partition_point(|tx| tx.delivered_ns <= t_ns);
+        for tx in in_flight.drain(..due) {
+            if let Some(l) = log.as_deref_mut()
+                && options.bus
+            {
+                l.bus(tx.delivered_ns, &tx.frame, tx.from, tx.fate)?;
+            }
+            if tx.fate == Fate::Dropped {
+                continue;
+            }
+            if tx.from != Node::Controller {
+                ctl.on_frame(Instant::from_micros(tx.delivered_ns / 1000), &tx.frame);
+                summary_rx += 1;
+                if let Some(l) = log.as_deref_mut() {
+                    l.can(
+                        tx.delivered_ns - tx.delivered_ns % 1000,
+                        Direction::Rx,
+                        &tx.frame,
+                    )?;
+                }
+            }
+            if tx.from != Node::Drives {
+                plant.on_frame(tx.delivered_ns / 1000, &tx.frame);
+            }
+        }
+
+        // 5. Firmware step.
+        let out = ctl.step(Instant::from_micros(t_us));
+        for f in &out {
+            bus.send(t_ns, Node::Controller, *f);
+            hash.add(t_us, f);
+            summary_tx += 1;
+            if let Some(l) = log.as_deref_mut() {
+                l.can(t_ns, Direction::Tx, f)?;
+            }
+        }
+        let state = (ctl.state(), ctl.fault());
+        if state != last_state {
+            let msg = format!("state {:?}, fault {:?}", state.0, state.1);
+            if let Some(l) = log.as_deref_mut() {
+                let level = if state.0 == RobotState::Fault || state.0 == RobotState::Estop {
+                    4
+                } else {
+                    2
+                };
+                l.text(t_ns, level, &msg)?;
+            }
+            transitions.push((
+                t_us as f64 * 1e-6,
+                format!("{:?}", state.0),
+                format!("{:?}", state.1),
+            ));
+            last_state = state;
+        }
+        let odom = ctl.pose();
+        let odom = [
+            f64::from(odom.x),
+            f64::from(odom.y),
+            f64::from(odom.heading),
+        ];
+        let truth = plant.truth();
+        max_err = max_err.max((odom[0] - truth[0]).hypot(odom[1] - truth[1]));
+        if t_us.is_multiple_of(10_000) {
+            track.push(crate::plot::TrackPoint {
+                t: t_us as f64 * 1e-6,
+                truth: [truth[0], truth[1]],
+                odom: [odom[0], odom[1]],
+            });
+        }
+        if let Some(l) = log.as_deref_mut() {
+            let every = |n: u32| n > 0 && step.is_multiple_of(u64::from(n));
+            if every(options.snapshot_every) {
+                l.snapshot(t_ns, &ctl.snapshot())?;
+            }
+            if every(options.pose_every) {
+                l.poses(t_ns, odom, truth)?;
+            }
+            l.maybe_flush()?;
+        }
+
+        // 6. Plant.
+        plant.advance(dt);
+        if t_us.is_multiple_of(100_000) {
+            progress(t_us);
+        }
+        t_us += period_us;
+        step += 1;
+    }
+
+    let odom = ctl.pose();
+    let odom = [
+        f64::from(odom.x),
+        f64::from(odom.y),
+        f64::from(odom.heading),
+    ];
+    let truth = plant.truth();
+    let end_ns = t_us * 1000;
+    Ok(RunSummary {
+        scenario: scenario.name.clone(),
+        duration_s: scenario.duration_s,
+        steps: step,
+        tx_frames: summary_tx,
+        rx_frames: summary_rx,
+        bus: bus.stats(),
+        bus_load: bus.load(end_ns),
+        truth,
+        odometry: odom,
+        final_position_error: (odom[0] - truth[0]).hypot(odom[1] - truth[1]),
+        max_position_error: max_err,
+        final_heading_error: kinematics::wrap_angle(odom[2] - truth[2]),
+        last: ctl.snapshot(),
+        transitions,
+        tx_hash: hash.value(),
+        track,
+    })
+}
+
+fn wheel_flags(s: &Scenario, t_us: u64, kind: crate::scenario::FaultName) -> [bool; 4] {
+    let mut flags = [false; 4];
+    for f in &s.wheel_faults {
+        if f.kind == kind && f.active(t_us) {
+            flags[f.wheel] = true;
+        }
+    }
+    flags
+}
+
+/// What the host does at one moment.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum HostAction {
+    /// Send this command once.
+    Send(Command),
+    /// Stream this twist from now on.
+    Twist([f32; 3]),
+    /// Stop (`false`) or resume (`true`) streaming.
+    Stream(bool),
+}
+
+/// The scenario's actions in time order, one host action each.
+fn expand_actions(s: &Scenario) -> Vec<(u64, HostAction)> {
+    let mut out = Vec::new();
+    for (t, a) in s.timed_actions() {
+        let mut push = |action| out.push((t, action));
+        for (flag, cmd) in [
+            (a.estop, Command::Estop),
+            (a.reset, Command::Mode(ModeRequest::Reset)),
+            (a.disable, Command::Mode(ModeRequest::Disable)),
+            (a.enable, Command::Mode(ModeRequest::Enable)),
+            (a.status_request, Command::StatusRequest),
+        ] {
+            if flag {
+                push(HostAction::Send(cmd));
+            }
+        }
+        if let Some(tw) = a.twist {
+            push(HostAction::Twist(tw));
+        }
+        if a.silence {
+            push(HostAction::Stream(false));
+        }
+        if a.resume {
+            push(HostAction::Stream(true));
+        }
+    }
+    out
+}
+
+/// The run's metadata for the log: configuration TOML, scenario name, seed, tool version.
+#[must_use]
+pub fn run_metadata(scenario: &Scenario) -> BTreeMap<String, String> {
+    BTreeMap::from([
+        ("config".to_string(), scenario.config.to_toml_string()),
+        ("scenario".to_string(), scenario.name.clone()),
+        ("seed".to_string(), scenario.seed.to_string()),
+        (
+            "hostsim_version".to_string(),
+            env!("CARGO_PKG_VERSION").to_string(),
+        ),
+    ])
+}

@@ -1,0 +1,130 @@
+"""The simulator's MCAP logs, read with the format's own Python reader, and its CLI."""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import subprocess
+
+import cantools
+import pytest
+from mcap.reader import make_reader
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+
+
+def run_hostsim(binary: pathlib.Path, *args: str, stdin: str | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [str(binary), *args], input=stdin, capture_output=True, text=True, timeout=600, check=False
+    )
+
+
+@pytest.fixture(scope="module")
+def circle_run(hostsim_bin: pathlib.Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[pathlib.Path, dict]:
+    out = tmp_path_factory.mktemp("circle")
+    proc = run_hostsim(hostsim_bin, "run", "circle", "--out", str(out), "--json")
+    assert proc.returncode == 0, proc.stderr
+    return out, json.loads(proc.stdout)
+
+
+def test_every_message_reads_back_with_the_python_mcap_reader(circle_run, dbs) -> None:
+    out, summary = circle_run
+    counts: dict[str, int] = {}
+    schemas: dict[str, tuple[str, str]] = {}
+    tx_ids: set[int] = set()
+    with open(out / "circle.mcap", "rb") as f:
+        reader = make_reader(f)
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+        for schema, channel, message in reader.iter_messages():
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+            schemas[channel.topic] = (schema.name, schema.encoding)
+            if channel.topic in ("/can/rx", "/can/tx"):
+                frame = json.loads(message.data)
+                assert set(frame) >= {"id", "is_rtr", "is_extended", "is_error", "dlc", "data"}
+                assert len(frame["data"]) == 8 and all(0 <= b <= 255 for b in frame["data"])
+                if channel.topic == "/can/tx":
+                    tx_ids.add(frame["id"])
+    # Counts agree with what the simulator reports.
+    assert counts["/can/tx"] == summary["tx_frames"]
+    assert counts["/can/rx"] == summary["rx_frames"]
+    assert counts["/firmware/snapshot"] == summary["steps"]
+    # Foxglove schemas for poses and transforms; JSON schema for frames.
+    assert schemas["/odom/pose"] == ("foxglove.PoseInFrame", "protobuf")
+    assert schemas["/ground_truth/pose"] == ("foxglove.PoseInFrame", "protobuf")
+    assert schemas["/tf"] == ("foxglove.FrameTransform", "protobuf")
+    assert schemas["/can/tx"] == ("can_msgs/msg/Frame", "jsonschema")
+    # The configuration travels with the log.
+    assert "config" in meta["hostsim"] and meta["hostsim"]["scenario"] == "circle"
+    # The firmware sent DJI current commands and the robot's telemetry, all in the DBC files.
+    assert {0x200, 0x310, 0x311, 0x312, 0x31F} <= tx_ids
+    known = {m.frame_id for db in dbs.values() for m in db.messages}
+    assert tx_ids <= known
+
+
+def test_the_plot_is_a_png(circle_run) -> None:
+    out, _ = circle_run
+    data = (out / "circle.png").read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    width, height = int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    assert (width, height) == (1200, 600)
+
+
+def test_circle_closes(circle_run) -> None:
+    _, summary = circle_run
+    # One full turn of a 1 m radius circle (0.5 m/s, 0.5 rad/s), then a stop: back near the
+    # start. Turning spins the rollers, so the wheels slip a little: odometry stays within
+    # 2 % of the 6.3 m travelled.
+    x, y, _ = summary["truth"]
+    assert (x**2 + y**2) ** 0.5 < 0.1, summary["truth"]
+    assert summary["final_position_error"] < 0.12, summary
+
+
+def test_odometry_frames_decode_with_the_dbc(circle_run, dbs) -> None:
+    out, summary = circle_run
+    db = dbs["robot"]
+    last = {}
+    with open(out / "circle.mcap", "rb") as f:
+        for _, channel, message in make_reader(f).iter_messages(topics=["/can/tx"]):
+            frame = json.loads(message.data)
+            if frame["id"] in (0x310, 0x311):
+                msg = db.get_message_by_frame_id(frame["id"])
+                last[frame["id"]] = msg.decode(bytes(frame["data"][: frame["dlc"]]))
+    x, y, heading = summary["odometry"]
+    assert last[0x310]["x"] == pytest.approx(x, abs=2e-3)
+    assert last[0x310]["y"] == pytest.approx(y, abs=2e-3)
+
+
+def test_replay_of_the_log_is_bit_identical(hostsim_bin, circle_run) -> None:
+    out, _ = circle_run
+    proc = run_hostsim(hostsim_bin, "replay", str(out / "circle.mcap"))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "bit-identical" in proc.stdout
+
+
+def test_kin_calculator_answers_each_line(hostsim_bin) -> None:
+    lines = [
+        {"op": "inverse", "lx": 0.1, "ly": 0.075, "r": 0.03, "vx": 0.22, "vy": 0.11, "wz": 0},
+        "garbage",
+        {"op": "forward", "lx": 0.2, "ly": 0.15, "r": 0.05, "fl": 20, "fr": 20, "rl": 20, "rr": 20},
+    ]
+    stdin = "".join((json.dumps(x) if isinstance(x, dict) else x) + "\n" for x in lines)
+    proc = run_hostsim(hostsim_bin, "kin", stdin=stdin)
+    assert proc.returncode == 0, proc.stderr
+    out = [json.loads(line) for line in proc.stdout.splitlines()]
+    assert len(out) == 3
+    assert out[0]["fl"] == pytest.approx(3.66, abs=0.01) and out[0]["fr"] == pytest.approx(11.0, abs=0.01)
+    assert "error" in out[1]
+    assert out[2] == pytest.approx({"vx": 1.0, "vy": 0.0, "wz": 0.0}, abs=1e-12)
+
+
+def test_bad_inputs_give_clear_errors(hostsim_bin, tmp_path) -> None:
+    proc = run_hostsim(hostsim_bin, "run", "no-such-builtin")
+    assert proc.returncode == 2 and "square" in proc.stderr, proc.stderr
+    bad = tmp_path / "bad.toml"
+    bad.write_text("duration_s = 1.0\n[[faults]]\nkind = \"drop\"\nfrom_s = 0.0\nuntil_s = 1.0\n")
+    proc = run_hostsim(hostsim_bin, "run", str(bad), "--out", str(tmp_path))
+    assert proc.returncode == 2 and "rate" in proc.stderr and "bad.toml" in proc.stderr, proc.stderr
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"not an mcap file at all")
+    proc = run_hostsim(hostsim_bin, "replay", str(junk))
+    assert proc.returncode == 2 and "junk.mcap" in proc.stderr, proc.stderr
