@@ -783,9 +783,15 @@ fn pi_step(m: &mut Motor, setpoint: f32, g: &Gains, max: f32, dt: f32) -> f32 {
     let unclamped = g.kv * setpoint + g.kp * error + m.integral + g.ki * error * dt;
     let saturated_same_way = unclamped.abs() > max && (unclamped > 0.0) == (error > 0.0);
     if !saturated_same_way {
-        m.integral = (m.integral + g.ki * error * dt).clamp(-max, max);
+        m.integral = symmetric_limit(m.integral + g.ki * error * dt, max);
     }
-    (g.kv * setpoint + g.kp * error + m.integral).clamp(-max, max)
+    symmetric_limit(g.kv * setpoint + g.kp * error + m.integral, max)
+}
+
+/// `x` limited to `[-max, max]`. Not `f32::clamp`: its check of the bounds formats floats in
+/// its panic message, which costs the MCU image about 19 KB of formatting code.
+fn symmetric_limit(x: f32, max: f32) -> f32 {
+    x.max(-max).min(max)
 }
 
 fn push(out: &mut Outbox, frame: CanFrame) {

@@ -14,3 +14,4 @@ pub mod plot;
 pub mod replay;
 pub mod scenario;
 pub mod sim;
+pub mod summary;

@@ -309,18 +309,46 @@ fn replay(path: &Path) -> Result<ExitCode> {
 }
 
 fn summary(path: &Path) -> Result<ExitCode> {
-    let content = hostsim::replay::read_log(path)?;
-    if content.topics.is_empty() && content.config.is_none() {
+    let s = hostsim::summary::summarize(path).map_err(anyhow::Error::msg)?;
+    if s.topics.is_empty() {
         bail!("{}: no messages", path.display());
     }
-    println!("log {}", path.display());
-    if let Some(s) = &content.scenario {
-        println!("scenario: {s}");
+    println!("log {} ({:.2} s)", path.display(), s.duration_s);
+    if let Some(name) = &s.scenario {
+        println!("scenario: {name}");
     }
-    for (topic, n) in &content.topics {
+    if let (Some(o), Some(g), Some((last, max))) = (s.odometry, s.truth, s.drift) {
+        println!(
+            "odometry x {:+.4} y {:+.4} heading {:+.2}°; ground truth x {:+.4} y {:+.4} heading {:+.2}°",
+            o[0],
+            o[1],
+            o[2].to_degrees(),
+            g[0],
+            g[1],
+            g[2].to_degrees()
+        );
+        println!(
+            "odometry drift: final {:.1} mm, max {:.1} mm",
+            last * 1000.0,
+            max * 1000.0
+        );
+    }
+    if let Some(load) = s.bus_load {
+        let fates: Vec<String> = s.fates.iter().map(|(k, v)| format!("{v} {k}")).collect();
+        println!(
+            "bus load {:.1} %; frames: {}",
+            load * 100.0,
+            fates.join(", ")
+        );
+    }
+    for (t, level, text) in &s.events {
+        let tag = if *level >= 4 { "FAULT" } else { "     " };
+        println!("  {tag} {t:9.3} s  {text}");
+    }
+    for (topic, n) in &s.topics {
         println!("  {topic:24} {n:>9} messages");
     }
-    if let Some(t) = &content.truncated {
+    if let Some(t) = &s.truncated {
         println!("cut short: {t}");
     }
     Ok(ExitCode::SUCCESS)

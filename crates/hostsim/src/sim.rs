@@ -64,7 +64,7 @@ impl Default for LogOptions {
     fn default() -> Self {
         Self {
             bus: true,
-            snapshot_every: 1,
+            snapshot_every: 10,
             pose_every: 10,
         }
     }

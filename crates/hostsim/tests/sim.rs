@@ -43,7 +43,10 @@ fn same_scenario_same_frames_and_faults_follow_the_seed() {
     let mut other = s.clone();
     other.seed = 4;
     let c = simulate(&other);
-    assert_ne!(a.tx_hash, c.tx_hash, "a different seed drops different frames");
+    assert_ne!(
+        a.tx_hash, c.tx_hash,
+        "a different seed drops different frames"
+    );
 }
 
 #[test]
@@ -52,7 +55,11 @@ fn square_closes_and_odometry_tracks_forward_motion() {
     assert_eq!(s.last.state, RobotState::Enabled);
     // Back near the start: the strafe legs slip (70-80 % of commanded, seed 004) but the two
     // strafe legs cancel.
-    assert!(s.truth[0].hypot(s.truth[1]) < 0.05, "truth ends at {:?}", s.truth);
+    assert!(
+        s.truth[0].hypot(s.truth[1]) < 0.05,
+        "truth ends at {:?}",
+        s.truth
+    );
     assert!(s.final_position_error < 0.03, "{}", s.final_position_error);
     // The strafe slip shows as odometry error in the middle of the run: 20-30 % of 1 m.
     assert!(
@@ -61,13 +68,20 @@ fn square_closes_and_odometry_tracks_forward_motion() {
         s.max_position_error
     );
     // 4 feedback frames + 1 command per ms (~120 bits each) + telemetry: about 60 % load.
-    assert!((0.55..0.70).contains(&s.bus_load), "bus load {}", s.bus_load);
+    assert!(
+        (0.55..0.70).contains(&s.bus_load),
+        "bus load {}",
+        s.bus_load
+    );
 }
 
 #[test]
 fn watchdog_stops_and_disables_the_robot_when_the_host_goes_silent() {
     let s = simulate(&Scenario::builtin("watchdog").unwrap());
-    assert_eq!((s.last.state, s.last.fault), (RobotState::Disabled, Fault::Watchdog));
+    assert_eq!(
+        (s.last.state, s.last.fault),
+        (RobotState::Disabled, Fault::Watchdog)
+    );
     // Last command at 1.08 s (50 Hz stream from 0.1 s, silence at 1.1 s); timeout 100 ms;
     // 0.8 m/s at the 8 m/s² stop deceleration takes 100 ms more.
     let (t, state, _) = s.transitions.last().unwrap();
@@ -94,7 +108,10 @@ fn a_motor_going_offline_faults_the_firmware_within_a_few_ms() {
     "#,
     );
     let r = simulate(&s);
-    assert_eq!((r.last.state, r.last.fault), (RobotState::Fault, Fault::MotorStale));
+    assert_eq!(
+        (r.last.state, r.last.fault),
+        (RobotState::Fault, Fault::MotorStale)
+    );
     let (t, _, _) = r
         .transitions
         .iter()
@@ -113,7 +130,14 @@ fn logs_replay_bit_identically_and_a_change_is_found() {
     s.duration_s = 2.0;
     let mut plant = SimDrives::new(&s.config).unwrap();
     let mut log = McapLog::create(&path, &run_metadata(&s)).unwrap();
-    let summary = run(&s, &mut plant, Some(&mut log), LogOptions::default(), |_| {}).unwrap();
+    let summary = run(
+        &s,
+        &mut plant,
+        Some(&mut log),
+        LogOptions::default(),
+        |_| {},
+    )
+    .unwrap();
     log.finish().unwrap();
     let report = replay_mcap(&path).unwrap();
     assert!(report.identical(), "{:?}", report.difference);
@@ -138,8 +162,15 @@ fn logs_replay_bit_identically_and_a_change_is_found() {
     };
     let config = firmware::Config::from_toml_str(content.config.as_deref().unwrap()).unwrap();
     let report = replay_frames(&config, &rx, &content.tx).unwrap();
-    let diff = report.difference.expect("a changed input changes the output");
-    assert!(diff.t_ns >= f.t_ns, "difference at {} before the change at {}", diff.t_ns, f.t_ns);
+    let diff = report
+        .difference
+        .expect("a changed input changes the output");
+    assert!(
+        diff.t_ns >= f.t_ns,
+        "difference at {} before the change at {}",
+        diff.t_ns,
+        f.t_ns
+    );
     std::fs::remove_dir_all(&dir).ok();
 }
 

@@ -1,0 +1,181 @@
+//! `hostsim summary`: what a log says about a run — odometry drift against ground truth, bus
+//! load, firmware state changes and faults — computed from the log alone.
+//!
+//! Reading goes through [`for_each_message`], which walks every complete record of the file
+//! (chunks decompressed) and stops cleanly at the first incomplete one, so a log cut short by
+//! a killed run is summarised up to its last complete chunk.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use foxglove::Decode;
+use foxglove::schemas::{Log, PoseInFrame};
+
+use crate::bus::frame_bits;
+use crate::replay::parse_frame_json;
+
+/// Where reading stopped early, if it did.
+pub type Truncation = Option<String>;
+
+/// Calls `f(topic, log_time_ns, data)` for every message of an MCAP file in file order, and
+/// `meta(name, key-values)` for every metadata record.
+///
+/// # Errors
+/// A description if the bytes are not MCAP at all (nothing readable from the start). A file
+/// that is cut short is not an error: the returned [`Truncation`] says where reading stopped.
+pub fn for_each_message(
+    bytes: &[u8],
+    mut f: impl FnMut(&str, u64, &[u8]),
+    mut meta: impl FnMut(&str, &BTreeMap<String, String>),
+) -> Result<Truncation, String> {
+    use mcap::read::Options;
+    use mcap::records::Record;
+
+    let reader =
+        mcap::read::ChunkFlattener::new_with_options(bytes, Options::IgnoreEndMagic.into())
+            .map_err(|e| e.to_string())?;
+    let mut topics: std::collections::HashMap<u16, String> = std::collections::HashMap::new();
+    let mut read_any = false;
+    for record in reader {
+        let record = match record {
+            Ok(r) => r,
+            Err(e) if read_any => {
+                return Ok(Some(format!("{e} (file size {} bytes)", bytes.len())));
+            }
+            Err(e) => return Err(e.to_string()),
+        };
+        read_any = true;
+        match record {
+            Record::Channel(c) => {
+                topics.insert(c.id, c.topic.to_string());
+            }
+            Record::Metadata(m) => meta(&m.name, &m.metadata),
+            Record::Message { header, data } => {
+                if let Some(topic) = topics.get(&header.channel_id) {
+                    f(topic, header.log_time, &data);
+                }
+            }
+            _ => {}
+        }
+    }
+    Ok(None)
+}
+
+/// Figures of a logged run.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct LogSummary {
+    /// Scenario name from the metadata.
+    pub scenario: Option<String>,
+    /// Messages per topic.
+    pub topics: BTreeMap<String, u64>,
+    /// Time of the last message, s.
+    pub duration_s: f64,
+    /// Final odometry pose `[x, y, heading]`.
+    pub odometry: Option<[f64; 3]>,
+    /// Final ground-truth pose.
+    pub truth: Option<[f64; 3]>,
+    /// Final and largest odometry position error against ground truth, m.
+    pub drift: Option<(f64, f64)>,
+    /// Bus load from `/can/bus` (bits at 1 Mbit/s over the duration), 0..1.
+    pub bus_load: Option<f64>,
+    /// Frames on the bus by fate.
+    pub fates: BTreeMap<String, u64>,
+    /// Firmware log lines `(time s, level, text)`: state changes and faults.
+    pub events: Vec<(f64, i32, String)>,
+    /// Where reading stopped early, if it did.
+    pub truncated: Truncation,
+}
+
+fn yaw(q: &foxglove::schemas::Quaternion) -> f64 {
+    2.0 * q.z.atan2(q.w)
+}
+
+fn pose_of(p: &PoseInFrame) -> Option<[f64; 3]> {
+    let pose = p.pose.as_ref()?;
+    let pos = pose.position.as_ref()?;
+    Some([pos.x, pos.y, yaw(pose.orientation.as_ref()?)])
+}
+
+/// Summarises a hostsim MCAP log.
+///
+/// # Errors
+/// A description naming the file if it cannot be read or is not MCAP.
+pub fn summarize(path: &Path) -> Result<LogSummary, String> {
+    let bytes = std::fs::read(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    let mut s = LogSummary::default();
+    let mut odom: Option<(u64, [f64; 3])> = None;
+    let mut truth: Option<(u64, [f64; 3])> = None;
+    let mut max_err = 0.0f64;
+    let mut bus_bits = 0u64;
+    let mut last_ns = 0u64;
+    let truncated = for_each_message(
+        &bytes,
+        |topic, t, data| {
+            *s.topics.entry(topic.to_string()).or_default() += 1;
+            last_ns = last_ns.max(t);
+            match topic {
+                "/odom/pose" | "/ground_truth/pose" => {
+                    let Ok(p) = PoseInFrame::decode(data) else {
+                        return;
+                    };
+                    let Some(pose) = pose_of(&p) else { return };
+                    if topic == "/odom/pose" {
+                        odom = Some((t, pose));
+                    } else {
+                        truth = Some((t, pose));
+                    }
+                    if let (Some((to, o)), Some((tt, g))) = (odom, truth)
+                        && to == tt
+                    {
+                        max_err = max_err.max((o[0] - g[0]).hypot(o[1] - g[1]));
+                    }
+                }
+                "/can/bus" => {
+                    if let Some(frame) = parse_frame_json(data) {
+                        bus_bits += u64::from(frame_bits(&frame));
+                    }
+                    let fate = serde_json::from_slice::<serde_json::Value>(data)
+                        .ok()
+                        .and_then(|v| v.get("fate")?.as_str().map(str::to_string))
+                        .unwrap_or_else(|| "unknown".to_string());
+                    *s.fates.entry(fate).or_default() += 1;
+                }
+                "/firmware/log" => {
+                    if let Ok(l) = Log::decode(data) {
+                        s.events.push((t as f64 * 1e-9, l.level, l.message));
+                    }
+                }
+                _ => {}
+            }
+        },
+        |name, kv| {
+            if name == "hostsim" {
+                s.scenario = kv.get("scenario").cloned();
+            }
+        },
+    )
+    .map_err(|e| format!("{}: not a readable MCAP file: {e}", path.display()))?;
+    s.truncated = truncated;
+    s.duration_s = last_ns as f64 * 1e-9;
+    s.odometry = odom.map(|o| o.1);
+    s.truth = truth.map(|t| t.1);
+    if let (Some(o), Some(g)) = (s.odometry, s.truth) {
+        s.drift = Some(((o[0] - g[0]).hypot(o[1] - g[1]), max_err));
+    }
+    if s.topics.contains_key("/can/bus") && last_ns > 0 {
+        // 1 Mbit/s: one bit per microsecond.
+        s.bus_load = Some(bus_bits as f64 * 1000.0 / last_ns as f64);
+    }
+    Ok(s)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn garbage_is_refused_with_a_reason() {
+        let e = for_each_message(b"definitely not mcap", |_, _, _| {}, |_, _| {}).unwrap_err();
+        assert!(!e.is_empty());
+    }
+}
