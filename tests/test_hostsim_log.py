@@ -32,6 +32,7 @@ def test_every_message_reads_back_with_the_python_mcap_reader(circle_run, dbs) -
     counts: dict[str, int] = {}
     schemas: dict[str, tuple[str, str]] = {}
     tx_ids: set[int] = set()
+    feedback_ids: set[int] = set()
     with open(out / "circle.mcap", "rb") as f:
         reader = make_reader(f)
         meta = {m.name: m.metadata for m in reader.iter_metadata()}
@@ -44,6 +45,12 @@ def test_every_message_reads_back_with_the_python_mcap_reader(circle_run, dbs) -
                 assert len(frame["data"]) == 8 and all(0 <= b <= 255 for b in frame["data"])
                 if channel.topic == "/can/tx":
                     tx_ids.add(frame["id"])
+            if channel.topic == "/motors/feedback":
+                fb = json.loads(message.data)
+                assert fb["protocol"] == "dji" and 0 <= fb["rotor_angle"] <= 8191
+                assert abs(fb["current_a"]) <= 20.0 and 0 < fb["temperature_c"] < 100
+                feedback_ids.add(fb["id"])
+    assert feedback_ids == {1, 2, 3, 4}
     # Counts agree with what the simulator reports.
     assert counts["/can/tx"] == summary["tx_frames"]
     assert counts["/can/rx"] == summary["rx_frames"]

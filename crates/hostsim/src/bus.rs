@@ -307,75 +307,139 @@ fn raw_id(frame: &CanFrame) -> u16 {
 /// Bits on the wire for a standard-id data (or remote) frame, including stuff bits, the
 /// fixed-form tail (CRC delimiter, ACK, EOF) and the 3-bit intermission.
 ///
-/// One pass over the stuffed region (SOF through CRC): each bit updates the CRC-15 and the
-/// run-length count of the stuffing rule; no allocation.
+/// The stuffed region (SOF through CRC) is at most 98 bits plus the 15-bit CRC, so it is
+/// assembled in a `u128`; the CRC-15 and the stuff-bit count then go a byte at a time
+/// through two precomputed tables, after a bit-wise prefix that aligns the rest to bytes.
 #[must_use]
 pub fn frame_bits(frame: &CanFrame) -> u32 {
-    let mut w = BitWriter::default();
-    let id = u32::from(raw_id(frame) & 0x7FF);
+    let id = u128::from(raw_id(frame) & 0x7FF);
     let dlc = frame.dlc();
-    w.push(0, 1); // SOF
-    w.push(id, 11);
-    w.push(u32::from(frame.is_remote_frame()), 1); // RTR
-    w.push(0, 2); // IDE, r0
-    w.push(dlc as u32, 4);
-    if !frame.is_remote_frame() {
+    let remote = frame.is_remote_frame();
+    // SOF(0) id(11) RTR IDE(0) r0(0) DLC(4): 19 bits.
+    let mut seq: u128 = (id << 7) | (u128::from(remote) << 6) | dlc as u128;
+    let mut len: u32 = 19;
+    if !remote {
         for &b in frame.data() {
-            w.push(u32::from(b), 8);
+            seq = (seq << 8) | u128::from(b);
+            len += 8;
         }
     }
-    let crc = w.crc;
-    w.push_raw(u32::from(crc), 15);
-    // CRC delimiter 1, ACK slot 1, ACK delimiter 1, EOF 7, intermission 3.
-    w.bits + w.stuffed + 13
+    let crc = crc15_bits(seq, len);
+    seq = (seq << 15) | u128::from(crc);
+    len += 15;
+    len + stuff_bits(seq, len) + 13
 }
 
-/// Streams bits through the CRC-15 and the bit-stuffing counter.
-#[derive(Default)]
-struct BitWriter {
-    bits: u32,
-    stuffed: u32,
-    run: u32,
-    last: Option<bool>,
-    crc: u16,
+/// CRC-15/CAN of the `len` low bits of `seq`, most significant first.
+fn crc15_bits(seq: u128, len: u32) -> u16 {
+    let table = tables();
+    let mut crc: u16 = 0;
+    let head = len % 8;
+    for i in (len - head..len).rev() {
+        let b = (seq >> i) & 1 == 1;
+        let next = b ^ ((crc >> 14) & 1 == 1);
+        crc = (crc << 1) & 0x7FFF;
+        if next {
+            crc ^= 0x4599;
+        }
+    }
+    let mut i = len - head;
+    while i >= 8 {
+        i -= 8;
+        let byte = ((seq >> i) & 0xFF) as u16;
+        crc = ((crc << 8) ^ table.crc[usize::from(((crc >> 7) ^ byte) & 0xFF)]) & 0x7FFF;
+    }
+    crc
 }
 
-impl BitWriter {
-    /// Adds `n` bits of `value`, most significant first, to the CRC and the stuffing count.
-    fn push(&mut self, value: u32, n: u32) {
-        for i in (0..n).rev() {
-            let b = (value >> i) & 1 == 1;
-            let next = b ^ ((self.crc >> 14) & 1 == 1);
-            self.crc = (self.crc << 1) & 0x7FFF;
-            if next {
-                self.crc ^= 0x4599;
-            }
-            self.stuff(b);
-        }
+/// Stuff bits the transmitter inserts into the `len` low bits of `seq`.
+fn stuff_bits(seq: u128, len: u32) -> u32 {
+    let table = tables();
+    // State: the value of the last bit and how many equal bits end the stream so far (0..=4);
+    // before SOF the bus is idle (recessive), which counts as "last 1, run 0".
+    let mut state = StuffState { last: true, run: 0 };
+    let mut stuffed = 0;
+    let head = len % 8;
+    for i in (len - head..len).rev() {
+        stuffed += state.push((seq >> i) & 1 == 1);
+    }
+    let mut i = len - head;
+    while i >= 8 {
+        i -= 8;
+        let byte = ((seq >> i) & 0xFF) as usize;
+        let (next, n) = table.stuff[state.index()][byte];
+        state = next;
+        stuffed += u32::from(n);
+    }
+    stuffed
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct StuffState {
+    last: bool,
+    run: u8,
+}
+
+impl StuffState {
+    const fn index(self) -> usize {
+        self.last as usize * 5 + self.run as usize
     }
 
-    /// Adds bits that are stuffed but not part of the CRC (the CRC itself).
-    fn push_raw(&mut self, value: u32, n: u32) {
-        for i in (0..n).rev() {
-            self.stuff((value >> i) & 1 == 1);
-        }
-    }
-
-    fn stuff(&mut self, b: bool) {
-        self.bits += 1;
-        if Some(b) == self.last {
+    /// Adds one bit; returns 1 if a stuff bit follows it.
+    fn push(&mut self, b: bool) -> u32 {
+        if b == self.last && self.run > 0 {
             self.run += 1;
         } else {
+            self.last = b;
             self.run = 1;
-            self.last = Some(b);
         }
         if self.run == 5 {
-            self.stuffed += 1;
             // The stuff bit is the complement and starts a new run of length 1.
-            self.last = Some(!b);
+            self.last = !b;
             self.run = 1;
+            1
+        } else {
+            0
         }
     }
+}
+
+struct Tables {
+    crc: [u16; 256],
+    stuff: [[(StuffState, u8); 256]; 10],
+}
+
+fn tables() -> &'static Tables {
+    static TABLES: std::sync::OnceLock<Tables> = std::sync::OnceLock::new();
+    TABLES.get_or_init(|| {
+        let mut crc = [0u16; 256];
+        for (byte, entry) in crc.iter_mut().enumerate() {
+            let mut c = (byte as u16) << 7;
+            for _ in 0..8 {
+                c = if c & 0x4000 != 0 {
+                    ((c << 1) ^ 0x4599) & 0x7FFF
+                } else {
+                    (c << 1) & 0x7FFF
+                };
+            }
+            *entry = c;
+        }
+        let mut stuff = [[(StuffState { last: true, run: 0 }, 0u8); 256]; 10];
+        for last in [false, true] {
+            for run in 0..5u8 {
+                let start = StuffState { last, run };
+                for (byte, entry) in stuff[start.index()].iter_mut().enumerate() {
+                    let mut s = start;
+                    let mut n = 0;
+                    for i in (0..8).rev() {
+                        n += s.push((byte >> i) & 1 == 1) as u8;
+                    }
+                    *entry = (s, n);
+                }
+            }
+        }
+        Tables { crc, stuff }
+    })
 }
 
 /// CAN CRC-15 (polynomial 0x4599) over a bit sequence (reference for the tests).

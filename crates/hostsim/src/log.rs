@@ -9,6 +9,7 @@
 //! | `/can/bus` | same, plus `sender` and `fate` | every frame on the bus, at its end of transmission, including dropped ones |
 //! | `/firmware/snapshot` | JSON | per control step: state, fault, commanded and measured twist, wheel setpoints, speeds, currents |
 //! | `/cmd/twist` | JSON | the host's twist setpoint when it changes |
+//! | `/motors/feedback` | JSON | decoded drive feedback (DJI: rotor angle, rpm, current, temperature; ODrive: estimates, heartbeat), every 10th frame per drive |
 //! | `/odom/pose` | `foxglove.PoseInFrame` | the firmware's odometry (frame `odom`) |
 //! | `/ground_truth/pose` | `foxglove.PoseInFrame` | the plant's pose (frame `world`) |
 //! | `/tf` | `foxglove.FrameTransform` | `world → base_link` (truth) and `world → base_link_odom` (odometry) |
@@ -67,6 +68,8 @@ pub const CAN_FRAME_SCHEMA: &str = r#"{"type":"object","title":"can_msgs/msg/Fra
 
 const SNAPSHOT_SCHEMA: &str = r#"{"type":"object","title":"mecanum/FirmwareSnapshot","properties":{"state":{"type":"string"},"fault":{"type":"string"},"commanded":{"type":"object"},"measured":{"type":"object"},"wheel_setpoints":{"type":"array","items":{"type":"number"}},"wheel_speeds":{"type":"array","items":{"type":"number"}},"currents":{"type":"array","items":{"type":"number"}},"motors_online":{"type":"integer"},"rx_errors":{"type":"integer"},"unknown_ids":{"type":"integer"}}}"#;
 
+const FEEDBACK_SCHEMA: &str = r#"{"type":"object","title":"mecanum/MotorFeedback","properties":{"protocol":{"type":"string"},"id":{"type":"integer"},"rotor_angle":{"type":"integer"},"rotor_speed_rpm":{"type":"integer"},"current_a":{"type":"number"},"temperature_c":{"type":"integer"},"pos_rev":{"type":"number"},"vel_rev_s":{"type":"number"},"axis_error":{"type":"integer"},"axis_state":{"type":"string"}}}"#;
+
 const TWIST_SCHEMA: &str = r#"{"type":"object","title":"mecanum/Twist","properties":{"vx":{"type":"number"},"vy":{"type":"number"},"wz":{"type":"number"},"streaming":{"type":"boolean"}}}"#;
 
 /// Direction of a frame relative to the firmware.
@@ -84,6 +87,7 @@ struct Channels {
     bus: u16,
     snapshot: u16,
     twist: u16,
+    feedback: u16,
     odom: u16,
     truth: u16,
     tf: u16,
@@ -174,6 +178,13 @@ impl McapLog {
         .map_err(mcap_err)?;
         let twist = json_channel(&mut writer, "/cmd/twist", "mecanum/Twist", TWIST_SCHEMA)
             .map_err(mcap_err)?;
+        let feedback = json_channel(
+            &mut writer,
+            "/motors/feedback",
+            "mecanum/MotorFeedback",
+            FEEDBACK_SCHEMA,
+        )
+        .map_err(mcap_err)?;
         let fox_channel =
             |w: &mut mcap::Writer<_>, topic: &str, schema: foxglove::Schema, enc: String| {
                 let sid = w.add_schema(&schema.name, &schema.encoding, &schema.data)?;
@@ -224,6 +235,7 @@ impl McapLog {
                 bus,
                 snapshot,
                 twist,
+                feedback,
                 odom,
                 truth,
                 tf,
@@ -322,6 +334,58 @@ impl McapLog {
             s.rx_errors.unknown_id,
         );
         self.write(self.ch.snapshot, t_ns)
+    }
+
+    /// Logs a drive feedback frame, decoded; frames that are not drive feedback are skipped.
+    ///
+    /// # Errors
+    /// [`LogError`] if the write fails.
+    pub fn motor_feedback(
+        &mut self,
+        t_ns: u64,
+        frame: &CanFrame,
+        drive: &firmware::config::Drive,
+    ) -> Result<(), LogError> {
+        use firmware::protocol::{dji, odrive};
+        self.buf.clear();
+        match *drive {
+            firmware::config::Drive::Dji { model, .. } => {
+                let Ok(f) = dji::Feedback::decode(frame, model) else {
+                    return Ok(());
+                };
+                let _ = write!(
+                    self.buf,
+                    r#"{{"protocol":"dji","id":{},"rotor_angle":{},"rotor_speed_rpm":{},"current_a":{},"temperature_c":{}}}"#,
+                    f.esc.get(),
+                    f.rotor_angle,
+                    f.rotor_speed_rpm,
+                    f.current_amps(),
+                    f.temperature_c
+                );
+            }
+            firmware::config::Drive::Odrive { .. } => {
+                let Ok(a) = odrive::Feedback::decode(frame) else {
+                    return Ok(());
+                };
+                let id = a.node.get();
+                let _ = match a.msg {
+                    odrive::Feedback::EncoderEstimates { pos, vel } => write!(
+                        self.buf,
+                        r#"{{"protocol":"odrive","id":{id},"pos_rev":{pos},"vel_rev_s":{vel}}}"#
+                    ),
+                    odrive::Feedback::Heartbeat(h) => write!(
+                        self.buf,
+                        r#"{{"protocol":"odrive","id":{id},"axis_error":{},"axis_state":"{:?}"}}"#,
+                        h.axis_error, h.axis_state
+                    ),
+                    odrive::Feedback::Error { active_errors, .. } => write!(
+                        self.buf,
+                        r#"{{"protocol":"odrive","id":{id},"axis_error":{active_errors}}}"#
+                    ),
+                };
+            }
+        }
+        self.write(self.ch.feedback, t_ns)
     }
 
     /// Logs the host's twist setpoint.

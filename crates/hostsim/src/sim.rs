@@ -58,6 +58,8 @@ pub struct LogOptions {
     pub snapshot_every: u32,
     /// Log poses every this many steps (0: never).
     pub pose_every: u32,
+    /// Log every this many-th feedback frame of the drives, decoded (0: never).
+    pub feedback_every: u32,
 }
 
 impl Default for LogOptions {
@@ -66,6 +68,7 @@ impl Default for LogOptions {
             bus: true,
             snapshot_every: 10,
             pose_every: 10,
+            feedback_every: 10,
         }
     }
 }
@@ -206,6 +209,7 @@ pub fn run<P: SimPlant>(
     let mut last_state = (RobotState::Disabled, firmware::control::Fault::None);
     let mut t_us = 0u64;
     let mut step = 0u64;
+    let mut feedback_count = vec![0u64; 0x800];
     let mut track = Vec::with_capacity((duration_us / 10_000 + 2) as usize);
 
     while t_us <= duration_us {
@@ -275,11 +279,15 @@ pub fn run<P: SimPlant>(
                 ctl.on_frame(Instant::from_micros(tx.delivered_ns / 1000), &tx.frame);
                 summary_rx += 1;
                 if let Some(l) = log.as_deref_mut() {
-                    l.can(
-                        tx.delivered_ns - tx.delivered_ns % 1000,
-                        Direction::Rx,
-                        &tx.frame,
-                    )?;
+                    l.can(tx.delivered_ns, Direction::Rx, &tx.frame)?;
+                    if tx.from == Node::Drives && options.feedback_every > 0 {
+                        // Every n-th frame of each id, so every drive shows up.
+                        let count = &mut feedback_count[usize::from(id_of(&tx.frame))];
+                        if count.is_multiple_of(u64::from(options.feedback_every)) {
+                            l.motor_feedback(tx.delivered_ns, &tx.frame, &scenario.config.drive)?;
+                        }
+                        *count += 1;
+                    }
                 }
             }
             if tx.from != Node::Drives {
@@ -376,6 +384,13 @@ pub fn run<P: SimPlant>(
         tx_hash: hash.value(),
         track,
     })
+}
+
+fn id_of(frame: &CanFrame) -> u16 {
+    match embedded_can::Frame::id(frame) {
+        embedded_can::Id::Standard(id) => id.as_raw(),
+        embedded_can::Id::Extended(_) => 0,
+    }
 }
 
 fn wheel_flags(s: &Scenario, t_us: u64, kind: crate::scenario::FaultName) -> [bool; 4] {
