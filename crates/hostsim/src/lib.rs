@@ -6,11 +6,13 @@
 //! can be replayed to check that the core still produces the same frames, bit for bit.
 
 pub mod bus;
+pub mod candump;
 pub mod drives;
 pub mod kin;
 pub mod log;
 pub mod plant;
 pub mod plot;
+pub mod realtime;
 pub mod replay;
 pub mod scenario;
 pub mod sim;

@@ -1,13 +1,22 @@
 //! `hostsim`: simulate the mecanum drive, replay and summarise its logs, compute kinematics.
 
+use std::fs::File;
+use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicUsize};
 
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand};
+use firmware::linux::{MonotonicClock, SocketCanBus};
 use hostsim::log::McapLog;
 use hostsim::plot::plot_run;
-use hostsim::replay::{candump_text, replay_mcap};
+use hostsim::realtime::{PlantOptions, PlayOptions, play_frames, run_plant};
+use hostsim::replay::{
+    CandumpReplayError, LogFormat, OdometryTolerance, candump_text, detect_format, mcap_playback,
+    replay_candump, replay_mcap, split_candump,
+};
 use hostsim::scenario::Scenario;
 use hostsim::sim::{LogOptions, RunSummary, run_metadata};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -53,13 +62,99 @@ enum Cmd {
         #[arg(long)]
         json: bool,
     },
-    /// Replay a log through a fresh firmware core and check the outbound frames are
-    /// bit-identical; prints the first difference if not. Exit code 1 on a difference.
+    /// Replay a log through a fresh firmware core and compare, or play it onto a CAN bus.
+    ///
+    /// Without --iface: the log's inbound frames go through a fresh firmware core and its
+    /// outbound frames are compared with the logged ones. An MCAP log (hostsim's) carries its
+    /// configuration and must match bit for bit, step for step. A candump log (`candump -L`,
+    /// detected by a .log/.candump extension or its content) has every frame on the bus mixed:
+    /// the firmware codecs of --config classify them. Sent by the firmware: the drive's
+    /// command frames (DJI current commands 0x200/0x1FF; ODrive commands to the configured
+    /// nodes) and the robot telemetry (ODOM_POSITION 0x310, ODOM_VELOCITY 0x311, STATUS 0x312,
+    /// HEARTBEAT 0x31F). Everything else was received and is fed, at its time relative to the
+    /// first frame, to a core stepping on the period grid anchored at the first frame. The
+    /// report gives the frame-stream comparison (time ignored; the first difference if any)
+    /// and the odometry: the last logged ODOM_POSITION/ODOM_VELOCITY against the replayed
+    /// core's pose at that time. All interfaces in a candump log are taken as one bus.
+    ///
+    /// Exit status: 0 if the frames match (candump: or the odometry agrees within the
+    /// tolerances), 1 if not, 2 for a bad log, configuration or argument.
+    ///
+    /// With --iface: plays the log's frames onto a SocketCAN interface in real time (each at
+    /// its logged time relative to the first, divided by --speed) and reports frames sent
+    /// and ENOBUFS retries. By default only the frames the firmware received (what the host
+    /// and the drives sent) are played, so a live mecanum-runner on the interface can be fed
+    /// the logged session. Stops early on SIGINT/SIGTERM. Exit status 1 if a frame could not
+    /// be sent (dropped after 100 ms of ENOBUFS retries, or another error).
+    #[command(verbatim_doc_comment)]
     Replay {
-        /// A hostsim MCAP log.
+        /// A hostsim MCAP log, or a candump log (.log / .candump).
         log: PathBuf,
+        /// Drive configuration TOML used to classify and replay a candump log. Default: the
+        /// built-in DJI example (as config/dji_m3508.toml). Not allowed with an MCAP log,
+        /// which carries its own.
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+        /// Print the report as JSON (one object on stdout).
+        #[arg(long)]
+        json: bool,
+        /// candump replay: largest position difference for the odometry to agree, m.
+        #[arg(long, value_name = "M", default_value_t = 0.01)]
+        position_tolerance: f64,
+        /// candump replay: largest heading difference for the odometry to agree, rad.
+        #[arg(long, value_name = "RAD", default_value_t = 0.01)]
+        heading_tolerance: f64,
+        /// Play the frames onto this SocketCAN interface (e.g. vcan0) in real time instead
+        /// of replaying them through a core.
+        #[arg(long, value_name = "IFACE")]
+        iface: Option<String>,
+        /// With --iface: time scale (2 plays twice as fast). Default 1.
+        #[arg(long, value_name = "FACTOR")]
+        speed: Option<f64>,
+        /// With --iface: which frames to play. rx (default): the frames the firmware
+        /// received (host commands, motor feedback; MCAP /can/rx), to feed a live runner;
+        /// tx: the frames the firmware sent (MCAP /can/tx); all: both, merged by time.
+        #[arg(long, value_enum, value_name = "WHICH")]
+        only: Option<Only>,
     },
-    /// Summarise a log: messages per topic, frames, the run's configuration.
+    /// Run the simulated drives on a SocketCAN interface in real time, for a firmware runner.
+    ///
+    /// The drives of --config (DJI C620/M3508 or ODrive, on a 20 kg chassis) answer the
+    /// motor commands they see on --iface with their feedback, in real time: a 1 kHz loop
+    /// with absolute deadlines reads the commands, advances the physics by the elapsed
+    /// simulated period and sends the due feedback frames. Point `mecanum-runner --iface`
+    /// at the same interface (with the same configuration) and send it MODE_CMD/TWIST_CMD
+    /// (e.g. `hostsim replay LOG --iface`, or cansend) to drive the simulated robot.
+    ///
+    /// On SIGINT/SIGTERM or after --duration: prints the ground-truth pose and velocity on
+    /// stdout and the loop statistics (ticks, overruns, jitter, frames) on stderr, and writes
+    /// both as JSON to --stats-json. A second SIGINT/SIGTERM exits at once with status 1. Exit status: 0 after a clean stop, 1 if the statistics could
+    /// not be written, 2 for a startup error (bad arguments, configuration, interface).
+    #[command(verbatim_doc_comment)]
+    Plant {
+        /// SocketCAN interface, e.g. vcan0 or can0. It must exist and be up.
+        #[arg(long, value_name = "IFACE")]
+        iface: String,
+        /// Drive configuration TOML (as config/dji_m3508.toml or config/odrive.toml).
+        /// Default: the built-in DJI example. Use the runner's configuration.
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+        /// Stop after this many seconds. Default: run until SIGINT/SIGTERM.
+        #[arg(long, value_name = "SECONDS", value_parser = parse_seconds)]
+        duration: Option<f64>,
+        /// Write the final statistics and ground truth as JSON to FILE (created at startup).
+        #[arg(long, value_name = "FILE")]
+        stats_json: Option<PathBuf>,
+        /// Busy-wait the last MICROS before each deadline instead of sleeping: lower jitter,
+        /// more CPU. Default 0.
+        #[arg(long, value_name = "MICROS", default_value_t = 0)]
+        spin_us: u64,
+        /// Print only errors (no start line, no statistics on stderr).
+        #[arg(long, short)]
+        quiet: bool,
+    },
+    /// Summarise a log: odometry drift against ground truth, bus load, state changes and
+    /// faults, messages per topic. Reads a log cut short up to its last complete chunk.
     Summary {
         /// A hostsim MCAP log.
         log: PathBuf,
@@ -72,7 +167,26 @@ enum Cmd {
     Kin,
 }
 
+/// Rust ignores SIGPIPE, so `println!` to a closed pipe (`hostsim run | head -1`) panics.
+/// Behave like a Unix tool instead: end quietly with the status a SIGPIPE death gives.
+fn exit_quietly_on_broken_pipe() {
+    let default = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        let payload = info.payload();
+        let message = payload
+            .downcast_ref::<String>()
+            .map(String::as_str)
+            .or_else(|| payload.downcast_ref::<&str>().copied())
+            .unwrap_or("");
+        if message.starts_with("failed printing to std") && message.contains("Broken pipe") {
+            std::process::exit(128 + 13);
+        }
+        default(info);
+    }));
+}
+
 fn main() -> ExitCode {
+    exit_quietly_on_broken_pipe();
     let cli = Cli::parse();
     match dispatch(cli) {
         Ok(code) => code,
@@ -102,7 +216,47 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             !no_plot,
             json,
         ),
-        Cmd::Replay { log } => replay(&log),
+        Cmd::Replay {
+            log,
+            config,
+            json,
+            position_tolerance,
+            heading_tolerance,
+            iface,
+            speed,
+            only,
+        } => {
+            let tolerance = OdometryTolerance {
+                position_m: position_tolerance,
+                heading_rad: heading_tolerance,
+            };
+            match iface {
+                Some(iface) => play(&log, config.as_deref(), &iface, speed, only, json),
+                None => {
+                    if speed.is_some() || only.is_some() {
+                        bail!("--speed and --only need --iface (they control the playback)");
+                    }
+                    replay(&log, config.as_deref(), tolerance, json)
+                }
+            }
+            .map_err(flatten)
+        }
+        Cmd::Plant {
+            iface,
+            config,
+            duration,
+            stats_json,
+            spin_us,
+            quiet,
+        } => plant(
+            &iface,
+            config.as_deref(),
+            duration,
+            stats_json.as_deref(),
+            spin_us,
+            quiet,
+        )
+        .map_err(flatten),
         Cmd::Summary { log } => summary(&log),
         Cmd::Kin => {
             let stdin = std::io::stdin();
@@ -269,43 +423,400 @@ fn summary_json(s: &RunSummary, wall_s: f64) -> String {
     .to_string()
 }
 
-fn replay(path: &Path) -> Result<ExitCode> {
+/// Which logged frames `replay --iface` plays.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum Only {
+    /// The frames the firmware received (from the host and the drives).
+    Rx,
+    /// The frames the firmware sent.
+    Tx,
+    /// Every frame.
+    All,
+}
+
+fn parse_seconds(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if (0.0..1e9).contains(&v) => Ok(v),
+        Ok(v) => Err(format!("expected a number of seconds >= 0, got {v}")),
+        Err(e) => Err(format!("expected a number of seconds, got {s:?}: {e}")),
+    }
+}
+
+/// The drive configuration of `--config`, or the built-in DJI example; with a description.
+fn load_config(path: Option<&Path>) -> Result<(firmware::Config, String)> {
+    match path {
+        // The error names the file, and the line or the field.
+        Some(p) => Ok((
+            firmware::Config::from_toml_file(p)?,
+            p.display().to_string(),
+        )),
+        None => Ok((
+            firmware::Config::dji_m3508_example(),
+            "built-in DJI M3508/C620 example".to_string(),
+        )),
+    }
+}
+
+/// An error and its causes as one message, each cause once: most errors here already include
+/// their source in their own message, so a cause whose text is already there is skipped.
+fn flatten(error: anyhow::Error) -> anyhow::Error {
+    let mut text = String::new();
+    for cause in error.chain() {
+        let cause = cause.to_string();
+        if text.is_empty() {
+            text = cause;
+        } else if !text.contains(&cause) {
+            text.push_str(": ");
+            text.push_str(&cause);
+        }
+    }
+    anyhow::Error::msg(text)
+}
+
+/// SIGINT/SIGTERM store their number in the returned flag; a second one while it is set
+/// exits at once with status 1 (as the firmware runner does).
+fn install_signals() -> Result<Arc<AtomicUsize>> {
+    use signal_hook::consts::{SIGINT, SIGTERM};
+    let stop = Arc::new(AtomicUsize::new(0));
+    let stopping = Arc::new(AtomicBool::new(false));
+    for signal in [SIGINT, SIGTERM] {
+        let number = usize::try_from(signal).unwrap_or(1);
+        signal_hook::flag::register_conditional_shutdown(signal, 1, Arc::clone(&stopping))
+            .and_then(|_| signal_hook::flag::register(signal, Arc::clone(&stopping)))
+            .and_then(|_| signal_hook::flag::register_usize(signal, Arc::clone(&stop), number))
+            .with_context(|| format!("cannot install the handler of signal {signal}"))?;
+    }
+    Ok(stop)
+}
+
+fn replay(
+    path: &Path,
+    config: Option<&Path>,
+    tolerance: OdometryTolerance,
+    json: bool,
+) -> Result<ExitCode> {
+    for (name, value) in [
+        ("--position-tolerance", tolerance.position_m),
+        ("--heading-tolerance", tolerance.heading_rad),
+    ] {
+        if !(value.is_finite() && value >= 0.0) {
+            bail!("{name} must be a finite number >= 0, got {value}");
+        }
+    }
+    match detect_format(path)? {
+        LogFormat::Mcap => {
+            if config.is_some() {
+                bail!(
+                    "--config applies to candump logs; {} is an MCAP log, which carries its \
+                     own configuration",
+                    path.display()
+                );
+            }
+            replay_mcap_log(path, json)
+        }
+        LogFormat::Candump => replay_candump_log(path, config, tolerance, json),
+    }
+}
+
+fn replay_mcap_log(path: &Path, json: bool) -> Result<ExitCode> {
     let report = replay_mcap(path)?;
     if let Some(t) = &report.truncated {
         eprintln!("warning: log cut short: {t}; replaying what was complete");
+    }
+    let show = |f: &Option<hostsim::replay::TimedFrame>| {
+        f.map_or_else(
+            || "nothing".to_string(),
+            |f| {
+                format!(
+                    "{} at {:.6} s",
+                    candump_text(&f.frame),
+                    f.t_ns as f64 * 1e-9
+                )
+            },
+        )
+    };
+    let code = if report.identical() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    };
+    if json {
+        let frame = |f: &Option<hostsim::replay::TimedFrame>| {
+            f.map(|f| {
+                serde_json::json!({
+                    "t_s": format!("{:.6}", f.t_ns as f64 * 1e-9),
+                    "frame": candump_text(&f.frame),
+                })
+            })
+        };
+        let difference = report.difference.as_ref().map(|d| {
+            serde_json::json!({
+                "index": d.index,
+                "t_s": format!("{:.6}", d.t_ns as f64 * 1e-9),
+                "logged": frame(&d.logged),
+                "replayed": frame(&d.replayed),
+            })
+        });
+        let v = serde_json::json!({
+            "log": path.display().to_string(),
+            "format": LogFormat::Mcap,
+            "steps": report.steps,
+            "fed": report.fed,
+            "compared": report.compared,
+            "identical": report.identical(),
+            "verdict": if report.identical() { "identical" } else { "differs" },
+            "first_difference": difference,
+            "truncated": report.truncated,
+        });
+        println!("{v}");
+        return Ok(code);
     }
     println!(
         "replayed {} steps, fed {} inbound frames, compared {} outbound frames",
         report.steps, report.fed, report.compared
     );
     match &report.difference {
-        None => {
-            println!("outbound frames are bit-identical");
-            Ok(ExitCode::SUCCESS)
+        None => println!("outbound frames are bit-identical"),
+        Some(d) => println!(
+            "first difference at outbound frame {} ({:.6} s): log has {}, replay sent {}",
+            d.index,
+            d.t_ns as f64 * 1e-9,
+            show(&d.logged),
+            show(&d.replayed)
+        ),
+    }
+    Ok(code)
+}
+
+fn replay_candump_log(
+    path: &Path,
+    config: Option<&Path>,
+    tolerance: OdometryTolerance,
+    json: bool,
+) -> Result<ExitCode> {
+    let (config, source) = load_config(config)?;
+    let r = replay_candump(path, &config, tolerance).map_err(|e| match e {
+        CandumpReplayError::Refused(e) => anyhow::anyhow!("configuration {source}: {e}"),
+        other => other.into(),
+    })?;
+    let code = if r.agrees() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    };
+    if json {
+        let mut v = serde_json::to_value(&r)?;
+        if let Some(o) = v.as_object_mut() {
+            o.insert("log".into(), path.display().to_string().into());
+            o.insert("format".into(), serde_json::to_value(LogFormat::Candump)?);
+            o.insert("config".into(), source.into());
+            o.insert("verdict".into(), r.verdict().into());
         }
+        println!("{v}");
+        return Ok(code);
+    }
+    println!(
+        "candump log {}: {} frames on {} over {:.3} s; configuration: {source}",
+        path.display(),
+        r.frames,
+        r.interfaces.join(", "),
+        r.duration_s
+    );
+    println!(
+        "firmware received {} frames (fed), sent {} (compared); replay ran {} steps of {} µs \
+         and sent {}",
+        r.received, r.sent, r.steps, r.period_us, r.replayed
+    );
+    match &r.first_difference {
+        None => println!("outbound frames are identical (time ignored)"),
         Some(d) => {
-            let show = |f: &Option<hostsim::replay::TimedFrame>| {
-                f.map_or_else(
+            let show = |f: &Option<hostsim::replay::ReportFrame>| {
+                f.as_ref().map_or_else(
                     || "nothing".to_string(),
-                    |f| {
-                        format!(
-                            "{} at {:.6} s",
-                            candump_text(&f.frame),
-                            f.t_ns as f64 * 1e-9
-                        )
-                    },
+                    |f| format!("{} at {} s", f.frame, f.t_s),
                 )
             };
             println!(
-                "first difference at outbound frame {} ({:.6} s): log has {}, replay sent {}",
+                "outbound frames differ (time ignored) at frame {} ({} matched): log has {}, \
+                 replay sent {}",
                 d.index,
-                d.t_ns as f64 * 1e-9,
+                r.matching_prefix,
                 show(&d.logged),
                 show(&d.replayed)
             );
-            Ok(ExitCode::from(1))
         }
     }
+    match &r.odometry {
+        None => println!("odometry: the log has no ODOM_POSITION frame to compare"),
+        Some(o) => {
+            let pose = |p: &hostsim::replay::OdometryReading| {
+                format!(
+                    "x {:+.4} m  y {:+.4} m  heading {:+.2}° at {:.3} s",
+                    p.x,
+                    p.y,
+                    p.heading.to_degrees(),
+                    p.t_s
+                )
+            };
+            println!("odometry logged   {}", pose(&o.logged));
+            println!("odometry replayed {}", pose(&o.replayed));
+            println!(
+                "odometry {}: position {:.1} mm (tolerance {:.1} mm), heading {:.4} rad \
+                 (tolerance {:.4} rad), velocity {:.4}",
+                if o.agrees { "agrees" } else { "DIFFERS" },
+                o.position_error_m * 1000.0,
+                o.tolerance.position_m * 1000.0,
+                o.heading_error_rad,
+                o.tolerance.heading_rad,
+                o.velocity_error
+            );
+        }
+    }
+    let e = &r.rejected;
+    let rejected = e.extended_id + e.remote + e.wrong_dlc + e.non_finite + e.out_of_range;
+    println!(
+        "replayed core rejected {rejected} received frames, ignored {} with unknown ids",
+        e.unknown_id
+    );
+    println!("verdict: {}", r.verdict());
+    Ok(code)
+}
+
+/// `replay LOG --iface IFACE`: plays the log's frames onto the interface in real time.
+fn play(
+    path: &Path,
+    config: Option<&Path>,
+    iface: &str,
+    speed: Option<f64>,
+    only: Option<Only>,
+    json: bool,
+) -> Result<ExitCode> {
+    let speed = speed.unwrap_or(1.0);
+    if !(speed.is_finite() && speed > 0.0) {
+        bail!("--speed must be a finite number > 0, got {speed}");
+    }
+    let only = only.unwrap_or(Only::Rx);
+    let (rx, tx) = match only {
+        Only::Rx => (true, false),
+        Only::Tx => (false, true),
+        Only::All => (true, true),
+    };
+    let frames = match detect_format(path)? {
+        LogFormat::Mcap => {
+            if config.is_some() {
+                bail!(
+                    "--config applies to candump logs; {} is an MCAP log, whose /can/rx and \
+                     /can/tx topics give the direction",
+                    path.display()
+                );
+            }
+            let content = hostsim::replay::read_log(path)?;
+            if let Some(t) = &content.truncated {
+                eprintln!("warning: log cut short: {t}; playing what was complete");
+            }
+            mcap_playback(&content, rx, tx)
+        }
+        LogFormat::Candump => {
+            let (config, _) = load_config(config)?;
+            let entries = hostsim::candump::read_file(path)?;
+            let split = split_candump(&config, &entries);
+            match only {
+                Only::Rx => split.rx,
+                Only::Tx => split.tx,
+                Only::All => split.all,
+            }
+        }
+    };
+    let stop = install_signals()?;
+    let mut bus = SocketCanBus::open(iface)?;
+    let clock = MonotonicClock::new(0);
+    if !json {
+        eprintln!(
+            "playing {} frames ({only:?}) of {} onto {iface} at {speed}x; stop with Ctrl-C",
+            frames.len(),
+            path.display()
+        );
+    }
+    let options = PlayOptions {
+        speed,
+        ..PlayOptions::default()
+    };
+    let report = play_frames(&frames, &mut bus, &clock, &options, &stop);
+    if json {
+        println!("{}", serde_json::to_string(&report)?);
+    } else {
+        println!("{report}");
+    }
+    Ok(if report.failed > 0 {
+        ExitCode::from(1)
+    } else {
+        ExitCode::SUCCESS
+    })
+}
+
+/// `plant --iface IFACE`: the simulated drives on the interface in real time.
+fn plant(
+    iface: &str,
+    config: Option<&Path>,
+    duration: Option<f64>,
+    stats_json: Option<&Path>,
+    spin_us: u64,
+    quiet: bool,
+) -> Result<ExitCode> {
+    let (config, source) = load_config(config)?;
+    let mut drives = hostsim::drives::SimDrives::new(&config)
+        .with_context(|| format!("configuration {source}: the plant cannot model it"))?;
+    let stop = install_signals()?;
+    let mut bus = SocketCanBus::open(iface)?;
+    // Created before the loop starts, so a bad path fails now and not after a long run.
+    let stats = match stats_json {
+        Some(p) => Some((
+            p,
+            File::create(p)
+                .with_context(|| format!("cannot create --stats-json file {}", p.display()))?,
+        )),
+        None => None,
+    };
+    let options = PlantOptions {
+        duration_us: duration.map(|s| (s * 1e6).round() as u64),
+        ..PlantOptions::default()
+    };
+    if !quiet {
+        eprintln!(
+            "hostsim plant: simulated drives on {iface} at {} Hz, configuration: {source}; \
+             stop with Ctrl-C (SIGINT) or SIGTERM",
+            1_000_000 / options.period_us
+        );
+    }
+    let clock = MonotonicClock::new(spin_us);
+    let report = run_plant(&mut drives, &mut bus, &clock, &options, &stop);
+    // The ground truth always goes out, on stdout; the statistics on stderr.
+    println!(
+        "ground truth: x {:+.4} m  y {:+.4} m  heading {:+.2}°  (vx {:+.4} m/s  vy {:+.4} m/s  \
+         wz {:+.4} rad/s)",
+        report.truth.x,
+        report.truth.y,
+        report.truth.heading.to_degrees(),
+        report.velocity.vx,
+        report.velocity.vy,
+        report.velocity.wz
+    );
+    if !quiet {
+        eprintln!("hostsim plant: {report}");
+    }
+    if let Some((path, mut file)) = stats {
+        let written = serde_json::to_writer_pretty(&mut file, &report)
+            .map_err(anyhow::Error::from)
+            .and_then(|()| Ok(file.write_all(b"\n")?));
+        if let Err(e) = written {
+            eprintln!(
+                "error: cannot write --stats-json file {}: {e:#}",
+                path.display()
+            );
+            return Ok(ExitCode::FAILURE);
+        }
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 fn summary(path: &Path) -> Result<ExitCode> {

@@ -1,0 +1,829 @@
+//! Real time: the simulated drives and logged frames on a real (or in-memory) CAN bus, paced
+//! by a clock.
+//!
+//! Everything here is written against the firmware runner's two small traits,
+//! [`firmware::linux::Bus`] (non-blocking receive, send) and [`firmware::linux::Clock`]
+//! (microseconds, sleep until), so the same code runs
+//!
+//! - on a SocketCAN interface with [`SocketCanBus`](firmware::linux::SocketCanBus) and
+//!   [`MonotonicClock`](firmware::linux::MonotonicClock) (the `hostsim plant` and
+//!   `hostsim replay --iface` commands), and
+//! - in tests, on a [`MemoryBus`] in [`VirtualClock`] time, with no CAN interface, no real
+//!   time and no flakiness: several loops (the firmware runner's [`firmware::linux::run`],
+//!   [`run_plant`], a scripted host) each on its own thread, advancing together in virtual
+//!   time.
+//!
+//! # The plant loop ([`run_plant`])
+//!
+//! Ticks are due at absolute deadlines `start + k · period` (1 ms by default), re-anchored at
+//! the wake-up time after an overrun (a tick more than one period late), exactly as the
+//! firmware runner schedules its steps. Each tick, at wake-up time `now`:
+//!
+//! 1. every frame waiting on the bus (at most [`PlantOptions::max_rx_per_tick`]) goes to
+//!    [`SimPlant::on_frame`], stamped with the plant's simulated time (the drives pick out
+//!    their commands and ignore the rest);
+//! 2. the plant advances in steps of one period until its simulated time reaches the
+//!    elapsed time `now - start` rounded down to a period, so simulated time follows the
+//!    clock (after a late tick it catches up with several steps, at most
+//!    [`PlantOptions::max_catch_up`]; time beyond that is skipped and reported as
+//!    [`PlantReport::skipped_us`]);
+//! 3. the feedback frames the drives produced meanwhile ([`SimPlant::feedback`]) are sent,
+//!    busy errors (`ENOBUFS`, `EAGAIN`) retried until half a period after the deadline.
+//!
+//! The loop stops when the stop flag becomes non-zero (a signal) or the duration has
+//! elapsed, and reports the ground truth, frame counts and the lateness of its ticks.
+//!
+//! # The frame player ([`play_frames`])
+//!
+//! Sends logged frames at their logged times relative to the first one (scaled by a speed
+//! factor): it sleeps until each frame's due time and sends it, retrying busy errors for at
+//! most [`PlayOptions::give_up_us`].
+
+use std::collections::VecDeque;
+use std::fmt;
+use std::io;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
+
+use embedded_can::{Frame, Id};
+use firmware::CanFrame;
+use firmware::linux::{Bus, Clock, LatencyHistogram, LatencySummary, StopReason, is_busy};
+use serde::Serialize;
+
+use crate::replay::TimedFrame;
+use crate::sim::SimPlant;
+
+// ---------------------------------------------------------------------------------------------
+// In-memory bus
+
+/// A CAN bus in memory, shared by [`MemoryPort`]s: a frame one port sends is received by
+/// every other port (not by the sender), in sending order, like nodes on one wire. Thread
+/// safe; nothing blocks except the short internal lock.
+#[derive(Debug, Clone, Default)]
+pub struct MemoryBus {
+    queues: Arc<Mutex<Vec<VecDeque<CanFrame>>>>,
+}
+
+/// One node's connection to a [`MemoryBus`]; implements [`Bus`].
+#[derive(Debug)]
+pub struct MemoryPort {
+    queues: Arc<Mutex<Vec<VecDeque<CanFrame>>>>,
+    index: usize,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    // A panicking holder cannot leave these simple states inconsistent.
+    m.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+impl MemoryBus {
+    /// An empty bus.
+    #[must_use]
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Connects a new node. It receives the frames sent after this call.
+    #[must_use]
+    pub fn port(&self) -> MemoryPort {
+        let mut queues = lock(&self.queues);
+        queues.push(VecDeque::new());
+        MemoryPort {
+            queues: Arc::clone(&self.queues),
+            index: queues.len() - 1,
+        }
+    }
+}
+
+impl MemoryPort {
+    /// Frames waiting to be received by this port.
+    #[must_use]
+    pub fn pending(&self) -> usize {
+        lock(&self.queues).get(self.index).map_or(0, VecDeque::len)
+    }
+}
+
+impl Bus for MemoryPort {
+    fn try_recv(&mut self) -> io::Result<Option<CanFrame>> {
+        Ok(lock(&self.queues)
+            .get_mut(self.index)
+            .and_then(VecDeque::pop_front))
+    }
+
+    fn send(&mut self, frame: &CanFrame) -> io::Result<()> {
+        let mut queues = lock(&self.queues);
+        for (i, q) in queues.iter_mut().enumerate() {
+            if i != self.index {
+                q.push_back(*frame);
+            }
+        }
+        Ok(())
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Virtual time
+
+/// Virtual time for several loops on several threads, each with its own
+/// [`VirtualClockHandle`].
+///
+/// Time stands still while any participant is running; when every participant is asleep in
+/// [`Clock::sleep_until`], time jumps to the earliest deadline and the participants due
+/// then wake up. A loop therefore sees exactly the times it asked for (zero lateness), the
+/// loops interleave as they would in real time, and a run takes as long as its computation,
+/// not its virtual duration.
+///
+/// Create every handle ([`join`](Self::join)) before starting the threads, give each
+/// thread its own, and drop a handle when its loop ends (its thread then no longer holds time
+/// back). Loops due at the same instant run concurrently; offset their phases (a first
+/// `sleep_until(start + offset)`) for a deterministic order.
+#[derive(Debug, Clone)]
+pub struct VirtualClock {
+    shared: Arc<VcShared>,
+}
+
+#[derive(Debug)]
+struct VcShared {
+    state: Mutex<VcState>,
+    wake: Condvar,
+}
+
+#[derive(Debug)]
+struct VcState {
+    now: u64,
+    members: usize,
+    sleeping: Vec<u64>,
+}
+
+/// One participant of a [`VirtualClock`]; implements [`Clock`]. Dropping it leaves.
+#[derive(Debug)]
+pub struct VirtualClockHandle {
+    shared: Arc<VcShared>,
+}
+
+impl VirtualClock {
+    /// A clock at `start_us` with no participants.
+    #[must_use]
+    pub fn new(start_us: u64) -> Self {
+        Self {
+            shared: Arc::new(VcShared {
+                state: Mutex::new(VcState {
+                    now: start_us,
+                    members: 0,
+                    sleeping: Vec::new(),
+                }),
+                wake: Condvar::new(),
+            }),
+        }
+    }
+
+    /// Adds a participant.
+    #[must_use]
+    pub fn join(&self) -> VirtualClockHandle {
+        lock(&self.shared.state).members += 1;
+        VirtualClockHandle {
+            shared: Arc::clone(&self.shared),
+        }
+    }
+
+    /// The current virtual time, µs.
+    #[must_use]
+    pub fn now_micros(&self) -> u64 {
+        lock(&self.shared.state).now
+    }
+}
+
+impl Clock for VirtualClockHandle {
+    fn now_micros(&self) -> u64 {
+        lock(&self.shared.state).now
+    }
+
+    fn sleep_until(&self, deadline_us: u64) {
+        let mut st = lock(&self.shared.state);
+        if st.now >= deadline_us {
+            return;
+        }
+        st.sleeping.push(deadline_us);
+        loop {
+            if st.sleeping.len() >= st.members
+                && let Some(&earliest) = st.sleeping.iter().min()
+                && earliest > st.now
+            {
+                st.now = earliest;
+                self.shared.wake.notify_all();
+            }
+            if st.now >= deadline_us {
+                if let Some(i) = st.sleeping.iter().position(|&d| d == deadline_us) {
+                    st.sleeping.swap_remove(i);
+                }
+                return;
+            }
+            st = self
+                .shared
+                .wake
+                .wait(st)
+                .unwrap_or_else(PoisonError::into_inner);
+        }
+    }
+}
+
+impl Drop for VirtualClockHandle {
+    fn drop(&mut self) {
+        let mut st = lock(&self.shared.state);
+        st.members = st.members.saturating_sub(1);
+        drop(st);
+        self.shared.wake.notify_all();
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Shared helpers
+
+/// Error bookkeeping of a loop.
+#[derive(Debug, Default)]
+struct Errors {
+    first: Option<String>,
+    last: Option<String>,
+}
+
+impl Errors {
+    fn record(&mut self, what: fmt::Arguments<'_>, e: &io::Error) {
+        let message = format!("{what}: {e}");
+        if self.first.is_none() {
+            self.first = Some(message.clone());
+        }
+        self.last = Some(message);
+    }
+}
+
+fn id_text(frame: &CanFrame) -> String {
+    match frame.id() {
+        Id::Standard(id) => format!("{:#05x}", id.as_raw()),
+        Id::Extended(id) => format!("{:#010x}", id.as_raw()),
+    }
+}
+
+/// Sends `frame`, retrying busy errors every `backoff_us` while the clock is before
+/// `give_up_us` (one attempt at least); counts the retries.
+fn send_retrying<B: Bus, C: Clock>(
+    bus: &mut B,
+    clock: &C,
+    frame: &CanFrame,
+    give_up_us: u64,
+    backoff_us: u64,
+    retries: &mut u64,
+) -> io::Result<()> {
+    loop {
+        match bus.send(frame) {
+            Ok(()) => return Ok(()),
+            Err(e) if is_busy(&e) => {
+                let now = clock.now_micros();
+                if now.saturating_add(backoff_us) > give_up_us {
+                    return Err(e);
+                }
+                *retries += 1;
+                clock.sleep_until(now + backoff_us.max(1));
+            }
+            Err(e) => return Err(e),
+        }
+    }
+}
+
+fn stop_requested(stop: &AtomicUsize) -> Option<usize> {
+    match stop.load(Ordering::Relaxed) {
+        0 => None,
+        n => Some(n),
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The plant loop
+
+/// Tuning of [`run_plant`]. [`Default`] is what `hostsim plant` uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PlantOptions {
+    /// Tick period and plant step, µs. Default 1000 (1 kHz, the DJI feedback rate).
+    pub period_us: u64,
+    /// Stop on the first deadline at least this long after the start; `None`: run until the
+    /// stop flag is set.
+    pub duration_us: Option<u64>,
+    /// Most frames passed to the plant in one tick; the rest wait. Default 1024.
+    pub max_rx_per_tick: usize,
+    /// Pause between two attempts to send a frame the bus reported busy. Default 20 µs.
+    pub retry_backoff_us: u64,
+    /// Most plant steps in one tick when catching up after a late tick. Default 100.
+    pub max_catch_up: u32,
+}
+
+impl Default for PlantOptions {
+    fn default() -> Self {
+        Self {
+            period_us: 1000,
+            duration_us: None,
+            max_rx_per_tick: 1024,
+            retry_backoff_us: 20,
+            max_catch_up: 100,
+        }
+    }
+}
+
+/// A pose `x, y, heading` (m, m, rad).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Pose {
+    /// x, m.
+    pub x: f64,
+    /// y, m.
+    pub y: f64,
+    /// Heading, rad (counter-clockwise).
+    pub heading: f64,
+}
+
+/// A body velocity `vx, vy, wz` (m/s, m/s, rad/s).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Velocity {
+    /// Forward, m/s.
+    pub vx: f64,
+    /// Leftward, m/s.
+    pub vy: f64,
+    /// Yaw rate, rad/s.
+    pub wz: f64,
+}
+
+/// What [`run_plant`] did. Serialises to the JSON of `hostsim plant --stats-json`.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct PlantReport {
+    /// Why the loop stopped.
+    pub stop: StopReason,
+    /// The tick period, µs.
+    pub period_us: u64,
+    /// From the first deadline to the end, µs of the clock.
+    pub elapsed_us: u64,
+    /// Ticks run.
+    pub ticks: u64,
+    /// Ticks that started more than one period late (the schedule was re-anchored).
+    pub overruns: u64,
+    /// Simulated time of the plant at the end, s.
+    pub simulated_s: f64,
+    /// Time not simulated because a tick was later than [`PlantOptions::max_catch_up`]
+    /// periods, µs.
+    pub skipped_us: u64,
+    /// Frames read from the bus (all of them; the drives use the ones addressed to them).
+    pub frames_received: u64,
+    /// Receive errors.
+    pub rx_errors: u64,
+    /// Ticks that left frames waiting because [`PlantOptions::max_rx_per_tick`] was reached.
+    pub rx_capped_ticks: u64,
+    /// Feedback frames sent.
+    pub frames_sent: u64,
+    /// Send attempts repeated because the bus was busy (`ENOBUFS`, `EAGAIN`).
+    pub send_retries: u64,
+    /// Feedback frames that could not be sent (dropped).
+    pub send_errors: u64,
+    /// The first bus error.
+    pub first_error: Option<String>,
+    /// The last bus error.
+    pub last_error: Option<String>,
+    /// Lateness of each tick after its deadline, µs.
+    pub jitter: LatencySummary,
+    /// Ground-truth pose at the end (world frame).
+    pub truth: Pose,
+    /// Ground-truth body velocity at the end.
+    pub velocity: Velocity,
+}
+
+impl fmt::Display for PlantReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(
+            f,
+            "stopped: {} after {:.3} s; {} ticks of {} µs, {} overruns; {:.3} s simulated \
+             ({} µs skipped)",
+            self.stop,
+            self.elapsed_us as f64 / 1e6,
+            self.ticks,
+            self.period_us,
+            self.overruns,
+            self.simulated_s,
+            self.skipped_us
+        )?;
+        writeln!(f, "jitter (tick start - deadline): {}", self.jitter)?;
+        writeln!(
+            f,
+            "bus: {} frames received, {} feedback frames sent, {} send retries, {} send \
+             errors, {} receive errors, {} capped drains",
+            self.frames_received,
+            self.frames_sent,
+            self.send_retries,
+            self.send_errors,
+            self.rx_errors,
+            self.rx_capped_ticks
+        )?;
+        if let Some(e) = &self.first_error {
+            writeln!(f, "first bus error: {e}")?;
+        }
+        if let Some(e) = &self.last_error {
+            writeln!(f, "last bus error: {e}")?;
+        }
+        writeln!(
+            f,
+            "ground truth: x {:+.4} m  y {:+.4} m  heading {:+.2}°",
+            self.truth.x,
+            self.truth.y,
+            self.truth.heading.to_degrees()
+        )?;
+        write!(
+            f,
+            "velocity:     vx {:+.4} m/s  vy {:+.4} m/s  wz {:+.4} rad/s",
+            self.velocity.vx, self.velocity.vy, self.velocity.wz
+        )
+    }
+}
+
+/// Runs `plant` on `bus` in real time (as `clock` tells it) until `stop` is non-zero or
+/// `options.duration_us` has elapsed. See the [module documentation](self).
+///
+/// Bus errors are counted in the [`PlantReport`], never returned: the loop keeps running.
+pub fn run_plant<P: SimPlant, B: Bus, C: Clock>(
+    plant: &mut P,
+    bus: &mut B,
+    clock: &C,
+    options: &PlantOptions,
+    stop: &AtomicUsize,
+) -> PlantReport {
+    let period = options.period_us.max(1);
+    let dt = period as f64 * 1e-6;
+    let mut errors = Errors::default();
+    let mut jitter = LatencyHistogram::new();
+    let (mut ticks, mut overruns, mut received, mut rx_errors, mut capped) = (0, 0, 0, 0, 0);
+    let (mut sent, mut retries, mut send_errors) = (0, 0, 0);
+    // Simulated time of the plant, and wall time that was not simulated (catch-up cap).
+    let mut sim_us: u64 = 0;
+    let mut skipped_us: u64 = 0;
+    let mut feedback = Vec::with_capacity(16);
+
+    let start = clock.now_micros();
+    let mut anchor = start;
+    let mut k: u64 = 0;
+    let stop_reason = loop {
+        let deadline = anchor.saturating_add(k.saturating_mul(period));
+        if let Some(n) = stop_requested(stop) {
+            break StopReason::Signal(n);
+        }
+        if let Some(d) = options.duration_us
+            && deadline - start >= d
+        {
+            break StopReason::Duration;
+        }
+        clock.sleep_until(deadline);
+        if let Some(n) = stop_requested(stop) {
+            break StopReason::Signal(n);
+        }
+        let woke = clock.now_micros();
+        let late = woke.saturating_sub(deadline);
+        jitter.record(late);
+        if late > period {
+            overruns += 1;
+            anchor = woke;
+            k = 0;
+        }
+
+        // 1. Commands.
+        let mut drained = 0;
+        while drained < options.max_rx_per_tick {
+            match bus.try_recv() {
+                Ok(Some(frame)) => {
+                    plant.on_frame(sim_us, &frame);
+                    received += 1;
+                    drained += 1;
+                }
+                Ok(None) => break,
+                Err(e) => {
+                    rx_errors += 1;
+                    errors.record(format_args!("receive"), &e);
+                    break;
+                }
+            }
+        }
+        if drained == options.max_rx_per_tick {
+            capped += 1;
+        }
+
+        // 2. Physics up to the elapsed time.
+        let elapsed = woke.saturating_sub(start).saturating_sub(skipped_us);
+        let target = elapsed - elapsed % period;
+        let mut steps = 0;
+        while sim_us < target {
+            if steps == options.max_catch_up {
+                skipped_us += target - sim_us;
+                break;
+            }
+            plant.advance(dt);
+            sim_us += period;
+            steps += 1;
+        }
+
+        // 3. Feedback.
+        feedback.clear();
+        plant.feedback(sim_us * 1000, &mut feedback);
+        let give_up = deadline.max(woke).saturating_add(period / 2);
+        for (_, frame) in &feedback {
+            match send_retrying(
+                bus,
+                clock,
+                frame,
+                give_up,
+                options.retry_backoff_us,
+                &mut retries,
+            ) {
+                Ok(()) => sent += 1,
+                Err(e) => {
+                    send_errors += 1;
+                    errors.record(format_args!("send {}", id_text(frame)), &e);
+                }
+            }
+        }
+        ticks += 1;
+        k += 1;
+    };
+
+    let [x, y, heading] = plant.truth();
+    let [vx, vy, wz] = plant.truth_velocity();
+    PlantReport {
+        stop: stop_reason,
+        period_us: period,
+        elapsed_us: clock.now_micros().saturating_sub(start),
+        ticks,
+        overruns,
+        simulated_s: sim_us as f64 * 1e-6,
+        skipped_us,
+        frames_received: received,
+        rx_errors,
+        rx_capped_ticks: capped,
+        frames_sent: sent,
+        send_retries: retries,
+        send_errors,
+        first_error: errors.first,
+        last_error: errors.last,
+        jitter: jitter.summary(),
+        truth: Pose { x, y, heading },
+        velocity: Velocity { vx, vy, wz },
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The frame player
+
+/// Tuning of [`play_frames`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PlayOptions {
+    /// Time scale: 2.0 plays twice as fast as logged. Must be finite and > 0 (otherwise 1.0
+    /// is used). Default 1.0.
+    pub speed: f64,
+    /// Pause between two attempts to send a frame the bus reported busy. Default 20 µs.
+    pub retry_backoff_us: u64,
+    /// How long one frame may be retried after its due time before it is dropped. Default
+    /// 100 ms.
+    pub give_up_us: u64,
+}
+
+impl Default for PlayOptions {
+    fn default() -> Self {
+        Self {
+            speed: 1.0,
+            retry_backoff_us: 20,
+            give_up_us: 100_000,
+        }
+    }
+}
+
+/// What [`play_frames`] did. Serialises to JSON.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct PlayReport {
+    /// Frames to play.
+    pub frames: usize,
+    /// Frames sent.
+    pub sent: u64,
+    /// Frames dropped after errors.
+    pub failed: u64,
+    /// Send attempts repeated because the bus was busy (`ENOBUFS`; also `EAGAIN`).
+    pub busy_retries: u64,
+    /// The signal number (stop flag) that ended the playback early, if any.
+    pub stopped_by: Option<usize>,
+    /// Logged time from the first to the last frame, µs.
+    pub log_span_us: u64,
+    /// From the start to the end of the playback, µs of the clock.
+    pub elapsed_us: u64,
+    /// Lateness of each send after its due time (before any retry), µs.
+    pub lateness: LatencySummary,
+    /// The first bus error.
+    pub first_error: Option<String>,
+    /// The last bus error.
+    pub last_error: Option<String>,
+}
+
+impl fmt::Display for PlayReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "sent {} of {} frames ({} failed, {} busy retries) in {:.3} s (log span {:.3} s)",
+            self.sent,
+            self.frames,
+            self.failed,
+            self.busy_retries,
+            self.elapsed_us as f64 / 1e6,
+            self.log_span_us as f64 / 1e6
+        )?;
+        if let Some(n) = self.stopped_by {
+            write!(f, "; stopped early by {}", StopReason::Signal(n))?;
+        }
+        write!(f, "\nlateness (send - due): {}", self.lateness)?;
+        if let Some(e) = &self.first_error {
+            write!(f, "\nfirst bus error: {e}")?;
+        }
+        if let Some(e) = &self.last_error {
+            write!(f, "\nlast bus error: {e}")?;
+        }
+        Ok(())
+    }
+}
+
+/// Sends `frames` (in time order) on `bus`, each at `start + (t - t_first) / speed`, until
+/// the last one is sent or `stop` becomes non-zero. See the [module documentation](self).
+pub fn play_frames<B: Bus, C: Clock>(
+    frames: &[TimedFrame],
+    bus: &mut B,
+    clock: &C,
+    options: &PlayOptions,
+    stop: &AtomicUsize,
+) -> PlayReport {
+    let speed = if options.speed.is_finite() && options.speed > 0.0 {
+        options.speed
+    } else {
+        1.0
+    };
+    let t_first = frames.first().map_or(0, |f| f.t_ns);
+    let t_last = frames.last().map_or(0, |f| f.t_ns);
+    let mut errors = Errors::default();
+    let mut lateness = LatencyHistogram::new();
+    let (mut sent, mut failed, mut retries) = (0, 0, 0);
+    let mut stopped_by = None;
+    let start = clock.now_micros();
+    for f in frames {
+        let offset_us = (f.t_ns.saturating_sub(t_first) as f64 / 1000.0 / speed) as u64;
+        let due = start.saturating_add(offset_us);
+        if let Some(n) = stop_requested(stop) {
+            stopped_by = Some(n);
+            break;
+        }
+        clock.sleep_until(due);
+        if let Some(n) = stop_requested(stop) {
+            stopped_by = Some(n);
+            break;
+        }
+        let now = clock.now_micros();
+        lateness.record(now.saturating_sub(due));
+        let give_up = now.max(due).saturating_add(options.give_up_us);
+        match send_retrying(
+            bus,
+            clock,
+            &f.frame,
+            give_up,
+            options.retry_backoff_us,
+            &mut retries,
+        ) {
+            Ok(()) => sent += 1,
+            Err(e) => {
+                failed += 1;
+                errors.record(
+                    format_args!(
+                        "send {} (log time {:.6} s)",
+                        id_text(&f.frame),
+                        f.t_ns as f64 * 1e-9
+                    ),
+                    &e,
+                );
+            }
+        }
+    }
+    PlayReport {
+        frames: frames.len(),
+        sent,
+        failed,
+        busy_retries: retries,
+        stopped_by,
+        log_span_us: t_last.saturating_sub(t_first) / 1000,
+        elapsed_us: clock.now_micros().saturating_sub(start),
+        lateness: lateness.summary(),
+        first_error: errors.first,
+        last_error: errors.last,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use embedded_can::StandardId;
+
+    fn frame(id: u16) -> CanFrame {
+        CanFrame::standard(StandardId::new(id).unwrap(), &[id as u8]).unwrap()
+    }
+
+    #[test]
+    fn memory_bus_delivers_to_every_other_port_in_order() {
+        let bus = MemoryBus::new();
+        let (mut a, mut b, mut c) = (bus.port(), bus.port(), bus.port());
+        a.send(&frame(1)).unwrap();
+        b.send(&frame(2)).unwrap();
+        assert_eq!(a.try_recv().unwrap(), Some(frame(2)));
+        assert_eq!(a.try_recv().unwrap(), None);
+        assert_eq!(b.try_recv().unwrap(), Some(frame(1)));
+        assert_eq!(c.pending(), 2);
+        assert_eq!(c.try_recv().unwrap(), Some(frame(1)));
+        assert_eq!(c.try_recv().unwrap(), Some(frame(2)));
+    }
+
+    #[test]
+    fn a_single_participant_jumps_to_its_deadlines() {
+        let clock = VirtualClock::new(100);
+        let h = clock.join();
+        h.sleep_until(50);
+        assert_eq!(h.now_micros(), 100);
+        h.sleep_until(1234);
+        assert_eq!((h.now_micros(), clock.now_micros()), (1234, 1234));
+    }
+
+    #[test]
+    fn participants_interleave_in_virtual_time() {
+        let clock = VirtualClock::new(0);
+        let log = Arc::new(Mutex::new(Vec::new()));
+        // Every handle first, then the threads (see the type's documentation).
+        let handles = [(300u64, 'a', clock.join()), (500, 'b', clock.join())];
+        let threads: Vec<_> = handles
+            .into_iter()
+            .map(|(period, name, h)| {
+                let log = Arc::clone(&log);
+                std::thread::spawn(move || {
+                    for k in 1..=3 {
+                        h.sleep_until(k * period);
+                        lock(&log).push((h.now_micros(), name));
+                    }
+                })
+            })
+            .collect();
+        for t in threads {
+            t.join().unwrap();
+        }
+        let mut got = lock(&log).clone();
+        got.sort_unstable();
+        assert_eq!(
+            got,
+            [
+                (300, 'a'),
+                (500, 'b'),
+                (600, 'a'),
+                (900, 'a'),
+                (1000, 'b'),
+                (1500, 'b')
+            ]
+        );
+    }
+
+    #[test]
+    fn play_frames_keeps_the_logged_spacing_scaled_by_speed() {
+        struct Recorder<'a>(&'a VirtualClockHandle, Vec<(u64, CanFrame)>, u64);
+        impl Bus for Recorder<'_> {
+            fn try_recv(&mut self) -> io::Result<Option<CanFrame>> {
+                Ok(None)
+            }
+            fn send(&mut self, f: &CanFrame) -> io::Result<()> {
+                if self.2 > 0 {
+                    self.2 -= 1;
+                    return Err(io::Error::from_raw_os_error(libc::ENOBUFS));
+                }
+                self.1.push((self.0.now_micros(), *f));
+                Ok(())
+            }
+        }
+        let clock = VirtualClock::new(1_000);
+        let h = clock.join();
+        let frames: Vec<TimedFrame> = [(5_000_000_000, 1), (5_010_000_000, 2), (5_030_000_000, 3)]
+            .map(|(t_ns, id)| TimedFrame {
+                t_ns,
+                frame: frame(id),
+            })
+            .to_vec();
+        let mut bus = Recorder(&h, Vec::new(), 2);
+        let options = PlayOptions {
+            speed: 2.0,
+            ..PlayOptions::default()
+        };
+        let r = play_frames(&frames, &mut bus, &h, &options, &AtomicUsize::new(0));
+        let times: Vec<u64> = bus.1.iter().map(|x| x.0).collect();
+        // Two ENOBUFS retries of 20 µs before the first frame went out.
+        assert_eq!(times, [1_040, 6_000, 16_000]);
+        assert_eq!((r.sent, r.failed, r.busy_retries), (3, 0, 2));
+        assert_eq!(r.log_span_us, 30_000);
+        assert_eq!(r.stopped_by, None);
+        let stopped = play_frames(&frames, &mut bus, &h, &options, &AtomicUsize::new(2));
+        assert_eq!((stopped.sent, stopped.stopped_by), (0, Some(2)));
+    }
+}
