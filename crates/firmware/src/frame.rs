@@ -6,6 +6,8 @@
 //! [`CanFrame`] is that type. It is `Copy`, compares by value, and cannot hold an invalid id
 //! (the id is an [`embedded_can::Id`]) or more than 8 data bytes.
 
+use core::fmt;
+
 use embedded_can::{Frame, Id, StandardId};
 
 /// Maximum number of data bytes of a classic CAN frame.
@@ -157,6 +159,26 @@ impl Frame for CanFrame {
             &[]
         } else {
             self.data.get(..usize::from(self.dlc)).unwrap_or(&[])
+        }
+    }
+}
+
+/// Candump notation (can-utils `candump -L`, `cansend`): `123#DEADBEEF`, `123#R` or `123#R4`
+/// for a remote frame; 3 hex digits for a standard id, 8 for an extended one.
+impl fmt::Display for CanFrame {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.id() {
+            Id::Standard(id) => write!(f, "{:03X}#", id.as_raw())?,
+            Id::Extended(id) => write!(f, "{:08X}#", id.as_raw())?,
+        }
+        if self.is_remote_frame() {
+            f.write_str("R")?;
+            if self.dlc() > 0 {
+                write!(f, "{}", self.dlc())?;
+            }
+            Ok(())
+        } else {
+            self.data().iter().try_for_each(|b| write!(f, "{b:02X}"))
         }
     }
 }

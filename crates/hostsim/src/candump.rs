@@ -25,11 +25,11 @@
 //! The writer produces exactly the `candump -L` form (10-digit seconds, 6-digit microseconds,
 //! upper-case hex, no separators), which `canplayer` and python-can's `CanutilsLogReader` read.
 
-use std::fmt::{self, Write as _};
+use std::fmt;
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 
-use embedded_can::{Frame, Id, StandardId};
+use embedded_can::StandardId;
 use firmware::CanFrame;
 
 /// One parsed line.
@@ -350,24 +350,10 @@ pub fn looks_like_candump(bytes: &[u8]) -> bool {
     matches!(&bytes[start..], [b'(', d, ..] if d.is_ascii_digit())
 }
 
-/// A frame in candump notation: `123#DEADBEEF`, `123#R`, `123#R4`.
+/// A frame in candump notation: `123#DEADBEEF`, `123#R`, `123#R4` (the frame's `Display`).
 #[must_use]
 pub fn format_frame(frame: &CanFrame) -> String {
-    let mut s = match frame.id() {
-        Id::Standard(id) => format!("{:03X}#", id.as_raw()),
-        Id::Extended(id) => format!("{:08X}#", id.as_raw()),
-    };
-    if frame.is_remote_frame() {
-        s.push('R');
-        if frame.dlc() > 0 {
-            let _ = write!(s, "{}", frame.dlc());
-        }
-    } else {
-        for b in frame.data() {
-            let _ = write!(s, "{b:02X}");
-        }
-    }
-    s
+    frame.to_string()
 }
 
 /// Whether `iface` can be written into a log line (non-empty, no whitespace, no `#`, no

@@ -14,8 +14,8 @@ use hostsim::log::McapLog;
 use hostsim::plot::plot_run;
 use hostsim::realtime::{PlantOptions, PlayOptions, play_frames, run_plant};
 use hostsim::replay::{
-    CandumpReplayError, LogFormat, OdometryTolerance, candump_text, detect_format, mcap_playback,
-    replay_candump, replay_mcap, split_candump,
+    CandumpReplayError, LogFormat, OdometryTolerance, detect_format, mcap_playback, replay_candump,
+    replay_mcap, split_candump,
 };
 use hostsim::scenario::Scenario;
 use hostsim::sim::{LogOptions, RunSummary, run_metadata};
@@ -526,13 +526,7 @@ fn replay_mcap_log(path: &Path, json: bool) -> Result<ExitCode> {
     let show = |f: &Option<hostsim::replay::TimedFrame>| {
         f.map_or_else(
             || "nothing".to_string(),
-            |f| {
-                format!(
-                    "{} at {:.6} s",
-                    candump_text(&f.frame),
-                    f.t_ns as f64 * 1e-9
-                )
-            },
+            |f| format!("{} at {:.6} s", f.frame, f.t_ns as f64 * 1e-9),
         )
     };
     let code = if report.identical() {
@@ -545,7 +539,7 @@ fn replay_mcap_log(path: &Path, json: bool) -> Result<ExitCode> {
             f.map(|f| {
                 serde_json::json!({
                     "t_s": format!("{:.6}", f.t_ns as f64 * 1e-9),
-                    "frame": candump_text(&f.frame),
+                    "frame": f.frame.to_string(),
                 })
             })
         };

@@ -22,7 +22,7 @@
 
 use std::path::{Path, PathBuf};
 
-use embedded_can::{Frame, StandardId};
+use embedded_can::StandardId;
 use firmware::CanFrame;
 use firmware::config::Config;
 use firmware::control::{Controller, Instant};
@@ -118,55 +118,32 @@ pub fn read_log(path: &Path) -> Result<LogContent, ReplayError> {
 /// # Errors
 /// A description if the bytes do not start like an MCAP file.
 pub fn read_log_bytes(bytes: &[u8]) -> Result<LogContent, String> {
-    use mcap::read::Options;
-    use mcap::records::Record;
-
-    let options = Options::IgnoreEndMagic.into();
-    let reader =
-        mcap::read::ChunkFlattener::new_with_options(bytes, options).map_err(|e| e.to_string())?;
     let mut content = LogContent::default();
-    let mut topics: std::collections::HashMap<u16, String> = std::collections::HashMap::new();
-    let mut read_any = false;
-    for record in reader {
-        let record = match record {
-            Ok(r) => r,
-            Err(e) => {
-                if !read_any {
-                    return Err(e.to_string());
-                }
-                content.truncated = Some(format!("{e} (file size {} bytes)", bytes.len()));
-                break;
+    let mut config = None;
+    let mut scenario = None;
+    let truncated = crate::log::for_each_message(
+        bytes,
+        |topic, t_ns, data| {
+            *content.topics.entry(topic.to_string()).or_default() += 1;
+            let list = match topic {
+                "/can/rx" => &mut content.rx,
+                "/can/tx" => &mut content.tx,
+                _ => return,
+            };
+            if let Some(frame) = parse_frame_json(data) {
+                list.push(TimedFrame { t_ns, frame });
             }
-        };
-        read_any = true;
-        match record {
-            Record::Channel(c) => {
-                topics.insert(c.id, c.topic.to_string());
+        },
+        |name, kv| {
+            if name == "hostsim" {
+                config = kv.get("config").cloned();
+                scenario = kv.get("scenario").cloned();
             }
-            Record::Metadata(m) if m.name == "hostsim" => {
-                content.config = m.metadata.get("config").cloned();
-                content.scenario = m.metadata.get("scenario").cloned();
-            }
-            Record::Message { header, data } => {
-                let Some(topic) = topics.get(&header.channel_id) else {
-                    continue;
-                };
-                *content.topics.entry(topic.clone()).or_default() += 1;
-                let list = match topic.as_str() {
-                    "/can/rx" => &mut content.rx,
-                    "/can/tx" => &mut content.tx,
-                    _ => continue,
-                };
-                if let Some(frame) = parse_frame_json(&data) {
-                    list.push(TimedFrame {
-                        t_ns: header.log_time,
-                        frame,
-                    });
-                }
-            }
-            _ => {}
-        }
-    }
+        },
+    )?;
+    content.config = config;
+    content.scenario = scenario;
+    content.truncated = truncated;
     Ok(content)
 }
 
@@ -305,17 +282,6 @@ pub fn replay_frames(
         difference,
         truncated: None,
     })
-}
-
-/// `id#data` in candump notation.
-#[must_use]
-pub fn candump_text(frame: &CanFrame) -> String {
-    let id = match frame.id() {
-        embedded_can::Id::Standard(id) => format!("{:03X}", id.as_raw()),
-        embedded_can::Id::Extended(id) => format!("{:08X}", id.as_raw()),
-    };
-    let data: String = frame.data().iter().map(|b| format!("{b:02X}")).collect();
-    format!("{id}#{data}")
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -12,54 +12,8 @@ use foxglove::Decode;
 use foxglove::schemas::{Log, PoseInFrame};
 
 use crate::bus::frame_bits;
+use crate::log::{Truncation, for_each_message};
 use crate::replay::parse_frame_json;
-
-/// Where reading stopped early, if it did.
-pub type Truncation = Option<String>;
-
-/// Calls `f(topic, log_time_ns, data)` for every message of an MCAP file in file order, and
-/// `meta(name, key-values)` for every metadata record.
-///
-/// # Errors
-/// A description if the bytes are not MCAP at all (nothing readable from the start). A file
-/// that is cut short is not an error: the returned [`Truncation`] says where reading stopped.
-pub fn for_each_message(
-    bytes: &[u8],
-    mut f: impl FnMut(&str, u64, &[u8]),
-    mut meta: impl FnMut(&str, &BTreeMap<String, String>),
-) -> Result<Truncation, String> {
-    use mcap::read::Options;
-    use mcap::records::Record;
-
-    let reader =
-        mcap::read::ChunkFlattener::new_with_options(bytes, Options::IgnoreEndMagic.into())
-            .map_err(|e| e.to_string())?;
-    let mut topics: std::collections::HashMap<u16, String> = std::collections::HashMap::new();
-    let mut read_any = false;
-    for record in reader {
-        let record = match record {
-            Ok(r) => r,
-            Err(e) if read_any => {
-                return Ok(Some(format!("{e} (file size {} bytes)", bytes.len())));
-            }
-            Err(e) => return Err(e.to_string()),
-        };
-        read_any = true;
-        match record {
-            Record::Channel(c) => {
-                topics.insert(c.id, c.topic.to_string());
-            }
-            Record::Metadata(m) => meta(&m.name, &m.metadata),
-            Record::Message { header, data } => {
-                if let Some(topic) = topics.get(&header.channel_id) {
-                    f(topic, header.log_time, &data);
-                }
-            }
-            _ => {}
-        }
-    }
-    Ok(None)
-}
 
 /// Figures of a logged run.
 #[derive(Debug, Clone, Default, PartialEq)]

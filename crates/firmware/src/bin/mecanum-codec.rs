@@ -138,21 +138,7 @@ fn parse_candump(line: &str) -> Result<CanFrame, String> {
 }
 
 fn candump_text(frame: &CanFrame) -> String {
-    let mut s = match frame.id() {
-        Id::Standard(id) => format!("{:03X}#", id.as_raw()),
-        Id::Extended(id) => format!("{:08X}#", id.as_raw()),
-    };
-    if frame.is_remote_frame() {
-        s.push('R');
-        if frame.dlc() > 0 {
-            let _ = write!(s, "{}", frame.dlc());
-        }
-    } else {
-        for b in frame.data() {
-            let _ = write!(s, "{b:02X}");
-        }
-    }
-    s
+    frame.to_string()
 }
 
 // ---------------------------------------------------------------------------------------------
