@@ -118,6 +118,7 @@ impl Field {
     }
 
     /// The field's bits as an unsigned number (zero-extended).
+    #[inline]
     fn bits(&self, payload: &Payload) -> u32 {
         let mut bytes = [0u8; 4];
         let size = self.ty.size();
@@ -145,6 +146,7 @@ impl Field {
 
     /// The raw integer value (sign-extended for signed types). For `F32` fields: the bits.
     #[must_use]
+    #[inline]
     pub fn raw(&self, payload: &Payload) -> i64 {
         let bits = self.bits(payload);
         match self.ty {
@@ -159,6 +161,7 @@ impl Field {
     ///
     /// # Errors
     /// [`DecodeError::OutOfRange`] with the raw value.
+    #[inline]
     pub fn checked(&self, payload: &Payload) -> Result<i64, DecodeError> {
         let value = self.raw(payload);
         if (self.min..=self.max).contains(&value) {
@@ -175,6 +178,7 @@ impl Field {
     ///
     /// # Errors
     /// [`DecodeError::OutOfRange`] with the raw value.
+    #[inline]
     pub fn physical(&self, payload: &Payload) -> Result<f32, DecodeError> {
         // Raw values fit 32 bits, exact in f64; one rounding to f32 at the end.
         self.checked(payload)
@@ -185,6 +189,7 @@ impl Field {
     ///
     /// # Errors
     /// [`DecodeError::NonFinite`] for NaN and infinities.
+    #[inline]
     pub fn finite(&self, payload: &Payload) -> Result<f32, DecodeError> {
         let value = f32::from_bits(self.bits(payload));
         if value.is_finite() {
@@ -195,6 +200,7 @@ impl Field {
     }
 
     /// Writes a raw value, clamped to `min..=max`. For `F32` fields this writes the bits.
+    #[inline]
     pub fn put_raw(&self, payload: &mut Payload, raw: i64) {
         let clamped = raw.clamp(self.min, self.max);
         // Truncation to the field's width is intended; the range clamp above keeps it exact.
@@ -229,11 +235,13 @@ impl Field {
 
     /// Writes a physical value: rounded to the nearest raw value (ties away from zero),
     /// saturated to `min..=max`; NaN is written as the raw value nearest to 0.
+    #[inline]
     pub fn put_physical(&self, payload: &mut Payload, value: f32) {
         self.put_raw(payload, to_raw(value, self.scale, self.min, self.max));
     }
 
     /// Writes an `F32` field as is (callers sanitise non-finite values first).
+    #[inline]
     pub fn put_f32(&self, payload: &mut Payload, value: f32) {
         self.put_raw(payload, i64::from(value.to_bits()));
     }
