@@ -78,12 +78,22 @@ def dbs() -> dict[str, cantools.database.can.Database]:
 
 @pytest.fixture(scope="session")
 def hostsim_bin() -> pathlib.Path:
-    """Path of `hostsim`: $HOSTSIM if set, else built with cargo (release: runs are long)."""
+    """Path of `hostsim`: $HOSTSIM if set, else built with cargo (debug: `cargo test` has built
+    it already, so this costs nothing after the Rust tests, and the runs here are short)."""
     prebuilt = os.environ.get("HOSTSIM")
     if prebuilt:
         path = pathlib.Path(prebuilt)
         assert path.is_file(), f"HOSTSIM={prebuilt} does not exist"
         return path
+    subprocess.run(
+        ["cargo", "build", "--quiet", "-p", "hostsim", "--bin", "hostsim"],
+        cwd=ROOT,
+        check=True,
+        timeout=1800,
+    )
+    path = _target_dir() / "debug" / ("hostsim" + (".exe" if os.name == "nt" else ""))
+    assert path.is_file(), f"cargo build did not produce {path}"
+    return path
     subprocess.run(
         ["cargo", "build", "--quiet", "--release", "-p", "hostsim", "--bin", "hostsim"],
         cwd=ROOT,
@@ -93,3 +103,85 @@ def hostsim_bin() -> pathlib.Path:
     path = _target_dir() / "release" / ("hostsim" + (".exe" if os.name == "nt" else ""))
     assert path.is_file(), f"cargo build did not produce {path}"
     return path
+
+
+# --- vcan: a real SocketCAN interface ------------------------------------------------------
+# Tests that need a real SocketCAN interface are marked `vcan` (registered below, so
+# --strict-markers accepts it) and take the `vcan` fixture, or just carry the marker: the
+# autouse gate below gives every `vcan`-marked test the same check. scripts/vcan.sh brings
+# vcan0 up (natively where the kernel has vcan, else in a micro-VM) and sets
+# MECANUM_VCAN_REQUIRED=1, which turns a missing interface from a skip into a failure.
+
+VCAN_CHANNEL = "vcan0"
+VCAN_SKIP_REASON = "vcan0 not present (run via scripts/vcan.sh)"
+_ARPHRD_CAN = 280  # /sys/class/net/<if>/type of a CAN interface (linux/if_arp.h)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Registers the project's markers. (One hook per conftest: add further markers here.)"""
+    config.addinivalue_line(
+        "markers",
+        "vcan: needs a real SocketCAN interface vcan0; skipped without it, a failure without it "
+        "when MECANUM_VCAN_REQUIRED=1 (scripts/vcan.sh runs these natively or in a micro-VM)",
+    )
+
+
+def vcan_required() -> bool:
+    """True if a missing vcan0 must fail the test (scripts/vcan.sh sets MECANUM_VCAN_REQUIRED=1)."""
+    return os.environ.get("MECANUM_VCAN_REQUIRED", "") == "1"
+
+
+def _vcan_problem(name: str = VCAN_CHANNEL) -> str | None:
+    """None if `name` is an up CAN interface, else what is wrong with it."""
+    sys_dir = pathlib.Path("/sys/class/net") / name
+    if not sys_dir.is_dir():
+        return f"{name} does not exist"
+    try:
+        if int((sys_dir / "type").read_text().strip()) != _ARPHRD_CAN:
+            return f"{name} exists but is not a CAN interface"
+        flags = int((sys_dir / "flags").read_text().strip(), 16)
+    except (OSError, ValueError) as err:
+        return f"{name}: cannot read its state ({err})"
+    if not flags & 0x1:  # IFF_UP
+        return f"{name} exists but is down (ip link set up {name})"
+    return None
+
+
+def vcan_unavailable(what: str, detail: str) -> None:
+    """Skips the test for a missing vcan prerequisite, or fails it when vcan is required."""
+    if vcan_required():
+        pytest.fail(f"{detail}; MECANUM_VCAN_REQUIRED=1, so this is a failure, not a skip")
+    pytest.skip(what)
+
+
+@pytest.fixture(scope="session")
+def vcan() -> str:
+    """Name of an up SocketCAN interface (vcan0). Skips when it is missing, fails if required."""
+    problem = _vcan_problem(VCAN_CHANNEL)
+    if problem is not None:
+        vcan_unavailable(VCAN_SKIP_REASON, problem)
+    return VCAN_CHANNEL
+
+
+@pytest.fixture(autouse=True)
+def _vcan_marker_gate(request: pytest.FixtureRequest) -> None:
+    """Every test marked `vcan` gets the `vcan` fixture's check, even if it does not name it."""
+    if request.node.get_closest_marker("vcan") is not None:
+        request.getfixturevalue("vcan")
+
+
+@pytest.fixture(scope="session")
+def can_utils() -> Callable[[str], str]:
+    """Path of a can-utils program (cansend, candump, ...): skips if missing, fails if required."""
+
+    import shutil
+
+    def find(name: str) -> str:
+        path = shutil.which(name)
+        if path is None:
+            vcan_unavailable(
+                f"{name} not found (Debian package can-utils)", f"{name} (can-utils) not on PATH"
+            )
+        return path
+
+    return find

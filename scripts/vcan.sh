@@ -1,0 +1,354 @@
+#!/usr/bin/env bash
+# The vcan lane: runs a command where a real SocketCAN interface vcan0 is up.
+# Natively where the kernel has vcan, else in a QEMU micro-VM (virtme-ng) that boots Debian's
+# own kernel on the host's file system. `scripts/vcan.sh --help` says more.
+set -euo pipefail
+
+SCRIPT_DIR=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd -P)
+ROOT=$(cd "$SCRIPT_DIR/.." && pwd -P)
+IFACE=vcan0
+LANE=$ROOT/target/vcan-lane
+TXQUEUELEN=10000
+DEB_PACKAGES=(qemu-system-x86 linux-image-amd64 busybox-static can-utils kmod iproute2)
+VNG_REQUIREMENT='virtme-ng>=1.42,<2'
+VENV=${VCAN_VENV:-$ROOT/.venv}
+MODE=${VCAN_MODE:-auto}
+VM_TIMEOUT=${VCAN_VM_TIMEOUT:-1800}
+VM_MEMORY=${VCAN_VM_MEMORY:-2G}
+VM_CPUS=${VCAN_VM_CPUS:-$(n=$(nproc 2>/dev/null || echo 2); echo $((n > 4 ? 4 : n)))}
+# Modules the emulated machine's devices would make udev load at boot (KVM, CPU crypto, SATA and
+# CD-ROM, PS/2, watchdogs, cpufreq). None is needed for vcan; under software emulation loading
+# them costs some 15 s of boot.
+VM_MODULE_BLACKLIST=kvm_amd,kvm_intel,kvm,ccp,irqbypass,crct10dif_pclmul,crc32_pclmul,crc32c_intel,ghash_clmulni_intel,sha512_ssse3,sha256_ssse3,sha1_ssse3,aesni_intel,crypto_simd,cryptd,sr_mod,cdrom,sg,ahci,libahci,libata,scsi_mod,iTCO_wdt,intel_pmc_bxt,evdev,psmouse,serio_raw,pcspkr,i2c_i801,i2c_smbus,lpc_ich,button,qemu_fw_cfg,powernow_k8,acpi_cpufreq,intel_rapl_msr,intel_rapl_common
+
+usage() {
+    cat <<EOF
+Usage: scripts/vcan.sh [--native | --vm] -- COMMAND [ARG...]
+
+Runs COMMAND, in the repository's root directory, where a real SocketCAN interface
+$IFACE is up, with MECANUM_VCAN_REQUIRED=1 in its environment (so tests marked \`vcan\`
+fail rather than skip without $IFACE) and MECANUM_VCAN_MODE=native or vm. Exits with
+COMMAND's exit status. Example:
+
+    scripts/vcan.sh -- .venv/bin/python -m pytest tests -m vcan -q
+
+How $IFACE comes up, first that works:
+  1. native: $IFACE exists already (used as it is), or \`modprobe vcan\` and
+     \`ip link add dev $IFACE type vcan\` work (root or CAP_NET_ADMIN); a $IFACE this script
+     created gets txqueuelen $TXQUEUELEN and is deleted afterwards.
+  2. vm: the kernel has no vcan (\`ip link add ... type vcan\` says "Unknown device type").
+     A QEMU micro-VM (virtme-ng, software emulation) boots Debian's kernel, which has vcan,
+     on the host's file system: COMMAND runs there as root, on the same repository (shared
+     read-write) and the same .venv, toolchains and host-built binaries (read-only). Needs
+     Debian ${DEB_PACKAGES[*]}
+     (installed with apt-get when run as root and missing) and PyPI $VNG_REQUIREMENT
+     (pip-installed into $VENV when missing). Allow ~1 min of boot.
+     The environment is passed on, less terminal and session variables. Output is also
+     kept in target/vcan-lane/output.log, the VM's exit code in target/vcan-lane/exit-code.
+  3. neither: with CI=true that is a failure (exit 1, saying why); elsewhere the script
+     prints "SKIP: <why>" and exits 0 without running COMMAND.
+
+Options:
+  --native     only try the native way      (or VCAN_MODE=native)
+  --vm         go straight to the VM        (or VCAN_MODE=vm)
+  -h, --help   this text
+
+Environment: VCAN_VM_TIMEOUT (seconds, default 1800), VCAN_VM_MEMORY (default 2G),
+VCAN_VM_CPUS (default: host CPUs, at most 4), VCAN_KERNEL (a vmlinuz to boot instead of the
+one linux-image-amd64 installed), VCAN_VENV (where virtme-ng is, default .venv),
+VCAN_NO_INSTALL=1 (install nothing: what is missing makes the lane unavailable).
+EOF
+}
+
+log() { printf 'vcan.sh: %s\n' "$*" >&2; }
+now() { date +%s.%N; }
+elapsed() { awk -v a="$1" -v b="$2" 'BEGIN { printf "%.1f", b - a }'; }
+
+# The lane cannot run here: a failure with CI=true, else a skip that says why.
+unavailable() {
+    if [ "${CI:-}" = "true" ]; then
+        log "FAIL: the vcan lane cannot run: $*"
+        log "(CI=true: a lane that cannot run is a failure, not a skip)"
+        exit 1
+    fi
+    printf 'SKIP: vcan lane: %s\n' "$*"
+    exit 0
+}
+
+while [ $# -gt 0 ]; do
+    case $1 in
+    -h | --help) usage; exit 0 ;;
+    --native) MODE=native; shift ;;
+    --vm) MODE=vm; shift ;;
+    --) shift; break ;;
+    *) log "unknown argument: $1 (a command goes after --; see --help)"; exit 2 ;;
+    esac
+done
+if [ $# -eq 0 ]; then
+    log "no command given (scripts/vcan.sh -- COMMAND [ARG...]; see --help)"
+    exit 2
+fi
+case $MODE in auto | native | vm) ;; *) log "VCAN_MODE must be auto, native or vm, not '$MODE'"; exit 2 ;; esac
+
+# One lane at a time per repository: they share vcan0 and target/vcan-lane.
+mkdir -p "$LANE"
+if command -v flock >/dev/null; then
+    exec 9>"$LANE/lock"
+    if ! flock -n 9; then
+        log "another vcan lane is running in this repository; waiting for it"
+        flock 9
+    fi
+fi
+
+can_install() {
+    [ "${VCAN_NO_INSTALL:-}" != "1" ] && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null
+}
+
+APT_UPDATED=0
+apt_install() {
+    log "installing Debian packages: $*"
+    if [ "$APT_UPDATED" = 0 ]; then
+        apt-get update -qq >&2
+        APT_UPDATED=1
+    fi
+    # INITRD=No: the kernel's own initramfs is never used (virtme-ng makes one each boot), and
+    # generating it is most of the install time.
+    DEBIAN_FRONTEND=noninteractive INITRD=No apt-get install -y -qq --no-install-recommends "$@" >&2
+}
+
+# Debian packages (of those given) that are not installed.
+missing_debs() {
+    local pkg
+    for pkg in "$@"; do
+        if ! dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q 'install ok installed'; then
+            printf '%s\n' "$pkg"
+        fi
+    done
+}
+
+# ---------------------------------------------------------------------------------------------
+# 1. native
+
+NATIVE_WHY=
+CREATED_IFACE=0
+
+teardown_native() {
+    if [ "$CREATED_IFACE" = 1 ]; then
+        ip link del dev "$IFACE" 2>/dev/null || true
+        CREATED_IFACE=0
+    fi
+}
+
+native_up() {
+    local err
+    if ! command -v ip >/dev/null; then
+        NATIVE_WHY="ip (iproute2) not found"
+        return 1
+    fi
+    if [ -e "/sys/class/net/$IFACE" ]; then
+        if [ "$(cat "/sys/class/net/$IFACE/type")" != 280 ]; then
+            NATIVE_WHY="$IFACE exists but is not a CAN interface"
+            return 1
+        fi
+        if ! err=$(ip link set up dev "$IFACE" 2>&1); then
+            NATIVE_WHY="$IFACE exists but cannot be brought up: $err"
+            return 1
+        fi
+        log "native: using the existing $IFACE"
+        return 0
+    fi
+    if command -v modprobe >/dev/null; then
+        modprobe vcan 2>/dev/null || true
+    fi
+    if ! err=$(ip link add dev "$IFACE" type vcan 2>&1); then
+        NATIVE_WHY="this kernel cannot create $IFACE (ip link add dev $IFACE type vcan: $err)"
+        return 1
+    fi
+    CREATED_IFACE=1
+    trap teardown_native EXIT
+    if ! err=$({ ip link set dev "$IFACE" txqueuelen "$TXQUEUELEN" && ip link set up dev "$IFACE"; } 2>&1); then
+        NATIVE_WHY="created $IFACE but cannot bring it up: $err"
+        teardown_native
+        return 1
+    fi
+    log "native: created $IFACE (txqueuelen $TXQUEUELEN)"
+    return 0
+}
+
+run_native() {
+    local rc
+    if ! command -v cansend >/dev/null && can_install; then
+        apt_install can-utils || log "native: installing can-utils failed"
+    fi
+    cd "$ROOT"
+    set +e
+    MECANUM_VCAN_REQUIRED=1 MECANUM_VCAN_MODE=native "$@"
+    rc=$?
+    set -e
+    teardown_native
+    exit "$rc"
+}
+
+if [ "$MODE" != vm ]; then
+    if native_up; then
+        run_native "$@"
+    fi
+    log "native: $NATIVE_WHY"
+    if [ "$MODE" = native ]; then
+        unavailable "native: $NATIVE_WHY"
+    fi
+fi
+
+# ---------------------------------------------------------------------------------------------
+# 2. the micro-VM
+
+T_START=$(now)
+VM_WHY=
+
+# The kernel to boot: the one the linux-image-amd64 metapackage depends on, else the newest
+# /boot/vmlinuz-* whose modules include vcan.
+find_kernel() {
+    local dep version candidates=()
+    if [ -n "${VCAN_KERNEL:-}" ]; then
+        printf '%s\n' "$VCAN_KERNEL"
+        return
+    fi
+    dep=$(dpkg-query -W -f='${Depends}' linux-image-amd64 2>/dev/null || true)
+    version=${dep%%[ ,|]*}
+    version=${version#linux-image-}
+    if [ -n "$version" ] && [ -e "/boot/vmlinuz-$version" ]; then
+        printf '%s\n' "/boot/vmlinuz-$version"
+        return
+    fi
+    for version in $(find /lib/modules -mindepth 1 -maxdepth 1 -printf '%f\n' 2>/dev/null | sort -rV); do
+        if compgen -G "/lib/modules/$version/kernel/drivers/net/can/vcan.ko*" >/dev/null &&
+            [ -e "/boot/vmlinuz-$version" ]; then
+            candidates+=("/boot/vmlinuz-$version")
+        fi
+    done
+    if [ ${#candidates[@]} -gt 0 ]; then
+        printf '%s\n' "${candidates[0]}"
+    fi
+}
+
+vm_prepare() {
+    local missing=() tool
+    mapfile -t missing < <(command -v dpkg-query >/dev/null && missing_debs "${DEB_PACKAGES[@]}")
+    if [ ${#missing[@]} -gt 0 ]; then
+        if can_install; then
+            apt_install "${missing[@]}" || { VM_WHY="apt-get install ${missing[*]} failed"; return 1; }
+        elif ! command -v dpkg-query >/dev/null; then
+            : # not Debian: the checks below say what is missing
+        else
+            VM_WHY="missing Debian packages ${missing[*]} (install them as root: apt-get install ${missing[*]})"
+            return 1
+        fi
+    fi
+    for tool in qemu-system-x86_64 busybox modprobe ip python3; do
+        if ! command -v "$tool" >/dev/null; then
+            VM_WHY="$tool not found (Debian: apt-get install ${DEB_PACKAGES[*]})"
+            return 1
+        fi
+    done
+    KERNEL=$(find_kernel)
+    if [ -z "$KERNEL" ] || [ ! -e "$KERNEL" ]; then
+        VM_WHY="no kernel with vcan to boot (Debian: apt-get install linux-image-amd64; or set VCAN_KERNEL)"
+        return 1
+    fi
+    if [ ! -r "$KERNEL" ]; then
+        VM_WHY="$KERNEL is not readable (Debian installs kernels mode 0600: run as root)"
+        return 1
+    fi
+    KVER=$(basename "$KERNEL")
+    KVER=${KVER#vmlinuz-}
+    if ! compgen -G "/lib/modules/$KVER/kernel/drivers/net/can/vcan.ko*" >/dev/null; then
+        VM_WHY="$KERNEL has no vcan module under /lib/modules/$KVER"
+        return 1
+    fi
+    if [ ! -x "$VENV/bin/vng" ]; then
+        if [ "${VCAN_NO_INSTALL:-}" = "1" ]; then
+            VM_WHY="virtme-ng not installed in $VENV (pip install '$VNG_REQUIREMENT')"
+            return 1
+        fi
+        if [ ! -x "$VENV/bin/python" ]; then
+            log "creating the virtual environment $VENV"
+            python3 -m venv "$VENV" >&2 || { VM_WHY="python3 -m venv $VENV failed"; return 1; }
+        fi
+        log "installing PyPI $VNG_REQUIREMENT into $VENV"
+        "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check "$VNG_REQUIREMENT" >&2 ||
+            { VM_WHY="pip install '$VNG_REQUIREMENT' failed"; return 1; }
+    fi
+    return 0
+}
+
+# The environment for the command in the guest: the caller's, less what belongs to this terminal
+# or session.
+write_guest_env() {
+    local name
+    for name in $(compgen -e); do
+        case $name in
+        PWD | OLDPWD | SHLVL | _ | TERM | COLUMNS | LINES | TMUX | TMUX_PANE | DISPLAY | WAYLAND_DISPLAY | \
+            XAUTHORITY | XDG_RUNTIME_DIR | XDG_SESSION_* | DBUS_SESSION_BUS_ADDRESS | SSH_* | BASH_FUNC_*)
+            continue ;;
+        esac
+        printf 'export %s=%q\n' "$name" "${!name}"
+    done
+    printf 'export MECANUM_VCAN_REQUIRED=1 MECANUM_VCAN_MODE=vm\n'
+}
+
+if ! vm_prepare; then
+    unavailable "VM: $VM_WHY${NATIVE_WHY:+ (native: $NATIVE_WHY)}"
+fi
+
+rm -f "$LANE/exit-code" "$LANE/started" "$LANE/setup-failed" "$LANE/timing" "$LANE/output.log"
+printf '%q ' "$@" >"$LANE/command.sh"
+printf '\n' >>"$LANE/command.sh"
+write_guest_env >"$LANE/env.sh"
+
+guest_cmd="bash $(printf '%q' "$SCRIPT_DIR/vcan-guest.sh") $(printf '%q' "$LANE") $(printf '%q' "$ROOT") $IFACE $TXQUEUELEN"
+# Two more 9p shares, which the guest script mounts with the page cache on (cache=loose): the
+# host's root (read-only) and the repository (read-write). virtme-ng mounts its own shares
+# uncached, and there every file read and page fault is a round trip to the host: Python
+# starts in some 10 s instead of 1 s. (vng hands these options to a shell, so the paths are
+# shell-quoted, and QEMU wants a comma in a value doubled.)
+qemu_path() { printf '%q' "${1//,/,,}"; }
+fast_shares="-fsdev local,id=vcanroot,path=/,security_model=none,readonly=on,multidevs=remap"
+fast_shares+=" -device virtio-9p-pci,fsdev=vcanroot,mount_tag=vcanroot"
+fast_shares+=" -fsdev local,id=vcanrepo,path=$(qemu_path "$ROOT"),security_model=none,multidevs=remap"
+fast_shares+=" -device virtio-9p-pci,fsdev=vcanrepo,mount_tag=vcanrepo"
+log "vm: booting $KERNEL (software emulation, $VM_CPUS CPUs, $VM_MEMORY; timeout ${VM_TIMEOUT}s)"
+T_BOOT=$(now)
+set +e
+# KVM stays off: in nested virtualization it may be there and still fail (QEMU aborts on an
+# MSR, or the guest hangs). stdin is /dev/null: QEMU would otherwise take over a terminal.
+# Piped, not redirected to a file: QEMU opens the guest's stdout and stderr as files of their
+# own, and two descriptions of one regular file overwrite each other's output.
+(cd "$ROOT" && PATH="$VENV/bin:$PATH" timeout -k 30 "$VM_TIMEOUT" "$VENV/bin/vng" \
+    --disable-kvm --run "$KERNEL" --user root --cpus "$VM_CPUS" --memory "$VM_MEMORY" \
+    --rwdir="$ROOT" --append "modprobe.blacklist=$VM_MODULE_BLACKLIST" \
+    --exec "$guest_cmd" --qemu-opts="$fast_shares" </dev/null 2>&1) | tee "$LANE/output.log"
+vng_rc=${PIPESTATUS[0]}
+set -e
+T_END=$(now)
+
+timing=
+if [ -s "$LANE/timing" ]; then
+    read -r up_start up_ready up_end <"$LANE/timing" || true
+    timing="; in the guest: boot ${up_start} s, set-up $(elapsed "$up_start" "$up_ready") s, command $(elapsed "$up_ready" "$up_end") s"
+fi
+log "vm: prepare $(elapsed "$T_START" "$T_BOOT") s, VM $(elapsed "$T_BOOT" "$T_END") s$timing"
+
+if [ -s "$LANE/exit-code" ]; then
+    rc=$(cat "$LANE/exit-code")
+    log "vm: command exited with $rc"
+    exit "$rc"
+fi
+if [ -e "$LANE/setup-failed" ]; then
+    unavailable "VM: $(cat "$LANE/setup-failed")${NATIVE_WHY:+ (native: $NATIVE_WHY)}"
+fi
+if [ -e "$LANE/started" ]; then
+    [ "$vng_rc" = 124 ] && log "vm: timed out after ${VM_TIMEOUT}s (VCAN_VM_TIMEOUT)"
+    log "FAIL: the command started in the VM but reported no exit code (vng exited with $vng_rc)"
+    exit 1
+fi
+unavailable "VM: the guest did not start the command (vng exited with $vng_rc; output in $LANE/output.log)${NATIVE_WHY:+ (native: $NATIVE_WHY)}"
