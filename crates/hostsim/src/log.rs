@@ -550,15 +550,11 @@ pub fn for_each_message(
     mut f: impl FnMut(&str, u64, &[u8]),
     mut meta: impl FnMut(&str, &BTreeMap<String, String>),
 ) -> Result<Truncation, String> {
-    use mcap::read::Options;
     use mcap::records::Record;
 
-    let reader =
-        mcap::read::ChunkFlattener::new_with_options(bytes, Options::IgnoreEndMagic.into())
-            .map_err(|e| e.to_string())?;
     let mut topics: std::collections::HashMap<u16, String> = std::collections::HashMap::new();
     let mut read_any = false;
-    for record in reader {
+    for record in records(bytes) {
         let record = match record {
             Ok(r) => r,
             Err(e) if read_any => {
@@ -581,4 +577,40 @@ pub fn for_each_message(
         }
     }
     Ok(None)
+}
+
+/// Longest record [`records`] accepts, bytes: the file's length, and at least 64 MiB for a
+/// record inside a compressed chunk (which can be longer than the file).
+const MIN_RECORD_LENGTH_LIMIT: usize = 64 << 20;
+
+/// Every record of an MCAP file, chunks flattened, as `mcap::read::ChunkFlattener` (ignoring
+/// the end magic) but with a record length limit. `ChunkFlattener` sets none, so a corrupt
+/// record length inside a compressed chunk made it reserve that many bytes (up to 2^64) and
+/// abort the process on allocation failure (found by fuzzing: `fuzz/`, target `mcap_read`).
+fn records(bytes: &[u8]) -> impl Iterator<Item = mcap::McapResult<mcap::records::Record<'static>>> {
+    use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
+
+    let mut reader = LinearReader::new_with_options(
+        LinearReaderOptions::default()
+            .with_skip_end_magic(true)
+            .with_record_length_limit(bytes.len().max(MIN_RECORD_LENGTH_LIMIT)),
+    );
+    let mut rest = bytes;
+    std::iter::from_fn(move || {
+        while let Some(event) = reader.next_event() {
+            match event {
+                Ok(LinearReadEvent::ReadRequest(need)) => {
+                    let len = need.min(rest.len());
+                    reader.insert(len).copy_from_slice(&rest[..len]);
+                    reader.notify_read(len);
+                    rest = &rest[len..];
+                }
+                Ok(LinearReadEvent::Record { data, opcode }) => {
+                    return Some(mcap::parse_record(opcode, data).map(|r| r.into_owned()));
+                }
+                Err(e) => return Some(Err(e)),
+            }
+        }
+        None
+    })
 }

@@ -1,0 +1,67 @@
+//! The MCAP reading path of `hostsim replay` and `hostsim summary`: `log::for_each_message`,
+//! `replay::read_log_bytes` (with `parse_frame_json` on every `/can/*` message),
+//! `summary::summarize`, and `replay::replay_frames` on what was read (with the log's own
+//! configuration when it loads, else the example one) for logs spanning at most 0.5 s.
+//! Garbage, truncated and corrupted files give errors, never a panic.
+#![no_main]
+
+use std::path::PathBuf;
+use std::sync::OnceLock;
+
+use firmware::config::Config;
+use hostsim::replay::{self, TimedFrame};
+use libfuzzer_sys::fuzz_target;
+
+/// `summarize` takes a path: the input goes through one scratch file per fuzzing process.
+fn scratch() -> &'static PathBuf {
+    static PATH: OnceLock<PathBuf> = OnceLock::new();
+    PATH.get_or_init(|| {
+        std::env::temp_dir().join(format!("mecanum-fuzz-mcap-{}.mcap", std::process::id()))
+    })
+}
+
+/// Longest log span replayed, ns: replay runs one step per control period of the span.
+const MAX_REPLAY_SPAN_NS: u64 = 500_000_000;
+
+fuzz_target!(|data: &[u8]| {
+    let mut messages = 0usize;
+    let walked = hostsim::log::for_each_message(data, |_, _, _| messages += 1, |_, _| {});
+
+    let content = replay::read_log_bytes(data);
+    assert_eq!(walked.is_ok(), content.is_ok());
+    if let Ok(c) = &content {
+        assert_eq!(c.topics.values().sum::<u64>(), messages as u64);
+        for f in c.rx.iter().chain(&c.tx) {
+            mecanum_fuzz::check_frame(&f.frame);
+        }
+    }
+
+    std::fs::write(scratch(), data).expect("scratch file");
+    let summary = hostsim::summary::summarize(scratch());
+    assert_eq!(summary.is_ok(), content.is_ok());
+    if let Ok(s) = &summary {
+        assert!(s.duration_s >= 0.0);
+    }
+
+    let Ok(content) = content else { return };
+    let end = content
+        .rx
+        .iter()
+        .chain(&content.tx)
+        .map(|f: &TimedFrame| f.t_ns)
+        .max()
+        .unwrap_or(0);
+    if end > MAX_REPLAY_SPAN_NS {
+        return;
+    }
+    let config = content
+        .config
+        .as_deref()
+        .and_then(|text| Config::from_toml_str(text).ok())
+        .unwrap_or_else(Config::dji_m3508_example);
+    let report = replay::replay_frames(&config, &content.rx, &content.tx)
+        .expect("a configuration that loads is accepted");
+    assert!(report.fed <= content.rx.len());
+    assert!(report.compared <= content.tx.len());
+    let _ = replay::mcap_playback(&content, true, true);
+});
