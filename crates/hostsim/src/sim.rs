@@ -323,12 +323,7 @@ pub fn run<P: SimPlant>(
             ));
             last_state = state;
         }
-        let odom = ctl.pose();
-        let odom = [
-            f64::from(odom.x),
-            f64::from(odom.y),
-            f64::from(odom.heading),
-        ];
+        let odom = pose_array(ctl.pose());
         let truth = plant.truth();
         max_err = max_err.max((odom[0] - truth[0]).hypot(odom[1] - truth[1]));
         if t_us.is_multiple_of(10_000) {
@@ -358,12 +353,7 @@ pub fn run<P: SimPlant>(
         step += 1;
     }
 
-    let odom = ctl.pose();
-    let odom = [
-        f64::from(odom.x),
-        f64::from(odom.y),
-        f64::from(odom.heading),
-    ];
+    let odom = pose_array(ctl.pose());
     let truth = plant.truth();
     let end_ns = t_us * 1000;
     Ok(RunSummary {
@@ -384,6 +374,11 @@ pub fn run<P: SimPlant>(
         tx_hash: hash.value(),
         track,
     })
+}
+
+/// The firmware's pose as `[x, y, heading]` in f64, the plant's format.
+fn pose_array(p: kinematics::Pose2<f32>) -> [f64; 3] {
+    [f64::from(p.x), f64::from(p.y), f64::from(p.heading)]
 }
 
 fn id_of(frame: &CanFrame) -> u16 {
