@@ -1,0 +1,554 @@
+//! A fixed, deterministic scenario for the firmware control core: scripted host commands, a
+//! scripted plant answering the motor commands, 3,000 control steps at 1 kHz, for the DJI and
+//! the ODrive example configurations. It reports the outbound frame stream as text: a rolling
+//! FNV-1a 64 hash, checkpoints every 100 steps, every n-th frame, and the final state.
+//!
+//! The same code runs on the host (`xtarget-host`) and on an emulated Cortex-M4
+//! (`board-qemu-m4`); `scripts/xtarget.sh` compares the two reports line by line. Everything
+//! here is deterministic on both targets: integer arithmetic, IEEE `+ - * /` on `f32`
+//! (Rust never contracts them into fused multiply-adds), saturating float-to-int casts, and
+//! libm for the one transcendental function the script uses.
+//!
+//! # One step (time `t = k` ms)
+//!
+//! ```text
+//! plant ─► feedback frames ─► ctl.on_frame(t, ·)      (DJI: 4 every ms; ODrive: every 10 ms)
+//! script ─► host commands  ─► ctl.on_frame(t, ·)      (enable, twists, e-stop, reset, junk)
+//! ctl.step(t) ─► outbox ─► hash, report ─► plant (applies the commands, integrates 1 ms)
+//! ```
+//!
+//! # Script (ms)
+//!
+//! | when | what |
+//! |---|---|
+//! | 5, 1380, 2760 | status requests (the watchdog stop and the stale fault show in the stream) |
+//! | 10 | enable |
+//! | 20..1200 | twists every 20 ms: straight, then with rotation, then a circle (`sinf`/`cosf`) |
+//! | ~1280 | the command watchdog expires: stop ramp, then disabled |
+//! | 1400 | enable; twists with rotation from 1410 |
+//! | 1500 | rejected frames: a twist over the speed limit, a short twist, an unknown id, an extended id |
+//! | 1900 | e-stop (twists keep coming until 2000 and are ignored) |
+//! | 2100, 2110 | reset, enable; twists 2120..2600 with a sinusoidal yaw rate |
+//! | 2600 | disable |
+//! | 2700 | wheel 2's feedback stops (DJI 10 ms, ODrive 50 ms): stale motor fault |
+//! | 2800, 2850 | reset, enable; twists 2860..3000 |
+
+#![no_std]
+#![forbid(unsafe_code)]
+#![warn(missing_docs)]
+
+use core::f32::consts::TAU;
+use core::fmt::{self, Write};
+
+use embedded_can::{ExtendedId, Frame, Id, StandardId};
+use firmware::protocol::dji::{self, EscId, EscModel};
+use firmware::protocol::odrive::{self, AxisState, NodeId};
+use firmware::protocol::robot::{self, Command, ModeRequest, TwistCmd};
+use firmware::{CanFrame, Config, Controller, Instant};
+
+/// Control steps of the full scenario (3 s at 1 kHz).
+pub const STEPS: u32 = 3000;
+
+/// The control period, µs (the example configurations run at 1 kHz).
+pub const PERIOD_US: u64 = 1000;
+
+/// Checkpoint lines (`ck`) every this many steps.
+pub const CHECKPOINT_EVERY: u32 = 100;
+
+/// Which example configuration to run.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub enum Setup {
+    /// `Config::dji_m3508_example()`: four C620 ESCs, current control.
+    Dji,
+    /// `Config::odrive_example()`: four ODrive axes, velocity setpoints.
+    Odrive,
+}
+
+impl Setup {
+    /// Both, in report order.
+    pub const ALL: [Self; 2] = [Self::Dji, Self::Odrive];
+
+    /// Short name used in the report.
+    #[must_use]
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::Dji => "dji",
+            Self::Odrive => "odrive",
+        }
+    }
+
+    /// The configuration.
+    #[must_use]
+    pub fn config(self) -> Config {
+        match self {
+            Self::Dji => Config::dji_m3508_example(),
+            Self::Odrive => Config::odrive_example(),
+        }
+    }
+}
+
+/// Hooks around the control core's work in each step (the frames passed to `on_frame` and
+/// the `step` call): the Cortex-M4 build puts instruction-count markers here.
+pub trait Probe {
+    /// Before the first `on_frame` of step `step`.
+    fn core_begin(&mut self, _setup: Setup, _step: u32) {}
+    /// After `step` returned.
+    fn core_end(&mut self, _setup: Setup, _step: u32) {}
+}
+
+/// A [`Probe`] that does nothing.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct NoProbe;
+
+impl Probe for NoProbe {}
+
+/// What to run and how much to print.
+#[derive(Clone, Copy, Debug)]
+pub struct Options {
+    /// Steps to run (the script is defined for [`STEPS`]).
+    pub steps: u32,
+    /// Print every n-th outbound frame (frame index 0, n, 2n, ...); 0 prints none.
+    pub frame_every: u32,
+    /// Print `ck` lines every [`CHECKPOINT_EVERY`] steps.
+    pub checkpoints: bool,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Self {
+            steps: STEPS,
+            frame_every: 100,
+            checkpoints: true,
+        }
+    }
+}
+
+/// The outcome of one run.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub struct Digest {
+    /// Outbound frames.
+    pub frames: u64,
+    /// FNV-1a 64 over every frame's time (u64 LE), id (u32 LE), dlc and data.
+    pub hash: u64,
+}
+
+/// FNV-1a, 64 bits.
+#[derive(Clone, Copy, Debug)]
+pub struct Fnv1a64(u64);
+
+impl Default for Fnv1a64 {
+    fn default() -> Self {
+        Self(0xcbf2_9ce4_8422_2325)
+    }
+}
+
+impl Fnv1a64 {
+    /// Feeds bytes.
+    pub fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.0 ^= u64::from(b);
+            self.0 = self.0.wrapping_mul(0x0000_0100_0000_01b3);
+        }
+    }
+
+    /// Feeds one outbound frame sent at `t_us`.
+    pub fn frame(&mut self, t_us: u64, frame: &CanFrame) {
+        let (id, ext) = match frame.id() {
+            Id::Standard(id) => (u32::from(id.as_raw()), 0u8),
+            Id::Extended(id) => (id.as_raw(), 1u8),
+        };
+        self.write(&t_us.to_le_bytes());
+        self.write(&id.to_le_bytes());
+        // dlc <= 8: the flags fit in the high bits.
+        let dlc = frame.dlc() as u8 | (ext << 6) | (u8::from(frame.is_remote_frame()) << 7);
+        self.write(&[dlc]);
+        self.write(frame.data());
+    }
+
+    /// The hash so far.
+    #[must_use]
+    pub const fn get(&self) -> u64 {
+        self.0
+    }
+}
+
+/// xorshift32: the plant's encoder jitter. Integer only.
+#[derive(Clone, Copy, Debug)]
+struct Rng(u32);
+
+impl Rng {
+    fn next(&mut self) -> u32 {
+        let mut x = self.0;
+        x ^= x << 13;
+        x ^= x >> 17;
+        x ^= x << 5;
+        self.0 = x;
+        x
+    }
+}
+
+/// DJI rotor model (motor side): `dω/dt = A·i − C·ω`. Steady state at the C620's 16 A limit:
+/// 960 rad/s (9,170 rpm); time constant 50 ms.
+const DJI_A: f32 = 1200.0;
+const DJI_C: f32 = 20.0;
+const DJI_COUNTS: f32 = 8192.0;
+
+/// ODrive axis model: the drive's own velocity loop as a first-order lag (1/40 s); coasting
+/// with a 0.5 s time constant when not in closed loop.
+const OD_K: f32 = 40.0;
+const OD_COAST: f32 = 2.0;
+
+#[derive(Clone, Copy, Debug)]
+struct Axis {
+    /// DJI: rotor speed, rad/s. ODrive: velocity, rev/s (motor side).
+    speed: f32,
+    /// DJI: rotor angle, counts in [0, 8192). ODrive: position, rev.
+    pos: f32,
+    /// DJI: commanded current, A, and its raw value. ODrive: velocity setpoint, rev/s.
+    cmd: f32,
+    raw: i16,
+    state: AxisState,
+}
+
+/// The scripted plant: four motors that answer the controller's frames.
+#[derive(Debug)]
+struct Plant {
+    setup: Setup,
+    axes: [Axis; 4],
+    rng: Rng,
+}
+
+/// Frames one step can feed the controller (4 estimates + 4 heartbeats, or 4 DJI feedbacks).
+type Inbox = [Option<CanFrame>; 8];
+
+impl Plant {
+    fn new(setup: Setup) -> Self {
+        let axis = Axis {
+            speed: 0.0,
+            pos: 0.0,
+            cmd: 0.0,
+            raw: 0,
+            state: AxisState::Idle,
+        };
+        let mut axes = [axis; 4];
+        // Different starting angles so the encoders do not move in lockstep.
+        for (i, a) in axes.iter_mut().enumerate() {
+            a.pos = match setup {
+                Setup::Dji => 1000.0 * i as f32 + 17.0,
+                Setup::Odrive => 0.25 * i as f32 - 0.3,
+            };
+        }
+        Self {
+            setup,
+            axes,
+            rng: Rng(0x1234_5678),
+        }
+    }
+
+    fn feedback(&mut self, ms: u32, inbox: &mut Inbox) {
+        *inbox = [None; 8];
+        match self.setup {
+            Setup::Dji => {
+                for (i, a) in self.axes.iter().enumerate() {
+                    // Up to ±1 count of jitter; the rng advances even when the frame is lost.
+                    let jitter = (self.rng.next() % 3) as i32 - 1;
+                    if dropped(self.setup, ms, i) {
+                        continue;
+                    }
+                    let Some(esc) = EscId::new(i as u8 + 1) else {
+                        continue;
+                    };
+                    let angle = (a.pos as i32 + jitter).rem_euclid(DJI_COUNTS as i32) as u16;
+                    let fb = dji::Feedback {
+                        model: EscModel::C620,
+                        esc,
+                        rotor_angle: angle,
+                        rotor_speed_rpm: (a.speed * (60.0 / TAU)) as i16,
+                        torque_current: a.raw,
+                        temperature_c: 30 + (ms / 500) as u8,
+                    };
+                    inbox[i] = Some(fb.to_can_frame());
+                }
+            }
+            Setup::Odrive => {
+                for (i, a) in self.axes.iter().enumerate() {
+                    if dropped(self.setup, ms, i) {
+                        continue;
+                    }
+                    let Some(node) = NodeId::new(i as u8) else {
+                        continue;
+                    };
+                    // Estimates every 10 ms, heartbeats every 100 ms (ODrive defaults), offset
+                    // per node like drives that booted at different times.
+                    let phase = ms + i as u32 * 3;
+                    if phase.is_multiple_of(10) {
+                        let est = odrive::Feedback::EncoderEstimates {
+                            pos: a.pos,
+                            vel: a.speed,
+                        };
+                        inbox[i] = Some(est.to_can_frame(node));
+                    }
+                    if phase.is_multiple_of(100) {
+                        let hb = odrive::Feedback::Heartbeat(odrive::Heartbeat {
+                            axis_error: 0,
+                            axis_state: a.state,
+                            procedure_result: 0,
+                            trajectory_done: true,
+                        });
+                        inbox[4 + i] = Some(hb.to_can_frame(node));
+                    }
+                }
+            }
+        }
+    }
+
+    /// Takes one frame the controller sent.
+    fn receive(&mut self, frame: &CanFrame) {
+        match self.setup {
+            Setup::Dji => {
+                if let Ok(cmd) = dji::CurrentCommand::decode(frame, EscModel::C620) {
+                    let first = usize::from(cmd.group.first_esc()) - 1;
+                    for (slot, &raw) in cmd.raw.iter().enumerate() {
+                        if let Some(a) = self.axes.get_mut(first + slot) {
+                            a.raw = raw;
+                            a.cmd = EscModel::C620.raw_to_amps(raw);
+                        }
+                    }
+                }
+            }
+            Setup::Odrive => {
+                if let Ok(odrive::Addressed { node, msg }) = odrive::Command::decode(frame) {
+                    let Some(a) = self.axes.get_mut(usize::from(node.get())) else {
+                        return;
+                    };
+                    match msg {
+                        odrive::Command::SetInputVel { vel, .. } => a.cmd = vel,
+                        odrive::Command::SetAxisState(s) => {
+                            a.state = s;
+                            if s != AxisState::ClosedLoopControl {
+                                a.cmd = 0.0;
+                            }
+                        }
+                        _ => {}
+                    }
+                }
+            }
+        }
+    }
+
+    /// Integrates one period, `dt` s.
+    fn advance(&mut self, dt: f32) {
+        for a in &mut self.axes {
+            match self.setup {
+                Setup::Dji => {
+                    a.speed += dt * (DJI_A * a.cmd - DJI_C * a.speed);
+                    a.pos += a.speed * dt * (DJI_COUNTS / TAU);
+                    while a.pos >= DJI_COUNTS {
+                        a.pos -= DJI_COUNTS;
+                    }
+                    while a.pos < 0.0 {
+                        a.pos += DJI_COUNTS;
+                    }
+                }
+                Setup::Odrive => {
+                    if a.state == AxisState::ClosedLoopControl {
+                        a.speed += (a.cmd - a.speed) * (OD_K * dt);
+                    } else {
+                        a.speed -= a.speed * (OD_COAST * dt);
+                    }
+                    a.pos += a.speed * dt;
+                }
+            }
+        }
+    }
+}
+
+/// Wheel `i`'s feedback is missing at `ms` (the stale-motor part of the script).
+fn dropped(setup: Setup, ms: u32, i: usize) -> bool {
+    let len = match setup {
+        Setup::Dji => 10,
+        Setup::Odrive => 50,
+    };
+    i == 2 && (2700..2700 + len).contains(&ms)
+}
+
+fn twist_frame(vx: f32, vy: f32, wz: f32, seq: u8) -> CanFrame {
+    Command::Twist(TwistCmd { vx, vy, wz, seq }).to_can_frame()
+}
+
+/// The host's frames at `ms` (see the script in the crate documentation).
+fn host_commands(ms: u32, seq: &mut u8, out: &mut [Option<CanFrame>; 6]) {
+    *out = [None; 6];
+    let mut n = 0;
+    let mut put = |f: CanFrame| {
+        if let Some(slot) = out.get_mut(n) {
+            *slot = Some(f);
+            n += 1;
+        }
+    };
+    match ms {
+        5 | 1380 | 2760 => put(Command::StatusRequest.to_can_frame()),
+        10 | 1400 | 2110 | 2850 => put(Command::Mode(ModeRequest::Enable).to_can_frame()),
+        1900 => put(Command::Estop.to_can_frame()),
+        2100 | 2800 => put(Command::Mode(ModeRequest::Reset).to_can_frame()),
+        2600 => put(Command::Mode(ModeRequest::Disable).to_can_frame()),
+        1500 => {
+            // Rejected: over max_linear_speed, a 7-byte twist, an unknown id, an extended id.
+            put(twist_frame(3.5, 0.0, 0.0, 0));
+            let twist = robot::layout::TWIST_CMD.id;
+            if let Some(id) = StandardId::new(twist) {
+                put(CanFrame::standard(id, &[0; 7])
+                    .unwrap_or_else(|| twist_frame(0.0, 0.0, 0.0, 0)));
+            }
+            if let Some(id) = StandardId::new(0x123) {
+                put(CanFrame::standard(id, &[1, 2, 3])
+                    .unwrap_or_else(|| twist_frame(0.0, 0.0, 0.0, 0)));
+            }
+            if let Some(id) = ExtendedId::new(0x0123_4567)
+                && let Some(f) = CanFrame::new(id, &[0xAA; 8])
+            {
+                put(f);
+            }
+            put(twist_frame(-0.4, 0.6, 3.0, *seq));
+            *seq = seq.wrapping_add(1);
+        }
+        _ => {}
+    }
+    if ms.is_multiple_of(20) && ms != 1500 {
+        let t = ms as f32 * 0.001;
+        let twist = match ms {
+            20..100 => Some((0.8, 0.0, 0.0)),
+            100..800 => Some((0.5, 0.3, 1.5)),
+            800..1200 => {
+                let (s, c) = libm::sincosf(4.0 * t);
+                Some((0.6 * c, 0.6 * s, -2.0))
+            }
+            1410..1900 => Some((-0.4, 0.6, 3.0)),
+            1900..2000 => Some((1.0, 0.0, 0.0)),
+            2120..2600 => Some((0.3, -0.2, 2.5 * libm::sinf(10.0 * t))),
+            2860..3000 => Some((0.7, 0.7, -1.0)),
+            _ => None,
+        };
+        if let Some((vx, vy, wz)) = twist {
+            put(twist_frame(vx, vy, wz, *seq));
+            *seq = seq.wrapping_add(1);
+        }
+    }
+}
+
+/// Hex of an `f32`'s bits, for the report (exact, unlike a decimal rendering).
+struct Bits(f32);
+
+impl fmt::Display for Bits {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{:08x}", self.0.to_bits())
+    }
+}
+
+/// Runs the scenario for `setup` and writes its report to `out`:
+///
+/// ```text
+/// begin <setup> steps=<n>
+/// f <setup> <frame index> <t_us> <candump>          every `frame_every`-th frame
+/// ck <setup> step=<k> frames=<n> hash=<16 hex>      after every 100th step
+/// end <setup> frames=<n> hash=<16 hex> state=<s> fault=<f> pose=<x>,<y>,<heading bits> rx_errors=<n>
+/// ```
+///
+/// # Errors
+/// Only those of `out`.
+///
+/// # Panics
+/// If the example configuration is rejected (a bug in the firmware crate).
+pub fn run<W: Write, P: Probe>(
+    setup: Setup,
+    opts: &Options,
+    out: &mut W,
+    probe: &mut P,
+) -> Result<Digest, fmt::Error> {
+    let config = setup.config();
+    let mut ctl = match Controller::new(&config) {
+        Ok(ctl) => ctl,
+        Err(e) => panic!("example configuration rejected: {}", e.field),
+    };
+    let dt = ctl.period();
+    let name = setup.name();
+    let mut plant = Plant::new(setup);
+    let mut hash = Fnv1a64::default();
+    let mut frames = 0u64;
+    let mut seq = 0u8;
+    let mut inbox: Inbox = [None; 8];
+    let mut cmds = [None; 6];
+    writeln!(out, "begin {name} steps={}", opts.steps)?;
+    for k in 0..opts.steps {
+        let now = Instant::from_micros(u64::from(k) * PERIOD_US);
+        plant.feedback(k, &mut inbox);
+        host_commands(k, &mut seq, &mut cmds);
+
+        probe.core_begin(setup, k);
+        for f in inbox.iter().chain(cmds.iter()).flatten() {
+            ctl.on_frame(now, f);
+        }
+        let outbox = ctl.step(now);
+        probe.core_end(setup, k);
+
+        for f in &outbox {
+            hash.frame(now.as_micros(), f);
+            if opts.frame_every != 0 && frames.is_multiple_of(u64::from(opts.frame_every)) {
+                writeln!(out, "f {name} {frames} {} {f}", now.as_micros())?;
+            }
+            frames += 1;
+            plant.receive(f);
+        }
+        plant.advance(dt);
+        if opts.checkpoints && (k + 1).is_multiple_of(CHECKPOINT_EVERY) {
+            writeln!(
+                out,
+                "ck {name} step={} frames={frames} hash={:016x}",
+                k + 1,
+                hash.get()
+            )?;
+        }
+    }
+    let s = ctl.snapshot();
+    writeln!(
+        out,
+        "end {name} frames={frames} hash={:016x} state={:?} fault={:?} pose={},{},{} rx_errors={}",
+        hash.get(),
+        s.state,
+        s.fault,
+        Bits(s.pose.x),
+        Bits(s.pose.y),
+        Bits(s.pose.heading),
+        s.rx_errors.total(),
+    )?;
+    Ok(Digest {
+        frames,
+        hash: hash.get(),
+    })
+}
+
+/// Runs both setups and ends with a `total` line: frames of both and the hash of the two
+/// hashes.
+///
+/// # Errors
+/// Only those of `out`.
+pub fn run_all<W: Write, P: Probe>(
+    opts: &Options,
+    out: &mut W,
+    probe: &mut P,
+) -> Result<Digest, fmt::Error> {
+    let mut total = Digest { frames: 0, hash: 0 };
+    let mut h = Fnv1a64::default();
+    for setup in Setup::ALL {
+        let d = run(setup, opts, out, probe)?;
+        total.frames += d.frames;
+        h.write(&d.hash.to_le_bytes());
+    }
+    total.hash = h.get();
+    writeln!(
+        out,
+        "total frames={} hash={:016x}",
+        total.frames, total.hash
+    )?;
+    Ok(total)
+}
