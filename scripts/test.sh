@@ -47,6 +47,20 @@ stage "board $BOARD: flash and RAM (budgets 256 KiB flash, 32 KiB static RAM)"
 python3 "$BOARD/size.py" "$BOARD/target/$THUMB/release/board-stm32f407" \
     --max-flash 262144 --max-ram 32768
 
+# The emulated Cortex-M4 (QEMU mps2-an386) board: its own workspace, like the STM32F407 one.
+# The firmware core and a fixed scenario run there and on the host; the outbound frame streams
+# must be bit-identical (scripts/xtarget.sh installs qemu-system-arm when root and missing).
+QEMU_BOARD=boards/qemu-m4
+stage "board $QEMU_BOARD: fmt"
+cargo fmt --check --all --manifest-path "$QEMU_BOARD/Cargo.toml"
+stage "board $QEMU_BOARD: clippy (-D warnings; M4, M4 icount, host)"
+(cd "$QEMU_BOARD" && cargo clippy --release --locked -- -D warnings &&
+    cargo clippy --release --locked --features icount -- -D warnings &&
+    cargo clippy --release --locked -p xtarget-scenario \
+        --target "$(rustc -vV | sed -n 's/^host: //p')" -- -D warnings)
+stage "cross-target determinism: Cortex-M4 (QEMU) against the host, instructions per step"
+scripts/xtarget.sh
+
 stage "benchmarks compile"
 cargo bench -p kinematics -p firmware --no-run --locked
 
