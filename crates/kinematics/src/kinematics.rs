@@ -243,6 +243,30 @@ impl<T: Real, const N: usize> MecanumKinematics<T, N> {
         (v, WheelSpeeds(residual))
     }
 
+    /// Each wheel's speed as the *other* wheels imply it: the body velocity fitted to every
+    /// wheel but `i`, mapped back to wheel `i` (rad/s). `None` where the other wheels do not
+    /// determine it (three wheels, or a layout where wheel `i` alone constrains a direction).
+    ///
+    /// This is the leave-one-out prediction of least squares, `w_i − r_i / (1 − h_ii)` with
+    /// `r` the residual of [`forward_with_residual`](Self::forward_with_residual) and `h_ii`
+    /// the diagonal of `J J⁺`, so no matrix is refitted. With four wheels it is exactly the
+    /// speed the three others force (standard layout: `FL + FR = RL + RR`). A wheel whose
+    /// sensor reads nothing while the others move shows up as a large gap between its own
+    /// speed and this one.
+    #[must_use]
+    pub fn implied_by_others(&self, speeds: &WheelSpeeds<T, N>) -> [Option<T>; N] {
+        let (_, residual) = self.forward_with_residual(speeds);
+        core::array::from_fn(|i| {
+            let mut leverage = T::zero();
+            for k in 0..3 {
+                leverage += self.inverse[(i, k)] * self.forward[(k, i)];
+            }
+            // 1 - h_ii is in [0, 1]; near 0 the others say (almost) nothing about wheel i.
+            let free = T::one() - leverage;
+            (free > T::lit(1e-3)).then(|| speeds.0[i] - residual.0[i] / free)
+        })
+    }
+
     /// Forward kinematics of one step: the body displacement (in the body frame at the start
     /// of the step) that best explains the wheel angle increments.
     #[must_use]

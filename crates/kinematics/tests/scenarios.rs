@@ -160,6 +160,36 @@ fn residual_measures_wheel_disagreement() {
 }
 
 #[test]
+fn each_wheel_as_the_other_three_imply_it() {
+    let kin = kin();
+    for (name, _, wheels) in scenarios() {
+        // Agreeing wheels: every wheel is what the others say.
+        let implied = kin.implied_by_others(&WheelSpeeds(wheels));
+        for (i, w) in implied.iter().enumerate() {
+            assert_close(w.expect("four wheels"), wheels[i], 1e-9, name);
+        }
+        // One wheel reads zero (a dead sensor): the others still give its true speed, the
+        // standard rows' FL + FR = RL + RR solved for that wheel.
+        for dead in 0..4 {
+            let mut measured = wheels;
+            measured[dead] = 0.0;
+            let [fl, fr, rl, rr] = measured;
+            let want = [rl + rr - fr, rl + rr - fl, fl + fr - rr, fl + fr - rl][dead];
+            let got = kin.implied_by_others(&WheelSpeeds(measured))[dead].unwrap();
+            assert_close(got, want, 1e-9, name);
+            assert_close(got, wheels[dead], 1e-9, name);
+        }
+    }
+    // Three wheels: nothing is over-determined, nothing is implied.
+    let three =
+        MecanumKinematics::new(three_wheel([0.0, 0.0, core::f64::consts::FRAC_PI_2])).unwrap();
+    assert_eq!(
+        three.implied_by_others(&WheelSpeeds([1.0, 2.0, 3.0])),
+        [None; 3]
+    );
+}
+
+#[test]
 fn general_model_equals_standard_rows() {
     let q = core::f64::consts::FRAC_PI_4;
     let a = core::f64::consts::FRAC_PI_2;
