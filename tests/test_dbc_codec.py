@@ -38,7 +38,7 @@ ENUM_VALUES = {
     "magic": [0xE5],
     "request": [0, 1, 2],
     "state": [0, 1, 2, 3],
-    "fault": [0, 1, 2, 3, 4, 5],
+    "fault": [0, 1, 2, 3, 4, 5, 6],
     "Axis_State": list(range(15)),
     "Axis_Requested_State": list(range(15)),
     "Control_Mode": [0, 1, 2, 3],
@@ -281,7 +281,7 @@ def test_rust_rejects_dbc_values_outside_enums_but_dbc_encodes_them(run_codec, d
     status = robot.get_message_by_name("STATUS")
     table = {int(k): str(v) for k, v in status.get_signal_by_name("fault").choices.items()}
     assert table == {0: "NONE", 1: "MOTOR_STALE", 2: "MOTOR_MISSING", 3: "DRIVE_ERROR",
-                     4: "WATCHDOG", 5: "CONFIG"}
+                     4: "WATCHDOG", 5: "CONFIG", 6: "ENCODER_STUCK"}
     request = robot.get_message_by_name("MODE_CMD").get_signal_by_name("request")
     assert set(request.choices) == set(ENUM_VALUES["request"])
     odrive = dbs["odrive"]
@@ -290,7 +290,7 @@ def test_rust_rejects_dbc_values_outside_enums_but_dbc_encodes_them(run_codec, d
     assert set(mode.get_signal_by_name("Input_Mode").choices) == set(ENUM_VALUES["Input_Mode"])
     state = odrive.get_message_by_name("Axis0_Heartbeat").get_signal_by_name("Axis_State")
     assert set(state.choices) == set(ENUM_VALUES["Axis_State"])
-    out = run_codec("decode", lines=[candump(0x312, bytes([0, 6, 0, 0, 0, 0, 0, 0]))])
+    out = run_codec("decode", lines=[candump(0x312, bytes([0, 7, 0, 0, 0, 0, 0, 0]))])
     assert out[0]["error"]["kind"] == "out_of_range"
 
 
@@ -346,7 +346,7 @@ MALFORMED = [
     ("300#E4", "out_of_range", {"field": "magic", "value": 0xE4}),
     ("302#03", "out_of_range", {"field": "request", "value": 3}),
     ("312#0400000000000000", "out_of_range", {"field": "state", "value": 4}),
-    ("312#0006000000000000", "out_of_range", {"field": "fault", "value": 6}),
+    ("312#0007000000000000", "out_of_range", {"field": "fault", "value": 7}),
     ("312#0000000000001000", "out_of_range", {"field": "motors_online", "value": 16}),
     ("31F#0000000004010000", "out_of_range", {"field": "state", "value": 4}),
     ("001#000000000F000000", "out_of_range", {"field": "Axis_State", "value": 15}),

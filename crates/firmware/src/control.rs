@@ -5,7 +5,7 @@
 //!
 //! ```text
 //! on_frame ─► decode (typed; errors counted) ─► robot commands │ motor feedback (encoders, speeds)
-//! step(now) ─► motor health (missing / stale / drive error → fault)
+//! step(now) ─► motor health (missing / stale / drive error / stuck encoder → fault)
 //!           ─► command watchdog (expired → stop ramp → disable, latched)
 //!           ─► acceleration limits ─► inverse kinematics ─► desaturation
 //!           ─► per-wheel velocity PI (current drives) │ velocity setpoints (ODrive)
@@ -21,6 +21,47 @@
 //! | `Enabled` | driven | `disable`, watchdog stop completed → `Disabled`; fault → `Fault`; e-stop → `Estop` |
 //! | `Fault` | no torque | `MODE_CMD reset` → `Disabled` |
 //! | `Estop` | no torque | `MODE_CMD reset` → `Disabled` |
+//!
+//! # Faults
+//!
+//! Checked at every step, in this order (the first that applies is reported); each one moves
+//! `Disabled` or `Enabled` to `Fault` with no torque, latched until `MODE_CMD reset` (which
+//! faults again at the next step if the cause is still there).
+//!
+//! | fault | condition | latency |
+//! |---|---|---|
+//! | `MotorMissing` | a motor never reported, `timing.boot_timeout_ms` after the first step | the next step |
+//! | `MotorStale` | a motor's last feedback is older than `timing.stale_periods` feedback periods (DJI 1 ms, ODrive estimates 10 ms) | ≤ that + one control period after its last frame |
+//! | `DriveError` | an ODrive heartbeat or `Get_Error` reports a nonzero axis error | the next step |
+//! | `EncoderStuck` | see below (DJI only) | [`ENCODER_STUCK_SPINNING_US`] / [`ENCODER_STUCK_DRAGGED_US`] after the signature appears |
+//!
+//! `Watchdog` is not a fault state but the reason a watchdog stop gives (below); `Config`
+//! is for runners that refuse a configuration.
+//!
+//! ## Stuck encoder (DJI)
+//!
+//! A C620/C610 whose feedback keeps arriving but whose rotor angle stays within
+//! [`ENCODER_STUCK_BAND_COUNTS`] counts of where it last moved is *still*. A still rotor is
+//! a stuck encoder when, at every step for a window,
+//!
+//! 1. **spinning**: it reports a rotor speed of at least [`ENCODER_STUCK_MIN_ROTOR_RPM`]
+//!    (a rotor at 100 rpm moves 13.7 counts per millisecond, so a still angle contradicts
+//!    the speed in the same frame). Window [`ENCODER_STUCK_SPINNING_US`]. This is also what
+//!    an ESC or gateway that repeats one stale frame looks like.
+//! 2. **dragged**: its commanded current is at least [`ENCODER_STUCK_MIN_CURRENT`] of
+//!    `limits.max_current` *and* the other three wheels imply
+//!    ([`MecanumKinematics::implied_by_others`]) that it turns at least as fast as rule 1's
+//!    speed. Window [`ENCODER_STUCK_DRAGGED_US`], longer because the evidence is indirect.
+//!    This covers an encoder that reads zero speed too.
+//!
+//! A wheel that is genuinely blocked while the others stand (the robot against a wall) is not
+//! flagged: it reports no speed and nothing implies that it turns. A wheel locked on its own
+//! while the chassis drags it over the ground looks exactly like rule 2 and is reported as
+//! `EncoderStuck`; either way the drive cannot follow its setpoint and stopping is right.
+//! The detector reads only feedback frames, the step's own currents and `now`: no clock,
+//! no heap. ODrive axes are not watched here: the ODrive runs its own velocity loop on the
+//! same encoder and reports encoder and spin-out failures in its axis error, which becomes
+//! `DriveError`.
 //!
 //! Only a valid `TWIST_CMD` received while enabled feeds the watchdog: status requests, mode
 //! commands and rejected twists never do. After an enable the robot holds still until a
@@ -48,6 +89,19 @@ use crate::protocol::robot::{self, Command, ModeRequest, RobotState, TwistCmd};
 use crate::protocol::{DecodeError, RxErrorCounters};
 
 pub use crate::protocol::robot::Fault;
+
+/// Stuck-encoder band: a rotor angle within this many counts (of 8192 per rotor turn) of
+/// where the rotor last moved counts as not moving.
+pub const ENCODER_STUCK_BAND_COUNTS: u16 = 2;
+/// Rotor speed (rpm, motor side, either sign) above which a still angle is a contradiction.
+pub const ENCODER_STUCK_MIN_ROTOR_RPM: f32 = 100.0;
+/// How long a still rotor must report speed before `EncoderStuck` (rule 1), µs.
+pub const ENCODER_STUCK_SPINNING_US: u64 = 10_000;
+/// How long a still rotor must be driven while the other wheels move before `EncoderStuck`
+/// (rule 2), µs.
+pub const ENCODER_STUCK_DRAGGED_US: u64 = 50_000;
+/// Fraction of `limits.max_current` that counts as driven hard (rule 2).
+pub const ENCODER_STUCK_MIN_CURRENT: f32 = 0.25;
 
 /// A point in time, microseconds since an arbitrary epoch; monotonic. The core never reads a
 /// clock: the adapter (runner, board, simulator) passes it in.
@@ -108,6 +162,53 @@ struct Motor {
     axis_state: Option<AxisState>,
     /// Velocity PI integrator, A.
     integral: f32,
+    /// DJI: stuck-encoder watch.
+    watch: StuckWatch,
+}
+
+/// Stuck-encoder watch of one DJI motor (see the [module documentation](self)).
+#[derive(Debug, Clone, Copy, Default)]
+struct StuckWatch {
+    /// Rotor angle, raw counts, where the rotor was last seen to move.
+    anchor: Option<u16>,
+    /// A feedback frame after the one that set `anchor` stayed within the band.
+    still: bool,
+    /// First step of the running interval of rule 1 (still and reporting speed).
+    spinning_since: Option<Instant>,
+    /// First step of the running interval of rule 2 (still, driven, the others move).
+    dragged_since: Option<Instant>,
+}
+
+impl StuckWatch {
+    fn on_angle(&mut self, raw: u16, counts_per_turn: u16) {
+        match self.anchor {
+            Some(a) if circular_distance(raw, a, counts_per_turn) <= ENCODER_STUCK_BAND_COUNTS => {
+                self.still = true;
+            }
+            _ => {
+                self.anchor = Some(raw);
+                self.still = false;
+            }
+        }
+    }
+
+    /// Updates both intervals for this step; `true` once either has lasted its window.
+    fn judge(&mut self, now: Instant, spinning: bool, dragged: bool) -> bool {
+        let since = |flag: bool, start: Option<Instant>| flag.then(|| start.unwrap_or(now));
+        self.spinning_since = since(self.still && spinning, self.spinning_since);
+        self.dragged_since = since(self.still && dragged, self.dragged_since);
+        self.spinning_since
+            .is_some_and(|t| now.micros_since(t) >= ENCODER_STUCK_SPINNING_US)
+            || self
+                .dragged_since
+                .is_some_and(|t| now.micros_since(t) >= ENCODER_STUCK_DRAGGED_US)
+    }
+}
+
+/// Distance between two readings of a counter that wraps at `modulus`, the short way round.
+fn circular_distance(a: u16, b: u16, modulus: u16) -> u16 {
+    let d = a.abs_diff(b) % modulus;
+    d.min(modulus - d)
 }
 
 /// Snapshot of the controller for logs and tests.
@@ -148,6 +249,9 @@ pub struct Controller {
     dt: f32,
     /// Expected feedback period of the motors, µs (staleness reference).
     feedback_period_us: u64,
+    /// DJI: wheel speed (rad/s) of [`ENCODER_STUCK_MIN_ROTOR_RPM`]; `None` for drives whose
+    /// encoders are not watched.
+    stuck_speed: Option<f32>,
     odom_every: u64,
     status_every: u64,
     setpoint_every: u64,
@@ -189,7 +293,7 @@ impl Controller {
             expected: "a valid layout",
         })?;
         let t = &config.timing;
-        let (inverted, feedback_period_us, encoder_cfg) = match config.drive {
+        let (inverted, feedback_period_us, encoder_cfg, stuck_speed) = match config.drive {
             Drive::Dji {
                 model,
                 gear_ratio,
@@ -201,12 +305,14 @@ impl Controller {
                     EscModel::C610 => EncoderConfig::dji_m2006(false),
                 };
                 e.gear_ratio = gear_ratio;
+                let rpm_to_wheel = core::f32::consts::TAU / 60.0 / gear_ratio;
                 // DJI ESCs send feedback every millisecond.
-                (inverted, 1_000, e)
+                let stuck = ENCODER_STUCK_MIN_ROTOR_RPM * rpm_to_wheel;
+                (inverted, 1_000, e, Some(stuck))
             }
             Drive::Odrive { inverted, .. } => {
                 // Encoder estimates every 10 ms (ODrive default); the encoder is unused.
-                (inverted, 10_000, EncoderConfig::dji_m3508(false))
+                (inverted, 10_000, EncoderConfig::dji_m3508(false), None)
             }
         };
         let encoder = Encoder::new(&encoder_cfg).map_err(|_| ConfigError {
@@ -223,6 +329,7 @@ impl Controller {
             axis_error: 0,
             axis_state: None,
             integral: 0.0,
+            watch: StuckWatch::default(),
         };
         Ok(Self {
             config: *config,
@@ -230,6 +337,7 @@ impl Controller {
             sign: inverted.map(|i| if i { -1.0 } else { 1.0 }),
             dt: 1.0 / t.control_hz as f32,
             feedback_period_us,
+            stuck_speed,
             odom_every: u64::from(t.control_hz / t.odometry_hz),
             status_every: u64::from(t.control_hz / t.status_hz),
             setpoint_every: u64::from(t.control_hz / t.setpoint_hz),
@@ -438,6 +546,7 @@ impl Controller {
         let m = &mut self.motors[wheel];
         // The decoder has checked the angle range, so the encoder accepts it.
         let counts = m.encoder.update(u32::from(fb.rotor_angle)).unwrap_or(0);
+        m.watch.on_angle(fb.rotor_angle, dji::layout::ANGLE_COUNTS);
         m.pending += sign * m.encoder.counts_to_radians(counts);
         m.speed = sign * fb.rotor_speed_rad_s() / gear_ratio;
         m.last_seen = Some(now);
@@ -559,12 +668,41 @@ impl Controller {
                 break;
             }
         }
+        if self.watch_encoders(now) && fault == Fault::None {
+            fault = Fault::EncoderStuck;
+        }
         if fault != Fault::None && matches!(self.state, RobotState::Disabled | RobotState::Enabled)
         {
             self.state = RobotState::Fault;
             self.fault = fault;
             self.halt();
         }
+    }
+
+    /// Runs every DJI motor's stuck-encoder watch for this step; `true` if one has fired.
+    /// The currents are those of the previous step (the ones the motors are acting on).
+    fn watch_encoders(&mut self, now: Instant) -> bool {
+        let Some(min_speed) = self.stuck_speed else {
+            return false;
+        };
+        let min_current = ENCODER_STUCK_MIN_CURRENT * self.config.limits.max_current;
+        let driven: [bool; 4] = core::array::from_fn(|i| {
+            self.motors[i].watch.still && self.currents[i].abs() >= min_current
+        });
+        // The least-squares fit is only worth its cost when some still wheel is driven.
+        let implied = if driven.contains(&true) {
+            self.kin
+                .implied_by_others(&WheelSpeeds(self.motors.map(|m| m.speed)))
+        } else {
+            [None; 4]
+        };
+        let mut stuck = false;
+        for (i, m) in self.motors.iter_mut().enumerate() {
+            let spinning = m.speed.abs() >= min_speed;
+            let dragged = driven[i] && implied[i].is_some_and(|w| w.abs() >= min_speed);
+            stuck |= m.watch.judge(now, spinning, dragged);
+        }
+        stuck
     }
 
     fn run_watchdog(&mut self, now: Instant) {

@@ -574,6 +574,7 @@ fn state_name(s: &Snapshot) -> (&'static str, &'static str) {
         Fault::DriveError => "DriveError",
         Fault::Watchdog => "Watchdog",
         Fault::Config => "Config",
+        Fault::EncoderStuck => "EncoderStuck",
     };
     (state, fault)
 }

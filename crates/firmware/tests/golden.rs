@@ -206,6 +206,7 @@ fn robot_status() {
         Fault::DriveError,
         Fault::Watchdog,
         Fault::Config,
+        Fault::EncoderStuck,
     ];
     for (raw, fault) in faults.into_iter().enumerate() {
         let f = frame(0x312, &[2, raw as u8, 0, 0, 0, 0, 0, 0]);
@@ -216,7 +217,7 @@ fn robot_status() {
     }
     for (data, field, value) in [
         ([4u8, 0, 0, 0, 0, 0, 0, 0], "state", 4),
-        ([0, 6, 0, 0, 0, 0, 0, 0], "fault", 6),
+        ([0, 7, 0, 0, 0, 0, 0, 0], "fault", 7),
         ([0, 0, 0, 0, 0, 0, 0x10, 0], "motors_online", 16),
     ] {
         assert_eq!(

@@ -131,7 +131,7 @@ proptest! {
     }
 
     #[test]
-    fn robot_status_heartbeat_mode_round_trip(state in robot_state(), fault in 0u8..6,
+    fn robot_status_heartbeat_mode_round_trip(state in robot_state(), fault in 0u8..7,
             rx_errors in any::<u16>(), unknown_ids in any::<u16>(), motors in 0u8..16,
             seq in any::<u8>(), uptime_ms in any::<u32>(), version in any::<u8>(), mode in 0u8..3) {
         let s = robot::Telemetry::Status(Status {

@@ -526,6 +526,7 @@ fn golden_set() -> Vec<AnyMessage> {
         (RobotState::Fault, Fault::DriveError),
         (RobotState::Disabled, Fault::Watchdog),
         (RobotState::Fault, Fault::Config),
+        (RobotState::Fault, Fault::EncoderStuck),
         (RobotState::Estop, Fault::None),
     ] {
         v.push(AnyMessage::Robot(robot::Message::Telemetry(RT::Status(

@@ -162,8 +162,8 @@ pub mod layout {
 
     /// `STATUS.state`: 0 disabled, 1 enabled, 2 fault, 3 estop.
     pub const STATUS_STATE: Field = Field::int("state", 0, U8, Little).range(0, 3);
-    /// `STATUS.fault`: 0 none .. 5 config.
-    pub const STATUS_FAULT: Field = Field::int("fault", 1, U8, Little).range(0, 5);
+    /// `STATUS.fault`: 0 none .. 6 encoder stuck.
+    pub const STATUS_FAULT: Field = Field::int("fault", 1, U8, Little).range(0, 6);
     /// `STATUS.rx_errors`: rejected frames, saturating.
     pub const STATUS_RX_ERRORS: Field = Field::int("rx_errors", 2, U16, Little);
     /// `STATUS.unknown_ids`: frames with unknown ids, saturating.
@@ -210,7 +210,9 @@ pub enum RobotState {
     Estop = 3,
 }
 
-/// The latest fault (`STATUS.fault`). Raw values 6..=255 are reserved for later versions.
+/// The latest fault (`STATUS.fault`). Raw values 7..=255 are reserved for later versions.
+///
+/// How each is detected, and how fast: [`crate::control`].
 #[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
 #[repr(u8)]
 pub enum Fault {
@@ -226,6 +228,9 @@ pub enum Fault {
     Watchdog = 4,
     /// The configuration was rejected.
     Config = 5,
+    /// A motor's feedback keeps arriving but its rotor angle does not move while the motor
+    /// reports speed, or while it is driven hard and the other wheels say it turns.
+    EncoderStuck = 6,
 }
 
 macro_rules! u8_enum {
@@ -251,7 +256,15 @@ macro_rules! u8_enum {
 
 u8_enum!(ModeRequest { Disable = 0, Enable = 1, Reset = 2 });
 u8_enum!(RobotState { Disabled = 0, Enabled = 1, Fault = 2, Estop = 3 });
-u8_enum!(Fault { None = 0, MotorStale = 1, MotorMissing = 2, DriveError = 3, Watchdog = 4, Config = 5 });
+u8_enum!(Fault {
+    None = 0,
+    MotorStale = 1,
+    MotorMissing = 2,
+    DriveError = 3,
+    Watchdog = 4,
+    Config = 5,
+    EncoderStuck = 6,
+});
 
 /// A twist setpoint (`TWIST_CMD`), body frame.
 #[derive(Clone, Copy, PartialEq, Debug, Default)]
