@@ -1,7 +1,8 @@
 //! Scenarios: what the host does and what goes wrong, on a timeline.
 //!
 //! A scenario is a list of timed host [`Action`]s (enable, twist setpoints, e-stop, silence)
-//! and timed [`FaultSpec`]s (bus faults, a stuck encoder, a motor offline), plus the drive
+//! and timed [`FaultSpec`]s (bus faults, a stuck encoder, a motor offline, a host sending
+//! non-finite twists), plus the drive
 //! configuration and a seed. While a twist setpoint is active and the host is not silent,
 //! the host streams `TWIST_CMD` frames at `command_hz`, as a teleoperation or navigation
 //! stack would.
@@ -29,6 +30,7 @@
 //!
 //! [[faults]]
 //! kind = "drop"             # drop | burst | delay | corrupt | stuck_encoder | motor_offline
+//!                           # | non_finite_twist
 //! from_s = 1.0
 //! until_s = 1.5
 //! rate = 0.2                # drop, corrupt
@@ -104,7 +106,8 @@ impl Action {
 #[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct FaultSpec {
-    /// `drop`, `burst`, `delay`, `corrupt`, `stuck_encoder` or `motor_offline`.
+    /// `drop`, `burst`, `delay`, `corrupt`, `stuck_encoder`, `motor_offline` or
+    /// `non_finite_twist`.
     pub kind: FaultName,
     /// Start, s.
     pub from_s: f64,
@@ -140,6 +143,9 @@ pub enum FaultName {
     StuckEncoder,
     /// A drive sends nothing.
     MotorOffline,
+    /// Besides its own stream, the host sends `TWIST_CMD` frames whose values are not finite
+    /// numbers (see [`crate::sim::non_finite_twist_frames`]), once per command period.
+    NonFiniteTwist,
 }
 
 /// Bus nodes as named in scenarios.
@@ -185,6 +191,17 @@ impl WheelFault {
     }
 }
 
+/// A host-side fault: what the commanding node sends wrong, when.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HostFault {
+    /// What it sends (`NonFiniteTwist`).
+    pub kind: FaultName,
+    /// Start, µs.
+    pub from_us: u64,
+    /// End, µs.
+    pub until_us: u64,
+}
+
 /// A complete scenario.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Scenario {
@@ -204,6 +221,8 @@ pub struct Scenario {
     pub bus_faults: Vec<Fault>,
     /// Plant faults.
     pub wheel_faults: Vec<WheelFault>,
+    /// Host faults.
+    pub host_faults: Vec<HostFault>,
 }
 
 /// Why a scenario could not be used.
@@ -357,6 +376,7 @@ impl Scenario {
         }
         let mut bus_faults = Vec::new();
         let mut wheel_faults = Vec::new();
+        let mut host_faults = Vec::new();
         for (i, f) in file.faults.iter().enumerate() {
             if !(f.from_s.is_finite()
                 && f.until_s.is_finite()
@@ -396,8 +416,18 @@ impl Scenario {
                         ));
                     }
                 },
-                FaultName::StuckEncoder | FaultName::MotorOffline => None,
+                FaultName::StuckEncoder | FaultName::MotorOffline | FaultName::NonFiniteTwist => {
+                    None
+                }
             };
+            if f.kind == FaultName::NonFiniteTwist {
+                host_faults.push(HostFault {
+                    kind: f.kind,
+                    from_us,
+                    until_us,
+                });
+                continue;
+            }
             match kind {
                 Some(kind) => bus_faults.push(Fault {
                     kind,
@@ -436,6 +466,7 @@ impl Scenario {
             actions,
             bus_faults,
             wheel_faults,
+            host_faults,
         })
     }
 
@@ -516,6 +547,7 @@ impl Scenario {
             actions,
             bus_faults: Vec::new(),
             wheel_faults: Vec::new(),
+            host_faults: Vec::new(),
         })
     }
 
@@ -568,6 +600,10 @@ mod tests {
             wheel = 2
             from_s = 0.5
             until_s = 0.7
+            [[faults]]
+            kind = "non_finite_twist"
+            from_s = 1.5
+            until_s = 1.6
         "#;
         let s = Scenario::from_toml(text, Path::new("x.toml")).unwrap();
         assert_eq!((s.name.as_str(), s.seed, s.actions.len()), ("x", 9, 2));
@@ -577,6 +613,15 @@ mod tests {
             (s.wheel_faults[0].wheel, s.wheel_faults[0].from_us),
             (2, 500_000)
         );
+        assert_eq!(
+            s.host_faults,
+            [HostFault {
+                kind: FaultName::NonFiniteTwist,
+                from_us: 1_500_000,
+                until_us: 1_600_000
+            }]
+        );
+        assert_eq!(s.bus_faults.len(), 1);
 
         for (bad, field) in [
             ("duration_s = -1.0", "duration_s"),

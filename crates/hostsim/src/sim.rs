@@ -3,13 +3,15 @@
 //!
 //! # One tick (one control period, 1 ms by default) at time `t`
 //!
-//! 1. The host acts: scenario actions due by `t`, and a `TWIST_CMD` when the stream is due.
+//! 1. The host acts: scenario actions due by `t`, a `TWIST_CMD` when the stream is due, and
+//!    the non-finite twists of a `non_finite_twist` fault when they are due.
 //! 2. The drives queue the feedback frames due at `t`.
 //! 3. The bus transmits everything that starts before `t` (arbitration, exact frame times,
 //!    faults); each frame reaches the other nodes at its end of transmission.
 //! 4. Frames delivered by `t` go to the firmware (`on_frame` with their delivery time) and to
 //!    the drives (commands).
-//! 5. The firmware steps at `t`; its frames are queued on the bus at `t`.
+//! 5. The firmware steps at `t`; its frames are queued on the bus at `t`. An observer
+//!    ([`run_observed`]) sees the step: the controller, the deliveries, the frames sent.
 //! 6. The plant advances one period.
 //!
 //! A frame the firmware sends at `t` therefore reaches the drives at `t + 1 ms`, and feedback
@@ -24,7 +26,7 @@ use std::collections::BTreeMap;
 
 use firmware::CanFrame;
 use firmware::control::{Controller, Instant, Snapshot};
-use firmware::protocol::robot::{Command, ModeRequest, RobotState, TwistCmd};
+use firmware::protocol::robot::{self, Command, ModeRequest, RobotState, TwistCmd};
 
 use crate::bus::{Bus, BusStats, Fate, Node, Transmission};
 use crate::log::{Direction, LogError, McapLog};
@@ -171,6 +173,50 @@ struct Host {
     next_action: usize,
     command_period_us: u64,
     next_command_us: u64,
+    /// Per host fault: when its next injection is due, µs.
+    next_injection_us: Vec<u64>,
+}
+
+/// What the runner shows an observer after each firmware step (see [`run_observed`]).
+#[derive(Debug)]
+pub struct StepView<'a> {
+    /// Simulated time of the step, µs.
+    pub t_us: u64,
+    /// The firmware just after the step ([`Controller::snapshot`] for the details).
+    pub controller: &'a Controller,
+    /// Every transmission that reached the receivers since the previous step, in delivery
+    /// order: all senders, all fates (dropped ones too).
+    pub delivered: &'a [Transmission],
+    /// The frames the firmware sent at this step.
+    pub sent: &'a [CanFrame],
+    /// Ground-truth pose `[x, y, heading]` at the step.
+    pub truth: [f64; 3],
+}
+
+/// The three `TWIST_CMD` frames a `non_finite_twist` fault injects, around the setpoint
+/// `twist`: `vx` NaN, `vy` +∞, `wz` −∞, as they reach the wire.
+///
+/// The i16 fields cannot carry a non-finite number. NaN goes out as the raw value `-32768`,
+/// which the DBC reserves as "invalid" (the project's own encoder writes a NaN as 0, a valid
+/// stop; a host that marks NaN as invalid sends this). An infinity saturates to the field's
+/// extreme, ±32.767, far beyond any speed limit. The firmware must reject all three.
+#[must_use]
+pub fn non_finite_twist_frames(twist: [f32; 3], seq: u8) -> [CanFrame; 3] {
+    let [vx, vy, wz] = twist;
+    let frame = |vx, vy, wz| Command::Twist(TwistCmd { vx, vy, wz, seq }).to_can_frame();
+    let mut nan = frame(0.0, vy, wz);
+    let offset = robot::layout::TWIST_VX.offset;
+    let mut data = [0u8; 8];
+    data.copy_from_slice(embedded_can::Frame::data(&nan));
+    data[offset..offset + 2].copy_from_slice(&i16::MIN.to_le_bytes());
+    if let embedded_can::Id::Standard(id) = embedded_can::Frame::id(&nan) {
+        nan = CanFrame::from_buffer(id, data, 8);
+    }
+    [
+        nan,
+        frame(vx, f32::INFINITY, wz),
+        frame(vx, vy, f32::NEG_INFINITY),
+    ]
 }
 
 /// Runs `scenario` with `plant`, logging to `log` if given; `progress` is called with the
@@ -181,9 +227,28 @@ struct Host {
 pub fn run<P: SimPlant>(
     scenario: &Scenario,
     plant: &mut P,
-    mut log: Option<&mut McapLog>,
+    log: Option<&mut McapLog>,
     options: LogOptions,
     mut progress: impl FnMut(u64),
+) -> Result<RunSummary, SimError> {
+    run_observed(scenario, plant, log, options, |step| {
+        if step.t_us.is_multiple_of(100_000) {
+            progress(step.t_us);
+        }
+    })
+}
+
+/// [`run`], calling `observe` after every firmware step: for tests and tools that measure
+/// what happens step by step (fault latencies, command streams).
+///
+/// # Errors
+/// [`SimError`] if the configuration is refused or the log cannot be written.
+pub fn run_observed<P: SimPlant>(
+    scenario: &Scenario,
+    plant: &mut P,
+    mut log: Option<&mut McapLog>,
+    options: LogOptions,
+    mut observe: impl FnMut(&StepView<'_>),
 ) -> Result<RunSummary, SimError> {
     let mut ctl = Controller::new(&scenario.config)?;
     let period_us = ctl.period_micros();
@@ -196,10 +261,12 @@ pub fn run<P: SimPlant>(
         next_action: 0,
         command_period_us: (1e6 / scenario.command_hz).round().max(1.0) as u64,
         next_command_us: 0,
+        next_injection_us: scenario.host_faults.iter().map(|f| f.from_us).collect(),
     };
     let actions = expand_actions(scenario);
     let duration_us = scenario.duration_us();
     let mut in_flight: Vec<Transmission> = Vec::new();
+    let mut delivered: Vec<Transmission> = Vec::new();
     let mut feedback = Vec::with_capacity(16);
     let mut summary_tx = 0u64;
     let mut summary_rx = 0u64;
@@ -250,6 +317,14 @@ pub fn run<P: SimPlant>(
             bus.send(host.next_command_us * 1000, Node::Host, frame);
             host.next_command_us += host.command_period_us;
         }
+        for (fault, next_us) in scenario.host_faults.iter().zip(&mut host.next_injection_us) {
+            while *next_us <= t_us && *next_us < fault.until_us {
+                for frame in non_finite_twist_frames(host.twist, host.seq) {
+                    bus.send(*next_us * 1000, Node::Host, frame);
+                }
+                *next_us += host.command_period_us;
+            }
+        }
 
         // 2. Drives.
         let stuck = wheel_flags(scenario, t_us, crate::scenario::FaultName::StuckEncoder);
@@ -266,7 +341,9 @@ pub fn run<P: SimPlant>(
         // 4. Deliveries due by t, in delivery order.
         in_flight.sort_by_key(|tx| tx.delivered_ns);
         let due = in_flight.partition_point(|tx| tx.delivered_ns <= t_ns);
-        for tx in in_flight.drain(..due) {
+        delivered.clear();
+        delivered.extend(in_flight.drain(..due));
+        for tx in &delivered {
             if let Some(l) = log.as_deref_mut()
                 && options.bus
             {
@@ -344,11 +421,16 @@ pub fn run<P: SimPlant>(
             l.maybe_flush()?;
         }
 
+        observe(&StepView {
+            t_us,
+            controller: &ctl,
+            delivered: &delivered,
+            sent: &out,
+            truth,
+        });
+
         // 6. Plant.
         plant.advance(dt);
-        if t_us.is_multiple_of(100_000) {
-            progress(t_us);
-        }
         t_us += period_us;
         step += 1;
     }
