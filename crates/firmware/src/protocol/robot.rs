@@ -17,7 +17,7 @@
 //! | `0x310` | `ODOM_POSITION` | robot → host | 8 | `x`, `y` i32 0.0001 m (odometry frame) |
 //! | `0x311` | `ODOM_VELOCITY` | robot → host | 8 | `heading` i16 0.0001 rad; `vx`, `vy` i16 0.001 m/s; `wz` i16 0.001 rad/s |
 //! | `0x312` | `STATUS` | robot → host | 8 | `state` u8, `fault` u8, `rx_errors` u16, `unknown_ids` u16, `motors_online` u8, `seq` u8 |
-//! | `0x31F` | `HEARTBEAT` | robot → host | 8 | `uptime_ms` u32, `state` u8, `protocol_version` u8 (= 1), reserved u16 |
+//! | `0x31F` | `HEARTBEAT` | robot → host | 8 | `uptime_ms` u32, `state` u8, `protocol_version` u8 (= 2), reserved u16 |
 //!
 //! Velocities are in the body frame (x forward, y left, yaw counter-clockwise positive).
 //! The raw value `-32768` of the i16 velocity fields is reserved as "invalid" and rejected,
@@ -40,7 +40,9 @@ use super::wire::{self, Payload};
 use crate::frame::CanFrame;
 
 /// The protocol version this module implements, sent in [`Heartbeat::protocol_version`].
-pub const PROTOCOL_VERSION: u8 = 1;
+///
+/// Version 2 added `STATUS.fault` 6 (`ENCODER_STUCK`); a version 1 receiver rejects it.
+pub const PROTOCOL_VERSION: u8 = 2;
 
 /// The frame layout: the Rust mirror of `dbc/mecanum_robot.dbc`. Every id, DLC, offset,
 /// scale and range the codec uses is here.
