@@ -58,10 +58,10 @@
 //! flagged: it reports no speed and nothing implies that it turns. A wheel locked on its own
 //! while the chassis drags it over the ground looks exactly like rule 2 and is reported as
 //! `EncoderStuck`; either way the drive cannot follow its setpoint and stopping is right.
-//! The detector reads only feedback frames, the step's own currents and `now`: no clock,
-//! no heap. ODrive axes are not watched here: the ODrive runs its own velocity loop on the
-//! same encoder and reports encoder and spin-out failures in its axis error, which becomes
-//! `DriveError`.
+//! The detector reads only feedback frames, the currents the core itself commanded and
+//! `now`: no clock, no heap. ODrive axes are not watched here: the ODrive runs its own
+//! velocity loop on the same encoder and reports encoder and spin-out failures in its axis
+//! error, which becomes `DriveError`.
 //!
 //! Only a valid `TWIST_CMD` received while enabled feeds the watchdog: status requests, mode
 //! commands and rejected twists never do. After an enable the robot holds still until a
