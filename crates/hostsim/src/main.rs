@@ -12,7 +12,9 @@ use clap::{Parser, Subcommand};
 use firmware::linux::{MonotonicClock, SocketCanBus};
 use hostsim::log::McapLog;
 use hostsim::plot::plot_run;
-use hostsim::realtime::{PlantOptions, PlayOptions, play_frames, run_plant};
+use hostsim::realtime::{
+    PlantLog, PlantOptions, PlayOptions, play_frames, run_plant, run_plant_observed,
+};
 use hostsim::replay::{
     CandumpReplayError, LogFormat, OdometryTolerance, detect_format, mcap_playback, replay_candump,
     replay_mcap, split_candump,
@@ -149,6 +151,12 @@ enum Cmd {
         /// more CPU. Default 0.
         #[arg(long, value_name = "MICROS", default_value_t = 0)]
         spin_us: u64,
+        /// Write an MCAP log of the run to FILE: every frame on the interface as the plant
+        /// saw it (/can/bus, with its sender), the host's twist commands, the firmware's
+        /// odometry and the plant's ground truth every 10 ms (/odom/pose, /ground_truth/pose,
+        /// /tf). Flushed at least every second. `hostsim summary FILE` reads it.
+        #[arg(long, value_name = "FILE")]
+        log: Option<PathBuf>,
         /// Print only errors (no start line, no statistics on stderr).
         #[arg(long, short)]
         quiet: bool,
@@ -247,15 +255,17 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             duration,
             stats_json,
             spin_us,
+            log,
             quiet,
-        } => plant(
-            &iface,
-            config.as_deref(),
+        } => plant(&PlantCli {
+            iface: &iface,
+            config: config.as_deref(),
             duration,
-            stats_json.as_deref(),
+            stats_json: stats_json.as_deref(),
             spin_us,
+            log: log.as_deref(),
             quiet,
-        )
+        })
         .map_err(flatten),
         Cmd::Summary { log } => summary(&log),
         Cmd::Kin => {
@@ -749,14 +759,27 @@ fn play(
 }
 
 /// `plant --iface IFACE`: the simulated drives on the interface in real time.
-fn plant(
-    iface: &str,
-    config: Option<&Path>,
+/// The arguments of `plant`.
+struct PlantCli<'a> {
+    iface: &'a str,
+    config: Option<&'a Path>,
     duration: Option<f64>,
-    stats_json: Option<&Path>,
+    stats_json: Option<&'a Path>,
     spin_us: u64,
+    log: Option<&'a Path>,
     quiet: bool,
-) -> Result<ExitCode> {
+}
+
+fn plant(args: &PlantCli<'_>) -> Result<ExitCode> {
+    let &PlantCli {
+        iface,
+        config,
+        duration,
+        stats_json,
+        spin_us,
+        log,
+        quiet,
+    } = args;
     let (config, source) = load_config(config)?;
     let mut drives = hostsim::drives::SimDrives::new(&config)
         .with_context(|| format!("configuration {source}: the plant cannot model it"))?;
@@ -771,6 +794,27 @@ fn plant(
         )),
         None => None,
     };
+    let mut plant_log = match log {
+        Some(path) => {
+            let start_unix_ns = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_nanos());
+            let metadata = std::collections::BTreeMap::from([
+                ("config".to_string(), config.to_toml_string()),
+                (
+                    "source".to_string(),
+                    format!("hostsim plant --iface {iface}"),
+                ),
+                ("start_unix_ns".to_string(), start_unix_ns.to_string()),
+                (
+                    "hostsim_version".to_string(),
+                    env!("CARGO_PKG_VERSION").to_string(),
+                ),
+            ]);
+            Some(PlantLog::new(McapLog::create(path, &metadata)?))
+        }
+        None => None,
+    };
     let options = PlantOptions {
         duration_us: duration.map(|s| (s * 1e6).round() as u64),
         ..PlantOptions::default()
@@ -783,7 +827,25 @@ fn plant(
         );
     }
     let clock = MonotonicClock::new(spin_us);
-    let report = run_plant(&mut drives, &mut bus, &clock, &options, &stop);
+    let report = match plant_log.as_mut() {
+        Some(observer) => {
+            run_plant_observed(&mut drives, &mut bus, &clock, &options, &stop, observer)
+        }
+        None => run_plant(&mut drives, &mut bus, &clock, &options, &stop),
+    };
+    let mut status = ExitCode::SUCCESS;
+    if let (Some(observer), Some(path)) = (plant_log, log) {
+        match observer.finish() {
+            Ok(n) if !quiet => {
+                eprintln!("hostsim plant: {n} messages logged to {}", path.display())
+            }
+            Ok(_) => {}
+            Err(e) => {
+                eprintln!("error: log {}: {e}", path.display());
+                status = ExitCode::FAILURE;
+            }
+        }
+    }
     // The ground truth always goes out, on stdout; the statistics on stderr.
     println!(
         "ground truth: x {:+.4} m  y {:+.4} m  heading {:+.2}°  (vx {:+.4} m/s  vy {:+.4} m/s  \
@@ -810,7 +872,7 @@ fn plant(
             return Ok(ExitCode::FAILURE);
         }
     }
-    Ok(ExitCode::SUCCESS)
+    Ok(status)
 }
 
 fn summary(path: &Path) -> Result<ExitCode> {

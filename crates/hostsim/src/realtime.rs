@@ -50,6 +50,10 @@ use firmware::CanFrame;
 use firmware::linux::{Bus, Clock, LatencyHistogram, LatencySummary, StopReason, is_busy};
 use serde::Serialize;
 
+use firmware::protocol::robot;
+
+use crate::bus::{Fate, Node};
+use crate::log::{LogError, McapLog};
 use crate::replay::TimedFrame;
 use crate::sim::SimPlant;
 
@@ -449,6 +453,34 @@ pub fn run_plant<P: SimPlant, B: Bus, C: Clock>(
     options: &PlantOptions,
     stop: &AtomicUsize,
 ) -> PlantReport {
+    run_plant_observed(plant, bus, clock, options, stop, &mut ())
+}
+
+/// What [`run_plant_observed`] shows an observer (a log) as it runs. Both methods do nothing
+/// by default; `()` is the observer that watches nothing.
+pub trait PlantObserver<P> {
+    /// A frame received from the bus (`sent == false`) or sent by the plant, at `t_us` µs
+    /// after the start.
+    fn frame(&mut self, t_us: u64, frame: &CanFrame, sent: bool) {
+        let _ = (t_us, frame, sent);
+    }
+    /// The plant after a tick, at `t_us` µs of simulated time.
+    fn tick(&mut self, t_us: u64, plant: &P) {
+        let _ = (t_us, plant);
+    }
+}
+
+impl<P> PlantObserver<P> for () {}
+
+/// [`run_plant`], showing every frame and every tick to `observer`.
+pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
+    plant: &mut P,
+    bus: &mut B,
+    clock: &C,
+    options: &PlantOptions,
+    stop: &AtomicUsize,
+    observer: &mut O,
+) -> PlantReport {
     let period = options.period_us.max(1);
     let dt = period as f64 * 1e-6;
     let mut errors = Errors::default();
@@ -492,6 +524,7 @@ pub fn run_plant<P: SimPlant, B: Bus, C: Clock>(
             match bus.try_recv() {
                 Ok(Some(frame)) => {
                     plant.on_frame(sim_us, &frame);
+                    observer.frame(woke.saturating_sub(start), &frame, false);
                     received += 1;
                     drained += 1;
                 }
@@ -534,13 +567,17 @@ pub fn run_plant<P: SimPlant, B: Bus, C: Clock>(
                 options.retry_backoff_us,
                 &mut retries,
             ) {
-                Ok(()) => sent += 1,
+                Ok(()) => {
+                    sent += 1;
+                    observer.frame(woke.saturating_sub(start), frame, true);
+                }
                 Err(e) => {
                     send_errors += 1;
                     errors.record(format_args!("send {}", id_text(frame)), &e);
                 }
             }
         }
+        observer.tick(sim_us, plant);
         ticks += 1;
         k += 1;
     };
@@ -566,6 +603,97 @@ pub fn run_plant<P: SimPlant, B: Bus, C: Clock>(
         jitter: jitter.summary(),
         truth: Pose { x, y, heading },
         velocity: Velocity { vx, vy, wz },
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The plant's log
+
+/// A [`PlantObserver`] that writes an MCAP log of a real-time run (`hostsim plant --log`):
+/// every frame on the bus as the plant saw it (`/can/bus`: received frames with sender
+/// `host` for the robot protocol's commands and `controller` for the rest, the plant's own
+/// feedback with sender `drives`), the host's twist commands (`/cmd/twist`), and every
+/// 10 ms the firmware's odometry (decoded from its `ODOM_*` frames) and the plant's ground
+/// truth (`/odom/pose`, `/ground_truth/pose`, `/tf`). Log time is µs since the plant's start.
+///
+/// A write error stops the logging (the run goes on) and is kept for [`PlantLog::finish`].
+pub struct PlantLog {
+    log: Option<McapLog>,
+    error: Option<LogError>,
+    odom: [f64; 3],
+    next_pose_us: u64,
+}
+
+/// Period of the pose messages of a [`PlantLog`], µs.
+const PLANT_LOG_POSE_PERIOD_US: u64 = 10_000;
+
+impl PlantLog {
+    /// Starts logging into `log`.
+    #[must_use]
+    pub const fn new(log: McapLog) -> Self {
+        Self {
+            log: Some(log),
+            error: None,
+            odom: [0.0; 3],
+            next_pose_us: 0,
+        }
+    }
+
+    fn write(&mut self, f: impl FnOnce(&mut McapLog) -> Result<(), LogError>) {
+        if let Some(log) = self.log.as_mut()
+            && let Err(e) = f(log).and_then(|()| log.maybe_flush())
+        {
+            self.error = Some(e);
+            self.log = None;
+        }
+    }
+
+    /// Closes the log (writing its summary); the first write error, if there was one.
+    ///
+    /// # Errors
+    /// The first [`LogError`] of the run, or of closing the file.
+    pub fn finish(self) -> Result<u64, LogError> {
+        if let Some(e) = self.error {
+            return Err(e);
+        }
+        let log = self.log.expect("a log without an error is open");
+        let messages = log.messages();
+        log.finish()?;
+        Ok(messages)
+    }
+}
+
+impl<P: SimPlant> PlantObserver<P> for PlantLog {
+    fn frame(&mut self, t_us: u64, frame: &CanFrame, sent: bool) {
+        let message = robot::decode(frame).ok();
+        let sender = match message {
+            _ if sent => Node::Drives,
+            Some(robot::Message::Command(_)) => Node::Host,
+            _ => Node::Controller,
+        };
+        match message {
+            Some(robot::Message::Telemetry(robot::Telemetry::OdomPosition(p))) => {
+                self.odom[0] = f64::from(p.x);
+                self.odom[1] = f64::from(p.y);
+            }
+            Some(robot::Message::Telemetry(robot::Telemetry::OdomVelocity(v))) => {
+                self.odom[2] = f64::from(v.heading);
+            }
+            _ => {}
+        }
+        let t_ns = t_us.saturating_mul(1000);
+        self.write(|log| log.bus(t_ns, frame, sender, Fate::Delivered));
+        if let Some(robot::Message::Command(robot::Command::Twist(t))) = message {
+            self.write(|log| log.twist(t_ns, [t.vx, t.vy, t.wz], true));
+        }
+    }
+
+    fn tick(&mut self, t_us: u64, plant: &P) {
+        if t_us >= self.next_pose_us {
+            self.next_pose_us = t_us - t_us % PLANT_LOG_POSE_PERIOD_US + PLANT_LOG_POSE_PERIOD_US;
+            let (odom, truth) = (self.odom, plant.truth());
+            self.write(|log| log.poses(t_us.saturating_mul(1000), odom, truth));
+        }
     }
 }
 

@@ -1,0 +1,107 @@
+#!/usr/bin/env bash
+# The project's performance figures in one run, printed as a Markdown table for
+# docs/benchmarks.md (with the machine and the date):
+#   kinematics full step (f32, f64) and the control step on the host (criterion medians),
+#   instructions per control step on the emulated Cortex-M4 (QEMU, scripts/xtarget.sh),
+#   flash and static RAM of the STM32F407 board build,
+#   simulator real-time factor of the 60 s square with and without MCAP logging,
+#   MCAP write throughput against the Python mcap writer on the same frames (ratio),
+#   frames/s the firmware runner takes on vcan0 without loss (the vcan lane's rate test;
+#   natively where the kernel has vcan, else in the micro-VM, which the table says).
+#
+# usage: scripts/bench.sh [--quick] [--no-vcan]
+#   --quick     shorter criterion runs, one simulator run each, 200,000 MCAP frames
+#   --no-vcan   skip the vcan0 measurement (it boots a VM where the kernel has no vcan)
+# Needs what scripts/test.sh installs (the Python .venv, the thumbv7em target, QEMU).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+quick=0 vcan=1
+for arg in "$@"; do
+    case $arg in
+    --quick) quick=1 ;;
+    --no-vcan) vcan=0 ;;
+    -h | --help) sed -n '2,16p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    *) echo "bench.sh: unknown argument $arg (see --help)" >&2; exit 2 ;;
+    esac
+done
+if [ "$quick" = 1 ]; then
+    crit=(--warm-up-time 1 --measurement-time 2) sim_runs=1 mcap_frames=200000
+else
+    crit=(--warm-up-time 2 --measurement-time 5) sim_runs=3 mcap_frames=1000000
+fi
+PY=.venv/bin/python
+[ -x "$PY" ] || { echo "bench.sh: no .venv (run scripts/test.sh once, or python3 -m venv .venv && .venv/bin/pip install -r tests/requirements.txt)" >&2; exit 2; }
+
+log() { printf '==> %s\n' "$*" >&2; }
+rows=()
+row() { rows+=("| $1 | $2 | $3 |"); }
+# Median of a criterion benchmark, ns, from its estimates file.
+median_ns() {
+    "$PY" -c 'import json,sys; print(f"{json.load(open(sys.argv[1]))["median"]["point_estimate"]:.1f}")' \
+        "target/criterion/$1/new/estimates.json"
+}
+
+log "kinematics (criterion)"
+cargo bench --locked -q -p kinematics --bench kinematics -- "${crit[@]}" full_step >&2
+row "kinematics full step (inverse, desaturate, forward, odometry), f32" "$(median_ns f32/full_step) ns" "criterion median"
+row "kinematics full step, f64" "$(median_ns f64/full_step) ns" "criterion median"
+
+log "control step (criterion)"
+cargo bench --locked -q -p firmware --bench control -- "${crit[@]}" >&2
+row "control step, 4 x C620, enabled and driving (host)" "$(median_ns control_step_4_wheels_dji) ns" "criterion median"
+
+log "instructions per control step on the emulated Cortex-M4"
+xt=$(scripts/xtarget.sh 2>&1 | tee /dev/stderr)
+while IFS= read -r line; do
+    setup=$(sed -n 's/.*Cortex-M4, \([^,]*\),.*/\1/p' <<<"$line")
+    row "instructions per control step, Cortex-M4 (QEMU), $setup" "$(sed -n 's/.*: mean \([0-9]*\), min \([0-9]*\), max \([0-9]*\)/\1 (min \2, max \3)/p' <<<"$line")" "instructions"
+done < <(grep '^instructions per control step' <<<"$xt")
+
+log "STM32F407 board: flash and static RAM"
+(cd boards/stm32f407 && cargo build --release --locked -q)
+size=$(python3 boards/stm32f407/size.py boards/stm32f407/target/thumbv7em-none-eabihf/release/board-stm32f407)
+row "board flash (STM32F407, release, LTO)" "$(sed -n 's/^flash: \([0-9]*\) bytes.*/\1/p' <<<"$size") B" "bytes"
+row "board static RAM" "$(sed -n 's/^RAM: *\([0-9]*\) bytes.*/\1/p' <<<"$size") B" "bytes"
+
+log "simulator real-time factor (60 s square, best of $sim_runs)"
+sim=$(scripts/bench-sim.sh "$sim_runs" | tee /dev/stderr)
+row "simulator, 60 s square at 1 kHz, 4 x C620, MCAP logging" "$(grep '^| MCAP' <<<"$sim" | awk -F'|' '{gsub(/ /,"",$4); print $4}')" "real-time factor"
+row "simulator, same, no logging" "$(grep '^| none' <<<"$sim" | awk -F'|' '{gsub(/ /,"",$4); print $4}')" "real-time factor"
+
+log "MCAP write throughput: Rust (McapLog) against the Python mcap writer, $mcap_frames frames"
+cargo build --release --locked -q -p hostsim --example mcap_throughput
+work=$(mktemp -d)
+trap 'rm -rf "$work"' EXIT
+rust=$(target/release/examples/mcap_throughput "$mcap_frames" "$work/rust.mcap")
+python=$("$PY" scripts/mcap_throughput.py "$mcap_frames" "$work/python.mcap")
+read -r rust_fps python_fps ratio < <("$PY" -c '
+import json, sys
+r, p = json.loads(sys.argv[1])["frames_per_s"], json.loads(sys.argv[2])["frames_per_s"]
+print(f"{r:,.0f} {p:,.0f} {r / p:.1f}")' "$rust" "$python")
+row "MCAP frames written per second, Rust McapLog" "$rust_fps" "frames/s"
+row "MCAP frames written per second, Python mcap writer" "$python_fps" "frames/s"
+row "MCAP write throughput, Rust / Python" "${ratio}x" "ratio"
+
+if [ "$vcan" = 1 ]; then
+    log "vcan0: frames/s the runner takes without loss (the vcan lane's rate test)"
+    cargo build --release --locked -q -p firmware --features firmware/linux --bin mecanum-runner
+    out=$(MECANUM_RUNNER="$PWD/target/release/mecanum-runner" scripts/vcan.sh -- \
+        "$PY" -m pytest tests/test_vcan_runner.py -q -s -p no:cacheprovider -k rate 2>&1 | tee /dev/stderr || true)
+    where=native
+    grep -q 'vcan.sh: vm:' <<<"$out" && where="micro-VM, software-emulated CPU"
+    line=$(grep '^rate: ' <<<"$out" | tail -1)
+    if [ -n "$line" ]; then
+        row "vcan0 frames/s into the runner, 30 s, no loss ($where)" "$(sed -n 's/.* = \([0-9]*\) frames\/s.*/\1/p' <<<"$line")" "frames/s"
+        row "runner loop jitter during it ($where)" "$(sed -n 's/.*jitter \(p50 .*\)/\1/p' <<<"$line")" "µs"
+    else
+        row "vcan0 frames/s into the runner" "not measured: $(grep -m1 -E 'SKIP|FAIL|failed|Error' <<<"$out" || echo 'no figure printed')" ""
+    fi
+fi
+
+printf '\n%s, %s, %s cores (%s), Linux %s, %s\n\n' "$(date -u +%Y-%m-%d)" \
+    "$(sed -n 's/^model name\s*: //p' /proc/cpuinfo | head -1)" "$(nproc)" \
+    "$(grep -q hypervisor /proc/cpuinfo && echo VM || echo bare metal)" "$(uname -r)" "$(rustc --version)"
+echo "| figure | value | unit |"
+echo "|---|---|---|"
+printf '%s\n' "${rows[@]}"
