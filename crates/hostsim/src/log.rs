@@ -25,9 +25,17 @@
 //!
 //! # Crash safety
 //!
-//! Messages go into zstd-compressed chunks. [`McapLog::maybe_flush`] closes the open chunk
-//! and flushes the file at least once per wall-clock second, so a run that is killed leaves
-//! a file whose every complete chunk is readable, losing at most the last second.
+//! Messages go into zstd-compressed chunks, each built in memory and appended to the file
+//! whole, so the file on disk is always a prefix of the finished file (no chunk header is
+//! patched afterwards). [`McapLog::maybe_flush`] closes the open chunk and hands the file's
+//! buffer to the operating system once half a second of log time or of wall-clock time has
+//! passed since the last flush, whichever comes first. A run that dies (SIGKILL, a panic, the
+//! OOM killer) therefore leaves a file cut short whose every complete chunk is readable, and
+//! loses at most the last half second of log time before it died (and at most about half a
+//! second of wall-clock time): "at most the last second". The file is created as
+//! `NAME.mcap.part` and renamed to `NAME.mcap` once its header and metadata are on disk, so a
+//! `.mcap` file always opens. There is no `fsync`: this protects against the process dying,
+//! not against the machine losing power.
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -101,8 +109,35 @@ pub struct McapLog {
     ch: Channels,
     seq: u32,
     buf: Vec<u8>,
-    last_flush: WallInstant,
     messages: u64,
+    /// Largest log time written, ns.
+    last_log_ns: u64,
+    /// `last_log_ns` at the last flush.
+    flushed_log_ns: u64,
+    /// Wall-clock time of the last flush.
+    last_flush: WallInstant,
+    /// Calls of `maybe_flush`, to read the wall clock only every few.
+    flush_calls: u64,
+}
+
+/// Log time between two flushes, ns: a run that dies loses at most this much log time.
+const FLUSH_LOG_INTERVAL_NS: u64 = 500_000_000;
+
+/// Wall-clock time between two flushes, for runs slower than real time.
+const FLUSH_WALL_INTERVAL: Duration = Duration::from_millis(500);
+
+/// [`McapLog::maybe_flush`] reads the wall clock on every this many calls.
+const CALLS_PER_CLOCK_READ: u64 = 64;
+
+/// Uncompressed size at which the writer closes a chunk, bytes.
+pub const CHUNK_SIZE: u64 = 1 << 20;
+
+/// Where a log is written until its header is on disk: `NAME.mcap.part` for `NAME.mcap`.
+#[must_use]
+pub fn part_path(path: &Path) -> PathBuf {
+    let mut name = path.as_os_str().to_owned();
+    name.push(".part");
+    PathBuf::from(name)
 }
 
 fn ns_stamp(t_ns: u64) -> Timestamp {
@@ -121,13 +156,29 @@ fn yaw_quaternion(yaw: f64) -> Quaternion {
 
 impl McapLog {
     /// Creates `path` and writes the header, schemas, channels and the run's metadata
-    /// (`config` TOML, scenario name, seed, ...).
+    /// (`config` TOML, scenario name, seed, ...). The file is written as [`part_path`] and
+    /// renamed to `path` once that much is on disk (see [Crash safety](self#crash-safety)).
     ///
     /// # Errors
     /// [`LogError`] naming the file.
     pub fn create(path: &Path, metadata: &BTreeMap<String, String>) -> Result<Self, LogError> {
-        let file = File::create(path).map_err(|source| LogError::Io {
-            path: path.to_path_buf(),
+        Self::create_with_chunk_size(path, metadata, CHUNK_SIZE)
+    }
+
+    /// As [`create`](Self::create), closing chunks at `chunk_size` uncompressed bytes instead
+    /// of [`CHUNK_SIZE`]: small chunks make many chunk boundaries in a short log, for tests of
+    /// damaged logs.
+    ///
+    /// # Errors
+    /// [`LogError`] naming the file.
+    pub fn create_with_chunk_size(
+        path: &Path,
+        metadata: &BTreeMap<String, String>,
+        chunk_size: u64,
+    ) -> Result<Self, LogError> {
+        let part = part_path(path);
+        let file = File::create(&part).map_err(|source| LogError::Io {
+            path: part.clone(),
             source,
         })?;
         let mcap_err = |source| LogError::Mcap {
@@ -137,7 +188,12 @@ impl McapLog {
         let options = mcap::WriteOptions::new()
             .compression(Some(mcap::Compression::Zstd))
             .compression_level(1)
-            .chunk_size(Some(1 << 20))
+            .chunk_size(Some(chunk_size))
+            // Build each chunk in memory and append it whole, rather than writing a placeholder
+            // header and patching it when the chunk closes: the file on disk is then always a
+            // prefix of the finished file, and a killed run leaves a file cut short, never one
+            // with an unpatched chunk header.
+            .disable_seeking(true)
             .profile("")
             .library(concat!("mecanum hostsim ", env!("CARGO_PKG_VERSION")));
         let mut writer = options
@@ -226,6 +282,10 @@ impl McapLog {
             })
             .map_err(mcap_err)?;
         writer.flush().map_err(mcap_err)?;
+        std::fs::rename(&part, path).map_err(|source| LogError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
         Ok(Self {
             path: path.to_path_buf(),
             writer,
@@ -243,8 +303,11 @@ impl McapLog {
             },
             seq: 0,
             buf: Vec::with_capacity(512),
-            last_flush: WallInstant::now(),
             messages: 0,
+            last_log_ns: 0,
+            flushed_log_ns: 0,
+            last_flush: WallInstant::now(),
+            flush_calls: 0,
         })
     }
 
@@ -264,6 +327,7 @@ impl McapLog {
             publish_time: t_ns,
         };
         self.messages += 1;
+        self.last_log_ns = self.last_log_ns.max(t_ns);
         self.writer
             .write_to_known_channel(&header, &self.buf)
             .map_err(|e| LogError::Mcap {
@@ -461,17 +525,20 @@ impl McapLog {
         self.write(self.ch.log, t_ns)
     }
 
-    /// Closes the open chunk and flushes the file if a wall-clock second has passed since the
-    /// last flush. Call it often (every simulated millisecond is fine: it only reads a clock
-    /// every 256 messages).
+    /// Closes the open chunk and hands the file's buffer to the operating system if half a
+    /// second of log time, or of wall-clock time, has passed since the last flush (see
+    /// [Crash safety](self#crash-safety)). Call it after each step's messages, at least every
+    /// few milliseconds of log time: it reads the wall clock only on every 64th call.
     ///
     /// # Errors
     /// [`LogError`] if the flush fails.
     pub fn maybe_flush(&mut self) -> Result<(), LogError> {
-        if self.messages.is_multiple_of(256)
-            && self.last_flush.elapsed() >= Duration::from_millis(900)
-        {
+        self.flush_calls += 1;
+        let log_due = self.last_log_ns.saturating_sub(self.flushed_log_ns) >= FLUSH_LOG_INTERVAL_NS;
+        let wall_due = || self.last_flush.elapsed() >= FLUSH_WALL_INTERVAL;
+        if log_due || (self.flush_calls.is_multiple_of(CALLS_PER_CLOCK_READ) && wall_due()) {
             self.writer.flush().map_err(|e| self.mcap_err(e))?;
+            self.flushed_log_ns = self.last_log_ns;
             self.last_flush = WallInstant::now();
         }
         Ok(())
