@@ -29,6 +29,15 @@ fuzz_target!(|data: &[u8]| {
 
     let content = replay::read_log_bytes(data);
     assert_eq!(walked.is_ok(), content.is_ok());
+    if let Ok(read) = &walked {
+        assert_eq!(read.messages, messages as u64);
+        assert_eq!(read.file_len, data.len() as u64);
+        if let Some(d) = &read.damage {
+            // The damage is named at an offset within the file, and its text says where.
+            assert!(d.offset <= data.len() as u64);
+            assert!(!d.to_string().is_empty());
+        }
+    }
     if let Ok(c) = &content {
         assert_eq!(c.topics.values().sum::<u64>(), messages as u64);
         for f in c.rx.iter().chain(&c.tx) {

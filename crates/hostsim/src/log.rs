@@ -36,6 +36,9 @@
 //! `NAME.mcap.part` and renamed to `NAME.mcap` once its header and metadata are on disk, so a
 //! `.mcap` file always opens. There is no `fsync`: this protects against the process dying,
 //! not against the machine losing power.
+//!
+//! [`for_each_message`] reads such files: every complete chunk, then a [`Damage`] report that
+//! names the byte offset where the unusable part starts (see [`read`]).
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -49,6 +52,9 @@ use foxglove::Encode;
 use foxglove::schemas::{FrameTransform, Log, PoseInFrame, Quaternion, Timestamp, Vector3};
 
 use crate::bus::{Fate, Node};
+
+pub mod read;
+pub use read::{Damage, Problem, ReadReport, for_each_message};
 
 /// Why a log could not be written.
 #[derive(Debug, thiserror::Error)]
@@ -601,83 +607,4 @@ pub fn write_frame_json(
         let _ = write!(buf, r#","sender":"{}","fate":"{}""#, sender.name(), fate);
     }
     buf.push(b'}');
-}
-
-/// Where reading stopped early, if it did.
-pub type Truncation = Option<String>;
-
-/// Calls `f(topic, log_time_ns, data)` for every message of an MCAP file in file order, and
-/// `meta(name, key-values)` for every metadata record.
-///
-/// # Errors
-/// A description if the bytes are not MCAP at all (nothing readable from the start). A file
-/// that is cut short is not an error: the returned [`Truncation`] says where reading stopped.
-pub fn for_each_message(
-    bytes: &[u8],
-    mut f: impl FnMut(&str, u64, &[u8]),
-    mut meta: impl FnMut(&str, &BTreeMap<String, String>),
-) -> Result<Truncation, String> {
-    use mcap::records::Record;
-
-    let mut topics: std::collections::HashMap<u16, String> = std::collections::HashMap::new();
-    let mut read_any = false;
-    for record in records(bytes) {
-        let record = match record {
-            Ok(r) => r,
-            Err(e) if read_any => {
-                return Ok(Some(format!("{e} (file size {} bytes)", bytes.len())));
-            }
-            Err(e) => return Err(e.to_string()),
-        };
-        read_any = true;
-        match record {
-            Record::Channel(c) => {
-                topics.insert(c.id, c.topic.to_string());
-            }
-            Record::Metadata(m) => meta(&m.name, &m.metadata),
-            Record::Message { header, data } => {
-                if let Some(topic) = topics.get(&header.channel_id) {
-                    f(topic, header.log_time, &data);
-                }
-            }
-            _ => {}
-        }
-    }
-    Ok(None)
-}
-
-/// Longest record [`records`] accepts, bytes: the file's length, and at least 64 MiB for a
-/// record inside a compressed chunk (which can be longer than the file).
-const MIN_RECORD_LENGTH_LIMIT: usize = 64 << 20;
-
-/// Every record of an MCAP file, chunks flattened, as `mcap::read::ChunkFlattener` (ignoring
-/// the end magic) but with a record length limit. `ChunkFlattener` sets none, so a corrupt
-/// record length inside a compressed chunk made it reserve that many bytes (up to 2^64) and
-/// abort the process on allocation failure (found by fuzzing: `fuzz/`, target `mcap_read`).
-fn records(bytes: &[u8]) -> impl Iterator<Item = mcap::McapResult<mcap::records::Record<'static>>> {
-    use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
-
-    let mut reader = LinearReader::new_with_options(
-        LinearReaderOptions::default()
-            .with_skip_end_magic(true)
-            .with_record_length_limit(bytes.len().max(MIN_RECORD_LENGTH_LIMIT)),
-    );
-    let mut rest = bytes;
-    std::iter::from_fn(move || {
-        while let Some(event) = reader.next_event() {
-            match event {
-                Ok(LinearReadEvent::ReadRequest(need)) => {
-                    let len = need.min(rest.len());
-                    reader.insert(len).copy_from_slice(&rest[..len]);
-                    reader.notify_read(len);
-                    rest = &rest[len..];
-                }
-                Ok(LinearReadEvent::Record { data, opcode }) => {
-                    return Some(mcap::parse_record(opcode, data).map(|r| r.into_owned()));
-                }
-                Err(e) => return Some(Err(e)),
-            }
-        }
-        None
-    })
 }

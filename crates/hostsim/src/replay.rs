@@ -16,9 +16,14 @@
 //! grid, so the report gives both the frame-stream comparison (time ignored) and the
 //! odometry comparison ([`CandumpReplay`]).
 //!
-//! The reader takes every complete record: a file cut short (a killed run) is replayed up to
-//! the last complete chunk, and the error that stopped the reading is reported with its
-//! byte offset.
+//! # Damaged logs
+//!
+//! The reader ([`crate::log::for_each_message`]) takes every complete, intact chunk before
+//! the first damage. A damaged MCAP log (cut short by a killed run, or corrupt) is replayed up
+//! to, not including, the time of the last message read: the simulator writes all of a
+//! step's messages before any message of a later time, so every step before that time is
+//! complete in what was read, while the last one may have lost frames to the cut.
+//! [`ReplayReport::read`] says what was read and where the damage is, with its byte offset.
 
 use std::path::{Path, PathBuf};
 
@@ -27,6 +32,8 @@ use firmware::CanFrame;
 use firmware::config::Config;
 use firmware::control::{Controller, Instant};
 use serde::Serialize;
+
+use crate::log::{Damage, ReadReport};
 
 /// A frame with its log time.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -50,8 +57,8 @@ pub struct LogContent {
     pub tx: Vec<TimedFrame>,
     /// Messages per topic.
     pub topics: std::collections::BTreeMap<String, u64>,
-    /// Why reading stopped early, with the byte offset, if it did.
-    pub truncated: Option<String>,
+    /// What the reader read, and where the log is damaged if it is.
+    pub read: ReadReport,
 }
 
 /// Why a log could not be replayed.
@@ -100,28 +107,28 @@ pub enum ReplayError {
 /// Reads the frames and configuration of a hostsim MCAP log.
 ///
 /// # Errors
-/// [`ReplayError`] if the file cannot be read or is not MCAP at all. A file cut short is not
-/// an error: [`LogContent::truncated`] says where it stopped.
+/// [`ReplayError`] if the file cannot be read or nothing in it is readable. A damaged file is
+/// not an error: [`LogContent::read`] says where the damage is.
 pub fn read_log(path: &Path) -> Result<LogContent, ReplayError> {
     let bytes = std::fs::read(path).map_err(|source| ReplayError::Io {
         path: path.to_path_buf(),
         source,
     })?;
-    read_log_bytes(&bytes).map_err(|reason| ReplayError::NotMcap {
+    read_log_bytes(&bytes).map_err(|damage| ReplayError::NotMcap {
         path: path.to_path_buf(),
-        reason,
+        reason: damage.to_string(),
     })
 }
 
 /// As [`read_log`], from bytes.
 ///
 /// # Errors
-/// A description if the bytes do not start like an MCAP file.
-pub fn read_log_bytes(bytes: &[u8]) -> Result<LogContent, String> {
+/// The [`Damage`] at the start if nothing is readable (not an MCAP file).
+pub fn read_log_bytes(bytes: &[u8]) -> Result<LogContent, Damage> {
     let mut content = LogContent::default();
     let mut config = None;
     let mut scenario = None;
-    let truncated = crate::log::for_each_message(
+    let read = crate::log::for_each_message(
         bytes,
         |topic, t_ns, data| {
             *content.topics.entry(topic.to_string()).or_default() += 1;
@@ -143,7 +150,7 @@ pub fn read_log_bytes(bytes: &[u8]) -> Result<LogContent, String> {
     )?;
     content.config = config;
     content.scenario = scenario;
-    content.truncated = truncated;
+    content.read = read;
     Ok(content)
 }
 
@@ -187,8 +194,10 @@ pub struct ReplayReport {
     pub steps: u64,
     /// The first difference, if any.
     pub difference: Option<Difference>,
-    /// Where reading stopped early, if it did.
-    pub truncated: Option<String>,
+    /// What was read from the log, and where it is damaged if it is ([`replay_mcap`] sets it;
+    /// a damaged log is replayed up to the time of its last message, see the
+    /// [module documentation](self#damaged-logs)).
+    pub read: Option<ReadReport>,
 }
 
 impl ReplayReport {
@@ -199,7 +208,8 @@ impl ReplayReport {
     }
 }
 
-/// Replays a hostsim MCAP log through a fresh firmware core.
+/// Replays a hostsim MCAP log through a fresh firmware core: the whole log if it is intact,
+/// else its complete part (see the [module documentation](self#damaged-logs)).
 ///
 /// # Errors
 /// [`ReplayError`] if the log cannot be read or has no usable configuration.
@@ -215,14 +225,27 @@ pub fn replay_mcap(path: &Path) -> Result<ReplayReport, ReplayError> {
         path: path.to_path_buf(),
         source: Box::new(source),
     })?;
-    let mut report = replay_frames(&config, &content.rx, &content.tx).map_err(|source| {
-        ReplayError::Refused {
-            path: path.to_path_buf(),
-            source,
-        }
+    let (rx, tx) = complete_part(&content);
+    let mut report = replay_frames(&config, &rx, &tx).map_err(|source| ReplayError::Refused {
+        path: path.to_path_buf(),
+        source,
     })?;
-    report.truncated = content.truncated;
+    report.read = Some(content.read);
     Ok(report)
+}
+
+/// The frames of a log to replay: all of an intact log's; of a damaged log, those before the
+/// time of the last message read (every step before it is complete; see the
+/// [module documentation](self#damaged-logs)).
+#[must_use]
+pub fn complete_part(content: &LogContent) -> (Vec<TimedFrame>, Vec<TimedFrame>) {
+    let read = &content.read;
+    let keep =
+        |f: &&TimedFrame| read.is_complete() || read.last_time_ns.is_some_and(|last| f.t_ns < last);
+    (
+        content.rx.iter().filter(keep).copied().collect(),
+        content.tx.iter().filter(keep).copied().collect(),
+    )
 }
 
 /// Runs the core on `rx` and compares its output with `tx`. Steps run every period from 0
@@ -280,7 +303,7 @@ pub fn replay_frames(
         fed: next_rx,
         steps,
         difference,
-        truncated: None,
+        read: None,
     })
 }
 
