@@ -14,7 +14,7 @@ use foxglove::schemas::{Log, PoseInFrame};
 
 use crate::bus::frame_bits;
 use crate::log::{ReadReport, for_each_message};
-use crate::replay::parse_frame_json;
+use crate::replay::FrameJson;
 
 /// Figures of a logged run.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -87,14 +87,14 @@ pub fn summarize(path: &Path) -> Result<LogSummary, String> {
                     }
                 }
                 "/can/bus" => {
-                    if let Some(frame) = parse_frame_json(data) {
+                    let parsed = FrameJson::parse(data);
+                    if let Some(frame) = parsed.as_ref().and_then(FrameJson::frame) {
                         bus_bits += u64::from(frame_bits(&frame));
                     }
-                    let fate = serde_json::from_slice::<serde_json::Value>(data)
-                        .ok()
-                        .and_then(|v| v.get("fate")?.as_str().map(str::to_string))
-                        .unwrap_or_else(|| "unknown".to_string());
-                    *s.fates.entry(fate).or_default() += 1;
+                    let fate = parsed.as_ref().and_then(|p| p.fate.as_deref());
+                    *s.fates
+                        .entry(fate.unwrap_or("unknown").to_string())
+                        .or_default() += 1;
                 }
                 "/firmware/log" => {
                     if let Ok(l) = Log::decode(data) {
