@@ -82,8 +82,8 @@ enum Cmd {
     /// byte offset of the damage and what was read before it.
     ///
     /// Exit status: 0 if the frames match (candump: or the odometry agrees within the
-    /// tolerances), 1 if not, 2 for a bad log (nothing readable, no configuration),
-    /// configuration or argument, 3 if the frames of a damaged
+    /// tolerances), 1 if not, 2 for a bad log (nothing readable, no configuration, a time
+    /// line with a gap over 60 s), configuration or argument, 3 if the frames of a damaged
     /// log's complete part match (the log is damaged: see the warning).
     ///
     /// With --iface: plays the log's frames onto a SocketCAN interface in real time (each at
@@ -756,6 +756,9 @@ fn play(
             }
         }
     };
+    // A corrupt timestamp would make the playback sleep for years.
+    hostsim::replay::check_time_gaps(&frames)
+        .with_context(|| format!("{}: cannot play", path.display()))?;
     let stop = install_signals()?;
     let mut bus = SocketCanBus::open(iface)?;
     let clock = MonotonicClock::new(0);

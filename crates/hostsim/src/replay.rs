@@ -24,6 +24,15 @@
 //! step's messages before any message of a later time, so every step before that time is
 //! complete in what was read, while the last one may have lost frames to the cut.
 //! [`ReplayReport::read`] says what was read and where the damage is, with its byte offset.
+//!
+//! # Bounded work
+//!
+//! Replay steps the core once per control period from the log's start to its last frame, so
+//! its work grows with the log's time span, not its size. A corrupt timestamp near 2^64 ns
+//! would make a small file replay for centuries. [`check_time_gaps`] refuses a log whose
+//! frames, in time order, are more than [`MAX_GAP_NS`] apart (or whose first frame is that
+//! far from the start): replay then runs at most 60 000 steps (of 1 ms) per frame. Playback
+//! onto a bus applies the same check.
 
 use std::path::{Path, PathBuf};
 
@@ -102,6 +111,75 @@ pub enum ReplayError {
         /// The error.
         source: firmware::config::ConfigError,
     },
+    /// The log's time line has a gap too long to replay.
+    #[error("{path}: {source}")]
+    TimeGap {
+        /// The log file.
+        path: PathBuf,
+        /// The gap.
+        source: TimeGap,
+    },
+}
+
+/// Longest silence replay accepts between two consecutive frames of a log (in time order),
+/// and between the log's start and its first frame, ns: 60 s. A running core sends its
+/// heartbeat every 100 ms and the drives report at up to 1 kHz, so a longer silence is a
+/// corrupt timestamp (or a capture across a stopped bus, which replay cannot follow anyway).
+pub const MAX_GAP_NS: u64 = 60_000_000_000;
+
+/// A jump in a log's time line longer than [`MAX_GAP_NS`]; see [`check_time_gaps`].
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error(
+    "the log's time jumps from {:.6} s to {:.6} s (frame {frame} at {:.6} s): more than the \
+     {} s replay accepts between two frames; a corrupt timestamp?",
+    *from_ns as f64 * 1e-9,
+    *to_ns as f64 * 1e-9,
+    *to_ns as f64 * 1e-9,
+    MAX_GAP_NS / 1_000_000_000
+)]
+pub struct TimeGap {
+    /// Time before the gap (the previous frame, or the start), ns.
+    pub from_ns: u64,
+    /// Time after the gap, ns.
+    pub to_ns: u64,
+    /// The frame after the gap, in candump notation.
+    pub frame: String,
+}
+
+/// Checks that `frames`, taken in time order, are at most [`MAX_GAP_NS`] apart, the first at
+/// most that long after time 0. Bounds the work of [`replay_frames`], [`replay_split`] and a
+/// playback to [`MAX_GAP_NS`] of log time per frame.
+///
+/// # Errors
+/// The first [`TimeGap`] found.
+pub fn check_time_gaps<'a>(
+    frames: impl IntoIterator<Item = &'a TimedFrame>,
+) -> Result<(), TimeGap> {
+    let mut sorted: Vec<&TimedFrame> = frames.into_iter().collect();
+    sorted.sort_by_key(|f| f.t_ns);
+    let mut previous = 0;
+    for f in sorted {
+        if f.t_ns - previous > MAX_GAP_NS {
+            return Err(TimeGap {
+                from_ns: previous,
+                to_ns: f.t_ns,
+                frame: crate::candump::format_frame(&f.frame),
+            });
+        }
+        previous = f.t_ns;
+    }
+    Ok(())
+}
+
+/// Why [`replay_frames`] or [`replay_split`] could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum ReplayRunError {
+    /// The firmware refuses the configuration.
+    #[error("configuration refused: {0}")]
+    Config(#[from] firmware::config::ConfigError),
+    /// The frames' time line has a gap longer than [`MAX_GAP_NS`].
+    #[error(transparent)]
+    TimeGap(#[from] TimeGap),
 }
 
 /// Reads the frames and configuration of a hostsim MCAP log.
@@ -243,7 +321,8 @@ impl ReplayReport {
 /// else its complete part (see the [module documentation](self#damaged-logs)).
 ///
 /// # Errors
-/// [`ReplayError`] if the log cannot be read or has no usable configuration.
+/// [`ReplayError`] if the log cannot be read, has no usable configuration, or has a gap in
+/// its time line longer than [`MAX_GAP_NS`].
 pub fn replay_mcap(path: &Path) -> Result<ReplayReport, ReplayError> {
     let content = read_log(path)?;
     let text = content
@@ -257,9 +336,15 @@ pub fn replay_mcap(path: &Path) -> Result<ReplayReport, ReplayError> {
         source: Box::new(source),
     })?;
     let (rx, tx) = complete_part(&content);
-    let mut report = replay_frames(&config, &rx, &tx).map_err(|source| ReplayError::Refused {
-        path: path.to_path_buf(),
-        source,
+    let mut report = replay_frames(&config, &rx, &tx).map_err(|e| match e {
+        ReplayRunError::Config(source) => ReplayError::Refused {
+            path: path.to_path_buf(),
+            source,
+        },
+        ReplayRunError::TimeGap(source) => ReplayError::TimeGap {
+            path: path.to_path_buf(),
+            source,
+        },
     })?;
     report.read = Some(content.read);
     Ok(report)
@@ -283,13 +368,15 @@ pub fn complete_part(content: &LogContent) -> (Vec<TimedFrame>, Vec<TimedFrame>)
 /// through the last logged time.
 ///
 /// # Errors
-/// The configuration error if the firmware refuses `config`.
+/// [`ReplayRunError`] if the firmware refuses `config`, or if the frames' time line has a
+/// gap longer than [`MAX_GAP_NS`] ([`check_time_gaps`]).
 pub fn replay_frames(
     config: &Config,
     rx: &[TimedFrame],
     tx: &[TimedFrame],
-) -> Result<ReplayReport, firmware::config::ConfigError> {
+) -> Result<ReplayReport, ReplayRunError> {
     let mut ctl = Controller::new(config)?;
+    check_time_gaps(rx.iter().chain(tx))?;
     let period_ns = ctl.period_micros() * 1000;
     let end_ns = rx.iter().chain(tx).map(|f| f.t_ns).max().unwrap_or(0);
     let mut next_rx = 0;
@@ -319,7 +406,11 @@ pub fn replay_frames(
             out_index += 1;
         }
         steps += 1;
-        t_ns += period_ns;
+        // The gap check bounds end_ns far below u64::MAX; stop rather than wrap regardless.
+        let Some(next) = t_ns.checked_add(period_ns) else {
+            break;
+        };
+        t_ns = next;
     }
     if difference.is_none() && out_index < tx.len() {
         difference = Some(Difference {
@@ -603,6 +694,14 @@ pub enum CandumpReplayError {
     /// The configuration is refused by the firmware.
     #[error("configuration refused: {0}")]
     Refused(#[from] firmware::config::ConfigError),
+    /// The log's time line has a gap too long to replay.
+    #[error("{}: {source}", path.display())]
+    TimeGap {
+        /// The log file.
+        path: PathBuf,
+        /// The gap.
+        source: TimeGap,
+    },
 }
 
 /// Replays a candump log: see [`replay_split`].
@@ -620,11 +719,13 @@ pub fn replay_candump(
             path: path.to_path_buf(),
         });
     }
-    Ok(replay_split(
-        config,
-        &split_candump(config, &entries),
-        tolerance,
-    )?)
+    replay_split(config, &split_candump(config, &entries), tolerance).map_err(|e| match e {
+        ReplayRunError::Config(e) => CandumpReplayError::Refused(e),
+        ReplayRunError::TimeGap(source) => CandumpReplayError::TimeGap {
+            path: path.to_path_buf(),
+            source,
+        },
+    })
 }
 
 fn reading(t_ns: u64, pose: [f32; 3], velocity: [f32; 3]) -> OdometryReading {
@@ -656,14 +757,16 @@ fn reading(t_ns: u64, pose: [f32; 3], velocity: [f32; 3]) -> OdometryReading {
 /// the capture before the runner.
 ///
 /// # Errors
-/// The configuration error if the firmware refuses `config`.
+/// [`ReplayRunError`] if the firmware refuses `config`, or if the log's time line has a gap
+/// longer than [`MAX_GAP_NS`] ([`check_time_gaps`]).
 pub fn replay_split(
     config: &Config,
     log: &SplitLog,
     tolerance: OdometryTolerance,
-) -> Result<CandumpReplay, firmware::config::ConfigError> {
+) -> Result<CandumpReplay, ReplayRunError> {
     use firmware::protocol::robot::Telemetry;
     let mut ctl = Controller::new(config)?;
+    check_time_gaps(&log.all)?;
     let period_ns = ctl.period_micros() * 1000;
 
     // The last logged odometry.
@@ -685,6 +788,7 @@ pub fn replay_split(
     let mut steps = 0u64;
     let mut at_target = None;
     let mut t_ns = 0u64;
+    let mut last_step_ns = 0u64;
     let state = |ctl: &Controller| {
         let s = ctl.snapshot();
         (
@@ -712,10 +816,15 @@ pub fn replay_split(
             out_index += 1;
         }
         steps += 1;
+        last_step_ns = t_ns;
         if target_ns.is_some_and(|t| t_ns <= t) {
             at_target = Some((t_ns, state(&ctl)));
         }
-        t_ns += period_ns;
+        // The gap check bounds end_ns far below u64::MAX; stop rather than wrap regardless.
+        let Some(next) = t_ns.checked_add(period_ns) else {
+            break;
+        };
+        t_ns = next;
     }
     if first_difference.is_none() && out_index < log.tx.len() {
         first_difference = Some(StreamDifference {
@@ -764,7 +873,7 @@ pub fn replay_split(
         identical: first_difference.is_none(),
         first_difference,
         odometry,
-        final_pose: reading(t_ns.saturating_sub(period_ns), pose, vel),
+        final_pose: reading(last_step_ns, pose, vel),
         rejected: ctl.snapshot().rx_errors.into(),
     })
 }

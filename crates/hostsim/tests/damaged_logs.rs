@@ -9,9 +9,11 @@
 use std::path::PathBuf;
 use std::sync::OnceLock;
 
+use embedded_can::StandardId;
+use firmware::CanFrame;
 use hostsim::drives::SimDrives;
-use hostsim::log::{McapLog, Problem, ReadReport, for_each_message};
-use hostsim::replay::{self, ReplayError};
+use hostsim::log::{Direction, McapLog, Problem, ReadReport, for_each_message};
+use hostsim::replay::{self, MAX_GAP_NS, ReplayError, ReplayRunError, TimedFrame};
 use hostsim::scenario::Scenario;
 use hostsim::sim::{LogOptions, run, run_metadata};
 
@@ -413,6 +415,75 @@ fn replay_of_a_cut_log_is_bit_identical_up_to_the_cut_and_summary_reports_it() {
     let path = dir.write("no-metadata.mcap", &fx.bytes[..metadata.0 + 20]);
     let err = replay::replay_mcap(&path).unwrap_err();
     assert!(matches!(err, ReplayError::NoConfig { .. }), "{err}");
+}
+
+/// A log written by the real writer whose last `/can/tx` frame has a corrupt time near
+/// 2^64 ns: CRCs correct, so only the time line can tell.
+fn log_with_time(dir: &TempDir, name: &str, t_ns: u64) -> PathBuf {
+    let path = dir.0.join(name);
+    let mut s = Scenario::builtin("square").unwrap();
+    s.duration_s = 0.2;
+    let mut plant = SimDrives::new(&s.config).unwrap();
+    let mut log = McapLog::create(&path, &run_metadata(&s)).unwrap();
+    run(
+        &s,
+        &mut plant,
+        Some(&mut log),
+        LogOptions::default(),
+        |_| {},
+    )
+    .unwrap();
+    let frame = CanFrame::standard(StandardId::new(0x200).unwrap(), &[0; 8]).unwrap();
+    log.can(t_ns, Direction::Tx, &frame).unwrap();
+    log.finish().unwrap();
+    path
+}
+
+#[test]
+fn a_corrupt_timestamp_is_refused_not_replayed_for_centuries() {
+    let start = std::time::Instant::now();
+    let dir = TempDir::new("time");
+    let path = log_with_time(&dir, "huge-time.mcap", u64::MAX - 5);
+    let err = replay::replay_mcap(&path).unwrap_err();
+    let text = err.to_string();
+    assert!(matches!(err, ReplayError::TimeGap { .. }), "{text}");
+    assert!(text.contains("18446744073.709"), "{text}");
+    assert!(text.contains("huge-time.mcap"), "{text}");
+    // The summary reads it as it is (no loop there), with its absurd duration.
+    let s = hostsim::summary::summarize(&path).unwrap();
+    assert!(s.duration_s > 1e10);
+    // A jump of just over the limit is refused; the limit itself is replayed.
+    let path = log_with_time(&dir, "long-gap.mcap", 200_000_000 + MAX_GAP_NS + 1);
+    assert!(matches!(
+        replay::replay_mcap(&path),
+        Err(ReplayError::TimeGap { .. })
+    ));
+    assert!(start.elapsed().as_secs() < 60, "{:?}", start.elapsed());
+}
+
+#[test]
+fn the_time_gap_check_bounds_replay_and_candump_replay() {
+    let frame = CanFrame::standard(StandardId::new(0x123).unwrap(), &[1]).unwrap();
+    let at = |t_ns| TimedFrame { t_ns, frame };
+    assert!(replay::check_time_gaps(&[at(0), at(MAX_GAP_NS), at(2 * MAX_GAP_NS)]).is_ok());
+    let gap = replay::check_time_gaps(&[at(5), at(MAX_GAP_NS + 6)]).unwrap_err();
+    assert_eq!((gap.from_ns, gap.to_ns), (5, MAX_GAP_NS + 6));
+    assert!(gap.to_string().contains("123#01"), "{gap}");
+    // Out of order: the time line is sorted first.
+    assert!(replay::check_time_gaps(&[at(MAX_GAP_NS + 1), at(1)]).is_ok());
+    let gap = replay::check_time_gaps(&[at(MAX_GAP_NS + 1)]).unwrap_err();
+    assert_eq!(gap.from_ns, 0, "the first frame counts from the start");
+
+    let config = firmware::Config::dji_m3508_example();
+    let r = replay::replay_frames(&config, &[at(0)], &[at(u64::MAX)]);
+    assert!(matches!(r, Err(ReplayRunError::TimeGap(_))), "{r:?}");
+    let split = replay::SplitLog {
+        rx: vec![at(0), at(u64::MAX - 1)],
+        all: vec![at(0), at(u64::MAX - 1)],
+        ..replay::SplitLog::default()
+    };
+    let r = replay::replay_split(&config, &split, replay::OdometryTolerance::default());
+    assert!(matches!(r, Err(ReplayRunError::TimeGap(_))), "{r:?}");
 }
 
 #[test]
