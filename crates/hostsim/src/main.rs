@@ -61,6 +61,11 @@ enum Cmd {
         /// Print the summary as JSON instead of text.
         #[arg(long)]
         json: bool,
+        /// Print `progress <simulated seconds>` on stderr every 100 ms of simulated time, one
+        /// line each, after that time's messages went to the log: for scripts that watch a
+        /// run (the progress bar is drawn only on a terminal).
+        #[arg(long)]
+        progress_lines: bool,
     },
     /// Replay a log through a fresh firmware core and compare, or play it onto a CAN bus.
     ///
@@ -233,14 +238,18 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             no_log,
             no_plot,
             json,
+            progress_lines,
         } => run(
             scenario.as_deref(),
             &out,
             config,
             seed,
-            !no_log,
-            !no_plot,
-            json,
+            RunOutputs {
+                log: !no_log,
+                plot: !no_plot,
+                json,
+                progress_lines,
+            },
         ),
         Cmd::Replay {
             log,
@@ -303,15 +312,28 @@ fn load_scenario(arg: Option<&str>) -> Result<Scenario> {
     }
 }
 
+/// What `run` writes besides the simulation itself.
+#[derive(Debug, Clone, Copy)]
+struct RunOutputs {
+    log: bool,
+    plot: bool,
+    json: bool,
+    progress_lines: bool,
+}
+
 fn run(
     scenario: Option<&str>,
     out: &Path,
     config: Option<PathBuf>,
     seed: Option<u64>,
-    write_log: bool,
-    draw_plot: bool,
-    json: bool,
+    outputs: RunOutputs,
 ) -> Result<ExitCode> {
+    let RunOutputs {
+        log: write_log,
+        plot: draw_plot,
+        json,
+        progress_lines,
+    } = outputs;
     let mut scenario = load_scenario(scenario)?;
     if let Some(path) = config {
         scenario.config = firmware::Config::from_toml_file(&path)?;
@@ -351,7 +373,14 @@ fn run(
         &mut plant,
         log.as_mut(),
         LogOptions::default(),
-        |t_us| bar.set_position(t_us / 1000),
+        |t_us| {
+            bar.set_position(t_us / 1000);
+            if progress_lines {
+                // One write, so that a reader never sees half a line from a killed run.
+                let line = format!("progress {:.3}\n", t_us as f64 * 1e-6);
+                let _ = std::io::stderr().write_all(line.as_bytes());
+            }
+        },
     )?;
     bar.finish_and_clear();
     let wall_s = wall.elapsed().as_secs_f64();
