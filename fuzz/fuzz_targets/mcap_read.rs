@@ -29,6 +29,15 @@ fuzz_target!(|data: &[u8]| {
 
     let content = replay::read_log_bytes(data);
     assert_eq!(walked.is_ok(), content.is_ok());
+    if let Ok(read) = &walked {
+        assert_eq!(read.messages, messages as u64);
+        assert_eq!(read.file_len, data.len() as u64);
+        if let Some(d) = &read.damage {
+            // The damage is named at an offset within the file, and its text says where.
+            assert!(d.offset <= data.len() as u64);
+            assert!(!d.to_string().is_empty());
+        }
+    }
     if let Ok(c) = &content {
         assert_eq!(c.topics.values().sum::<u64>(), messages as u64);
         for f in c.rx.iter().chain(&c.tx) {
@@ -59,8 +68,10 @@ fuzz_target!(|data: &[u8]| {
         .as_deref()
         .and_then(|text| Config::from_toml_str(text).ok())
         .unwrap_or_else(Config::dji_m3508_example);
+    // Spans of at most 0.5 s have no gap over replay::MAX_GAP_NS: only a configuration error
+    // could stop the replay, and a configuration that loads is accepted.
     let report = replay::replay_frames(&config, &content.rx, &content.tx)
-        .expect("a configuration that loads is accepted");
+        .expect("a configuration that loads is accepted, and 0.5 s has no long gap");
     assert!(report.fed <= content.rx.len());
     assert!(report.compared <= content.tx.len());
     let _ = replay::mcap_playback(&content, true, true);

@@ -25,9 +25,20 @@
 //!
 //! # Crash safety
 //!
-//! Messages go into zstd-compressed chunks. [`McapLog::maybe_flush`] closes the open chunk
-//! and flushes the file at least once per wall-clock second, so a run that is killed leaves
-//! a file whose every complete chunk is readable, losing at most the last second.
+//! Messages go into zstd-compressed chunks, each built in memory and appended to the file
+//! whole, so the file on disk is always a prefix of the finished file (no chunk header is
+//! patched afterwards). [`McapLog::maybe_flush`] closes the open chunk and hands the file's
+//! buffer to the operating system once half a second of log time or of wall-clock time has
+//! passed since the last flush, whichever comes first. A run that dies (SIGKILL, a panic, the
+//! OOM killer) therefore leaves a file cut short whose every complete chunk is readable, and
+//! loses at most the last half second of log time before it died (and at most about half a
+//! second of wall-clock time): "at most the last second". The file is created as
+//! `NAME.mcap.part` and renamed to `NAME.mcap` once its header and metadata are on disk, so a
+//! `.mcap` file always opens. There is no `fsync`: this protects against the process dying,
+//! not against the machine losing power.
+//!
+//! [`for_each_message`] reads such files: every complete chunk, then a [`Damage`] report that
+//! names the byte offset where the unusable part starts (see [`read`]).
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -41,6 +52,9 @@ use foxglove::Encode;
 use foxglove::schemas::{FrameTransform, Log, PoseInFrame, Quaternion, Timestamp, Vector3};
 
 use crate::bus::{Fate, Node};
+
+pub mod read;
+pub use read::{Damage, Problem, ReadReport, for_each_message};
 
 /// Why a log could not be written.
 #[derive(Debug, thiserror::Error)]
@@ -101,8 +115,35 @@ pub struct McapLog {
     ch: Channels,
     seq: u32,
     buf: Vec<u8>,
-    last_flush: WallInstant,
     messages: u64,
+    /// Largest log time written, ns.
+    last_log_ns: u64,
+    /// `last_log_ns` at the last flush.
+    flushed_log_ns: u64,
+    /// Wall-clock time of the last flush.
+    last_flush: WallInstant,
+    /// Calls of `maybe_flush`, to read the wall clock only every few.
+    flush_calls: u64,
+}
+
+/// Log time between two flushes, ns: a run that dies loses at most this much log time.
+const FLUSH_LOG_INTERVAL_NS: u64 = 500_000_000;
+
+/// Wall-clock time between two flushes, for runs slower than real time.
+const FLUSH_WALL_INTERVAL: Duration = Duration::from_millis(500);
+
+/// [`McapLog::maybe_flush`] reads the wall clock on every this many calls.
+const CALLS_PER_CLOCK_READ: u64 = 64;
+
+/// Uncompressed size at which the writer closes a chunk, bytes.
+pub const CHUNK_SIZE: u64 = 1 << 20;
+
+/// Where a log is written until its header is on disk: `NAME.mcap.part` for `NAME.mcap`.
+#[must_use]
+pub fn part_path(path: &Path) -> PathBuf {
+    let mut name = path.as_os_str().to_owned();
+    name.push(".part");
+    PathBuf::from(name)
 }
 
 fn ns_stamp(t_ns: u64) -> Timestamp {
@@ -121,13 +162,29 @@ fn yaw_quaternion(yaw: f64) -> Quaternion {
 
 impl McapLog {
     /// Creates `path` and writes the header, schemas, channels and the run's metadata
-    /// (`config` TOML, scenario name, seed, ...).
+    /// (`config` TOML, scenario name, seed, ...). The file is written as [`part_path`] and
+    /// renamed to `path` once that much is on disk (see [Crash safety](self#crash-safety)).
     ///
     /// # Errors
     /// [`LogError`] naming the file.
     pub fn create(path: &Path, metadata: &BTreeMap<String, String>) -> Result<Self, LogError> {
-        let file = File::create(path).map_err(|source| LogError::Io {
-            path: path.to_path_buf(),
+        Self::create_with_chunk_size(path, metadata, CHUNK_SIZE)
+    }
+
+    /// As [`create`](Self::create), closing chunks at `chunk_size` uncompressed bytes instead
+    /// of [`CHUNK_SIZE`]: small chunks make many chunk boundaries in a short log, for tests of
+    /// damaged logs.
+    ///
+    /// # Errors
+    /// [`LogError`] naming the file.
+    pub fn create_with_chunk_size(
+        path: &Path,
+        metadata: &BTreeMap<String, String>,
+        chunk_size: u64,
+    ) -> Result<Self, LogError> {
+        let part = part_path(path);
+        let file = File::create(&part).map_err(|source| LogError::Io {
+            path: part.clone(),
             source,
         })?;
         let mcap_err = |source| LogError::Mcap {
@@ -137,7 +194,12 @@ impl McapLog {
         let options = mcap::WriteOptions::new()
             .compression(Some(mcap::Compression::Zstd))
             .compression_level(1)
-            .chunk_size(Some(1 << 20))
+            .chunk_size(Some(chunk_size))
+            // Build each chunk in memory and append it whole, rather than writing a placeholder
+            // header and patching it when the chunk closes: the file on disk is then always a
+            // prefix of the finished file, and a killed run leaves a file cut short, never one
+            // with an unpatched chunk header.
+            .disable_seeking(true)
             .profile("")
             .library(concat!("mecanum hostsim ", env!("CARGO_PKG_VERSION")));
         let mut writer = options
@@ -226,6 +288,10 @@ impl McapLog {
             })
             .map_err(mcap_err)?;
         writer.flush().map_err(mcap_err)?;
+        std::fs::rename(&part, path).map_err(|source| LogError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
         Ok(Self {
             path: path.to_path_buf(),
             writer,
@@ -243,8 +309,11 @@ impl McapLog {
             },
             seq: 0,
             buf: Vec::with_capacity(512),
-            last_flush: WallInstant::now(),
             messages: 0,
+            last_log_ns: 0,
+            flushed_log_ns: 0,
+            last_flush: WallInstant::now(),
+            flush_calls: 0,
         })
     }
 
@@ -264,6 +333,7 @@ impl McapLog {
             publish_time: t_ns,
         };
         self.messages += 1;
+        self.last_log_ns = self.last_log_ns.max(t_ns);
         self.writer
             .write_to_known_channel(&header, &self.buf)
             .map_err(|e| LogError::Mcap {
@@ -461,17 +531,20 @@ impl McapLog {
         self.write(self.ch.log, t_ns)
     }
 
-    /// Closes the open chunk and flushes the file if a wall-clock second has passed since the
-    /// last flush. Call it often (every simulated millisecond is fine: it only reads a clock
-    /// every 256 messages).
+    /// Closes the open chunk and hands the file's buffer to the operating system if half a
+    /// second of log time, or of wall-clock time, has passed since the last flush (see
+    /// [Crash safety](self#crash-safety)). Call it after each step's messages, at least every
+    /// few milliseconds of log time: it reads the wall clock only on every 64th call.
     ///
     /// # Errors
     /// [`LogError`] if the flush fails.
     pub fn maybe_flush(&mut self) -> Result<(), LogError> {
-        if self.messages.is_multiple_of(256)
-            && self.last_flush.elapsed() >= Duration::from_millis(900)
-        {
+        self.flush_calls += 1;
+        let log_due = self.last_log_ns.saturating_sub(self.flushed_log_ns) >= FLUSH_LOG_INTERVAL_NS;
+        let wall_due = || self.last_flush.elapsed() >= FLUSH_WALL_INTERVAL;
+        if log_due || (self.flush_calls.is_multiple_of(CALLS_PER_CLOCK_READ) && wall_due()) {
             self.writer.flush().map_err(|e| self.mcap_err(e))?;
+            self.flushed_log_ns = self.last_log_ns;
             self.last_flush = WallInstant::now();
         }
         Ok(())
@@ -534,83 +607,4 @@ pub fn write_frame_json(
         let _ = write!(buf, r#","sender":"{}","fate":"{}""#, sender.name(), fate);
     }
     buf.push(b'}');
-}
-
-/// Where reading stopped early, if it did.
-pub type Truncation = Option<String>;
-
-/// Calls `f(topic, log_time_ns, data)` for every message of an MCAP file in file order, and
-/// `meta(name, key-values)` for every metadata record.
-///
-/// # Errors
-/// A description if the bytes are not MCAP at all (nothing readable from the start). A file
-/// that is cut short is not an error: the returned [`Truncation`] says where reading stopped.
-pub fn for_each_message(
-    bytes: &[u8],
-    mut f: impl FnMut(&str, u64, &[u8]),
-    mut meta: impl FnMut(&str, &BTreeMap<String, String>),
-) -> Result<Truncation, String> {
-    use mcap::records::Record;
-
-    let mut topics: std::collections::HashMap<u16, String> = std::collections::HashMap::new();
-    let mut read_any = false;
-    for record in records(bytes) {
-        let record = match record {
-            Ok(r) => r,
-            Err(e) if read_any => {
-                return Ok(Some(format!("{e} (file size {} bytes)", bytes.len())));
-            }
-            Err(e) => return Err(e.to_string()),
-        };
-        read_any = true;
-        match record {
-            Record::Channel(c) => {
-                topics.insert(c.id, c.topic.to_string());
-            }
-            Record::Metadata(m) => meta(&m.name, &m.metadata),
-            Record::Message { header, data } => {
-                if let Some(topic) = topics.get(&header.channel_id) {
-                    f(topic, header.log_time, &data);
-                }
-            }
-            _ => {}
-        }
-    }
-    Ok(None)
-}
-
-/// Longest record [`records`] accepts, bytes: the file's length, and at least 64 MiB for a
-/// record inside a compressed chunk (which can be longer than the file).
-const MIN_RECORD_LENGTH_LIMIT: usize = 64 << 20;
-
-/// Every record of an MCAP file, chunks flattened, as `mcap::read::ChunkFlattener` (ignoring
-/// the end magic) but with a record length limit. `ChunkFlattener` sets none, so a corrupt
-/// record length inside a compressed chunk made it reserve that many bytes (up to 2^64) and
-/// abort the process on allocation failure (found by fuzzing: `fuzz/`, target `mcap_read`).
-fn records(bytes: &[u8]) -> impl Iterator<Item = mcap::McapResult<mcap::records::Record<'static>>> {
-    use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
-
-    let mut reader = LinearReader::new_with_options(
-        LinearReaderOptions::default()
-            .with_skip_end_magic(true)
-            .with_record_length_limit(bytes.len().max(MIN_RECORD_LENGTH_LIMIT)),
-    );
-    let mut rest = bytes;
-    std::iter::from_fn(move || {
-        while let Some(event) = reader.next_event() {
-            match event {
-                Ok(LinearReadEvent::ReadRequest(need)) => {
-                    let len = need.min(rest.len());
-                    reader.insert(len).copy_from_slice(&rest[..len]);
-                    reader.notify_read(len);
-                    rest = &rest[len..];
-                }
-                Ok(LinearReadEvent::Record { data, opcode }) => {
-                    return Some(mcap::parse_record(opcode, data).map(|r| r.into_owned()));
-                }
-                Err(e) => return Some(Err(e)),
-            }
-        }
-        None
-    })
 }

@@ -63,6 +63,11 @@ enum Cmd {
         /// Print the summary as JSON instead of text.
         #[arg(long)]
         json: bool,
+        /// Print `progress <simulated seconds>` on stderr every 100 ms of simulated time, one
+        /// line each, after that time's messages went to the log: for scripts that watch a
+        /// run (the progress bar is drawn only on a terminal).
+        #[arg(long)]
+        progress_lines: bool,
     },
     /// Replay a log through a fresh firmware core and compare, or play it onto a CAN bus.
     ///
@@ -79,15 +84,22 @@ enum Cmd {
     /// and the odometry: the last logged ODOM_POSITION/ODOM_VELOCITY against the replayed
     /// core's pose at that time. All interfaces in a candump log are taken as one bus.
     ///
+    /// A damaged MCAP log (cut short by a killed run, or corrupt) is replayed up to the time
+    /// of the last message in its last complete, intact chunk; a warning on stderr names the
+    /// byte offset of the damage and what was read before it.
+    ///
     /// Exit status: 0 if the frames match (candump: or the odometry agrees within the
-    /// tolerances), 1 if not, 2 for a bad log, configuration or argument.
+    /// tolerances), 1 if not, 2 for a bad log (nothing readable, no configuration, a time
+    /// line with a gap over 60 s), configuration or argument, 3 if the frames of a damaged
+    /// log's complete part match (the log is damaged: see the warning).
     ///
     /// With --iface: plays the log's frames onto a SocketCAN interface in real time (each at
     /// its logged time relative to the first, divided by --speed) and reports frames sent
     /// and ENOBUFS retries. By default only the frames the firmware received (what the host
     /// and the drives sent) are played, so a live mecanum-runner on the interface can be fed
     /// the logged session. Stops early on SIGINT/SIGTERM. Exit status 1 if a frame could not
-    /// be sent (dropped after 100 ms of ENOBUFS retries, or another error).
+    /// be sent (dropped after 100 ms of ENOBUFS retries, or another error), else 3 if the
+    /// MCAP log is damaged (its complete part was played).
     #[command(verbatim_doc_comment)]
     Replay {
         /// A hostsim MCAP log, or a candump log (.log / .candump).
@@ -162,7 +174,16 @@ enum Cmd {
         quiet: bool,
     },
     /// Summarise a log: odometry drift against ground truth, bus load, state changes and
-    /// faults, messages per topic. Reads a log cut short up to its last complete chunk.
+    /// faults, messages per topic.
+    ///
+    /// A damaged log (cut short by a killed run, or corrupt) is summarised up to its last
+    /// complete, intact chunk, and a warning on stderr names the byte offset of the damage
+    /// and what was read before it.
+    ///
+    /// Exit status: 0 for an intact log, 2 if the file cannot be read or nothing in it is
+    /// readable (not MCAP, or an intact log without messages), 3 if the log is damaged (the
+    /// summary of its complete part is printed).
+    #[command(verbatim_doc_comment)]
     Summary {
         /// A hostsim MCAP log.
         log: PathBuf,
@@ -173,6 +194,16 @@ enum Cmd {
     /// {"fl":..,"fr":..,"rl":..,"rr":..} (rad/s); {"op":"forward",...,"fl":..,"fr":..,"rl":..,"rr":..}
     /// gives {"vx":..,"vy":..,"wz":..}. A bad line gives {"error":"..."} and the rest go on.
     Kin,
+}
+
+/// Exit status of `replay` and `summary` for a damaged log whose complete part was used.
+const EXIT_DAMAGED: u8 = 3;
+
+/// Warns on stderr that the log at `path` is damaged, if it is: where, what, what was read.
+fn warn_if_damaged(path: &Path, read: &hostsim::log::ReadReport, doing: &str) {
+    if !read.is_complete() {
+        eprintln!("warning: {} is {read}; {doing}", path.display());
+    }
 }
 
 /// Rust ignores SIGPIPE, so `println!` to a closed pipe (`hostsim run | head -1`) panics.
@@ -215,14 +246,18 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             no_log,
             no_plot,
             json,
+            progress_lines,
         } => run(
             scenario.as_deref(),
             &out,
             config,
             seed,
-            !no_log,
-            !no_plot,
-            json,
+            RunOutputs {
+                log: !no_log,
+                plot: !no_plot,
+                json,
+                progress_lines,
+            },
         ),
         Cmd::Replay {
             log,
@@ -287,15 +322,28 @@ fn load_scenario(arg: Option<&str>) -> Result<Scenario> {
     }
 }
 
+/// What `run` writes besides the simulation itself.
+#[derive(Debug, Clone, Copy)]
+struct RunOutputs {
+    log: bool,
+    plot: bool,
+    json: bool,
+    progress_lines: bool,
+}
+
 fn run(
     scenario: Option<&str>,
     out: &Path,
     config: Option<PathBuf>,
     seed: Option<u64>,
-    write_log: bool,
-    draw_plot: bool,
-    json: bool,
+    outputs: RunOutputs,
 ) -> Result<ExitCode> {
+    let RunOutputs {
+        log: write_log,
+        plot: draw_plot,
+        json,
+        progress_lines,
+    } = outputs;
     let mut scenario = load_scenario(scenario)?;
     if let Some(path) = config {
         scenario.config = firmware::Config::from_toml_file(&path)?;
@@ -335,7 +383,14 @@ fn run(
         &mut plant,
         log.as_mut(),
         LogOptions::default(),
-        |t_us| bar.set_position(t_us / 1000),
+        |t_us| {
+            bar.set_position(t_us / 1000);
+            if progress_lines {
+                // One write, so that a reader never sees half a line from a killed run.
+                let line = format!("progress {:.3}\n", t_us as f64 * 1e-6);
+                let _ = std::io::stderr().write_all(line.as_bytes());
+            }
+        },
     )?;
     bar.finish_and_clear();
     let wall_s = wall.elapsed().as_secs_f64();
@@ -530,8 +585,13 @@ fn replay(
 
 fn replay_mcap_log(path: &Path, json: bool) -> Result<ExitCode> {
     let report = replay_mcap(path)?;
-    if let Some(t) = &report.truncated {
-        eprintln!("warning: log cut short: {t}; replaying what was complete");
+    let damaged = report.read.as_ref().filter(|r| !r.is_complete());
+    if let Some(read) = damaged {
+        warn_if_damaged(
+            path,
+            read,
+            "replaying its complete part, up to the last message read",
+        );
     }
     let show = |f: &Option<hostsim::replay::TimedFrame>| {
         f.map_or_else(
@@ -539,10 +599,12 @@ fn replay_mcap_log(path: &Path, json: bool) -> Result<ExitCode> {
             |f| format!("{} at {:.6} s", f.frame, f.t_ns as f64 * 1e-9),
         )
     };
-    let code = if report.identical() {
-        ExitCode::SUCCESS
-    } else {
+    let code = if !report.identical() {
         ExitCode::from(1)
+    } else if damaged.is_some() {
+        ExitCode::from(EXIT_DAMAGED)
+    } else {
+        ExitCode::SUCCESS
     };
     if json {
         let frame = |f: &Option<hostsim::replay::TimedFrame>| {
@@ -570,7 +632,9 @@ fn replay_mcap_log(path: &Path, json: bool) -> Result<ExitCode> {
             "identical": report.identical(),
             "verdict": if report.identical() { "identical" } else { "differs" },
             "first_difference": difference,
-            "truncated": report.truncated,
+            "complete": damaged.is_none(),
+            "damage": damaged.map(ToString::to_string),
+            "damage_offset": damaged.and_then(|r| r.damage.as_ref()).map(|d| d.offset),
         });
         println!("{v}");
         return Ok(code);
@@ -705,6 +769,7 @@ fn play(
         Only::Tx => (false, true),
         Only::All => (true, true),
     };
+    let mut damaged = false;
     let frames = match detect_format(path)? {
         LogFormat::Mcap => {
             if config.is_some() {
@@ -715,9 +780,8 @@ fn play(
                 );
             }
             let content = hostsim::replay::read_log(path)?;
-            if let Some(t) = &content.truncated {
-                eprintln!("warning: log cut short: {t}; playing what was complete");
-            }
+            warn_if_damaged(path, &content.read, "playing its complete part");
+            damaged = !content.read.is_complete();
             mcap_playback(&content, rx, tx)
         }
         LogFormat::Candump => {
@@ -731,6 +795,9 @@ fn play(
             }
         }
     };
+    // A corrupt timestamp would make the playback sleep for years.
+    hostsim::replay::check_time_gaps(&frames)
+        .with_context(|| format!("{}: cannot play", path.display()))?;
     let stop = install_signals()?;
     let mut bus = SocketCanBus::open(iface)?;
     let clock = MonotonicClock::new(0);
@@ -753,6 +820,8 @@ fn play(
     }
     Ok(if report.failed > 0 {
         ExitCode::from(1)
+    } else if damaged {
+        ExitCode::from(EXIT_DAMAGED)
     } else {
         ExitCode::SUCCESS
     })
@@ -877,7 +946,8 @@ fn plant(args: &PlantCli<'_>) -> Result<ExitCode> {
 
 fn summary(path: &Path) -> Result<ExitCode> {
     let s = hostsim::summary::summarize(path).map_err(anyhow::Error::msg)?;
-    if s.topics.is_empty() {
+    let damaged = !s.read.is_complete();
+    if s.topics.is_empty() && !damaged {
         bail!("{}: no messages", path.display());
     }
     println!("log {} ({:.2} s)", path.display(), s.duration_s);
@@ -915,8 +985,10 @@ fn summary(path: &Path) -> Result<ExitCode> {
     for (topic, n) in &s.topics {
         println!("  {topic:24} {n:>9} messages");
     }
-    if let Some(t) = &s.truncated {
-        println!("cut short: {t}");
+    println!("read: {}", s.read);
+    if damaged {
+        warn_if_damaged(path, &s.read, "the summary covers its complete part");
+        return Ok(ExitCode::from(EXIT_DAMAGED));
     }
     Ok(ExitCode::SUCCESS)
 }

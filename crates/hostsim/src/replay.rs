@@ -16,9 +16,23 @@
 //! grid, so the report gives both the frame-stream comparison (time ignored) and the
 //! odometry comparison ([`CandumpReplay`]).
 //!
-//! The reader takes every complete record: a file cut short (a killed run) is replayed up to
-//! the last complete chunk, and the error that stopped the reading is reported with its
-//! byte offset.
+//! # Damaged logs
+//!
+//! The reader ([`crate::log::for_each_message`]) takes every complete, intact chunk before
+//! the first damage. A damaged MCAP log (cut short by a killed run, or corrupt) is replayed up
+//! to, not including, the time of the last message read: the simulator writes all of a
+//! step's messages before any message of a later time, so every step before that time is
+//! complete in what was read, while the last one may have lost frames to the cut.
+//! [`ReplayReport::read`] says what was read and where the damage is, with its byte offset.
+//!
+//! # Bounded work
+//!
+//! Replay steps the core once per control period from the log's start to its last frame, so
+//! its work grows with the log's time span, not its size. A corrupt timestamp near 2^64 ns
+//! would make a small file replay for centuries. [`check_time_gaps`] refuses a log whose
+//! frames, in time order, are more than [`MAX_GAP_NS`] apart (or whose first frame is that
+//! far from the start): replay then runs at most 60 000 steps (of 1 ms) per frame. Playback
+//! onto a bus applies the same check.
 
 use std::path::{Path, PathBuf};
 
@@ -27,6 +41,8 @@ use firmware::CanFrame;
 use firmware::config::Config;
 use firmware::control::{Controller, Instant};
 use serde::Serialize;
+
+use crate::log::{Damage, ReadReport};
 
 /// A frame with its log time.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -50,8 +66,8 @@ pub struct LogContent {
     pub tx: Vec<TimedFrame>,
     /// Messages per topic.
     pub topics: std::collections::BTreeMap<String, u64>,
-    /// Why reading stopped early, with the byte offset, if it did.
-    pub truncated: Option<String>,
+    /// What the reader read, and where the log is damaged if it is.
+    pub read: ReadReport,
 }
 
 /// Why a log could not be replayed.
@@ -95,33 +111,102 @@ pub enum ReplayError {
         /// The error.
         source: firmware::config::ConfigError,
     },
+    /// The log's time line has a gap too long to replay.
+    #[error("{path}: {source}")]
+    TimeGap {
+        /// The log file.
+        path: PathBuf,
+        /// The gap.
+        source: TimeGap,
+    },
+}
+
+/// Longest silence replay accepts between two consecutive frames of a log (in time order),
+/// and between the log's start and its first frame, ns: 60 s. A running core sends its
+/// heartbeat every 100 ms and the drives report at up to 1 kHz, so a longer silence is a
+/// corrupt timestamp (or a capture across a stopped bus, which replay cannot follow anyway).
+pub const MAX_GAP_NS: u64 = 60_000_000_000;
+
+/// A jump in a log's time line longer than [`MAX_GAP_NS`]; see [`check_time_gaps`].
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error(
+    "the log's time jumps from {:.6} s to {:.6} s (frame {frame} at {:.6} s): more than the \
+     {} s replay accepts between two frames; a corrupt timestamp?",
+    *from_ns as f64 * 1e-9,
+    *to_ns as f64 * 1e-9,
+    *to_ns as f64 * 1e-9,
+    MAX_GAP_NS / 1_000_000_000
+)]
+pub struct TimeGap {
+    /// Time before the gap (the previous frame, or the start), ns.
+    pub from_ns: u64,
+    /// Time after the gap, ns.
+    pub to_ns: u64,
+    /// The frame after the gap, in candump notation.
+    pub frame: String,
+}
+
+/// Checks that `frames`, taken in time order, are at most [`MAX_GAP_NS`] apart, the first at
+/// most that long after time 0. Bounds the work of [`replay_frames`], [`replay_split`] and a
+/// playback to [`MAX_GAP_NS`] of log time per frame.
+///
+/// # Errors
+/// The first [`TimeGap`] found.
+pub fn check_time_gaps<'a>(
+    frames: impl IntoIterator<Item = &'a TimedFrame>,
+) -> Result<(), TimeGap> {
+    let mut sorted: Vec<&TimedFrame> = frames.into_iter().collect();
+    sorted.sort_by_key(|f| f.t_ns);
+    let mut previous = 0;
+    for f in sorted {
+        if f.t_ns - previous > MAX_GAP_NS {
+            return Err(TimeGap {
+                from_ns: previous,
+                to_ns: f.t_ns,
+                frame: crate::candump::format_frame(&f.frame),
+            });
+        }
+        previous = f.t_ns;
+    }
+    Ok(())
+}
+
+/// Why [`replay_frames`] or [`replay_split`] could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum ReplayRunError {
+    /// The firmware refuses the configuration.
+    #[error("configuration refused: {0}")]
+    Config(#[from] firmware::config::ConfigError),
+    /// The frames' time line has a gap longer than [`MAX_GAP_NS`].
+    #[error(transparent)]
+    TimeGap(#[from] TimeGap),
 }
 
 /// Reads the frames and configuration of a hostsim MCAP log.
 ///
 /// # Errors
-/// [`ReplayError`] if the file cannot be read or is not MCAP at all. A file cut short is not
-/// an error: [`LogContent::truncated`] says where it stopped.
+/// [`ReplayError`] if the file cannot be read or nothing in it is readable. A damaged file is
+/// not an error: [`LogContent::read`] says where the damage is.
 pub fn read_log(path: &Path) -> Result<LogContent, ReplayError> {
     let bytes = std::fs::read(path).map_err(|source| ReplayError::Io {
         path: path.to_path_buf(),
         source,
     })?;
-    read_log_bytes(&bytes).map_err(|reason| ReplayError::NotMcap {
+    read_log_bytes(&bytes).map_err(|damage| ReplayError::NotMcap {
         path: path.to_path_buf(),
-        reason,
+        reason: damage.to_string(),
     })
 }
 
 /// As [`read_log`], from bytes.
 ///
 /// # Errors
-/// A description if the bytes do not start like an MCAP file.
-pub fn read_log_bytes(bytes: &[u8]) -> Result<LogContent, String> {
+/// The [`Damage`] at the start if nothing is readable (not an MCAP file).
+pub fn read_log_bytes(bytes: &[u8]) -> Result<LogContent, Damage> {
     let mut content = LogContent::default();
     let mut config = None;
     let mut scenario = None;
-    let truncated = crate::log::for_each_message(
+    let read = crate::log::for_each_message(
         bytes,
         |topic, t_ns, data| {
             *content.topics.entry(topic.to_string()).or_default() += 1;
@@ -143,24 +228,55 @@ pub fn read_log_bytes(bytes: &[u8]) -> Result<LogContent, String> {
     )?;
     content.config = config;
     content.scenario = scenario;
-    content.truncated = truncated;
+    content.read = read;
     Ok(content)
+}
+
+/// The fields of a `/can/*` JSON message (see [`crate::log::write_frame_json`]) that replay
+/// and summary read. Typed rather than a `serde_json::Value`: several times faster, and logs
+/// hold hundreds of thousands of these.
+#[derive(Debug, serde::Deserialize)]
+pub struct FrameJson<'a> {
+    /// Arbitration id.
+    pub id: u64,
+    /// Data length code.
+    pub dlc: u64,
+    /// 29-bit id (never in these logs: the firmware's frames are standard).
+    pub is_extended: bool,
+    /// Data bytes, padded to 8.
+    pub data: Vec<u8>,
+    /// `/can/bus` only: `delivered`, `dropped` or `corrupted`.
+    #[serde(borrow, default)]
+    pub fate: Option<std::borrow::Cow<'a, str>>,
+}
+
+impl FrameJson<'_> {
+    /// Parses a `/can/*` JSON message; `None` if it is not one.
+    #[must_use]
+    pub fn parse(data: &[u8]) -> Option<FrameJson<'_>> {
+        serde_json::from_slice(data).ok()
+    }
+
+    /// The frame; `None` for an extended id, an id over 0x7FF or a DLC over 8.
+    #[must_use]
+    pub fn frame(&self) -> Option<CanFrame> {
+        let id = u16::try_from(self.id).ok()?;
+        let dlc = u8::try_from(self.dlc).ok()?;
+        if dlc > 8 || self.is_extended {
+            return None;
+        }
+        let mut buf = [0u8; 8];
+        for (b, x) in buf.iter_mut().zip(&self.data) {
+            *b = *x;
+        }
+        Some(CanFrame::from_buffer(StandardId::new(id)?, buf, dlc))
+    }
 }
 
 /// Parses a `/can/*` JSON message back into a frame; `None` if it is not one.
 #[must_use]
 pub fn parse_frame_json(data: &[u8]) -> Option<CanFrame> {
-    let v: serde_json::Value = serde_json::from_slice(data).ok()?;
-    let id = u16::try_from(v.get("id")?.as_u64()?).ok()?;
-    let dlc = u8::try_from(v.get("dlc")?.as_u64()?).ok()?;
-    if dlc > 8 || v.get("is_extended")?.as_bool()? {
-        return None;
-    }
-    let mut buf = [0u8; 8];
-    for (b, x) in buf.iter_mut().zip(v.get("data")?.as_array()?) {
-        *b = u8::try_from(x.as_u64()?).ok()?;
-    }
-    Some(CanFrame::from_buffer(StandardId::new(id)?, buf, dlc))
+    FrameJson::parse(data)?.frame()
 }
 
 /// The first frame where the replay and the log differ.
@@ -187,8 +303,10 @@ pub struct ReplayReport {
     pub steps: u64,
     /// The first difference, if any.
     pub difference: Option<Difference>,
-    /// Where reading stopped early, if it did.
-    pub truncated: Option<String>,
+    /// What was read from the log, and where it is damaged if it is ([`replay_mcap`] sets it;
+    /// a damaged log is replayed up to the time of its last message, see the
+    /// [module documentation](self#damaged-logs)).
+    pub read: Option<ReadReport>,
 }
 
 impl ReplayReport {
@@ -199,10 +317,12 @@ impl ReplayReport {
     }
 }
 
-/// Replays a hostsim MCAP log through a fresh firmware core.
+/// Replays a hostsim MCAP log through a fresh firmware core: the whole log if it is intact,
+/// else its complete part (see the [module documentation](self#damaged-logs)).
 ///
 /// # Errors
-/// [`ReplayError`] if the log cannot be read or has no usable configuration.
+/// [`ReplayError`] if the log cannot be read, has no usable configuration, or has a gap in
+/// its time line longer than [`MAX_GAP_NS`].
 pub fn replay_mcap(path: &Path) -> Result<ReplayReport, ReplayError> {
     let content = read_log(path)?;
     let text = content
@@ -215,27 +335,48 @@ pub fn replay_mcap(path: &Path) -> Result<ReplayReport, ReplayError> {
         path: path.to_path_buf(),
         source: Box::new(source),
     })?;
-    let mut report = replay_frames(&config, &content.rx, &content.tx).map_err(|source| {
-        ReplayError::Refused {
+    let (rx, tx) = complete_part(&content);
+    let mut report = replay_frames(&config, &rx, &tx).map_err(|e| match e {
+        ReplayRunError::Config(source) => ReplayError::Refused {
             path: path.to_path_buf(),
             source,
-        }
+        },
+        ReplayRunError::TimeGap(source) => ReplayError::TimeGap {
+            path: path.to_path_buf(),
+            source,
+        },
     })?;
-    report.truncated = content.truncated;
+    report.read = Some(content.read);
     Ok(report)
+}
+
+/// The frames of a log to replay: all of an intact log's; of a damaged log, those before the
+/// time of the last message read (every step before it is complete; see the
+/// [module documentation](self#damaged-logs)).
+#[must_use]
+pub fn complete_part(content: &LogContent) -> (Vec<TimedFrame>, Vec<TimedFrame>) {
+    let read = &content.read;
+    let keep =
+        |f: &&TimedFrame| read.is_complete() || read.last_time_ns.is_some_and(|last| f.t_ns < last);
+    (
+        content.rx.iter().filter(keep).copied().collect(),
+        content.tx.iter().filter(keep).copied().collect(),
+    )
 }
 
 /// Runs the core on `rx` and compares its output with `tx`. Steps run every period from 0
 /// through the last logged time.
 ///
 /// # Errors
-/// The configuration error if the firmware refuses `config`.
+/// [`ReplayRunError`] if the firmware refuses `config`, or if the frames' time line has a
+/// gap longer than [`MAX_GAP_NS`] ([`check_time_gaps`]).
 pub fn replay_frames(
     config: &Config,
     rx: &[TimedFrame],
     tx: &[TimedFrame],
-) -> Result<ReplayReport, firmware::config::ConfigError> {
+) -> Result<ReplayReport, ReplayRunError> {
     let mut ctl = Controller::new(config)?;
+    check_time_gaps(rx.iter().chain(tx))?;
     let period_ns = ctl.period_micros() * 1000;
     let end_ns = rx.iter().chain(tx).map(|f| f.t_ns).max().unwrap_or(0);
     let mut next_rx = 0;
@@ -265,7 +406,11 @@ pub fn replay_frames(
             out_index += 1;
         }
         steps += 1;
-        t_ns += period_ns;
+        // The gap check bounds end_ns far below u64::MAX; stop rather than wrap regardless.
+        let Some(next) = t_ns.checked_add(period_ns) else {
+            break;
+        };
+        t_ns = next;
     }
     if difference.is_none() && out_index < tx.len() {
         difference = Some(Difference {
@@ -280,7 +425,7 @@ pub fn replay_frames(
         fed: next_rx,
         steps,
         difference,
-        truncated: None,
+        read: None,
     })
 }
 
@@ -549,6 +694,14 @@ pub enum CandumpReplayError {
     /// The configuration is refused by the firmware.
     #[error("configuration refused: {0}")]
     Refused(#[from] firmware::config::ConfigError),
+    /// The log's time line has a gap too long to replay.
+    #[error("{}: {source}", path.display())]
+    TimeGap {
+        /// The log file.
+        path: PathBuf,
+        /// The gap.
+        source: TimeGap,
+    },
 }
 
 /// Replays a candump log: see [`replay_split`].
@@ -566,11 +719,13 @@ pub fn replay_candump(
             path: path.to_path_buf(),
         });
     }
-    Ok(replay_split(
-        config,
-        &split_candump(config, &entries),
-        tolerance,
-    )?)
+    replay_split(config, &split_candump(config, &entries), tolerance).map_err(|e| match e {
+        ReplayRunError::Config(e) => CandumpReplayError::Refused(e),
+        ReplayRunError::TimeGap(source) => CandumpReplayError::TimeGap {
+            path: path.to_path_buf(),
+            source,
+        },
+    })
 }
 
 fn reading(t_ns: u64, pose: [f32; 3], velocity: [f32; 3]) -> OdometryReading {
@@ -602,14 +757,16 @@ fn reading(t_ns: u64, pose: [f32; 3], velocity: [f32; 3]) -> OdometryReading {
 /// the capture before the runner.
 ///
 /// # Errors
-/// The configuration error if the firmware refuses `config`.
+/// [`ReplayRunError`] if the firmware refuses `config`, or if the log's time line has a gap
+/// longer than [`MAX_GAP_NS`] ([`check_time_gaps`]).
 pub fn replay_split(
     config: &Config,
     log: &SplitLog,
     tolerance: OdometryTolerance,
-) -> Result<CandumpReplay, firmware::config::ConfigError> {
+) -> Result<CandumpReplay, ReplayRunError> {
     use firmware::protocol::robot::Telemetry;
     let mut ctl = Controller::new(config)?;
+    check_time_gaps(&log.all)?;
     let period_ns = ctl.period_micros() * 1000;
 
     // The last logged odometry.
@@ -631,6 +788,7 @@ pub fn replay_split(
     let mut steps = 0u64;
     let mut at_target = None;
     let mut t_ns = 0u64;
+    let mut last_step_ns = 0u64;
     let state = |ctl: &Controller| {
         let s = ctl.snapshot();
         (
@@ -658,10 +816,15 @@ pub fn replay_split(
             out_index += 1;
         }
         steps += 1;
+        last_step_ns = t_ns;
         if target_ns.is_some_and(|t| t_ns <= t) {
             at_target = Some((t_ns, state(&ctl)));
         }
-        t_ns += period_ns;
+        // The gap check bounds end_ns far below u64::MAX; stop rather than wrap regardless.
+        let Some(next) = t_ns.checked_add(period_ns) else {
+            break;
+        };
+        t_ns = next;
     }
     if first_difference.is_none() && out_index < log.tx.len() {
         first_difference = Some(StreamDifference {
@@ -710,7 +873,7 @@ pub fn replay_split(
         identical: first_difference.is_none(),
         first_difference,
         odometry,
-        final_pose: reading(t_ns.saturating_sub(period_ns), pose, vel),
+        final_pose: reading(last_step_ns, pose, vel),
         rejected: ctl.snapshot().rx_errors.into(),
     })
 }

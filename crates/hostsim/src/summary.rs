@@ -1,9 +1,10 @@
 //! `hostsim summary`: what a log says about a run — odometry drift against ground truth, bus
 //! load, firmware state changes and faults — computed from the log alone.
 //!
-//! Reading goes through [`for_each_message`], which walks every complete record of the file
-//! (chunks decompressed) and stops cleanly at the first incomplete one, so a log cut short by
-//! a killed run is summarised up to its last complete chunk.
+//! Reading goes through [`for_each_message`], which takes every complete, intact chunk and
+//! stops at the first damaged record, so a log cut short by a killed run (or corrupted) is
+//! summarised up to its last complete chunk, and [`LogSummary::read`] says where the damage
+//! is, with its byte offset.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -12,8 +13,8 @@ use foxglove::Decode;
 use foxglove::schemas::{Log, PoseInFrame};
 
 use crate::bus::frame_bits;
-use crate::log::{Truncation, for_each_message};
-use crate::replay::parse_frame_json;
+use crate::log::{ReadReport, for_each_message};
+use crate::replay::FrameJson;
 
 /// Figures of a logged run.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -36,8 +37,8 @@ pub struct LogSummary {
     pub fates: BTreeMap<String, u64>,
     /// Firmware log lines `(time s, level, text)`: state changes and faults.
     pub events: Vec<(f64, i32, String)>,
-    /// Where reading stopped early, if it did.
-    pub truncated: Truncation,
+    /// What was read, and where the log is damaged if it is.
+    pub read: ReadReport,
 }
 
 fn yaw(q: &foxglove::schemas::Quaternion) -> f64 {
@@ -53,7 +54,8 @@ fn pose_of(p: &PoseInFrame) -> Option<[f64; 3]> {
 /// Summarises a hostsim MCAP log.
 ///
 /// # Errors
-/// A description naming the file if it cannot be read or is not MCAP.
+/// A description naming the file if it cannot be read or nothing in it is readable (not
+/// MCAP). A damaged log is not an error: [`LogSummary::read`] says where the damage is.
 pub fn summarize(path: &Path) -> Result<LogSummary, String> {
     let bytes = std::fs::read(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
     let mut s = LogSummary::default();
@@ -62,7 +64,7 @@ pub fn summarize(path: &Path) -> Result<LogSummary, String> {
     let mut max_err = 0.0f64;
     let mut bus_bits = 0u64;
     let mut last_ns = 0u64;
-    let truncated = for_each_message(
+    let read = for_each_message(
         &bytes,
         |topic, t, data| {
             *s.topics.entry(topic.to_string()).or_default() += 1;
@@ -85,14 +87,14 @@ pub fn summarize(path: &Path) -> Result<LogSummary, String> {
                     }
                 }
                 "/can/bus" => {
-                    if let Some(frame) = parse_frame_json(data) {
+                    let parsed = FrameJson::parse(data);
+                    if let Some(frame) = parsed.as_ref().and_then(FrameJson::frame) {
                         bus_bits += u64::from(frame_bits(&frame));
                     }
-                    let fate = serde_json::from_slice::<serde_json::Value>(data)
-                        .ok()
-                        .and_then(|v| v.get("fate")?.as_str().map(str::to_string))
-                        .unwrap_or_else(|| "unknown".to_string());
-                    *s.fates.entry(fate).or_default() += 1;
+                    let fate = parsed.as_ref().and_then(|p| p.fate.as_deref());
+                    *s.fates
+                        .entry(fate.unwrap_or("unknown").to_string())
+                        .or_default() += 1;
                 }
                 "/firmware/log" => {
                     if let Ok(l) = Log::decode(data) {
@@ -109,7 +111,7 @@ pub fn summarize(path: &Path) -> Result<LogSummary, String> {
         },
     )
     .map_err(|e| format!("{}: not a readable MCAP file: {e}", path.display()))?;
-    s.truncated = truncated;
+    s.read = read;
     s.duration_s = last_ns as f64 * 1e-9;
     s.odometry = odom.map(|o| o.1);
     s.truth = truth.map(|t| t.1);
@@ -130,6 +132,7 @@ mod tests {
     #[test]
     fn garbage_is_refused_with_a_reason() {
         let e = for_each_message(b"definitely not mcap", |_, _, _| {}, |_, _| {}).unwrap_err();
-        assert!(!e.is_empty());
+        assert_eq!(e.offset, 0);
+        assert!(e.to_string().contains("MCAP magic"), "{e}");
     }
 }

@@ -62,13 +62,18 @@ fn huge_record_in_zstd_chunk() -> Vec<u8> {
 fn mcap_huge_record_length_in_compressed_chunk_is_an_error_not_an_abort() {
     let bytes = huge_record_in_zstd_chunk();
     let mut messages = 0;
-    let truncated = for_each_message(&bytes, |_, _, _| messages += 1, |_, _| {})
-        .expect("the header record was read: a truncation, not an error");
+    let read = for_each_message(&bytes, |_, _, _| messages += 1, |_, _| {})
+        .expect("the header record was read: damage, not an error");
     assert_eq!(messages, 0);
-    let why = truncated.expect("reading stopped at the corrupt record");
-    assert!(why.contains("file size"), "{why}");
+    let damage = read.damage.expect("reading stopped at the corrupt chunk");
+    // The chunk record starts after the magic and the header record.
+    let chunk_offset =
+        (MAGIC.len() + 9 + string("").len() + string("fuzz-regression").len()) as u64;
+    assert_eq!(damage.offset, chunk_offset, "{damage}");
+    let why = damage.to_string();
+    assert!(why.contains(&format!("at byte {chunk_offset}")), "{why}");
 
     let content = read_log_bytes(&bytes).expect("starts like MCAP");
     assert!(content.rx.is_empty() && content.tx.is_empty());
-    assert!(content.truncated.is_some());
+    assert!(!content.read.is_complete());
 }

@@ -1,0 +1,517 @@
+//! Damaged logs: a log written by the real writer, cut at many offsets and with bytes
+//! flipped at many offsets, read by `log::for_each_message`, `replay` and `summary`.
+//!
+//! The expected messages come from the `mcap` crate's own reader on the intact file (its
+//! chunk index and chunk reader), not from the reader under test: a log cut at byte `c`
+//! must give exactly the messages of the chunks that end at or before `c`, and a damaged
+//! chunk none of its messages.
+
+use std::path::PathBuf;
+use std::sync::OnceLock;
+
+use embedded_can::StandardId;
+use firmware::CanFrame;
+use hostsim::drives::SimDrives;
+use hostsim::log::{Direction, McapLog, Problem, ReadReport, for_each_message};
+use hostsim::replay::{self, MAX_GAP_NS, ReplayError, ReplayRunError, TimedFrame};
+use hostsim::scenario::Scenario;
+use hostsim::sim::{LogOptions, run, run_metadata};
+
+/// A message: topic, log time, data.
+type Msg = (String, u64, Vec<u8>);
+
+/// A log written by the real writer, and what the `mcap` crate reads from it.
+struct Fixture {
+    bytes: Vec<u8>,
+    /// Every message in file order.
+    messages: Vec<Msg>,
+    /// Per chunk in file order: start offset, end offset (one past), messages before its end.
+    chunks: Vec<(usize, usize, usize)>,
+    /// Top-level records of the file: start, end, opcode.
+    records: Vec<(usize, usize, u8)>,
+    /// End of the Data End record.
+    data_end: usize,
+}
+
+impl Fixture {
+    /// Messages in the chunks that end at or before `offset`.
+    fn messages_before(&self, offset: usize) -> usize {
+        self.chunks
+            .iter()
+            .take_while(|c| c.1 <= offset)
+            .last()
+            .map_or(0, |c| c.2)
+    }
+
+    /// Chunks that end at or before `offset`.
+    fn chunks_before(&self, offset: usize) -> u64 {
+        self.chunks.iter().take_while(|c| c.1 <= offset).count() as u64
+    }
+
+    /// Message counts at chunk boundaries (0 included).
+    fn boundaries(&self) -> Vec<usize> {
+        std::iter::once(0)
+            .chain(self.chunks.iter().map(|c| c.2))
+            .collect()
+    }
+
+    /// The top-level record holding byte `offset` (after the magic).
+    fn record_at(&self, offset: usize) -> Option<(usize, usize, u8)> {
+        self.records
+            .iter()
+            .copied()
+            .find(|r| r.0 <= offset && offset < r.1)
+    }
+}
+
+/// Half a second of the square with 16 KiB chunks: many chunk boundaries in a small file.
+fn fixture() -> &'static Fixture {
+    static FIXTURE: OnceLock<Fixture> = OnceLock::new();
+    FIXTURE.get_or_init(|| {
+        let dir = TempDir::new("fixture");
+        let path = dir.0.join("square.mcap");
+        let mut s = Scenario::builtin("square").unwrap();
+        s.duration_s = 0.5;
+        let mut plant = SimDrives::new(&s.config).unwrap();
+        let mut log = McapLog::create_with_chunk_size(&path, &run_metadata(&s), 16 << 10).unwrap();
+        run(
+            &s,
+            &mut plant,
+            Some(&mut log),
+            LogOptions::default(),
+            |_| {},
+        )
+        .unwrap();
+        log.finish().unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+
+        let summary = mcap::Summary::read(&bytes).unwrap().expect("a summary");
+        let mut index = summary.chunk_indexes.clone();
+        index.sort_by_key(|c| c.chunk_start_offset);
+        let mut messages = Vec::new();
+        let mut chunks = Vec::new();
+        for c in &index {
+            for m in summary.stream_chunk(&bytes, c).unwrap() {
+                let m = m.unwrap();
+                messages.push((m.channel.topic.clone(), m.log_time, m.data.to_vec()));
+            }
+            let start = c.chunk_start_offset as usize;
+            chunks.push((start, start + c.chunk_length as usize, messages.len()));
+        }
+
+        // The record framing: opcode, little-endian u64 length, content.
+        let mut records = Vec::new();
+        let mut pos = 8;
+        let mut data_end = 0;
+        while pos + 9 <= bytes.len() - 8 {
+            let len = u64::from_le_bytes(bytes[pos + 1..pos + 9].try_into().unwrap()) as usize;
+            let end = pos + 9 + len;
+            records.push((pos, end, bytes[pos]));
+            if bytes[pos] == mcap::records::op::DATA_END {
+                data_end = end;
+            }
+            pos = end;
+        }
+        assert_eq!(pos, bytes.len() - 8, "the records end at the closing magic");
+        assert!(
+            chunks.len() >= 40,
+            "{} chunks: make them smaller",
+            chunks.len()
+        );
+        eprintln!(
+            "fixture: {} bytes, {} chunks, {} messages",
+            bytes.len(),
+            chunks.len(),
+            messages.len()
+        );
+        Fixture {
+            bytes,
+            messages,
+            chunks,
+            records,
+            data_end,
+        }
+    })
+}
+
+/// Reads `bytes`; the count of messages delivered, if they are the first of the fixture's
+/// messages in order (`None` if any differs).
+fn read(bytes: &[u8]) -> (Result<ReadReport, hostsim::log::Damage>, Option<usize>) {
+    let expected = &fixture().messages;
+    let mut n = 0;
+    let mut same = true;
+    let r = for_each_message(
+        bytes,
+        |topic, t, data| {
+            same &= expected
+                .get(n)
+                .is_some_and(|m| m.0 == topic && m.1 == t && m.2 == data);
+            n += 1;
+        },
+        |_, _| {},
+    );
+    (r, same.then_some(n))
+}
+
+/// A small deterministic generator (64-bit LCG, high bits), so failures reproduce.
+struct Lcg(u64);
+
+impl Lcg {
+    fn below(&mut self, n: usize) -> usize {
+        self.0 = self
+            .0
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        ((self.0 >> 33) % n as u64) as usize
+    }
+}
+
+#[test]
+fn an_intact_log_reads_completely() {
+    let fx = fixture();
+    let (r, got) = read(&fx.bytes);
+    let r = r.unwrap();
+    assert!(r.is_complete(), "{r}");
+    assert!(r.data_complete);
+    assert_eq!(r.chunks, fx.chunks.len() as u64);
+    assert_eq!(r.messages, fx.messages.len() as u64);
+    assert_eq!(
+        got,
+        Some(fx.messages.len()),
+        "the reader and the mcap crate disagree"
+    );
+    assert!(r.to_string().starts_with("complete: "), "{r}");
+}
+
+#[test]
+fn a_log_cut_anywhere_gives_exactly_its_complete_chunks() {
+    let fx = fixture();
+    let len = fx.bytes.len();
+    // Every chunk boundary and a few bytes either side (inside the record prefix, inside the
+    // chunk header, between the chunk and its message indexes), the start, the end, and 200
+    // random offsets.
+    let mut cuts: Vec<usize> = (0..60).collect();
+    for (i, &(start, end, _)) in fx.chunks.iter().enumerate() {
+        cuts.extend([end - 1, end, end + 1]);
+        if i % 4 == 0 {
+            cuts.extend([start + 1, start + 8, start + 9, start + 20]);
+        }
+    }
+    cuts.extend(fx.data_end - 12..fx.data_end + 3);
+    cuts.extend(len - 45..len);
+    let mut rng = Lcg(1);
+    cuts.extend((0..200).map(|_| rng.below(len)));
+    cuts.retain(|&c| c < len);
+    cuts.sort_unstable();
+    cuts.dedup();
+    assert!(cuts.len() > 400, "{} cuts", cuts.len());
+    eprintln!("cutting at {} offsets", cuts.len());
+
+    let header_end = fx.records[0].1;
+    for &cut in &cuts {
+        let (r, got) = read(&fx.bytes[..cut]);
+        let r = match r {
+            Ok(r) => r,
+            Err(e) => {
+                // Nothing readable: only a cut inside the magic or the header record.
+                assert!(cut < header_end, "cut at {cut}: {e}");
+                assert!(e.offset <= cut as u64, "cut at {cut}: {e}");
+                continue;
+            }
+        };
+        assert!(cut >= header_end, "cut at {cut} read as {r}");
+        let want = fx.messages_before(cut);
+        assert_eq!(r.messages as usize, want, "cut at {cut}: {r}");
+        assert_eq!(got, Some(want), "cut at {cut}: other messages");
+        assert_eq!(r.chunks, fx.chunks_before(cut), "cut at {cut}: {r}");
+        assert_eq!(r.file_len, cut as u64);
+        let damage = r.damage.as_ref().expect("a cut file is damaged");
+        // Named at the start of the record the cut falls in (or at the cut, between records),
+        // never before the end of the last complete chunk.
+        let last_end = fx
+            .chunks
+            .iter()
+            .take_while(|c| c.1 <= cut)
+            .last()
+            .map_or(0, |c| c.1);
+        assert!(
+            (last_end as u64..=cut as u64).contains(&damage.offset),
+            "cut at {cut}: {damage}"
+        );
+        let text = r.to_string();
+        assert!(
+            text.contains(&format!("byte {}", damage.offset)),
+            "cut at {cut}: {text}"
+        );
+        assert!(
+            matches!(
+                damage.problem,
+                Problem::Truncated { .. } | Problem::Unfinished
+            ),
+            "cut at {cut}: {text}"
+        );
+        assert_eq!(r.data_complete, cut >= fx.data_end, "cut at {cut}: {text}");
+    }
+}
+
+#[test]
+fn a_flipped_byte_is_found_and_no_damaged_chunk_is_used() {
+    let fx = fixture();
+    let len = fx.bytes.len();
+    let boundaries = fx.boundaries();
+    let mut rng = Lcg(2);
+    // Random offsets, and in every fifth chunk its opcode, length, times, size, CRC,
+    // compression and compressed data.
+    let mut offsets: Vec<usize> = (0..200).map(|_| rng.below(len)).collect();
+    for &(start, end, _) in fx.chunks.iter().step_by(5) {
+        offsets.extend([
+            start,
+            start + 3,
+            start + 12,
+            start + 30,
+            start + 37,
+            start + 41,
+        ]);
+        offsets.extend([
+            start + 45,
+            start + 49,
+            start + 55,
+            (start + end) / 2,
+            end - 1,
+        ]);
+    }
+    offsets.extend([fx.data_end - 2, len - 30, len - 10, len - 1]);
+    let mut checked_chunks = 0;
+    for &at in &offsets {
+        let mut bytes = fx.bytes.clone();
+        bytes[at] ^= 1 + rng.below(255) as u8;
+        let (r, got) = read(&bytes);
+        let Ok(r) = r else {
+            // Nothing readable: only a flip in the magic or the header record.
+            assert!(at < fx.records[0].1, "flip at {at}");
+            continue;
+        };
+        let damage = r
+            .damage
+            .as_ref()
+            .unwrap_or_else(|| panic!("flip at {at} not found: {r}"));
+        assert!(damage.offset <= len as u64, "flip at {at}: {damage}");
+        let n = got.unwrap_or_else(|| panic!("flip at {at}: other messages"));
+        assert!(
+            boundaries.contains(&n),
+            "flip at {at}: {n} messages is not a whole number of chunks"
+        );
+        let Some((start, _, opcode)) = fx.record_at(at) else {
+            continue;
+        };
+        assert!(
+            n >= fx.messages_before(start),
+            "flip at {at}: chunks before the flipped record were lost ({r})"
+        );
+        // Everything of a chunk from its size field on is covered by its checks (size, CRC,
+        // compression, decompression): that chunk is refused, and only it.
+        if opcode == mcap::records::op::CHUNK && at >= start + 9 + 16 {
+            assert_eq!(damage.offset, start as u64, "flip at {at}: {r}");
+            assert_eq!(n, fx.messages_before(start), "flip at {at}: {r}");
+            checked_chunks += 1;
+        }
+    }
+    assert!(
+        checked_chunks > 50,
+        "{checked_chunks} flips in chunks' checked fields"
+    );
+    eprintln!(
+        "flipped {} bytes, {checked_chunks} of them in a chunk's checked fields",
+        offsets.len()
+    );
+}
+
+#[test]
+fn a_flipped_chunk_crc_names_the_chunk_and_the_crcs() {
+    let fx = fixture();
+    let (start, _, _) = fx.chunks[10];
+    let mut bytes = fx.bytes.clone();
+    // Chunk content: start time (8), end time (8), uncompressed size (8), CRC (4).
+    bytes[start + 9 + 24] ^= 0x01;
+    let (r, got) = read(&bytes);
+    let r = r.unwrap();
+    assert_eq!(got, Some(fx.chunks[9].2));
+    let d = r.damage.as_ref().unwrap();
+    assert_eq!(d.offset, start as u64);
+    assert!(matches!(d.problem, Problem::ChunkCrc { .. }), "{d}");
+    assert!(
+        r.to_string()
+            .contains(&format!("CRC mismatch in the Chunk record at byte {start}")),
+        "{r}"
+    );
+}
+
+/// A folder of its own for a test, removed when dropped.
+struct TempDir(PathBuf);
+
+impl TempDir {
+    fn new(test: &str) -> Self {
+        let dir =
+            std::env::temp_dir().join(format!("hostsim-damaged-{}-{test}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        Self(dir)
+    }
+
+    /// Writes `bytes` to `name` in the folder.
+    fn write(&self, name: &str, bytes: &[u8]) -> PathBuf {
+        let path = self.0.join(name);
+        std::fs::write(&path, bytes).unwrap();
+        path
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+#[test]
+fn replay_of_a_cut_log_is_bit_identical_up_to_the_cut_and_summary_reports_it() {
+    let fx = fixture();
+    let dir = TempDir::new("replay");
+    let mut rng = Lcg(3);
+    // After the first chunk (schemas and channels) comes the metadata with the configuration.
+    let mut cuts: Vec<usize> = fx
+        .chunks
+        .iter()
+        .skip(1)
+        .step_by(7)
+        .map(|c| c.1 + 5)
+        .collect();
+    cuts.extend((0..8).map(|_| fx.chunks[3].1 + rng.below(fx.data_end - fx.chunks[3].1)));
+    for cut in cuts {
+        let path = dir.write(&format!("cut-{cut}.mcap"), &fx.bytes[..cut]);
+        let report = replay::replay_mcap(&path).unwrap();
+        let read = report.read.clone().unwrap();
+        assert!(!read.is_complete(), "cut at {cut}");
+        assert!(report.identical(), "cut at {cut}: {:?}", report.difference);
+        // Every /can/tx frame before the last message's time was compared.
+        let last = read.last_time_ns.unwrap();
+        let want = fx
+            .messages
+            .iter()
+            .take(read.messages as usize)
+            .filter(|m| m.0 == "/can/tx" && m.1 < last)
+            .count();
+        assert_eq!(report.compared, want, "cut at {cut}");
+        assert!(report.compared > 0, "cut at {cut}");
+
+        let s = hostsim::summary::summarize(&path).unwrap();
+        assert_eq!(s.read, read);
+        assert_eq!(s.topics.values().sum::<u64>(), read.messages);
+    }
+    // Cut inside the metadata, before any message: the configuration is missing.
+    let metadata = fx
+        .records
+        .iter()
+        .find(|r| r.2 == mcap::records::op::METADATA)
+        .unwrap();
+    let path = dir.write("no-metadata.mcap", &fx.bytes[..metadata.0 + 20]);
+    let err = replay::replay_mcap(&path).unwrap_err();
+    assert!(matches!(err, ReplayError::NoConfig { .. }), "{err}");
+}
+
+/// A log written by the real writer whose last `/can/tx` frame has a corrupt time near
+/// 2^64 ns: CRCs correct, so only the time line can tell.
+fn log_with_time(dir: &TempDir, name: &str, t_ns: u64) -> PathBuf {
+    let path = dir.0.join(name);
+    let mut s = Scenario::builtin("square").unwrap();
+    s.duration_s = 0.2;
+    let mut plant = SimDrives::new(&s.config).unwrap();
+    let mut log = McapLog::create(&path, &run_metadata(&s)).unwrap();
+    run(
+        &s,
+        &mut plant,
+        Some(&mut log),
+        LogOptions::default(),
+        |_| {},
+    )
+    .unwrap();
+    let frame = CanFrame::standard(StandardId::new(0x200).unwrap(), &[0; 8]).unwrap();
+    log.can(t_ns, Direction::Tx, &frame).unwrap();
+    log.finish().unwrap();
+    path
+}
+
+#[test]
+fn a_corrupt_timestamp_is_refused_not_replayed_for_centuries() {
+    let start = std::time::Instant::now();
+    let dir = TempDir::new("time");
+    let path = log_with_time(&dir, "huge-time.mcap", u64::MAX - 5);
+    let err = replay::replay_mcap(&path).unwrap_err();
+    let text = err.to_string();
+    assert!(matches!(err, ReplayError::TimeGap { .. }), "{text}");
+    assert!(text.contains("18446744073.709"), "{text}");
+    assert!(text.contains("huge-time.mcap"), "{text}");
+    // The summary reads it as it is (no loop there), with its absurd duration.
+    let s = hostsim::summary::summarize(&path).unwrap();
+    assert!(s.duration_s > 1e10);
+    // A jump of just over the limit is refused; the limit itself is replayed.
+    let path = log_with_time(&dir, "long-gap.mcap", 200_000_000 + MAX_GAP_NS + 1);
+    assert!(matches!(
+        replay::replay_mcap(&path),
+        Err(ReplayError::TimeGap { .. })
+    ));
+    assert!(start.elapsed().as_secs() < 60, "{:?}", start.elapsed());
+}
+
+#[test]
+fn the_time_gap_check_bounds_replay_and_candump_replay() {
+    let frame = CanFrame::standard(StandardId::new(0x123).unwrap(), &[1]).unwrap();
+    let at = |t_ns| TimedFrame { t_ns, frame };
+    assert!(replay::check_time_gaps(&[at(0), at(MAX_GAP_NS), at(2 * MAX_GAP_NS)]).is_ok());
+    let gap = replay::check_time_gaps(&[at(5), at(MAX_GAP_NS + 6)]).unwrap_err();
+    assert_eq!((gap.from_ns, gap.to_ns), (5, MAX_GAP_NS + 6));
+    assert!(gap.to_string().contains("123#01"), "{gap}");
+    // Out of order: the time line is sorted first.
+    assert!(replay::check_time_gaps(&[at(MAX_GAP_NS + 1), at(1)]).is_ok());
+    let gap = replay::check_time_gaps(&[at(MAX_GAP_NS + 1)]).unwrap_err();
+    assert_eq!(gap.from_ns, 0, "the first frame counts from the start");
+
+    let config = firmware::Config::dji_m3508_example();
+    let r = replay::replay_frames(&config, &[at(0)], &[at(u64::MAX)]);
+    assert!(matches!(r, Err(ReplayRunError::TimeGap(_))), "{r:?}");
+    let split = replay::SplitLog {
+        rx: vec![at(0), at(u64::MAX - 1)],
+        all: vec![at(0), at(u64::MAX - 1)],
+        ..replay::SplitLog::default()
+    };
+    let r = replay::replay_split(&config, &split, replay::OdometryTolerance::default());
+    assert!(matches!(r, Err(ReplayRunError::TimeGap(_))), "{r:?}");
+}
+
+#[test]
+fn a_killed_writer_never_leaves_an_unopenable_mcap_file() {
+    // The header and metadata go to NAME.mcap.part, renamed to NAME.mcap once on disk.
+    let dir = TempDir::new("part");
+    let path = dir.0.join("run.mcap");
+    let log = McapLog::create(&path, &Default::default()).unwrap();
+    assert!(!hostsim::log::part_path(&path).exists());
+    let (r, _) = read(&std::fs::read(&path).unwrap());
+    let r = r.expect("readable before the first message");
+    assert_eq!(r.damage.map(|d| d.problem), Some(Problem::Unfinished));
+    log.finish().unwrap();
+    let (r, _) = read(&std::fs::read(&path).unwrap());
+    assert!(r.unwrap().is_complete());
+}
+
+#[test]
+fn garbage_and_empty_files_are_errors_not_damage() {
+    for bytes in [
+        &b""[..],
+        b"\x89MC",
+        b"not an mcap file",
+        b"\x89MCAP0\r\n",
+        b"\x89MCAP0\r\n\x01\x05",
+    ] {
+        let (r, _) = read(bytes);
+        let e = r.unwrap_err();
+        assert!(e.offset <= bytes.len() as u64, "{e}");
+    }
+}
