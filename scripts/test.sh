@@ -75,10 +75,14 @@ if [ -d tests ] && compgen -G "tests/test_*.py" >/dev/null; then
 
     # Tests on a real SocketCAN interface: natively where the kernel has vcan, else in a QEMU
     # micro-VM (scripts/vcan.sh says how). With CI=true a lane that cannot run fails.
+    # The runner and the plant run in real time there: release builds (the micro-VM emulates
+    # its CPU, some 20x slower than the host). -s: the tests print their measured figures.
     stage "vcan lane: tests marked vcan on a real vcan0 (native, else a micro-VM)"
-    cargo build -p hostsim --bin hostsim --locked
-    HOSTSIM="$PWD/target/debug/hostsim" MECANUM_CODEC="$PWD/target/debug/mecanum-codec" \
-        scripts/vcan.sh -- .venv/bin/python -m pytest tests -m vcan -q
+    cargo build --release --locked -p hostsim --bin hostsim \
+        -p firmware --features firmware/linux --bin mecanum-runner
+    HOSTSIM="$PWD/target/release/hostsim" MECANUM_RUNNER="$PWD/target/release/mecanum-runner" \
+        MECANUM_CODEC="$PWD/target/debug/mecanum-codec" \
+        scripts/vcan.sh -- .venv/bin/python -m pytest tests -m vcan -q -s -p no:cacheprovider
 fi
 
 stage "all checks passed"

@@ -325,7 +325,7 @@ set +e
 # own, and two descriptions of one regular file overwrite each other's output.
 (cd "$ROOT" && PATH="$VENV/bin:$PATH" timeout -k 30 "$VM_TIMEOUT" "$VENV/bin/vng" \
     --disable-kvm --run "$KERNEL" --user root --cpus "$VM_CPUS" --memory "$VM_MEMORY" \
-    --rwdir="$ROOT" --append "modprobe.blacklist=$VM_MODULE_BLACKLIST" \
+    --rwdir="$ROOT" --append "modprobe.blacklist=$VM_MODULE_BLACKLIST clocksource=tsc tsc=reliable ${VCAN_VM_APPEND:-}" \
     --exec "$guest_cmd" --qemu-opts="$fast_shares" </dev/null 2>&1) | tee "$LANE/output.log"
 vng_rc=${PIPESTATUS[0]}
 set -e

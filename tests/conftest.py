@@ -94,15 +94,6 @@ def hostsim_bin() -> pathlib.Path:
     path = _target_dir() / "debug" / ("hostsim" + (".exe" if os.name == "nt" else ""))
     assert path.is_file(), f"cargo build did not produce {path}"
     return path
-    subprocess.run(
-        ["cargo", "build", "--quiet", "--release", "-p", "hostsim", "--bin", "hostsim"],
-        cwd=ROOT,
-        check=True,
-        timeout=1800,
-    )
-    path = _target_dir() / "release" / ("hostsim" + (".exe" if os.name == "nt" else ""))
-    assert path.is_file(), f"cargo build did not produce {path}"
-    return path
 
 
 # --- vcan: a real SocketCAN interface ------------------------------------------------------

@@ -1,0 +1,650 @@
+"""The firmware runner and the simulated drives as real processes on a real vcan0.
+
+`mecanum-runner --iface vcan0` (the control core) and `hostsim plant --iface vcan0` (four
+simulated C620/M3508 drives on a 20 kg chassis, or four ODrive axes) run in real time; the
+test is the host, sending the robot protocol with python-can and cantools (DBC files of this
+repository), and candump records the bus. Each module-scoped session below runs one script of
+commands; the tests then check what crossed the bus, with the tolerances stated at each.
+
+The binaries are $MECANUM_RUNNER and $HOSTSIM (scripts/test.sh passes release builds: the
+micro-VM of the vcan lane emulates its CPU in software, some 20 times slower than the host).
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import math
+import os
+import pathlib
+import signal
+import struct
+import subprocess
+import sys
+import time
+
+import pytest
+from vcan_robot import (
+    DJI_CMD_1_4,
+    FAULT_NONE,
+    FAULT_WATCHDOG,
+    MODE_ENABLE,
+    MODE_RESET,
+    ODOM_POSITION,
+    ODOM_VELOCITY,
+    ROOT,
+    STATE_DISABLED,
+    STATE_ENABLED,
+    STATE_ESTOP,
+    STATUS,
+    STATUS_REQ,
+    TWIST_CMD,
+    Robot,
+    binary,
+    dji_currents,
+    mean,
+    wait_until_quiet,
+    write_config,
+)
+
+pytestmark = pytest.mark.vcan
+
+VM = os.environ.get("MECANUM_VCAN_MODE") == "vm"
+# Under software emulation (the vcan lane's micro-VM, some 20x slower than the host) the
+# guest's 1 kHz loops wake up late by milliseconds at the 99th percentile and stall for tens
+# of milliseconds at times. No real-time budget holds there as written; the VM lane allows this
+# much on top of each and prints it. Natively the budgets hold as written (slack 0).
+TIMING_SLACK_S = 0.050 if VM else 0.0
+
+
+# ... and the motor feedback, due every 1 ms, can arrive 100 ms late there: the stale-feedback
+# fault (3 periods natively) would trip on emulation stalls, so the VM allows 200 periods.
+VM_TIMING = {"stale_periods": 200} if VM else {}
+
+
+def timing_note() -> str:
+    return f" + {TIMING_SLACK_S * 1e3:.0f} ms emulation slack" if TIMING_SLACK_S else ""
+
+
+CONTROL_PERIOD_S = 0.001  # timing.control_hz = 1000
+COMMAND_TIMEOUT_S = 0.100  # timing.command_timeout_ms = 100
+# The stop budget of the issue: zero setpoints within the command timeout plus two periods.
+STOP_BUDGET_S = COMMAND_TIMEOUT_S + 2 * CONTROL_PERIOD_S
+
+
+@pytest.fixture(scope="module")
+def runner_bin() -> pathlib.Path:
+    return binary("MECANUM_RUNNER", ROOT / "target" / "release" / "mecanum-runner")
+
+
+@pytest.fixture(scope="module")
+def plant_bin() -> pathlib.Path:
+    return binary("HOSTSIM", ROOT / "target" / "release" / "hostsim")
+
+
+@pytest.fixture(scope="module")
+def configs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, pathlib.Path]:
+    """The example configurations, by protocol, but stopping at once when the watchdog
+    expires (no deceleration ramp), so the stop budget is the timeout plus two periods."""
+    work = tmp_path_factory.mktemp("config")
+    return {
+        protocol: write_config(
+            work / f"{protocol}.toml",
+            ROOT / "config" / example,
+            stop_linear_decel="inf",
+            stop_angular_decel="inf",
+            **VM_TIMING,
+        )
+        for protocol, example in (("dji", "dji_m3508.toml"), ("odrive", "odrive.toml"))
+    }
+
+
+@pytest.fixture(scope="module")
+def config(configs) -> pathlib.Path:
+    return configs["dji"]
+
+
+@pytest.fixture(scope="module")
+def robot_factory(runner_bin, plant_bin, can_utils, vcan, config, tmp_path_factory):
+    def make(name: str, **kw) -> Robot:
+        return Robot(
+            runner=runner_bin,
+            hostsim=plant_bin,
+            candump=can_utils("candump"),
+            iface=vcan,
+            config=kw.pop("config", config),
+            workdir=tmp_path_factory.mktemp(name),
+            **kw,
+        )
+
+    return make
+
+
+# --- motion -------------------------------------------------------------------------------
+
+# (name, vx m/s, vy m/s, wz rad/s), each held for PHASE_S.
+MOTIONS = [
+    ("forward", 0.5, 0.0, 0.0),
+    ("strafe", 0.0, 0.4, 0.0),
+    ("rotation", 0.0, 0.0, 1.0),
+    ("mix", 0.3, -0.2, 0.6),
+]
+PHASE_S = 2.0
+# Settling after each change (acceleration limits 4 m/s², 12 rad/s², plus the wheel loops).
+SETTLE_S = 0.6
+# Tolerances of the odometry against the command, in the settled part of each phase.
+VEL_TOL = 0.02  # m/s, mean body velocity
+WZ_TOL = 0.03  # rad/s, mean yaw rate
+# Relative, path length and heading change over the window against command x wall time. The
+# emulated machine's runner loses steps to overruns, and its odometry lags wall time with
+# them: there the check is a coarse one.
+PATH_TOL = 0.30 if VM else 0.04
+
+
+@pytest.fixture(scope="module", params=["dji", "odrive"])
+def motion(request, robot_factory, configs) -> Robot:
+    """Enable, then stream each twist of MOTIONS for PHASE_S seconds, then stop. Once with
+    four C620s, once with four ODrives (whose plant also writes an MCAP log)."""
+    protocol = request.param
+    with robot_factory(
+        f"motion-{protocol}", config=configs[protocol], plant_log=protocol == "odrive"
+    ) as robot:
+        robot.mode(MODE_ENABLE)
+        time.sleep(0.05)
+        robot.start_stream()
+        for name, vx, vy, wz in MOTIONS:
+            robot.twist(vx, vy, wz)
+            robot.marks[name] = time.time()
+            time.sleep(PHASE_S)
+        robot.marks["end"] = time.time()
+        robot.stop_stream()
+        time.sleep(0.3)
+    return robot
+
+
+@pytest.mark.parametrize("name,vx,vy,wz", MOTIONS, ids=[m[0] for m in MOTIONS])
+def test_odometry_reports_the_commanded_motion(motion: Robot, name, vx, vy, wz) -> None:
+    starts = [motion.marks[m[0]] for m in MOTIONS] + [motion.marks["end"]]
+    i = [m[0] for m in MOTIONS].index(name)
+    t0, t1 = starts[i] + SETTLE_S, starts[i + 1]
+    vel = motion.decoded(ODOM_VELOCITY, t0, t1)
+    pos = motion.decoded(ODOM_POSITION, t0, t1)
+    # 100 Hz odometry: about 140 samples in the window; a slow machine may lose a few.
+    # (On the emulated machine the runner loses steps to overruns, and the odometry frames
+    # with them.)
+    want_frames = (0.3 if VM else 0.8) * (t1 - t0) * 100
+    assert len(vel) > want_frames, f"{len(vel)} ODOM_VELOCITY frames in {t1 - t0:.2f} s"
+    got = [mean(v[k] for _, v in vel) for k in ("vx", "vy", "wz")]
+    print(f"{name}: commanded ({vx}, {vy}, {wz}), odometry mean ({got[0]:.4f}, {got[1]:.4f}, {got[2]:.4f})")
+    assert abs(got[0] - vx) <= VEL_TOL and abs(got[1] - vy) <= VEL_TOL, (name, got)
+    assert abs(got[2] - wz) <= WZ_TOL, (name, got)
+
+    # Path length over the window from the position frames, against |v| times the time.
+    dt = pos[-1][0] - pos[0][0]
+    length = sum(
+        math.hypot(b["x"] - a["x"], b["y"] - a["y"]) for (_, a), (_, b) in zip(pos, pos[1:])
+    )
+    want = math.hypot(vx, vy) * dt
+    assert abs(length - want) <= PATH_TOL * want + VEL_TOL * dt, (name, length, want)
+    # Heading change over the window (unwrapped), against wz times the time.
+    heading = [h for _, v in vel for h in [v["heading"]]]
+    turned = sum(math.remainder(b - a, math.tau) for a, b in zip(heading, heading[1:]))
+    want_turn = wz * (vel[-1][0] - vel[0][0])
+    assert abs(turned - want_turn) <= PATH_TOL * abs(want_turn) + 0.01, (name, turned, want_turn)
+
+
+def test_motion_session_runner_kept_its_rate(motion: Robot) -> None:
+    stats = motion.runner_stats
+    elapsed = stats["elapsed_us"] * 1e-6
+    print(f"runner: {stats['steps']} steps in {elapsed:.2f} s, {stats['overruns']} overruns, "
+          f"jitter {stats['jitter']}")
+    assert stats["controller"]["fault_at_stop"] in ("None", "Watchdog"), stats["controller"]
+    assert stats["send_errors"] == 0 and stats["rx_errors"] == 0, stats
+
+
+# --- stops: watchdog, status polls, e-stop ---------------------------------------------------
+
+HOLD_S = 1.0  # driving before each stop
+
+
+@pytest.fixture(scope="module")
+def stops(robot_factory) -> Robot:
+    """Three stops in one run: the host falls silent; the host only polls STATUS; e-stop."""
+    with robot_factory("stops") as robot:
+        # 1. Silence: the watchdog stops the robot and latches (Disabled, fault Watchdog).
+        robot.mode(MODE_ENABLE, mark="enable1")
+        robot.twist(0.5, 0.0, 0.0)
+        robot.start_stream()
+        time.sleep(HOLD_S)
+        robot.stop_stream(mark="silence")
+        time.sleep(0.4)
+        # 2. STATUS_REQ every 5 ms after the last twist: not a motion command.
+        robot.mode(MODE_ENABLE, mark="enable2")
+        robot.start_stream()
+        time.sleep(HOLD_S)
+        robot.stop_stream(mark="polls")
+        end = time.monotonic() + 0.4
+        while time.monotonic() < end:
+            robot.send("STATUS_REQ")
+            time.sleep(0.005)
+        robot.marks["polls_end"] = time.time()
+        # 3. E-stop while twists keep coming; then twists and an enable: still stopped.
+        robot.mode(MODE_ENABLE, mark="enable3")
+        robot.start_stream()
+        time.sleep(HOLD_S)
+        robot.estop(mark="estop")
+        time.sleep(0.3)
+        robot.mode(MODE_ENABLE, mark="enable_in_estop")
+        time.sleep(0.3)
+        robot.stop_stream()
+        # Reset clears the latch (to Disabled); enable and twist drive again.
+        robot.mode(MODE_RESET, mark="reset")
+        time.sleep(0.1)
+        robot.mode(MODE_ENABLE, mark="enable4")
+        robot.start_stream()
+        time.sleep(0.5)
+        robot.stop_stream(mark="end")
+        time.sleep(0.3)
+    return robot
+
+
+def _last_before(robot: Robot, ident: int, t: float) -> float:
+    frames = robot.of(ident, t1=t)
+    assert frames, f"no frame {ident:#x} before {t}"
+    return frames[-1].t
+
+
+def _zero_from(robot: Robot, t0: float, t1: float) -> float:
+    """Time of the first DJI command frame after t0 from which on every one up to t1 commands
+    zero current in all four wheels; fails if the last frame before t1 is not zero."""
+    cmds = robot.of(DJI_CMD_1_4, t0, t1)
+    assert cmds, "no motor commands"
+    assert any(dji_currents(c) != (0, 0, 0, 0) for c in robot.of(DJI_CMD_1_4, t0 - HOLD_S / 2, t0)), (
+        "the motors were not driven before the stop"
+    )
+    zero_at = None
+    for c in cmds:
+        if dji_currents(c) == (0, 0, 0, 0):
+            zero_at = c.t if zero_at is None else zero_at
+        else:
+            zero_at = None
+    assert zero_at is not None, f"currents not zero by {t1}: {dji_currents(cmds[-1])}"
+    return zero_at
+
+
+def _next_mode(robot: Robot, t: float, request: int | None = None) -> float:
+    """Time of the first MODE_CMD after t (with this request, if given), as candump saw it."""
+    for f in robot.of(0x302, t):
+        if request is None or f.data == bytes([request]):
+            return f.t
+    raise AssertionError(f"no MODE_CMD {request} after {t}")
+
+
+def _status_at(robot: Robot, t: float) -> dict:
+    after = robot.decoded(STATUS, t)
+    assert after, f"no STATUS after {t}"
+    return after[0][1]
+
+
+def test_silence_stops_within_the_timeout_plus_two_periods(stops: Robot) -> None:
+    last = _last_before(stops, TWIST_CMD, stops.marks["silence"] + 0.01)
+    zero = _zero_from(stops, last, _next_mode(stops, last))
+    latency = zero - last
+    print(f"silence: zero currents {latency * 1e3:.1f} ms after the last TWIST_CMD "
+          f"(budget {STOP_BUDGET_S * 1e3:.0f} ms{timing_note()})")
+    assert COMMAND_TIMEOUT_S - 0.002 <= latency <= STOP_BUDGET_S + TIMING_SLACK_S
+    status = _status_at(stops, zero + 0.05)
+    assert (status["state"], status["fault"]) == (STATE_DISABLED, FAULT_WATCHDOG), status
+
+
+def test_status_polls_do_not_keep_motion_alive(stops: Robot) -> None:
+    last = _last_before(stops, TWIST_CMD, stops.marks["polls"] + 0.01)
+    polls = stops.of(STATUS_REQ, last, stops.marks["polls_end"] + 0.01)
+    assert len(polls) >= 20, f"only {len(polls)} STATUS_REQ sent"
+    zero = _zero_from(stops, last, _next_mode(stops, last))
+    latency = zero - last
+    print(f"polls: {len(polls)} STATUS_REQ; zero currents {latency * 1e3:.1f} ms after the last "
+          f"TWIST_CMD (budget {STOP_BUDGET_S * 1e3:.0f} ms{timing_note()})")
+    assert COMMAND_TIMEOUT_S - 0.002 <= latency <= STOP_BUDGET_S + TIMING_SLACK_S
+    # Each poll is answered: STATUS frames at the poll rate, not just the 10 Hz ones.
+    answers = stops.of(STATUS, last, stops.marks["polls_end"] + 0.05)
+    assert len(answers) >= 0.8 * len(polls), (len(answers), len(polls))
+
+
+def test_estop_stops_at_once_and_latches(stops: Robot) -> None:
+    estop = stops.of(0x300, stops.marks["estop"] - 1.0)[0].t
+    reset = _next_mode(stops, estop, MODE_RESET)
+    zero = _zero_from(stops, estop, reset)
+    latency = zero - estop
+    print(f"e-stop: zero currents {latency * 1e3:.1f} ms after ESTOP (budget "
+          f"{2 * CONTROL_PERIOD_S * 1e3:.0f} ms{timing_note()})")
+    assert latency <= 2 * CONTROL_PERIOD_S + TIMING_SLACK_S
+    # Latched: twists kept coming and an enable was sent, and the currents stayed zero.
+    twists = stops.of(TWIST_CMD, zero, reset)
+    assert len(twists) >= 10, len(twists)
+    assert stops.of(0x302, zero, reset), "the enable in e-stop was not sent"
+    for t, status in stops.decoded(STATUS, zero + 0.01, reset):
+        assert status["state"] == STATE_ESTOP, (t, status)
+    # Reset, enable and twist: it drives again.
+    enable = _next_mode(stops, reset, MODE_ENABLE)
+    driven = [c for c in stops.of(DJI_CMD_1_4, enable) if dji_currents(c) != (0,) * 4]
+    assert len(driven) > 100, "no motion after reset and enable"
+    assert _status_at(stops, enable + 0.2)["state"] == STATE_ENABLED
+
+
+# --- malformed frames ------------------------------------------------------------------------
+
+FLOOD_S = 2.0
+# The flood, in frames per second per kind (can-utils cangen, one process per kind): five
+# kinds at 1,000/s natively, about the most a 1 Mbit/s bus carries on top of the drives'
+# 4,000 feedback frames/s. The emulated machine cannot keep up with that: 200/s per kind.
+FLOOD_RATE = 200 if VM else 1000
+# (kind the runner counts it as, cangen arguments, predicate recognising it in candump)
+MALFORMED = [
+    ("wrong_dlc", ["-I", "301", "-L", "4", "-D", "r"], lambda f: f.id == TWIST_CMD and len(f.data) == 4 and not f.remote),
+    ("out_of_range", ["-I", "302", "-L", "1", "-D", "09"], lambda f: f.id == 0x302 and f.data == b"\x09"),
+    ("unknown_id", ["-I", "123", "-L", "8", "-D", "r"], lambda f: f.id == 0x123 and not f.extended),
+    ("extended_id", ["-e", "-I", "1ABCDEF0", "-L", "8", "-D", "r"], lambda f: f.extended),
+    ("remote", ["-I", "301", "-R", "-L", "8"], lambda f: f.remote),
+]
+
+
+@pytest.fixture(scope="module")
+def malformed(robot_factory, can_utils) -> Robot:
+    """Driving at 0.4 m/s while a flood of malformed frames arrives for FLOOD_S seconds."""
+    cangen = can_utils("cangen")
+    with robot_factory("malformed") as robot:
+        robot.mode(MODE_ENABLE)
+        robot.twist(0.4, 0.0, 0.0)
+        robot.start_stream()
+        time.sleep(1.0)
+        robot.marks["flood"] = time.time()
+        count = str(int(FLOOD_RATE * FLOOD_S))
+        gap_ms = f"{1000.0 / FLOOD_RATE:g}"
+        # -p 10: on a full queue (ENOBUFS) wait and retry, so every frame goes out.
+        floods = [
+            subprocess.Popen([cangen, robot.iface, "-g", gap_ms, "-n", count, "-p", "10", *args])
+            for _, args, _ in MALFORMED
+        ]
+        for proc in floods:
+            assert proc.wait(timeout=120) == 0
+        robot.marks["flood_end"] = time.time()
+        time.sleep(1.0)
+        robot.stop_stream(mark="end")
+        time.sleep(0.2)
+    return robot
+
+
+def test_malformed_frames_are_counted_exactly(malformed: Robot) -> None:
+    counted = malformed.runner_stats["controller"]["rx_errors"]
+    flood = [f for f in malformed.frames if f.t >= malformed.marks["flood"] - 0.01]
+    on_bus = {kind: sum(1 for f in flood if match(f)) for kind, _, match in MALFORMED}
+    t0, t1 = malformed.marks["flood"], malformed.marks["flood_end"]
+    total = sum(on_bus.values())
+    print(f"flood: {total} malformed frames in {t1 - t0:.2f} s ({total / (t1 - t0):.0f}/s); on the "
+          f"bus by kind {on_bus}; the runner counted {counted}")
+    # Every frame cangen was asked for went out (candump saw it) ...
+    for kind, n in on_bus.items():
+        assert n == int(FLOOD_RATE * FLOOD_S), (kind, n)
+    # ... and the runner counted each one, by kind.
+    for kind, n in on_bus.items():
+        assert counted[kind] == n, (kind, counted[kind], n)
+    assert counted["non_finite"] == 0
+    # STATUS carries the counts (unknown_ids; rx_errors: the other rejected frames).
+    last = malformed.decoded(STATUS)[-1][1]
+    assert last["unknown_ids"] == min(on_bus["unknown_id"], 0xFFFF), last
+    assert last["rx_errors"] == min(total - on_bus["unknown_id"], 0xFFFF), last
+
+
+def test_malformed_flood_is_ignored_and_the_rate_kept(malformed: Robot) -> None:
+    t0, t1 = malformed.marks["flood"], malformed.marks["flood_end"]
+    for t, status in malformed.decoded(STATUS, t0, t1 + 0.5):
+        assert (status["state"], status["fault"]) == (STATE_ENABLED, FAULT_NONE), (t, status)
+    # The control rate: one motor command per 1 ms period, during the flood as before it.
+    during = len(malformed.of(DJI_CMD_1_4, t0, t1)) / (t1 - t0)
+    before = len(malformed.of(DJI_CMD_1_4, t0 - 0.8, t0)) / 0.8
+    stats = malformed.runner_stats
+    print(f"motor commands: {before:.0f}/s before the flood, {during:.0f}/s during it; runner "
+          f"{stats['overruns']} overruns in {stats['steps']} steps, jitter {stats['jitter']}")
+    # Kept: natively the full 1 kHz through the flood. The emulated machine runs the loop
+    # below 1 kHz with or without a flood, and every process that receives the flood's frames
+    # (runner, plant, candump) takes from the same two emulated CPUs: there the loop must keep
+    # at least 60 % of its rate before the flood.
+    assert during >= (0.6 if VM else 0.8) * before, (before, during)
+    if not VM:
+        assert during >= 980, during
+    # Still driving at the commanded speed.
+    vx = mean(v["vx"] for _, v in malformed.decoded(ODOM_VELOCITY, t0, t1))
+    assert abs(vx - 0.4) <= VEL_TOL, vx
+
+
+# --- ODrive: the other motor protocol, and non-finite values ---------------------------------
+
+NON_FINITE = 200
+
+
+@pytest.fixture(scope="module")
+def odrive(robot_factory, configs, can_utils) -> Robot:
+    cangen = can_utils("cangen")
+    with robot_factory("odrive", config=configs["odrive"]) as robot:
+        robot.mode(MODE_ENABLE)
+        robot.twist(0.3, 0.0, 0.4)
+        robot.start_stream()
+        time.sleep(1.0)
+        robot.marks["nan"] = time.time()
+        # Get_Encoder_Estimates (command 0x09) of node 0 with a NaN position and of node 1
+        # with an infinite velocity, every 4 ms between the drives' real ones (cangen: the
+        # twist stream keeps the Python interpreter to itself).
+        nan_pos = struct.pack("<ff", math.nan, 0.0).hex().upper()
+        inf_vel = struct.pack("<ff", 0.0, math.inf).hex().upper()
+        floods = [
+            subprocess.Popen([cangen, robot.iface, "-I", f"{ident:03X}", "-L", "8", "-D", data,
+                              "-g", "4", "-n", str(NON_FINITE // 2), "-p", "10"])
+            for ident, data in ((0 << 5 | 0x09, nan_pos), (1 << 5 | 0x09, inf_vel))
+        ]
+        for proc in floods:
+            assert proc.wait(timeout=120) == 0
+        robot.marks["nan_end"] = time.time()
+        time.sleep(0.8)
+        robot.stop_stream(mark="end")
+        time.sleep(0.2)
+    return robot
+
+
+def test_odrive_non_finite_estimates_are_counted_and_ignored(odrive: Robot) -> None:
+    counted = odrive.runner_stats["controller"]["rx_errors"]
+    print(f"ODrive: {NON_FINITE} non-finite estimates sent; runner counted {counted}")
+    assert counted["non_finite"] == NON_FINITE, counted
+    assert sum(counted.values()) == NON_FINITE, counted
+    t0, t1 = odrive.marks["nan"], odrive.marks["end"]
+    for t, status in odrive.decoded(STATUS, t0, t1):
+        assert (status["state"], status["fault"]) == (STATE_ENABLED, FAULT_NONE), (t, status)
+    vel = odrive.decoded(ODOM_VELOCITY, t0, t1)
+    got = (mean(v["vx"] for _, v in vel), mean(v["wz"] for _, v in vel))
+    print(f"ODrive odometry during the injection: vx {got[0]:.4f} m/s, wz {got[1]:.4f} rad/s")
+    assert abs(got[0] - 0.3) <= VEL_TOL and abs(got[1] - 0.4) <= WZ_TOL, got
+    # The ODrive side of the protocol: velocity setpoints (Set_Input_Vel, 0x0D) at 200 Hz.
+    setpoints = odrive.of(0x0D, t0, t1)
+    assert len(setpoints) >= (0.3 if VM else 0.95) * 200 * (t1 - t0), len(setpoints)
+
+
+# --- a candump session, replayed ----------------------------------------------------------
+
+HOST_IDS = range(0x300, 0x304)  # host -> robot commands
+
+
+@pytest.fixture(scope="module")
+def recorded(robot_factory, tmp_path_factory, can_utils, configs) -> dict:
+    """A session recorded with python-can's logger (candump format), then its host commands
+    played into a fresh runner and plant with can-utils canplayer."""
+    work = tmp_path_factory.mktemp("recorded")
+    session = work / "session.log"
+    # ODrive drives: a quarter of the DJI frame rate, which python-can's logger keeps up with
+    # even on the emulated machine.
+    with robot_factory("record", config=configs["odrive"]) as first:
+        logger = subprocess.Popen(
+            [sys.executable, "-m", "can.logger", "-i", "socketcan", "-c", first.iface, "-f", str(session)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        banner = ""
+        while "Can Logger" not in banner:  # printed once it listens
+            line = logger.stdout.readline()
+            assert line, f"can.logger exited: {banner}"
+            banner += line
+        first.mode(MODE_ENABLE)
+        first.twist(0.4, 0.0, 0.0)
+        first.start_stream()
+        time.sleep(1.5)
+        first.twist(0.2, 0.2, 0.5)
+        time.sleep(1.5)
+        first.stop_stream()
+        time.sleep(0.5)
+    # The runner and the plant have stopped: the bus is quiet, and the logger works off what
+    # it has not written yet (on a slow machine it lags) before it is stopped.
+    wait_until_quiet(session, quiet_s=3.0)
+    logger.send_signal(signal.SIGINT)
+    logger.communicate(timeout=60)
+    lines = session.read_text().splitlines()
+    commands = work / "commands.log"
+    commands.write_text(
+        "".join(line + "\n" for line in lines if int(line.split()[2].split("#")[0], 16) in HOST_IDS)
+    )
+    with robot_factory("replayed", config=configs["odrive"]) as second:
+        subprocess.run([can_utils("canplayer"), "-I", str(commands)], check=True, timeout=120)
+        time.sleep(0.5)
+    return {"session": session, "commands": commands, "first": first, "second": second}
+
+
+def _final_odometry(robot: Robot) -> tuple[float, float, float, float]:
+    """Last odometry pose (x, y, heading) and the path length driven."""
+    pos = robot.decoded(ODOM_POSITION)
+    heading = robot.decoded(ODOM_VELOCITY)[-1][1]["heading"]
+    length = sum(math.hypot(b["x"] - a["x"], b["y"] - a["y"]) for (_, a), (_, b) in zip(pos, pos[1:]))
+    return pos[-1][1]["x"], pos[-1][1]["y"], heading, length
+
+
+def test_canplayer_replay_gives_the_same_odometry(recorded: dict) -> None:
+    first, second = recorded["first"], recorded["second"]
+    # The fresh run got the same commands.
+    sent = [(f.id, f.data) for f in first.frames if f.id in HOST_IDS]
+    played = [(f.id, f.data) for f in second.frames if f.id in HOST_IDS]
+    assert played == sent, f"{len(played)} commands played, {len(sent)} recorded"
+    a, b = _final_odometry(first), _final_odometry(second)
+    print(f"recorded: x {a[0]:+.4f} y {a[1]:+.4f} heading {a[2]:+.4f} (path {a[3]:.3f} m); "
+          f"replayed: x {b[0]:+.4f} y {b[1]:+.4f} heading {b[2]:+.4f} (path {b[3]:.3f} m)")
+    assert a[3] > 0.5, "the recorded session hardly moved"
+    assert math.hypot(a[0] - b[0], a[1] - b[1]) <= 0.02 + 0.02 * a[3]
+    assert abs(math.remainder(a[2] - b[2], math.tau)) <= 0.03
+
+
+def test_hostsim_replay_of_the_session_log_agrees(recorded: dict, plant_bin, configs) -> None:
+    proc = subprocess.run(
+        [str(plant_bin), "replay", str(recorded["session"]), "--config", str(configs["odrive"]), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout)
+    print(f"hostsim replay: {json.dumps(report)[:600]}")
+    odometry = report["odometry"]
+    assert odometry is not None and odometry["agrees"], odometry
+
+
+# --- the plant's MCAP log of a vcan run -----------------------------------------------------
+
+
+def test_plant_mcap_log_holds_every_frame_candump_saw(motion: Robot, plant_bin) -> None:
+    from mcap.reader import make_reader
+
+    if motion.plant_mcap is None:
+        pytest.skip("this session's plant writes no log (the ODrive one does)")
+    logged = collections.Counter()
+    topics = collections.Counter()
+    last_ns = 0
+    with open(motion.plant_mcap, "rb") as f:
+        reader = make_reader(f)
+        start_ns = next(
+            int(m.metadata["start_unix_ns"]) for m in reader.iter_metadata() if m.name == "hostsim"
+        )
+        for _schema, channel, message in reader.iter_messages():
+            topics[channel.topic] += 1
+            if channel.topic == "/can/bus":
+                m = json.loads(message.data)
+                data = b"" if m["is_rtr"] else bytes(m["data"][: m["dlc"]])
+                logged[(m["id"], data)] += 1
+                last_ns = max(last_ns, message.log_time)
+    # The plant can only log what crossed the bus while it ran: from its start (its socket
+    # was open by then) to its last tick; 20 ms margins for the frames in flight at either end.
+    t0, t1 = (start_ns * 1e-9) + 0.02, (start_ns + last_ns) * 1e-9 - 0.02
+    seen = collections.Counter((f.id, f.data) for f in motion.frames if t0 <= f.t <= t1)
+    edge = collections.Counter((f.id, f.data) for f in motion.frames if not t0 <= f.t <= t1)
+    print(f"candump saw {sum(seen.values())} frames; the plant's log holds {sum(logged.values())} "
+          f"on /can/bus; topics {dict(topics)}")
+    missing = seen - logged
+    assert not missing, f"{sum(missing.values())} frames candump saw are not in the log: {list(missing.items())[:5]}"
+    assert not logged - seen - edge, "the log holds frames candump did not see"
+    assert topics["/ground_truth/pose"] > 0 and topics["/odom/pose"] > 0
+    summary = subprocess.run(
+        [str(plant_bin), "summary", str(motion.plant_mcap)], capture_output=True, text=True, timeout=120
+    )
+    assert summary.returncode == 0, summary.stderr
+    print(summary.stdout)
+
+
+# --- rate: the runner under a sustained stream of frames -----------------------------------
+
+RATE_S = 30.0
+RATE_TARGET = 8000  # frames/s
+RATE_BURST = 40 if VM else 10
+
+
+def test_rate_8000_frames_per_second_for_30_s_without_loss(
+    runner_bin, config, can_utils, vcan, tmp_path
+) -> None:
+    """cangen sends frames of an id nobody uses (0x123) at >= 8,000/s for 30 s; the runner,
+    alone on the bus, must receive and count every one (its unknown-id counter equals
+    cangen's count) and keep its 1 kHz loop. Jitter figures go to docs/benchmarks.md."""
+    stats_path = tmp_path / "runner.json"
+    runner = subprocess.Popen(
+        [str(runner_bin), "--iface", vcan, "--config", str(config), "--stats-json", str(stats_path)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        time.sleep(1.0)
+        assert runner.poll() is None, runner.communicate()[1]
+        # BURST frames every 1 ms: 10,000/s nominal natively. The emulated machine's sleeps
+        # overshoot by about a millisecond, so there the bursts are bigger. (The rate is
+        # measured either way.)
+        # (Sized for >= 30 s at up to 14,000/s; a slower stream lasts longer.)
+        count = int(RATE_S * 14_000)
+        t0 = time.monotonic()
+        subprocess.run(
+            [can_utils("cangen"), vcan, "-I", "123", "-L", "8", "-D", "i", "-g", "1", "-c", str(RATE_BURST),
+             "-n", str(count), "-p", "100"],
+            check=True,
+            timeout=RATE_S * 10,
+        )
+        elapsed = time.monotonic() - t0
+        time.sleep(0.5)
+    finally:
+        runner.send_signal(signal.SIGINT)
+        _, err = runner.communicate(timeout=60)
+    assert runner.returncode == 0, err
+    stats = json.loads(stats_path.read_text())
+    rate = count / elapsed
+    jitter = stats["jitter"]
+    print(f"rate: {count} frames in {elapsed:.2f} s = {rate:.0f} frames/s; runner received "
+          f"{stats['frames_received']}, counted {stats['controller']['rx_errors']['unknown_id']} "
+          f"unknown; {stats['steps']} steps, {stats['overruns']} overruns; jitter p50 "
+          f"{jitter['p50_us']} µs p99 {jitter['p99_us']} µs max {jitter['max_us']} µs"
+          f"{' (emulated machine)' if VM else ''}")
+    assert stats["frames_received"] == count, "the runner lost frames"
+    assert stats["controller"]["rx_errors"]["unknown_id"] == count
+    assert stats["rx_errors"] == 0
+    assert rate >= RATE_TARGET, f"only {rate:.0f} frames/s offered"
+    assert elapsed >= RATE_S, f"the stream lasted {elapsed:.1f} s, not {RATE_S:.0f}"

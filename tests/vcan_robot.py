@@ -1,0 +1,373 @@
+"""A simulated robot on a real SocketCAN interface, for the tests marked `vcan`.
+
+`Robot` starts the two real processes, `hostsim plant --iface vcan0` (the simulated drives and
+chassis) and `mecanum-runner --iface vcan0` (the firmware's control core), with the same
+configuration, plus `candump -L` recording every frame on the interface. The test plays the
+host: it sends the robot protocol's commands with python-can, encoded by cantools from
+dbc/mecanum_robot.dbc. After the session (`with Robot(...) as robot:`) the candump log is
+parsed into `robot.frames` and both processes' `--stats-json` reports are loaded, so each test
+asserts on what really crossed the bus.
+
+Times: every frame in `robot.frames` carries the kernel's receive timestamp (candump's), and
+`Robot.send` returns the timestamp of the sent frame as candump saw it, so latencies are
+differences of kernel timestamps of one clock.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import pathlib
+import signal
+import struct
+import subprocess
+import threading
+import time
+from collections.abc import Iterable, Sequence
+
+import can
+import cantools
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+ROBOT_DBC = ROOT / "dbc" / "mecanum_robot.dbc"
+
+# Robot protocol ids (dbc/mecanum_robot.dbc).
+ESTOP, TWIST_CMD, MODE_CMD, STATUS_REQ = 0x300, 0x301, 0x302, 0x303
+ODOM_POSITION, ODOM_VELOCITY, STATUS, HEARTBEAT = 0x310, 0x311, 0x312, 0x31F
+ESTOP_MAGIC = 0xE5
+MODE_DISABLE, MODE_ENABLE, MODE_RESET = 0, 1, 2
+STATE_DISABLED, STATE_ENABLED, STATE_FAULT, STATE_ESTOP = 0, 1, 2, 3
+FAULT_NONE, FAULT_WATCHDOG = 0, 4
+# DJI C620 current command for ESCs 1-4 (four big-endian int16).
+DJI_CMD_1_4 = 0x200
+ALL_MOTORS = 0x0F
+
+# How long the processes get to come up: under software emulation (the micro-VM) a process
+# start alone takes ~0.3 s and the first steps are slow.
+READY_TIMEOUT_S = 60.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Frame:
+    """One frame from the candump log."""
+
+    t: float  # kernel receive timestamp, s (CLOCK_REALTIME)
+    id: int
+    data: bytes
+    extended: bool = False
+    remote: bool = False
+
+
+def parse_candump(path: pathlib.Path) -> list[Frame]:
+    """Frames of a candump -L log: `(1700000000.123456) vcan0 123#DEADBEEF` lines."""
+    frames = []
+    for line in path.read_text().splitlines():
+        fields = line.split()
+        if len(fields) != 3 or not fields[0].startswith("("):
+            continue
+        t = float(fields[0].strip("()"))
+        ident, _, payload = fields[2].partition("#")
+        remote = payload.startswith("R")
+        data = b"" if remote else bytes.fromhex(payload)
+        frames.append(Frame(t, int(ident, 16), data, len(ident) == 8, remote))
+    return frames
+
+
+def dji_currents(frame: Frame) -> tuple[int, ...]:
+    """The four raw current commands of a 0x200 frame."""
+    return tuple(int.from_bytes(frame.data[i : i + 2], "big", signed=True) for i in range(0, 8, 2))
+
+
+# ODrive CAN Simple: id = node << 5 | command; Set_Input_Vel (0x0D): vel f32, torque ff f32.
+ODRIVE_SET_INPUT_VEL = 0x0D
+ODRIVE_NODES = (0, 1, 2, 3)
+
+
+def odrive_velocity(frame: Frame) -> float:
+    """The velocity setpoint of a Set_Input_Vel frame, rev/s."""
+    return struct.unpack_from("<f", frame.data)[0]
+
+
+def is_setpoint(frame: Frame, protocol: str) -> bool:
+    """Whether `frame` is a motor setpoint of `protocol` ("dji" or "odrive")."""
+    if protocol == "dji":
+        return frame.id == DJI_CMD_1_4
+    return frame.id & 0x1F == ODRIVE_SET_INPUT_VEL and frame.id >> 5 in ODRIVE_NODES
+
+
+def setpoint_is_zero(frame: Frame, protocol: str) -> bool:
+    if protocol == "dji":
+        return dji_currents(frame) == (0, 0, 0, 0)
+    return odrive_velocity(frame) == 0.0
+
+
+def write_config(path: pathlib.Path, base: pathlib.Path, **overrides: object) -> pathlib.Path:
+    """Writes `base` (a configuration TOML) to `path` with `key = value` lines replaced.
+
+    Each override names a key that must occur exactly once in `base` (e.g.
+    `stop_linear_decel="inf"`); a missing key is an error, so a renamed key cannot be
+    silently ignored."""
+    lines = base.read_text().splitlines()
+    for key, value in overrides.items():
+        hits = [i for i, line in enumerate(lines) if line.split("=")[0].strip() == key]
+        assert len(hits) == 1, f"{base}: key {key} found {len(hits)} times"
+        lines[hits[0]] = f"{key} = {value}"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+class Robot:
+    """The plant and the runner on `iface`, candump recording, and a host to command them.
+
+    Use as a context manager; after it exits, `frames`, `runner_stats` and `plant_stats` are
+    filled in. `plant_args` are extra arguments of `hostsim plant` (e.g. `--log FILE`)."""
+
+    def __init__(
+        self,
+        *,
+        runner: pathlib.Path,
+        hostsim: pathlib.Path,
+        candump: str,
+        iface: str,
+        config: pathlib.Path,
+        workdir: pathlib.Path,
+        plant_args: Sequence[str] = (),
+        runner_args: Sequence[str] = (),
+        plant_log: bool = False,
+    ) -> None:
+        self.iface = iface
+        self.config = config
+        self.workdir = workdir
+        self.db = cantools.database.load_file(str(ROBOT_DBC), strict=True)
+        self.candump_log = workdir / "candump.log"
+        self.runner_json = workdir / "runner.json"
+        self.plant_json = workdir / "plant.json"
+        # `hostsim plant --log`: the plant's MCAP log of the run.
+        self.plant_mcap = workdir / "plant.mcap" if plant_log else None
+        if self.plant_mcap is not None:
+            plant_args = [*plant_args, "--log", str(self.plant_mcap)]
+        self._cmds = {
+            "plant": [
+                str(hostsim), "plant", "--iface", iface, "--config", str(config),
+                "--stats-json", str(self.plant_json), *plant_args,
+            ],
+            "runner": [
+                str(runner), "--iface", iface, "--config", str(config),
+                "--stats-json", str(self.runner_json), *runner_args,
+            ],
+        }
+        # -r: a large receive buffer, so a slow (emulated) machine does not drop frames;
+        # -d: report drops.
+        self._candump_cmd = [candump, "-L", "-d", "-r", str(32 << 20), iface]
+        self._procs: dict[str, subprocess.Popen] = {}
+        self._tx: can.BusABC | None = None
+        self._status_rx: can.BusABC | None = None
+        self._stream: threading.Thread | None = None
+        self._stream_stop = threading.Event()
+        self._stream_lock = threading.Lock()
+        self._twist = (0.0, 0.0, 0.0)
+        self._seq = 0
+        self.last_status: dict | None = None
+        self.frames: list[Frame] = []
+        self.runner_stats: dict = {}
+        self.plant_stats: dict = {}
+        self.outputs: dict[str, str] = {}
+        self.marks: dict[str, float] = {}
+
+    # --- lifecycle ------------------------------------------------------------------------
+
+    def __enter__(self) -> Robot:
+        try:
+            self._start()
+        except BaseException:
+            self._stop_all()
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop_all()
+
+    def _spawn(self, name: str, cmd: list[str]) -> None:
+        out = open(self.workdir / f"{name}.out", "w")  # noqa: SIM115 (closed in _stop_all)
+        self._procs[name] = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT)
+        out.close()
+
+    def _start(self) -> None:
+        self._status_rx = can.Bus(
+            interface="socketcan",
+            channel=self.iface,
+            can_filters=[{"can_id": STATUS, "can_mask": 0x7FF}],
+        )
+        self._tx = can.Bus(interface="socketcan", channel=self.iface)
+        # Its stderr to a file too: a pipe nobody reads would fill and block it.
+        with open(self.candump_log, "w") as log, open(self.workdir / "candump.err", "w") as err:
+            self._procs["candump"] = subprocess.Popen(self._candump_cmd, stdout=log, stderr=err)
+        self._spawn("plant", self._cmds["plant"])
+        # The runner once the plant is on the bus (the drives report without being asked).
+        with can.Bus(interface="socketcan", channel=self.iface) as probe:
+            deadline = time.monotonic() + READY_TIMEOUT_S
+            while probe.recv(timeout=0.2) is None:
+                self._check_alive()
+                assert time.monotonic() < deadline, "the plant sent nothing"
+        self._spawn("runner", self._cmds["runner"])
+        # Ready: a STATUS frame that reports every motor online.
+        self.wait_status(lambda s: s["motors_online"] == ALL_MOTORS, READY_TIMEOUT_S, "ready")
+
+    def _stop_all(self) -> None:
+        self.stop_stream()
+        # The runner first (it sends its shutdown frames), then the plant, then candump.
+        for name in ("runner", "plant", "candump"):
+            proc = self._procs.get(name)
+            if proc is None:
+                continue
+            if name == "candump":
+                self._let_candump_catch_up()
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+            path = self.workdir / ("candump.err" if name == "candump" else f"{name}.out")
+            self.outputs[name] = path.read_text() if path.exists() else ""
+            if name != "candump":
+                assert proc.returncode == 0, (
+                    f"{name} exited with {proc.returncode}:\n{self.outputs[name]}"
+                )
+            if name == "runner":
+                # Its shutdown frames reach candump before candump stops.
+                time.sleep(0.2)
+        for bus in (self._tx, self._status_rx):
+            if bus is not None:
+                bus.shutdown()
+        self._tx = self._status_rx = None
+        if self.candump_log.exists():
+            self.frames = parse_candump(self.candump_log)
+            drops = [line for line in self.candump_log.read_text().splitlines() if "DROPCOUNT" in line]
+            assert not drops, f"candump lost frames, the recording is incomplete: {drops[:3]}"
+        for path, attr in ((self.runner_json, "runner_stats"), (self.plant_json, "plant_stats")):
+            if path.exists() and path.stat().st_size:
+                setattr(self, attr, json.loads(path.read_text()))
+
+    def _let_candump_catch_up(self) -> None:
+        wait_until_quiet(self.candump_log)
+
+    # --- host side ------------------------------------------------------------------------
+
+    def send_raw(self, ident: int, data: bytes, *, mark: str | None = None) -> float:
+        """Sends a frame; returns the wall time just after (candump's clock is the same)."""
+        assert self._tx is not None
+        self._tx.send(can.Message(arbitration_id=ident, data=data, is_extended_id=ident > 0x7FF))
+        t = time.time()
+        if mark:
+            self.marks[mark] = t
+        return t
+
+    def send(self, name: str, *, mark: str | None = None, **signals: float) -> float:
+        """Encodes `name` from the robot DBC (all signals; reserved ones default to 0)."""
+        msg = self.db.get_message_by_name(name)
+        values = {s.name: signals.get(s.name, 0) for s in msg.signals}
+        return self.send_raw(msg.frame_id, msg.encode(values), mark=mark)
+
+    def mode(self, request: int, *, mark: str | None = None) -> float:
+        return self.send("MODE_CMD", request=request, mark=mark)
+
+    def estop(self, *, mark: str | None = None) -> float:
+        return self.send("ESTOP", magic=ESTOP_MAGIC, mark=mark)
+
+    def twist(self, vx: float, vy: float, wz: float) -> None:
+        """Sets the streamed twist (TWIST_CMD at 50 Hz, started by `start_stream`)."""
+        with self._stream_lock:
+            self._twist = (vx, vy, wz)
+
+    def start_stream(self, period_s: float = 0.02) -> None:
+        """Streams TWIST_CMD with the current twist every `period_s` from a thread."""
+        assert self._stream is None
+        self._stream_stop.clear()
+
+        def loop() -> None:
+            deadline = time.monotonic()
+            while not self._stream_stop.is_set():
+                with self._stream_lock:
+                    vx, vy, wz = self._twist
+                    seq = self._seq
+                    self._seq = (self._seq + 1) & 0xFF
+                self.send("TWIST_CMD", vx=vx, vy=vy, wz=wz, seq=seq)
+                deadline += period_s
+                self._stream_stop.wait(max(0.0, deadline - time.monotonic()))
+
+        self._stream = threading.Thread(target=loop, name="twist-stream", daemon=True)
+        self._stream.start()
+
+    def stop_stream(self, mark: str | None = None) -> None:
+        """Stops streaming; returns after the last TWIST_CMD went out."""
+        if self._stream is not None:
+            self._stream_stop.set()
+            self._stream.join()
+            self._stream = None
+            if mark:
+                self.marks[mark] = time.time()
+
+    def wait_status(self, ok, timeout: float, what: str) -> dict:
+        """Waits for a STATUS frame for which `ok(decoded)` holds; returns it."""
+        assert self._status_rx is not None
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            msg = self._status_rx.recv(timeout=0.2)
+            if msg is None:
+                self._check_alive()
+                continue
+            status = self.db.decode_message(STATUS, msg.data, decode_choices=False)
+            self.last_status = status
+            if ok(status):
+                return status
+        self._check_alive()
+        raise AssertionError(f"{what}: no matching STATUS within {timeout} s (last {self.last_status})")
+
+    def _check_alive(self) -> None:
+        for name, proc in self._procs.items():
+            if proc.poll() is not None:
+                raise AssertionError(f"{name} exited early with status {proc.returncode}")
+
+    # --- analysis -------------------------------------------------------------------------
+
+    def of(self, ident: int, t0: float = -math.inf, t1: float = math.inf) -> list[Frame]:
+        """Recorded frames with this id, with t0 <= t < t1."""
+        return [f for f in self.frames if f.id == ident and t0 <= f.t < t1]
+
+    def decoded(self, ident: int, t0: float = -math.inf, t1: float = math.inf) -> list[tuple[float, dict]]:
+        return [
+            (f.t, self.db.decode_message(ident, f.data, decode_choices=False))
+            for f in self.of(ident, t0, t1)
+        ]
+
+
+def wait_until_quiet(path: pathlib.Path, quiet_s: float = 1.0, timeout: float = 120.0) -> None:
+    """Waits until the file a recorder writes stops growing for `quiet_s`: on a slow machine
+    a recorder (candump, can.logger) falls behind, its large receive buffer holding the
+    backlog, and on SIGINT it quits at once, dropping what it has not written yet."""
+    deadline = time.monotonic() + timeout
+    size, since = -1, time.monotonic()
+    while time.monotonic() < deadline:
+        now_size = path.stat().st_size if path.exists() else 0
+        if now_size != size:
+            size, since = now_size, time.monotonic()
+        elif time.monotonic() - since >= quiet_s:
+            return
+        time.sleep(0.05)
+
+
+def mean(values: Iterable[float]) -> float:
+    values = list(values)
+    assert values, "no samples"
+    return sum(values) / len(values)
+
+
+def binary(env: str, default: pathlib.Path) -> pathlib.Path:
+    """$env if set (a prebuilt binary), else `default`; it must exist."""
+    path = pathlib.Path(os.environ.get(env) or default)
+    assert path.is_file(), f"{env}: {path} does not exist"
+    return path
