@@ -38,18 +38,20 @@ rows=()
 row() { rows+=("| $1 | $2 | $3 |"); }
 # Median of a criterion benchmark, ns, from its estimates file.
 median_ns() {
-    "$PY" -c 'import json,sys; print(f"{json.load(open(sys.argv[1]))["median"]["point_estimate"]:.1f}")' \
+    "$PY" -c 'import json, sys; print("%.1f" % json.load(open(sys.argv[1]))["median"]["point_estimate"])' \
         "target/criterion/$1/new/estimates.json"
 }
 
 log "kinematics (criterion)"
 cargo bench --locked -q -p kinematics --bench kinematics -- "${crit[@]}" full_step >&2
-row "kinematics full step (inverse, desaturate, forward, odometry), f32" "$(median_ns f32/full_step) ns" "criterion median"
-row "kinematics full step, f64" "$(median_ns f64/full_step) ns" "criterion median"
+f32_ns=$(median_ns f32/full_step) f64_ns=$(median_ns f64/full_step)
+row "kinematics full step (inverse, desaturate, forward, odometry), f32" "$f32_ns ns" "criterion median"
+row "kinematics full step, f64" "$f64_ns ns" "criterion median"
 
 log "control step (criterion)"
 cargo bench --locked -q -p firmware --bench control -- "${crit[@]}" >&2
-row "control step, 4 x C620, enabled and driving (host)" "$(median_ns control_step_4_wheels_dji) ns" "criterion median"
+step_ns=$(median_ns control_step_4_wheels_dji)
+row "control step, 4 x C620, enabled and driving (host)" "$step_ns ns" "criterion median"
 
 log "instructions per control step on the emulated Cortex-M4"
 xt=$(scripts/xtarget.sh 2>&1 | tee /dev/stderr)
@@ -87,7 +89,7 @@ if [ "$vcan" = 1 ]; then
     log "vcan0: frames/s the runner takes without loss (the vcan lane's rate test)"
     cargo build --release --locked -q -p firmware --features firmware/linux --bin mecanum-runner
     out=$(MECANUM_RUNNER="$PWD/target/release/mecanum-runner" scripts/vcan.sh -- \
-        "$PY" -m pytest tests/test_vcan_runner.py -q -s -p no:cacheprovider -k rate 2>&1 | tee /dev/stderr || true)
+        "$PY" -m pytest tests/test_vcan_runner.py -q -s -p no:cacheprovider -k test_rate_ 2>&1 | tee /dev/stderr || true)
     where=native
     grep -q 'vcan.sh: vm:' <<<"$out" && where="micro-VM, software-emulated CPU"
     line=$(grep '^rate: ' <<<"$out" | tail -1)
