@@ -9,8 +9,9 @@ parsed into `robot.frames` and both processes' `--stats-json` reports are loaded
 asserts on what really crossed the bus.
 
 Times: every frame in `robot.frames` carries the kernel's receive timestamp (candump's), and
-`Robot.send` returns the timestamp of the sent frame as candump saw it, so latencies are
-differences of kernel timestamps of one clock.
+the tests measure latencies between frames of that record: differences of kernel timestamps
+of one clock, whatever the test process was doing. (`Robot.marks` are the test's own wall
+times, used only to find the phases of a session.)
 """
 
 from __future__ import annotations
@@ -21,7 +22,6 @@ import math
 import os
 import pathlib
 import signal
-import struct
 import subprocess
 import threading
 import time
@@ -78,29 +78,6 @@ def parse_candump(path: pathlib.Path) -> list[Frame]:
 def dji_currents(frame: Frame) -> tuple[int, ...]:
     """The four raw current commands of a 0x200 frame."""
     return tuple(int.from_bytes(frame.data[i : i + 2], "big", signed=True) for i in range(0, 8, 2))
-
-
-# ODrive CAN Simple: id = node << 5 | command; Set_Input_Vel (0x0D): vel f32, torque ff f32.
-ODRIVE_SET_INPUT_VEL = 0x0D
-ODRIVE_NODES = (0, 1, 2, 3)
-
-
-def odrive_velocity(frame: Frame) -> float:
-    """The velocity setpoint of a Set_Input_Vel frame, rev/s."""
-    return struct.unpack_from("<f", frame.data)[0]
-
-
-def is_setpoint(frame: Frame, protocol: str) -> bool:
-    """Whether `frame` is a motor setpoint of `protocol` ("dji" or "odrive")."""
-    if protocol == "dji":
-        return frame.id == DJI_CMD_1_4
-    return frame.id & 0x1F == ODRIVE_SET_INPUT_VEL and frame.id >> 5 in ODRIVE_NODES
-
-
-def setpoint_is_zero(frame: Frame, protocol: str) -> bool:
-    if protocol == "dji":
-        return dji_currents(frame) == (0, 0, 0, 0)
-    return odrive_velocity(frame) == 0.0
 
 
 def write_config(path: pathlib.Path, base: pathlib.Path, **overrides: object) -> pathlib.Path:
