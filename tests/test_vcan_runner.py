@@ -43,6 +43,7 @@ from vcan_robot import (
     binary,
     dji_currents,
     mean,
+    run_cangen,
     wait_until_quiet,
     write_config,
 )
@@ -362,12 +363,9 @@ def malformed(robot_factory, can_utils) -> Robot:
         count = str(int(FLOOD_RATE * FLOOD_S))
         gap_ms = f"{1000.0 / FLOOD_RATE:g}"
         # -p 10: on a full queue (ENOBUFS) wait and retry, so every frame goes out.
-        floods = [
-            subprocess.Popen([cangen, robot.iface, "-g", gap_ms, "-n", count, "-p", "10", *args])
-            for _, args, _ in MALFORMED
-        ]
-        for proc in floods:
-            assert proc.wait(timeout=120) == 0
+        run_cangen(
+            cangen, robot.iface, (["-g", gap_ms, "-n", count, "-p", "10", *args] for _, args, _ in MALFORMED)
+        )
         robot.marks["flood_end"] = time.time()
         time.sleep(1.0)
         robot.stop_stream(mark="end")
@@ -437,13 +435,14 @@ def odrive(robot_factory, configs, can_utils) -> Robot:
         # twist stream keeps the Python interpreter to itself).
         nan_pos = struct.pack("<ff", math.nan, 0.0).hex().upper()
         inf_vel = struct.pack("<ff", 0.0, math.inf).hex().upper()
-        floods = [
-            subprocess.Popen([cangen, robot.iface, "-I", f"{ident:03X}", "-L", "8", "-D", data,
-                              "-g", "4", "-n", str(NON_FINITE // 2), "-p", "10"])
-            for ident, data in ((0 << 5 | 0x09, nan_pos), (1 << 5 | 0x09, inf_vel))
-        ]
-        for proc in floods:
-            assert proc.wait(timeout=120) == 0
+        run_cangen(
+            cangen,
+            robot.iface,
+            (
+                ["-I", f"{ident:03X}", "-L", "8", "-D", data, "-g", "4", "-n", str(NON_FINITE // 2), "-p", "10"]
+                for ident, data in ((0 << 5 | 0x09, nan_pos), (1 << 5 | 0x09, inf_vel))
+            ),
+        )
         robot.marks["nan_end"] = time.time()
         time.sleep(0.8)
         robot.stop_stream(mark="end")
@@ -630,10 +629,10 @@ def test_rate_8000_frames_per_second_for_30_s_without_loss(
         # (Sized for >= 30 s at up to 14,000/s; a slower stream lasts longer.)
         count = int(RATE_S * 14_000)
         t0 = time.monotonic()
-        subprocess.run(
-            [can_utils("cangen"), vcan, "-I", "123", "-L", "8", "-D", "i", "-g", "1", "-c", str(RATE_BURST),
-             "-n", str(count), "-p", "100"],
-            check=True,
+        run_cangen(
+            can_utils("cangen"),
+            vcan,
+            [["-I", "123", "-L", "8", "-D", "i", "-g", "1", "-c", str(RATE_BURST), "-n", str(count), "-p", "100"]],
             timeout=RATE_S * 10,
         )
         elapsed = time.monotonic() - t0

@@ -322,6 +322,15 @@ class Robot:
         ]
 
 
+def run_cangen(cangen: str, iface: str, arg_sets: Iterable[Sequence[str]], timeout: float = 300.0) -> None:
+    """Runs one `cangen IFACE ARGS...` per argument set, all at once, and waits for them all;
+    each must exit 0. (With `-p MS` cangen waits and retries when the interface's queue is
+    full, so every frame it was asked for goes out.)"""
+    procs = [subprocess.Popen([cangen, iface, *args]) for args in arg_sets]
+    for proc in procs:
+        assert proc.wait(timeout=timeout) == 0, f"{proc.args} exited with {proc.returncode}"
+
+
 def wait_until_quiet(path: pathlib.Path, quiet_s: float = 1.0, timeout: float = 120.0) -> None:
     """Waits until the file a recorder writes stops growing for `quiet_s`: on a slow machine
     a recorder (candump, can.logger) falls behind, its large receive buffer holding the
