@@ -614,7 +614,10 @@ pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
 /// `host` for the robot protocol's commands and `controller` for the rest, the plant's own
 /// feedback with sender `drives`), the host's twist commands (`/cmd/twist`), and every
 /// 10 ms the firmware's odometry (decoded from its `ODOM_*` frames) and the plant's ground
-/// truth (`/odom/pose`, `/ground_truth/pose`, `/tf`). Log time is µs since the plant's start.
+/// truth (`/odom/pose`, `/ground_truth/pose`, `/tf`). Log time counts from the plant's start:
+/// a frame is stamped with the clock at the tick that received or sent it, a pose with the
+/// plant's simulated time, which follows the clock except for time skipped after a stall
+/// ([`PlantReport::skipped_us`]).
 ///
 /// A write error stops the logging (the run goes on) and is kept for [`PlantLog::finish`].
 pub struct PlantLog {
@@ -653,13 +656,16 @@ impl PlantLog {
     /// # Errors
     /// The first [`LogError`] of the run, or of closing the file.
     pub fn finish(self) -> Result<u64, LogError> {
-        if let Some(e) = self.error {
-            return Err(e);
+        match (self.error, self.log) {
+            (Some(e), _) => Err(e),
+            (None, Some(log)) => {
+                let messages = log.messages();
+                log.finish()?;
+                Ok(messages)
+            }
+            // Not reached: the log is only dropped together with an error.
+            (None, None) => Ok(0),
         }
-        let log = self.log.expect("a log without an error is open");
-        let messages = log.messages();
-        log.finish()?;
-        Ok(messages)
     }
 }
 
