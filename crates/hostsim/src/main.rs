@@ -142,37 +142,11 @@ enum Cmd {
     ///
     /// On SIGINT/SIGTERM or after --duration: prints the ground-truth pose and velocity on
     /// stdout and the loop statistics (ticks, overruns, jitter, frames) on stderr, and writes
-    /// both as JSON to --stats-json. A second SIGINT/SIGTERM exits at once with status 1. Exit status: 0 after a clean stop, 1 if the statistics could
-    /// not be written, 2 for a startup error (bad arguments, configuration, interface).
+    /// both as JSON to --stats-json. A second SIGINT/SIGTERM exits at once with status 1.
+    /// Exit status: 0 after a clean stop, 1 if the statistics or the log could not be
+    /// written, 2 for a startup error (bad arguments, configuration, interface).
     #[command(verbatim_doc_comment)]
-    Plant {
-        /// SocketCAN interface, e.g. vcan0 or can0. It must exist and be up.
-        #[arg(long, value_name = "IFACE")]
-        iface: String,
-        /// Drive configuration TOML (as config/dji_m3508.toml or config/odrive.toml).
-        /// Default: the built-in DJI example. Use the runner's configuration.
-        #[arg(long, value_name = "FILE")]
-        config: Option<PathBuf>,
-        /// Stop after this many seconds. Default: run until SIGINT/SIGTERM.
-        #[arg(long, value_name = "SECONDS", value_parser = parse_seconds)]
-        duration: Option<f64>,
-        /// Write the final statistics and ground truth as JSON to FILE (created at startup).
-        #[arg(long, value_name = "FILE")]
-        stats_json: Option<PathBuf>,
-        /// Busy-wait the last MICROS before each deadline instead of sleeping: lower jitter,
-        /// more CPU. Default 0.
-        #[arg(long, value_name = "MICROS", default_value_t = 0)]
-        spin_us: u64,
-        /// Write an MCAP log of the run to FILE: every frame on the interface as the plant
-        /// saw it (/can/bus, with its sender), the host's twist commands, the firmware's
-        /// odometry and the plant's ground truth every 10 ms (/odom/pose, /ground_truth/pose,
-        /// /tf). Flushed at least every second. `hostsim summary FILE` reads it.
-        #[arg(long, value_name = "FILE")]
-        log: Option<PathBuf>,
-        /// Print only errors (no start line, no statistics on stderr).
-        #[arg(long, short)]
-        quiet: bool,
-    },
+    Plant(PlantArgs),
     /// Summarise a log: odometry drift against ground truth, bus load, state changes and
     /// faults, messages per topic.
     ///
@@ -204,6 +178,37 @@ fn warn_if_damaged(path: &Path, read: &hostsim::log::ReadReport, doing: &str) {
     if !read.is_complete() {
         eprintln!("warning: {} is {read}; {doing}", path.display());
     }
+}
+
+/// The arguments of `hostsim plant`.
+#[derive(Debug, clap::Args)]
+struct PlantArgs {
+    /// SocketCAN interface, e.g. vcan0 or can0. It must exist and be up.
+    #[arg(long, value_name = "IFACE")]
+    iface: String,
+    /// Drive configuration TOML (as config/dji_m3508.toml or config/odrive.toml).
+    /// Default: the built-in DJI example. Use the runner's configuration.
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Stop after this many seconds. Default: run until SIGINT/SIGTERM.
+    #[arg(long, value_name = "SECONDS", value_parser = parse_seconds)]
+    duration: Option<f64>,
+    /// Write the final statistics and ground truth as JSON to FILE (created at startup).
+    #[arg(long, value_name = "FILE")]
+    stats_json: Option<PathBuf>,
+    /// Busy-wait the last MICROS before each deadline instead of sleeping: lower jitter,
+    /// more CPU. Default 0.
+    #[arg(long, value_name = "MICROS", default_value_t = 0)]
+    spin_us: u64,
+    /// Write an MCAP log of the run to FILE: every frame on the interface as the plant
+    /// saw it (/can/bus, with its sender), the host's twist commands, the firmware's
+    /// odometry and the plant's ground truth every 10 ms (/odom/pose, /ground_truth/pose,
+    /// /tf). Flushed at least every second. `hostsim summary FILE` reads it.
+    #[arg(long, value_name = "FILE")]
+    log: Option<PathBuf>,
+    /// Print only errors (no start line, no statistics on stderr).
+    #[arg(long, short)]
+    quiet: bool,
 }
 
 /// Rust ignores SIGPIPE, so `println!` to a closed pipe (`hostsim run | head -1`) panics.
@@ -284,24 +289,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             }
             .map_err(flatten)
         }
-        Cmd::Plant {
-            iface,
-            config,
-            duration,
-            stats_json,
-            spin_us,
-            log,
-            quiet,
-        } => plant(&PlantCli {
-            iface: &iface,
-            config: config.as_deref(),
-            duration,
-            stats_json: stats_json.as_deref(),
-            spin_us,
-            log: log.as_deref(),
-            quiet,
-        })
-        .map_err(flatten),
+        Cmd::Plant(args) => plant(&args).map_err(flatten),
         Cmd::Summary { log } => summary(&log),
         Cmd::Kin => {
             let stdin = std::io::stdin();
@@ -828,28 +816,10 @@ fn play(
 }
 
 /// `plant --iface IFACE`: the simulated drives on the interface in real time.
-/// The arguments of `plant`.
-struct PlantCli<'a> {
-    iface: &'a str,
-    config: Option<&'a Path>,
-    duration: Option<f64>,
-    stats_json: Option<&'a Path>,
-    spin_us: u64,
-    log: Option<&'a Path>,
-    quiet: bool,
-}
-
-fn plant(args: &PlantCli<'_>) -> Result<ExitCode> {
-    let &PlantCli {
-        iface,
-        config,
-        duration,
-        stats_json,
-        spin_us,
-        log,
-        quiet,
-    } = args;
-    let (config, source) = load_config(config)?;
+fn plant(args: &PlantArgs) -> Result<ExitCode> {
+    let (iface, quiet) = (args.iface.as_str(), args.quiet);
+    let (stats_json, log) = (args.stats_json.as_deref(), args.log.as_deref());
+    let (config, source) = load_config(args.config.as_deref())?;
     let mut drives = hostsim::drives::SimDrives::new(&config)
         .with_context(|| format!("configuration {source}: the plant cannot model it"))?;
     let stop = install_signals()?;
@@ -885,7 +855,7 @@ fn plant(args: &PlantCli<'_>) -> Result<ExitCode> {
         None => None,
     };
     let options = PlantOptions {
-        duration_us: duration.map(|s| (s * 1e6).round() as u64),
+        duration_us: args.duration.map(|s| (s * 1e6).round() as u64),
         ..PlantOptions::default()
     };
     if !quiet {
@@ -895,7 +865,7 @@ fn plant(args: &PlantCli<'_>) -> Result<ExitCode> {
             1_000_000 / options.period_us
         );
     }
-    let clock = MonotonicClock::new(spin_us);
+    let clock = MonotonicClock::new(args.spin_us);
     let report = match plant_log.as_mut() {
         Some(observer) => {
             run_plant_observed(&mut drives, &mut bus, &clock, &options, &stop, observer)
