@@ -6,7 +6,7 @@
 //! must give exactly the messages of the chunks that end at or before `c`, and a damaged
 //! chunk none of its messages.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 use embedded_can::StandardId;
@@ -65,24 +65,34 @@ impl Fixture {
 }
 
 /// Half a second of the square with 16 KiB chunks: many chunk boundaries in a small file.
+/// The built-in square, `duration_s` long, logged by the real writer into `path` (with
+/// `chunk_size`-byte chunks, or the writer's default); the log is left open.
+fn square_log(path: &Path, duration_s: f64, chunk_size: Option<u64>) -> McapLog {
+    let mut s = Scenario::builtin("square").unwrap();
+    s.duration_s = duration_s;
+    let mut plant = SimDrives::new(&s.config).unwrap();
+    let mut log = match chunk_size {
+        Some(n) => McapLog::create_with_chunk_size(path, &run_metadata(&s), n),
+        None => McapLog::create(path, &run_metadata(&s)),
+    }
+    .unwrap();
+    run(
+        &s,
+        &mut plant,
+        Some(&mut log),
+        LogOptions::default(),
+        |_| {},
+    )
+    .unwrap();
+    log
+}
+
 fn fixture() -> &'static Fixture {
     static FIXTURE: OnceLock<Fixture> = OnceLock::new();
     FIXTURE.get_or_init(|| {
         let dir = TempDir::new("fixture");
         let path = dir.0.join("square.mcap");
-        let mut s = Scenario::builtin("square").unwrap();
-        s.duration_s = 0.5;
-        let mut plant = SimDrives::new(&s.config).unwrap();
-        let mut log = McapLog::create_with_chunk_size(&path, &run_metadata(&s), 16 << 10).unwrap();
-        run(
-            &s,
-            &mut plant,
-            Some(&mut log),
-            LogOptions::default(),
-            |_| {},
-        )
-        .unwrap();
-        log.finish().unwrap();
+        square_log(&path, 0.5, Some(16 << 10)).finish().unwrap();
         let bytes = std::fs::read(&path).unwrap();
 
         let summary = mcap::Summary::read(&bytes).unwrap().expect("a summary");
@@ -421,18 +431,7 @@ fn replay_of_a_cut_log_is_bit_identical_up_to_the_cut_and_summary_reports_it() {
 /// 2^64 ns: CRCs correct, so only the time line can tell.
 fn log_with_time(dir: &TempDir, name: &str, t_ns: u64) -> PathBuf {
     let path = dir.0.join(name);
-    let mut s = Scenario::builtin("square").unwrap();
-    s.duration_s = 0.2;
-    let mut plant = SimDrives::new(&s.config).unwrap();
-    let mut log = McapLog::create(&path, &run_metadata(&s)).unwrap();
-    run(
-        &s,
-        &mut plant,
-        Some(&mut log),
-        LogOptions::default(),
-        |_| {},
-    )
-    .unwrap();
+    let mut log = square_log(&path, 0.2, None);
     let frame = CanFrame::standard(StandardId::new(0x200).unwrap(), &[0; 8]).unwrap();
     log.can(t_ns, Direction::Tx, &frame).unwrap();
     log.finish().unwrap();
