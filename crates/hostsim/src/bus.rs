@@ -24,8 +24,6 @@
 //! a flipped byte. Random choices come from a SplitMix64 generator seeded by the scenario, so
 //! the same seed gives the same faults on every run and every machine.
 
-use std::collections::VecDeque;
-
 use embedded_can::{Frame, Id};
 use firmware::CanFrame;
 
@@ -137,12 +135,24 @@ pub struct BusStats {
 #[derive(Debug, Clone)]
 pub struct Bus {
     bit_ns: u64,
-    queues: [VecDeque<(u64, CanFrame)>; 3],
+    /// Frames waiting, all nodes, in the order they were queued.
+    queue: Vec<Queued>,
+    /// Frames queued so far (the tie-break after id and node).
+    queued: u64,
     /// The bus is busy until this time, ns.
     idle_at_ns: u64,
     faults: Vec<Fault>,
     rng: SplitMix64,
     stats: BusStats,
+}
+
+/// A frame waiting for the bus.
+#[derive(Debug, Clone, Copy)]
+struct Queued {
+    ready_ns: u64,
+    /// Arbitration key: id, then node order, then queueing order.
+    key: (u16, usize, u64),
+    frame: CanFrame,
 }
 
 fn node_index(n: Node) -> usize {
@@ -165,7 +175,8 @@ impl Bus {
         let bitrate = if bitrate == 0 { 1_000_000 } else { bitrate };
         Self {
             bit_ns: 1_000_000_000 / u64::from(bitrate),
-            queues: Default::default(),
+            queue: Vec::new(),
+            queued: 0,
             idle_at_ns: 0,
             faults,
             rng: SplitMix64(seed),
@@ -175,13 +186,18 @@ impl Bus {
 
     /// Queues `frame` for transmission by `from` at time `now_ns`.
     pub fn send(&mut self, now_ns: u64, from: Node, frame: CanFrame) {
-        self.queues[node_index(from)].push_back((now_ns, frame));
+        self.queue.push(Queued {
+            ready_ns: now_ns,
+            key: (raw_id(&frame), node_index(from), self.queued),
+            frame,
+        });
+        self.queued += 1;
     }
 
     /// Frames waiting to be sent, all nodes.
     #[must_use]
     pub fn pending(&self) -> usize {
-        self.queues.iter().map(VecDeque::len).sum()
+        self.queue.len()
     }
 
     /// Statistics so far.
@@ -204,34 +220,32 @@ impl Bus {
     /// in arbitration order. Returns them in the order they went on the wire.
     pub fn advance(&mut self, until_ns: u64) -> Vec<Transmission> {
         let mut out = Vec::new();
+        self.advance_into(until_ns, &mut out);
+        out
+    }
+
+    /// [`Self::advance`], appending to `out` (no allocation once `out` has grown).
+    pub fn advance_into(&mut self, until_ns: u64, out: &mut Vec<Transmission>) {
         // The earliest time a frame is on offer, not before the bus is idle.
-        while let Some(ready_ns) = self
-            .queues
-            .iter()
-            .filter_map(|q| q.iter().map(|(t, _)| *t).min())
-            .min()
-        {
+        while let Some(ready_ns) = self.queue.iter().map(|q| q.ready_ns).min() {
             let start_ns = ready_ns.max(self.idle_at_ns);
             if start_ns >= until_ns {
                 break;
             }
             // Arbitration among the frames on offer at start_ns: each node offers its lowest
-            // id; the lowest id on the bus wins (ties: node order, i.e. a fixed priority).
-            let mut best: Option<(u16, usize, usize)> = None;
-            for (n, q) in self.queues.iter().enumerate() {
-                for (i, (t, f)) in q.iter().enumerate() {
-                    if *t <= start_ns {
-                        let id = raw_id(f);
-                        if best.is_none_or(|(b, _, _)| id < b) {
-                            best = Some((id, n, i));
-                        }
-                    }
-                }
-            }
-            let Some((_, n, i)) = best else { break };
-            let Some((queued_ns, frame)) = self.queues[n].remove(i) else {
+            // id; the lowest id on the bus wins (ties: node order, i.e. a fixed priority;
+            // then a node's own queueing order).
+            let Some(i) = (0..self.queue.len())
+                .filter(|&i| self.queue[i].ready_ns <= start_ns)
+                .min_by_key(|&i| self.queue[i].key)
+            else {
                 break;
             };
+            let Queued {
+                ready_ns: queued_ns,
+                key: (_, n, _),
+                frame,
+            } = self.queue.remove(i);
             let bits = frame_bits(&frame);
             let end_ns = start_ns + u64::from(bits) * self.bit_ns;
             self.idle_at_ns = end_ns;
@@ -255,7 +269,6 @@ impl Bus {
                 fate,
             });
         }
-        out
     }
 
     fn apply_faults(&mut self, end_ns: u64, from: Node, frame: CanFrame) -> (CanFrame, Fate, u64) {
@@ -304,76 +317,102 @@ fn raw_id(frame: &CanFrame) -> u16 {
     }
 }
 
-/// Bits on the wire for a standard-id data (or remote) frame, including stuff bits, the
-/// fixed-form tail (CRC delimiter, ACK, EOF) and the 3-bit intermission.
+/// Length of `frame` on the wire in bits, stuff bits and the 13 fixed trailing bits (CRC
+/// delimiter, ACK slot and delimiter, EOF, intermission) included.
 ///
-/// The stuffed region (SOF through CRC) is at most 98 bits plus the 15-bit CRC, so it is
-/// assembled in a `u128`; the CRC-15 and the stuff-bit count then go a byte at a time
-/// through two precomputed tables, after a bit-wise prefix that aligns the rest to bytes.
+/// Works on whole bytes with two tables built at compile time: the 19 header bits (SOF, id,
+/// RTR, IDE, r0, DLC) are padded in front to three bytes, with zeros for the CRC (leading
+/// zeros leave a zero CRC register zero) and with `10101` for the stuff count (alternating
+/// bits never stuff, and the pad ends like the idle bus: the SOF starts a fresh run).
 #[must_use]
 pub fn frame_bits(frame: &CanFrame) -> u32 {
-    let id = u128::from(raw_id(frame) & 0x7FF);
-    let dlc = frame.dlc();
+    let id = u32::from(raw_id(frame) & 0x7FF);
     let remote = frame.is_remote_frame();
     // SOF(0) id(11) RTR IDE(0) r0(0) DLC(4): 19 bits.
-    let mut seq: u128 = (id << 7) | (u128::from(remote) << 6) | dlc as u128;
-    let mut len: u32 = 19;
-    if !remote {
-        for &b in frame.data() {
-            seq = (seq << 8) | u128::from(b);
-            len += 8;
+    let header = (id << 7) | (u32::from(remote) << 6) | frame.dlc() as u32;
+    let data: &[u8] = if remote { &[] } else { frame.data() };
+    let head = [(header >> 16) as u8, (header >> 8) as u8, header as u8];
+
+    let crc_byte = |crc: u16, b: u8| {
+        ((crc << 8) ^ CRC15_TABLE[usize::from(((crc >> 7) ^ u16::from(b)) & 0xFF)]) & 0x7FFF
+    };
+    let mut crc = head.iter().fold(0, |c, &b| crc_byte(c, b));
+    crc = data.iter().fold(crc, |c, &b| crc_byte(c, b));
+
+    // Stuff bits: table entries hold the next state (low nibble) and the count (high).
+    let eat = |(state, n): (u8, u32), byte: u8| {
+        let entry = STUFF_TABLE[usize::from(state % 10)][usize::from(byte)];
+        (entry & 0x0F, n + u32::from(entry >> 4))
+    };
+    let mut acc = eat((IDLE, 0), head[0] | STUFF_PAD);
+    acc = eat(acc, head[1]);
+    acc = eat(acc, head[2]);
+    acc = data.iter().fold(acc, |a, &b| eat(a, b));
+    // The 15 CRC bits: eight, then the last seven through the 7-bit table.
+    let (state, n) = eat(acc, (crc >> 7) as u8);
+    let last = STUFF_TABLE_7[usize::from(state % 10)][usize::from(crc & 0x7F)];
+    let stuffed = n + u32::from(last >> 4);
+    19 + 8 * data.len() as u32 + 15 + stuffed + 13
+}
+
+/// The stuff-count pad in front of the 19 header bits: `10101` in the top five bits.
+const STUFF_PAD: u8 = 0b1010_1000;
+
+/// The idle bus before SOF: recessive, no run counted (`last 1, run 0`).
+const IDLE: u8 = StuffState { last: true, run: 0 }.index();
+
+/// CRC-15/CAN (polynomial 0x4599) of each byte value, for a byte-at-a-time update.
+const CRC15_TABLE: [u16; 256] = {
+    let mut table = [0u16; 256];
+    let mut byte = 0;
+    while byte < 256 {
+        let mut c = (byte as u16) << 7;
+        let mut bit = 0;
+        while bit < 8 {
+            c = if c & 0x4000 != 0 {
+                ((c << 1) ^ 0x4599) & 0x7FFF
+            } else {
+                (c << 1) & 0x7FFF
+            };
+            bit += 1;
         }
+        table[byte] = c;
+        byte += 1;
     }
-    let crc = crc15_bits(seq, len);
-    seq = (seq << 15) | u128::from(crc);
-    len += 15;
-    len + stuff_bits(seq, len) + 13
-}
+    table
+};
 
-/// CRC-15/CAN of the `len` low bits of `seq`, most significant first.
-fn crc15_bits(seq: u128, len: u32) -> u16 {
-    let table = tables();
-    let mut crc: u16 = 0;
-    let head = len % 8;
-    for i in (len - head..len).rev() {
-        let b = (seq >> i) & 1 == 1;
-        let next = b ^ ((crc >> 14) & 1 == 1);
-        crc = (crc << 1) & 0x7FFF;
-        if next {
-            crc ^= 0x4599;
+/// For each stuffing state ([`StuffState::index`]) and byte: the state after the byte in the
+/// low four bits, the stuff bits it causes in the high four.
+const STUFF_TABLE: [[u8; 256]; 10] = stuff_table::<256>(8);
+
+/// [`STUFF_TABLE`] for the last seven bits of the CRC.
+const STUFF_TABLE_7: [[u8; 128]; 10] = stuff_table::<128>(7);
+
+/// The stuffing table for `bits`-bit chunks (`N = 2^bits` entries per state).
+const fn stuff_table<const N: usize>(bits: u32) -> [[u8; N]; 10] {
+    let mut table = [[0u8; N]; 10];
+    let mut index = 0;
+    while index < 10 {
+        let mut chunk = 0;
+        while chunk < N {
+            let mut s = StuffState::from_index(index as u8);
+            let mut n = 0;
+            let mut i = bits;
+            while i > 0 {
+                i -= 1;
+                n += s.push((chunk >> i) & 1 == 1);
+            }
+            table[index][chunk] = s.index() | ((n as u8) << 4);
+            chunk += 1;
         }
+        index += 1;
     }
-    let mut i = len - head;
-    while i >= 8 {
-        i -= 8;
-        let byte = ((seq >> i) & 0xFF) as u16;
-        crc = ((crc << 8) ^ table.crc[usize::from(((crc >> 7) ^ byte) & 0xFF)]) & 0x7FFF;
-    }
-    crc
+    table
 }
 
-/// Stuff bits the transmitter inserts into the `len` low bits of `seq`.
-fn stuff_bits(seq: u128, len: u32) -> u32 {
-    let table = tables();
-    // State: the value of the last bit and how many equal bits end the stream so far (0..=4);
-    // before SOF the bus is idle (recessive), which counts as "last 1, run 0".
-    let mut state = StuffState { last: true, run: 0 };
-    let mut stuffed = 0;
-    let head = len % 8;
-    for i in (len - head..len).rev() {
-        stuffed += state.push((seq >> i) & 1 == 1);
-    }
-    let mut i = len - head;
-    while i >= 8 {
-        i -= 8;
-        let byte = ((seq >> i) & 0xFF) as usize;
-        let (next, n) = table.stuff[state.index()][byte];
-        state = next;
-        stuffed += u32::from(n);
-    }
-    stuffed
-}
-
+/// Bit-stuffing state: the value of the last bit and how many equal bits end the stream so
+/// far (0..=4).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 struct StuffState {
     last: bool,
@@ -381,12 +420,19 @@ struct StuffState {
 }
 
 impl StuffState {
-    const fn index(self) -> usize {
-        self.last as usize * 5 + self.run as usize
+    const fn index(self) -> u8 {
+        self.last as u8 * 5 + self.run
+    }
+
+    const fn from_index(index: u8) -> Self {
+        Self {
+            last: index >= 5,
+            run: index % 5,
+        }
     }
 
     /// Adds one bit; returns 1 if a stuff bit follows it.
-    fn push(&mut self, b: bool) -> u32 {
+    const fn push(&mut self, b: bool) -> u32 {
         if b == self.last && self.run > 0 {
             self.run += 1;
         } else {
@@ -402,44 +448,6 @@ impl StuffState {
             0
         }
     }
-}
-
-struct Tables {
-    crc: [u16; 256],
-    stuff: [[(StuffState, u8); 256]; 10],
-}
-
-fn tables() -> &'static Tables {
-    static TABLES: std::sync::OnceLock<Tables> = std::sync::OnceLock::new();
-    TABLES.get_or_init(|| {
-        let mut crc = [0u16; 256];
-        for (byte, entry) in crc.iter_mut().enumerate() {
-            let mut c = (byte as u16) << 7;
-            for _ in 0..8 {
-                c = if c & 0x4000 != 0 {
-                    ((c << 1) ^ 0x4599) & 0x7FFF
-                } else {
-                    (c << 1) & 0x7FFF
-                };
-            }
-            *entry = c;
-        }
-        let mut stuff = [[(StuffState { last: true, run: 0 }, 0u8); 256]; 10];
-        for last in [false, true] {
-            for run in 0..5u8 {
-                let start = StuffState { last, run };
-                for (byte, entry) in stuff[start.index()].iter_mut().enumerate() {
-                    let mut s = start;
-                    let mut n = 0;
-                    for i in (0..8).rev() {
-                        n += s.push((byte >> i) & 1 == 1) as u8;
-                    }
-                    *entry = (s, n);
-                }
-            }
-        }
-        Tables { crc, stuff }
-    })
 }
 
 /// CAN CRC-15 (polynomial 0x4599) over a bit sequence (reference for the tests).

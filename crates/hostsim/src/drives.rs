@@ -99,14 +99,14 @@ impl SimPlant for SimDrives {
     fn feedback(&mut self, until_ns: u64, out: &mut Vec<(u64, CanFrame)>) {
         match self {
             Self::Dji { plant, esc, .. } => {
-                for f in plant.take_feedback() {
+                for f in plant.drain_feedback() {
                     debug_assert!(f.time_ns <= until_ns);
                     let frame = f.feedback.to_firmware(esc[f.wheel.index()]).to_can_frame();
                     out.push((f.time_ns, frame));
                 }
             }
             Self::Odrive { plant, node } => {
-                for f in plant.take_feedback() {
+                for f in plant.drain_feedback() {
                     let frame = f.feedback.to_firmware().to_can_frame(node[f.wheel.index()]);
                     out.push((f.time_ns, frame));
                 }

@@ -337,7 +337,7 @@ pub fn run_observed<P: SimPlant>(
         }
 
         // 3. Bus up to t.
-        in_flight.extend(bus.advance(t_ns + 1));
+        bus.advance_into(t_ns + 1, &mut in_flight);
         // 4. Deliveries due by t, in delivery order.
         in_flight.sort_by_key(|tx| tx.delivered_ns);
         let due = in_flight.partition_point(|tx| tx.delivered_ns <= t_ns);

@@ -48,14 +48,35 @@
 //! pose ← pose · exp((vx, vy, ω) h)           exact SE(2) exponential (kinematics::Pose2::exp)
 //! ```
 //!
-//! integrated by semi-implicit (symplectic) Euler at a fixed substep: forces from the state at
-//! the start of the substep, velocities updated, then angles and the pose from the new
-//! velocities. The `ω × v` term is applied as an exact rotation of the body velocity by
-//! `−ω h`, so it never adds energy. The substep is at most
-//! [`ChassisParams::max_substep`] (100 µs by default) and is reduced automatically to a
-//! quarter of the stiffest contact time constant `1 / (k (r²/J + 4/m + 4|c|²/I))` with the
-//! contact stiffness `k = μN/s0`, which keeps the explicit force evaluation stable.
+//! # Integration
 //!
+//! The contact is stiff: below the slip velocity `s0` it acts as a damper of `k = μN/s0`
+//! (784 N·s/m per wheel on the default chassis), whose time constant with the wheel and body
+//! inertias, `1 / (k (r²/J + 4/m + 4|c|²/I))`, is about 0.94 ms. An explicit step must stay
+//! well below that (this model used 100 µs substeps): at a 1 ms step the slip would flip sign
+//! every step, and a stiffer chassis (more grip, lighter wheels) would diverge. So each step
+//! is *linearly implicit* (backward Euler with the friction coefficient frozen at the start
+//! of the step):
+//!
+//! ```text
+//! k_i = μN_i / sqrt(s_a² + ε² s_f² + s0²)            from the slip at the start of the step
+//! F_i = −k_i A_i s_i(q⁺),  A_i = e_a e_aᵀ + ε e_f e_fᵀ  force from the slip at the end
+//! (M + h Σ k_i B_iᵀ A_i B_i) q⁺ = M q + h τ          q = (vx, vy, ω, ω_1..ω_4), s_i = B_i q
+//! ```
+//!
+//! The matrix is symmetric positive definite for any `h`, so the step is unconditionally
+//! stable, and it only dissipates: `q⁺ᵀM q⁺ ≤ q⁺ᵀM q` gives `½q⁺ᵀMq⁺ ≤ ½qᵀMq`. In steady
+//! state the frozen coefficient is the true one, so steady slip, the strafe ratio below and
+//! the wheel loads are exact. Each wheel couples only to the body, so the 7 × 7 system is an
+//! arrowhead: the wheels are eliminated into the 3 × 3 body block (a Schur complement), which
+//! a Cholesky factorisation solves; the wheel speeds follow. A wheel held at a speed
+//! ([`WheelInput::Speed`]) moves its column to the right-hand side. Drive torques are taken
+//! from the start of the step (the drives' own dynamics are slow against 1 ms). The `ω × v`
+//! term is then applied as an exact rotation of the body velocity by `−ω h`, so it never adds
+//! energy, and the wheel angles and the pose (exact SE(2) exponential) follow from the new
+//! velocities. The step is at most [`ChassisParams::max_substep`] (1 ms by default: one step
+//! per control period, so a 60 s run costs 60,000 steps).
+
 //! # Why strafing is slower than driving forward (seed 004)
 //!
 //! Driving straight, every contact velocity is along `d`, so `s_f = 0`: the rollers do not
@@ -185,8 +206,8 @@ pub struct ChassisParams {
     /// Contact-point ripple (seed 000, eq. 11); `None` (default) for the contact under the
     /// wheel centre.
     pub ripple: Option<Ripple>,
-    /// Largest integration substep, s (100 µs by default; reduced further if the contact is
-    /// stiffer than that can integrate).
+    /// Largest integration step, s (1 ms by default; the implicit contact is stable at any
+    /// step, a shorter one resolves faster transients).
     pub max_substep: f64,
 }
 
@@ -225,7 +246,7 @@ impl ChassisParams {
             slip_velocity: 0.05,
             roller_drag: 1.0 / 7.0,
             ripple: None,
-            max_substep: 100e-6,
+            max_substep: 1e-3,
         }
     }
 
@@ -425,7 +446,8 @@ struct WheelConst {
     cot_d: f64,
     r: f64,
     mu_n: f64,
-    inv_j: f64,
+    /// Spin inertia of the wheel, kg·m².
+    j: f64,
 }
 
 /// A planar rigid body on four mecanum wheels (see the [module docs](self) for the model).
@@ -465,14 +487,13 @@ impl Chassis {
                 cot_d: cos_d / sin_d,
                 r: w.radius,
                 mu_n: params.friction * loads[i],
-                inv_j: 1.0 / params.wheel_inertia[i],
+                j: params.wheel_inertia[i],
             }
         });
-        let substep = stable_substep(&params, &consts);
         Ok(Self {
             params,
             consts,
-            substep,
+            substep: params.max_substep,
             state: ChassisState::default(),
             contacts: [Contact::default(); WHEELS],
         })
@@ -484,7 +505,7 @@ impl Chassis {
         &self.params
     }
 
-    /// The substep used, s: `max_substep` or less if the contact is stiffer.
+    /// The substep used, s: `max_substep`.
     #[must_use]
     pub const fn substep(&self) -> f64 {
         self.substep
@@ -548,7 +569,6 @@ impl Chassis {
             c.mu_n = mu * n;
         }
         self.params = params;
-        self.substep = stable_substep(&self.params, &self.consts);
         Ok(())
     }
 
@@ -612,46 +632,113 @@ impl Chassis {
         Ok(())
     }
 
-    /// One substep of `h` seconds (`h` at most [`Self::substep`]; not checked).
+    /// One substep of `h` seconds (`h` at most [`Self::substep`]; not checked): the
+    /// linearly implicit step of the [module docs](self#integration).
     pub(crate) fn advance(&mut self, h: f64, inputs: &[WheelInput; WHEELS]) {
         let s = self.state;
         let (vx, vy, wz) = (s.velocity.vx, s.velocity.vy, s.velocity.wz);
+        let (mass, inertia) = (self.params.mass, self.params.yaw_inertia);
         let eps = self.params.roller_drag;
         let s0_sq = self.params.slip_velocity * self.params.slip_velocity;
-        let (mut fx, mut fy, mut mz) = (0.0, 0.0, 0.0);
-        let mut wheel_speed = s.wheel_speed;
-        for i in 0..WHEELS {
+
+        // The system (M + h D) q⁺ = M q + h τ over q = (vx, vy, wz, ω_1..ω_4), in its arrowhead
+        // form: the body block `kb` (symmetric 3 × 3, upper triangle used), the rhs `rb`,
+        // and per wheel its coupling column `cw`, diagonal `dw` and rhs `rw`.
+        let mut kb = [[mass, 0.0, 0.0], [0.0, mass, 0.0], [0.0, 0.0, inertia]];
+        let mut rb = [mass * vx, mass * vy, inertia * wz];
+        let mut wheels = [WheelSystem::default(); WHEELS];
+        for (i, w) in wheels.iter_mut().enumerate() {
             let c = self.consts[i];
             let (cx, cy, eax, eay) = self.contact_geometry(i, s.wheel_angle[i]);
             let (efx, efy) = (-eay, eax);
+            // Slip at the start of the step, for the frozen friction coefficient.
             let rim = c.r * s.wheel_speed[i];
             let sx = vx - wz * cy - rim * c.dx;
             let sy = vy + wz * cx - rim * c.dy;
             let sa = sx * eax + sy * eay;
+            let wf = eps * (sx * efx + sy * efy);
+            let k = c.mu_n / (sa * sa + wf * wf + s0_sq).sqrt();
+            // h k A, A = e_a e_aᵀ + ε e_f e_fᵀ.
+            let hk = h * k;
+            let a11 = hk * (eax * eax + eps * efx * efx);
+            let a12 = hk * (eax * eay + eps * efx * efy);
+            let a22 = hk * (eay * eay + eps * efy * efy);
+            // Body columns of the slip map: e1 = (1, 0), e2 = (0, 1), e3 = (−c_y, c_x);
+            // the wheel column is b = −r d.
+            let (a13, a23) = (-a11 * cy + a12 * cx, -a12 * cy + a22 * cx);
+            kb[0][0] += a11;
+            kb[0][1] += a12;
+            kb[1][1] += a22;
+            kb[0][2] += a13;
+            kb[1][2] += a23;
+            kb[2][2] += -cy * a13 + cx * a23;
+            let (bx, by) = (-c.r * c.dx, -c.r * c.dy);
+            let (p, q) = (a11 * bx + a12 * by, a12 * bx + a22 * by);
+            *w = WheelSystem {
+                geometry: [cx, cy, eax, eay],
+                k,
+                coupling: [p, q, -cy * p + cx * q],
+                inv_diagonal: 1.0 / (c.j + bx * p + by * q),
+                rhs: c.j * s.wheel_speed[i],
+                held: None,
+            };
+            match inputs[i] {
+                WheelInput::Torque(tau) => w.rhs += h * tau,
+                WheelInput::Speed(speed) => w.held = Some(speed),
+            }
+        }
+        // Eliminate the wheels: a held wheel's speed is known; a driven one is
+        // ω = (r_w − c·v) / d_w, which folds its column into the body block.
+        for w in &wheels {
+            let c = w.coupling;
+            match w.held {
+                Some(speed) => {
+                    for (r, cj) in rb.iter_mut().zip(c) {
+                        *r -= cj * speed;
+                    }
+                }
+                None => {
+                    let inv = w.inv_diagonal;
+                    for j in 0..3 {
+                        rb[j] -= c[j] * w.rhs * inv;
+                        for l in j..3 {
+                            kb[j][l] -= c[j] * c[l] * inv;
+                        }
+                    }
+                }
+            }
+        }
+        let [ux, uy, wz_new] = solve_spd3(&kb, rb);
+        let mut wheel_speed = [0.0; WHEELS];
+        for (i, w) in wheels.iter().enumerate() {
+            let c = self.consts[i];
+            let omega = w.held.unwrap_or_else(|| {
+                (w.rhs - w.coupling[0] * ux - w.coupling[1] * uy - w.coupling[2] * wz_new)
+                    * w.inv_diagonal
+            });
+            wheel_speed[i] = omega;
+            // The force that acted: the frozen coefficient on the slip at the new velocities.
+            let [cx, cy, eax, eay] = w.geometry;
+            let (efx, efy) = (-eay, eax);
+            let rim = c.r * omega;
+            let sx = ux - wz_new * cy - rim * c.dx;
+            let sy = uy + wz_new * cx - rim * c.dy;
+            let sa = sx * eax + sy * eay;
             let sf = sx * efx + sy * efy;
-            let wf = eps * sf;
-            let k = -c.mu_n / (sa * sa + wf * wf + s0_sq).sqrt();
-            let f = [k * (sa * eax + wf * efx), k * (sa * eay + wf * efy)];
-            let load = c.r * (f[0] * c.dx + f[1] * c.dy);
-            fx += f[0];
-            fy += f[1];
-            mz += cx * f[1] - cy * f[0];
+            let k = -w.k;
+            let f = [
+                k * (sa * eax + eps * sf * efx),
+                k * (sa * eay + eps * sf * efy),
+            ];
             self.contacts[i] = Contact {
                 position: [cx, cy],
                 force: f,
                 slip_axial: sa,
                 slip_free: sf,
-                load_torque: load,
-            };
-            wheel_speed[i] = match inputs[i] {
-                WheelInput::Torque(tau) => s.wheel_speed[i] + h * (tau - load) * c.inv_j,
-                WheelInput::Speed(w) => w,
+                load_torque: c.r * (f[0] * c.dx + f[1] * c.dy),
             };
         }
-        // Velocity update: forces, then the frame rotation ω × v as an exact rotation.
-        let ux = vx + h * fx / self.params.mass;
-        let uy = vy + h * fy / self.params.mass;
-        let wz_new = wz + h * mz / self.params.yaw_inertia;
+        // The frame rotation ω × v as an exact rotation of the new body velocity by −ω h.
         let (sin_r, cos_r) = (-wz * h).sin_cos();
         let vx_new = cos_r * ux - sin_r * uy;
         let vy_new = sin_r * ux + cos_r * uy;
@@ -667,22 +754,38 @@ impl Chassis {
     }
 }
 
-/// A quarter of the fastest contact time constant, capped at `max_substep`.
-fn stable_substep(params: &ChassisParams, consts: &[WheelConst; WHEELS]) -> f64 {
-    let mut h = params.max_substep;
-    for c in consts {
-        let k = c.mu_n / params.slip_velocity;
-        // Largest lever of the contact: the centre distance plus the ripple's shift along
-        // the axle, d |cot δ| tan(π/k).
-        let shift = params.ripple.map_or(0.0, |r| {
-            r.axis_offset * c.cot_d.abs() * (0.5 * r.pitch()).tan()
-        });
-        let lever_sq = (c.ax.hypot(c.ay) + shift).powi(2);
-        let rate = k
-            * (c.r * c.r * c.inv_j
-                + WHEELS as f64 / params.mass
-                + WHEELS as f64 * lever_sq / params.yaw_inertia);
-        h = h.min(0.25 / rate);
-    }
-    h
+/// One wheel's rows of the implicit system (see [`Chassis::advance`]).
+#[derive(Debug, Clone, Copy, Default)]
+struct WheelSystem {
+    /// Contact point and roller axis `[c_x, c_y, e_ax, e_ay]`.
+    geometry: [f64; 4],
+    /// The frozen friction coefficient `k = μN / sqrt(s_a² + ε² s_f² + s0²)`.
+    k: f64,
+    /// The wheel's column against the body velocities.
+    coupling: [f64; 3],
+    /// The wheel's diagonal entry `J + h k bᵀ A b`, inverted.
+    inv_diagonal: f64,
+    /// The wheel's right-hand side `J ω + h τ`.
+    rhs: f64,
+    /// The speed of a wheel held by an ideal servo.
+    held: Option<f64>,
+}
+
+/// Solves `K x = r` for a symmetric positive definite 3 × 3 `K` (upper triangle used) by
+/// Cholesky factorisation.
+fn solve_spd3(k: &[[f64; 3]; 3], r: [f64; 3]) -> [f64; 3] {
+    // The inverses of the diagonal of L: three divisions instead of nine.
+    let i00 = 1.0 / k[0][0].sqrt();
+    let l10 = k[0][1] * i00;
+    let l20 = k[0][2] * i00;
+    let i11 = 1.0 / (k[1][1] - l10 * l10).sqrt();
+    let l21 = (k[1][2] - l20 * l10) * i11;
+    let i22 = 1.0 / (k[2][2] - l20 * l20 - l21 * l21).sqrt();
+    let y0 = r[0] * i00;
+    let y1 = (r[1] - l10 * y0) * i11;
+    let y2 = (r[2] - l20 * y0 - l21 * y1) * i22;
+    let x2 = y2 * i22;
+    let x1 = (y1 - l21 * x2) * i11;
+    let x0 = (y0 - l10 * x1 - l20 * x2) * i00;
+    [x0, x1, x2]
 }

@@ -144,6 +144,8 @@ pub struct DjiDrive {
     current: f64,
     temperature: f64,
     next_feedback_ns: u64,
+    /// The current loop's step and its factor `1 − e^(−h/τ_i)`, cached.
+    lag: (f64, f64),
 }
 
 impl Default for DjiDrive {
@@ -196,6 +198,7 @@ impl DjiDrive {
             current: 0.0,
             temperature: motor.ambient_c,
             next_feedback_ns: esc.feedback_period_ns,
+            lag: (0.0, 0.0),
         }
     }
 
@@ -246,7 +249,8 @@ impl DjiDrive {
     #[must_use]
     pub fn output_torque(&self, omega: f64) -> f64 {
         let m = &self.motor;
-        let friction = m.coulomb_friction * omega / omega.hypot(m.friction_smoothing)
+        let smoothing = m.friction_smoothing;
+        let friction = m.coulomb_friction * omega / (omega * omega + smoothing * smoothing).sqrt()
             + m.viscous_friction * omega;
         m.torque_constant * self.current - friction
     }
@@ -255,10 +259,12 @@ impl DjiDrive {
     #[must_use]
     pub fn feedback_for(&self, rotor: Shaft) -> DjiFeedback {
         let counts = f64::from(ROTOR_COUNTS);
-        let turn = rotor.angle.rem_euclid(core::f64::consts::TAU) / core::f64::consts::TAU;
-        // In [0, 8192); `min` covers the rounding of rem_euclid up to one full turn.
+        let turns = rotor.angle / core::f64::consts::TAU;
+        let turn = turns - turns.floor();
+        // `turn` is in [0, 1], so this truncation is the floor, in [0, 8192]; `min` covers a
+        // fraction that rounds up to one full turn.
         #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
-        let angle = ((turn * counts).floor() as u16).min(ROTOR_COUNTS - 1);
+        let angle = ((turn * counts) as u16).min(ROTOR_COUNTS - 1);
         let rpm = rotor.speed * 60.0 / core::f64::consts::TAU;
         let raw = self.current * Self::RAW_PER_AMP;
         DjiFeedback {
@@ -296,7 +302,11 @@ impl Drive for DjiDrive {
         let target = self
             .command
             .clamp(-self.esc.max_current, self.esc.max_current);
-        let alpha = 1.0 - (-h / self.esc.current_time_constant).exp();
+        // The step is the same every time: compute its factor once.
+        if h != self.lag.0 {
+            self.lag = (h, 1.0 - (-h / self.esc.current_time_constant).exp());
+        }
+        let alpha = self.lag.1;
         let mut i = self.current + (target - self.current) * alpha;
         let emf = self.ke * omega;
         let lo = (-self.esc.bus_voltage - emf) / self.motor.resistance;

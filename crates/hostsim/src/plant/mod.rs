@@ -34,7 +34,7 @@
 //! # Time and feedback
 //!
 //! Time is kept in integer nanoseconds from 0. [`Plant::step`] advances in substeps of at most
-//! [`Plant::substep_ns`] (100 µs by default, a divisor of 1 ms) and also stops exactly at each
+//! [`Plant::substep_ns`] (1 ms by default, a divisor of 1 ms) and also stops exactly at each
 //! instant a drive's feedback is due, so the feedback carries the state of that instant. Each
 //! drive keeps its own schedule (see [`Drive::next_feedback_ns`]): DJI every 1 ms from 1 ms,
 //! ODrive encoder estimates every 10 ms from 10 ms and heartbeats every 100 ms from 100 ms.
@@ -433,6 +433,12 @@ impl<D: Drive> Plant<D> {
     /// The feedback queued since the last call, in time order (then wheel order).
     pub fn take_feedback(&mut self) -> Vec<Timed<D::Feedback>> {
         core::mem::take(&mut self.outbox)
+    }
+
+    /// [`Self::take_feedback`] without giving up the queue's buffer: for a caller that
+    /// collects feedback every step.
+    pub fn drain_feedback(&mut self) -> impl Iterator<Item = Timed<D::Feedback>> + '_ {
+        self.outbox.drain(..)
     }
 
     /// Advances by `dt` seconds (rounded to the nanosecond).

@@ -436,8 +436,9 @@ impl Drive for OdriveAxis {
             0.0
         };
         let p = &self.params;
-        let friction = p.coulomb_friction * motor.speed / motor.speed.hypot(p.friction_smoothing)
-            + p.viscous_friction * motor.speed;
+        let (w, ws) = (motor.speed, p.friction_smoothing);
+        let friction =
+            p.coulomb_friction * w / (w * w + ws * ws).sqrt() + p.viscous_friction * motor.speed;
         (self.torque - friction) * p.gear_ratio
     }
 
