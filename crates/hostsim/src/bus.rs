@@ -135,8 +135,11 @@ pub struct BusStats {
 #[derive(Debug, Clone)]
 pub struct Bus {
     bit_ns: u64,
-    /// Frames waiting, all nodes, in the order they were queued.
-    queue: Vec<Queued>,
+    /// Frames waiting, all nodes: when each is ready, its arbitration key, the frame (three
+    /// parallel lists, so that the scans per frame read only what they compare).
+    ready_ns: Vec<u64>,
+    keys: Vec<u64>,
+    frames: Vec<(Node, CanFrame)>,
     /// Frames queued so far (the tie-break after id and node).
     queued: u64,
     /// The bus is busy until this time, ns.
@@ -146,13 +149,10 @@ pub struct Bus {
     stats: BusStats,
 }
 
-/// A frame waiting for the bus.
-#[derive(Debug, Clone, Copy)]
-struct Queued {
-    ready_ns: u64,
-    /// Arbitration key: id, then node order, then queueing order.
-    key: (u16, usize, u64),
-    frame: CanFrame,
+/// The arbitration key of a queued frame: its id, then the node order, then the order of
+/// queueing (46 bits, enough for 7·10¹³ frames), in one integer.
+fn arbitration_key(frame: &CanFrame, from: Node, seq: u64) -> u64 {
+    (u64::from(raw_id(frame)) << 48) | ((node_index(from) as u64) << 46) | (seq & ((1 << 46) - 1))
 }
 
 fn node_index(n: Node) -> usize {
@@ -162,8 +162,6 @@ fn node_index(n: Node) -> usize {
         Node::Host => 2,
     }
 }
-
-const NODES: [Node; 3] = [Node::Controller, Node::Drives, Node::Host];
 
 impl Bus {
     /// A bus at `bitrate` bit/s with the given faults and fault seed.
@@ -175,7 +173,9 @@ impl Bus {
         let bitrate = if bitrate == 0 { 1_000_000 } else { bitrate };
         Self {
             bit_ns: 1_000_000_000 / u64::from(bitrate),
-            queue: Vec::new(),
+            ready_ns: Vec::new(),
+            keys: Vec::new(),
+            frames: Vec::new(),
             queued: 0,
             idle_at_ns: 0,
             faults,
@@ -186,18 +186,16 @@ impl Bus {
 
     /// Queues `frame` for transmission by `from` at time `now_ns`.
     pub fn send(&mut self, now_ns: u64, from: Node, frame: CanFrame) {
-        self.queue.push(Queued {
-            ready_ns: now_ns,
-            key: (raw_id(&frame), node_index(from), self.queued),
-            frame,
-        });
+        self.ready_ns.push(now_ns);
+        self.keys.push(arbitration_key(&frame, from, self.queued));
+        self.frames.push((from, frame));
         self.queued += 1;
     }
 
     /// Frames waiting to be sent, all nodes.
     #[must_use]
     pub fn pending(&self) -> usize {
-        self.queue.len()
+        self.frames.len()
     }
 
     /// Statistics so far.
@@ -227,7 +225,7 @@ impl Bus {
     /// [`Self::advance`], appending to `out` (no allocation once `out` has grown).
     pub fn advance_into(&mut self, until_ns: u64, out: &mut Vec<Transmission>) {
         // The earliest time a frame is on offer, not before the bus is idle.
-        while let Some(ready_ns) = self.queue.iter().map(|q| q.ready_ns).min() {
+        while let Some(&ready_ns) = self.ready_ns.iter().min() {
             let start_ns = ready_ns.max(self.idle_at_ns);
             if start_ns >= until_ns {
                 break;
@@ -235,24 +233,23 @@ impl Bus {
             // Arbitration among the frames on offer at start_ns: each node offers its lowest
             // id; the lowest id on the bus wins (ties: node order, i.e. a fixed priority;
             // then a node's own queueing order).
-            let Some(i) = (0..self.queue.len())
-                .filter(|&i| self.queue[i].ready_ns <= start_ns)
-                .min_by_key(|&i| self.queue[i].key)
-            else {
-                break;
-            };
-            let Queued {
-                ready_ns: queued_ns,
-                key: (_, n, _),
-                frame,
-            } = self.queue.remove(i);
+            let mut best: Option<(u64, usize)> = None;
+            for (i, (&ready, &key)) in self.ready_ns.iter().zip(&self.keys).enumerate() {
+                if ready <= start_ns && best.is_none_or(|(k, _)| key < k) {
+                    best = Some((key, i));
+                }
+            }
+            let Some((_, i)) = best else { break };
+            // The key carries the queueing order, so the list order may change.
+            let queued_ns = self.ready_ns.swap_remove(i);
+            self.keys.swap_remove(i);
+            let (from, frame) = self.frames.swap_remove(i);
             let bits = frame_bits(&frame);
             let end_ns = start_ns + u64::from(bits) * self.bit_ns;
             self.idle_at_ns = end_ns;
             self.stats.frames += 1;
             self.stats.busy_ns += end_ns - start_ns;
             self.stats.max_queue_ns = self.stats.max_queue_ns.max(start_ns - queued_ns);
-            let from = NODES[n];
             let (frame, fate, delay_ns) = self.apply_faults(end_ns, from, frame);
             match fate {
                 Fate::Dropped => self.stats.dropped += 1,

@@ -273,7 +273,7 @@ impl DjiDrive {
             torque_current: saturate_i16(raw.clamp(-16384.0, 16384.0)),
             // Saturating float-to-int conversion, rounded.
             #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
-            temperature_c: self.temperature.round().clamp(0.0, 255.0) as u8,
+            temperature_c: super::round(self.temperature).clamp(0.0, 255.0) as u8,
         }
     }
 }
@@ -282,7 +282,7 @@ impl DjiDrive {
 fn saturate_i16(x: f64) -> i16 {
     // `as` saturates and maps NaN to 0.
     #[allow(clippy::cast_possible_truncation)]
-    let v = x.round() as i16;
+    let v = super::round(x) as i16;
     v
 }
 

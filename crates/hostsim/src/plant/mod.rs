@@ -452,7 +452,7 @@ impl<D: Drive> Plant<D> {
         }
         // In range: 0 <= dt * 1e9 <= 8.64e13.
         #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
-        let ns = (dt * 1e9).round() as u64;
+        let ns = round(dt * 1e9) as u64;
         self.advance_ns(ns);
         Ok(())
     }
@@ -514,6 +514,27 @@ impl<D: Drive> Plant<D> {
 }
 
 /// The largest divisor of 1 ms not above `substep` seconds (at least 1 ns).
+/// `x.round()` (half away from zero) without the libm call that the baseline x86-64 target
+/// makes of it: the integer part by truncation, then the fraction, which is exact below 2⁵².
+/// Larger, infinite and NaN inputs are returned as they are (already integral, or NaN).
+pub(crate) fn round(x: f64) -> f64 {
+    const EXACT: f64 = 4_503_599_627_370_496.0; // 2^52
+    if x.is_nan() || x.abs() >= EXACT {
+        return x;
+    }
+    // |x| < 2^52: the truncation fits an i64 and the difference is exact.
+    #[allow(clippy::cast_possible_truncation, clippy::cast_precision_loss)]
+    let t = x as i64 as f64;
+    let frac = x - t;
+    if frac >= 0.5 {
+        t + 1.0
+    } else if frac <= -0.5 {
+        t - 1.0
+    } else {
+        t
+    }
+}
+
 fn substep_ns(substep: f64) -> u64 {
     const MS: u64 = 1_000_000;
     // substep is in (0, 0.01] (validated), so this is in [0, 1e7].
@@ -524,4 +545,38 @@ fn substep_ns(substep: f64) -> u64 {
         n += 1;
     }
     MS / n
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn round_matches_std_round() {
+        let mut values = vec![
+            0.0,
+            -0.0,
+            0.5,
+            -0.5,
+            1.5,
+            -1.5,
+            2.5,
+            0.499_999_999_999_999_94,
+            -0.499_999_999_999_999_94,
+            4_503_599_627_370_495.5,
+            4_503_599_627_370_497.0,
+            -9.0e18,
+            1.0e300,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+        ];
+        let mut x = 0.123_f64;
+        for _ in 0..100_000 {
+            x = (x * 7.3 + 0.37) % 70_000.0 - 35_000.0;
+            values.push(x);
+            values.push((x * 2.0).round() / 2.0);
+        }
+        for v in values {
+            assert_eq!(super::round(v), v.round(), "{v:e}");
+        }
+        assert!(super::round(f64::NAN).is_nan());
+    }
 }
