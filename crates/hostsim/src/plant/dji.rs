@@ -259,13 +259,13 @@ impl DjiDrive {
     #[must_use]
     pub fn feedback_for(&self, rotor: Shaft) -> DjiFeedback {
         let counts = f64::from(ROTOR_COUNTS);
-        let turns = rotor.angle / core::f64::consts::TAU;
-        let turn = turns - turns.floor();
+        let turns = rotor.angle * (1.0 / core::f64::consts::TAU);
+        let turn = turns - super::floor(turns);
         // `turn` is in [0, 1], so this truncation is the floor, in [0, 8192]; `min` covers a
         // fraction that rounds up to one full turn.
         #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
         let angle = ((turn * counts) as u16).min(ROTOR_COUNTS - 1);
-        let rpm = rotor.speed * 60.0 / core::f64::consts::TAU;
+        let rpm = rotor.speed * (60.0 / core::f64::consts::TAU);
         let raw = self.current * Self::RAW_PER_AMP;
         DjiFeedback {
             rotor_angle: angle,

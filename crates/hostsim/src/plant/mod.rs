@@ -535,6 +535,18 @@ pub(crate) fn round(x: f64) -> f64 {
     }
 }
 
+/// `x.floor()` without the libm call, on the same terms as [`round`].
+pub(crate) fn floor(x: f64) -> f64 {
+    const EXACT: f64 = 4_503_599_627_370_496.0; // 2^52
+    if x.is_nan() || x.abs() >= EXACT {
+        return x;
+    }
+    // |x| < 2^52: the truncation fits an i64 and is exact.
+    #[allow(clippy::cast_possible_truncation, clippy::cast_precision_loss)]
+    let t = x as i64 as f64;
+    if t > x { t - 1.0 } else { t }
+}
+
 fn substep_ns(substep: f64) -> u64 {
     const MS: u64 = 1_000_000;
     // substep is in (0, 0.01] (validated), so this is in [0, 1e7].
@@ -550,7 +562,7 @@ fn substep_ns(substep: f64) -> u64 {
 #[cfg(test)]
 mod tests {
     #[test]
-    fn round_matches_std_round() {
+    fn round_and_floor_match_std() {
         let mut values = vec![
             0.0,
             -0.0,
@@ -576,7 +588,9 @@ mod tests {
         }
         for v in values {
             assert_eq!(super::round(v), v.round(), "{v:e}");
+            assert_eq!(super::floor(v), v.floor(), "{v:e}");
         }
         assert!(super::round(f64::NAN).is_nan());
+        assert!(super::floor(f64::NAN).is_nan());
     }
 }
