@@ -36,17 +36,19 @@ impl CanFrame {
     /// A data frame with a standard id from a payload buffer of which the first `dlc` bytes are
     /// sent; `dlc` is capped at 8 and the bytes past it are cleared. Infallible, for encoders.
     #[must_use]
+    #[inline]
     pub fn from_buffer(id: StandardId, buffer: [u8; MAX_DLC], dlc: u8) -> Self {
         let dlc = dlc.min(MAX_DLC as u8);
-        let mut data = [0u8; MAX_DLC];
-        for (dst, src) in data.iter_mut().zip(buffer).take(usize::from(dlc)) {
-            *dst = src;
-        }
+        // Byte i of the little-endian word is bits 8i..8i+8: keep the low `dlc` bytes.
+        let keep = match dlc {
+            8 => u64::MAX,
+            n => (1u64 << (8 * n)) - 1,
+        };
         Self {
             id: Id::Standard(id),
             remote: false,
             dlc,
-            data,
+            data: (u64::from_le_bytes(buffer) & keep).to_le_bytes(),
         }
     }
 
@@ -138,22 +140,27 @@ impl Frame for CanFrame {
         })
     }
 
+    #[inline]
     fn is_extended(&self) -> bool {
         matches!(self.id, Id::Extended(_))
     }
 
+    #[inline]
     fn is_remote_frame(&self) -> bool {
         self.remote
     }
 
+    #[inline]
     fn id(&self) -> Id {
         self.id
     }
 
+    #[inline]
     fn dlc(&self) -> usize {
         usize::from(self.dlc)
     }
 
+    #[inline]
     fn data(&self) -> &[u8] {
         if self.remote {
             &[]
