@@ -95,6 +95,7 @@ pub enum EscModel {
 impl EscModel {
     /// Largest raw current magnitude.
     #[must_use]
+    #[inline]
     pub const fn raw_limit(self) -> i16 {
         match self {
             Self::C620 => 16384,
@@ -136,6 +137,7 @@ impl EscModel {
 
     /// Amperes to raw current: rounded, clamped to the model's range, NaN gives 0.
     #[must_use]
+    #[inline]
     pub fn amps_to_raw(self, amps: f32) -> i16 {
         let lim = i64::from(self.raw_limit());
         // The clamp keeps the value inside i16.
@@ -156,6 +158,7 @@ pub struct EscId(u8);
 impl EscId {
     /// An ESC id; `None` outside 1..=8.
     #[must_use]
+    #[inline]
     pub const fn new(raw: u8) -> Option<Self> {
         if raw >= 1 && raw <= 8 {
             Some(Self(raw))
@@ -172,6 +175,7 @@ impl EscId {
 
     /// The command frame that carries this ESC's current.
     #[must_use]
+    #[inline]
     pub const fn group(self) -> EscGroup {
         if self.0 <= 4 {
             EscGroup::Esc1To4
@@ -182,6 +186,7 @@ impl EscId {
 
     /// Slot 0..=3 of this ESC in its command frame.
     #[must_use]
+    #[inline]
     pub const fn slot(self) -> usize {
         ((self.0 - 1) % 4) as usize
     }
@@ -302,10 +307,19 @@ impl CurrentCommand {
 
     /// Encodes into a [`CanFrame`], clamping currents to the model's range.
     #[must_use]
+    #[inline]
     pub fn to_can_frame(&self) -> CanFrame {
-        let def = self.group.def();
+        // One arm per group, so that each sees its layout rows as constants.
+        match self.group {
+            EscGroup::Esc1To4 => self.encode(layout::CURRENT_CMD_1_4, &layout::CURRENT_1_4),
+            EscGroup::Esc5To8 => self.encode(layout::CURRENT_CMD_5_8, &layout::CURRENT_5_8),
+        }
+    }
+
+    #[inline]
+    fn encode(&self, def: wire::MessageDef, fields: &[Field; 4]) -> CanFrame {
         let mut p = Payload::new();
-        for (raw, field) in self.raw.iter().zip(self.group.fields().iter()) {
+        for (raw, field) in self.raw.iter().zip(fields) {
             self.model.limit(*field).put_raw(&mut p, i64::from(*raw));
         }
         CanFrame::from_buffer(sid(def.id), p.0, def.dlc)
@@ -359,6 +373,7 @@ impl Feedback {
     /// # Errors
     /// `UnknownId` for other ids; `OutOfRange` for a rotor angle above 8191 or a current beyond
     /// the model's limit; see [`DecodeError`].
+    #[inline]
     pub fn decode<F: Frame>(frame: &F, model: EscModel) -> Result<Self, DecodeError> {
         let id = wire::standard_id(frame)?;
         let esc = id
