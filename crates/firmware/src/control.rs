@@ -180,6 +180,7 @@ struct StuckWatch {
 }
 
 impl StuckWatch {
+    #[inline]
     fn on_angle(&mut self, raw: u16, counts_per_turn: u16) {
         match self.anchor {
             Some(a) if circular_distance(raw, a, counts_per_turn) <= ENCODER_STUCK_BAND_COUNTS => {
@@ -205,7 +206,35 @@ impl StuckWatch {
     }
 }
 
+/// A rate divider: due on the first tick and then on every `period`-th one, like
+/// `steps % period == 0` for a step counter starting at 0, without a division per step.
+#[derive(Debug, Clone, Copy)]
+struct Every {
+    period: u32,
+    /// Ticks left before the next due one.
+    left: u32,
+}
+
+impl Every {
+    /// A divider with `period >= 1` (a 0 is treated as 1: due on every tick).
+    const fn new(period: u32) -> Self {
+        Self {
+            period: if period == 0 { 1 } else { period },
+            left: 0,
+        }
+    }
+
+    /// Advances by one tick; `true` when this tick is due.
+    #[inline]
+    fn tick(&mut self) -> bool {
+        let due = self.left == 0;
+        self.left = if due { self.period - 1 } else { self.left - 1 };
+        due
+    }
+}
+
 /// Distance between two readings of a counter that wraps at `modulus`, the short way round.
+#[inline]
 fn circular_distance(a: u16, b: u16, modulus: u16) -> u16 {
     let d = a.abs_diff(b) % modulus;
     d.min(modulus - d)
@@ -252,9 +281,12 @@ pub struct Controller {
     /// DJI: wheel speed (rad/s) of [`ENCODER_STUCK_MIN_ROTOR_RPM`]; `None` for drives whose
     /// encoders are not watched.
     stuck_speed: Option<f32>,
-    odom_every: u64,
-    status_every: u64,
-    setpoint_every: u64,
+    /// Odometry frames are due on this step (every `control_hz / odometry_hz` steps).
+    odom_clock: Every,
+    /// Status and heartbeat frames are due (every `control_hz / status_hz` steps).
+    status_clock: Every,
+    /// ODrive velocity setpoints are due (every `control_hz / setpoint_hz` steps).
+    setpoint_clock: Every,
 
     state: RobotState,
     fault: Fault,
@@ -338,9 +370,9 @@ impl Controller {
             dt: 1.0 / t.control_hz as f32,
             feedback_period_us,
             stuck_speed,
-            odom_every: u64::from(t.control_hz / t.odometry_hz),
-            status_every: u64::from(t.control_hz / t.status_hz),
-            setpoint_every: u64::from(t.control_hz / t.setpoint_hz),
+            odom_clock: Every::new(t.control_hz / t.odometry_hz),
+            status_clock: Every::new(t.control_hz / t.status_hz),
+            setpoint_clock: Every::new(t.control_hz / t.setpoint_hz),
             state: RobotState::Disabled,
             fault: Fault::None,
             last_command: None,
@@ -605,6 +637,10 @@ impl Controller {
         self.run_watchdog(now);
         self.ramp();
         self.integrate_odometry();
+        // One tick of every rate divider per step, whether or not its frames go out.
+        let odom_due = self.odom_clock.tick();
+        let status_due = self.status_clock.tick();
+        let setpoint_due = self.setpoint_clock.tick();
 
         let mut out = Outbox::new();
         let enabled = self.state == RobotState::Enabled;
@@ -622,9 +658,15 @@ impl Controller {
                 gear_ratio,
                 vel_ramp,
                 ..
-            } => self.emit_odrive(&mut out, node_ids, gear_ratio, vel_ramp, enabled),
+            } => self.emit_odrive(
+                &mut out,
+                node_ids,
+                gear_ratio,
+                vel_ramp,
+                enabled && setpoint_due,
+            ),
         }
-        self.emit_telemetry(&mut out, now, boot);
+        self.emit_telemetry(&mut out, now, boot, odom_due, status_due);
         self.steps += 1;
         out
     }
@@ -685,6 +727,15 @@ impl Controller {
         let Some(min_speed) = self.stuck_speed else {
             return false;
         };
+        if !self.motors.iter().any(|m| m.watch.still) {
+            // The common case: every rotor moved. No interval runs (what `judge` would
+            // conclude for each), and the least-squares fit is not needed.
+            for m in &mut self.motors {
+                m.watch.spinning_since = None;
+                m.watch.dragged_since = None;
+            }
+            return false;
+        }
         let min_current = ENCODER_STUCK_MIN_CURRENT * self.config.limits.max_current;
         let driven: [bool; 4] = core::array::from_fn(|i| {
             self.motors[i].watch.still && self.currents[i].abs() >= min_current
@@ -814,7 +865,7 @@ impl Controller {
         node_ids: [u8; 4],
         gear_ratio: f32,
         vel_ramp: bool,
-        enabled: bool,
+        setpoints_due: bool,
     ) {
         self.currents = [0.0; 4];
         let nodes = node_ids.map(NodeId::new);
@@ -845,7 +896,7 @@ impl Controller {
                 );
             }
         }
-        if enabled && self.steps.is_multiple_of(self.setpoint_every) {
+        if setpoints_due {
             let rad_to_turns = gear_ratio / core::f32::consts::TAU;
             for (wheel, node) in nodes.iter().enumerate() {
                 if let Some(node) = node {
@@ -860,8 +911,15 @@ impl Controller {
         }
     }
 
-    fn emit_telemetry(&mut self, out: &mut Outbox, now: Instant, boot: Instant) {
-        if self.steps.is_multiple_of(self.odom_every) {
+    fn emit_telemetry(
+        &mut self,
+        out: &mut Outbox,
+        now: Instant,
+        boot: Instant,
+        odom_due: bool,
+        status_due: bool,
+    ) {
+        if odom_due {
             let p = self.odometry.pose();
             push(
                 out,
@@ -879,8 +937,7 @@ impl Controller {
                 .to_can_frame(),
             );
         }
-        let periodic = self.steps.is_multiple_of(self.status_every);
-        if periodic || self.status_requested {
+        if status_due || self.status_requested {
             self.status_requested = false;
             let e = &self.rx_errors;
             let rejected = e.total().saturating_sub(e.unknown_id);
@@ -898,7 +955,7 @@ impl Controller {
             );
             self.status_seq = self.status_seq.wrapping_add(1);
         }
-        if periodic {
+        if status_due {
             let uptime_ms = now.micros_since(boot) / 1000;
             push(
                 out,
