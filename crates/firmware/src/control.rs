@@ -825,10 +825,8 @@ impl Controller {
     fn emit_dji(&mut self, out: &mut Outbox, model: EscModel, esc_ids: [u8; 4], enabled: bool) {
         let g: Gains = self.config.gains;
         let max = self.config.limits.max_current;
-        let mut groups = [
-            CurrentCommand::zero(model, EscGroup::Esc1To4),
-            CurrentCommand::zero(model, EscGroup::Esc5To8),
-        ];
+        // Raw currents of the two command frames (ESC 1-4, ESC 5-8) and which are in use.
+        let mut raw = [[0i16; 4]; 2];
         let mut used = [false; 2];
         for (wheel, &esc_id) in esc_ids.iter().enumerate() {
             let current = if enabled {
@@ -850,10 +848,15 @@ impl Controller {
             };
             let gi = usize::from(esc.group() == EscGroup::Esc5To8);
             used[gi] = true;
-            groups[gi].raw[esc.slot()] = model.amps_to_raw(self.sign[wheel] * current);
+            raw[gi][esc.slot()] = model.amps_to_raw(self.sign[wheel] * current);
         }
-        for (cmd, used) in groups.iter().zip(used) {
-            if used {
+        for (gi, group) in [EscGroup::Esc1To4, EscGroup::Esc5To8].into_iter().enumerate() {
+            if used[gi] {
+                let cmd = CurrentCommand {
+                    model,
+                    group,
+                    raw: raw[gi],
+                };
                 push(out, cmd.to_can_frame());
             }
         }
