@@ -264,16 +264,11 @@ pub fn to_raw(value: f32, scale: f64, min: i64, max: i64) -> i64 {
     if r >= max as f64 {
         return max;
     }
-    // min < r < max, so the truncating cast is exact.
+    // min < r < max, so the truncating cast is exact, and so is `t as f64` (|t| < 2^32).
     let t = r as i64;
     let frac = r - t as f64;
-    let n = if frac >= 0.5 {
-        t.saturating_add(1)
-    } else if frac <= -0.5 {
-        t.saturating_sub(1)
-    } else {
-        t
-    };
+    // Half away from zero: one step up or down, which cannot overflow.
+    let n = t + i64::from(frac >= 0.5) - i64::from(frac <= -0.5);
     n.clamp(min, max)
 }
 
