@@ -459,6 +459,7 @@ impl Controller {
         }
     }
 
+    #[inline]
     fn dispatch<F: Frame>(&mut self, now: Instant, frame: &F) -> Result<(), DecodeError> {
         let raw_id = match frame.id() {
             embedded_can::Id::Standard(id) => id.as_raw(),
@@ -477,6 +478,7 @@ impl Controller {
         }
     }
 
+    #[inline]
     fn on_command(&mut self, now: Instant, cmd: Command) -> Result<(), DecodeError> {
         match cmd {
             Command::Estop => {
@@ -517,6 +519,7 @@ impl Controller {
     }
 
     /// Rejects twists beyond the configured limits (the decoder already rejected the rest).
+    #[inline]
     fn check_twist(&self, t: TwistCmd) -> Result<ChassisVelocity<f32>, DecodeError> {
         let l = &self.config.limits;
         let speed = (t.vx * t.vx + t.vy * t.vy).sqrt_libm();
