@@ -281,6 +281,11 @@ pub struct Controller {
     /// DJI: wheel speed (rad/s) of [`ENCODER_STUCK_MIN_ROTOR_RPM`]; `None` for drives whose
     /// encoders are not watched.
     stuck_speed: Option<f32>,
+    /// The wheel of each drive id (DJI ESC id, ODrive node id); `None` for ids no wheel has.
+    wheel_of: [Option<u8>; 64],
+    /// DJI: the wheel whose current goes into each slot of the two command frames
+    /// (ESC 1-4, ESC 5-8); `None` for an ESC that no wheel has.
+    dji_slots: [[Option<u8>; 4]; 2],
     /// Odometry frames are due on this step (every `control_hz / odometry_hz` steps).
     odom_clock: Every,
     /// Status and heartbeat frames are due (every `control_hz / status_hz` steps).
@@ -352,6 +357,22 @@ impl Controller {
             value: f64::from(encoder_cfg.gear_ratio),
             expected: "a finite number > 0",
         })?;
+        // Ids are validated (in range, one per wheel), so every wheel lands in the tables.
+        let mut wheel_of = [None; 64];
+        let mut dji_slots = [[None; 4]; 2];
+        let ids = match config.drive {
+            Drive::Dji { esc_ids, .. } => esc_ids,
+            Drive::Odrive { node_ids, .. } => node_ids,
+        };
+        for (wheel, id) in (0u8..).zip(ids) {
+            if let Some(w) = wheel_of.get_mut(usize::from(id)) {
+                *w = Some(wheel);
+            }
+            if let (Drive::Dji { .. }, Some(esc)) = (config.drive, EscId::new(id)) {
+                let group = usize::from(esc.group() == EscGroup::Esc5To8);
+                dji_slots[group][esc.slot()] = Some(wheel);
+            }
+        }
         let motor = Motor {
             last_seen: None,
             encoder,
@@ -370,6 +391,8 @@ impl Controller {
             dt: 1.0 / t.control_hz as f32,
             feedback_period_us,
             stuck_speed,
+            wheel_of,
+            dji_slots,
             odom_clock: Every::new(t.control_hz / t.odometry_hz),
             status_clock: Every::new(t.control_hz / t.status_hz),
             setpoint_clock: Every::new(t.control_hz / t.setpoint_hz),
@@ -559,22 +582,18 @@ impl Controller {
         matches!(self.config.drive, Drive::Odrive { .. }).then_some(s)
     }
 
+    #[inline]
     fn on_dji<F: Frame>(
         &mut self,
         now: Instant,
         frame: &F,
         model: EscModel,
     ) -> Result<(), DecodeError> {
-        let Drive::Dji {
-            esc_ids,
-            gear_ratio,
-            ..
-        } = self.config.drive
-        else {
+        let Drive::Dji { gear_ratio, .. } = self.config.drive else {
             return Ok(());
         };
         let fb = dji::Feedback::decode(frame, model)?;
-        let Some(wheel) = esc_ids.iter().position(|&id| id == fb.esc.get()) else {
+        let Some(wheel) = self.wheel(fb.esc.get()) else {
             return Err(unknown(frame));
         };
         let sign = self.sign[wheel];
@@ -589,16 +608,11 @@ impl Controller {
     }
 
     fn on_odrive<F: Frame>(&mut self, now: Instant, frame: &F) -> Result<(), DecodeError> {
-        let Drive::Odrive {
-            node_ids,
-            gear_ratio,
-            ..
-        } = self.config.drive
-        else {
+        let Drive::Odrive { gear_ratio, .. } = self.config.drive else {
             return Ok(());
         };
         let fb = odrive::Feedback::decode(frame)?;
-        let Some(wheel) = node_ids.iter().position(|&id| id == fb.node.get()) else {
+        let Some(wheel) = self.wheel(fb.node.get()) else {
             return Err(unknown(frame));
         };
         let sign = self.sign[wheel];
@@ -624,6 +638,18 @@ impl Controller {
         Ok(())
     }
 
+    /// The wheel driven by drive id `id` (DJI ESC id, ODrive node id).
+    #[inline]
+    fn wheel(&self, id: u8) -> Option<usize> {
+        self.wheel_of
+            .get(usize::from(id))
+            .copied()
+            .flatten()
+            .map(usize::from)
+            // Always true; it lets the compiler see that indexing by the wheel is in bounds.
+            .filter(|&wheel| wheel < self.motors.len())
+    }
+
     fn motors_online(&self) -> u8 {
         self.motors.iter().enumerate().fold(0, |bits, (i, m)| {
             bits | (u8::from(m.last_seen.is_some()) << i)
@@ -634,7 +660,17 @@ impl Controller {
     ///
     /// Call it once per period (`1 / timing.control_hz`) with a monotonic `now`; frames
     /// received since the previous call must have been passed to [`on_frame`](Self::on_frame).
+    #[inline]
     pub fn step(&mut self, now: Instant) -> Outbox {
+        // Inlined into the caller, so the frames are written straight into the caller's
+        // outbox instead of being copied out of this function's frame.
+        let mut out = Outbox::new();
+        self.step_into(now, &mut out);
+        out
+    }
+
+    /// [`step`](Self::step), writing into an empty outbox.
+    fn step_into(&mut self, now: Instant, out: &mut Outbox) {
         let boot = *self.boot.get_or_insert(now);
         self.check_motors(now, boot);
         self.run_watchdog(now);
@@ -645,7 +681,6 @@ impl Controller {
         let status_due = self.status_clock.tick();
         let setpoint_due = self.setpoint_clock.tick();
 
-        let mut out = Outbox::new();
         let enabled = self.state == RobotState::Enabled;
         self.setpoints = if enabled {
             self.kin
@@ -655,23 +690,16 @@ impl Controller {
             WheelSpeeds::zero()
         };
         match self.config.drive {
-            Drive::Dji { model, esc_ids, .. } => self.emit_dji(&mut out, model, esc_ids, enabled),
+            Drive::Dji { model, .. } => self.emit_dji(out, model, enabled),
             Drive::Odrive {
                 node_ids,
                 gear_ratio,
                 vel_ramp,
                 ..
-            } => self.emit_odrive(
-                &mut out,
-                node_ids,
-                gear_ratio,
-                vel_ramp,
-                enabled && setpoint_due,
-            ),
+            } => self.emit_odrive(out, node_ids, gear_ratio, vel_ramp, enabled && setpoint_due),
         }
-        self.emit_telemetry(&mut out, now, boot, odom_due, status_due);
+        self.emit_telemetry(out, now, boot, odom_due, status_due);
         self.steps += 1;
-        out
     }
 
     /// Disables the drive and returns the frames that leave the motors safe: zero current for
@@ -686,7 +714,7 @@ impl Controller {
         self.setpoints = WheelSpeeds::zero();
         let mut out = Outbox::new();
         match self.config.drive {
-            Drive::Dji { model, esc_ids, .. } => self.emit_dji(&mut out, model, esc_ids, false),
+            Drive::Dji { model, .. } => self.emit_dji(&mut out, model, false),
             Drive::Odrive {
                 node_ids,
                 gear_ratio,
@@ -825,40 +853,33 @@ impl Controller {
         self.measured = self.kin.forward(&WheelSpeeds(self.motors.map(|m| m.speed)));
     }
 
-    fn emit_dji(&mut self, out: &mut Outbox, model: EscModel, esc_ids: [u8; 4], enabled: bool) {
-        let g: Gains = self.config.gains;
+    fn emit_dji(&mut self, out: &mut Outbox, model: EscModel, enabled: bool) {
+        let g = &self.config.gains;
         let max = self.config.limits.max_current;
-        // Raw currents of the two command frames (ESC 1-4, ESC 5-8) and which are in use.
-        let mut raw = [[0i16; 4]; 2];
-        let mut used = [false; 2];
-        for (wheel, &esc_id) in esc_ids.iter().enumerate() {
+        // Raw current of each wheel's ESC.
+        let mut raw = [0i16; 4];
+        for (wheel, m) in self.motors.iter_mut().enumerate() {
             let current = if enabled {
-                pi_step(
-                    &mut self.motors[wheel],
-                    self.setpoints.0[wheel],
-                    &g,
-                    max,
-                    self.dt,
-                )
+                pi_step(m, self.setpoints.0[wheel], g, max, self.dt)
             } else {
-                self.motors[wheel].integral = 0.0;
+                m.integral = 0.0;
                 0.0
             };
             self.currents[wheel] = current;
-            // Validated at construction: every id is in 1..=8.
-            let Some(esc) = EscId::new(esc_id) else {
-                continue;
-            };
-            let gi = usize::from(esc.group() == EscGroup::Esc5To8);
-            used[gi] = true;
-            raw[gi][esc.slot()] = model.amps_to_raw(self.sign[wheel] * current);
+            raw[wheel] = model.amps_to_raw(self.sign[wheel] * current);
         }
-        for (gi, group) in [EscGroup::Esc1To4, EscGroup::Esc5To8].into_iter().enumerate() {
-            if used[gi] {
+        for (group, slots) in [EscGroup::Esc1To4, EscGroup::Esc5To8]
+            .into_iter()
+            .zip(self.dji_slots)
+        {
+            if slots.iter().any(Option::is_some) {
                 let cmd = CurrentCommand {
                     model,
                     group,
-                    raw: raw[gi],
+                    raw: slots.map(|w| {
+                        w.and_then(|w| raw.get(usize::from(w)).copied())
+                            .unwrap_or(0)
+                    }),
                 };
                 push(out, cmd.to_can_frame());
             }
