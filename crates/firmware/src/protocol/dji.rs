@@ -136,12 +136,31 @@ impl EscModel {
     }
 
     /// Amperes to raw current: rounded, clamped to the model's range, NaN gives 0.
+    ///
+    /// The same result as [`wire::to_raw`] with the bounds `±raw_limit` (rounding half away
+    /// from zero in f64), worked out in 32-bit integers and without branches.
     #[must_use]
     #[inline]
     pub fn amps_to_raw(self, amps: f32) -> i16 {
-        let lim = i64::from(self.raw_limit());
-        // The clamp keeps the value inside i16.
-        wire::to_raw(amps, self.lsb(), -lim, lim) as i16
+        let lim = i32::from(self.raw_limit());
+        let r = f64::from(amps) / self.lsb();
+        // Truncation toward zero, exact inside the range; NaN gives 0 (and so does the
+        // rounding below, whose comparisons are all false). Outside the range the rounded
+        // value is not used, so the wrapping there does not matter.
+        let t = r as i32;
+        let frac = r - f64::from(t);
+        let rounded = t
+            .wrapping_add(i32::from(frac >= 0.5))
+            .wrapping_sub(i32::from(frac <= -0.5));
+        let n = if r <= f64::from(-lim) {
+            -lim
+        } else if r >= f64::from(lim) {
+            lim
+        } else {
+            rounded
+        };
+        // |n| <= raw_limit <= 16384.
+        n as i16
     }
 
     /// The raw range as a field of the given layout row.
@@ -448,5 +467,44 @@ pub fn decode<F: Frame>(frame: &F, model: EscModel) -> Result<Message, DecodeErr
     match CurrentCommand::decode(frame, model) {
         Err(DecodeError::UnknownId { .. }) => Feedback::decode(frame, model).map(Message::Feedback),
         other => other.map(Message::Command),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `amps_to_raw` is `wire::to_raw` with the model's bounds, for every kind of input:
+    /// a dense sweep through and beyond the range, exact ties, and non-finite values.
+    #[test]
+    fn amps_to_raw_is_to_raw_with_the_model_bounds() {
+        for model in [EscModel::C620, EscModel::C610] {
+            let lim = i64::from(model.raw_limit());
+            let reference = |a: f32| wire::to_raw(a, model.lsb(), -lim, lim) as i16;
+            let check = |a: f32| assert_eq!(model.amps_to_raw(a), reference(a), "{a}");
+            // Quarter-LSB steps over 1.25 times the range, so ties and their neighbours.
+            let lsb = model.lsb();
+            for k in -82_000i32..=82_000 {
+                let a = (f64::from(k) * lsb / 4.0) as f32;
+                check(a);
+                check(f32::from_bits(a.to_bits() + 1));
+                check(f32::from_bits(a.to_bits().wrapping_sub(1)));
+            }
+            for a in [
+                0.0,
+                -0.0,
+                f32::NAN,
+                f32::INFINITY,
+                f32::NEG_INFINITY,
+                f32::MAX,
+                f32::MIN,
+                f32::MIN_POSITIVE,
+                1e-40,
+                3e9,
+                -3e9,
+            ] {
+                check(a);
+            }
+        }
     }
 }
