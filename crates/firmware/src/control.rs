@@ -854,19 +854,22 @@ impl Controller {
     }
 
     fn emit_dji(&mut self, out: &mut Outbox, model: EscModel, enabled: bool) {
-        let g = &self.config.gains;
-        let max = self.config.limits.max_current;
+        let mut integral = self.motors.map(|m| m.integral);
+        self.currents = if enabled {
+            let speed = self.motors.map(|m| m.speed);
+            let (g, max) = (&self.config.gains, self.config.limits.max_current);
+            pi_step(&mut integral, self.setpoints.0, speed, g, max, self.dt)
+        } else {
+            integral = [0.0; 4];
+            [0.0; 4]
+        };
+        for (m, i) in self.motors.iter_mut().zip(integral) {
+            m.integral = i;
+        }
         // Raw current of each wheel's ESC.
         let mut raw = [0i16; 4];
-        for (wheel, m) in self.motors.iter_mut().enumerate() {
-            let current = if enabled {
-                pi_step(m, self.setpoints.0[wheel], g, max, self.dt)
-            } else {
-                m.integral = 0.0;
-                0.0
-            };
-            self.currents[wheel] = current;
-            raw[wheel] = model.amps_to_raw(self.sign[wheel] * current);
+        for (wheel, r) in raw.iter_mut().enumerate() {
+            *r = model.amps_to_raw(self.sign[wheel] * self.currents[wheel]);
         }
         for (group, slots) in [EscGroup::Esc1To4, EscGroup::Esc5To8]
             .into_iter()
@@ -997,17 +1000,36 @@ impl Controller {
     }
 }
 
-/// One step of the wheel velocity PI with conditional integration (anti-windup): the
-/// integrator only moves when the output is not saturated, or when the error would pull it
-/// back out of saturation.
-fn pi_step(m: &mut Motor, setpoint: f32, g: &Gains, max: f32, dt: f32) -> f32 {
-    let error = setpoint - m.speed;
-    let unclamped = g.kv * setpoint + g.kp * error + m.integral + g.ki * error * dt;
-    let saturated_same_way = unclamped.abs() > max && (unclamped > 0.0) == (error > 0.0);
-    if !saturated_same_way {
-        m.integral = symmetric_limit(m.integral + g.ki * error * dt, max);
+/// One step of the four wheels' velocity PI with conditional integration (anti-windup): a
+/// wheel's integrator only moves when its output is not saturated, or when the error would
+/// pull it back out of saturation. Returns the currents; the wheels are independent (written
+/// as one loop so that the compiler can run them side by side).
+fn pi_step(
+    integral: &mut [f32; 4],
+    setpoint: [f32; 4],
+    speed: [f32; 4],
+    g: &Gains,
+    max: f32,
+    dt: f32,
+) -> [f32; 4] {
+    let mut current = [0.0; 4];
+    for i in 0..4 {
+        let error = setpoint[i] - speed[i];
+        let proportional = g.kv * setpoint[i] + g.kp * error;
+        let increment = g.ki * error * dt;
+        let unclamped = proportional + integral[i] + increment;
+        // `&` and a select rather than `&&` and a branch: the same values, and no branch
+        // per wheel.
+        let saturated_same_way = (unclamped.abs() > max) & ((unclamped > 0.0) == (error > 0.0));
+        let moved = symmetric_limit(integral[i] + increment, max);
+        integral[i] = if saturated_same_way {
+            integral[i]
+        } else {
+            moved
+        };
+        current[i] = symmetric_limit(proportional + integral[i], max);
     }
-    symmetric_limit(g.kv * setpoint + g.kp * error + m.integral, max)
+    current
 }
 
 /// `x` limited to `[-max, max]`. Not `f32::clamp`: its check of the bounds formats floats in
