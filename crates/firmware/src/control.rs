@@ -818,7 +818,12 @@ impl Controller {
             self.target.vx - self.commanded.vx,
             self.target.vy - self.commanded.vy,
         );
-        let dv = (dvx * dvx + dvy * dvy).sqrt_libm();
+        // At the target already (the common case): the same zero without the square root.
+        let dv = if dvx == 0.0 && dvy == 0.0 {
+            0.0
+        } else {
+            (dvx * dvx + dvy * dvy).sqrt_libm()
+        };
         let max_dv = lin * self.dt;
         if dv <= max_dv {
             self.commanded.vx = self.target.vx;
