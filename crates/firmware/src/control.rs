@@ -297,6 +297,8 @@ pub struct Controller {
     fault: Fault,
     /// Time of the last valid twist command accepted while enabled (watchdog).
     last_command: Option<Instant>,
+    /// The twist being followed: zero, or a twist that passed `check_twist` (`on_command`
+    /// relies on this to accept a repeat of it without checking it again).
     target: ChassisVelocity<f32>,
     commanded: ChassisVelocity<f32>,
     /// Watchdog expired: ramping down, then disable.
@@ -509,7 +511,15 @@ impl Controller {
                 self.halt();
             }
             Command::Twist(t) => {
-                let t = self.check_twist(t)?;
+                let v = ChassisVelocity::new(t.vx, t.vy, t.wz);
+                // `target` only ever holds zero or a twist that passed `check_twist` under
+                // the same (fixed) limits, so a twist equal to it passes too: the usual
+                // repeated command skips the check.
+                let t = if v == self.target {
+                    v
+                } else {
+                    self.check_twist(t)?
+                };
                 if self.state == RobotState::Enabled && !self.stopping {
                     self.target = t;
                     self.last_command = Some(now);
