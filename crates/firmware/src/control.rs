@@ -603,11 +603,9 @@ impl Controller {
             return Ok(());
         };
         let fb = dji::Feedback::decode(frame, model)?;
-        let Some(wheel) = self.wheel(fb.esc.get()) else {
+        let Some((sign, m)) = self.wheel(fb.esc.get()) else {
             return Err(unknown(frame));
         };
-        let sign = self.sign[wheel];
-        let m = &mut self.motors[wheel];
         // The decoder has checked the angle range, so the encoder accepts it.
         let counts = m.encoder.update(u32::from(fb.rotor_angle)).unwrap_or(0);
         m.watch.on_angle(fb.rotor_angle, dji::layout::ANGLE_COUNTS);
@@ -622,11 +620,9 @@ impl Controller {
             return Ok(());
         };
         let fb = odrive::Feedback::decode(frame)?;
-        let Some(wheel) = self.wheel(fb.node.get()) else {
+        let Some((sign, m)) = self.wheel(fb.node.get()) else {
             return Err(unknown(frame));
         };
-        let sign = self.sign[wheel];
-        let m = &mut self.motors[wheel];
         match fb.msg {
             odrive::Feedback::Heartbeat(hb) => {
                 m.axis_error = hb.axis_error;
@@ -648,16 +644,12 @@ impl Controller {
         Ok(())
     }
 
-    /// The wheel driven by drive id `id` (DJI ESC id, ODrive node id).
+    /// The mounting sign and the motor state of the wheel driven by drive id `id` (DJI ESC
+    /// id, ODrive node id); `None` if no wheel has that id.
     #[inline]
-    fn wheel(&self, id: u8) -> Option<usize> {
-        self.wheel_of
-            .get(usize::from(id))
-            .copied()
-            .flatten()
-            .map(usize::from)
-            // Always true; it lets the compiler see that indexing by the wheel is in bounds.
-            .filter(|&wheel| wheel < self.motors.len())
+    fn wheel(&mut self, id: u8) -> Option<(f32, &mut Motor)> {
+        let wheel = usize::from(self.wheel_of.get(usize::from(id)).copied().flatten()?);
+        Some((*self.sign.get(wheel)?, self.motors.get_mut(wheel)?))
     }
 
     fn motors_online(&self) -> u8 {
