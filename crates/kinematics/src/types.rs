@@ -200,6 +200,7 @@ impl<T: Real> Pose2<T> {
     /// that gives the same bits: with `x`, `y` finite and non-zero and a finite heading, the
     /// terms added to `x` and `y` are zeros, which leave them exactly as they are.
     #[must_use]
+    #[inline]
     pub fn exp(self, twist: Twist2<T>) -> Self {
         let zero = T::zero();
         if twist.dx == zero
