@@ -1,6 +1,11 @@
-//! One control period of the core on the host: four DJI feedback frames decoded and
-//! integrated, watchdog and limits, inverse kinematics, desaturation, four PI loops, the
-//! current frame encoded, odometry (and, every 10th / 100th step, the telemetry frames).
+//! One control period of the core on the host.
+//!
+//! - `control_step_4_wheels_dji`: four DJI feedback frames decoded and integrated, watchdog
+//!   and limits, inverse kinematics, desaturation, four PI loops, the current frame encoded,
+//!   odometry (and, every 10th / 100th step, the telemetry frames).
+//! - `control_step_4_wheels_odrive`: the same period with ODrive drives at their default
+//!   rates: encoder estimates of the four axes every 10th step, heartbeats every 100th, and
+//!   velocity setpoints to the four axes every 5th step (no velocity loop in the core).
 
 use core::hint::black_box;
 
@@ -9,6 +14,7 @@ use firmware::CanFrame;
 use firmware::config::Config;
 use firmware::control::{Controller, Instant};
 use firmware::protocol::dji::{EscId, EscModel, Feedback};
+use firmware::protocol::odrive::{self, AxisState, NodeId};
 use firmware::protocol::robot::{Command, ModeRequest, TwistCmd};
 
 fn feedback(esc: u8, angle: u16, rpm: i16) -> CanFrame {
@@ -59,5 +65,64 @@ fn bench(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, bench);
+fn estimates(node: u8, pos: f32, vel: f32) -> CanFrame {
+    odrive::Feedback::EncoderEstimates { pos, vel }.to_can_frame(NodeId::new(node).unwrap())
+}
+
+fn heartbeat(node: u8) -> CanFrame {
+    odrive::Feedback::Heartbeat(odrive::Heartbeat {
+        axis_error: 0,
+        axis_state: AxisState::ClosedLoopControl,
+        procedure_result: 0,
+        trajectory_done: false,
+    })
+    .to_can_frame(NodeId::new(node).unwrap())
+}
+
+fn bench_odrive(c: &mut Criterion) {
+    let config = Config::odrive_example();
+    let mut ctl = Controller::new(&config).unwrap();
+    let mut t = 0u64;
+    let twist = Command::Twist(TwistCmd {
+        vx: 0.8,
+        vy: -0.3,
+        wz: 0.5,
+        seq: 0,
+    })
+    .to_can_frame();
+    for node in 0..4 {
+        ctl.on_frame(Instant::from_micros(t), &heartbeat(node));
+        ctl.on_frame(Instant::from_micros(t), &estimates(node, 0.0, 0.0));
+    }
+    ctl.step(Instant::from_micros(t));
+    ctl.on_frame(
+        Instant::from_micros(t),
+        &Command::Mode(ModeRequest::Enable).to_can_frame(),
+    );
+    let mut step = 0u64;
+    let mut pos = [0f32; 4];
+    let vel = [2.5f32, -2.7, 2.2, -2.4];
+    c.bench_function("control_step_4_wheels_odrive", |b| {
+        b.iter(|| {
+            t += 1000;
+            step += 1;
+            let now = Instant::from_micros(t);
+            ctl.on_frame(now, &twist);
+            if step.is_multiple_of(10) {
+                for w in 0..4 {
+                    pos[w] += vel[w] * 0.01;
+                    ctl.on_frame(now, &estimates(w as u8, pos[w], vel[w]));
+                }
+            }
+            if step.is_multiple_of(100) {
+                for w in 0..4 {
+                    ctl.on_frame(now, &heartbeat(w as u8));
+                }
+            }
+            black_box(ctl.step(now))
+        })
+    });
+}
+
+criterion_group!(benches, bench, bench_odrive);
 criterion_main!(benches);

@@ -42,6 +42,7 @@ impl<T: Real> Odometry<T> {
 
     /// Advances by one step's wheel angle increments (rad, layout order) and returns the new
     /// pose.
+    #[inline]
     pub fn update<const N: usize>(
         &mut self,
         kinematics: &MecanumKinematics<T, N>,
@@ -51,6 +52,7 @@ impl<T: Real> Odometry<T> {
     }
 
     /// Advances by a body displacement (body frame at the start of the step).
+    #[inline]
     pub fn apply(&mut self, twist: Twist2<T>) -> Pose2<T> {
         self.pose = self.pose.exp(twist);
         self.pose

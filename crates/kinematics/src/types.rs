@@ -195,8 +195,29 @@ impl<T: Real> Pose2<T> {
     /// `|(dx, dy)| · sinc(dθ/2)` and points along the mean heading `heading + dθ/2`, which is
     /// the closed form of the SE(2) exponential written so that it needs one `sin_cos` and
     /// one `sin` and suffers no cancellation near `dθ = 0` (a series is used below 1e-3 rad).
+    ///
+    /// A zero displacement (a step in which no wheel turned) skips the trigonometry when
+    /// that gives the same bits: with `x`, `y` finite and non-zero and a finite heading, the
+    /// terms added to `x` and `y` are zeros, which leave them exactly as they are.
     #[must_use]
+    #[inline]
     pub fn exp(self, twist: Twist2<T>) -> Self {
+        let zero = T::zero();
+        if twist.dx == zero
+            && twist.dy == zero
+            && twist.dtheta == zero
+            && self.x != zero
+            && self.y != zero
+            && self.x.finite()
+            && self.y.finite()
+            && self.heading.finite()
+        {
+            return Self {
+                x: self.x,
+                y: self.y,
+                heading: wrap_angle(self.heading + twist.dtheta),
+            };
+        }
         let half = twist.dtheta * T::lit(0.5);
         let (sin_mid, cos_mid) = (self.heading + half).sin_cos_libm();
         let sinc_half = if half.abs() < T::lit(1e-3) {

@@ -124,6 +124,73 @@ fn series_and_closed_form_agree_at_the_switch() {
     }
 }
 
+/// The closed form of `Pose2::exp` with nothing skipped, to check its zero-step shortcut.
+fn exp_in_full(p: Pose2<f32>, t: Twist2<f32>) -> Pose2<f32> {
+    use kinematics::Real;
+    let half = t.dtheta * 0.5;
+    let (sin_mid, cos_mid) = (p.heading + half).sin_cos_libm();
+    let sinc_half = if half.abs() < 1e-3 {
+        let h2 = half * half;
+        1.0 - h2 / 6.0 * (1.0 - h2 / 20.0)
+    } else {
+        half.sin_cos_libm().0 / half
+    };
+    let (dx, dy) = (t.dx * sinc_half, t.dy * sinc_half);
+    Pose2 {
+        x: p.x + cos_mid * dx - sin_mid * dy,
+        y: p.y + sin_mid * dx + cos_mid * dy,
+        heading: wrap_angle(p.heading + t.dtheta),
+    }
+}
+
+#[test]
+fn zero_step_gives_the_bits_of_the_full_formula() {
+    let values = [
+        0.0f32,
+        -0.0,
+        1e-40,
+        -1e-40,
+        1e-7,
+        -2.5,
+        3.0e7,
+        f32::MAX,
+        f32::INFINITY,
+        f32::NAN,
+    ];
+    let headings = [
+        0.0f32,
+        -0.0,
+        0.3,
+        -2.9,
+        3.1415925,
+        -3.1415925,
+        1e-30,
+        f32::NAN,
+    ];
+    let bits = |p: Pose2<f32>| [p.x, p.y, p.heading].map(|v| (v.is_nan(), v.to_bits()));
+    for &x in &values {
+        for &y in &values {
+            for &heading in &headings {
+                for t in [
+                    Twist2::new(0.0, 0.0, 0.0),
+                    Twist2::new(-0.0, 0.0, -0.0),
+                    Twist2::new(0.0, -0.0, 0.0),
+                    Twist2::new(-0.0, -0.0, -0.0),
+                ] {
+                    let p = Pose2 { x, y, heading };
+                    let (got, want) = (bits(p.exp(t)), bits(exp_in_full(p, t)));
+                    // NaN results only need to be NaN.
+                    let same = got
+                        .iter()
+                        .zip(&want)
+                        .all(|(g, w)| if w.0 { g.0 } else { g == w });
+                    assert!(same, "{p:?} {t:?}: {got:?} vs {want:?}");
+                }
+            }
+        }
+    }
+}
+
 #[test]
 fn set_and_reset_pose() {
     let mut odo = Odometry::new(Pose2::new(1.0, 2.0, 0.5));

@@ -95,6 +95,7 @@ pub enum EscModel {
 impl EscModel {
     /// Largest raw current magnitude.
     #[must_use]
+    #[inline]
     pub const fn raw_limit(self) -> i16 {
         match self {
             Self::C620 => 16384,
@@ -135,11 +136,31 @@ impl EscModel {
     }
 
     /// Amperes to raw current: rounded, clamped to the model's range, NaN gives 0.
+    ///
+    /// The same result as [`wire::to_raw`] with the bounds `±raw_limit` (rounding half away
+    /// from zero in f64), worked out in 32-bit integers and without branches.
     #[must_use]
+    #[inline]
     pub fn amps_to_raw(self, amps: f32) -> i16 {
-        let lim = i64::from(self.raw_limit());
-        // The clamp keeps the value inside i16.
-        wire::to_raw(amps, self.lsb(), -lim, lim) as i16
+        let lim = i32::from(self.raw_limit());
+        let r = f64::from(amps) / self.lsb();
+        // Truncation toward zero, exact inside the range; NaN gives 0 (and so does the
+        // rounding below, whose comparisons are all false). Outside the range the rounded
+        // value is not used, so the wrapping there does not matter.
+        let t = r as i32;
+        let frac = r - f64::from(t);
+        let rounded = t
+            .wrapping_add(i32::from(frac >= 0.5))
+            .wrapping_sub(i32::from(frac <= -0.5));
+        let n = if r <= f64::from(-lim) {
+            -lim
+        } else if r >= f64::from(lim) {
+            lim
+        } else {
+            rounded
+        };
+        // |n| <= raw_limit <= 16384.
+        n as i16
     }
 
     /// The raw range as a field of the given layout row.
@@ -156,6 +177,7 @@ pub struct EscId(u8);
 impl EscId {
     /// An ESC id; `None` outside 1..=8.
     #[must_use]
+    #[inline]
     pub const fn new(raw: u8) -> Option<Self> {
         if raw >= 1 && raw <= 8 {
             Some(Self(raw))
@@ -172,6 +194,7 @@ impl EscId {
 
     /// The command frame that carries this ESC's current.
     #[must_use]
+    #[inline]
     pub const fn group(self) -> EscGroup {
         if self.0 <= 4 {
             EscGroup::Esc1To4
@@ -182,6 +205,7 @@ impl EscId {
 
     /// Slot 0..=3 of this ESC in its command frame.
     #[must_use]
+    #[inline]
     pub const fn slot(self) -> usize {
         ((self.0 - 1) % 4) as usize
     }
@@ -302,10 +326,19 @@ impl CurrentCommand {
 
     /// Encodes into a [`CanFrame`], clamping currents to the model's range.
     #[must_use]
+    #[inline]
     pub fn to_can_frame(&self) -> CanFrame {
-        let def = self.group.def();
+        // One arm per group, so that each sees its layout rows as constants.
+        match self.group {
+            EscGroup::Esc1To4 => self.encode(layout::CURRENT_CMD_1_4, &layout::CURRENT_1_4),
+            EscGroup::Esc5To8 => self.encode(layout::CURRENT_CMD_5_8, &layout::CURRENT_5_8),
+        }
+    }
+
+    #[inline]
+    fn encode(&self, def: wire::MessageDef, fields: &[Field; 4]) -> CanFrame {
         let mut p = Payload::new();
-        for (raw, field) in self.raw.iter().zip(self.group.fields().iter()) {
+        for (raw, field) in self.raw.iter().zip(fields) {
             self.model.limit(*field).put_raw(&mut p, i64::from(*raw));
         }
         CanFrame::from_buffer(sid(def.id), p.0, def.dlc)
@@ -359,6 +392,7 @@ impl Feedback {
     /// # Errors
     /// `UnknownId` for other ids; `OutOfRange` for a rotor angle above 8191 or a current beyond
     /// the model's limit; see [`DecodeError`].
+    #[inline]
     pub fn decode<F: Frame>(frame: &F, model: EscModel) -> Result<Self, DecodeError> {
         let id = wire::standard_id(frame)?;
         let esc = id
@@ -433,5 +467,44 @@ pub fn decode<F: Frame>(frame: &F, model: EscModel) -> Result<Message, DecodeErr
     match CurrentCommand::decode(frame, model) {
         Err(DecodeError::UnknownId { .. }) => Feedback::decode(frame, model).map(Message::Feedback),
         other => other.map(Message::Command),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `amps_to_raw` is `wire::to_raw` with the model's bounds, for every kind of input:
+    /// a dense sweep through and beyond the range, exact ties, and non-finite values.
+    #[test]
+    fn amps_to_raw_is_to_raw_with_the_model_bounds() {
+        for model in [EscModel::C620, EscModel::C610] {
+            let lim = i64::from(model.raw_limit());
+            let reference = |a: f32| wire::to_raw(a, model.lsb(), -lim, lim) as i16;
+            let check = |a: f32| assert_eq!(model.amps_to_raw(a), reference(a), "{a}");
+            // Quarter-LSB steps over 1.25 times the range, so ties and their neighbours.
+            let lsb = model.lsb();
+            for k in -82_000i32..=82_000 {
+                let a = (f64::from(k) * lsb / 4.0) as f32;
+                check(a);
+                check(f32::from_bits(a.to_bits() + 1));
+                check(f32::from_bits(a.to_bits().wrapping_sub(1)));
+            }
+            for a in [
+                0.0,
+                -0.0,
+                f32::NAN,
+                f32::INFINITY,
+                f32::NEG_INFINITY,
+                f32::MAX,
+                f32::MIN,
+                f32::MIN_POSITIVE,
+                1e-40,
+                3e9,
+                -3e9,
+            ] {
+                check(a);
+            }
+        }
     }
 }

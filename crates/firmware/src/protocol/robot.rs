@@ -421,6 +421,7 @@ impl Command {
     ///
     /// # Errors
     /// See [`DecodeError`]; `UnknownId` also for robot → host ids.
+    #[inline]
     pub fn decode<F: Frame>(frame: &F) -> Result<Self, DecodeError> {
         let id = wire::standard_id(frame)?;
         let def = match id {

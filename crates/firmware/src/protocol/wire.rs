@@ -117,30 +117,47 @@ impl Field {
         Self { scale, ..self }
     }
 
+    /// Where the field sits in the payload read as one little-endian `u64` (byte `i` is bits
+    /// `8i..8i+8`): the shift of its lowest bit and the mask of its bits, or `None` if it does
+    /// not fit the 8 bytes (no layout row does; such a field reads as 0 and writes nothing).
+    ///
+    /// A big-endian field is found in the payload read as a big-endian `u64` instead, where
+    /// its bytes are in the order the field wants; `shift` is then counted from that end.
+    #[inline]
+    const fn placement(&self) -> Option<(u32, u64)> {
+        let size = self.ty.size();
+        if self.offset > MAX_DLC || size > MAX_DLC - self.offset {
+            return None;
+        }
+        let low_byte = match self.order {
+            ByteOrder::Little => self.offset,
+            ByteOrder::Big => MAX_DLC - self.offset - size,
+        };
+        let mask = match self.ty {
+            WireType::Bit0 => 1,
+            // size <= 4, so the shift stays below 64.
+            _ => (1u64 << (8 * size)) - 1,
+        };
+        // low_byte <= 7, so the cast cannot truncate.
+        Some((8 * low_byte as u32, mask))
+    }
+
+    /// The payload as one `u64` in this field's byte order.
+    #[inline]
+    const fn word(&self, payload: &Payload) -> u64 {
+        match self.order {
+            ByteOrder::Little => u64::from_le_bytes(payload.0),
+            ByteOrder::Big => u64::from_be_bytes(payload.0),
+        }
+    }
+
     /// The field's bits as an unsigned number (zero-extended).
     #[inline]
-    fn bits(&self, payload: &Payload) -> u32 {
-        let mut bytes = [0u8; 4];
-        let size = self.ty.size();
-        if let Some(src) = payload.0.get(self.offset..self.offset.saturating_add(size)) {
-            match self.order {
-                ByteOrder::Little => {
-                    for (dst, b) in bytes.iter_mut().zip(src) {
-                        *dst = *b;
-                    }
-                }
-                ByteOrder::Big => {
-                    for (dst, b) in bytes.iter_mut().zip(src.iter().rev()) {
-                        *dst = *b;
-                    }
-                }
-            }
-        }
-        let bits = u32::from_le_bytes(bytes);
-        if matches!(self.ty, WireType::Bit0) {
-            bits & 1
-        } else {
-            bits
+    const fn bits(&self, payload: &Payload) -> u32 {
+        match self.placement() {
+            // The mask keeps at most 32 bits.
+            Some((shift, mask)) => ((self.word(payload) >> shift) & mask) as u32,
+            None => 0,
         }
     }
 
@@ -202,35 +219,18 @@ impl Field {
     /// Writes a raw value, clamped to `min..=max`. For `F32` fields this writes the bits.
     #[inline]
     pub fn put_raw(&self, payload: &mut Payload, raw: i64) {
-        let clamped = raw.clamp(self.min, self.max);
-        // Truncation to the field's width is intended; the range clamp above keeps it exact.
-        let bits = clamped as u32;
-        let bits = if matches!(self.ty, WireType::Bit0) {
-            let old = payload.0.get(self.offset).copied().unwrap_or(0);
-            u32::from((old & !1) | (bits as u8 & 1))
-        } else {
-            bits
+        // `clamp` without its panic on `min > max` (no layout row has that).
+        let clamped = raw.max(self.min).min(self.max);
+        let Some((shift, mask)) = self.placement() else {
+            return;
         };
-        let le = bits.to_le_bytes();
-        let size = self.ty.size();
-        if let Some(dst) = payload
-            .0
-            .get_mut(self.offset..self.offset.saturating_add(size))
-        {
-            match self.order {
-                ByteOrder::Little => {
-                    for (d, b) in dst.iter_mut().zip(le.iter()) {
-                        *d = *b;
-                    }
-                }
-                ByteOrder::Big => {
-                    // The low `size` bytes of `le`, most significant first.
-                    for (d, b) in dst.iter_mut().zip(le.iter().take(size).rev()) {
-                        *d = *b;
-                    }
-                }
-            }
-        }
+        // Truncation to the field's width is intended; the range clamp above keeps it exact.
+        let bits = u64::from(clamped as u32) & mask;
+        let word = (self.word(payload) & !(mask << shift)) | (bits << shift);
+        payload.0 = match self.order {
+            ByteOrder::Little => word.to_le_bytes(),
+            ByteOrder::Big => word.to_be_bytes(),
+        };
     }
 
     /// Writes a physical value: rounded to the nearest raw value (ties away from zero),
@@ -251,6 +251,7 @@ impl Field {
 /// raw value nearest 0. Computed in f64 (exact for 32-bit raw values). Exposed for encoders
 /// that need the raw number itself.
 #[must_use]
+#[inline]
 pub fn to_raw(value: f32, scale: f64, min: i64, max: i64) -> i64 {
     let r = f64::from(value) / scale;
     if r.is_nan() {
@@ -263,16 +264,11 @@ pub fn to_raw(value: f32, scale: f64, min: i64, max: i64) -> i64 {
     if r >= max as f64 {
         return max;
     }
-    // min < r < max, so the truncating cast is exact.
+    // min < r < max, so the truncating cast is exact, and so is `t as f64` (|t| < 2^32).
     let t = r as i64;
     let frac = r - t as f64;
-    let n = if frac >= 0.5 {
-        t.saturating_add(1)
-    } else if frac <= -0.5 {
-        t.saturating_sub(1)
-    } else {
-        t
-    };
+    // Half away from zero: one step up or down, which cannot overflow.
+    let n = t + i64::from(frac >= 0.5) - i64::from(frac <= -0.5);
     n.clamp(min, max)
 }
 
@@ -304,7 +300,11 @@ impl Payload {
 
     /// Copies up to 8 bytes of `data`.
     #[must_use]
+    #[inline]
     pub fn from_slice(data: &[u8]) -> Self {
+        if let Ok(full) = <[u8; MAX_DLC]>::try_from(data) {
+            return Self(full);
+        }
         let mut p = Self::new();
         for (dst, src) in p.0.iter_mut().zip(data) {
             *dst = *src;
@@ -317,6 +317,7 @@ impl Payload {
 ///
 /// # Errors
 /// [`DecodeError::ExtendedId`] for a 29-bit id.
+#[inline]
 pub fn standard_id<F: Frame>(frame: &F) -> Result<u16, DecodeError> {
     match frame.id() {
         Id::Standard(id) => Ok(id.as_raw()),
@@ -325,6 +326,7 @@ pub fn standard_id<F: Frame>(frame: &F) -> Result<u16, DecodeError> {
 }
 
 /// The `UnknownId` error for a frame.
+#[inline]
 pub(crate) fn unknown<F: Frame>(frame: &F) -> DecodeError {
     DecodeError::UnknownId { id: frame.id() }
 }
@@ -334,6 +336,7 @@ pub(crate) fn unknown<F: Frame>(frame: &F) -> DecodeError {
 ///
 /// # Errors
 /// [`DecodeError::Remote`] or [`DecodeError::WrongDlc`].
+#[inline]
 pub fn data_payload<F: Frame>(frame: &F, id: u16, accepted: &[u8]) -> Result<Payload, DecodeError> {
     if frame.is_remote_frame() {
         return Err(DecodeError::Remote { id });
