@@ -46,14 +46,16 @@ use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant as WallInstant};
 
-use embedded_can::{Frame, Id};
 use firmware::CanFrame;
 use foxglove::Encode;
 use foxglove::schemas::{FrameTransform, Log, PoseInFrame, Quaternion, Timestamp, Vector3};
 
 use crate::bus::{Fate, Node};
 
+mod json;
 pub mod read;
+
+pub use json::write_frame_json;
 pub use read::{Damage, Problem, ReadReport, for_each_message};
 
 /// Why a log could not be written.
@@ -564,47 +566,4 @@ impl McapLog {
         self.writer.finish().map_err(|e| self.mcap_err(e))?;
         Ok(())
     }
-}
-
-/// Writes one frame as can_msgs/Frame-shaped JSON (data padded to 8 bytes).
-pub fn write_frame_json(
-    buf: &mut Vec<u8>,
-    t_ns: u64,
-    frame: &CanFrame,
-    extra: Option<(Node, Fate)>,
-) {
-    let (id, ext) = match frame.id() {
-        Id::Standard(id) => (u32::from(id.as_raw()), false),
-        Id::Extended(id) => (id.as_raw(), true),
-    };
-    let mut data = [0u8; 8];
-    let d = frame.data();
-    data[..d.len()].copy_from_slice(d);
-    let _ = write!(
-        buf,
-        r#"{{"header":{{"stamp":{{"sec":{},"nsec":{}}},"frame_id":"can0"}},"id":{},"is_rtr":{},"is_extended":{},"is_error":false,"dlc":{},"data":[{},{},{},{},{},{},{},{}]"#,
-        t_ns / 1_000_000_000,
-        t_ns % 1_000_000_000,
-        id,
-        frame.is_remote_frame(),
-        ext,
-        frame.dlc(),
-        data[0],
-        data[1],
-        data[2],
-        data[3],
-        data[4],
-        data[5],
-        data[6],
-        data[7],
-    );
-    if let Some((sender, fate)) = extra {
-        let fate = match fate {
-            Fate::Delivered => "delivered",
-            Fate::Dropped => "dropped",
-            Fate::Corrupted => "corrupted",
-        };
-        let _ = write!(buf, r#","sender":"{}","fate":"{}""#, sender.name(), fate);
-    }
-    buf.push(b'}');
 }
