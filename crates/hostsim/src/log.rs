@@ -268,6 +268,16 @@ fn schemas_and_channels() -> (Vec<u8>, Vec<u8>) {
     (schemas, channels)
 }
 
+/// Four numbers as a JSON array, formatted in place (no `String` per array).
+struct JsonArray<'a>(&'a [f32; 4]);
+
+impl std::fmt::Display for JsonArray<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let [a, b, c, d] = self.0;
+        write!(f, "[{a},{b},{c},{d}]")
+    }
+}
+
 /// What a log starts with, up to its first chunk: the magic, the Header, the Schema and
 /// Channel records and the `hostsim` Metadata record; and the parts of it the summary repeats.
 struct Head {
@@ -503,7 +513,6 @@ impl McapLog {
     pub fn snapshot(&mut self, t_ns: u64, s: &firmware::control::Snapshot) -> Result<(), LogError> {
         let start = self.begin(CHANNELS.snapshot, t_ns);
         let buf = &mut self.chunk.records;
-        let arr = |a: &[f32; 4]| format!("[{},{},{},{}]", a[0], a[1], a[2], a[3]);
         let _ = write!(
             buf,
             r#"{{"state":"{:?}","fault":"{:?}","commanded":{{"vx":{},"vy":{},"wz":{}}},"measured":{{"vx":{},"vy":{},"wz":{}}},"wheel_setpoints":{},"wheel_speeds":{},"currents":{},"motors_online":{},"rx_errors":{},"unknown_ids":{}}}"#,
@@ -515,9 +524,9 @@ impl McapLog {
             s.measured.vx,
             s.measured.vy,
             s.measured.wz,
-            arr(&s.wheel_setpoints.0),
-            arr(&s.wheel_speeds.0),
-            arr(&s.currents),
+            JsonArray(&s.wheel_setpoints.0),
+            JsonArray(&s.wheel_speeds.0),
+            JsonArray(&s.currents),
             s.motors_online,
             s.rx_errors.total() - s.rx_errors.unknown_id,
             s.rx_errors.unknown_id,
