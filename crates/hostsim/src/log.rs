@@ -25,7 +25,7 @@
 //!
 //! # Layout
 //!
-//! The writer writes the MCAP records itself (module `write`, after
+//! The log writes the MCAP records itself (module `write`, after
 //! <https://mcap.dev/spec>): the magic and the Header, the Schema and Channel records and the
 //! `hostsim` Metadata record; then the messages in zstd-compressed chunks, each Chunk record
 //! followed by one Message Index record per channel it holds; then the Data End record (with
@@ -34,32 +34,38 @@
 //! group), the Footer (with the summary's CRC) and the magic. Every Chunk record carries the
 //! CRC of its uncompressed content.
 //!
-//! The messages of a chunk are built, uncompressed, on the caller's thread. Closing a chunk
-//! hands it to a second thread, which computes its CRC, compresses it (zstd level
-//! [`ZSTD_LEVEL`]) and appends it with its message indexes in one write, while the caller goes
-//! on with the next chunk. Message order and content do not depend on that thread: the file
-//! holds the messages in the order they were logged.
+//! The caller's thread (the simulation's) only records each message's values (an `Event`:
+//! a frame, a snapshot, a pose...) in a batch, and hands the batch over to a second thread at
+//! each flush (see [`McapLog::maybe_flush`]). That thread turns the events into Message
+//! records, in order and numbered as logged, chunks them (a chunk closes when its records
+//! reach [`CHUNK_SIZE`] uncompressed bytes, and at the end of each batch), computes each
+//! chunk's CRC, compresses it (zstd level [`ZSTD_LEVEL`]) and appends it with its message
+//! indexes in one write. The JSON text, the protobuf encoding and the compression are all on
+//! that thread, so they overlap the simulation. What the file holds depends only on the
+//! messages logged and on when the batches were handed over, never on the threads' timing:
+//! the same run gives the same messages, and the same bytes as long as every hand-over is due
+//! to log time (half a second of wall-clock time between two hand-overs, in a run slower than
+//! real time or on a stalled machine, moves a chunk boundary).
 //!
 //! # Crash safety
 //!
 //! Each chunk is built in memory and appended to the file whole, so the file on disk is always
-//! a prefix of the finished file (no chunk header is patched afterwards). The open chunk is
-//! closed and handed to the writing thread once a quarter of a second of log time, or half a
-//! second of wall-clock time, has passed since the last chunk was closed (and whenever it
-//! reaches its size, [`CHUNK_SIZE`] uncompressed bytes by default); see
-//! [`McapLog::maybe_flush`]. At most one chunk is in flight: closing a chunk first waits until
-//! the previous one is written. A run that dies (SIGKILL, a panic, the OOM killer) therefore
-//! leaves a file cut short whose every complete chunk is readable, and loses at most the chunk
-//! in flight and the open one: the last half second of log time before it died (and at most
-//! about half a second of wall-clock time plus the few milliseconds of compressing a chunk):
-//! "at most the last second". The file is created as `NAME.mcap.part` and renamed to
-//! `NAME.mcap` once its header, channels and metadata are on disk, so a `.mcap` file always
-//! opens. There is no `fsync`: this protects against the process dying, not against the
-//! machine losing power.
+//! a prefix of the finished file (no chunk header is patched afterwards). A batch is handed
+//! over once a quarter of a second of log time, or half a second of wall-clock time, has
+//! passed since the last hand-over; each hand-over then waits until the batch before it is in
+//! the file. So at most two batches are not yet on disk: the one being written and the open
+//! one. A run that dies (SIGKILL, a panic, the OOM killer) therefore leaves a file cut short
+//! whose every complete chunk is readable, and loses at most the last half second of log
+//! time before it died (and, for a run slower than real time, at most about half a second of
+//! wall-clock time plus the few milliseconds of writing a batch): "at most the last second".
+//! The file is created as `NAME.mcap.part` and renamed to `NAME.mcap` once its header,
+//! channels and metadata are on disk, so a `.mcap` file always opens. There is no `fsync`:
+//! this protects against the process dying, not against the machine losing power.
 //!
-//! An error of the writing thread (a full disk, say) comes back as [`LogError::Io`] from the
-//! next call that closes a chunk ([`McapLog::maybe_flush`], a message that fills the chunk, or
-//! [`McapLog::finish`]), and every later such call fails too.
+//! An error of the writing thread (a full disk, say) comes back as [`LogError::Io`], naming
+//! the file, from the next hand-over ([`McapLog::maybe_flush`], or a message that fills a
+//! batch) or from [`McapLog::finish`]; every later hand-over fails too. A panic of that
+//! thread comes back the same way, as an error.
 //!
 //! [`for_each_message`] reads such files: every complete chunk, then a [`Damage`] report that
 //! names the byte offset where the unusable part starts (see [`read`]).
@@ -72,18 +78,19 @@ use std::time::{Duration, Instant as WallInstant};
 
 use firmware::CanFrame;
 use foxglove::Encode;
-use foxglove::schemas::{FrameTransform, Log, PoseInFrame, Quaternion, Timestamp, Vector3};
+use foxglove::schemas::{FrameTransform, Log, PoseInFrame};
 use mcap::records::op;
 
 use crate::bus::{Fate, Node};
 
+mod data;
 mod json;
 pub mod read;
 mod write;
 
 pub use json::write_frame_json;
 pub use read::{Damage, Problem, ReadReport, for_each_message};
-use write::{Chunk, ChunkWriter, Sink};
+use write::{Batch, BatchWriter, Event, Sink};
 
 /// Why a log could not be written.
 #[derive(Debug, thiserror::Error)]
@@ -117,6 +124,7 @@ pub enum Direction {
 }
 
 /// Channel ids, as written in the Channel records (0 is not used).
+#[derive(Clone, Copy)]
 struct Channels {
     rx: u16,
     tx: u16,
@@ -152,13 +160,10 @@ const MAGIC: &[u8] = b"\x89MCAP0\r\n";
 /// An MCAP log being written. See the [module documentation](self).
 pub struct McapLog {
     path: PathBuf,
-    seq: u32,
-    /// The open chunk.
-    chunk: Chunk,
-    /// Uncompressed size at which the open chunk is closed, bytes.
-    chunk_size: usize,
-    /// The thread that compresses and appends chunks; `None` once finished.
-    writer: Option<ChunkWriter>,
+    /// The messages logged since the last hand-over to the writing thread.
+    batch: Batch,
+    /// The writing thread; `None` once finished.
+    writer: Option<BatchWriter>,
     /// Set by the first write error: every later write fails with it.
     failed: Option<(io::ErrorKind, String)>,
     /// The Schema and Channel records as written at the start, for the summary.
@@ -166,33 +171,34 @@ pub struct McapLog {
     channels: Vec<u8>,
     /// The Metadata Index record of the `hostsim` metadata.
     metadata_index: Vec<u8>,
-    /// Messages per channel id.
-    counts: [u64; LAST_CHANNEL as usize + 1],
     messages: u64,
-    /// Earliest log time written, ns (`u64::MAX` before the first message).
-    first_log_ns: u64,
-    /// Largest log time written, ns.
+    /// Largest log time logged, ns.
     last_log_ns: u64,
-    /// `last_log_ns` when the last chunk was closed.
+    /// `last_log_ns` at the last hand-over.
     flushed_log_ns: u64,
-    /// Wall-clock time when the last chunk was closed.
+    /// Wall-clock time of the last hand-over.
     last_flush: WallInstant,
     /// Calls of `maybe_flush`, to read the wall clock only every few.
     flush_calls: u64,
 }
 
-/// Log time between two chunk closes, ns. The chunk in flight and the open one are what a run
+/// Log time between two hand-overs, ns. The batch in flight and the open one are what a run
 /// that dies loses: at most twice this.
 const FLUSH_LOG_INTERVAL_NS: u64 = 250_000_000;
 
-/// Wall-clock time between two chunk closes, for runs slower than real time.
+/// Wall-clock time between two hand-overs, for runs slower than real time.
 const FLUSH_WALL_INTERVAL: Duration = Duration::from_millis(500);
 
 /// [`McapLog::maybe_flush`] reads the wall clock on every this many calls.
 const CALLS_PER_CLOCK_READ: u64 = 64;
 
+/// Messages in a batch at which it is handed over even if [`McapLog::maybe_flush`] is not
+/// called (about 20 ms of the square scenario): bounds the memory of a batch.
+const MAX_BATCH_EVENTS: usize = 1 << 16;
+
 /// Uncompressed size at which the writer closes a chunk, bytes. With the square scenario's
-/// ~2.4 MB of messages per simulated second, chunks close on log time (about 600 kB) first.
+/// ~2.4 MB of messages per simulated second, chunks close at the hand-overs (a quarter of a
+/// second, about 600 kB) first.
 pub const CHUNK_SIZE: u64 = 1 << 20;
 
 /// zstd level of the chunks (the level the `mcap` crate's writer was given before this
@@ -205,20 +211,6 @@ pub fn part_path(path: &Path) -> PathBuf {
     let mut name = path.as_os_str().to_owned();
     name.push(".part");
     PathBuf::from(name)
-}
-
-fn ns_stamp(t_ns: u64) -> Timestamp {
-    Timestamp::new((t_ns / 1_000_000_000) as u32, (t_ns % 1_000_000_000) as u32)
-}
-
-fn yaw_quaternion(yaw: f64) -> Quaternion {
-    let (s, c) = (yaw * 0.5).sin_cos();
-    Quaternion {
-        x: 0.0,
-        y: 0.0,
-        z: s,
-        w: c,
-    }
 }
 
 /// The Schema and Channel records of a hostsim log.
@@ -266,16 +258,6 @@ fn schemas_and_channels() -> (Vec<u8>, Vec<u8>) {
         write::channel(&mut channels, id, schema_id, topic, encoding);
     }
     (schemas, channels)
-}
-
-/// Four numbers as a JSON array, formatted in place (no `String` per array).
-struct JsonArray<'a>(&'a [f32; 4]);
-
-impl std::fmt::Display for JsonArray<'_> {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let [a, b, c, d] = self.0;
-        write!(f, "[{a},{b},{c},{d}]")
-    }
 }
 
 /// What a log starts with, up to its first chunk: the magic, the Header, the Schema and
@@ -364,36 +346,22 @@ impl McapLog {
         head: Head,
         chunk_size: u64,
     ) -> Result<Self, LogError> {
-        let mut crc = crc32fast::Hasher::new();
-        crc.update(&head.bytes);
-        let sink = Sink {
-            out,
-            len: head.bytes.len() as u64,
-            crc,
-            chunk_indexes: Vec::new(),
-            chunks: 0,
-        };
-        let writer = ChunkWriter::start(sink, ZSTD_LEVEL).map_err(|source| LogError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
+        let sink = Sink::new(out, &head.bytes);
         let chunk_size = usize::try_from(chunk_size).unwrap_or(usize::MAX);
+        let writer =
+            BatchWriter::start(sink, chunk_size, ZSTD_LEVEL).map_err(|source| LogError::Io {
+                path: path.to_path_buf(),
+                source,
+            })?;
         Ok(Self {
             path: path.to_path_buf(),
-            seq: 0,
-            chunk: Chunk::new(
-                usize::from(LAST_CHANNEL) + 1,
-                chunk_size.min(CHUNK_SIZE as usize) + 4096,
-            ),
-            chunk_size,
+            batch: Batch::default(),
             writer: Some(writer),
             failed: None,
             schemas: head.schemas,
             channels: head.channels,
             metadata_index: head.metadata_index,
-            counts: [0; LAST_CHANNEL as usize + 1],
             messages: 0,
-            first_log_ns: u64::MAX,
             last_log_ns: 0,
             flushed_log_ns: 0,
             last_flush: WallInstant::now(),
@@ -408,67 +376,45 @@ impl McapLog {
         }
     }
 
-    /// Starts a message on `channel` at `t_ns`: its data is then appended to
-    /// `self.chunk.records` and the message ended with [`end`](Self::end). Returns where the
-    /// record starts.
+    /// Records `event`, `messages` messages at `t_ns`; hands the batch over if it is full.
     #[inline]
-    fn begin(&mut self, channel: u16, t_ns: u64) -> usize {
-        self.seq = self.seq.wrapping_add(1);
-        let start = self.chunk.records.len();
-        write::begin_message(&mut self.chunk.records, channel, self.seq, t_ns);
-        start
-    }
-
-    /// Ends the message begun at `start` with [`begin`](Self::begin); closes the chunk if it
-    /// has reached its size.
-    #[inline]
-    fn end(&mut self, channel: u16, t_ns: u64, start: usize) -> Result<(), LogError> {
-        let chunk = &mut self.chunk;
-        write::end_message(&mut chunk.records, start);
-        chunk.index[usize::from(channel)].push((t_ns, start as u64));
-        chunk.start_ns = chunk.start_ns.min(t_ns);
-        chunk.end_ns = chunk.end_ns.max(t_ns);
-        self.counts[usize::from(channel)] += 1;
-        self.messages += 1;
-        self.first_log_ns = self.first_log_ns.min(t_ns);
+    fn push(&mut self, event: Event, t_ns: u64, messages: u64) -> Result<(), LogError> {
+        self.batch.events.push(event);
+        self.messages += messages;
         self.last_log_ns = self.last_log_ns.max(t_ns);
-        if chunk.records.len() >= self.chunk_size {
-            self.close_chunk()?;
+        if self.batch.events.len() >= MAX_BATCH_EVENTS {
+            self.hand_over()?;
         }
         Ok(())
     }
 
-    /// Hands the open chunk, if it holds anything, to the writing thread (after waiting for
-    /// the one in flight), and restarts the flush clocks.
-    fn close_chunk(&mut self) -> Result<(), LogError> {
+    /// Hands the batch, if it holds anything, to the writing thread (after waiting for the
+    /// one in flight), and restarts the flush clocks.
+    fn hand_over(&mut self) -> Result<(), LogError> {
         self.flushed_log_ns = self.last_log_ns;
         self.last_flush = WallInstant::now();
         if let Some((kind, text)) = &self.failed {
             // Do not let a log that can no longer be written grow in memory.
-            self.chunk.records.clear();
-            for entries in &mut self.chunk.index {
-                entries.clear();
-            }
+            self.batch.clear();
             return Err(self.io_err(io::Error::new(
                 *kind,
                 format!("an earlier write failed: {text}"),
             )));
         }
-        if self.chunk.records.is_empty() {
+        if self.batch.is_empty() {
             return Ok(());
         }
         let Some(writer) = self.writer.as_mut() else {
             return Ok(());
         };
-        let spare = writer.wait().and_then(|spare| {
-            let next = spare.unwrap_or_else(|| {
-                Chunk::new(self.chunk.index.len(), self.chunk.records.capacity())
-            });
-            let full = std::mem::replace(&mut self.chunk, next);
-            writer.send(full)
-        });
-        match spare {
-            Ok(_) => Ok(()),
+        let full = std::mem::take(&mut self.batch);
+        match writer.send(full) {
+            Ok(spare) => {
+                if let Some(spare) = spare {
+                    self.batch = spare;
+                }
+                Ok(())
+            }
             Err(e) => {
                 self.failed = Some((e.kind(), e.to_string()));
                 Err(self.io_err(e))
@@ -479,21 +425,20 @@ impl McapLog {
     /// Logs a frame the firmware received or sent.
     ///
     /// # Errors
-    /// [`LogError`] if the write fails.
+    /// [`LogError`] if writing the log failed.
     pub fn can(&mut self, t_ns: u64, dir: Direction, frame: &CanFrame) -> Result<(), LogError> {
-        let ch = match dir {
-            Direction::Rx => CHANNELS.rx,
-            Direction::Tx => CHANNELS.tx,
+        let event = Event::Can {
+            t_ns,
+            frame: *frame,
+            dir,
         };
-        let start = self.begin(ch, t_ns);
-        write_frame_json(&mut self.chunk.records, t_ns, frame, None);
-        self.end(ch, t_ns, start)
+        self.push(event, t_ns, 1)
     }
 
     /// Logs a frame on the bus with its sender and fate.
     ///
     /// # Errors
-    /// [`LogError`] if the write fails.
+    /// [`LogError`] if writing the log failed.
     pub fn bus(
         &mut self,
         t_ns: u64,
@@ -501,43 +446,29 @@ impl McapLog {
         sender: Node,
         fate: Fate,
     ) -> Result<(), LogError> {
-        let start = self.begin(CHANNELS.bus, t_ns);
-        write_frame_json(&mut self.chunk.records, t_ns, frame, Some((sender, fate)));
-        self.end(CHANNELS.bus, t_ns, start)
+        let event = Event::Bus {
+            t_ns,
+            frame: *frame,
+            sender,
+            fate,
+        };
+        self.push(event, t_ns, 1)
     }
 
     /// Logs a firmware snapshot.
     ///
     /// # Errors
-    /// [`LogError`] if the write fails.
+    /// [`LogError`] if writing the log failed.
     pub fn snapshot(&mut self, t_ns: u64, s: &firmware::control::Snapshot) -> Result<(), LogError> {
-        let start = self.begin(CHANNELS.snapshot, t_ns);
-        let buf = &mut self.chunk.records;
-        let _ = write!(
-            buf,
-            r#"{{"state":"{:?}","fault":"{:?}","commanded":{{"vx":{},"vy":{},"wz":{}}},"measured":{{"vx":{},"vy":{},"wz":{}}},"wheel_setpoints":{},"wheel_speeds":{},"currents":{},"motors_online":{},"rx_errors":{},"unknown_ids":{}}}"#,
-            s.state,
-            s.fault,
-            s.commanded.vx,
-            s.commanded.vy,
-            s.commanded.wz,
-            s.measured.vx,
-            s.measured.vy,
-            s.measured.wz,
-            JsonArray(&s.wheel_setpoints.0),
-            JsonArray(&s.wheel_speeds.0),
-            JsonArray(&s.currents),
-            s.motors_online,
-            s.rx_errors.total() - s.rx_errors.unknown_id,
-            s.rx_errors.unknown_id,
-        );
-        self.end(CHANNELS.snapshot, t_ns, start)
+        let index = self.batch.snapshots.len() as u32;
+        self.batch.snapshots.push(*s);
+        self.push(Event::Snapshot { t_ns, index }, t_ns, 1)
     }
 
     /// Logs a drive feedback frame, decoded; frames that are not drive feedback are skipped.
     ///
     /// # Errors
-    /// [`LogError`] if the write fails.
+    /// [`LogError`] if writing the log failed.
     pub fn motor_feedback(
         &mut self,
         t_ns: u64,
@@ -545,147 +476,76 @@ impl McapLog {
         drive: &firmware::config::Drive,
     ) -> Result<(), LogError> {
         use firmware::protocol::{dji, odrive};
-        let ch = CHANNELS.feedback;
-        match *drive {
+        let event = match *drive {
             firmware::config::Drive::Dji { model, .. } => {
-                let Ok(f) = dji::Feedback::decode(frame, model) else {
+                let Ok(feedback) = dji::Feedback::decode(frame, model) else {
                     return Ok(());
                 };
-                let start = self.begin(ch, t_ns);
-                let _ = write!(
-                    self.chunk.records,
-                    r#"{{"protocol":"dji","id":{},"rotor_angle":{},"rotor_speed_rpm":{},"current_a":{},"temperature_c":{}}}"#,
-                    f.esc.get(),
-                    f.rotor_angle,
-                    f.rotor_speed_rpm,
-                    f.current_amps(),
-                    f.temperature_c
-                );
-                self.end(ch, t_ns, start)
+                Event::Dji { t_ns, feedback }
             }
             firmware::config::Drive::Odrive { .. } => {
-                let Ok(a) = odrive::Feedback::decode(frame) else {
+                let Ok(feedback) = odrive::Feedback::decode(frame) else {
                     return Ok(());
                 };
-                let id = a.node.get();
-                let start = self.begin(ch, t_ns);
-                let buf = &mut self.chunk.records;
-                let _ = match a.msg {
-                    odrive::Feedback::EncoderEstimates { pos, vel } => write!(
-                        buf,
-                        r#"{{"protocol":"odrive","id":{id},"pos_rev":{pos},"vel_rev_s":{vel}}}"#
-                    ),
-                    odrive::Feedback::Heartbeat(h) => write!(
-                        buf,
-                        r#"{{"protocol":"odrive","id":{id},"axis_error":{},"axis_state":"{:?}"}}"#,
-                        h.axis_error, h.axis_state
-                    ),
-                    odrive::Feedback::Error { active_errors, .. } => write!(
-                        buf,
-                        r#"{{"protocol":"odrive","id":{id},"axis_error":{active_errors}}}"#
-                    ),
-                };
-                self.end(ch, t_ns, start)
+                Event::Odrive { t_ns, feedback }
             }
-        }
+        };
+        self.push(event, t_ns, 1)
     }
 
     /// Logs the host's twist setpoint.
     ///
     /// # Errors
-    /// [`LogError`] if the write fails.
+    /// [`LogError`] if writing the log failed.
     pub fn twist(&mut self, t_ns: u64, twist: [f32; 3], streaming: bool) -> Result<(), LogError> {
-        let start = self.begin(CHANNELS.twist, t_ns);
-        let _ = write!(
-            self.chunk.records,
-            r#"{{"vx":{},"vy":{},"wz":{},"streaming":{}}}"#,
-            twist[0], twist[1], twist[2], streaming
-        );
-        self.end(CHANNELS.twist, t_ns, start)
-    }
-
-    /// Logs a Foxglove message on `channel`.
-    fn fox<T: Encode>(&mut self, channel: u16, t_ns: u64, msg: &T) -> Result<(), LogError> {
-        let start = self.begin(channel, t_ns);
-        // Encoding into a Vec cannot run out of space.
-        let _ = msg.encode(&mut self.chunk.records);
-        self.end(channel, t_ns, start)
+        let event = Event::Twist {
+            t_ns,
+            twist,
+            streaming,
+        };
+        self.push(event, t_ns, 1)
     }
 
     /// Logs the odometry pose (`odom` frame) and the ground-truth pose (`world` frame), and
     /// both as transforms for Foxglove's 3D panel.
     ///
     /// # Errors
-    /// [`LogError`] if the write fails.
+    /// [`LogError`] if writing the log failed.
     pub fn poses(&mut self, t_ns: u64, odom: [f64; 3], truth: [f64; 3]) -> Result<(), LogError> {
-        for (pose, frame, child, pose_ch) in [
-            (odom, "odom", "base_link_odom", CHANNELS.odom),
-            (truth, "world", "base_link", CHANNELS.truth),
-        ] {
-            let msg = PoseInFrame {
-                timestamp: Some(ns_stamp(t_ns)),
-                frame_id: frame.to_string(),
-                pose: Some(foxglove::schemas::Pose {
-                    position: Some(Vector3 {
-                        x: pose[0],
-                        y: pose[1],
-                        z: 0.0,
-                    }),
-                    orientation: Some(yaw_quaternion(pose[2])),
-                }),
-            };
-            self.fox(pose_ch, t_ns, &msg)?;
-            let tf = FrameTransform {
-                timestamp: Some(ns_stamp(t_ns)),
-                parent_frame_id: "world".to_string(),
-                child_frame_id: child.to_string(),
-                translation: Some(Vector3 {
-                    x: pose[0],
-                    y: pose[1],
-                    z: 0.0,
-                }),
-                rotation: Some(yaw_quaternion(pose[2])),
-            };
-            self.fox(CHANNELS.tf, t_ns, &tf)?;
-        }
-        Ok(())
+        let index = self.batch.poses.len() as u32;
+        self.batch.poses.push([odom, truth]);
+        self.push(Event::Poses { t_ns, index }, t_ns, 4)
     }
 
     /// Logs a text line (state change, fault) at `level` (foxglove: 1 debug, 2 info, 3 warning,
     /// 4 error).
     ///
     /// # Errors
-    /// [`LogError`] if the write fails.
+    /// [`LogError`] if writing the log failed.
     pub fn text(&mut self, t_ns: u64, level: i32, message: &str) -> Result<(), LogError> {
-        let msg = Log {
-            timestamp: Some(ns_stamp(t_ns)),
-            level,
-            message: message.to_string(),
-            name: "firmware".to_string(),
-            file: String::new(),
-            line: 0,
-        };
-        self.fox(CHANNELS.log, t_ns, &msg)
+        let index = self.batch.texts.len() as u32;
+        self.batch.texts.push(message.to_string());
+        self.push(Event::Text { t_ns, level, index }, t_ns, 1)
     }
 
-    /// Closes the open chunk and hands it to the writing thread if a quarter of a second of
-    /// log time, or half a second of wall-clock time, has passed since a chunk was last closed
-    /// (see [Crash safety](self#crash-safety)). Call it after each step's messages, at least
-    /// every few milliseconds of log time: it reads the wall clock only on every 64th call.
+    /// Hands the messages logged so far to the writing thread if a quarter of a second of log
+    /// time, or half a second of wall-clock time, has passed since the last hand-over (see
+    /// [Crash safety](self#crash-safety)). Call it after each step's messages, at least every
+    /// few milliseconds of log time: it reads the wall clock only on every 64th call.
     ///
     /// # Errors
-    /// [`LogError`] if writing a chunk failed (this one's predecessor, or an earlier one).
+    /// [`LogError`] if writing the log failed (the previous batch, or an earlier one).
     pub fn maybe_flush(&mut self) -> Result<(), LogError> {
         self.flush_calls += 1;
         let log_due = self.last_log_ns.saturating_sub(self.flushed_log_ns) >= FLUSH_LOG_INTERVAL_NS;
         let wall_due = || self.last_flush.elapsed() >= FLUSH_WALL_INTERVAL;
         if log_due || (self.flush_calls.is_multiple_of(CALLS_PER_CLOCK_READ) && wall_due()) {
-            self.close_chunk()?;
+            self.hand_over()?;
         }
         Ok(())
     }
 
-    /// Messages written so far.
+    /// Messages logged so far.
     #[must_use]
     pub const fn messages(&self) -> u64 {
         self.messages
@@ -694,22 +554,22 @@ impl McapLog {
     /// Writes the summary and closes the file.
     ///
     /// # Errors
-    /// [`LogError`] if the write fails.
+    /// [`LogError`] if writing the log failed.
     pub fn finish(mut self) -> Result<(), LogError> {
         self.close()
     }
 
-    /// Writes the open chunk, waits for the writing thread to end, then writes the Data End
-    /// record, the summary section and the Footer. Does nothing the second time.
+    /// Hands over the last batch, waits for the writing thread to end, then writes the Data
+    /// End record, the summary section and the Footer. Does nothing the second time.
     fn close(&mut self) -> Result<(), LogError> {
         if self.writer.is_none() {
             return Ok(());
         }
-        let closed = self.close_chunk();
+        let handed = self.hand_over();
         let Some(mut writer) = self.writer.take() else {
-            return closed;
+            return handed;
         };
-        closed?;
+        handed?;
         let mut sink = writer.finish().map_err(|e| self.io_err(e))?;
         let tail = self.tail(&sink);
         sink.out
@@ -726,23 +586,24 @@ impl McapLog {
         });
         let base = sink.len;
         let summary_start = tail.len();
+        let stats = &sink.stats;
         let mut statistics = Vec::new();
         write::record(&mut statistics, op::STATISTICS, |out| {
-            out.extend_from_slice(&self.messages.to_le_bytes());
+            out.extend_from_slice(&stats.messages.to_le_bytes());
             out.extend_from_slice(&7u16.to_le_bytes()); // schemas
             out.extend_from_slice(&u32::from(LAST_CHANNEL).to_le_bytes());
             out.extend_from_slice(&0u32.to_le_bytes()); // attachments
             out.extend_from_slice(&1u32.to_le_bytes()); // metadata
             out.extend_from_slice(&sink.chunks.to_le_bytes());
-            let (first, last) = if self.messages == 0 {
+            let (first, last) = if stats.messages == 0 {
                 (0, 0)
             } else {
-                (self.first_log_ns, self.last_log_ns)
+                (stats.first_ns, stats.last_ns)
             };
             out.extend_from_slice(&first.to_le_bytes());
             out.extend_from_slice(&last.to_le_bytes());
             let counts: Vec<(u16, u64)> = (0..=LAST_CHANNEL)
-                .map(|c| (c, self.counts[usize::from(c)]))
+                .map(|c| (c, stats.counts[usize::from(c)]))
                 .filter(|&(_, n)| n > 0)
                 .collect();
             out.extend_from_slice(&((counts.len() * 10) as u32).to_le_bytes());
@@ -826,13 +687,13 @@ mod tests {
         CanFrame::standard(id, &[b[0], b[1], b[2], 7, 0, 255, 100, 9]).unwrap()
     }
 
-    /// Logs `steps` milliseconds of every kind of message.
-    fn log_steps(log: &mut McapLog, steps: u64) -> Result<(), LogError> {
+    /// Logs milliseconds `steps` of every kind of message (13.6 a millisecond).
+    fn log_steps(log: &mut McapLog, steps: std::ops::Range<u64>) -> Result<(), LogError> {
         let snapshot = firmware::Controller::new(&firmware::Config::dji_m3508_example())
             .unwrap()
             .snapshot();
         let drive = firmware::Config::dji_m3508_example().drive;
-        for i in 0..steps {
+        for i in steps {
             let t = i * 1_000_000;
             for k in 0..4 {
                 let f = frame(i * 4 + k);
@@ -864,7 +725,7 @@ mod tests {
     fn a_log_reads_back_with_its_indexes_and_summary() {
         let file = TempFile::new("indexes");
         let mut log = McapLog::create_with_chunk_size(&file.0, &BTreeMap::new(), 64 << 10).unwrap();
-        log_steps(&mut log, 1500).unwrap();
+        log_steps(&mut log, 0..1500).unwrap();
         let written = log.messages();
         log.finish().unwrap();
         let bytes = std::fs::read(&file.0).unwrap();
@@ -953,7 +814,7 @@ mod tests {
         let (a, b) = (TempFile::new("same-a"), TempFile::new("same-b"));
         for file in [&a, &b] {
             let mut log = McapLog::create(&file.0, &BTreeMap::new()).unwrap();
-            log_steps(&mut log, 1200).unwrap();
+            log_steps(&mut log, 0..1200).unwrap();
             log.finish().unwrap();
         }
         // Chunks close on log time here, long before the half second of wall-clock time.
@@ -996,15 +857,15 @@ mod tests {
                 panic: false,
             },
         );
-        let err = log_steps(&mut log, 10_000).unwrap_err();
+        let err = log_steps(&mut log, 0..10_000).unwrap_err();
         let LogError::Io { path: p, source } = &err;
         assert_eq!(p, path);
         assert_eq!(source.kind(), io::ErrorKind::StorageFull, "{err}");
-        // Found within a chunk or two of the failed write (100 kB hold some 3,000 messages
-        // here), not at the end of the run.
-        assert!(log.messages() < 400 * 23, "{}", log.messages());
-        // Every later write that reaches the file fails too, and so does finishing.
-        let err = log_steps(&mut log, 1000).unwrap_err();
+        // Found at the hand-over after the batch whose write failed (100 kB hold some 3,000
+        // messages here, a batch is 250 ms or 3,400 messages), not at the end of the run.
+        assert!(log.messages() < 1000 * 14, "{}", log.messages());
+        // Every later hand-over fails too, and so does finishing.
+        let err = log_steps(&mut log, 20_000..21_000).unwrap_err();
         assert!(err.to_string().contains("an earlier write failed"), "{err}");
         let LogError::Io { path: p, source } = log.finish().unwrap_err();
         assert_eq!(
@@ -1023,7 +884,7 @@ mod tests {
                 panic: true,
             },
         );
-        let err = log_steps(&mut log, 10_000).unwrap_err();
+        let err = log_steps(&mut log, 0..10_000).unwrap_err();
         assert!(
             err.to_string().contains("writer thread has stopped"),
             "{err}"
@@ -1037,7 +898,7 @@ mod tests {
                 panic: true,
             },
         );
-        let _ = log_steps(&mut log, 100);
+        let _ = log_steps(&mut log, 0..100);
         drop(log);
     }
 }
