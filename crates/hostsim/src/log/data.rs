@@ -1,7 +1,8 @@
 //! Message data of the channels other than `/can/*` (see [`json`](super::json) for those),
-//! built by the writing thread from the values the simulation's thread recorded.
+//! built by the writing thread from the values the simulation's thread recorded. The JSON is
+//! the text `write!` gave (numbers as `Display` writes them), without `core::fmt` for the
+//! numbers.
 
-use std::fmt;
 use std::io::Write;
 
 use firmware::control::Snapshot;
@@ -9,78 +10,100 @@ use firmware::protocol::{dji, odrive};
 use foxglove::Encode;
 use foxglove::schemas::{FrameTransform, Log, PoseInFrame, Quaternion, Timestamp, Vector3};
 
-/// Four numbers as a JSON array, formatted in place (no `String` per array).
-struct JsonArray<'a>(&'a [f32; 4]);
+use super::json::{push_f32, push_i64, push_u64};
 
-impl fmt::Display for JsonArray<'_> {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let [a, b, c, d] = self.0;
-        write!(f, "[{a},{b},{c},{d}]")
+/// Appends `[a,b,c,d]`.
+fn push_array(buf: &mut Vec<u8>, values: &[f32; 4]) {
+    let mut sep = b'[';
+    for &v in values {
+        buf.push(sep);
+        push_f32(buf, v);
+        sep = b',';
     }
+    buf.push(b']');
 }
 
 /// `/firmware/snapshot`.
 pub(super) fn snapshot(buf: &mut Vec<u8>, s: &Snapshot) {
-    let _ = write!(
-        buf,
-        r#"{{"state":"{:?}","fault":"{:?}","commanded":{{"vx":{},"vy":{},"wz":{}}},"measured":{{"vx":{},"vy":{},"wz":{}}},"wheel_setpoints":{},"wheel_speeds":{},"currents":{},"motors_online":{},"rx_errors":{},"unknown_ids":{}}}"#,
-        s.state,
-        s.fault,
-        s.commanded.vx,
-        s.commanded.vy,
-        s.commanded.wz,
-        s.measured.vx,
-        s.measured.vy,
-        s.measured.wz,
-        JsonArray(&s.wheel_setpoints.0),
-        JsonArray(&s.wheel_speeds.0),
-        JsonArray(&s.currents),
-        s.motors_online,
-        s.rx_errors.total() - s.rx_errors.unknown_id,
-        s.rx_errors.unknown_id,
-    );
+    let _ = write!(buf, r#"{{"state":"{:?}","fault":"{:?}""#, s.state, s.fault);
+    for (name, v) in [("commanded", &s.commanded), ("measured", &s.measured)] {
+        buf.extend_from_slice(b",\"");
+        buf.extend_from_slice(name.as_bytes());
+        buf.extend_from_slice(br#"":{"vx":"#);
+        push_f32(buf, v.vx);
+        buf.extend_from_slice(br#","vy":"#);
+        push_f32(buf, v.vy);
+        buf.extend_from_slice(br#","wz":"#);
+        push_f32(buf, v.wz);
+        buf.push(b'}');
+    }
+    buf.extend_from_slice(br#","wheel_setpoints":"#);
+    push_array(buf, &s.wheel_setpoints.0);
+    buf.extend_from_slice(br#","wheel_speeds":"#);
+    push_array(buf, &s.wheel_speeds.0);
+    buf.extend_from_slice(br#","currents":"#);
+    push_array(buf, &s.currents);
+    buf.extend_from_slice(br#","motors_online":"#);
+    push_u64(buf, u64::from(s.motors_online));
+    buf.extend_from_slice(br#","rx_errors":"#);
+    push_u64(buf, u64::from(s.rx_errors.total() - s.rx_errors.unknown_id));
+    buf.extend_from_slice(br#","unknown_ids":"#);
+    push_u64(buf, u64::from(s.rx_errors.unknown_id));
+    buf.push(b'}');
 }
 
 /// `/motors/feedback` of a DJI drive.
 pub(super) fn dji_feedback(buf: &mut Vec<u8>, f: &dji::Feedback) {
-    let _ = write!(
-        buf,
-        r#"{{"protocol":"dji","id":{},"rotor_angle":{},"rotor_speed_rpm":{},"current_a":{},"temperature_c":{}}}"#,
-        f.esc.get(),
-        f.rotor_angle,
-        f.rotor_speed_rpm,
-        f.current_amps(),
-        f.temperature_c
-    );
+    buf.extend_from_slice(br#"{"protocol":"dji","id":"#);
+    push_u64(buf, u64::from(f.esc.get()));
+    buf.extend_from_slice(br#","rotor_angle":"#);
+    push_u64(buf, u64::from(f.rotor_angle));
+    buf.extend_from_slice(br#","rotor_speed_rpm":"#);
+    push_i64(buf, i64::from(f.rotor_speed_rpm));
+    buf.extend_from_slice(br#","current_a":"#);
+    push_f32(buf, f.current_amps());
+    buf.extend_from_slice(br#","temperature_c":"#);
+    push_u64(buf, u64::from(f.temperature_c));
+    buf.push(b'}');
 }
 
 /// `/motors/feedback` of an ODrive.
 pub(super) fn odrive_feedback(buf: &mut Vec<u8>, a: &odrive::Addressed<odrive::Feedback>) {
-    let id = a.node.get();
-    let _ = match a.msg {
-        odrive::Feedback::EncoderEstimates { pos, vel } => write!(
-            buf,
-            r#"{{"protocol":"odrive","id":{id},"pos_rev":{pos},"vel_rev_s":{vel}}}"#
-        ),
-        odrive::Feedback::Heartbeat(h) => write!(
-            buf,
-            r#"{{"protocol":"odrive","id":{id},"axis_error":{},"axis_state":"{:?}"}}"#,
-            h.axis_error, h.axis_state
-        ),
-        odrive::Feedback::Error { active_errors, .. } => write!(
-            buf,
-            r#"{{"protocol":"odrive","id":{id},"axis_error":{active_errors}}}"#
-        ),
-    };
+    buf.extend_from_slice(br#"{"protocol":"odrive","id":"#);
+    push_u64(buf, u64::from(a.node.get()));
+    match a.msg {
+        odrive::Feedback::EncoderEstimates { pos, vel } => {
+            buf.extend_from_slice(br#","pos_rev":"#);
+            push_f32(buf, pos);
+            buf.extend_from_slice(br#","vel_rev_s":"#);
+            push_f32(buf, vel);
+        }
+        odrive::Feedback::Heartbeat(h) => {
+            buf.extend_from_slice(br#","axis_error":"#);
+            push_u64(buf, u64::from(h.axis_error));
+            let _ = write!(buf, r#","axis_state":"{:?}""#, h.axis_state);
+        }
+        odrive::Feedback::Error { active_errors, .. } => {
+            buf.extend_from_slice(br#","axis_error":"#);
+            push_u64(buf, u64::from(active_errors));
+        }
+    }
+    buf.push(b'}');
 }
 
 /// `/cmd/twist`.
 pub(super) fn twist(buf: &mut Vec<u8>, twist: [f32; 3], streaming: bool) {
-    let _ = write!(
-        buf,
-        r#"{{"vx":{},"vy":{},"wz":{},"streaming":{}}}"#,
-        twist[0], twist[1], twist[2], streaming
-    );
+    buf.extend_from_slice(br#"{"vx":"#);
+    push_f32(buf, twist[0]);
+    buf.extend_from_slice(br#","vy":"#);
+    push_f32(buf, twist[1]);
+    buf.extend_from_slice(br#","wz":"#);
+    push_f32(buf, twist[2]);
+    buf.extend_from_slice(if streaming {
+        br#","streaming":true}"#
+    } else {
+        br#","streaming":false}"#
+    });
 }
 
 fn ns_stamp(t_ns: u64) -> Timestamp {
