@@ -218,6 +218,13 @@ impl<T: Real> Pose2<T> {
                 heading: wrap_angle(self.heading + twist.dtheta),
             };
         }
+        self.exp_arc(twist)
+    }
+
+    /// [`exp`](Self::exp) by the closed form: kept out of line, so that inlining `exp` only
+    /// brings the zero-step test into the caller.
+    #[inline(never)]
+    fn exp_arc(self, twist: Twist2<T>) -> Self {
         let half = twist.dtheta * T::lit(0.5);
         let (sin_mid, cos_mid) = (self.heading + half).sin_cos_libm();
         let sinc_half = if half.abs() < T::lit(1e-3) {
