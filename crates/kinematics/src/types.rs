@@ -223,6 +223,7 @@ impl<T: Real> Pose2<T> {
 
     /// [`exp`](Self::exp) by the closed form: kept out of line, so that inlining `exp` only
     /// brings the zero-step test into the caller.
+    #[inline(never)]
     fn exp_arc(self, twist: Twist2<T>) -> Self {
         let half = twist.dtheta * T::lit(0.5);
         let (sin_mid, cos_mid) = (self.heading + half).sin_cos_libm();
