@@ -202,9 +202,14 @@ const MAX_BATCH_EVENTS: usize = 1 << 16;
 /// second, about 600 kB) first.
 pub const CHUNK_SIZE: u64 = 1 << 20;
 
-/// zstd level of the chunks (the level the `mcap` crate's writer was given before this
-/// writer replaced it).
-pub const ZSTD_LEVEL: i32 = 1;
+/// zstd level of the chunks: -3, one of zstd's fast (negative) levels. Measured on the
+/// chunks of the 60 s square (600 kB each, fastest of 12 passes per chunk): level 1
+/// compresses them 13.0x at 1.0 GB/s, -1 11.7x at the same speed, -2 9.9x at 1.17 GB/s, -3
+/// 9.6x at 1.35 GB/s, -5 8.0x no faster, 3 13.0x at 0.78 GB/s. On the writing thread, the
+/// busier of the two, -3 saves about 0.04 s of the 60 s square (the run's median wall time
+/// 7 % lower than at level 1) for a file 17.5 % larger (26.3 MB against 22.3 MB, of which
+/// 11 MB are the uncompressed message indexes). Level 1 is the choice where size matters more.
+pub const ZSTD_LEVEL: i32 = -3;
 
 /// Where a log is written until its header is on disk: `NAME.mcap.part` for `NAME.mcap`.
 #[must_use]

@@ -8,8 +8,9 @@
 //! numbering them; closes a chunk whenever its records reach the chunk size, and at the end
 //! of the batch; computes each chunk's CRC, compresses it with zstd and appends the Chunk
 //! record and its Message Index records to the file in one write; and keeps the statistics
-//! and the Chunk Index records for the summary section. At most one batch is in flight:
-//! [`BatchWriter::send`] hands a batch over and waits until the previous one is in the file.
+//! and the Chunk Index records for the summary section. [`BatchWriter::send`] hands a batch
+//! over, then waits until the one before it is in the file: at most two batches are missing
+//! from the file, the one handed over and the one being logged.
 
 use std::collections::BTreeMap;
 use std::io::{self, Write};
