@@ -387,7 +387,7 @@ mod tests {
 
     #[test]
     fn display_f32_matches_core_fmt_on_a_sample() {
-        // Every 997th bit pattern (a prime step: all exponents, varied mantissas, both signs),
+        // Every 4093rd bit pattern (a prime step: all exponents, varied mantissas, both signs),
         // and the edges: zeros, subnormals, the extremes, infinities, NaN, round numbers.
         let mut special = vec![0, 0x8000_0000, 1, 0x8000_0001, 0x007f_ffff, 0x0080_0000];
         special.extend([
@@ -411,8 +411,8 @@ mod tests {
         ] {
             special.extend([v.to_bits(), (-v).to_bits()]);
         }
-        let n = check_f32(special.into_iter().chain((0..=u32::MAX).step_by(997)));
-        assert!(n > 4_000_000);
+        let n = check_f32(special.into_iter().chain((0..=u32::MAX).step_by(4093)));
+        assert!(n > 1_000_000);
         let mut buf = Vec::new();
         for (n, text) in [(0i64, "0"), (-1, "-1"), (i64::MIN, "-9223372036854775808")] {
             buf.clear();
