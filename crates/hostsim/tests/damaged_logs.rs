@@ -386,7 +386,8 @@ fn replay_of_a_cut_log_is_bit_identical_up_to_the_cut_and_summary_reports_it() {
     let fx = fixture();
     let dir = TempDir::new("replay");
     let mut rng = Lcg(3);
-    // After the first chunk (schemas and channels) comes the metadata with the configuration.
+    // Schemas, channels and the metadata with the configuration precede the chunks; the cuts
+    // start in the second chunk, so that every cut log keeps some messages to replay.
     let mut cuts: Vec<usize> = fx
         .chunks
         .iter()
