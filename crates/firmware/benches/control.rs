@@ -29,10 +29,16 @@ fn feedback(esc: u8, angle: u16, rpm: i16) -> CanFrame {
     .to_can_frame()
 }
 
-fn bench(c: &mut Criterion) {
-    let config = Config::dji_m3508_example();
-    let mut ctl = Controller::new(&config).unwrap();
-    let mut t = 0u64;
+/// A controller on `config` that has seen `first` (one message of each motor) at t = 0,
+/// stepped once and enabled; and the twist frame the benches keep sending.
+fn enabled(config: &Config, first: &[CanFrame]) -> (Controller, CanFrame) {
+    let mut ctl = Controller::new(config).unwrap();
+    let t0 = Instant::from_micros(0);
+    for frame in first {
+        ctl.on_frame(t0, frame);
+    }
+    ctl.step(t0);
+    ctl.on_frame(t0, &Command::Mode(ModeRequest::Enable).to_can_frame());
     let twist = Command::Twist(TwistCmd {
         vx: 0.8,
         vy: -0.3,
@@ -40,14 +46,13 @@ fn bench(c: &mut Criterion) {
         seq: 0,
     })
     .to_can_frame();
-    for esc in 1..=4 {
-        ctl.on_frame(Instant::from_micros(t), &feedback(esc, 0, 0));
-    }
-    ctl.step(Instant::from_micros(t));
-    ctl.on_frame(
-        Instant::from_micros(t),
-        &Command::Mode(ModeRequest::Enable).to_can_frame(),
-    );
+    (ctl, twist)
+}
+
+fn bench(c: &mut Criterion) {
+    let first: Vec<CanFrame> = (1..=4).map(|esc| feedback(esc, 0, 0)).collect();
+    let (mut ctl, twist) = enabled(&Config::dji_m3508_example(), &first);
+    let mut t = 0u64;
     let mut angle = [0u16; 4];
     let rpm = [2400i16, -2600, 2100, -2300];
     c.bench_function("control_step_4_wheels_dji", |b| {
@@ -80,25 +85,11 @@ fn heartbeat(node: u8) -> CanFrame {
 }
 
 fn bench_odrive(c: &mut Criterion) {
-    let config = Config::odrive_example();
-    let mut ctl = Controller::new(&config).unwrap();
+    let first: Vec<CanFrame> = (0..4)
+        .flat_map(|node| [heartbeat(node), estimates(node, 0.0, 0.0)])
+        .collect();
+    let (mut ctl, twist) = enabled(&Config::odrive_example(), &first);
     let mut t = 0u64;
-    let twist = Command::Twist(TwistCmd {
-        vx: 0.8,
-        vy: -0.3,
-        wz: 0.5,
-        seq: 0,
-    })
-    .to_can_frame();
-    for node in 0..4 {
-        ctl.on_frame(Instant::from_micros(t), &heartbeat(node));
-        ctl.on_frame(Instant::from_micros(t), &estimates(node, 0.0, 0.0));
-    }
-    ctl.step(Instant::from_micros(t));
-    ctl.on_frame(
-        Instant::from_micros(t),
-        &Command::Mode(ModeRequest::Enable).to_can_frame(),
-    );
     let mut step = 0u64;
     let mut pos = [0f32; 4];
     let vel = [2.5f32, -2.7, 2.2, -2.4];
