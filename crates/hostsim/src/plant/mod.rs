@@ -514,17 +514,21 @@ impl<D: Drive> Plant<D> {
 }
 
 /// The largest divisor of 1 ms not above `substep` seconds (at least 1 ns).
-/// `x.round()` (half away from zero) without the libm call that the baseline x86-64 target
-/// makes of it: the integer part by truncation, then the fraction, which is exact below 2⁵².
-/// Larger, infinite and NaN inputs are returned as they are (already integral, or NaN).
-pub(crate) fn round(x: f64) -> f64 {
+/// `x.trunc()` by an integer conversion (the baseline x86-64 target makes a libm call of
+/// `trunc`, `round` and `floor`), for `|x| < 2⁵²`, where it is exact; `None` for larger,
+/// infinite and NaN inputs (already integral, or NaN).
+fn trunc_exact(x: f64) -> Option<f64> {
     const EXACT: f64 = 4_503_599_627_370_496.0; // 2^52
-    if x.is_nan() || x.abs() >= EXACT {
-        return x;
-    }
-    // |x| < 2^52: the truncation fits an i64 and the difference is exact.
+    // Below 2^52 the truncation fits an i64 and converts back exactly; above, `as`
+    // saturates and the value is dropped.
     #[allow(clippy::cast_possible_truncation, clippy::cast_precision_loss)]
-    let t = x as i64 as f64;
+    (x.abs() < EXACT).then_some(x as i64 as f64)
+}
+
+/// `x.round()` (half away from zero) without the libm call: the truncation, then the
+/// fraction, which is exact below 2⁵².
+pub(crate) fn round(x: f64) -> f64 {
+    let Some(t) = trunc_exact(x) else { return x };
     let frac = x - t;
     if frac >= 0.5 {
         t + 1.0
@@ -537,13 +541,7 @@ pub(crate) fn round(x: f64) -> f64 {
 
 /// `x.floor()` without the libm call, on the same terms as [`round`].
 pub(crate) fn floor(x: f64) -> f64 {
-    const EXACT: f64 = 4_503_599_627_370_496.0; // 2^52
-    if x.is_nan() || x.abs() >= EXACT {
-        return x;
-    }
-    // |x| < 2^52: the truncation fits an i64 and is exact.
-    #[allow(clippy::cast_possible_truncation, clippy::cast_precision_loss)]
-    let t = x as i64 as f64;
+    let Some(t) = trunc_exact(x) else { return x };
     if t > x { t - 1.0 } else { t }
 }
 
