@@ -510,37 +510,50 @@ struct Counters {
     frames_sent: u64,
     send_retries: u64,
     send_errors: u64,
-    first_error: Option<String>,
-    last_error: Option<String>,
+    errors: ErrorLog,
 }
 
-impl Counters {
-    fn error(&mut self, what: fmt::Arguments<'_>, e: &io::Error) {
-        let message = format!("{what}: {e}");
-        if self.first_error.is_none() {
-            self.first_error = Some(message.clone());
+/// The first and the last I/O error of a loop, as log lines (`send 0x200: No buffer space
+/// available`): what a report shows, in constant memory however many errors there were.
+#[derive(Debug, Default, Clone, PartialEq, Eq)]
+pub struct ErrorLog {
+    /// The first error.
+    pub first: Option<String>,
+    /// The last error.
+    pub last: Option<String>,
+}
+
+impl ErrorLog {
+    /// Records `what: error`.
+    pub fn record(&mut self, what: fmt::Arguments<'_>, error: &io::Error) {
+        let message = format!("{what}: {error}");
+        if self.first.is_none() {
+            self.first = Some(message.clone());
         }
-        self.last_error = Some(message);
+        self.last = Some(message);
     }
 }
 
-/// The id of a frame for a log line (`0x200`, `0x12345678`).
-fn id_of(frame: &CanFrame) -> String {
+/// The id of a frame for a log line: `0x200` (standard), `0x12345678` (extended).
+pub fn id_text(frame: &CanFrame) -> String {
     match frame.id() {
         embedded_can::Id::Standard(id) => format!("{:#05x}", id.as_raw()),
         embedded_can::Id::Extended(id) => format!("{:#010x}", id.as_raw()),
     }
 }
 
-/// Sends one frame, retrying busy errors every `backoff_us` while the clock is before
-/// `give_up_us` (at least one attempt is always made).
-fn send_with_retry<B: Bus, C: Clock>(
+/// Sends one frame, retrying busy errors ([`is_busy`]) every `backoff_us` while the clock is
+/// before `give_up_us` (at least one attempt is always made); adds the retries to `retries`.
+///
+/// # Errors
+/// The last busy error once the clock has reached `give_up_us`, or the first other error.
+pub fn send_with_retry<B: Bus, C: Clock>(
     bus: &mut B,
     clock: &C,
     frame: &CanFrame,
     give_up_us: u64,
     backoff_us: u64,
-    counters: &mut Counters,
+    retries: &mut u64,
 ) -> io::Result<()> {
     loop {
         match bus.send(frame) {
@@ -550,7 +563,7 @@ fn send_with_retry<B: Bus, C: Clock>(
                 if now.saturating_add(backoff_us) > give_up_us {
                     return Err(e);
                 }
-                counters.send_retries += 1;
+                *retries += 1;
                 clock.sleep_until(now + backoff_us.max(1));
             }
             Err(e) => return Err(e),
@@ -637,7 +650,7 @@ pub fn run<B: Bus, C: Clock>(
                 Ok(None) => break,
                 Err(e) => {
                     counters.rx_errors += 1;
-                    counters.error(format_args!("receive"), &e);
+                    counters.errors.record(format_args!("receive"), &e);
                     break;
                 }
             }
@@ -656,12 +669,14 @@ pub fn run<B: Bus, C: Clock>(
                 frame,
                 give_up,
                 options.retry_backoff_us,
-                &mut counters,
+                &mut counters.send_retries,
             ) {
                 Ok(()) => counters.frames_sent += 1,
                 Err(e) => {
                     counters.send_errors += 1;
-                    counters.error(format_args!("send {}", id_of(frame)), &e);
+                    counters
+                        .errors
+                        .record(format_args!("send {}", id_text(frame)), &e);
                 }
             }
         }
@@ -682,10 +697,12 @@ pub fn run<B: Bus, C: Clock>(
             frame,
             give_up,
             options.retry_backoff_us,
-            &mut counters,
+            &mut counters.send_retries,
         ) {
             Ok(()) => sent += 1,
-            Err(e) => counters.error(format_args!("shutdown send {}", id_of(frame)), &e),
+            Err(e) => counters
+                .errors
+                .record(format_args!("shutdown send {}", id_text(frame)), &e),
         }
     }
     let after = controller.snapshot();
@@ -703,8 +720,8 @@ pub fn run<B: Bus, C: Clock>(
         frames_sent: counters.frames_sent,
         send_retries: counters.send_retries,
         send_errors: counters.send_errors,
-        first_error: counters.first_error,
-        last_error: counters.last_error,
+        first_error: counters.errors.first,
+        last_error: counters.errors.last,
         jitter: jitter.summary(),
         step_time: step_time.summary(),
         shutdown: ShutdownReport {
@@ -851,7 +868,7 @@ impl Bus for SocketCanBus {
         let frame: socketcan::CanFrame = frame.convert().ok_or_else(|| {
             io::Error::new(
                 io::ErrorKind::InvalidInput,
-                format!("socketcan rejected frame {}", id_of(frame)),
+                format!("socketcan rejected frame {}", id_text(frame)),
             )
         })?;
         self.socket.write_frame(&frame)

@@ -45,9 +45,10 @@ use std::io;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 
-use embedded_can::{Frame, Id};
 use firmware::CanFrame;
-use firmware::linux::{Bus, Clock, LatencyHistogram, LatencySummary, StopReason, is_busy};
+use firmware::linux::{
+    Bus, Clock, ErrorLog, LatencyHistogram, LatencySummary, StopReason, id_text, send_with_retry,
+};
 use serde::Serialize;
 
 use firmware::protocol::robot;
@@ -243,56 +244,6 @@ impl Drop for VirtualClockHandle {
 // ---------------------------------------------------------------------------------------------
 // Shared helpers
 
-/// Error bookkeeping of a loop.
-#[derive(Debug, Default)]
-struct Errors {
-    first: Option<String>,
-    last: Option<String>,
-}
-
-impl Errors {
-    fn record(&mut self, what: fmt::Arguments<'_>, e: &io::Error) {
-        let message = format!("{what}: {e}");
-        if self.first.is_none() {
-            self.first = Some(message.clone());
-        }
-        self.last = Some(message);
-    }
-}
-
-fn id_text(frame: &CanFrame) -> String {
-    match frame.id() {
-        Id::Standard(id) => format!("{:#05x}", id.as_raw()),
-        Id::Extended(id) => format!("{:#010x}", id.as_raw()),
-    }
-}
-
-/// Sends `frame`, retrying busy errors every `backoff_us` while the clock is before
-/// `give_up_us` (one attempt at least); counts the retries.
-fn send_retrying<B: Bus, C: Clock>(
-    bus: &mut B,
-    clock: &C,
-    frame: &CanFrame,
-    give_up_us: u64,
-    backoff_us: u64,
-    retries: &mut u64,
-) -> io::Result<()> {
-    loop {
-        match bus.send(frame) {
-            Ok(()) => return Ok(()),
-            Err(e) if is_busy(&e) => {
-                let now = clock.now_micros();
-                if now.saturating_add(backoff_us) > give_up_us {
-                    return Err(e);
-                }
-                *retries += 1;
-                clock.sleep_until(now + backoff_us.max(1));
-            }
-            Err(e) => return Err(e),
-        }
-    }
-}
-
 fn stop_requested(stop: &AtomicUsize) -> Option<usize> {
     match stop.load(Ordering::Relaxed) {
         0 => None,
@@ -483,7 +434,7 @@ pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
 ) -> PlantReport {
     let period = options.period_us.max(1);
     let dt = period as f64 * 1e-6;
-    let mut errors = Errors::default();
+    let mut errors = ErrorLog::default();
     let mut jitter = LatencyHistogram::new();
     let (mut ticks, mut overruns, mut received, mut rx_errors, mut capped) = (0, 0, 0, 0, 0);
     let (mut sent, mut retries, mut send_errors) = (0, 0, 0);
@@ -559,7 +510,7 @@ pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
         plant.feedback(sim_us * 1000, &mut feedback);
         let give_up = deadline.max(woke).saturating_add(period / 2);
         for (_, frame) in &feedback {
-            match send_retrying(
+            match send_with_retry(
                 bus,
                 clock,
                 frame,
@@ -796,7 +747,7 @@ pub fn play_frames<B: Bus, C: Clock>(
     };
     let t_first = frames.first().map_or(0, |f| f.t_ns);
     let t_last = frames.last().map_or(0, |f| f.t_ns);
-    let mut errors = Errors::default();
+    let mut errors = ErrorLog::default();
     let mut lateness = LatencyHistogram::new();
     let (mut sent, mut failed, mut retries) = (0, 0, 0);
     let mut stopped_by = None;
@@ -816,7 +767,7 @@ pub fn play_frames<B: Bus, C: Clock>(
         let now = clock.now_micros();
         lateness.record(now.saturating_sub(due));
         let give_up = now.max(due).saturating_add(options.give_up_us);
-        match send_retrying(
+        match send_with_retry(
             bus,
             clock,
             &f.frame,
