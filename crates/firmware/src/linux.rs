@@ -501,6 +501,39 @@ impl fmt::Display for Report {
     }
 }
 
+/// Installs the stop signals a runner honours and returns the flag [`run`] polls:
+///
+/// - the first SIGINT or SIGTERM stores its number in the flag, so the loop ends cleanly at
+///   the next step (and sends its shutdown frames);
+/// - a second one while the flag is set exits the process at once with status 1 (for a
+///   loop that does not stop).
+///
+/// (signal-hook runs the actions in registration order: the exit checks the `stopping` flag
+/// before the same signal sets it.) Call it once per process, before the bus is opened.
+///
+/// # Errors
+/// The OS refused a handler; the message names the signal.
+pub fn stop_on_signals() -> io::Result<std::sync::Arc<AtomicUsize>> {
+    use signal_hook::consts::{SIGINT, SIGTERM};
+    use std::sync::Arc;
+    use std::sync::atomic::AtomicBool;
+    let stop = Arc::new(AtomicUsize::new(0));
+    let stopping = Arc::new(AtomicBool::new(false));
+    for signal in [SIGINT, SIGTERM] {
+        let number = usize::try_from(signal).unwrap_or(1);
+        signal_hook::flag::register_conditional_shutdown(signal, 1, Arc::clone(&stopping))
+            .and_then(|_| signal_hook::flag::register(signal, Arc::clone(&stopping)))
+            .and_then(|_| signal_hook::flag::register_usize(signal, Arc::clone(&stop), number))
+            .map_err(|e| {
+                io::Error::new(
+                    e.kind(),
+                    format!("cannot install the handler of signal {signal}: {e}"),
+                )
+            })?;
+    }
+    Ok(stop)
+}
+
 /// Counters the loop keeps.
 #[derive(Default)]
 struct Counters {
@@ -1420,5 +1453,15 @@ mod tests {
             // A past deadline returns at once.
             c.sleep_until(0);
         }
+    }
+
+    /// The only test in this process that installs the handlers or raises a signal: a
+    /// second SIGTERM would end the test binary, by design.
+    #[test]
+    fn the_first_stop_signal_sets_the_flag_to_its_number() {
+        let stop = stop_on_signals().unwrap();
+        assert_eq!(stop.load(Ordering::Relaxed), 0);
+        signal_hook::low_level::raise(signal_hook::consts::SIGTERM).unwrap();
+        assert_eq!(stop.load(Ordering::Relaxed), 15);
     }
 }

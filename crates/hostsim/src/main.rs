@@ -4,8 +4,6 @@ use std::fs::File;
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, AtomicUsize};
 
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand};
@@ -526,22 +524,6 @@ fn flatten(error: anyhow::Error) -> anyhow::Error {
     anyhow::Error::msg(text)
 }
 
-/// SIGINT/SIGTERM store their number in the returned flag; a second one while it is set
-/// exits at once with status 1 (as the firmware runner does).
-fn install_signals() -> Result<Arc<AtomicUsize>> {
-    use signal_hook::consts::{SIGINT, SIGTERM};
-    let stop = Arc::new(AtomicUsize::new(0));
-    let stopping = Arc::new(AtomicBool::new(false));
-    for signal in [SIGINT, SIGTERM] {
-        let number = usize::try_from(signal).unwrap_or(1);
-        signal_hook::flag::register_conditional_shutdown(signal, 1, Arc::clone(&stopping))
-            .and_then(|_| signal_hook::flag::register(signal, Arc::clone(&stopping)))
-            .and_then(|_| signal_hook::flag::register_usize(signal, Arc::clone(&stop), number))
-            .with_context(|| format!("cannot install the handler of signal {signal}"))?;
-    }
-    Ok(stop)
-}
-
 fn replay(
     path: &Path,
     config: Option<&Path>,
@@ -786,7 +768,7 @@ fn play(
     // A corrupt timestamp would make the playback sleep for years.
     hostsim::replay::check_time_gaps(&frames)
         .with_context(|| format!("{}: cannot play", path.display()))?;
-    let stop = install_signals()?;
+    let stop = firmware::linux::stop_on_signals()?;
     let mut bus = SocketCanBus::open(iface)?;
     let clock = MonotonicClock::new(0);
     if !json {
@@ -822,7 +804,7 @@ fn plant(args: &PlantArgs) -> Result<ExitCode> {
     let (config, source) = load_config(args.config.as_deref())?;
     let mut drives = hostsim::drives::SimDrives::new(&config)
         .with_context(|| format!("configuration {source}: the plant cannot model it"))?;
-    let stop = install_signals()?;
+    let stop = firmware::linux::stop_on_signals()?;
     let mut bus = SocketCanBus::open(iface)?;
     // Created before the loop starts, so a bad path fails now and not after a long run.
     let stats = match stats_json {

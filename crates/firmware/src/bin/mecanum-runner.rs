@@ -7,14 +7,13 @@ use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, AtomicUsize};
+use std::sync::atomic::AtomicUsize;
 
 use anyhow::{Context as _, Result};
 use clap::Parser;
 use firmware::config::Drive;
 use firmware::linux::{self, MonotonicClock, Report, RunOptions, SocketCanBus};
 use firmware::{Config, Controller};
-use signal_hook::consts::{SIGINT, SIGTERM};
 
 /// Exit status for a startup error (bad arguments, configuration or interface).
 const EXIT_STARTUP: u8 = 2;
@@ -163,19 +162,9 @@ fn startup(args: &Args) -> Result<Setup> {
     let controller = Controller::new(&config)
         .with_context(|| format!("configuration {source} rejected by the controller"))?;
 
-    // Signals before the socket: from here on SIGINT/SIGTERM stop the loop cleanly. The
-    // first one stores its number in `stop`; a second one while `stop` is set exits at once.
-    // (signal-hook runs the actions in registration order: the exit checks the flag before
-    // the same signal sets it.)
-    let stop = Arc::new(AtomicUsize::new(0));
-    let stopping = Arc::new(AtomicBool::new(false));
-    for signal in [SIGINT, SIGTERM] {
-        let number = usize::try_from(signal).unwrap_or(1);
-        signal_hook::flag::register_conditional_shutdown(signal, 1, Arc::clone(&stopping))
-            .and_then(|_| signal_hook::flag::register(signal, Arc::clone(&stopping)))
-            .and_then(|_| signal_hook::flag::register_usize(signal, Arc::clone(&stop), number))
-            .with_context(|| format!("cannot install the handler of signal {signal}"))?;
-    }
+    // Signals before the socket: from here on SIGINT/SIGTERM stop the loop cleanly (a second
+    // one exits at once).
+    let stop = linux::stop_on_signals()?;
 
     let bus = SocketCanBus::open(&args.iface)?;
 
