@@ -33,6 +33,10 @@ for crate in "${NO_STD_CRATES[@]}"; do
     stage "no_std build: $crate for $THUMB"
     cargo build -p "$crate" --target "$THUMB" --locked
 done
+# The firmware's `serde` feature is no_std too (with `alloc`): a configuration can be
+# deserialized on an MCU that has an allocator.
+stage "no_std build: firmware --features serde for $THUMB"
+cargo build -p firmware --features serde --target "$THUMB" --locked
 
 # The board crate is its own package (not a workspace member, its own Cargo.lock): its
 # commands run from its directory so that its .cargo/config.toml (target, linker script) applies.
