@@ -349,36 +349,6 @@ impl fmt::Display for LatencySummary {
     }
 }
 
-/// The controller's rejected-frame counters, by kind (see [`RxErrorCounters`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
-pub struct RxErrorReport {
-    /// Frames with an id no configured protocol carries.
-    pub unknown_id: u32,
-    /// Frames with an extended id.
-    pub extended_id: u32,
-    /// Remote frames where data was expected.
-    pub remote: u32,
-    /// Frames with a wrong DLC.
-    pub wrong_dlc: u32,
-    /// Frames with a NaN or infinite float.
-    pub non_finite: u32,
-    /// Frames with an out-of-range field.
-    pub out_of_range: u32,
-}
-
-impl From<RxErrorCounters> for RxErrorReport {
-    fn from(c: RxErrorCounters) -> Self {
-        Self {
-            unknown_id: c.unknown_id,
-            extended_id: c.extended_id,
-            remote: c.remote,
-            wrong_dlc: c.wrong_dlc,
-            non_finite: c.non_finite,
-            out_of_range: c.out_of_range,
-        }
-    }
-}
-
 /// The controller as the loop left it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 pub struct ControllerReport {
@@ -394,7 +364,7 @@ pub struct ControllerReport {
     /// Bit i set when wheel i's motor had reported (FL, FR, RL, RR).
     pub motors_online: u8,
     /// Frames the controller rejected, by kind.
-    pub rx_errors: RxErrorReport,
+    pub rx_errors: RxErrorCounters,
 }
 
 /// The shutdown frames and how many went out.
@@ -768,7 +738,7 @@ pub fn run<B: Bus, C: Clock>(
             state_after_shutdown: state_name(&after).0,
             steps: after.steps,
             motors_online: at_stop.motors_online,
-            rx_errors: at_stop.rx_errors.into(),
+            rx_errors: at_stop.rx_errors,
         },
     }
 }

@@ -656,7 +656,7 @@ pub struct CandumpReplay {
     /// The replayed core's pose after its last step.
     pub final_pose: OdometryReading,
     /// Frames the replayed core rejected (malformed, unknown id, ...), by kind.
-    pub rejected: firmware::linux::RxErrorReport,
+    pub rejected: firmware::protocol::RxErrorCounters,
 }
 
 impl CandumpReplay {
@@ -874,7 +874,7 @@ pub fn replay_split(
         first_difference,
         odometry,
         final_pose: reading(last_step_ns, pose, vel),
-        rejected: ctl.snapshot().rx_errors.into(),
+        rejected: ctl.snapshot().rx_errors,
     })
 }
 

@@ -152,7 +152,10 @@ impl core::error::Error for DecodeError {}
 ///
 /// A core calls [`RxErrorCounters::record`] for every error a decoder returns and reports
 /// the totals (the robot protocol's `STATUS` frame carries `rx_errors` and `unknown_ids`).
+/// With the `serde` feature it serializes as an object of the six counts (the runner's
+/// `--stats-json` report).
 #[derive(Clone, Copy, PartialEq, Eq, Default, Debug)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct RxErrorCounters {
     /// Frames with an id no protocol carries.
     pub unknown_id: u32,
