@@ -4,6 +4,8 @@
 //! odometry frame is caught), and the `hostsim replay` / `hostsim plant` command lines
 //! (exit status, JSON, errors naming the file and line).
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::Command as Process;
 
@@ -11,14 +13,11 @@ use embedded_can::StandardId;
 use firmware::protocol::robot::{OdomPosition, Telemetry};
 use firmware::{CanFrame, Config};
 use hostsim::candump::{self, Entry, ErrorKind, Writer};
-use hostsim::drives::SimDrives;
-use hostsim::log::McapLog;
 use hostsim::replay::{
     OdometryTolerance, TimedFrame, firmware_sends, mcap_playback, read_log, replay_candump,
     replay_split, split_candump,
 };
 use hostsim::scenario::Scenario;
-use hostsim::sim::{LogOptions, run, run_metadata};
 use proptest::prelude::*;
 
 // ---------------------------------------------------------------------------------------------
@@ -142,9 +141,7 @@ fn the_classification_follows_the_codecs_and_the_configuration() {
 
 /// A file in cargo's scratch folder for integration tests (under the target directory).
 fn scratch(name: &str) -> PathBuf {
-    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("candump");
-    std::fs::create_dir_all(&dir).unwrap();
-    dir.join(name)
+    common::scratch("candump", name)
 }
 
 /// A 2 s drive (enable, then a twist with all three components), logged to MCAP; returns
@@ -166,17 +163,7 @@ fn simulated_session(config: Config, name: &str) -> (PathBuf, Vec<TimedFrame>) {
     .unwrap();
     scenario.config = config;
     let path = scratch(&format!("{name}.mcap"));
-    let mut log = McapLog::create(&path, &run_metadata(&scenario)).unwrap();
-    let mut plant = SimDrives::new(&scenario.config).unwrap();
-    run(
-        &scenario,
-        &mut plant,
-        Some(&mut log),
-        LogOptions::default(),
-        |_| {},
-    )
-    .unwrap();
-    log.finish().unwrap();
+    common::logged_run(&scenario, &path);
     let content = read_log(&path).unwrap();
     (path, mcap_playback(&content, true, true))
 }

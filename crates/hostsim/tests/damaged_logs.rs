@@ -6,16 +6,17 @@
 //! must give exactly the messages of the chunks that end at or before `c`, and a damaged
 //! chunk none of its messages.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 use embedded_can::StandardId;
 use firmware::CanFrame;
-use hostsim::drives::SimDrives;
 use hostsim::log::{Direction, McapLog, Problem, ReadReport, for_each_message};
 use hostsim::replay::{self, MAX_GAP_NS, ReplayError, ReplayRunError, TimedFrame};
 use hostsim::scenario::Scenario;
-use hostsim::sim::{LogOptions, run, run_metadata};
+use hostsim::sim::run_metadata;
 
 /// A message: topic, log time, data.
 type Msg = (String, u64, Vec<u8>);
@@ -70,20 +71,12 @@ impl Fixture {
 fn square_log(path: &Path, duration_s: f64, chunk_size: Option<u64>) -> McapLog {
     let mut s = Scenario::builtin("square").unwrap();
     s.duration_s = duration_s;
-    let mut plant = SimDrives::new(&s.config).unwrap();
     let mut log = match chunk_size {
         Some(n) => McapLog::create_with_chunk_size(path, &run_metadata(&s), n),
         None => McapLog::create(path, &run_metadata(&s)),
     }
     .unwrap();
-    run(
-        &s,
-        &mut plant,
-        Some(&mut log),
-        LogOptions::default(),
-        |_| {},
-    )
-    .unwrap();
+    common::run_into(&s, &mut log);
     log
 }
 

@@ -1,12 +1,13 @@
 //! Lockstep runs of the real firmware core against the simulated plant and bus.
 
+mod common;
+
 use firmware::control::Fault;
 use firmware::protocol::robot::RobotState;
 use hostsim::drives::SimDrives;
-use hostsim::log::McapLog;
 use hostsim::replay::{TimedFrame, replay_frames, replay_mcap};
 use hostsim::scenario::Scenario;
-use hostsim::sim::{LogOptions, RunSummary, SimPlant, run, run_metadata};
+use hostsim::sim::{LogOptions, RunSummary, SimPlant, run};
 
 fn simulate(scenario: &Scenario) -> RunSummary {
     let mut plant = SimDrives::new(&scenario.config).unwrap();
@@ -123,22 +124,10 @@ fn a_motor_going_offline_faults_the_firmware_within_a_few_ms() {
 
 #[test]
 fn logs_replay_bit_identically_and_a_change_is_found() {
-    let dir = std::env::temp_dir().join(format!("hostsim-test-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let path = dir.join("circle.mcap");
+    let path = common::scratch("sim", "circle.mcap");
     let mut s = Scenario::builtin("circle").unwrap();
     s.duration_s = 2.0;
-    let mut plant = SimDrives::new(&s.config).unwrap();
-    let mut log = McapLog::create(&path, &run_metadata(&s)).unwrap();
-    let summary = run(
-        &s,
-        &mut plant,
-        Some(&mut log),
-        LogOptions::default(),
-        |_| {},
-    )
-    .unwrap();
-    log.finish().unwrap();
+    let summary = common::logged_run(&s, &path);
     let report = replay_mcap(&path).unwrap();
     assert!(report.identical(), "{:?}", report.difference);
     assert_eq!(report.compared as u64, summary.tx_frames);
@@ -171,7 +160,6 @@ fn logs_replay_bit_identically_and_a_change_is_found() {
         diff.t_ns,
         f.t_ns
     );
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 #[test]
