@@ -504,6 +504,23 @@ pub fn stop_on_signals() -> io::Result<std::sync::Arc<AtomicUsize>> {
     Ok(stop)
 }
 
+/// An error and its causes on one line, each cause once (`a: b: c`): many errors already
+/// include their source in their own message, so a cause whose text is already there is
+/// skipped. For the binaries' error messages.
+pub fn error_line(error: &(dyn std::error::Error + 'static)) -> String {
+    let mut text = error.to_string();
+    let mut cause = error.source();
+    while let Some(c) = cause {
+        let next = c.to_string();
+        if !text.contains(&next) {
+            text.push_str(": ");
+            text.push_str(&next);
+        }
+        cause = c.source();
+    }
+    text
+}
+
 /// Counters the loop keeps.
 #[derive(Default)]
 struct Counters {
@@ -1433,5 +1450,26 @@ mod tests {
         assert_eq!(stop.load(Ordering::Relaxed), 0);
         signal_hook::low_level::raise(signal_hook::consts::SIGTERM).unwrap();
         assert_eq!(stop.load(Ordering::Relaxed), 15);
+    }
+
+    #[test]
+    fn an_error_line_names_each_cause_once() {
+        #[derive(Debug)]
+        struct Outer(io::Error, &'static str);
+        impl fmt::Display for Outer {
+            fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+                f.write_str(self.1)
+            }
+        }
+        impl std::error::Error for Outer {
+            fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+                Some(&self.0)
+            }
+        }
+        let cause = || io::Error::other("disk full");
+        let e = Outer(cause(), "writing log.mcap");
+        assert_eq!(error_line(&e), "writing log.mcap: disk full");
+        let e = Outer(cause(), "writing log.mcap: disk full");
+        assert_eq!(error_line(&e), "writing log.mcap: disk full");
     }
 }

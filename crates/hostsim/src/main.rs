@@ -508,20 +508,10 @@ fn load_config(path: Option<&Path>) -> Result<(firmware::Config, String)> {
     }
 }
 
-/// An error and its causes as one message, each cause once: most errors here already include
-/// their source in their own message, so a cause whose text is already there is skipped.
+/// An error and its causes as one message, each cause once
+/// ([`firmware::linux::error_line`]).
 fn flatten(error: anyhow::Error) -> anyhow::Error {
-    let mut text = String::new();
-    for cause in error.chain() {
-        let cause = cause.to_string();
-        if text.is_empty() {
-            text = cause;
-        } else if !text.contains(&cause) {
-            text.push_str(": ");
-            text.push_str(&cause);
-        }
-    }
-    anyhow::Error::msg(text)
+    anyhow::Error::msg(firmware::linux::error_line(error.as_ref()))
 }
 
 fn replay(

@@ -103,7 +103,7 @@ fn main() -> ExitCode {
     let setup = match startup(&args) {
         Ok(s) => s,
         Err(e) => {
-            eprintln!("mecanum-runner: {}", render(&e));
+            eprintln!("mecanum-runner: {}", linux::error_line(e.as_ref()));
             return ExitCode::from(EXIT_STARTUP);
         }
     };
@@ -141,7 +141,7 @@ fn main() -> ExitCode {
     if let Some((path, file)) = stats
         && let Err(e) = write_stats(&path, file, &report)
     {
-        eprintln!("mecanum-runner: {}", render(&e));
+        eprintln!("mecanum-runner: {}", linux::error_line(e.as_ref()));
         status = ExitCode::FAILURE;
     }
     status
@@ -202,21 +202,4 @@ fn write_stats(path: &Path, mut file: File, report: &Report) -> Result<()> {
         .map_err(anyhow::Error::from)
         .and_then(|()| Ok(file.write_all(b"\n")?))
         .with_context(|| format!("cannot write --stats-json file {}", path.display()))
-}
-
-/// An error and its causes on one line, each cause once: the library's errors already
-/// include their source in their own message, so a cause whose text is already there is
-/// skipped.
-fn render(error: &anyhow::Error) -> String {
-    let mut text = String::new();
-    for cause in error.chain() {
-        let cause = cause.to_string();
-        if text.is_empty() {
-            text = cause;
-        } else if !text.contains(&cause) {
-            text.push_str(": ");
-            text.push_str(&cause);
-        }
-    }
-    text
 }
