@@ -6,9 +6,11 @@
 //! ```
 //!
 //! Wheel speeds in rad/s (FL, FR, RL, RR), body twist in m/s and rad/s (x forward, y left,
-//! counter-clockwise), standard layout with wheels at `(±lx, ±ly)` and radius `r`. A line that
-//! cannot be answered gives `{"error":"..."}` naming the field and the value, and the next line
-//! is read as usual. Blank lines are skipped.
+//! counter-clockwise), standard layout with the wheel contacts at `(±lx, ±ly)` metres from the
+//! centre (half the wheelbase, half the track; both > 0) and wheel radius `r` metres (> 0). A
+//! line that cannot be answered (not JSON, not UTF-8, a missing or bad field, a result too
+//! large to be finite) gives `{"error":"..."}` naming the field and the value, and the next
+//! line is read as usual. Blank lines are skipped, without an answer.
 
 use std::io::{BufRead, Write};
 
@@ -34,6 +36,31 @@ pub fn answer(line: &str) -> String {
     }
 }
 
+/// A field that must be a finite number greater than zero.
+fn positive(obj: &Map<String, Value>, key: &str, what: &str) -> Result<f64, String> {
+    let x = number(obj, key)?;
+    if x > 0.0 {
+        Ok(x)
+    } else {
+        Err(format!("field \"{key}\" ({what}) must be > 0, got {x}"))
+    }
+}
+
+/// The answer's values, or an error if one is not finite (inputs too large).
+fn finite_object(fields: &[(&str, f64)]) -> Result<Value, String> {
+    if let Some((key, x)) = fields.iter().find(|(_, x)| !x.is_finite()) {
+        return Err(format!(
+            "result \"{key}\" is not finite ({x}): the inputs are too large"
+        ));
+    }
+    Ok(Value::Object(
+        fields
+            .iter()
+            .map(|&(k, x)| (k.to_string(), json!(x)))
+            .collect(),
+    ))
+}
+
 fn compute(line: &str) -> Result<Value, String> {
     let value: Value = serde_json::from_str(line).map_err(|e| format!("not JSON: {e}"))?;
     let obj = value
@@ -43,14 +70,21 @@ fn compute(line: &str) -> Result<Value, String> {
         .get("op")
         .and_then(Value::as_str)
         .ok_or_else(|| "missing field \"op\" (\"inverse\" or \"forward\")".to_string())?;
-    let (lx, ly, r) = (number(obj, "lx")?, number(obj, "ly")?, number(obj, "r")?);
+    let lx = positive(obj, "lx", "centre to wheel along x, m")?;
+    let ly = positive(obj, "ly", "centre to wheel along y, m")?;
+    let r = positive(obj, "r", "wheel radius, m")?;
     let kin = MecanumKinematics::<f64, 4>::standard(lx, ly, r).map_err(|e| e.to_string())?;
     match op {
         "inverse" => {
             let v =
                 ChassisVelocity::new(number(obj, "vx")?, number(obj, "vy")?, number(obj, "wz")?);
             let w = kin.inverse(v);
-            Ok(json!({ "fl": w.fl(), "fr": w.fr(), "rl": w.rl(), "rr": w.rr() }))
+            finite_object(&[
+                ("fl", w.fl()),
+                ("fr", w.fr()),
+                ("rl", w.rl()),
+                ("rr", w.rr()),
+            ])
         }
         "forward" => {
             let w = WheelSpeeds::new(
@@ -60,7 +94,7 @@ fn compute(line: &str) -> Result<Value, String> {
                 number(obj, "rr")?,
             );
             let v = kin.forward(&w);
-            Ok(json!({ "vx": v.vx, "vy": v.vy, "wz": v.wz }))
+            finite_object(&[("vx", v.vx), ("vy", v.vy), ("wz", v.wz)])
         }
         other => Err(format!(
             "unknown op {other:?}: expected \"inverse\" or \"forward\""
@@ -69,17 +103,21 @@ fn compute(line: &str) -> Result<Value, String> {
 }
 
 /// Reads lines from `input` and writes one answer per non-blank line to `output`, flushing
-/// after each so a script can talk to it line by line.
+/// after each so a script can talk to it line by line. A line that is not UTF-8 is answered
+/// with an error like any other bad line.
 ///
 /// # Errors
 /// I/O errors of the streams.
 pub fn run(input: impl BufRead, mut output: impl Write) -> std::io::Result<()> {
-    for line in input.lines() {
+    for (n, line) in input.split(b'\n').enumerate() {
         let line = line?;
-        if line.trim().is_empty() {
-            continue;
-        }
-        writeln!(output, "{}", answer(&line))?;
+        let line = line.strip_suffix(b"\r").unwrap_or(&line);
+        let answer = match std::str::from_utf8(line) {
+            Ok(text) if text.trim().is_empty() => continue,
+            Ok(text) => answer(text),
+            Err(e) => json!({ "error": format!("line {} is not UTF-8: {e}", n + 1) }).to_string(),
+        };
+        writeln!(output, "{answer}")?;
         output.flush()?;
     }
     Ok(())
@@ -125,9 +163,42 @@ mod tests {
         assert_eq!(lines.len(), 6, "{lines:?}");
         assert!((field(lines[0], "fl") - 20.0).abs() < 1e-12);
         assert!(lines[1].contains("\"error\"") && lines[1].contains("not JSON"));
-        assert!(lines[2].contains("radius -1"), "{}", lines[2]);
+        assert!(
+            lines[2].contains("\\\"r\\\"") && lines[2].contains("-1"),
+            "{}",
+            lines[2]
+        );
         assert!(lines[3].contains("\\\"fr\\\""), "{}", lines[3]);
         assert!(lines[4].contains("sideways"), "{}", lines[4]);
         assert!((field(lines[5], "vx") - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn bad_geometry_overflow_and_bad_bytes_are_answered_with_errors() {
+        let inverse = |lx: &str, ly: &str, r: &str, vx: &str| {
+            format!(r#"{{"op":"inverse","lx":{lx},"ly":{ly},"r":{r},"vx":{vx},"vy":0,"wz":1}}"#)
+        };
+        for (line, field) in [
+            (inverse("0.2", "-0.15", "0.05", "0"), "ly"),
+            (inverse("0", "0.15", "0.05", "0"), "lx"),
+            (inverse("0.2", "0.15", "0", "0"), "r"),
+        ] {
+            let out = answer(&line);
+            assert!(out.contains(&format!("\\\"{field}\\\"")), "{out}");
+            assert!(out.contains("must be > 0"), "{out}");
+        }
+        let out = answer(&inverse("0.2", "0.15", "1e-10", "1e300"));
+        assert!(out.contains("not finite"), "{out}");
+
+        let mut input = b"\xff\n".to_vec();
+        input.extend(inverse("0.2", "0.15", "0.05", "1").as_bytes());
+        input.extend(b"\r\n");
+        let mut out = Vec::new();
+        run(input.as_slice(), &mut out).unwrap();
+        let lines: Vec<&str> = std::str::from_utf8(&out).unwrap().lines().collect();
+        assert_eq!(lines.len(), 2, "{lines:?}");
+        assert!(lines[0].contains("line 1 is not UTF-8"), "{}", lines[0]);
+        // vx 1, wz 1: FL = (1 - 0.35) / 0.05 = 13 rad/s.
+        assert!((field(lines[1], "fl") - 13.0).abs() < 1e-9, "{}", lines[1]);
     }
 }

@@ -39,7 +39,16 @@ enum Cmd {
     /// Run a scenario: writes an MCAP log and a PNG plot, prints a summary.
     ///
     /// With no argument runs the built-in `square`. Built-ins: square, circle, strafe, spin,
-    /// figure-eight, compass, watchdog.
+    /// figure-eight, compass, watchdog (seed 1; DJI C620 + M3508 drives on a 20 kg chassis).
+    ///
+    /// A scenario file (TOML; examples in scenarios/, the format in the hostsim crate's
+    /// `scenario` module docs) sets duration_s, and optionally name (default: the file's
+    /// stem), seed (default 0), command_hz (default 50), config (a drive configuration, relative
+    /// to the file; default the DJI example), [[actions]] (at_s and one or more of enable,
+    /// disable, reset, estop, status_request, twist = [vx, vy, wz], silence, resume) and
+    /// [[faults]] (kind = drop | burst | delay | corrupt | stuck_encoder | motor_offline |
+    /// non_finite_twist, from_s, until_s, and the kind's fields: rate, delay_ms, sender,
+    /// wheel). Every error names the file, the field and the value.
     Run {
         /// A scenario TOML file, or the name of a built-in.
         scenario: Option<String>,
@@ -154,17 +163,29 @@ enum Cmd {
     ///
     /// Exit status: 0 for an intact log, 2 if the file cannot be read or nothing in it is
     /// readable (not MCAP, or an intact log without messages), 3 if the log is damaged (the
-    /// summary of its complete part is printed).
+    /// summary of its complete part is printed; for a log cut before its first chunk, a
+    /// summary without messages).
     #[command(verbatim_doc_comment)]
     Summary {
         /// A hostsim MCAP log.
         log: PathBuf,
     },
-    /// Kinematics calculator: JSON lines on stdin, one JSON line out per line.
+    /// Kinematics calculator: JSON lines on stdin, one JSON line out per non-blank line.
     ///
     /// {"op":"inverse","lx":..,"ly":..,"r":..,"vx":..,"vy":..,"wz":..} gives
-    /// {"fl":..,"fr":..,"rl":..,"rr":..} (rad/s); {"op":"forward",...,"fl":..,"fr":..,"rl":..,"rr":..}
-    /// gives {"vx":..,"vy":..,"wz":..}. A bad line gives {"error":"..."} and the rest go on.
+    /// {"fl":..,"fr":..,"rl":..,"rr":..}; {"op":"forward","lx":..,"ly":..,"r":..,
+    /// "fl":..,"fr":..,"rl":..,"rr":..} gives {"vx":..,"vy":..,"wz":..}.
+    ///
+    /// The standard four-wheel layout: lx and ly are the distances in metres from the
+    /// centre to a wheel's contact point along x (forward) and y (left), i.e. half the
+    /// wheelbase and half the track, both > 0; r is the wheel radius in metres. Wheel speeds
+    /// in rad/s (positive rolls the robot forward), vx and vy in m/s, wz in rad/s
+    /// counter-clockwise.
+    ///
+    /// A line that cannot be answered (not JSON or not UTF-8, a missing or bad field, a
+    /// result too large to be finite) gives {"error":"..."} naming the field and the value,
+    /// and the next lines are answered as usual. Blank lines get no answer.
+    #[command(verbatim_doc_comment)]
     Kin,
 }
 
@@ -211,6 +232,9 @@ struct PlantArgs {
 
 /// Rust ignores SIGPIPE, so `println!` to a closed pipe (`hostsim run | head -1`) panics.
 /// Behave like a Unix tool instead: end quietly with the status a SIGPIPE death gives.
+/// The exit status of a process killed by SIGPIPE, as a shell reports it.
+const SIGPIPE_STATUS: u8 = 128 + 13;
+
 fn exit_quietly_on_broken_pipe() {
     let default = std::panic::take_hook();
     std::panic::set_hook(Box::new(move |info| {
@@ -221,7 +245,7 @@ fn exit_quietly_on_broken_pipe() {
             .or_else(|| payload.downcast_ref::<&str>().copied())
             .unwrap_or("");
         if message.starts_with("failed printing to std") && message.contains("Broken pipe") {
-            std::process::exit(128 + 13);
+            std::process::exit(i32::from(SIGPIPE_STATUS));
         }
         default(info);
     }));
@@ -233,7 +257,8 @@ fn main() -> ExitCode {
     match dispatch(cli) {
         Ok(code) => code,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            // Each cause once: most errors here already include their source's text.
+            eprintln!("error: {}", firmware::linux::error_line(e.as_ref()));
             ExitCode::from(2)
         }
     }
@@ -285,27 +310,36 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
                     replay(&log, config.as_deref(), tolerance, json)
                 }
             }
-            .map_err(flatten)
         }
-        Cmd::Plant(args) => plant(&args).map_err(flatten),
+        Cmd::Plant(args) => plant(&args),
         Cmd::Summary { log } => summary(&log),
         Cmd::Kin => {
             let stdin = std::io::stdin();
-            hostsim::kin::run(stdin.lock(), std::io::stdout().lock())
-                .context("reading stdin / writing stdout")?;
-            Ok(ExitCode::SUCCESS)
+            match hostsim::kin::run(stdin.lock(), std::io::stdout().lock()) {
+                Ok(()) => Ok(ExitCode::SUCCESS),
+                // The reader went away (`hostsim kin | head -1`): end quietly, as on SIGPIPE.
+                Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => {
+                    Ok(ExitCode::from(SIGPIPE_STATUS))
+                }
+                Err(e) => Err(e).context("reading stdin / writing stdout"),
+            }
         }
     }
 }
 
-fn load_scenario(arg: Option<&str>) -> Result<Scenario> {
+/// A scenario file, or else a built-in of that name; `config` replaces its configuration.
+fn load_scenario(arg: Option<&str>, config: Option<firmware::Config>) -> Result<Scenario> {
     let arg = arg.unwrap_or("square");
     let path = Path::new(arg);
-    if path.extension().is_some_and(|e| e == "toml") || path.exists() {
-        Ok(Scenario::from_file(path)?)
-    } else {
-        Ok(Scenario::builtin(arg)?)
+    // A folder of the same name (an earlier `--out square`) does not hide the built-in.
+    if path.extension().is_some_and(|e| e == "toml") || path.is_file() {
+        return Ok(Scenario::from_file_with_config(path, config)?);
     }
+    let mut scenario = Scenario::builtin(arg)?;
+    if let Some(config) = config {
+        scenario.config = config;
+    }
+    Ok(scenario)
 }
 
 /// What `run` writes besides the simulation itself.
@@ -330,14 +364,15 @@ fn run(
         json,
         progress_lines,
     } = outputs;
-    let mut scenario = load_scenario(scenario)?;
-    if let Some(path) = config {
-        scenario.config = firmware::Config::from_toml_file(&path)?;
-    }
+    let config = config
+        .map(|path| firmware::Config::from_toml_file(&path))
+        .transpose()?;
+    let mut scenario = load_scenario(scenario, config)?;
     if let Some(seed) = seed {
         scenario.seed = seed;
     }
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    std::fs::create_dir_all(out)
+        .with_context(|| format!("cannot create the output folder {}", out.display()))?;
     let stem: String = scenario
         .name
         .chars()
@@ -351,6 +386,11 @@ fn run(
         .collect();
     let log_path = out.join(format!("{stem}.mcap"));
     let png_path = out.join(format!("{stem}.png"));
+    if draw_plot {
+        // Now, not after a long run: a path that cannot be written fails before simulating.
+        std::fs::File::create(&png_path)
+            .with_context(|| format!("cannot create the plot {}", png_path.display()))?;
+    }
     let mut log = if write_log {
         Some(McapLog::create(&log_path, &run_metadata(&scenario))?)
     } else {
@@ -488,7 +528,9 @@ enum Only {
 fn parse_seconds(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
         Ok(v) if (0.0..1e9).contains(&v) => Ok(v),
-        Ok(v) => Err(format!("expected a number of seconds >= 0, got {v}")),
+        Ok(v) => Err(format!(
+            "expected a number of seconds in [0, 1e9) (about 31 years), got {v}"
+        )),
         Err(e) => Err(format!("expected a number of seconds, got {s:?}: {e}")),
     }
 }
@@ -506,12 +548,6 @@ fn load_config(path: Option<&Path>) -> Result<(firmware::Config, String)> {
             "built-in DJI M3508/C620 example".to_string(),
         )),
     }
-}
-
-/// An error and its causes as one message, each cause once
-/// ([`firmware::linux::error_line`]).
-fn flatten(error: anyhow::Error) -> anyhow::Error {
-    anyhow::Error::msg(firmware::linux::error_line(error.as_ref()))
 }
 
 fn replay(

@@ -148,6 +148,22 @@ pub enum FaultName {
     NonFiniteTwist,
 }
 
+impl FaultName {
+    /// The name a scenario file uses (`stuck_encoder`).
+    #[must_use]
+    pub const fn as_str(self) -> &'static str {
+        match self {
+            Self::Drop => "drop",
+            Self::Burst => "burst",
+            Self::Delay => "delay",
+            Self::Corrupt => "corrupt",
+            Self::StuckEncoder => "stuck_encoder",
+            Self::MotorOffline => "motor_offline",
+            Self::NonFiniteTwist => "non_finite_twist",
+        }
+    }
+}
+
 /// Bus nodes as named in scenarios.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -264,6 +280,20 @@ pub enum ScenarioError {
         /// What is expected.
         expected: &'static str,
     },
+    /// A fault sets a field its kind does not use.
+    #[error("scenario {path}: {field} = {value}: not used by a \"{kind}\" fault (it takes {uses})", kind = kind.as_str())]
+    UnusedField {
+        /// The scenario file.
+        path: PathBuf,
+        /// Which field.
+        field: String,
+        /// The value.
+        value: String,
+        /// The fault's kind.
+        kind: FaultName,
+        /// The fields that kind takes, besides `from_s` and `until_s`.
+        uses: &'static str,
+    },
     /// No built-in of that name.
     #[error("no built-in scenario {0:?}; built-ins: {names}", names = Scenario::BUILTINS.join(", "))]
     UnknownBuiltin(String),
@@ -310,11 +340,23 @@ impl Scenario {
     /// # Errors
     /// [`ScenarioError`] naming the file and what is wrong.
     pub fn from_file(path: &Path) -> Result<Self, ScenarioError> {
+        Self::from_file_with_config(path, None)
+    }
+
+    /// [`Self::from_file`], with `config` (if given) in place of the file's `config`, which
+    /// is then not read at all (`hostsim run --config`).
+    ///
+    /// # Errors
+    /// [`ScenarioError`] naming the file and what is wrong.
+    pub fn from_file_with_config(
+        path: &Path,
+        config: Option<Config>,
+    ) -> Result<Self, ScenarioError> {
         let text = std::fs::read_to_string(path).map_err(|source| ScenarioError::Io {
             path: path.to_path_buf(),
             source,
         })?;
-        Self::from_toml(&text, path)
+        Self::from_toml_with_config(&text, path, config)
     }
 
     /// Parses a scenario; `path` names it in errors and anchors a relative `config`.
@@ -322,6 +364,18 @@ impl Scenario {
     /// # Errors
     /// [`ScenarioError`] naming the field and the value.
     pub fn from_toml(text: &str, path: &Path) -> Result<Self, ScenarioError> {
+        Self::from_toml_with_config(text, path, None)
+    }
+
+    /// [`Self::from_toml`], with `config` (if given) in place of the text's `config`.
+    ///
+    /// # Errors
+    /// [`ScenarioError`] naming the field and the value.
+    pub fn from_toml_with_config(
+        text: &str,
+        path: &Path,
+        config: Option<Config>,
+    ) -> Result<Self, ScenarioError> {
         let file: ScenarioFile = toml::from_str(text).map_err(|source| ScenarioError::Toml {
             path: path.to_path_buf(),
             source,
@@ -339,6 +393,15 @@ impl Scenario {
                 "a duration in (0, 86400] s",
             ));
         }
+        if let Some(name) = &file.name
+            && name.trim().is_empty()
+        {
+            return Err(invalid(
+                "name",
+                format!("{name:?}"),
+                "a name (it names the log and the plot), or no `name` for the file's stem",
+            ));
+        }
         if !(file.command_hz.is_finite() && file.command_hz > 0.0 && file.command_hz <= 1000.0) {
             return Err(invalid(
                 "command_hz",
@@ -346,9 +409,10 @@ impl Scenario {
                 "a rate in (0, 1000] Hz",
             ));
         }
-        let config = match &file.config {
-            None => Config::dji_m3508_example(),
-            Some(p) => {
+        let config = match (config, &file.config) {
+            (Some(config), _) => config,
+            (None, None) => Config::dji_m3508_example(),
+            (None, Some(p)) => {
                 let p = path.parent().unwrap_or(Path::new(".")).join(p);
                 Config::from_toml_file(&p).map_err(|source| ScenarioError::Config {
                     path: path.to_path_buf(),
@@ -362,6 +426,39 @@ impl Scenario {
                     &format!("actions[{i}].at_s"),
                     a.at_s.to_string(),
                     "a time >= 0 s",
+                ));
+            }
+            if a.at_s >= file.duration_s {
+                return Err(invalid(
+                    &format!("actions[{i}].at_s"),
+                    a.at_s.to_string(),
+                    "a time before duration_s (a later action would never happen)",
+                ));
+            }
+            let does = |set: bool, what: &'static str| set.then_some(what);
+            let commands: Vec<&str> = [
+                does(a.enable, "enable"),
+                does(a.disable, "disable"),
+                does(a.reset, "reset"),
+                does(a.estop, "estop"),
+                does(a.status_request, "status_request"),
+                does(a.twist.is_some(), "twist"),
+                does(a.silence, "silence"),
+                does(a.resume, "resume"),
+            ]
+            .into_iter()
+            .flatten()
+            .collect();
+            let contradicts = |x, y| commands.contains(&x) && commands.contains(&y);
+            if commands.is_empty()
+                || contradicts("enable", "disable")
+                || contradicts("silence", "resume")
+            {
+                return Err(invalid(
+                    &format!("actions[{i}]"),
+                    format!("{{{}}}", commands.join(", ")),
+                    "at least one of enable, disable, reset, estop, status_request, twist, \
+                     silence, resume, and not both enable and disable or silence and resume",
                 ));
             }
             if let Some(t) = a.twist
@@ -388,6 +485,40 @@ impl Scenario {
                     format!("{}..{}", f.from_s, f.until_s),
                     "0 <= from_s < until_s",
                 ));
+            }
+            if f.from_s >= file.duration_s {
+                return Err(invalid(
+                    &format!("faults[{i}].from_s"),
+                    f.from_s.to_string(),
+                    "a time before duration_s (a later fault would never happen)",
+                ));
+            }
+            // A field another kind uses is a mistake (a `wheel` on a `drop` fault would
+            // otherwise drop every frame, not one wheel's).
+            let (rate_used, delay_used, sender_used, wheel_used, uses) = match f.kind {
+                FaultName::Drop | FaultName::Corrupt => (true, false, true, false, "rate, sender"),
+                FaultName::Burst => (false, false, true, false, "sender"),
+                FaultName::Delay => (false, true, true, false, "delay_ms, sender"),
+                FaultName::StuckEncoder | FaultName::MotorOffline => {
+                    (false, false, false, true, "wheel")
+                }
+                FaultName::NonFiniteTwist => (false, false, false, false, "no other field"),
+            };
+            for (field, given, used) in [
+                ("rate", f.rate.map(|x| x.to_string()), rate_used),
+                ("delay_ms", f.delay_ms.map(|x| x.to_string()), delay_used),
+                ("sender", f.sender.map(|x| format!("{x:?}")), sender_used),
+                ("wheel", f.wheel.map(|x| x.to_string()), wheel_used),
+            ] {
+                if let (Some(value), false) = (given, used) {
+                    return Err(ScenarioError::UnusedField {
+                        path: path.to_path_buf(),
+                        field: format!("faults[{i}].{field}"),
+                        value,
+                        kind: f.kind,
+                        uses,
+                    });
+                }
             }
             let (from_us, until_us) = (secs_to_us(f.from_s), secs_to_us(f.until_s));
             let rate = |f: &FaultSpec| match f.rate {
@@ -625,6 +756,7 @@ mod tests {
 
         for (bad, field) in [
             ("duration_s = -1.0", "duration_s"),
+            ("name = \" \"\nduration_s = 1.0", "name = \" \": a name"),
             (
                 "duration_s = 1.0\n[[faults]]\nkind = \"drop\"\nfrom_s = 0.0\nuntil_s = 1.0",
                 "rate",
@@ -638,6 +770,30 @@ mod tests {
                 "from_s",
             ),
             ("duration_s = 1.0\n[[actions]]\nat_s = -0.5", "at_s"),
+            (
+                "duration_s = 1.0\n[[actions]]\nat_s = 1.0\nenable = true",
+                "actions[0].at_s = 1: a time before duration_s",
+            ),
+            (
+                "duration_s = 1.0\n[[actions]]\nat_s = 0.5",
+                "actions[0] = {}: at least one of",
+            ),
+            (
+                "duration_s = 1.0\n[[actions]]\nat_s = 0.5\nenable = true\ndisable = true",
+                "actions[0] = {enable, disable}",
+            ),
+            (
+                "duration_s = 1.0\n[[faults]]\nkind = \"burst\"\nfrom_s = 1.5\nuntil_s = 2.0",
+                "faults[0].from_s = 1.5: a time before duration_s",
+            ),
+            (
+                "duration_s = 1.0\n[[faults]]\nkind = \"drop\"\nrate = 0.5\nwheel = 2\nfrom_s = 0.0\nuntil_s = 1.0",
+                "faults[0].wheel = 2: not used by a \"drop\" fault (it takes rate, sender)",
+            ),
+            (
+                "duration_s = 1.0\n[[faults]]\nkind = \"stuck_encoder\"\nwheel = 1\nrate = 0.5\nfrom_s = 0.0\nuntil_s = 1.0",
+                "faults[0].rate = 0.5: not used by a \"stuck_encoder\" fault (it takes wheel)",
+            ),
         ] {
             let e = Scenario::from_toml(bad, Path::new("bad.toml"))
                 .unwrap_err()
@@ -648,5 +804,26 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("warp"), "{e}");
+    }
+
+    #[test]
+    fn fault_names_are_the_ones_a_file_uses() {
+        use FaultName::*;
+        for kind in [
+            Drop,
+            Burst,
+            Delay,
+            Corrupt,
+            StuckEncoder,
+            MotorOffline,
+            NonFiniteTwist,
+        ] {
+            let parsed: FaultName =
+                serde::de::Deserialize::deserialize(serde::de::value::StrDeserializer::<
+                    serde::de::value::Error,
+                >::new(kind.as_str()))
+                .unwrap();
+            assert_eq!(parsed, kind);
+        }
     }
 }
