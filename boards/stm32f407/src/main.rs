@@ -46,9 +46,9 @@ bind_interrupts!(struct Irqs {
 });
 
 /// Frames waiting for a TX mailbox. One step emits at most
-/// [`firmware::control::OUTBOX_CAPACITY`] (20) frames, so a whole outbox fits even when the
-/// three mailboxes are still busy with the previous step's frames.
-const TX_QUEUE_LEN: usize = 24;
+/// [`firmware::control::OUTBOX_CAPACITY`] (24) frames, so a whole outbox fits even when the
+/// three mailboxes are still busy with the previous step's frames, with room for a few more.
+const TX_QUEUE_LEN: usize = firmware::control::OUTBOX_CAPACITY + 4;
 
 /// The TX queue the driver's TX interrupt drains into the mailboxes.
 static TX_QUEUE: StaticCell<TxBuf<TX_QUEUE_LEN>> = StaticCell::new();

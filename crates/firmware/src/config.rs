@@ -16,6 +16,7 @@ use kinematics::{GeometryError, MecanumKinematics, WheelGeometry};
 
 use crate::protocol::dji::{EscId, EscModel};
 use crate::protocol::odrive::NodeId;
+use crate::protocol::robot;
 
 /// The whole drive configuration.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -278,6 +279,23 @@ fn positive(field: &'static str, value: f32) -> Result<(), ConfigError> {
     }
 }
 
+/// A gear ratio (motor turns per wheel turn): within [`GEAR_RATIO_RANGE`], so that every
+/// conversion derived from it (counts or turns to wheel radians) is finite and nonzero.
+fn check_gear_ratio(value: f32) -> Result<(), ConfigError> {
+    if GEAR_RATIO_RANGE.contains(&value) {
+        Ok(())
+    } else {
+        Err(ConfigError {
+            field: "drive.gear_ratio",
+            value: f64::from(value),
+            expected: "a ratio in 0.01..=1000 (motor turns per wheel turn)",
+        })
+    }
+}
+
+/// The gear ratios a configuration may give: from a 100:1 step-up to a 1000:1 reduction.
+pub const GEAR_RATIO_RANGE: core::ops::RangeInclusive<f32> = 0.01..=1000.0;
+
 fn positive_or_inf(field: &'static str, value: f32) -> Result<(), ConfigError> {
     if value > 0.0 {
         Ok(())
@@ -415,7 +433,7 @@ impl Config {
                         });
                     }
                 }
-                positive("drive.gear_ratio", gear_ratio)?;
+                check_gear_ratio(gear_ratio)?;
             }
             Drive::Odrive {
                 node_ids,
@@ -430,6 +448,17 @@ impl Config {
                             expected: "a node id in 0..=63",
                         });
                     }
+                    // Node n owns the ids n << 5 ..= n << 5 | 0x1F; node 24's are the robot
+                    // protocol's block (its heartbeat 0x301 would be read as a TWIST_CMD).
+                    let first = u16::from(id) << 5;
+                    if first <= robot::layout::ID_LAST && robot::layout::ID_FIRST <= first | 0x1F {
+                        return Err(ConfigError {
+                            field: field_at("drive.node_ids", i),
+                            value: f64::from(id),
+                            expected: "a node id whose CAN ids (node << 5 | cmd) are not the \
+                                       robot protocol's 0x300..=0x31F (any but 24)",
+                        });
+                    }
                     if node_ids[..i].contains(&id) {
                         return Err(ConfigError {
                             field: field_at("drive.node_ids", i),
@@ -438,7 +467,7 @@ impl Config {
                         });
                     }
                 }
-                positive("drive.gear_ratio", gear_ratio)?;
+                check_gear_ratio(gear_ratio)?;
             }
         }
 

@@ -35,8 +35,22 @@
 //! | `DriveError` | an ODrive heartbeat or `Get_Error` reports a nonzero axis error | the next step |
 //! | `EncoderStuck` | see below (DJI only) | [`ENCODER_STUCK_SPINNING_US`] / [`ENCODER_STUCK_DRAGGED_US`] after the signature appears |
 //!
+//! An ODrive keeps reporting an axis error until it is told to clear it, so for ODrive
+//! drives `MODE_CMD reset` also sends `Clear_Errors` to every node at the next step; error
+//! bits in heartbeats received before that, or within [`ODRIVE_CLEAR_GRACE_US`] after it,
+//! are ignored as stale. A cause that is still there is reported again by the next heartbeat
+//! and faults again.
+//!
 //! `Watchdog` is not a fault state but the reason a watchdog stop gives (below); `Config`
 //! is for runners that refuse a configuration.
+//!
+//! A motor is *online* (`STATUS.motors_online`, [`Snapshot::motors_online`]) while its last
+//! feedback is within the `MotorStale` window. Feedback values are checked before they are
+//! used: the codecs reject malformed frames and non-finite numbers, and an ODrive position
+//! estimate that jumped further than the wheel can turn ([`ODRIVE_MAX_JUMP_FACTOR`]) becomes
+//! the new reference instead of moving the odometry. Every rejected frame is counted by kind.
+//! A frame stamped earlier than one already taken never moves a time mark (watchdog,
+//! staleness) back.
 //!
 //! ## Stuck encoder (DJI)
 //!
@@ -102,6 +116,15 @@ pub const ENCODER_STUCK_SPINNING_US: u64 = 10_000;
 pub const ENCODER_STUCK_DRAGGED_US: u64 = 50_000;
 /// Fraction of `limits.max_current` that counts as driven hard (rule 2).
 pub const ENCODER_STUCK_MIN_CURRENT: f32 = 0.25;
+/// ODrive: a position estimate that moved more than this many times what
+/// `limits.max_wheel_speed` allows since the previous one (plus one estimate period) is not
+/// integrated into the odometry (a drive reboot restarting its count, a corrupt value); it
+/// becomes the new reference and is counted as an out-of-range frame.
+pub const ODRIVE_MAX_JUMP_FACTOR: f32 = 2.0;
+/// ODrive: after a reset, heartbeat and `Get_Error` frames received until this long after the
+/// next step sent `Clear_Errors` are taken to predate the clearing: their error bits are
+/// ignored, µs. A cause that persists shows in the next heartbeat (every 100 ms).
+pub const ODRIVE_CLEAR_GRACE_US: u64 = 10_000;
 
 /// A point in time, microseconds since an arbitrary epoch; monotonic. The core never reads a
 /// clock: the adapter (runner, board, simulator) passes it in.
@@ -134,9 +157,10 @@ impl Instant {
     }
 }
 
-/// Most frames one [`Controller::step`] can emit: two DJI command frames or four ODrive axes
-/// times three commands, plus odometry (2), status and heartbeat (2).
-pub const OUTBOX_CAPACITY: usize = 20;
+/// Most frames one [`Controller::step`] can emit: two DJI command frames, or for four ODrive
+/// axes `Clear_Errors` (after a reset), three state commands (after an enable) and a velocity
+/// setpoint each; plus odometry (2), status and heartbeat (2).
+pub const OUTBOX_CAPACITY: usize = 24;
 
 /// The frames one step emits, in the order they should be sent.
 pub type Outbox = heapless::Vec<CanFrame, OUTBOX_CAPACITY>;
@@ -259,7 +283,8 @@ pub struct Snapshot {
     pub wheel_speeds: WheelSpeeds<f32, 4>,
     /// Motor currents commanded, A (current-mode drives; zero otherwise).
     pub currents: [f32; 4],
-    /// Bit i set when wheel i's motor is online.
+    /// Bit i set when wheel i's motor is online: its last feedback was within the
+    /// staleness window at the last step.
     pub motors_online: u8,
     /// Rejected frames by kind.
     pub rx_errors: RxErrorCounters,
@@ -305,6 +330,15 @@ pub struct Controller {
     stopping: bool,
     /// ODrive: state requests owed to the drives (sent on the next step).
     axis_request: Option<AxisState>,
+    /// ODrive: `Clear_Errors` owed to the drives (after a reset; sent on the next step).
+    clear_errors: bool,
+    /// ODrive: when `Clear_Errors` was last sent.
+    errors_cleared_at: Option<Instant>,
+    /// ODrive: the most a position estimate may move per µs since the previous one, motor
+    /// turns ([`ODRIVE_MAX_JUMP_FACTOR`]).
+    max_turns_per_us: f32,
+    /// Bit i set when wheel i's motor reported within its staleness window at the last step.
+    online: u8,
 
     motors: [Motor; 4],
     odometry: Odometry<f32>,
@@ -405,6 +439,17 @@ impl Controller {
             commanded: ChassisVelocity::default(),
             stopping: false,
             axis_request: None,
+            clear_errors: false,
+            errors_cleared_at: None,
+            max_turns_per_us: match config.drive {
+                Drive::Odrive { gear_ratio, .. } => {
+                    ODRIVE_MAX_JUMP_FACTOR * config.limits.max_wheel_speed * gear_ratio
+                        / core::f32::consts::TAU
+                        * 1e-6
+                }
+                Drive::Dji { .. } => 0.0,
+            },
+            online: 0,
             motors: [motor; 4],
             odometry: Odometry::new(Pose2::default()),
             measured: ChassisVelocity::default(),
@@ -471,7 +516,7 @@ impl Controller {
             wheel_setpoints: self.setpoints,
             wheel_speeds: WheelSpeeds(self.motors.map(|m| m.speed)),
             currents: self.currents,
-            motors_online: self.motors_online(),
+            motors_online: self.online,
             rx_errors: self.rx_errors,
             steps: self.steps,
         }
@@ -522,7 +567,8 @@ impl Controller {
                 };
                 if self.state == RobotState::Enabled && !self.stopping {
                     self.target = t;
-                    self.last_command = Some(now);
+                    // A frame stamped before the last one does not move the mark back.
+                    self.last_command = Some(self.last_command.map_or(now, |t| t.max(now)));
                 }
             }
             Command::Mode(ModeRequest::Enable) => {
@@ -544,6 +590,15 @@ impl Controller {
                     self.state = RobotState::Disabled;
                     self.fault = Fault::None;
                     self.halt();
+                    // An ODrive reports its errors until told to clear them.
+                    if matches!(self.config.drive, Drive::Odrive { .. }) {
+                        self.clear_errors = true;
+                        // Error bits received from now until the clear goes out predate it.
+                        self.errors_cleared_at = Some(now);
+                        for m in &mut self.motors {
+                            m.axis_error = 0;
+                        }
+                    }
                 }
             }
             Command::StatusRequest => self.status_requested = true,
@@ -611,7 +666,7 @@ impl Controller {
         m.watch.on_angle(fb.rotor_angle, dji::layout::ANGLE_COUNTS);
         m.pending += sign * m.encoder.counts_to_radians(counts);
         m.speed = sign * fb.rotor_speed_rad_s() / gear_ratio;
-        m.last_seen = Some(now);
+        m.last_seen = Some(m.last_seen.map_or(now, |t| t.max(now)));
         Ok(())
     }
 
@@ -620,25 +675,44 @@ impl Controller {
             return Ok(());
         };
         let fb = odrive::Feedback::decode(frame)?;
+        // Error bits from before the last `Clear_Errors` (see ODRIVE_CLEAR_GRACE_US).
+        let errors_stale = self
+            .errors_cleared_at
+            .is_some_and(|t| now.micros_since(t) <= ODRIVE_CLEAR_GRACE_US);
+        let (max_turns_per_us, estimate_period_us) =
+            (self.max_turns_per_us, self.feedback_period_us);
         let Some((sign, m)) = self.wheel(fb.node.get()) else {
             return Err(unknown(frame));
         };
         match fb.msg {
             odrive::Feedback::Heartbeat(hb) => {
-                m.axis_error = hb.axis_error;
+                m.axis_error = if errors_stale { 0 } else { hb.axis_error };
                 m.axis_state = Some(hb.axis_state);
             }
             odrive::Feedback::EncoderEstimates { pos, vel } => {
                 let turns_to_rad = core::f32::consts::TAU / gear_ratio;
-                if let Some(last) = m.last_pos {
-                    m.pending += sign * (pos - last) * turns_to_rad;
-                }
+                let jump = m.last_pos.zip(m.last_seen).map(|(last, seen)| {
+                    let elapsed_us = now.micros_since(seen).saturating_add(estimate_period_us);
+                    (pos - last, max_turns_per_us * elapsed_us as f32)
+                });
                 m.last_pos = Some(pos);
                 m.speed = sign * vel * turns_to_rad;
-                m.last_seen = Some(now);
+                m.last_seen = Some(m.last_seen.map_or(now, |t| t.max(now)));
+                if let Some((delta, max)) = jump {
+                    // An infinite difference (finite estimates far apart) fails too.
+                    if !delta.is_finite() || delta.abs() > max {
+                        return Err(DecodeError::OutOfRange {
+                            field: "pos_estimate",
+                            value: delta as i64,
+                        });
+                    }
+                    m.pending += sign * delta * turns_to_rad;
+                }
             }
             odrive::Feedback::Error { active_errors, .. } => {
-                m.axis_error |= active_errors;
+                if !errors_stale {
+                    m.axis_error |= active_errors;
+                }
             }
         }
         Ok(())
@@ -650,12 +724,6 @@ impl Controller {
     fn wheel(&mut self, id: u8) -> Option<(f32, &mut Motor)> {
         let wheel = usize::from(self.wheel_of.get(usize::from(id)).copied().flatten()?);
         Some((*self.sign.get(wheel)?, self.motors.get_mut(wheel)?))
-    }
-
-    fn motors_online(&self) -> u8 {
-        self.motors.iter().enumerate().fold(0, |bits, (i, m)| {
-            bits | (u8::from(m.last_seen.is_some()) << i)
-        })
     }
 
     /// Runs one control period at time `now` and returns the frames to send.
@@ -674,6 +742,10 @@ impl Controller {
     /// [`step`](Self::step), writing into an empty outbox.
     fn step_into(&mut self, now: Instant, out: &mut Outbox) {
         let boot = *self.boot.get_or_insert(now);
+        if self.clear_errors {
+            // Sent by this step (emit_odrive).
+            self.errors_cleared_at = Some(now);
+        }
         self.check_motors(now, boot);
         self.run_watchdog(now);
         self.ramp();
@@ -731,6 +803,10 @@ impl Controller {
         let t = &self.config.timing;
         let stale_us = self.feedback_period_us * u64::from(t.stale_periods);
         let boot_us = u64::from(t.boot_timeout_ms) * 1000;
+        self.online = self.motors.iter().enumerate().fold(0, |bits, (i, m)| {
+            let fresh = m.last_seen.is_some_and(|t| now.micros_since(t) <= stale_us);
+            bits | (u8::from(fresh) << i)
+        });
         let mut fault = Fault::None;
         for m in &self.motors {
             match m.last_seen {
@@ -906,6 +982,12 @@ impl Controller {
     ) {
         self.currents = [0.0; 4];
         let nodes = node_ids.map(NodeId::new);
+        if core::mem::take(&mut self.clear_errors) {
+            let clear = odrive::Command::ClearErrors { identify: false };
+            for node in nodes.iter().flatten() {
+                push(out, clear.to_can_frame(*node));
+            }
+        }
         if let Some(state) = self.axis_request.take() {
             for node in nodes.iter().flatten() {
                 if state == AxisState::ClosedLoopControl {
@@ -985,7 +1067,7 @@ impl Controller {
                     fault: self.fault,
                     rx_errors: u16::try_from(rejected).unwrap_or(u16::MAX),
                     unknown_ids: u16::try_from(e.unknown_id).unwrap_or(u16::MAX),
-                    motors_online: self.motors_online(),
+                    motors_online: self.online,
                     seq: self.status_seq,
                 })
                 .to_can_frame(),
@@ -997,7 +1079,8 @@ impl Controller {
             push(
                 out,
                 robot::Telemetry::Heartbeat(robot::Heartbeat {
-                    uptime_ms: u32::try_from(uptime_ms).unwrap_or(u32::MAX),
+                    // Wraps after 49.7 days, as the DBC says (a host checks that it advances).
+                    uptime_ms: uptime_ms as u32,
                     state: self.state,
                     protocol_version: robot::PROTOCOL_VERSION,
                 })

@@ -86,6 +86,11 @@ fn out_of_range_values_name_field_and_value() {
             "timing.stale_periods = 1",
         ),
         ("kp = 1.2", "kp = -1.0", "gains.kp = -1"),
+        (
+            "gear_ratio = ",
+            "gear_ratio = 1e-43 #",
+            "drive.gear_ratio = 0.0000000000000000000000000000000000000000001: a ratio in 0.01..=1000",
+        ),
     ];
     for (from, to, want) in cases {
         let msg = invalid(&dji_with(from, to));
@@ -134,4 +139,19 @@ fn missing_file_is_an_io_error_naming_it() {
     let e = Config::from_toml_file(Path::new("no/such/config.toml")).unwrap_err();
     assert!(matches!(e, LoadError::Io { .. }));
     assert!(e.to_string().contains("no/such/config.toml"));
+}
+
+#[test]
+fn an_odrive_node_whose_ids_are_the_robot_protocols_is_refused() {
+    let text = std::fs::read_to_string(repo_file("config/odrive.toml")).unwrap();
+    let from = "node_ids = [0, 1, 2, 3]";
+    assert!(text.contains(from));
+    let msg = invalid(&text.replacen(from, "node_ids = [0, 1, 24, 3]", 1));
+    assert!(msg.contains("drive.node_ids[2] (RL) = 24"), "{msg}");
+    assert!(msg.contains("0x300..=0x31F"), "{msg}");
+    // Its neighbours are fine.
+    for n in [23, 25] {
+        let ok = text.replacen(from, &format!("node_ids = [0, 1, {n}, 3]"), 1);
+        Config::from_toml_str(&ok).unwrap();
+    }
 }

@@ -28,6 +28,11 @@ struct Rig {
     rotor: [f64; 4],
     /// DJI: a stuck encoder reports this rotor angle and rpm whatever the rotor does.
     frozen: [Option<(u16, i16)>; 4],
+    /// ODrive: the axis error each heartbeat reports, until a `Clear_Errors` to the node
+    /// clears it (unless `error_persists`).
+    axis_error: [u32; 4],
+    /// ODrive: the cause of the axis error is still there: `Clear_Errors` does not clear it.
+    error_persists: [bool; 4],
     /// Every frame emitted, with its time.
     log: Vec<(u64, CanFrame)>,
 }
@@ -42,6 +47,8 @@ impl Rig {
             speed: [0.0; 4],
             rotor: [0.0; 4],
             frozen: [None; 4],
+            axis_error: [0; 4],
+            error_persists: [false; 4],
             log: Vec::new(),
         }
     }
@@ -126,7 +133,7 @@ impl Rig {
                     }
                     if ms.is_multiple_of(100) {
                         let hb = odrive::Feedback::Heartbeat(odrive::Heartbeat {
-                            axis_error: 0,
+                            axis_error: self.axis_error[w],
                             axis_state: AxisState::ClosedLoopControl,
                             procedure_result: 0,
                             trajectory_done: true,
@@ -144,6 +151,14 @@ impl Rig {
         let out = self.ctl.step(self.now());
         for f in &out {
             self.log.push((self.now_us, *f));
+            if let Drive::Odrive { node_ids, .. } = self.config.drive
+                && let Ok(a) = odrive::Command::decode(f)
+                && let odrive::Command::ClearErrors { .. } = a.msg
+                && let Some(w) = node_ids.iter().position(|&n| n == a.node.get())
+                && !self.error_persists[w]
+            {
+                self.axis_error[w] = 0;
+            }
         }
         self.now_us += TICK_US;
         out
@@ -543,6 +558,10 @@ fn a_stale_motor_faults_within_three_feedback_periods() {
     assert_eq!(rig.ctl.fault(), Fault::MotorStale);
     // Last feedback at t_silent - 1 ms; stale after 3 ms; seen at the next step.
     assert!(t_fault - t_silent <= 4_000, "{} us", t_fault - t_silent);
+    // A stale motor is not online.
+    rig.send(Command::StatusRequest);
+    rig.tick();
+    assert_eq!(rig.status().motors_online, 0b1011);
     // Fault means no torque.
     assert!(dji_currents(&rig.tick()).is_some_and(all_zero));
     // Reset while the motor is still silent faults again; back alive, reset clears it.
@@ -848,4 +867,157 @@ fn normal_driving_never_looks_like_a_stuck_encoder() {
             "{twist:?}"
         );
     }
+}
+
+/// Clear_Errors frames in a step's output: the node ids they go to.
+fn clear_errors_nodes(out: &Outbox) -> Vec<u8> {
+    out.iter()
+        .filter_map(|f| match odrive::Command::decode(f) {
+            Ok(a) if matches!(a.msg, odrive::Command::ClearErrors { .. }) => Some(a.node.get()),
+            _ => None,
+        })
+        .collect()
+}
+
+/// An ODrive enabled and driving forward after its first heartbeats.
+fn odrive_driving() -> Rig {
+    let mut rig = Rig::odrive();
+    rig.run_ms(150);
+    rig.enable();
+    rig.twist(0.2, 0.0, 0.0);
+    rig.run_ms(50);
+    assert_eq!(rig.ctl.state(), RobotState::Enabled);
+    rig
+}
+
+#[test]
+fn a_reset_clears_an_odrive_drive_error_and_the_robot_can_drive_again() {
+    let mut rig = odrive_driving();
+    rig.axis_error[1] = 0x0100_0000; // the axis watchdog expired
+    rig.run_until(150, |r, _| r.ctl.state() == RobotState::Fault)
+        .expect("the heartbeat's error faults the robot");
+    assert_eq!(rig.ctl.fault(), Fault::DriveError);
+    rig.run_ms(300);
+    assert_eq!(rig.ctl.state(), RobotState::Fault, "latched");
+
+    rig.send(Command::Mode(ModeRequest::Reset));
+    // A heartbeat sent before the drive got Clear_Errors still carries the error: ignored.
+    let hb = odrive::Feedback::Heartbeat(odrive::Heartbeat {
+        axis_error: 0x0100_0000,
+        axis_state: AxisState::Idle,
+        procedure_result: 0,
+        trajectory_done: true,
+    });
+    rig.raw(hb.to_can_frame(NodeId::new(1).unwrap()));
+    let out = rig.tick();
+    assert_eq!(clear_errors_nodes(&out), [0, 1, 2, 3]);
+    // Three heartbeat periods later the errors are gone and nothing faulted again.
+    rig.run_ms(300);
+    assert_eq!(
+        (rig.ctl.state(), rig.ctl.fault()),
+        (RobotState::Disabled, Fault::None)
+    );
+    rig.enable();
+    rig.twist(0.2, 0.0, 0.0);
+    rig.run_ms(20);
+    assert_eq!(rig.ctl.state(), RobotState::Enabled);
+    let vels = (0..20)
+        .find_map(|_| {
+            let out = rig.tick();
+            odrive_vels(&rig.config, &out)
+        })
+        .expect("setpoints at their rate");
+    assert!(vels[0] > 0.0, "{vels:?}");
+}
+
+#[test]
+fn an_odrive_error_whose_cause_persists_faults_again_after_the_reset() {
+    let mut rig = odrive_driving();
+    rig.axis_error[2] = 0x0000_0800; // a hardware fault: Clear_Errors does not remove it
+    rig.error_persists[2] = true;
+    rig.run_until(150, |r, _| r.ctl.state() == RobotState::Fault)
+        .expect("faults");
+    let t_reset = rig.now_us;
+    rig.send(Command::Mode(ModeRequest::Reset));
+    rig.tick();
+    assert_eq!(rig.ctl.state(), RobotState::Disabled);
+    let t = rig
+        .run_until(150, |r, _| r.ctl.state() == RobotState::Fault)
+        .expect("the next heartbeat faults again");
+    assert_eq!(rig.ctl.fault(), Fault::DriveError);
+    assert!(t - t_reset <= 101_000, "{} us", t - t_reset);
+}
+
+#[test]
+fn an_odrive_position_jump_is_not_integrated_and_is_counted() {
+    let mut rig = Rig::odrive();
+    rig.run_ms(50);
+    // The drive on wheel 0 reboots: its position estimate restarts 1000 turns lower.
+    rig.rotor[0] -= 1000.0;
+    rig.run_ms(50);
+    let s = rig.ctl.snapshot();
+    assert_eq!(s.rx_errors.out_of_range, 1);
+    assert!(
+        s.pose.x.abs() < 1e-6 && s.pose.y.abs() < 1e-6 && s.pose.heading.abs() < 1e-6,
+        "{:?}",
+        s.pose
+    );
+    // The new count is the reference from then on: driving moves the pose as usual.
+    let Drive::Odrive { inverted, .. } = rig.config.drive else {
+        unreachable!()
+    };
+    let w = 0.5 / 0.05; // the example's 50 mm wheels
+    rig.speed = inverted.map(|i| if i { -w } else { w });
+    rig.run_ms(1000);
+    let x = rig.ctl.pose().x;
+    assert!((x - 0.5).abs() < 0.02, "x = {x}");
+    assert_eq!(rig.ctl.snapshot().rx_errors.out_of_range, 1);
+}
+
+#[test]
+fn a_twist_stamped_earlier_does_not_move_the_watchdog_back() {
+    let mut rig = Rig::dji();
+    rig.run_ms(5);
+    rig.enable();
+    rig.twist(0.2, 0.0, 0.0);
+    rig.run_ms(50);
+    rig.twist(0.2, 0.0, 0.0);
+    let t_last = rig.now_us;
+    // The same command arriving late, stamped 40 ms before the last one.
+    let late = Command::Twist(TwistCmd {
+        vx: 0.2,
+        vy: 0.0,
+        wz: 0.0,
+        seq: 0,
+    })
+    .to_can_frame();
+    rig.ctl
+        .on_frame(Instant::from_micros(t_last - 40_000), &late);
+    let timeout_us = u64::from(rig.config.timing.command_timeout_ms) * 1000;
+    rig.run_ms(timeout_us / 1000 - 1);
+    assert_eq!(
+        rig.ctl.fault(),
+        Fault::None,
+        "the watchdog counts from {t_last}"
+    );
+    rig.run_ms(3);
+    assert_eq!(rig.ctl.fault(), Fault::Watchdog);
+}
+
+#[test]
+fn the_heartbeat_uptime_wraps_after_2_pow_32_ms() {
+    let mut rig = Rig::dji();
+    rig.run_ms(1);
+    rig.now_us += (1u64 << 32) * 1000;
+    rig.run_ms(200);
+    let uptime = rig
+        .log
+        .iter()
+        .rev()
+        .find_map(|(_, f)| match robot::Telemetry::decode(f) {
+            Ok(robot::Telemetry::Heartbeat(h)) => Some(h.uptime_ms),
+            _ => None,
+        })
+        .unwrap();
+    assert!((1..=201).contains(&uptime), "uptime {uptime} ms");
 }

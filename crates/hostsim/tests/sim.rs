@@ -119,7 +119,7 @@ fn a_motor_going_offline_faults_the_firmware_within_a_few_ms() {
         .find(|(_, state, _)| state == "Fault")
         .unwrap();
     assert!((0.502..=0.506).contains(t), "fault at {t} s");
-    assert_eq!(r.last.motors_online, 0b1111, "seen once, now stale");
+    assert_eq!(r.last.motors_online, 0b1101, "FR is stale: not online");
 }
 
 #[test]
