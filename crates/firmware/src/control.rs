@@ -495,7 +495,7 @@ impl Controller {
 
     /// The odometry pose.
     #[must_use]
-    pub const fn pose(&self) -> Pose2<f32> {
+    pub fn pose(&self) -> Pose2<f32> {
         self.odometry.pose()
     }
 

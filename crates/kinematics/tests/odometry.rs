@@ -311,3 +311,40 @@ fn encoder_speed_and_sign() {
     let m2006 = Encoder::new(&EncoderConfig::<f32>::dji_m2006(false)).unwrap();
     assert!((m2006.counts_to_radians(8192 * 36) - 2.0 * core::f32::consts::PI).abs() < 1e-5);
 }
+
+/// Tiny steps far from the origin in f32 (1 kHz, slow motion): the compensated sums keep what
+/// plain f32 additions would round away (8 % of the distance at 200 m, all of a slow turn).
+#[test]
+fn f32_odometry_keeps_tiny_steps_far_from_the_origin() {
+    // 1 s at 5 cm/s in 1 ms steps, starting 200 m out, heading 0.
+    let mut odo = Odometry::<f32>::new(Pose2::new(200.0, -200.0, 0.0));
+    for _ in 0..1000 {
+        odo.apply(Twist2::new(5e-5, 5e-5, 0.0));
+    }
+    let p = odo.pose();
+    // One f32 ulp at 200 is 15 µm.
+    assert!((p.x - 200.05).abs() < 2e-5, "x = {}", p.x);
+    assert!((p.y - (-199.95)).abs() < 2e-5, "y = {}", p.y);
+
+    // 1 s at 0.1 mrad/s from a heading of 3 rad: each step is below half an ulp of 3.
+    let mut odo = Odometry::<f32>::new(Pose2::new(0.0, 0.0, 3.0));
+    for _ in 0..1000 {
+        odo.apply(Twist2::new(0.0, 0.0, 1e-7));
+    }
+    let h = odo.pose().heading;
+    assert!((f64::from(h) - 3.0001).abs() < 3e-7, "heading {h}");
+
+    // Across the ±π wrap the compensation carries over: 20 s of 0.2 rad/s past π.
+    let mut odo = Odometry::<f32>::new(Pose2::new(0.0, 0.0, 3.0));
+    let mut exact = Odometry::<f64>::new(Pose2::new(0.0, 0.0, 3.0));
+    for _ in 0..20_000 {
+        odo.apply(Twist2::new(1e-4, 0.0, 2e-4));
+        exact.apply(Twist2::new(1e-4, 0.0, 2e-4));
+    }
+    let (p, q) = (odo.pose(), exact.pose());
+    assert!(
+        (f64::from(p.heading) - q.heading).abs() < 1e-6,
+        "{p:?} vs {q:?}"
+    );
+    assert!((f64::from(p.x) - q.x).abs() < 1e-5 && (f64::from(p.y) - q.y).abs() < 1e-5);
+}
