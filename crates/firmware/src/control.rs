@@ -32,7 +32,7 @@
 //! |---|---|---|
 //! | `MotorMissing` | a motor never reported, `timing.boot_timeout_ms` after the first step | the next step |
 //! | `MotorStale` | a motor's last feedback is older than `timing.stale_periods` feedback periods (DJI 1 ms, ODrive estimates 10 ms) | ≤ that + one control period after its last frame |
-//! | `DriveError` | an ODrive heartbeat or `Get_Error` reports a nonzero axis error | the next step |
+//! | `DriveError` | an ODrive heartbeat or `Get_Error` reports a nonzero axis error, or (while enabled) an axis state other than closed loop | the next step |
 //! | `EncoderStuck` | see below (DJI only) | [`ENCODER_STUCK_SPINNING_US`] / [`ENCODER_STUCK_DRAGGED_US`] after the signature appears |
 //!
 //! An ODrive keeps reporting an axis error until it is told to clear it, so for ODrive
@@ -121,6 +121,10 @@ pub const ENCODER_STUCK_MIN_CURRENT: f32 = 0.25;
 /// integrated into the odometry (a drive reboot restarting its count, a corrupt value); it
 /// becomes the new reference and is counted as an out-of-range frame.
 pub const ODRIVE_MAX_JUMP_FACTOR: f32 = 2.0;
+/// ODrive: heartbeats received until this long after the step that asked for closed loop
+/// (after an enable) are taken to predate the request: their axis state is not judged, µs.
+/// A later heartbeat of an enabled robot that reports another state is a `DriveError`.
+pub const ODRIVE_STATE_GRACE_US: u64 = 20_000;
 /// ODrive: after a reset, heartbeat and `Get_Error` frames received until this long after the
 /// next step sent `Clear_Errors` are taken to predate the clearing: their error bits are
 /// ignored, µs. A cause that persists shows in the next heartbeat (every 100 ms).
@@ -334,6 +338,8 @@ pub struct Controller {
     clear_errors: bool,
     /// ODrive: when `Clear_Errors` was last sent.
     errors_cleared_at: Option<Instant>,
+    /// ODrive: when closed loop was last requested.
+    closed_loop_at: Option<Instant>,
     /// ODrive: the most a position estimate may move per µs since the previous one, motor
     /// turns ([`ODRIVE_MAX_JUMP_FACTOR`]).
     max_turns_per_us: f32,
@@ -441,6 +447,7 @@ impl Controller {
             axis_request: None,
             clear_errors: false,
             errors_cleared_at: None,
+            closed_loop_at: None,
             max_turns_per_us: match config.drive {
                 Drive::Odrive { gear_ratio, .. } => {
                     ODRIVE_MAX_JUMP_FACTOR * config.limits.max_wheel_speed * gear_ratio
@@ -577,6 +584,11 @@ impl Controller {
                     self.fault = Fault::None;
                     self.halt();
                     self.axis_request = self.odrive_axis(AxisState::ClosedLoopControl);
+                    // States reported from now until the request goes out predate it.
+                    self.closed_loop_at = Some(now);
+                    for m in &mut self.motors {
+                        m.axis_state = None;
+                    }
                 }
             }
             Command::Mode(ModeRequest::Disable) => {
@@ -679,6 +691,9 @@ impl Controller {
         let errors_stale = self
             .errors_cleared_at
             .is_some_and(|t| now.micros_since(t) <= ODRIVE_CLEAR_GRACE_US);
+        let state_stale = self
+            .closed_loop_at
+            .is_some_and(|t| now.micros_since(t) <= ODRIVE_STATE_GRACE_US);
         let (max_turns_per_us, estimate_period_us) =
             (self.max_turns_per_us, self.feedback_period_us);
         let Some((sign, m)) = self.wheel(fb.node.get()) else {
@@ -687,7 +702,9 @@ impl Controller {
         match fb.msg {
             odrive::Feedback::Heartbeat(hb) => {
                 m.axis_error = if errors_stale { 0 } else { hb.axis_error };
-                m.axis_state = Some(hb.axis_state);
+                if !state_stale {
+                    m.axis_state = Some(hb.axis_state);
+                }
             }
             odrive::Feedback::EncoderEstimates { pos, vel } => {
                 let turns_to_rad = core::f32::consts::TAU / gear_ratio;
@@ -742,9 +759,12 @@ impl Controller {
     /// [`step`](Self::step), writing into an empty outbox.
     fn step_into(&mut self, now: Instant, out: &mut Outbox) {
         let boot = *self.boot.get_or_insert(now);
+        // Sent by this step (emit_odrive).
         if self.clear_errors {
-            // Sent by this step (emit_odrive).
             self.errors_cleared_at = Some(now);
+        }
+        if self.axis_request == Some(AxisState::ClosedLoopControl) {
+            self.closed_loop_at = Some(now);
         }
         self.check_motors(now, boot);
         self.run_watchdog(now);
@@ -808,11 +828,16 @@ impl Controller {
             bits | (u8::from(fresh) << i)
         });
         let mut fault = Fault::None;
+        let enabled = self.state == RobotState::Enabled;
         for m in &self.motors {
+            // ODrive: an enabled robot's axes must be in closed loop (once they could be).
+            let left_closed_loop = enabled
+                && m.axis_state
+                    .is_some_and(|s| s != AxisState::ClosedLoopControl);
             match m.last_seen {
                 None if now.micros_since(boot) > boot_us => fault = Fault::MotorMissing,
                 Some(seen) if now.micros_since(seen) > stale_us => fault = Fault::MotorStale,
-                _ if m.axis_error != 0 => fault = Fault::DriveError,
+                _ if m.axis_error != 0 || left_closed_loop => fault = Fault::DriveError,
                 _ => {}
             }
             if fault != Fault::None {

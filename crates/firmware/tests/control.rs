@@ -1021,3 +1021,39 @@ fn the_heartbeat_uptime_wraps_after_2_pow_32_ms() {
         .unwrap();
     assert!((1..=201).contains(&uptime), "uptime {uptime} ms");
 }
+
+fn odrive_heartbeat(node: u8, axis_state: AxisState) -> CanFrame {
+    odrive::Feedback::Heartbeat(odrive::Heartbeat {
+        axis_error: 0,
+        axis_state,
+        procedure_result: 0,
+        trajectory_done: true,
+    })
+    .to_can_frame(NodeId::new(node).unwrap())
+}
+
+#[test]
+fn an_odrive_axis_that_leaves_closed_loop_while_enabled_faults() {
+    // Right after the enable, a heartbeat still reporting Idle predates the request.
+    let mut rig = Rig::odrive();
+    rig.run_ms(150);
+    rig.enable();
+    rig.raw(odrive_heartbeat(3, AxisState::Idle));
+    rig.tick();
+    rig.run_ms(10);
+    rig.raw(odrive_heartbeat(3, AxisState::Idle));
+    rig.tick();
+    assert_eq!(rig.ctl.state(), RobotState::Enabled);
+
+    // Later, an axis reporting Idle with no error (another node commanded it, a reboot that
+    // kept its errors to itself) cannot follow its setpoints: the robot faults.
+    rig.twist(0.2, 0.0, 0.0);
+    rig.run_ms(50);
+    assert_eq!(rig.ctl.state(), RobotState::Enabled);
+    rig.raw(odrive_heartbeat(3, AxisState::Idle));
+    rig.tick();
+    assert_eq!(
+        (rig.ctl.state(), rig.ctl.fault()),
+        (RobotState::Fault, Fault::DriveError)
+    );
+}
