@@ -122,9 +122,11 @@ pub const ENCODER_STUCK_MIN_CURRENT: f32 = 0.25;
 /// becomes the new reference and is counted as an out-of-range frame.
 pub const ODRIVE_MAX_JUMP_FACTOR: f32 = 2.0;
 /// ODrive: heartbeats received until this long after the step that asked for closed loop
-/// (after an enable) are taken to predate the request: their axis state is not judged, µs.
-/// A later heartbeat of an enabled robot that reports another state is a `DriveError`.
-pub const ODRIVE_STATE_GRACE_US: u64 = 20_000;
+/// (after an enable) may predate the request: their axis state is not judged, µs. One and a
+/// half heartbeat periods, so that a stalled runner or drive does not turn an old heartbeat
+/// into a fault. A later heartbeat of an enabled robot that reports another state is a
+/// `DriveError`.
+pub const ODRIVE_STATE_GRACE_US: u64 = 150_000;
 /// ODrive: after a reset, heartbeat and `Get_Error` frames received until this long after the
 /// next step sent `Clear_Errors` are taken to predate the clearing: their error bits are
 /// ignored, µs. A cause that persists shows in the next heartbeat (every 100 ms).

@@ -1047,8 +1047,10 @@ fn an_odrive_axis_that_leaves_closed_loop_while_enabled_faults() {
 
     // Later, an axis reporting Idle with no error (another node commanded it, a reboot that
     // kept its errors to itself) cannot follow its setpoints: the robot faults.
-    rig.twist(0.2, 0.0, 0.0);
-    rig.run_ms(50);
+    for _ in 0..20 {
+        rig.twist(0.2, 0.0, 0.0);
+        rig.run_ms(10);
+    }
     assert_eq!(rig.ctl.state(), RobotState::Enabled);
     rig.raw(odrive_heartbeat(3, AxisState::Idle));
     rig.tick();
