@@ -128,9 +128,10 @@ pub const ODRIVE_MAX_JUMP_FACTOR: f32 = 2.0;
 /// `DriveError`.
 pub const ODRIVE_STATE_GRACE_US: u64 = 150_000;
 /// ODrive: after a reset, heartbeat and `Get_Error` frames received until this long after the
-/// next step sent `Clear_Errors` are taken to predate the clearing: their error bits are
-/// ignored, µs. A cause that persists shows in the next heartbeat (every 100 ms).
-pub const ODRIVE_CLEAR_GRACE_US: u64 = 10_000;
+/// next step sent `Clear_Errors` may predate the clearing: their error bits are ignored, µs.
+/// One and a half heartbeat periods, as [`ODRIVE_STATE_GRACE_US`]; a cause that persists
+/// shows in the first heartbeat after it.
+pub const ODRIVE_CLEAR_GRACE_US: u64 = 150_000;
 
 /// A point in time, microseconds since an arbitrary epoch; monotonic. The core never reads a
 /// clock: the adapter (runner, board, simulator) passes it in.
