@@ -86,6 +86,7 @@ if [ -d tests ] && compgen -G "tests/test_*.py" >/dev/null; then
         -p firmware --features firmware/linux --bin mecanum-runner
     HOSTSIM="$PWD/target/release/hostsim" MECANUM_RUNNER="$PWD/target/release/mecanum-runner" \
         MECANUM_CODEC="$PWD/target/debug/mecanum-codec" \
+        VCAN_VM_TIMEOUT=${VCAN_VM_TIMEOUT:-900} \
         scripts/vcan.sh -- .venv/bin/python -m pytest tests -m vcan -q -s -p no:cacheprovider
 fi
 

@@ -43,7 +43,8 @@ How $IFACE comes up, first that works:
      Debian ${DEB_PACKAGES[*]}
      (installed with apt-get when run as root and missing) and PyPI $VNG_REQUIREMENT
      (pip-installed into $VENV when missing). Allow ~1 min of boot.
-     The environment is passed on, less terminal and session variables. Output is also
+     The environment variables the tools need are passed on (paths, locale, toolchains,
+     Python, CI, MECANUM_*), no others. Output is also
      kept in target/vcan-lane/output.log, the VM's exit code in target/vcan-lane/exit-code.
   3. neither: with CI=true that is a failure (exit 1, saying why); elsewhere the script
      prints "SKIP: <why>" and exits 0 without running COMMAND.
@@ -53,7 +54,8 @@ Options:
   --vm         go straight to the VM        (or VCAN_MODE=vm)
   -h, --help   this text
 
-Environment: VCAN_VM_TIMEOUT (seconds, default 1800), VCAN_VM_MEMORY (default 2G),
+Environment: VCAN_VM_TIMEOUT (seconds, default 1800; bounds a native COMMAND too),
+VCAN_VM_MEMORY (default 2G),
 VCAN_VM_CPUS (default: host CPUs, at most 4), VCAN_KERNEL (a vmlinuz to boot instead of the
 one linux-image-amd64 installed), VCAN_VENV (where virtme-ng is, default .venv),
 VCAN_NO_INSTALL=1 (install nothing: what is missing makes the lane unavailable).
@@ -182,8 +184,9 @@ run_native() {
     fi
     cd "$ROOT"
     set +e
-    MECANUM_VCAN_REQUIRED=1 MECANUM_VCAN_MODE=native "$@"
+    MECANUM_VCAN_REQUIRED=1 MECANUM_VCAN_MODE=native timeout --kill-after=10 "$VM_TIMEOUT" "$@"
     rc=$?
+    [ "$rc" = 124 ] && log "native: COMMAND did not finish within $VM_TIMEOUT s (VCAN_VM_TIMEOUT)"
     set -e
     teardown_native
     exit "$rc"
@@ -281,17 +284,17 @@ vm_prepare() {
     return 0
 }
 
-# The environment for the command in the guest: the caller's, less what belongs to this terminal
-# or session.
+# The environment for the command in the guest: the caller's variables that the tests and the
+# tools need (paths, locale, toolchains, Python, the project's own), and nothing else: the file
+# stays in target/vcan-lane for a look after a failure, so no credential may end up in it.
 write_guest_env() {
     local name
     for name in $(compgen -e); do
         case $name in
-        PWD | OLDPWD | SHLVL | _ | TERM | COLUMNS | LINES | TMUX | TMUX_PANE | DISPLAY | WAYLAND_DISPLAY | \
-            XAUTHORITY | XDG_RUNTIME_DIR | XDG_SESSION_* | DBUS_SESSION_BUS_ADDRESS | SSH_* | BASH_FUNC_*)
-            continue ;;
+        PATH | HOME | USER | LOGNAME | LANG | LC_* | TZ | TMPDIR | CI | HOSTSIM | MECANUM_* | VCAN_* | \
+            RUST* | CARGO* | PYTHON* | PYTEST_* | VIRTUAL_ENV)
+            printf 'export %s=%q\n' "$name" "${!name}" ;;
         esac
-        printf 'export %s=%q\n' "$name" "${!name}"
     done
     printf 'export MECANUM_VCAN_REQUIRED=1 MECANUM_VCAN_MODE=vm\n'
 }
@@ -303,7 +306,7 @@ fi
 rm -f "$LANE/exit-code" "$LANE/started" "$LANE/setup-failed" "$LANE/timing" "$LANE/output.log"
 printf '%q ' "$@" >"$LANE/command.sh"
 printf '\n' >>"$LANE/command.sh"
-write_guest_env >"$LANE/env.sh"
+(umask 077 && write_guest_env >"$LANE/env.sh")
 
 guest_cmd="bash $(printf '%q' "$SCRIPT_DIR/vcan-guest.sh") $(printf '%q' "$LANE") $(printf '%q' "$ROOT") $IFACE $TXQUEUELEN"
 # Two more 9p shares, which the guest script mounts with the page cache on (cache=loose): the

@@ -21,6 +21,7 @@ import signal
 import struct
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
@@ -201,6 +202,11 @@ def test_motion_session_runner_kept_its_rate(motion: Robot) -> None:
           f"jitter {stats['jitter']}")
     assert stats["controller"]["fault_at_stop"] in ("None", "Watchdog"), stats["controller"]
     assert stats["send_errors"] == 0 and stats["rx_errors"] == 0, stats
+    # 1 kHz: one step per millisecond. An overrun re-anchors the schedule instead of
+    # catching up, so late steps are lost; the emulated machine is late often (about 80 % of
+    # the steps were measured there), a real one seldom.
+    min_ratio = 0.6 if VM else 0.95
+    assert stats["steps"] >= min_ratio * elapsed * 1000, (stats["steps"], elapsed)
 
 
 # --- stops: watchdog, status polls, e-stop ---------------------------------------------------
@@ -487,31 +493,43 @@ def recorded(robot_factory, tmp_path_factory, can_utils, configs) -> dict:
     session = work / "session.log"
     # ODrive drives: a quarter of the DJI frame rate, which python-can's logger keeps up with
     # even on the emulated machine.
-    with robot_factory("record", config=configs["odrive"]) as first:
-        logger = subprocess.Popen(
-            [sys.executable, "-m", "can.logger", "-i", "socketcan", "-c", first.iface, "-f", str(session)],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-        )
-        banner = ""
-        while "Can Logger" not in banner:  # printed once it listens
-            line = logger.stdout.readline()
-            assert line, f"can.logger exited: {banner}"
-            banner += line
-        first.mode(MODE_ENABLE)
-        first.twist(0.4, 0.0, 0.0)
-        first.start_stream()
-        time.sleep(1.5)
-        first.twist(0.2, 0.2, 0.5)
-        time.sleep(1.5)
-        first.stop_stream()
-        time.sleep(0.5)
-    # The runner and the plant have stopped: the bus is quiet, and the logger works off what
-    # it has not written yet (on a slow machine it lags) before it is stopped.
-    wait_until_quiet(session, quiet_s=3.0)
-    logger.send_signal(signal.SIGINT)
-    logger.communicate(timeout=60)
+    logger = None
+    try:
+        with robot_factory("record", config=configs["odrive"]) as first:
+            # -u: the logger prints its banner without a flush; unbuffered, it reaches the pipe.
+            logger = subprocess.Popen(
+                [sys.executable, "-u", "-m", "can.logger", "-i", "socketcan", "-c", first.iface, "-f", str(session)],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+            )
+            banner: list[str] = []
+            reader = threading.Thread(target=lambda: banner.extend(iter(logger.stdout.readline, "")), daemon=True)
+            reader.start()
+            deadline = time.monotonic() + 60
+            while "Can Logger" not in "".join(banner):  # printed once it listens
+                assert logger.poll() is None, f"can.logger exited: {''.join(banner)}"
+                assert time.monotonic() < deadline, f"can.logger printed no banner in 60 s: {''.join(banner)!r}"
+                time.sleep(0.05)
+            first.mode(MODE_ENABLE)
+            first.twist(0.4, 0.0, 0.0)
+            first.start_stream()
+            time.sleep(1.5)
+            first.twist(0.2, 0.2, 0.5)
+            time.sleep(1.5)
+            first.stop_stream()
+            time.sleep(0.5)
+        # The runner and the plant have stopped: the bus is quiet, and the logger works off
+        # what it has not written yet (on a slow machine it lags) before it is stopped.
+        wait_until_quiet(session, quiet_s=3.0)
+        logger.send_signal(signal.SIGINT)
+        logger.wait(timeout=60)
+        reader.join(timeout=10)  # it drained the logger's output to the end
+    finally:
+        # Never left running on the interface, whatever failed.
+        if logger is not None and logger.poll() is None:
+            logger.kill()
+            logger.wait()
     lines = session.read_text().splitlines()
     commands = work / "commands.log"
     commands.write_text(
@@ -626,15 +644,19 @@ def test_rate_8000_frames_per_second_for_30_s_without_loss(
         # BURST frames every 1 ms: 10,000/s nominal natively. The emulated machine's sleeps
         # overshoot by about a millisecond, so there the bursts are bigger. (The rate is
         # measured either way.)
-        # (Sized for >= 30 s at up to 14,000/s; a slower stream lasts longer.)
-        count = int(RATE_S * 14_000)
+        # Chunks of a known size until 30 s have passed, so that the total is known exactly
+        # (for the loss check) however fast the machine is.
+        chunk = 10_000
+        count = 0
         t0 = time.monotonic()
-        run_cangen(
-            can_utils("cangen"),
-            vcan,
-            [["-I", "123", "-L", "8", "-D", "i", "-g", "1", "-c", str(RATE_BURST), "-n", str(count), "-p", "100"]],
-            timeout=RATE_S * 10,
-        )
+        while time.monotonic() - t0 < RATE_S:
+            run_cangen(
+                can_utils("cangen"),
+                vcan,
+                [["-I", "123", "-L", "8", "-D", "i", "-g", "1", "-c", str(RATE_BURST), "-n", str(chunk), "-p", "100"]],
+                timeout=RATE_S * 10,
+            )
+            count += chunk
         elapsed = time.monotonic() - t0
         time.sleep(0.5)
     finally:

@@ -194,7 +194,10 @@ class Robot:
 
     def _stop_all(self) -> None:
         self.stop_stream()
-        # The runner first (it sends its shutdown frames), then the plant, then candump.
+        # The runner first (it sends its shutdown frames), then the plant, then candump. Every
+        # process is stopped and every bus shut down before a failure is reported, so that a
+        # failed session leaves nothing running on the interface for the next test.
+        failures = []
         for name in ("runner", "plant", "candump"):
             proc = self._procs.get(name)
             if proc is None:
@@ -210,10 +213,8 @@ class Robot:
                 proc.wait()
             path = self.workdir / ("candump.err" if name == "candump" else f"{name}.out")
             self.outputs[name] = path.read_text() if path.exists() else ""
-            if name != "candump":
-                assert proc.returncode == 0, (
-                    f"{name} exited with {proc.returncode}:\n{self.outputs[name]}"
-                )
+            if name != "candump" and proc.returncode != 0:
+                failures.append(f"{name} exited with {proc.returncode}:\n{self.outputs[name]}")
             if name == "runner":
                 # Its shutdown frames reach candump before candump stops.
                 time.sleep(0.2)
@@ -221,6 +222,7 @@ class Robot:
             if bus is not None:
                 bus.shutdown()
         self._tx = self._status_rx = None
+        assert not failures, "\n".join(failures)
         if self.candump_log.exists():
             self.frames = parse_candump(self.candump_log)
             drops = [line for line in self.candump_log.read_text().splitlines() if "DROPCOUNT" in line]
