@@ -70,7 +70,15 @@ cargo bench -p kinematics -p firmware --no-run --locked
 
 if [ -d tests ] && compgen -G "tests/test_*.py" >/dev/null; then
     stage "python tests"
-    if [ ! -x .venv/bin/python ]; then
+    # A venv left broken (python3 without ensurepip makes one with no pip) is made anew;
+    # as root, Debian's python3-venv is installed first when ensurepip is missing.
+    if ! .venv/bin/python -m pip --version >/dev/null 2>&1; then
+        if ! python3 -c 'import ensurepip' 2>/dev/null && [ "$(id -u)" = 0 ] &&
+            command -v apt-get >/dev/null; then
+            apt-get update -qq
+            DEBIAN_FRONTEND=noninteractive apt-get install -y -qq python3-venv
+        fi
+        rm -rf .venv
         python3 -m venv .venv
     fi
     .venv/bin/python -m pip install --quiet --disable-pip-version-check -r tests/requirements.txt

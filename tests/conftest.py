@@ -37,7 +37,7 @@ def codec_bin() -> pathlib.Path:
         assert path.is_file(), f"MECANUM_CODEC={prebuilt} does not exist"
         return path
     subprocess.run(
-        ["cargo", "build", "--quiet", "-p", "firmware", "--features", "std", "--bin", "mecanum-codec"],
+        ["cargo", "build", "--quiet", "--locked", "-p", "firmware", "--features", "std", "--bin", "mecanum-codec"],
         cwd=ROOT,
         check=True,
         timeout=900,
@@ -86,7 +86,7 @@ def hostsim_bin() -> pathlib.Path:
         assert path.is_file(), f"HOSTSIM={prebuilt} does not exist"
         return path
     subprocess.run(
-        ["cargo", "build", "--quiet", "-p", "hostsim", "--bin", "hostsim"],
+        ["cargo", "build", "--quiet", "--locked", "-p", "hostsim", "--bin", "hostsim"],
         cwd=ROOT,
         check=True,
         timeout=1800,

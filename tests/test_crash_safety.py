@@ -109,6 +109,8 @@ def kill_one(binary: pathlib.Path, out: pathlib.Path, delay_s: float) -> dict:
         summary_stderr=stderr,
         size=log.stat().st_size,
     )
+    # Checked: the log (up to tens of MB, and a hundred runs) is not kept in the temp folder.
+    log.unlink()
     return result
 
 
