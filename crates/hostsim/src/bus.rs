@@ -60,7 +60,10 @@ pub enum FaultKind {
     },
     /// Every frame is lost (a burst of losses for the length of the window).
     Burst,
-    /// Frames are delivered this much later than their end of transmission, µs.
+    /// Frames are delivered this much later than their end of transmission, µs (a slow path
+    /// from the sender, such as a gateway): a sender's frames still arrive in the order they
+    /// went on the wire, so a frame after a delayed one waits for it. Other senders' frames
+    /// are not held up.
     Delay {
         /// Extra latency, µs.
         micros: u64,
@@ -145,6 +148,9 @@ pub struct Bus {
     /// The bus is busy until this time, ns.
     idle_at_ns: u64,
     faults: Vec<Fault>,
+    /// Per sender ([`node_index`]), when its last frame is delivered: no later frame of the
+    /// same sender is delivered before it.
+    last_delivered_ns: [u64; 3],
     rng: SplitMix64,
     stats: BusStats,
 }
@@ -179,6 +185,7 @@ impl Bus {
             queued: 0,
             idle_at_ns: 0,
             faults,
+            last_delivered_ns: [0; 3],
             rng: SplitMix64(seed),
             stats: BusStats::default(),
         }
@@ -256,11 +263,14 @@ impl Bus {
                 Fate::Corrupted => self.stats.corrupted += 1,
                 Fate::Delivered => {}
             }
+            let last = &mut self.last_delivered_ns[node_index(from)];
+            let delivered_ns = (end_ns + delay_ns).max(*last);
+            *last = delivered_ns;
             out.push(Transmission {
                 from,
                 queued_ns,
                 start_ns,
-                delivered_ns: end_ns + delay_ns,
+                delivered_ns,
                 frame,
                 bits,
                 fate,
@@ -674,5 +684,39 @@ mod tests {
             .count();
         assert_eq!((tx[0].fate, diff), (Fate::Corrupted, 1));
         assert_eq!(tx[0].delivered_ns, u64::from(tx[0].bits) * 1000 + 250_000);
+    }
+
+    #[test]
+    fn a_delayed_sender_keeps_its_order_and_others_are_not_held_up() {
+        let faults = vec![Fault {
+            kind: FaultKind::Delay { micros: 900 },
+            from_us: 0,
+            until_us: 300,
+            sender: Some(Node::Drives),
+        }];
+        let mut bus = Bus::new(1_000_000, faults, 1);
+        // Drive frames at 0 and 400 µs: the first is delayed to about 1 ms, the second not
+        // (its window is over), so it must wait for the first.
+        bus.send(0, Node::Drives, frame(0x201, &[1; 8]));
+        bus.send(400_000, Node::Drives, frame(0x202, &[2; 8]));
+        bus.send(400_000, Node::Host, frame(0x301, &[3; 8]));
+        let tx = bus.advance(u64::MAX);
+        let at = |id: u16| {
+            tx.iter()
+                .find(|t| raw_id(&t.frame) == id)
+                .map(|t| (t.start_ns, t.delivered_ns))
+                .unwrap()
+        };
+        let (first, second, host) = (at(0x201), at(0x202), at(0x301));
+        assert!(first.1 >= 900_000, "{first:?}");
+        assert_eq!(
+            second.1, first.1,
+            "the later drive frame waits for the delayed one"
+        );
+        // The host frame went on the wire after the second drive frame's and is not held.
+        assert!(
+            host.0 > second.0 && host.1 < first.1,
+            "{host:?} vs {first:?}"
+        );
     }
 }

@@ -141,7 +141,7 @@ pub enum FaultName {
     Corrupt,
     /// A wheel's encoder stops changing while the wheel turns.
     StuckEncoder,
-    /// A drive sends nothing.
+    /// A drive is off: it sends nothing and drives nothing (the wheel coasts).
     MotorOffline,
     /// Besides its own stream, the host sends `TWIST_CMD` frames whose values are not finite
     /// numbers (see [`crate::sim::non_finite_twist_frames`]), once per command period.

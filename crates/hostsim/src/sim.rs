@@ -92,7 +92,7 @@ pub struct RunSummary {
     pub bus: BusStats,
     /// Bus load over the run (0..1).
     pub bus_load: f64,
-    /// Final ground-truth pose.
+    /// Ground-truth pose at the last step (the time of the final odometry).
     pub truth: [f64; 3],
     /// Final odometry pose.
     pub odometry: [f64; 3],
@@ -272,6 +272,9 @@ pub fn run_observed<P: SimPlant>(
     let mut summary_rx = 0u64;
     let mut hash = StreamHash::default();
     let mut max_err = 0.0f64;
+    // Ground truth at the last step, the time of the last odometry (the plant then advances
+    // one more period, which the firmware never sees).
+    let mut last_truth = plant.truth();
     let mut transitions = Vec::new();
     let mut last_state = (RobotState::Disabled, firmware::control::Fault::None);
     let mut t_us = 0u64;
@@ -304,7 +307,8 @@ pub fn run_observed<P: SimPlant>(
             }
             host.next_action += 1;
         }
-        if host.streaming && host.next_command_us <= t_us {
+        // Every command due by now (more than one a step when command_hz > control_hz).
+        while host.streaming && host.next_command_us <= t_us {
             let [vx, vy, wz] = host.twist;
             let frame = Command::Twist(TwistCmd {
                 vx,
@@ -402,7 +406,8 @@ pub fn run_observed<P: SimPlant>(
         }
         let odom = pose_array(ctl.pose());
         let truth = plant.truth();
-        max_err = max_err.max((odom[0] - truth[0]).hypot(odom[1] - truth[1]));
+        last_truth = truth;
+        max_err = max_err.max(libm::hypot(odom[0] - truth[0], odom[1] - truth[1]));
         if t_us.is_multiple_of(10_000) {
             track.push(crate::plot::TrackPoint {
                 t: t_us as f64 * 1e-6,
@@ -436,7 +441,7 @@ pub fn run_observed<P: SimPlant>(
     }
 
     let odom = pose_array(ctl.pose());
-    let truth = plant.truth();
+    let truth = last_truth;
     let end_ns = t_us * 1000;
     Ok(RunSummary {
         scenario: scenario.name.clone(),
@@ -448,7 +453,7 @@ pub fn run_observed<P: SimPlant>(
         bus_load: bus.load(end_ns),
         truth,
         odometry: odom,
-        final_position_error: (odom[0] - truth[0]).hypot(odom[1] - truth[1]),
+        final_position_error: libm::hypot(odom[0] - truth[0], odom[1] - truth[1]),
         max_position_error: max_err,
         final_heading_error: kinematics::wrap_angle(odom[2] - truth[2]),
         last: ctl.snapshot(),

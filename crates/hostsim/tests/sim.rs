@@ -174,3 +174,67 @@ fn odrive_chassis_drives_too() {
     assert!((0.55..0.85).contains(&r.truth[1]), "y = {}", r.truth[1]);
     assert!(plant.truth_velocity()[1] > 0.3);
 }
+
+#[test]
+fn the_host_sends_every_command_due_even_above_the_control_rate() {
+    // A 100 Hz core and a host commanding at 200 Hz: two TWIST_CMD per control period.
+    let mut s = scenario(
+        r#"
+        duration_s = 2.0
+        command_hz = 200.0
+        [[actions]]
+        at_s = 0.05
+        enable = true
+        [[actions]]
+        at_s = 0.1
+        twist = [0.3, 0.0, 0.0]
+    "#,
+    );
+    s.config.timing.control_hz = 100;
+    s.config.timing.setpoint_hz = 100;
+    let mut plant = SimDrives::new(&s.config).unwrap();
+    let mut twists = Vec::new();
+    hostsim::sim::run_observed(&s, &mut plant, None, LogOptions::default(), |step| {
+        for tx in step.delivered {
+            if tx.from == hostsim::bus::Node::Host
+                && embedded_can::Frame::id(&tx.frame)
+                    == embedded_can::Id::Standard(
+                        embedded_can::StandardId::new(
+                            firmware::protocol::robot::layout::TWIST_CMD.id,
+                        )
+                        .unwrap(),
+                    )
+            {
+                twists.push(tx.queued_ns);
+            }
+        }
+    })
+    .unwrap();
+    // From 0.1 s to 2.0 s at 200 Hz: 380 commands, each queued on time (5 ms apart).
+    assert!(
+        (379..=381).contains(&twists.len()),
+        "{} commands",
+        twists.len()
+    );
+    assert!(
+        twists.windows(2).all(|w| w[1] - w[0] == 5_000_000),
+        "{:?}",
+        &twists[..4]
+    );
+}
+
+#[test]
+fn the_summary_compares_odometry_and_truth_at_the_same_step() {
+    let mut s = Scenario::builtin("strafe").unwrap();
+    s.duration_s = 1.0;
+    let mut plant = SimDrives::new(&s.config).unwrap();
+    let mut last_truth = [f64::NAN; 3];
+    let r = hostsim::sim::run_observed(&s, &mut plant, None, LogOptions::default(), |step| {
+        last_truth = step.truth;
+    })
+    .unwrap();
+    assert_eq!(r.truth, last_truth);
+    let [x, y, _] = r.odometry;
+    let want = (x - last_truth[0]).hypot(y - last_truth[1]);
+    assert!((r.final_position_error - want).abs() < 1e-12);
+}

@@ -470,9 +470,9 @@ impl Chassis {
         let loads = params.normal_loads();
         let consts = core::array::from_fn(|i| {
             let w = params.wheels[i];
-            let (sin_a, cos_a) = w.axle_angle.sin_cos();
-            let (sin_d, cos_d) = w.roller_angle.sin_cos();
-            let (sin_ad, cos_ad) = (w.axle_angle + w.roller_angle).sin_cos();
+            let (sin_a, cos_a) = libm::sincos(w.axle_angle);
+            let (sin_d, cos_d) = libm::sincos(w.roller_angle);
+            let (sin_ad, cos_ad) = libm::sincos(w.axle_angle + w.roller_angle);
             WheelConst {
                 ax: w.x,
                 ay: w.y,
@@ -591,7 +591,7 @@ impl Chassis {
             None => (c.ax, c.ay, c.eax, c.eay),
             Some(ripple) => {
                 let u = ripple.local_angle(i, phi);
-                let (sin_u, cos_u) = u.sin_cos();
+                let (sin_u, cos_u) = libm::sincos(u);
                 // Eq. 11: the contact slides along the axle.
                 let shift = -ripple.axis_offset * c.cot_d * sin_u / cos_u;
                 // Eq. 10: ground projection of the tilted roller axis.
@@ -739,7 +739,7 @@ impl Chassis {
             };
         }
         // The frame rotation ω × v as an exact rotation of the new body velocity by −ω h.
-        let (sin_r, cos_r) = (-wz * h).sin_cos();
+        let (sin_r, cos_r) = libm::sincos(-wz * h);
         let vx_new = cos_r * ux - sin_r * uy;
         let vy_new = sin_r * ux + cos_r * uy;
 

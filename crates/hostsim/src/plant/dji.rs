@@ -304,7 +304,7 @@ impl Drive for DjiDrive {
             .clamp(-self.esc.max_current, self.esc.max_current);
         // The step is the same every time: compute its factor once.
         if h != self.lag.0 {
-            self.lag = (h, 1.0 - (-h / self.esc.current_time_constant).exp());
+            self.lag = (h, 1.0 - libm::exp(-h / self.esc.current_time_constant));
         }
         let alpha = self.lag.1;
         let mut i = self.current + (target - self.current) * alpha;

@@ -46,8 +46,9 @@
 //!
 //! [`Plant::set_stuck_encoder`] freezes a wheel's *reported* angle and speed at their values
 //! when the fault starts while the wheel keeps moving (the drive's own control, e.g. the
-//! ODrive velocity loop, still sees the truth). [`Plant::set_offline`] drops all feedback of a
-//! wheel; the adapter must also not deliver commands to it (check [`Plant::is_offline`]).
+//! ODrive velocity loop, still sees the truth). [`Plant::set_offline`] turns a wheel's drive
+//! off: no feedback at all and no torque (the wheel coasts); the adapter must also not
+//! deliver commands to it (check [`Plant::is_offline`]).
 //! [`Plant::set_friction`] changes the ground's friction coefficient.
 
 pub mod chassis;
@@ -393,8 +394,8 @@ impl<D: Drive> Plant<D> {
         };
     }
 
-    /// Takes `wheel`'s drive off the bus: no feedback at all (and the adapter must not deliver
-    /// commands to it).
+    /// Turns `wheel`'s drive off: no feedback at all and no torque, the wheel coasts (and the
+    /// adapter must not deliver commands to it).
     pub fn set_offline(&mut self, wheel: Wheel, offline: bool) {
         self.faults[wheel.index()].offline = offline;
     }
@@ -485,6 +486,8 @@ impl<D: Drive> Plant<D> {
             let i = w.index();
             let motor = self.shaft(w);
             let tau = self.drives[i].advance(h, motor);
+            // An offline drive is off (no power, or shut down): its wheel coasts.
+            let tau = if self.faults[i].offline { 0.0 } else { tau };
             inputs[i] = WheelInput::Torque(self.sign[i] * tau);
         }
         self.chassis.advance(h, &inputs);
