@@ -153,7 +153,12 @@ pub enum ReadError {
     },
 }
 
-/// Parses one line; `Ok(None)` for a blank line. `line_no` is only used in the error.
+/// `CAN_ERR_FLAG` of SocketCAN: set in the id of an error frame (`candump -e`).
+const CAN_ERR_FLAG: u32 = 0x2000_0000;
+
+/// Parses one line; `Ok(None)` for a blank line and for an error frame (`candump -e` writes
+/// bus errors as frames whose 8-digit id has [`CAN_ERR_FLAG`] set: a bus event, not a frame
+/// any node sent). `line_no` is only used in the error.
 ///
 /// # Errors
 /// [`CandumpError`] naming the line, its text and what is wrong.
@@ -171,6 +176,12 @@ pub fn parse_line(line: &str, line_no: usize) -> Result<Option<Entry>, CandumpEr
         return Err(err(ErrorKind::MissingInterface));
     }
     let token = tokens.next().ok_or_else(|| err(ErrorKind::MissingFrame))?;
+    if let Some((id, _)) = token.split_once('#')
+        && id.len() == 8
+        && u32::from_str_radix(id, 16).is_ok_and(|id| id & CAN_ERR_FLAG != 0)
+    {
+        return Ok(None);
+    }
     let frame = parse_frame(token).map_err(err)?;
     let direction = match tokens.next() {
         None => None,
@@ -465,6 +476,11 @@ mod tests {
             Some(LoggedDirection::Transmitted)
         );
         assert_eq!(parse_line("   ", 1).unwrap(), None);
+        // An error frame (candump -e: bus-off, CRC errors...) is skipped.
+        assert_eq!(
+            parse_line("(1.5) can0 20000080#0000000000000000", 1).unwrap(),
+            None
+        );
     }
 
     #[test]

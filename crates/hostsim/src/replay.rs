@@ -405,6 +405,18 @@ pub fn replay_frames(
             }
             out_index += 1;
         }
+        // The log has a frame of this step (or earlier) that the replay did not send.
+        if let Some(&logged) = tx.get(out_index)
+            && logged.t_ns <= t_ns
+        {
+            difference = Some(Difference {
+                index: out_index,
+                t_ns: logged.t_ns,
+                logged: Some(logged),
+                replayed: None,
+            });
+            break 'run;
+        }
         steps += 1;
         // The gap check bounds end_ns far below u64::MAX; stop rather than wrap regardless.
         let Some(next) = t_ns.checked_add(period_ns) else {
@@ -474,8 +486,9 @@ pub fn detect_format(path: &Path) -> Result<LogFormat, ReplayError> {
 }
 
 /// Whether the firmware configured by `config` sends `frame` (as opposed to receiving it):
-/// the drive's command frames (DJI current commands `0x200`/`0x1FF` for a DJI
-/// configuration; ODrive commands to a configured node for an ODrive configuration) and
+/// the drive's command frames (DJI current commands `0x200`/`0x1FF` of a group that holds
+/// a configured ESC, for a DJI configuration; ODrive commands to a configured node for an
+/// ODrive configuration) and
 /// the robot's telemetry (`ODOM_POSITION`, `ODOM_VELOCITY`, `STATUS`, `HEARTBEAT`), each
 /// only if it decodes with the firmware's codec. Everything else on the bus (motor
 /// feedback, host commands, other nodes' traffic, malformed frames) is something the
@@ -488,7 +501,16 @@ pub fn firmware_sends(config: &Config, frame: &CanFrame) -> bool {
         return true;
     }
     match config.drive {
-        Drive::Dji { model, .. } => dji::CurrentCommand::decode(frame, model).is_ok(),
+        // Only the command frames of the groups this robot's ESCs are in: another board may
+        // drive ESCs 5-8 on the same bus.
+        Drive::Dji { model, esc_ids, .. } => {
+            dji::CurrentCommand::decode(frame, model).is_ok_and(|c| {
+                esc_ids
+                    .iter()
+                    .filter_map(|&id| dji::EscId::new(id))
+                    .any(|id| id.group() == c.group)
+            })
+        }
         Drive::Odrive { node_ids, .. } => {
             odrive::Command::decode(frame).is_ok_and(|c| node_ids.contains(&c.node.get()))
         }

@@ -116,9 +116,16 @@ fn frame(id: u16, data: &[u8]) -> CanFrame {
 fn the_classification_follows_the_codecs_and_the_configuration() {
     let dji = Config::dji_m3508_example();
     let odrive = Config::odrive_example();
-    // DJI current commands, both groups; feedback is received.
+    // DJI current commands of the group its ESCs (1-4) are in; the other group's belong to
+    // another board on the bus; feedback is received.
     assert!(firmware_sends(&dji, &frame(0x200, &[0; 8])));
-    assert!(firmware_sends(&dji, &frame(0x1FF, &[0; 8])));
+    assert!(!firmware_sends(&dji, &frame(0x1FF, &[0; 8])));
+    let mut dji_5_8 = dji;
+    if let firmware::config::Drive::Dji { esc_ids, .. } = &mut dji_5_8.drive {
+        *esc_ids = [5, 6, 7, 8];
+    }
+    assert!(firmware_sends(&dji_5_8, &frame(0x1FF, &[0; 8])));
+    assert!(!firmware_sends(&dji_5_8, &frame(0x200, &[0; 8])));
     assert!(!firmware_sends(&dji, &frame(0x201, &[0; 8])));
     // A malformed 0x200 (DLC 2) is not something the firmware sends.
     assert!(!firmware_sends(&dji, &frame(0x200, &[0; 2])));

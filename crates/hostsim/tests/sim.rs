@@ -160,6 +160,20 @@ fn logs_replay_bit_identically_and_a_change_is_found() {
         diff.t_ns,
         f.t_ns
     );
+
+    // A logged frame the replay does not send (after the last frame of a step) is reported
+    // at its own step, not at the next one.
+    let mut tx = content.tx.clone();
+    let k = (tx.len() / 2..tx.len() - 1)
+        .find(|&k| tx[k + 1].t_ns > tx[k].t_ns)
+        .unwrap();
+    let extra = tx[k];
+    tx.insert(k + 1, extra);
+    let report = replay_frames(&config, &content.rx, &tx).unwrap();
+    let diff = report
+        .difference
+        .expect("an extra logged frame is a difference");
+    assert_eq!((diff.t_ns, diff.replayed), (extra.t_ns, None), "{diff:?}");
 }
 
 #[test]
