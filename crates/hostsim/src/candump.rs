@@ -157,8 +157,8 @@ pub enum ReadError {
 const CAN_ERR_FLAG: u32 = 0x2000_0000;
 
 /// Parses one line; `Ok(None)` for a blank line and for an error frame (`candump -e` writes
-/// bus errors as frames whose 8-digit id has `CAN_ERR_FLAG`, 0x20000000, set: a bus event, not a frame
-/// any node sent). `line_no` is only used in the error.
+/// bus errors as frames whose 8-digit id has `CAN_ERR_FLAG`, 0x20000000, set: a bus event,
+/// not a frame any node sent). `line_no` is only used in the error.
 ///
 /// # Errors
 /// [`CandumpError`] naming the line, its text and what is wrong.
