@@ -156,6 +156,13 @@ pub enum ReadError {
 /// `CAN_ERR_FLAG` of SocketCAN: set in the id of an error frame (`candump -e`).
 const CAN_ERR_FLAG: u32 = 0x2000_0000;
 
+/// Whether `id` (the hex digits before `#`) is an error frame's: 8 digits with
+/// `CAN_ERR_FLAG` set.
+#[must_use]
+pub fn is_error_frame_id(id: &str) -> bool {
+    id.len() == 8 && u32::from_str_radix(id, 16).is_ok_and(|id| id & CAN_ERR_FLAG != 0)
+}
+
 /// Parses one line; `Ok(None)` for a blank line and for an error frame (`candump -e` writes
 /// bus errors as frames whose 8-digit id has `CAN_ERR_FLAG`, 0x20000000, set: a bus event,
 /// not a frame any node sent). `line_no` is only used in the error.
@@ -176,10 +183,11 @@ pub fn parse_line(line: &str, line_no: usize) -> Result<Option<Entry>, CandumpEr
         return Err(err(ErrorKind::MissingInterface));
     }
     let token = tokens.next().ok_or_else(|| err(ErrorKind::MissingFrame))?;
-    if let Some((id, _)) = token.split_once('#')
-        && id.len() == 8
-        && u32::from_str_radix(id, 16).is_ok_and(|id| id & CAN_ERR_FLAG != 0)
+    if let Some((id, data)) = token.split_once('#')
+        && is_error_frame_id(id)
     {
+        // Its data must still be well formed (8 bytes of error class details at most).
+        parse_frame(&format!("000#{data}")).map_err(err)?;
         return Ok(None);
     }
     let frame = parse_frame(token).map_err(err)?;
@@ -481,6 +489,8 @@ mod tests {
             parse_line("(1.5) can0 20000080#0000000000000000", 1).unwrap(),
             None
         );
+        // ... but not one whose data is malformed.
+        assert!(parse_line("(1.5) can0 20000080#00ZZ", 1).is_err());
     }
 
     #[test]

@@ -83,7 +83,17 @@ proptest! {
                 let e2 = candump::parse_line(&again, n).unwrap().unwrap();
                 prop_assert_eq!((e2.t_ns, e2.frame), (e.t_ns / 1000 * 1000, e.frame));
             }
-            Ok(None) => prop_assert!(line.trim().is_empty()),
+            // Blank, or an error frame (skipped).
+            Ok(None) => prop_assert!(
+                line.trim().is_empty()
+                    || line
+                        .split_ascii_whitespace()
+                        .nth(2)
+                        .and_then(|t| t.split_once('#'))
+                        .is_some_and(|(id, _)| candump::is_error_frame_id(id)),
+                "{}",
+                line
+            ),
             Err(err) => {
                 prop_assert_eq!(err.line, n);
                 let shown = err.to_string();
