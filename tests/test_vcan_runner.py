@@ -203,9 +203,9 @@ def test_motion_session_runner_kept_its_rate(motion: Robot) -> None:
     assert stats["controller"]["fault_at_stop"] in ("None", "Watchdog"), stats["controller"]
     assert stats["send_errors"] == 0 and stats["rx_errors"] == 0, stats
     # 1 kHz: one step per millisecond. An overrun re-anchors the schedule instead of
-    # catching up, so late steps are lost; the emulated machine is late often (about 80 % of
-    # the steps were measured there), a real one seldom.
-    min_ratio = 0.6 if VM else 0.95
+    # catching up, so late steps are lost; the emulated machine is late often (69-90 % of the
+    # steps were measured there), a real one seldom. The bound catches a loop that stalls.
+    min_ratio = 0.5 if VM else 0.95
     assert stats["steps"] >= min_ratio * elapsed * 1000, (stats["steps"], elapsed)
 
 
