@@ -230,11 +230,11 @@ struct PlantArgs {
     quiet: bool,
 }
 
-/// Rust ignores SIGPIPE, so `println!` to a closed pipe (`hostsim run | head -1`) panics.
-/// Behave like a Unix tool instead: end quietly with the status a SIGPIPE death gives.
 /// The exit status of a process killed by SIGPIPE, as a shell reports it.
 const SIGPIPE_STATUS: u8 = 128 + 13;
 
+/// Rust ignores SIGPIPE, so `println!` to a closed pipe (`hostsim run | head -1`) panics.
+/// Behave like a Unix tool instead: end quietly with the status a SIGPIPE death gives.
 fn exit_quietly_on_broken_pipe() {
     let default = std::panic::take_hook();
     std::panic::set_hook(Box::new(move |info| {
