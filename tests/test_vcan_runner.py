@@ -203,9 +203,10 @@ def test_motion_session_runner_kept_its_rate(motion: Robot) -> None:
     assert stats["controller"]["fault_at_stop"] in ("None", "Watchdog"), stats["controller"]
     assert stats["send_errors"] == 0 and stats["rx_errors"] == 0, stats
     # 1 kHz: one step per millisecond. An overrun re-anchors the schedule instead of
-    # catching up, so late steps are lost; the emulated machine is late often (69-90 % of the
-    # steps were measured there), a real one seldom. The bound catches a loop that stalls.
-    min_ratio = 0.5 if VM else 0.95
+    # catching up, so late steps are lost; the emulated machine is late often, and how often
+    # depends on the host's load (50-90 % of the steps were measured there in CI runs), a
+    # real one seldom. There the bound only catches a loop that stalls.
+    min_ratio = 0.25 if VM else 0.95
     assert stats["steps"] >= min_ratio * elapsed * 1000, (stats["steps"], elapsed)
 
 
@@ -646,7 +647,7 @@ def test_rate_8000_frames_per_second_for_30_s_without_loss(
         # measured either way.)
         # Chunks of a known size until 30 s have passed, so that the total is known exactly
         # (for the loss check) however fast the machine is.
-        chunk = 10_000
+        chunk = 40_000  # few cangen starts, which are slow on the emulated machine
         count = 0
         t0 = time.monotonic()
         while time.monotonic() - t0 < RATE_S:
