@@ -826,27 +826,29 @@ impl Controller {
         let t = &self.config.timing;
         let stale_us = self.feedback_period_us * u64::from(t.stale_periods);
         let boot_us = u64::from(t.boot_timeout_ms) * 1000;
-        self.online = self.motors.iter().enumerate().fold(0, |bits, (i, m)| {
-            let fresh = m.last_seen.is_some_and(|t| now.micros_since(t) <= stale_us);
-            bits | (u8::from(fresh) << i)
-        });
+        // One pass: each motor's freshness (online bit, staleness) and the first fault found
+        // in wheel order.
+        let mut online = 0u8;
         let mut fault = Fault::None;
         let enabled = self.state == RobotState::Enabled;
-        for m in &self.motors {
+        for (i, m) in self.motors.iter().enumerate() {
+            let fresh = m.last_seen.is_some_and(|t| now.micros_since(t) <= stale_us);
+            online |= u8::from(fresh) << i;
+            if fault != Fault::None {
+                continue;
+            }
             // ODrive: an enabled robot's axes must be in closed loop (once they could be).
             let left_closed_loop = enabled
                 && m.axis_state
                     .is_some_and(|s| s != AxisState::ClosedLoopControl);
-            match m.last_seen {
-                None if now.micros_since(boot) > boot_us => fault = Fault::MotorMissing,
-                Some(seen) if now.micros_since(seen) > stale_us => fault = Fault::MotorStale,
-                _ if m.axis_error != 0 || left_closed_loop => fault = Fault::DriveError,
-                _ => {}
-            }
-            if fault != Fault::None {
-                break;
-            }
+            fault = match m.last_seen {
+                None if now.micros_since(boot) > boot_us => Fault::MotorMissing,
+                Some(_) if !fresh => Fault::MotorStale,
+                _ if m.axis_error != 0 || left_closed_loop => Fault::DriveError,
+                _ => Fault::None,
+            };
         }
+        self.online = online;
         if self.watch_encoders(now) && fault == Fault::None {
             fault = Fault::EncoderStuck;
         }
