@@ -132,13 +132,11 @@ impl Rig {
                         self.raw(est.to_can_frame(node));
                     }
                     if ms.is_multiple_of(100) {
-                        let hb = odrive::Feedback::Heartbeat(odrive::Heartbeat {
-                            axis_error: self.axis_error[w],
-                            axis_state: AxisState::ClosedLoopControl,
-                            procedure_result: 0,
-                            trajectory_done: true,
-                        });
-                        self.raw(hb.to_can_frame(node));
+                        self.raw(odrive_heartbeat(
+                            node.get(),
+                            AxisState::ClosedLoopControl,
+                            self.axis_error[w],
+                        ));
                     }
                 }
             }
@@ -902,13 +900,7 @@ fn a_reset_clears_an_odrive_drive_error_and_the_robot_can_drive_again() {
 
     rig.send(Command::Mode(ModeRequest::Reset));
     // A heartbeat sent before the drive got Clear_Errors still carries the error: ignored.
-    let hb = odrive::Feedback::Heartbeat(odrive::Heartbeat {
-        axis_error: 0x0100_0000,
-        axis_state: AxisState::Idle,
-        procedure_result: 0,
-        trajectory_done: true,
-    });
-    rig.raw(hb.to_can_frame(NodeId::new(1).unwrap()));
+    rig.raw(odrive_heartbeat(1, AxisState::Idle, 0x0100_0000));
     let out = rig.tick();
     assert_eq!(clear_errors_nodes(&out), [0, 1, 2, 3]);
     // Three heartbeat periods later the errors are gone and nothing faulted again.
@@ -1023,9 +1015,10 @@ fn the_heartbeat_uptime_wraps_after_2_pow_32_ms() {
     assert!((1..=201).contains(&uptime), "uptime {uptime} ms");
 }
 
-fn odrive_heartbeat(node: u8, axis_state: AxisState) -> CanFrame {
+/// An ODrive heartbeat from `node` (trajectory done, no procedure result).
+fn odrive_heartbeat(node: u8, axis_state: AxisState, axis_error: u32) -> CanFrame {
     odrive::Feedback::Heartbeat(odrive::Heartbeat {
-        axis_error: 0,
+        axis_error,
         axis_state,
         procedure_result: 0,
         trajectory_done: true,
@@ -1039,10 +1032,10 @@ fn an_odrive_axis_that_leaves_closed_loop_while_enabled_faults() {
     let mut rig = Rig::odrive();
     rig.run_ms(150);
     rig.enable();
-    rig.raw(odrive_heartbeat(3, AxisState::Idle));
+    rig.raw(odrive_heartbeat(3, AxisState::Idle, 0));
     rig.tick();
     rig.run_ms(10);
-    rig.raw(odrive_heartbeat(3, AxisState::Idle));
+    rig.raw(odrive_heartbeat(3, AxisState::Idle, 0));
     rig.tick();
     assert_eq!(rig.ctl.state(), RobotState::Enabled);
 
@@ -1053,7 +1046,7 @@ fn an_odrive_axis_that_leaves_closed_loop_while_enabled_faults() {
         rig.run_ms(10);
     }
     assert_eq!(rig.ctl.state(), RobotState::Enabled);
-    rig.raw(odrive_heartbeat(3, AxisState::Idle));
+    rig.raw(odrive_heartbeat(3, AxisState::Idle, 0));
     rig.tick();
     assert_eq!(
         (rig.ctl.state(), rig.ctl.fault()),
