@@ -563,6 +563,19 @@ mod tests {
             let f = frame((r >> 8) as u16 & 0x7FF, &data);
             assert_eq!(frame_bits(&f), reference_bits(&f), "{f:?}");
         }
+        // Long runs, where stuff bits follow each other and a stuff bit starts the next run:
+        // bytes from a palette of runs, ids with runs.
+        let palette = [0x00, 0xFF, 0x0F, 0xF0, 0x07, 0xF8, 0x83, 0x7C, 0x01, 0xFE];
+        let ids = [0x000, 0x7FF, 0x001, 0x7E0, 0x01F, 0x200, 0x3FF, 0x400];
+        for _ in 0..20_000 {
+            let r = rng.next_u64();
+            let dlc = (r % 9) as usize;
+            let data: Vec<u8> = (0..dlc)
+                .map(|_| palette[(rng.next_u64() % palette.len() as u64) as usize])
+                .collect();
+            let f = frame(ids[((r >> 8) % ids.len() as u64) as usize], &data);
+            assert_eq!(frame_bits(&f), reference_bits(&f), "{f:?}");
+        }
         // Worst case for an 8-byte standard frame: 135 bits with intermission is the bound
         // usually quoted; no frame exceeds it.
         assert!(frame_bits(&frame(0, &[0; 8])) <= 135);
