@@ -140,19 +140,10 @@ impl SimPlant for SimDrives {
         [v.vx, v.vy, v.wz]
     }
 
-    fn set_faults(&mut self, stuck: [bool; 4], offline: [bool; 4]) {
-        for wheel in Wheel::ALL {
-            let i = wheel.index();
-            match self {
-                Self::Dji { plant, .. } => {
-                    plant.set_stuck_encoder(wheel, stuck[i]);
-                    plant.set_offline(wheel, offline[i]);
-                }
-                Self::Odrive { plant, .. } => {
-                    plant.set_stuck_encoder(wheel, stuck[i]);
-                    plant.set_offline(wheel, offline[i]);
-                }
-            }
+    fn set_faults(&mut self, at_ns: u64, stuck: [bool; 4], offline: [bool; 4]) {
+        match self {
+            Self::Dji { plant, .. } => plant.set_faults_at(at_ns, stuck, offline),
+            Self::Odrive { plant, .. } => plant.set_faults_at(at_ns, stuck, offline),
         }
     }
 }

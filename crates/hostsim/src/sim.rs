@@ -12,7 +12,10 @@
 //!    the drives (commands).
 //! 5. The firmware steps at `t`; its frames are queued on the bus at `t`. An observer
 //!    ([`run_observed`]) sees the step: the controller, the deliveries, the frames sent.
-//! 6. The plant advances one period.
+//! 6. The plant advances one period. The scenario's wheel faults (stuck encoder, drive
+//!    offline) of the period's end are set to take effect when it gets there, so a fault over
+//!    `[from, until)` covers exactly the feedback stamped in that window, while the motion of
+//!    the period before `from` does not feel it.
 //!
 //! A frame the firmware sends at `t` therefore reaches the drives at `t + 1 ms`, and feedback
 //! measured at `t` reaches the firmware's step at `t + 1 ms`: one period of latency each way,
@@ -46,9 +49,10 @@ pub trait SimPlant {
     fn truth(&self) -> [f64; 3];
     /// Ground-truth body velocity `[vx, vy, wz]`.
     fn truth_velocity(&self) -> [f64; 3];
-    /// Plant faults in force: `stuck[i]` freezes wheel i's encoder, `offline[i]` silences
-    /// its drive.
-    fn set_faults(&mut self, stuck: [bool; 4], offline: [bool; 4]);
+    /// Plant faults from `at_ns` on (at once if the plant is there already): `stuck[i]`
+    /// freezes wheel i's encoder, `offline[i]` silences its drive. The motion before `at_ns`
+    /// does not feel them; the feedback stamped `at_ns` does.
+    fn set_faults(&mut self, at_ns: u64, stuck: [bool; 4], offline: [bool; 4]);
 }
 
 /// What to log.
@@ -282,6 +286,7 @@ pub fn run_observed<P: SimPlant>(
     let mut feedback_count = vec![0u64; 0x800];
     let mut track = Vec::with_capacity((duration_us / 10_000 + 2) as usize);
 
+    set_wheel_faults(scenario, plant, 0);
     while t_us <= duration_us {
         let t_ns = t_us * 1000;
         // 1. Host.
@@ -330,10 +335,7 @@ pub fn run_observed<P: SimPlant>(
             }
         }
 
-        // 2. Drives.
-        let stuck = wheel_flags(scenario, t_us, crate::scenario::FaultName::StuckEncoder);
-        let offline = wheel_flags(scenario, t_us, crate::scenario::FaultName::MotorOffline);
-        plant.set_faults(stuck, offline);
+        // 2. Drives (their faults of t were set before the plant reached t, below).
         feedback.clear();
         plant.feedback(t_ns, &mut feedback);
         for &(at_ns, f) in &feedback {
@@ -434,7 +436,9 @@ pub fn run_observed<P: SimPlant>(
             truth,
         });
 
-        // 6. Plant.
+        // 6. Plant, with the wheel faults of the period's end: the feedback stamped then
+        // (emitted as the plant gets there) already shows them.
+        set_wheel_faults(scenario, plant, t_us + period_us);
         plant.advance(dt);
         t_us += period_us;
         step += 1;
@@ -473,6 +477,13 @@ fn id_of(frame: &CanFrame) -> u16 {
         embedded_can::Id::Standard(id) => id.as_raw(),
         embedded_can::Id::Extended(_) => 0,
     }
+}
+
+/// Sets the scenario's wheel faults in force at `t_us` on the plant, from `t_us` on.
+fn set_wheel_faults<P: SimPlant>(s: &Scenario, plant: &mut P, t_us: u64) {
+    let stuck = wheel_flags(s, t_us, crate::scenario::FaultName::StuckEncoder);
+    let offline = wheel_flags(s, t_us, crate::scenario::FaultName::MotorOffline);
+    plant.set_faults(t_us * 1000, stuck, offline);
 }
 
 fn wheel_flags(s: &Scenario, t_us: u64, kind: crate::scenario::FaultName) -> [bool; 4] {

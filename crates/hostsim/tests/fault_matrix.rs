@@ -588,7 +588,7 @@ fn matrix() -> Vec<Row> {
             (RobotState::Fault, Fault::MotorStale),
             us(m.0),
             (0, stale_budget),
-            |_| "its last frame is the one due at the onset".into(),
+            |_| "its last frame is the one due 1 ms before the onset".into(),
         ));
     }
     for m in MOMENTS {

@@ -764,6 +764,36 @@ fn faults_freeze_or_silence_the_feedback() {
 }
 
 #[test]
+fn faults_set_for_an_instant_take_effect_exactly_then() {
+    let setpoints = kin().inverse(ChassisVelocity::new(0.5, 0.0, 0.0)).0;
+    let mut plant = Plant::dji_m3508_example().expect("valid");
+    let mut pi = WheelPi::new();
+    for _ in 0..200 {
+        pi.control(&mut plant, &setpoints, 1e-3);
+        plant.step(1e-3).expect("valid");
+    }
+    plant.take_feedback();
+    // RR offline from 205.5 ms, in the middle of the next 10 ms: its frames of 201..=205 ms
+    // go out, those of 206..=210 ms do not; the others send all ten.
+    plant.set_faults_at(205_500_000, [false; 4], [false, false, false, true]);
+    assert!(!plant.is_offline(Wheel::RearRight), "not before its time");
+    plant.step(10e-3).expect("valid");
+    assert!(plant.is_offline(Wheel::RearRight));
+    let fb = plant.take_feedback();
+    let times = |wheel| -> Vec<u64> {
+        fb.iter()
+            .filter(|t| t.wheel == wheel)
+            .map(|t| t.time_ns / 1_000_000)
+            .collect()
+    };
+    assert_eq!(times(Wheel::RearRight), [201, 202, 203, 204, 205]);
+    assert_eq!(times(Wheel::FrontLeft), (201..=210).collect::<Vec<_>>());
+    // Back online at an instant already reached: at once.
+    plant.set_faults_at(0, [false; 4], [false; 4]);
+    assert!(!plant.is_offline(Wheel::RearRight));
+}
+
+#[test]
 fn bad_parameters_are_refused_with_the_field() {
     let bad_mass = ChassisParams {
         mass: -1.0,

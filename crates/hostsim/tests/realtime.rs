@@ -263,7 +263,7 @@ impl SimPlant for CountingPlant {
     fn truth_velocity(&self) -> [f64; 3] {
         [0.0; 3]
     }
-    fn set_faults(&mut self, _: [bool; 4], _: [bool; 4]) {}
+    fn set_faults(&mut self, _: u64, _: [bool; 4], _: [bool; 4]) {}
 }
 
 #[test]

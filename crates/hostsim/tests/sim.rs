@@ -122,6 +122,77 @@ fn a_motor_going_offline_faults_the_firmware_within_a_few_ms() {
     assert_eq!(r.last.motors_online, 0b1101, "FR is stale: not online");
 }
 
+/// The feedback frames wheel FR's C620 (ESC 2, id 0x202) put on the bus under `faults`, as
+/// (send time in ms, rotor angle).
+fn fr_feedback(faults: &str) -> Vec<(u64, u16)> {
+    let s = scenario(&format!(
+        r#"
+        duration_s = 0.8
+        [[actions]]
+        at_s = 0.05
+        enable = true
+        [[actions]]
+        at_s = 0.1
+        twist = [0.3, 0.0, 0.0]
+        {faults}
+    "#
+    ));
+    let mut plant = SimDrives::new(&s.config).unwrap();
+    let mut frames = Vec::new();
+    hostsim::sim::run_observed(&s, &mut plant, None, LogOptions::default(), |step| {
+        for tx in step.delivered {
+            if embedded_can::Frame::id(&tx.frame)
+                == embedded_can::Id::Standard(embedded_can::StandardId::new(0x202).unwrap())
+            {
+                let d = embedded_can::Frame::data(&tx.frame);
+                frames.push((tx.queued_ns / 1_000_000, u16::from_be_bytes([d[0], d[1]])));
+            }
+        }
+    })
+    .unwrap();
+    frames
+}
+
+#[test]
+fn wheel_faults_cover_the_feedback_stamped_in_their_window_exactly() {
+    // Offline over [0.5 s, 0.6 s): no frame stamped in the window, the ones at its edges sent.
+    let frames = fr_feedback(
+        r#"
+        [[faults]]
+        kind = "motor_offline"
+        wheel = 1
+        from_s = 0.5
+        until_s = 0.6
+    "#,
+    );
+    let times: Vec<u64> = frames.iter().map(|&(t, _)| t).collect();
+    assert!(times.contains(&499) && times.contains(&600), "{times:?}");
+    assert!(!times.iter().any(|t| (500..600).contains(t)), "{times:?}");
+    // One a ms from 1 ms (the one of 0.8 s is still on the wire when the run ends).
+    assert_eq!(times.len(), 799 - 100, "one frame a ms but in the window");
+
+    // Stuck over [0.5 s, 0.6 s): the wheel turns (about 300 rpm at the rotor per 0.3 m/s,
+    // the angle moves every ms), the reported angle holds the value of 0.5 s through 0.599 s,
+    // and the frame of 0.6 s is live again.
+    let frames = fr_feedback(
+        r#"
+        [[faults]]
+        kind = "stuck_encoder"
+        wheel = 1
+        from_s = 0.5
+        until_s = 0.6
+    "#,
+    );
+    let angle = |ms: u64| frames.iter().find(|&&(t, _)| t == ms).unwrap().1;
+    assert_ne!(angle(499), angle(500), "the rotor turns");
+    assert!(
+        (501..600).all(|ms| angle(ms) == angle(500)),
+        "frozen in the window"
+    );
+    assert_ne!(angle(600), angle(599), "live from until_s on");
+    assert_ne!(angle(601), angle(600));
+}
+
 #[test]
 fn logs_replay_bit_identically_and_a_change_is_found() {
     let path = common::scratch("sim", "circle.mcap");

@@ -48,7 +48,9 @@
 //! when the fault starts while the wheel keeps moving (the drive's own control, e.g. the
 //! ODrive velocity loop, still sees the truth). [`Plant::set_offline`] turns a wheel's drive
 //! off: no feedback at all and no torque (the wheel coasts); the adapter must also not
-//! deliver commands to it (check [`Plant::is_offline`]).
+//! deliver commands to it (check [`Plant::is_offline`]). [`Plant::set_faults_at`] sets both
+//! for every wheel from a given instant on: the motion up to that instant does not feel them,
+//! the feedback due at that instant already does.
 //! [`Plant::set_friction`] changes the ground's friction coefficient.
 
 pub mod chassis;
@@ -169,6 +171,8 @@ pub struct Plant<D: Drive> {
     now_ns: u64,
     substep_ns: u64,
     faults: [Faults; WHEELS],
+    /// Faults to set once the clock reaches the time: `(at_ns, stuck, offline)`.
+    pending_faults: Option<(u64, [bool; WHEELS], [bool; WHEELS])>,
     outbox: Vec<Timed<D::Feedback>>,
     scratch: Vec<D::Feedback>,
 }
@@ -294,6 +298,7 @@ impl<D: Drive> Plant<D> {
             now_ns: 0,
             substep_ns: 0,
             faults: [Faults::default(); WHEELS],
+            pending_faults: None,
             outbox: Vec::new(),
             scratch: Vec::new(),
         };
@@ -400,6 +405,27 @@ impl<D: Drive> Plant<D> {
         self.faults[wheel.index()].offline = offline;
     }
 
+    /// Sets every wheel's stuck encoder and offline drive ([`Self::set_stuck_encoder`],
+    /// [`Self::set_offline`]) from `at_ns` on, at once if the plant's clock is already there:
+    /// the motion before `at_ns` does not feel them, the feedback due at `at_ns` does. A later
+    /// call replaces a setting that is still pending.
+    pub fn set_faults_at(&mut self, at_ns: u64, stuck: [bool; WHEELS], offline: [bool; WHEELS]) {
+        self.pending_faults = Some((at_ns, stuck, offline));
+        self.apply_due_faults();
+    }
+
+    fn apply_due_faults(&mut self) {
+        if let Some((at_ns, stuck, offline)) = self.pending_faults
+            && at_ns <= self.now_ns
+        {
+            self.pending_faults = None;
+            for w in Wheel::ALL {
+                self.set_stuck_encoder(w, stuck[w.index()]);
+                self.set_offline(w, offline[w.index()]);
+            }
+        }
+    }
+
     /// Whether `wheel`'s drive is off the bus.
     #[must_use]
     pub const fn is_offline(&self, wheel: Wheel) -> bool {
@@ -462,15 +488,17 @@ impl<D: Drive> Plant<D> {
     pub fn advance_ns(&mut self, dt_ns: u64) {
         let end = self.now_ns.saturating_add(dt_ns);
         loop {
+            self.apply_due_faults();
             self.emit_due();
             if self.now_ns >= end {
                 break;
             }
+            let faults_ns = self.pending_faults.map_or(end, |(at_ns, ..)| at_ns);
             let next = self
                 .drives
                 .iter()
                 .map(Drive::next_feedback_ns)
-                .fold(end, u64::min);
+                .fold(end.min(faults_ns), u64::min);
             let h_ns = self.substep_ns.min(next.saturating_sub(self.now_ns)).max(1);
             self.substep(h_ns);
             self.now_ns += h_ns;
