@@ -181,6 +181,35 @@ def test_golden_frames_decode_with_cantools(golden, dbs):
     assert checked >= 60
 
 
+def test_golden_inputs_encode_to_the_same_bytes_with_cantools(golden, dbs):
+    """The same values through cantools' encoder give Rust's bytes exactly: the same scaling,
+    saturation and rounding, exact ties included (to even, as Python's round; the golden set
+    has DJI currents at k + 1/2 LSB)."""
+    checked = ties = 0
+    for g in golden:
+        frame_id, data, remote = parse_candump(g["candump"])
+        if remote:
+            continue
+        db_msg = dbs[g["protocol"]].get_message_by_frame_id(frame_id)
+        # Rust's inputs are f32; JSON carries their shortest decimal form.
+        values = {k: f32(v) if isinstance(v, float) else v for k, v in g["input"].items()}
+        for signal in db_msg.signals:
+            if signal.name in RESERVED:
+                values[signal.name] = 0
+        # Out-of-range inputs saturate in Rust; cantools' strict mode would refuse them.
+        encoded = db_msg.encode(values, scaling=True, strict=False)
+        assert encoded == data, (
+            f"{g['candump']}: cantools encodes {values} as {encoded.hex().upper()}"
+        )
+        for name, value in values.items():
+            signal = db_msg.get_signal_by_name(name)
+            if not signal.is_float and (value / signal.scale) % 1 == 0.5:
+                ties += 1
+        checked += 1
+    assert checked >= 60
+    assert ties >= 4, f"only {ties} exact ties in the golden set"
+
+
 # ------------------------------------------------------------------------------------------
 # (b) frames encoded by cantools, decoded by Rust
 

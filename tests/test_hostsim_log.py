@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import pathlib
 import subprocess
 
@@ -90,15 +91,25 @@ def test_odometry_frames_decode_with_the_dbc(circle_run, dbs) -> None:
     out, summary = circle_run
     db = dbs["robot"]
     last = {}
+    headings = []
     with open(out / "circle.mcap", "rb") as f:
         for _, channel, message in make_reader(f).iter_messages(topics=["/can/tx"]):
             frame = json.loads(message.data)
             if frame["id"] in (0x310, 0x311):
                 msg = db.get_message_by_frame_id(frame["id"])
                 last[frame["id"]] = msg.decode(bytes(frame["data"][: frame["dlc"]]))
+                if frame["id"] == 0x311:
+                    headings.append(last[0x311]["heading"])
     x, y, heading = summary["odometry"]
     assert last[0x310]["x"] == pytest.approx(x, abs=2e-3)
     assert last[0x310]["y"] == pytest.approx(y, abs=2e-3)
+    # The heading field: 0.1 mrad resolution, wrapped to +-pi.
+    assert last[0x311]["heading"] == pytest.approx(heading, abs=2e-4)
+    # One turn counter-clockwise (yaw positive): the unwrapped heading rises by 2 pi, less a
+    # little roller slip, and never falls by more than the resolution from frame to frame.
+    steps = [(b - a + math.pi) % (2 * math.pi) - math.pi for a, b in zip(headings, headings[1:])]
+    assert min(steps) > -2e-4, min(steps)
+    assert sum(steps) == pytest.approx(2 * math.pi, abs=0.15), sum(steps)
 
 
 def test_replay_of_the_log_is_bit_identical(hostsim_bin, circle_run) -> None:

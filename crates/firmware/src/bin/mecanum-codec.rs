@@ -450,7 +450,9 @@ fn decode_stdin(model: EscModel) -> io::Result<()> {
 // ---------------------------------------------------------------------------------------------
 // Golden frames
 
-fn golden_set() -> Vec<AnyMessage> {
+/// The golden messages, each with the values given to its encoder: the message's own
+/// fields, but for the DJI current commands the amps before rounding to raw values.
+fn golden_set() -> Vec<(AnyMessage, Decoded)> {
     use odrive::{Addressed, Command as OC, Feedback as OF};
     use robot::{Command as RC, Telemetry as RT};
     let node = |n| NodeId::new(n).unwrap_or(NodeId::new(0).unwrap_or_else(|| unreachable!()));
@@ -579,11 +581,6 @@ fn golden_set() -> Vec<AnyMessage> {
             }),
         ]);
     }
-    for group in [EscGroup::Esc1To4, EscGroup::Esc5To8] {
-        v.push(AnyMessage::Dji(dji::Message::Command(
-            dji::CurrentCommand::from_amps(EscModel::C620, group, [20.0, -20.0, 1.5, -0.0006]),
-        )));
-    }
     for n in 1..=8u8 {
         v.push(AnyMessage::Dji(dji::Message::Feedback(dji::Feedback {
             model: EscModel::C620,
@@ -594,14 +591,44 @@ fn golden_set() -> Vec<AnyMessage> {
             temperature_c: 20 + 5 * n,
         })));
     }
-    v
+    let mut golden: Vec<(AnyMessage, Decoded)> = v
+        .into_iter()
+        .map(|msg| {
+            let input = msg.fields();
+            (msg, input)
+        })
+        .collect();
+    // The last set is exact ties (k + 1/2 LSB, binary fractions): nearest even raw value.
+    let lsb = EscModel::C620.amps_per_lsb();
+    for (group, amps) in [
+        (EscGroup::Esc1To4, [20.0, -20.0, 1.5, -0.0006]),
+        (EscGroup::Esc5To8, [20.0, -20.0, 1.5, -0.0006]),
+        (
+            EscGroup::Esc1To4,
+            [2.5 * lsb, -2.5 * lsb, 1.5 * lsb, -3.5 * lsb],
+        ),
+    ] {
+        let msg = AnyMessage::Dji(dji::Message::Command(dji::CurrentCommand::from_amps(
+            EscModel::C620,
+            group,
+            amps,
+        )));
+        let mut input = msg.fields();
+        input.fields = group
+            .fields()
+            .iter()
+            .zip(amps)
+            .map(|(field, a)| (field.name, Num::Float(a)))
+            .collect();
+        golden.push((msg, input));
+    }
+    golden
 }
 
 fn golden() -> io::Result<()> {
     let mut out = io::BufWriter::new(io::stdout().lock());
-    for msg in golden_set() {
+    for (msg, input) in golden_set() {
         let frame = msg.to_can_frame();
-        let input = msg.fields();
         let line = match route(&frame, EscModel::C620) {
             Ok(decoded) => {
                 let d = decoded.fields();
@@ -659,7 +686,7 @@ mod tests {
 
     #[test]
     fn every_golden_frame_decodes() {
-        for msg in golden_set() {
+        for (msg, _) in golden_set() {
             let frame = msg.to_can_frame();
             assert!(
                 route(&frame, EscModel::C620).is_ok(),

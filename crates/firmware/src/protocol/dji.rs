@@ -137,8 +137,8 @@ impl EscModel {
 
     /// Amperes to raw current: rounded, clamped to the model's range, NaN gives 0.
     ///
-    /// The same result as [`wire::to_raw`] with the bounds `±raw_limit` (rounding half away
-    /// from zero in f64), worked out in 32-bit integers and without branches.
+    /// The same result as [`wire::to_raw`] with the bounds `±raw_limit` (the nearest raw
+    /// value in f64, ties to even), worked out in 32-bit integers and without branches.
     #[must_use]
     #[inline]
     pub fn amps_to_raw(self, amps: f32) -> i16 {
@@ -149,9 +149,10 @@ impl EscModel {
         // value is not used, so the wrapping there does not matter.
         let t = r as i32;
         let frac = r - f64::from(t);
-        let rounded = t
-            .wrapping_add(i32::from(frac >= 0.5))
-            .wrapping_sub(i32::from(frac <= -0.5));
+        let odd = t & 1 != 0;
+        let up = (frac > 0.5) | ((frac == 0.5) & odd);
+        let down = (frac < -0.5) | ((frac == -0.5) & odd);
+        let rounded = t.wrapping_add(i32::from(up)).wrapping_sub(i32::from(down));
         let n = if r <= f64::from(-lim) {
             -lim
         } else if r >= f64::from(lim) {

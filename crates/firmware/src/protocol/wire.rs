@@ -233,7 +233,7 @@ impl Field {
         };
     }
 
-    /// Writes a physical value: rounded to the nearest raw value (ties away from zero),
+    /// Writes a physical value: rounded to the nearest raw value (ties to even),
     /// saturated to `min..=max`; NaN is written as the raw value nearest to 0.
     #[inline]
     pub fn put_physical(&self, payload: &mut Payload, value: f32) {
@@ -247,7 +247,8 @@ impl Field {
     }
 }
 
-/// `value / scale` rounded half away from zero and saturated to `min..=max`; NaN maps to the
+/// `value / scale` rounded to the nearest integer, ties to even (as cantools encodes: Python's
+/// `round`), and saturated to `min..=max`; NaN maps to the
 /// raw value nearest 0. Computed in f64 (exact for 32-bit raw values). Exposed for encoders
 /// that need the raw number itself.
 #[must_use]
@@ -267,8 +268,12 @@ pub fn to_raw(value: f32, scale: f64, min: i64, max: i64) -> i64 {
     // min < r < max, so the truncating cast is exact, and so is `t as f64` (|t| < 2^32).
     let t = r as i64;
     let frac = r - t as f64;
-    // Half away from zero: one step up or down, which cannot overflow.
-    let n = t + i64::from(frac >= 0.5) - i64::from(frac <= -0.5);
+    // The nearest raw value, ties to even as cantools rounds (Python's `round`): one step up
+    // or down, which cannot overflow.
+    let odd = t & 1 != 0;
+    let up = (frac > 0.5) | ((frac == 0.5) & odd);
+    let down = (frac < -0.5) | ((frac == -0.5) & odd);
+    let n = t + i64::from(up) - i64::from(down);
     n.clamp(min, max)
 }
 
@@ -359,7 +364,23 @@ mod tests {
     use super::*;
 
     #[test]
-    fn to_raw_rounds_half_away_and_saturates() {
+    fn to_raw_rounds_ties_to_even_and_saturates() {
+        // Exact ties (binary fractions): to the even neighbour, as Python's round.
+        for (value, raw) in [
+            (0.5, 0),
+            (1.5, 2),
+            (2.5, 2),
+            (3.5, 4),
+            (-0.5, 0),
+            (-1.5, -2),
+            (-2.5, -2),
+            (-3.5, -4),
+        ] {
+            assert_eq!(to_raw(value, 1.0, -10, 10), raw, "{value}");
+        }
+        // A robot-protocol speed (scale 0.001) whose quotient is a tie in f64.
+        assert_eq!(to_raw(-32.5625, 0.001, -32768, 32767), -32562);
+        assert_eq!(to_raw(2.5000002, 1.0, -10, 10), 3);
         assert_eq!(to_raw(0.0015, 0.001, -10, 10), 2);
         assert_eq!(to_raw(-0.0015, 0.001, -10, 10), -2);
         assert_eq!(to_raw(0.0014, 0.001, -10, 10), 1);
