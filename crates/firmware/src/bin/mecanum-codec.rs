@@ -435,14 +435,32 @@ fn decode_line(line: &str, model: EscModel) -> String {
 }
 
 fn decode_stdin(model: EscModel) -> io::Result<()> {
-    let stdin = io::stdin();
-    let mut out = io::BufWriter::new(io::stdout().lock());
-    for line in stdin.lock().lines() {
+    decode_stream(io::stdin().lock(), io::stdout().lock(), model)
+}
+
+/// One JSON line per non-blank input line; a line that is not UTF-8 gets a `parse` error
+/// naming its number and bytes, like any other line that does not parse.
+fn decode_stream(input: impl BufRead, output: impl Write, model: EscModel) -> io::Result<()> {
+    let mut out = io::BufWriter::new(output);
+    for (n, line) in input.split(b'\n').enumerate() {
         let line = line?;
-        if line.trim().is_empty() {
-            continue;
-        }
-        writeln!(out, "{}", decode_line(line.trim(), model))?;
+        let answer = match std::str::from_utf8(&line) {
+            Ok(text) if text.trim().is_empty() => continue,
+            Ok(text) => decode_line(text.trim(), model),
+            Err(e) => {
+                let mut hex = String::new();
+                for b in &line {
+                    let _ = write!(hex, "{b:02X}");
+                }
+                error_json(
+                    None,
+                    "parse",
+                    &format!("line {} is not UTF-8: {e}", n + 1),
+                    &[("bytes", json_str(&hex))],
+                )
+            }
+        };
+        writeln!(out, "{answer}")?;
     }
     out.flush()
 }
@@ -682,6 +700,23 @@ mod tests {
         let err = decode_line("garbage", EscModel::C620);
         assert!(err.contains("\"kind\":\"parse\""), "{err}");
         assert_eq!(ErrorKind::WrongDlc.as_str(), "wrong_dlc");
+    }
+
+    #[test]
+    fn a_line_that_is_not_utf8_is_an_error_line_and_the_rest_go_on() {
+        let input: &[u8] = b"301#F40106FFE8030700\n\xFF\xFE\n\n301#F40106FFE8030700\r\n";
+        let mut out = Vec::new();
+        decode_stream(input, &mut out, EscModel::C620).unwrap();
+        let text = String::from_utf8(out).unwrap();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines.len(), 3, "{text}");
+        assert!(
+            lines[0].contains("TWIST_CMD") && lines[2].contains("TWIST_CMD"),
+            "{text}"
+        );
+        assert!(lines[1].contains("\"kind\":\"parse\""), "{}", lines[1]);
+        assert!(lines[1].contains("line 2 is not UTF-8"), "{}", lines[1]);
+        assert!(lines[1].contains("\"bytes\":\"FFFE\""), "{}", lines[1]);
     }
 
     #[test]
