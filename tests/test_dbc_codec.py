@@ -357,10 +357,13 @@ MALFORMED = [
     ("301#R8", "remote", {}),
     ("029#R8", "remote", {}),  # Get_Encoder_Estimates is not requested by RTR here
     # non-finite floats
-    ("00D#" + (NAN + ONE).hex(), "non_finite", {"field": "Input_Vel"}),
-    ("02D#" + (ONE + INF).hex(), "non_finite", {"field": "Input_Torque_FF"}),
-    ("069#" + (NAN + NAN).hex(), "non_finite", {"field": "Pos_Estimate"}),
-    ("049#" + (ONE + struct.pack("<f", float("-inf"))).hex(), "non_finite", {"field": "Vel_Estimate"}),
+    ("00D#" + (NAN + ONE).hex(), "non_finite",
+     {"field": "Input_Vel", "value": "NaN", "bits": f"{struct.unpack('<I', NAN)[0]:#010x}"}),
+    ("02D#" + (ONE + INF).hex(), "non_finite",
+     {"field": "Input_Torque_FF", "value": "inf", "bits": "0x7f800000"}),
+    ("069#" + (NAN + NAN).hex(), "non_finite", {"field": "Pos_Estimate", "value": "NaN"}),
+    ("049#" + (ONE + struct.pack("<f", float("-inf"))).hex(), "non_finite",
+     {"field": "Vel_Estimate", "value": "-inf", "bits": "0xff800000"}),
     # out-of-range values
     ("301#0080000000000000", "out_of_range", {"field": "vx", "value": -32768}),
     ("301#0000008000000000", "out_of_range", {"field": "vy", "value": -32768}),

@@ -626,8 +626,13 @@ impl Controller {
     fn check_twist(&self, t: TwistCmd) -> Result<ChassisVelocity<f32>, DecodeError> {
         let l = &self.config.limits;
         let speed = (t.vx * t.vx + t.vy * t.vy).sqrt_libm();
-        if !(t.vx.is_finite() && t.vy.is_finite() && t.wz.is_finite()) {
-            return Err(DecodeError::NonFinite { field: "twist" });
+        for (field, v) in [("vx", t.vx), ("vy", t.vy), ("wz", t.wz)] {
+            if !v.is_finite() {
+                return Err(DecodeError::NonFinite {
+                    field,
+                    bits: v.to_bits(),
+                });
+            }
         }
         if speed > l.max_linear_speed {
             return Err(DecodeError::OutOfRange {

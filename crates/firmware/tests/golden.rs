@@ -395,7 +395,8 @@ fn odrive_encoder_estimates() {
     assert_eq!(
         odrive_fb(&frame(0x49, &[0, 0, 0x80, 0x3F, 0x00, 0x00, 0x80, 0x7F])),
         Err(DecodeError::NonFinite {
-            field: "Vel_Estimate"
+            field: "Vel_Estimate",
+            bits: 0x7F80_0000
         })
     );
 }
@@ -445,12 +446,16 @@ fn odrive_set_input_vel() {
     // A NaN (0x7FC00000) is rejected.
     assert_eq!(
         odrive_cmd(&frame(0x4D, &[0x00, 0x00, 0xC0, 0x7F, 0, 0, 0, 0])),
-        Err(DecodeError::NonFinite { field: "Input_Vel" })
+        Err(DecodeError::NonFinite {
+            field: "Input_Vel",
+            bits: 0x7FC0_0000
+        })
     );
     assert_eq!(
         odrive_cmd(&frame(0x4D, &[0, 0, 0, 0, 0x00, 0x00, 0x80, 0xFF])),
         Err(DecodeError::NonFinite {
-            field: "Input_Torque_FF"
+            field: "Input_Torque_FF",
+            bits: 0xFF80_0000
         })
     );
     // Encoding never puts NaN on the wire.

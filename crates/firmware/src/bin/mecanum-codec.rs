@@ -7,11 +7,11 @@ use std::process::ExitCode;
 
 use embedded_can::{ExtendedId, Frame, Id, StandardId};
 use firmware::CanFrame;
-use firmware::protocol::DecodeError;
 use firmware::protocol::dji::{self, EscGroup, EscId, EscModel};
 use firmware::protocol::odrive::{self, AxisState, ControlMode, InputMode, NodeId};
 use firmware::protocol::robot::{self, Fault, ModeRequest, RobotState};
 use firmware::protocol::wire::Field;
+use firmware::protocol::{DecodeError, non_finite_name};
 
 const HELP: &str = "\
 mecanum-codec: decode CAN frames with the mecanum firmware's codecs, or print golden frames.
@@ -266,7 +266,11 @@ fn decode_error_json(id: Id, e: &DecodeError) -> String {
             extra.push(("expected", expected.to_string()));
             extra.push(("got", got.to_string()));
         }
-        DecodeError::NonFinite { field } => extra.push(("field", json_str(field))),
+        DecodeError::NonFinite { field, bits } => {
+            extra.push(("field", json_str(field)));
+            extra.push(("value", json_str(non_finite_name(bits))));
+            extra.push(("bits", json_str(&format!("{bits:#010x}"))));
+        }
         DecodeError::OutOfRange { field, value } => {
             extra.push(("field", json_str(field)));
             extra.push(("value", value.to_string()));

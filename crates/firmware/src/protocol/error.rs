@@ -50,6 +50,9 @@ pub enum DecodeError {
     NonFinite {
         /// The DBC signal name of the field.
         field: &'static str,
+        /// The field's bits as received (IEEE 754 single precision), which tell a NaN's
+        /// payload and an infinity's sign.
+        bits: u32,
     },
     /// A field holds a value outside its range (or an unknown enum value).
     OutOfRange {
@@ -138,7 +141,13 @@ impl fmt::Display for DecodeError {
             Self::WrongDlc { id, expected, got } => {
                 write!(f, "id {id:#05x}: DLC {got}, expected {expected}")
             }
-            Self::NonFinite { field } => write!(f, "field {field} is not finite"),
+            Self::NonFinite { field, bits } => {
+                write!(
+                    f,
+                    "field {field} is {} (bits {bits:#010x})",
+                    non_finite_name(bits)
+                )
+            }
             Self::OutOfRange { field, value } => {
                 write!(f, "field {field} out of range: raw value {value}")
             }
@@ -147,6 +156,19 @@ impl fmt::Display for DecodeError {
 }
 
 impl core::error::Error for DecodeError {}
+
+/// `"NaN"`, `"inf"` or `"-inf"` for the bits of a non-finite `f32` (without formatting a
+/// float, which would pull float printing into an MCU build).
+#[must_use]
+pub const fn non_finite_name(bits: u32) -> &'static str {
+    if bits & 0x007F_FFFF != 0 {
+        "NaN"
+    } else if bits >> 31 == 1 {
+        "-inf"
+    } else {
+        "inf"
+    }
+}
 
 /// Per-kind counts of rejected frames, saturating at `u32::MAX`.
 ///
@@ -248,7 +270,10 @@ mod tests {
         assert_eq!(c.out_of_range, 1);
         assert_eq!(c.total(), 3);
         c.non_finite = u32::MAX;
-        c.record(&DecodeError::NonFinite { field: "Input_Vel" });
+        c.record(&DecodeError::NonFinite {
+            field: "Input_Vel",
+            bits: 0x7FC0_0000,
+        });
         assert_eq!(c.non_finite, u32::MAX);
         assert_eq!(c.total(), u32::MAX);
     }

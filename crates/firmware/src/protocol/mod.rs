@@ -20,4 +20,4 @@ pub mod odrive;
 pub mod robot;
 pub mod wire;
 
-pub use error::{DecodeError, ErrorKind, RxErrorCounters};
+pub use error::{DecodeError, ErrorKind, RxErrorCounters, non_finite_name};

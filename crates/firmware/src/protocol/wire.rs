@@ -208,11 +208,15 @@ impl Field {
     /// [`DecodeError::NonFinite`] for NaN and infinities.
     #[inline]
     pub fn finite(&self, payload: &Payload) -> Result<f32, DecodeError> {
-        let value = f32::from_bits(self.bits(payload));
+        let bits = self.bits(payload);
+        let value = f32::from_bits(bits);
         if value.is_finite() {
             Ok(value)
         } else {
-            Err(DecodeError::NonFinite { field: self.name })
+            Err(DecodeError::NonFinite {
+                field: self.name,
+                bits,
+            })
         }
     }
 
