@@ -165,7 +165,7 @@ def test_golden_frames_decode_with_cantools(golden, dbs):
         frame_id, data, remote = parse_candump(g["candump"])
         db_msg = dbs[g["protocol"]].get_message_by_frame_id(frame_id)
         assert db_msg.name == g["message"], g
-        if remote:  # an RTR request (ODrive Get_Error): no payload to decode
+        if remote:  # an RTR request (ODrive Heartbeat, Get_Error, Get_Encoder_Estimates)
             assert g["fields"] == {}
             continue
         assert len(data) == db_msg.length, f"{g['candump']}: DLC {len(data)}, DBC {db_msg.length}"
@@ -355,7 +355,7 @@ MALFORMED = [
     # extended ids, remote frames where data is expected
     ("00000301#F40106FFE8030700", "extended_id", {}),
     ("301#R8", "remote", {}),
-    ("029#R8", "remote", {}),  # Get_Encoder_Estimates is not requested by RTR here
+    ("02D#R8", "remote", {}),  # Set_Input_Vel carries data: not a request
     # non-finite floats
     ("00D#" + (NAN + ONE).hex(), "non_finite",
      {"field": "Input_Vel", "value": "NaN", "bits": f"{struct.unpack('<I', NAN)[0]:#010x}"}),
@@ -445,14 +445,19 @@ def test_decode_accepts_candump_log_and_bare_lines(run_codec):
             "023#R8",
             "018#FF",
             "018#",
+            "029#R8",
+            "021#R",
+            "023#",
         ],
     )
     assert [o["message"] for o in out] == [
         "TWIST_CMD", "TWIST_CMD", "STATUS_REQ", "Axis1_Get_Error", "Axis0_Clear_Errors",
-        "Axis0_Clear_Errors",
+        "Axis0_Clear_Errors", "Axis1_Get_Encoder_Estimates", "Axis1_Heartbeat", "Axis1_Get_Error",
     ]
     assert out[0]["fields"] == {"vx": 0.5, "vy": -0.25, "wz": 1.0, "seq": 7}
-    assert out[3]["node"] == 1 and out[3]["remote"] == 1
+    # Requests, as the ODrive docs allow them: a remote frame of any DLC, or no data.
+    for o in out[3:4] + out[6:]:
+        assert o["node"] == 1 and o["request"] == 1 and o["fields"] == {}, o
     # Clear_Errors: Identify is a flag; DLC 0 (ODrive 0.5's form) is accepted as "no identify".
     assert out[4]["fields"] == {"Identify": 1}
     assert out[5]["fields"] == {"Identify": 0}

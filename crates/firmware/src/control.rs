@@ -694,6 +694,10 @@ impl Controller {
         let Drive::Odrive { gear_ratio, .. } = self.config.drive else {
             return Ok(());
         };
+        if odrive::is_request(frame) {
+            // Another host polling a drive (odrivetool, a logger): not feedback, not an error.
+            return Ok(());
+        }
         let fb = odrive::Feedback::decode(frame)?;
         // Error bits from before the last `Clear_Errors` (see ODRIVE_CLEAR_GRACE_US).
         let errors_stale = self

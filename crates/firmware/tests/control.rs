@@ -524,6 +524,30 @@ fn non_finite_feedback_is_rejected_and_counted() {
 }
 
 #[test]
+fn another_hosts_odrive_requests_are_neither_feedback_nor_errors() {
+    let mut rig = odrive_driving();
+    let pose_before = rig.ctl.pose();
+    let before = rig.ctl.snapshot().rx_errors;
+    let node = NodeId::new(0).unwrap();
+    // An odrivetool-style poll of every message the core reads, as RTR and as empty frames.
+    for cmd in [
+        odrive::Command::GetHeartbeat,
+        odrive::Command::GetError,
+        odrive::Command::GetEncoderEstimates,
+    ] {
+        let rtr = cmd.to_can_frame(node);
+        rig.raw(rtr);
+        rig.raw(tampered(rtr, 0, |_| {}));
+    }
+    rig.run_ms(1);
+    let snap = rig.ctl.snapshot();
+    assert_eq!(snap.rx_errors, before, "requests counted as errors");
+    assert_eq!(snap.state, RobotState::Enabled);
+    // The pose moved by the step's driving only, not by a request read as estimates.
+    assert!((rig.ctl.pose().x - pose_before.x).abs() < 1e-3);
+}
+
+#[test]
 fn unknown_ids_are_counted_separately() {
     let mut rig = Rig::dji();
     rig.run_ms(2);

@@ -336,10 +336,30 @@ fn odrive_estop_and_get_error() {
     let rtr = CanFrame::remote(sid(0x43), 8);
     assert_eq!(odrive_cmd(&rtr), Ok(odrive::Command::GetError));
     assert_eq!(odrive::Command::GetError.to_can_frame(node2()), rtr);
-    // Any DLC of the request is accepted.
+    // Any DLC of the request is accepted, and so is an empty data frame (ODrive docs).
     assert_eq!(
         odrive_cmd(&CanFrame::remote(sid(0x43), 0)),
         Ok(odrive::Command::GetError)
+    );
+    assert_eq!(odrive_cmd(&frame(0x43, &[])), Ok(odrive::Command::GetError));
+    // The other messages the core reads can be requested the same way; no other.
+    let hb = CanFrame::remote(sid(0x41), 8);
+    assert_eq!(odrive_cmd(&hb), Ok(odrive::Command::GetHeartbeat));
+    assert_eq!(odrive::Command::GetHeartbeat.to_can_frame(node2()), hb);
+    let est = CanFrame::remote(sid(0x49), 8);
+    assert_eq!(odrive_cmd(&est), Ok(odrive::Command::GetEncoderEstimates));
+    assert_eq!(
+        odrive::Command::GetEncoderEstimates.to_can_frame(node2()),
+        est
+    );
+    assert_eq!(
+        odrive_cmd(&frame(0x49, &[])),
+        Ok(odrive::Command::GetEncoderEstimates)
+    );
+    assert!(odrive::is_request(&est) && !odrive::is_request(&frame(0x49, &[0; 8])));
+    assert_eq!(
+        odrive_cmd(&CanFrame::remote(sid(0x4D), 8)),
+        Err(DecodeError::Remote { id: 0x4D })
     );
 
     let f = frame(0x43, &[0x01, 0x00, 0x00, 0x00, 0x40, 0x00, 0x00, 0x00]);

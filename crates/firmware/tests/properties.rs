@@ -176,6 +176,8 @@ proptest! {
         let cmds = [
             odrive::Command::Estop,
             odrive::Command::GetError,
+            odrive::Command::GetHeartbeat,
+            odrive::Command::GetEncoderEstimates,
             odrive::Command::SetAxisState(state),
             odrive::Command::SetControllerMode {
                 control_mode: ControlMode::from_raw(control).unwrap(),

@@ -325,7 +325,7 @@ fn odrive_fields(msg: &odrive::Message) -> Decoded {
     match *msg {
         odrive::Message::Command(a) => match a.msg {
             C::Estop => d,
-            C::GetError => d.extra("remote", 1),
+            C::GetError | C::GetHeartbeat | C::GetEncoderEstimates => d.extra("request", 1),
             C::SetAxisState(s) => d.i(&l::REQUESTED_STATE, s.raw()),
             C::SetControllerMode {
                 control_mode,
@@ -572,6 +572,8 @@ fn golden_set() -> Vec<(AnyMessage, Decoded)> {
         v.extend([
             cmd(OC::Estop),
             cmd(OC::GetError),
+            cmd(OC::GetHeartbeat),
+            cmd(OC::GetEncoderEstimates),
             cmd(OC::SetAxisState(AxisState::ClosedLoopControl)),
             cmd(OC::SetAxisState(AxisState::Idle)),
             cmd(OC::SetControllerMode {

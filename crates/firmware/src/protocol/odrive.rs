@@ -11,7 +11,7 @@
 //! |---|---|---|---|---|
 //! | `0x01` | `Heartbeat` | drive → host | 8 | `Axis_Error` u32, `Axis_State` u8, `Procedure_Result` u8, `Trajectory_Done_Flag` bit 0 of byte 6 |
 //! | `0x02` | `Estop` | host → drive | 0 | |
-//! | `0x03` | `Get_Error` | host → drive | RTR | request (a remote frame, any DLC) |
+//! | `0x01`, `0x03`, `0x09` | `Heartbeat`, `Get_Error`, `Get_Encoder_Estimates` | host → drive | RTR or 0 | request: a remote frame (any DLC) or an empty data frame; the drive answers with the message |
 //! | `0x03` | `Get_Error` | drive → host | 8 | `Active_Errors` u32, `Disarm_Reason` u32 |
 //! | `0x07` | `Set_Axis_State` | host → drive | 8 | `Axis_Requested_State` u32 (1 idle, 8 closed loop) |
 //! | `0x09` | `Get_Encoder_Estimates` | drive → host | 8 | `Pos_Estimate` f32 rev, `Vel_Estimate` f32 rev/s |
@@ -286,13 +286,39 @@ u32_enum!(
     }
 );
 
+/// Whether `frame` asks a drive for one of the messages implemented here (`Heartbeat`,
+/// `Get_Error`, `Get_Encoder_Estimates`): a remote frame of any DLC, or an empty data frame,
+/// on that message's id, as the ODrive documentation allows. A drive never sends one, so a
+/// core reading feedback can pass over the requests of another host on the bus instead of
+/// counting them as malformed feedback.
+#[must_use]
+pub fn is_request<F: Frame>(frame: &F) -> bool {
+    let embedded_can::Id::Standard(id) = frame.id() else {
+        return false;
+    };
+    let cmd = id.as_raw() & layout::CMD_MASK;
+    (frame.is_remote_frame() || frame.dlc() == 0)
+        && [
+            layout::HEARTBEAT.id,
+            layout::GET_ERROR.id,
+            layout::GET_ENCODER_ESTIMATES.id,
+        ]
+        .contains(&cmd)
+}
+
 /// A message from the host to a drive.
 #[derive(Clone, Copy, PartialEq, Debug)]
 pub enum Command {
     /// `Estop`: the drive disarms with `ESTOP_REQUESTED`.
     Estop,
-    /// `Get_Error` request (a remote frame); the drive answers with [`Feedback::Error`].
+    /// `Get_Error` request (see [`is_request`]); the drive answers with [`Feedback::Error`].
     GetError,
+    /// `Heartbeat` request (see [`is_request`]); the drive answers with a
+    /// [`Feedback::Heartbeat`] out of its schedule.
+    GetHeartbeat,
+    /// `Get_Encoder_Estimates` request (see [`is_request`]); the drive answers with
+    /// [`Feedback::EncoderEstimates`].
+    GetEncoderEstimates,
     /// `Set_Axis_State`.
     SetAxisState(AxisState),
     /// `Set_Controller_Mode`.
@@ -381,6 +407,8 @@ impl Command {
         match self {
             Self::Estop => layout::ESTOP,
             Self::GetError => layout::GET_ERROR,
+            Self::GetHeartbeat => layout::HEARTBEAT,
+            Self::GetEncoderEstimates => layout::GET_ENCODER_ESTIMATES,
             Self::SetAxisState(_) => layout::SET_AXIS_STATE,
             Self::SetControllerMode { .. } => layout::SET_CONTROLLER_MODE,
             Self::SetInputVel { .. } => layout::SET_INPUT_VEL,
@@ -399,9 +427,14 @@ impl Command {
         let msg = if cmd == layout::ESTOP.id {
             wire::data_payload(frame, id, &[layout::ESTOP.dlc])?;
             Self::Estop
-        } else if cmd == layout::GET_ERROR.id && frame.is_remote_frame() {
-            // ODrive answers an RTR whatever its DLC.
-            Self::GetError
+        } else if is_request(frame) {
+            if cmd == layout::HEARTBEAT.id {
+                Self::GetHeartbeat
+            } else if cmd == layout::GET_ERROR.id {
+                Self::GetError
+            } else {
+                Self::GetEncoderEstimates
+            }
         } else if cmd == layout::SET_AXIS_STATE.id {
             let p = wire::data_payload(frame, id, &[layout::SET_AXIS_STATE.dlc])?;
             let raw = layout::REQUESTED_STATE.checked(&p)?;
@@ -451,7 +484,9 @@ impl Command {
         let mut p = Payload::new();
         match *self {
             Self::Estop => {}
-            Self::GetError => return CanFrame::remote(id, def.dlc),
+            Self::GetError | Self::GetHeartbeat | Self::GetEncoderEstimates => {
+                return CanFrame::remote(id, def.dlc);
+            }
             Self::SetAxisState(s) => layout::REQUESTED_STATE.put_raw(&mut p, s.raw().into()),
             Self::SetControllerMode {
                 control_mode,

@@ -239,7 +239,7 @@ impl OdriveAxis {
         &self.params
     }
 
-    /// Applies one command as received from the bus. Returns the reply `Get_Error` asks for.
+    /// Applies one command as received from the bus. Returns the reply a request asks for.
     pub fn apply(&mut self, command: &Command) -> Option<OdriveFeedback> {
         match *command {
             Command::Estop => self.estop(),
@@ -249,6 +249,9 @@ impl OdriveAxis {
                     disarm_reason: self.disarm_reason,
                 });
             }
+            // The model answers the error request only; its heartbeat and estimates keep
+            // their schedule.
+            Command::GetHeartbeat | Command::GetEncoderEstimates => {}
             Command::SetAxisState(s) => self.set_axis_state(s),
             Command::SetControllerMode {
                 control_mode,
