@@ -566,6 +566,21 @@ fn geometry_error(e: GeometryError) -> ConfigError {
             value: condition,
             expected: "a layout whose roller axes are neither concurrent nor parallel (value: condition number)",
         },
+        GeometryError::NegativeDistance { field, value } => ConfigError {
+            field: if field == "lx" {
+                "geometry.lx"
+            } else {
+                "geometry.ly"
+            },
+            value,
+            expected: "a distance >= 0",
+        },
+        GeometryError::Unrepresentable { deviation } => ConfigError {
+            field: "geometry",
+            value: deviation,
+            expected: "lengths and radius whose wheel map fits f32 (value: relative deviation; \
+                       check the units)",
+        },
         _ => ConfigError {
             field: "geometry",
             value: f64::NAN,

@@ -125,10 +125,17 @@ impl<T: Real> Encoder<T> {
     }
 
     /// Wheel angle increment for a count increment, rad (mounting sign applied).
+    ///
+    /// The count is converted exactly for `|counts| <= 2^24` in `f32` and `2^53` in `f64`;
+    /// larger counts are rounded to `T` first (one rounding, relative error below `ε / 2`).
+    /// [`total_counts`](Self::total_counts) itself stays exact.
     #[must_use]
     #[inline]
     pub fn counts_to_radians(&self, counts: i64) -> T {
-        // Exact for |counts| < 2^53, i.e. any increment and any total a robot will reach.
+        // `counts` is exact in T up to the width of its significand: |counts| <= 2^24 in f32
+        // (enough for any increment, and 16.7 million counts of total angle: 2048 turns of
+        // a 13-bit rotor counter), 2^53 in f64. Beyond that it is rounded to the nearest
+        // representable count (relative error below 6e-8 in f32).
         #[allow(clippy::cast_precision_loss)]
         let c = counts as f64;
         T::lit(c) * self.radians_per_count

@@ -31,12 +31,37 @@ pub enum GeometryError {
         /// The rejected roller angle δ, radians.
         roller_angle: f64,
     },
-    /// The wheel map has rank < 3, so some body motion is invisible to the wheels and forward
-    /// kinematics is not unique: the roller axes are concurrent or all parallel (seed 000,
-    /// Theorem 2). `condition` is the (dimensionless) condition number found, possibly infinite.
+    /// The wheel map has rank < 3, or so nearly that the float type cannot invert it
+    /// reliably: some body motion is (almost) invisible to the wheels and forward kinematics
+    /// is not unique. The roller axes are concurrent or all parallel (seed 000, Theorem 2), or
+    /// close to it. `condition` is the (dimensionless) condition number found, possibly
+    /// infinite; the limit is
+    /// [`MecanumKinematics::max_condition_number`](crate::MecanumKinematics::max_condition_number)
+    /// (about 362 in `f32`, 8.4e6 in `f64`).
     Singular {
         /// Ratio of the largest to the smallest singular value of the scaled wheel map.
         condition: f64,
+    },
+    /// A distance of the standard layout is negative. `lx` and `ly` are distances from the
+    /// centre to the wheels (`>= 0`); a negative one would silently reverse the yaw
+    /// direction of the whole map.
+    NegativeDistance {
+        /// `"lx"` or `"ly"`.
+        field: &'static str,
+        /// The rejected value, metres.
+        value: f64,
+    },
+    /// The layout is geometrically fine, but its numbers do not fit the float type: an entry
+    /// of the wheel map `J` or of its least-squares inverse `J⁺` overflows, or underflows to
+    /// zero or to a few digits, so that `J` rounded to the type is not the layout's map or
+    /// `J⁺ J` is not the identity. Lengths and radius of extreme magnitude cause it (e.g.
+    /// wheels 3e-30 m from the centre of a 1e30 m wheel in `f32`); check their units.
+    Unrepresentable {
+        /// How far off the rounded map is, relative and with the columns scaled as for the
+        /// condition number: the largest error of `J` as a fraction of its largest entry
+        /// (allowed: ε of the type), or else the largest entry of `|J⁺ J − I|` (allowed:
+        /// `32 N · condition · ε`). Infinite if an entry is not finite.
+        deviation: f64,
     },
 }
 
@@ -59,7 +84,17 @@ impl fmt::Display for GeometryError {
             Self::Singular { condition } => write!(
                 f,
                 "wheel layout is singular (condition number {condition:e}): roller axes are \
-                 concurrent or parallel, so forward kinematics is not unique"
+                 (nearly) concurrent or parallel, so forward kinematics is not unique"
+            ),
+            Self::NegativeDistance { field, value } => write!(
+                f,
+                "standard layout: {field} = {value} m is negative; it is a distance from the \
+                 centre (>= 0), and a negative one reverses the yaw direction"
+            ),
+            Self::Unrepresentable { deviation } => write!(
+                f,
+                "wheel map does not fit the float type (max |J+ J - I| = {deviation:e}): \
+                 lengths or radius of extreme magnitude overflow or underflow it; check units"
             ),
         }
     }

@@ -18,6 +18,15 @@
 //! least-squares inverse `J⁺ = (JᵀJ)⁻¹Jᵀ`, computed once at construction. What it cannot
 //! explain, the residual `w - J J⁺ w`, is a wheel disagreement: slip, a bad encoder or a
 //! wrong wheel radius.
+//!
+//! `J⁺` is not computed from that formula: forming `JᵀJ` squares the condition number, which
+//! in `f32` cost 3e-4 relative on a layout of condition 21. Construction widens `J` (as
+//! rounded to `T`, so `J⁺` inverts exactly the map [`inverse`](MecanumKinematics::inverse)
+//! applies) to `f64`, scales it to unit magnitude by a power of two, solves by Householder
+//! QR, and rounds `J⁺` to `T` once. The forward map is then accurate to a few
+//! `condition · ε` of `T`. This is the only `f64` arithmetic in the crate, done once per
+//! layout (slow software floating point on a single-precision FPU, but heap-free and a few
+//! thousand operations); every per-step method computes in `T` alone.
 
 use nalgebra::{Matrix3, SMatrix, Vector3};
 
@@ -56,7 +65,11 @@ impl<T: Real> WheelGeometry<T> {
     }
 
     /// This wheel's row of the inverse map (seed 000, eq. 16), or why it has none.
-    fn inverse_row(&self, wheel: usize) -> Result<[T; 3], GeometryError> {
+    ///
+    /// The trigonometry is done in `T` (libm), the products and the quotient in `f64`, so the
+    /// row is rounded to `T` once, in [`MecanumKinematics::new`], where an overflow or
+    /// underflow is detected.
+    fn inverse_row(&self, wheel: usize) -> Result<[f64; 3], GeometryError> {
         for (field, v) in [
             ("x", self.x),
             ("y", self.y),
@@ -75,7 +88,8 @@ impl<T: Real> WheelGeometry<T> {
             });
         }
         let sin_delta = self.roller_angle.sin_cos_libm().0;
-        // A roller within ~1e-6 rad of the axle gives wheel speeds beyond any motor.
+        // A roller within √ε of the axle (|sin δ| < √ε: 1.5e-8 rad in f64, 3.5e-4 rad in
+        // f32) gives wheel speeds beyond any motor.
         if sin_delta.abs() < T::EPSILON.sqrt_libm() {
             return Err(GeometryError::RollerParallelToAxle {
                 wheel,
@@ -83,8 +97,10 @@ impl<T: Real> WheelGeometry<T> {
             });
         }
         let (s, c) = (self.axle_angle + self.roller_angle).sin_cos_libm();
-        let k = -T::one() / (self.radius * sin_delta);
-        Ok([k * c, k * s, k * (self.x * s - self.y * c)])
+        let (s, c) = (s.to_f64(), c.to_f64());
+        let (x, y) = (self.x.to_f64(), self.y.to_f64());
+        let k = -1.0 / (self.radius.to_f64() * sin_delta.to_f64());
+        Ok([k * c, k * s, k * (x * s - y * c)])
     }
 }
 
@@ -98,7 +114,7 @@ pub struct MecanumKinematics<T: Real, const N: usize> {
     wheels: [WheelGeometry<T>; N],
     /// Inverse map `J`: body twist (vx, vy, wz) to wheel speeds.
     inverse: SMatrix<T, N, 3>,
-    /// Least-squares forward map `J⁺ = (JᵀJ)⁻¹Jᵀ`.
+    /// Least-squares forward map `J⁺ = (JᵀJ)⁻¹Jᵀ` (computed by QR in `f64`, rounded to `T`).
     forward: SMatrix<T, 3, N>,
     condition: T,
 }
@@ -107,63 +123,115 @@ impl<T: Real, const N: usize> MecanumKinematics<T, N> {
     /// The kinematics of a general layout, one [`WheelGeometry`] per wheel (seed 000, eq. 16).
     ///
     /// # Errors
-    /// [`GeometryError`] for a non-finite parameter, a non-positive radius, a roller parallel
-    /// to its axle, or a layout whose roller axes are concurrent or parallel (rank < 3).
+    /// [`GeometryError`] for a non-finite parameter, a non-positive radius, a roller within
+    /// `√ε` of its axle (`|sin δ| < √ε`: 1.5e-8 rad in `f64`, 3.5e-4 rad in `f32`), a layout
+    /// whose roller axes are concurrent or parallel (rank < 3) or so nearly that the
+    /// condition number exceeds [`max_condition_number`](Self::max_condition_number)
+    /// ([`Singular`](GeometryError::Singular)), or a layout whose numbers overflow or
+    /// underflow `T` ([`Unrepresentable`](GeometryError::Unrepresentable)).
     pub fn new(wheels: [WheelGeometry<T>; N]) -> Result<Self, GeometryError> {
-        let mut inverse = SMatrix::<T, N, 3>::zeros();
+        let mut inverse = SMatrix::<f64, N, 3>::zeros();
         for (i, wheel) in wheels.iter().enumerate() {
             let row = wheel.inverse_row(i)?;
             for (j, v) in row.into_iter().enumerate() {
                 inverse[(i, j)] = v;
             }
         }
-        Self::from_inverse(wheels, inverse)
+        Self::from_rows(wheels, &inverse)
     }
 
-    /// Completes construction from a validated inverse map: checks the rank, computes the
-    /// conditioning figure and the least-squares forward map.
-    fn from_inverse(
+    /// The largest condition number accepted (see
+    /// [`condition_number`](Self::condition_number)): `1 / (8 √ε)` of `T`, about 362 in
+    /// `f32` and 8.4e6 in `f64`.
+    ///
+    /// Beyond it the smallest singular value of the wheel map is, squared, within `64 ε` of
+    /// the largest: the layout is singular to within the type's precision, and the forward
+    /// map (accurate to a few `condition · ε`) would lose more than about 4e-5 (`f32`) or
+    /// 2e-9 (`f64`) relative. The decision is made in `f64` from `J` as rounded to `T`, so it
+    /// is the same on every target.
+    #[must_use]
+    pub fn max_condition_number() -> T {
+        T::lit(max_condition(T::EPSILON.to_f64()))
+    }
+
+    /// Completes construction from the validated rows of the inverse map (in `f64`): rounds
+    /// them to `T`, checks the rank, computes the conditioning figure and the least-squares
+    /// forward map (in `f64`, see the module docs).
+    fn from_rows(
         wheels: [WheelGeometry<T>; N],
-        inverse: SMatrix<T, N, 3>,
+        rows: &SMatrix<f64, N, 3>,
     ) -> Result<Self, GeometryError> {
         const { assert!(N >= 3, "a mecanum layout needs at least three wheels") };
-
+        let eps = T::EPSILON.to_f64();
         // Scale the yaw column by a characteristic length (RMS wheel distance from the
         // centre) so the conditioning figure has no units and does not change with them.
-        let mean_sq = wheels
-            .iter()
-            .fold(T::zero(), |s, w| s + w.x * w.x + w.y * w.y)
-            / T::lit(N as f64);
-        let length = if mean_sq > T::zero() {
-            mean_sq.sqrt_libm()
-        } else {
-            T::one()
-        };
-        let mut scaled = inverse;
+        let length = rms_distance(&wheels);
+
+        // The map as `inverse` will apply it, rounded to T once. A finite layout can still
+        // overflow T (or f64) or underflow it to a few digits or zero: compare, with the
+        // columns scaled as for the condition number, relative to the largest entry.
+        let inverse = rows.map(T::lit);
+        let j = inverse.map(Real::to_f64);
+        let mut worst = 0.0_f64;
+        let mut largest = 0.0_f64;
+        for i in 0..N {
+            for k in 0..3 {
+                let scale = if k == 2 { 1.0 / length } else { 1.0 };
+                let e = libm::fabs(j[(i, k)] - rows[(i, k)]) * scale;
+                worst = if e > worst || e.is_nan() { e } else { worst };
+                largest = largest.max(libm::fabs(rows[(i, k)]) * scale);
+            }
+        }
+        let deviation = worst / largest;
+        // Written so that NaN (an overflow) is refused.
+        let fits = deviation <= eps;
+        if !fits {
+            return Err(unrepresentable(deviation));
+        }
+        let mut scaled = j;
         for i in 0..N {
             scaled[(i, 2)] /= length;
         }
-        let (lo, hi) = symmetric_eigen_range(&(scaled.transpose() * scaled));
-        // Rank < 3 within rounding: the smallest eigenvalue of JᵀJ (a singular value squared)
-        // is lost in the noise of the largest.
-        let full_rank = lo > hi * T::lit(64.0) * T::EPSILON;
+        // And everything by a power of two (exact) to unit magnitude, so that neither the
+        // products below nor the QR overflow or underflow for any finite layout.
+        let (_, exponent) = libm::frexp(scaled.amax());
+        let unit = scaled.map(|v| libm::scalbn(v, -exponent));
+
+        let (lo, hi) = symmetric_eigen_range(&(unit.transpose() * unit));
+        // Rank < 3 within the precision of T: the smallest eigenvalue of JᵀJ (a singular value
+        // squared) is lost in the noise of the largest.
+        let full_rank = lo > hi * 64.0 * eps;
         if !full_rank {
-            let condition = if lo > T::zero() {
-                (hi / lo).sqrt_libm().to_f64()
+            let condition = if lo > 0.0 {
+                libm::sqrt(hi / lo)
             } else {
                 f64::INFINITY
             };
             return Err(GeometryError::Singular { condition });
         }
-        let normal: Matrix3<T> = inverse.transpose() * inverse;
-        let normal_inv = normal.try_inverse().ok_or(GeometryError::Singular {
-            condition: f64::INFINITY,
-        })?;
+        let condition = libm::sqrt(hi / lo);
+
+        // J⁺ = D (J D)⁺ with D = diag(1, 1, 1/length), and (J D)⁺ = 2^-e (2^-e J D)⁺.
+        let mut forward_f64 = least_squares_inverse(&unit).map(|v| libm::scalbn(v, -exponent));
+        for k in 0..N {
+            forward_f64[(2, k)] /= length;
+        }
+        let forward = forward_f64.map(T::lit);
+
+        // What T can hold of it: every entry finite, and J⁺ J = I to the accuracy the
+        // conditioning allows (an entry rounded to zero or to few digits fails this).
+        let deviation = identity_deviation(&forward.map(Real::to_f64), &j, length);
+        #[allow(clippy::cast_precision_loss)]
+        let tolerance = 32.0 * N as f64 * condition * eps;
+        let inverts = deviation <= tolerance;
+        if !inverts {
+            return Err(unrepresentable(deviation));
+        }
         Ok(Self {
             wheels,
             inverse,
-            forward: normal_inv * inverse.transpose(),
-            condition: (hi / lo).sqrt_libm(),
+            forward,
+            condition: T::lit(condition),
         })
     }
 
@@ -186,7 +254,8 @@ impl<T: Real, const N: usize> MecanumKinematics<T, N> {
     }
 
     /// Condition number of the wheel map (≥ 1; 1 is ideal), with the yaw column scaled by the
-    /// RMS wheel distance from the centre so the figure is dimensionless.
+    /// RMS wheel distance from the centre so the figure is dimensionless. Computed in `f64`
+    /// at construction; never above [`max_condition_number`](Self::max_condition_number).
     ///
     /// It bounds how much a relative error in wheel speeds (encoder noise, slip) is amplified
     /// in the body velocity. The standard square layout with 45° rollers has `√2`;
@@ -294,9 +363,14 @@ impl<T: Real> MecanumKinematics<T, 4> {
     /// The rows are filled in exactly; the geometry recorded is the equivalent general one
     /// (α = 90°, δ = +45° for FL and RR, −45° for FR and RL).
     ///
+    /// `lx` and `ly` are distances, so `>= 0`; one of them may be zero (wheels on an axis), not
+    /// both.
+    ///
     /// # Errors
-    /// [`GeometryError`] if a value is not finite, `r <= 0`, or `lx + ly == 0` (no yaw
-    /// authority: singular).
+    /// [`GeometryError`] if a value is not finite, `r <= 0`, `lx < 0` or `ly < 0`
+    /// ([`NegativeDistance`](GeometryError::NegativeDistance): a sign slip would silently
+    /// reverse the yaw direction), `lx + ly == 0` (no yaw authority: singular), or the values
+    /// overflow `T` ([`Unrepresentable`](GeometryError::Unrepresentable)).
     pub fn standard(lx: T, ly: T, r: T) -> Result<Self, GeometryError> {
         let q = T::PI * T::lit(0.25);
         let axle = q + q;
@@ -307,19 +381,142 @@ impl<T: Real> MecanumKinematics<T, 4> {
             WheelGeometry::new(-lx, -ly, axle, q, r),
         ];
         for (i, w) in wheels.iter().enumerate() {
+            // Validation only: the rows are the exact ones below.
             w.inverse_row(i)?;
         }
-        let k = lx + ly;
-        let one = T::one();
+        for (field, value) in [("lx", lx), ("ly", ly)] {
+            if value < T::zero() {
+                return Err(GeometryError::NegativeDistance {
+                    field,
+                    value: value.to_f64(),
+                });
+            }
+        }
+        let k = (lx + ly).to_f64();
         #[rustfmt::skip]
-        let inverse = SMatrix::<T, 4, 3>::new(
-            one, -one, -k,
-            one,  one,  k,
-            one,  one, -k,
-            one, -one,  k,
-        ) / r;
-        Self::from_inverse(wheels, inverse)
+        let rows = SMatrix::<f64, 4, 3>::new(
+            1.0, -1.0, -k,
+            1.0,  1.0,  k,
+            1.0,  1.0, -k,
+            1.0, -1.0,  k,
+        ) / r.to_f64();
+        Self::from_rows(wheels, &rows)
     }
+}
+
+/// [`GeometryError::Unrepresentable`], NaN reported as infinite.
+fn unrepresentable(deviation: f64) -> GeometryError {
+    GeometryError::Unrepresentable {
+        deviation: if deviation.is_nan() {
+            f64::INFINITY
+        } else {
+            deviation
+        },
+    }
+}
+
+/// `1 / (8 √ε)`: the largest condition number accepted for a type of machine epsilon `eps`.
+fn max_condition(eps: f64) -> f64 {
+    1.0 / libm::sqrt(64.0 * eps)
+}
+
+/// RMS distance of the wheel centres from the body origin, m, in `f64` (scaled by the
+/// largest coordinate, so it neither overflows nor underflows); 1 if all are at the origin.
+fn rms_distance<T: Real, const N: usize>(wheels: &[WheelGeometry<T>; N]) -> f64 {
+    let big = wheels.iter().fold(0.0_f64, |m, w| {
+        m.max(libm::fabs(w.x.to_f64()))
+            .max(libm::fabs(w.y.to_f64()))
+    });
+    if !(big > 0.0 && big.is_finite()) {
+        return 1.0;
+    }
+    let sum = wheels.iter().fold(0.0, |s, w| {
+        let (x, y) = (w.x.to_f64() / big, w.y.to_f64() / big);
+        s + x * x + y * y
+    });
+    #[allow(clippy::cast_precision_loss)]
+    let mean = sum / N as f64;
+    big * libm::sqrt(mean)
+}
+
+/// The least-squares inverse `A⁺` of a full-rank `N × 3` matrix, by Householder QR:
+/// `A = Q R`, `A⁺ = R⁻¹ Qᵀ`. Its error is a few `cond(A) · ε`, where the normal equations
+/// `(AᵀA)⁻¹Aᵀ` give `cond(A)² · ε`. Column `k` of `A⁺` is the least-squares solution for the
+/// unit vector `e_k`.
+fn least_squares_inverse<const N: usize>(a: &SMatrix<f64, N, 3>) -> SMatrix<f64, 3, N> {
+    let mut r = *a;
+    // Householder vector k in column k, rows k..N; H_k = I - 2 v vᵀ / vᵀv.
+    let mut v = SMatrix::<f64, N, 3>::zeros();
+    let mut vv = [0.0_f64; 3];
+    for k in 0..3 {
+        let norm = libm::sqrt((k..N).fold(0.0, |s, i| s + r[(i, k)] * r[(i, k)]));
+        // The sign that avoids cancellation in v_k = x_k - alpha.
+        let alpha = if r[(k, k)] >= 0.0 { -norm } else { norm };
+        for i in k..N {
+            v[(i, k)] = r[(i, k)];
+        }
+        v[(k, k)] -= alpha;
+        vv[k] = (k..N).fold(0.0, |s, i| s + v[(i, k)] * v[(i, k)]);
+        if vv[k] == 0.0 {
+            continue;
+        }
+        for col in k..3 {
+            let f = 2.0 * (k..N).fold(0.0, |s, i| s + v[(i, k)] * r[(i, col)]) / vv[k];
+            for i in k..N {
+                r[(i, col)] -= f * v[(i, k)];
+            }
+        }
+    }
+    let mut pinv = SMatrix::<f64, 3, N>::zeros();
+    for col in 0..N {
+        // y = Qᵀ e_col = H_2 H_1 H_0 e_col.
+        let mut y = [0.0_f64; N];
+        y[col] = 1.0;
+        for k in 0..3 {
+            if vv[k] == 0.0 {
+                continue;
+            }
+            let f = 2.0 * (k..N).fold(0.0, |s, i| s + v[(i, k)] * y[i]) / vv[k];
+            for i in k..N {
+                y[i] -= f * v[(i, k)];
+            }
+        }
+        // R z = y[0..3], back substitution (R upper triangular, non-singular at full rank).
+        let z2 = y[2] / r[(2, 2)];
+        let z1 = (y[1] - r[(1, 2)] * z2) / r[(1, 1)];
+        let z0 = (y[0] - r[(0, 1)] * z1 - r[(0, 2)] * z2) / r[(0, 0)];
+        pinv[(0, col)] = z0;
+        pinv[(1, col)] = z1;
+        pinv[(2, col)] = z2;
+    }
+    pinv
+}
+
+/// `max |F J − I|` with the yaw column of `J` (row of `F`) scaled by `length`, as for the
+/// condition number; NaN or infinite if an entry of `F` is not finite.
+fn identity_deviation<const N: usize>(
+    forward: &SMatrix<f64, 3, N>,
+    inverse: &SMatrix<f64, N, 3>,
+    length: f64,
+) -> f64 {
+    let mut worst = 0.0_f64;
+    for i in 0..3 {
+        for j in 0..3 {
+            let mut s = 0.0;
+            for k in 0..N {
+                s += forward[(i, k)] * inverse[(k, j)];
+            }
+            if i == 2 && j != 2 {
+                s *= length;
+            } else if j == 2 && i != 2 {
+                s /= length;
+            }
+            let e = libm::fabs(s - if i == j { 1.0 } else { 0.0 });
+            // `max` would drop a NaN.
+            worst = if e > worst || e.is_nan() { e } else { worst };
+        }
+    }
+    worst
 }
 
 /// The smallest and largest eigenvalue of a symmetric 3×3 matrix, by cyclic Jacobi rotations.

@@ -121,19 +121,28 @@ impl<T: Real, const N: usize> WheelSpeeds<T, N> {
     ///
     /// One common factor keeps the ratios between the wheels, so the direction of travel and
     /// the centre of rotation are kept; only the overall speed drops (seed 004, "power
-    /// normalisation"). Wheels already within the limit are returned unchanged. A limit that
-    /// is zero, negative or NaN stops every wheel.
+    /// normalisation"). Wheels already within the limit are returned unchanged.
+    ///
+    /// The limit holds for every output, always: the factor `max_speed / peak` is rounded,
+    /// so each scaled wheel is also limited to `[-max_speed, max_speed]` (which moves the
+    /// peak wheel by at most one ulp, onto the limit). Two inputs stop every wheel (all
+    /// zero, a safe stop) rather than command something unintended:
+    ///
+    /// - a limit that is zero, negative or NaN;
+    /// - any wheel that is NaN or infinite: there is no finite factor that scales it, and the
+    ///   other wheels' speeds mean nothing without it.
     #[must_use]
     pub fn desaturate(self, max_speed: T) -> Self {
         // Written so that NaN takes the stop branch.
         let positive = max_speed > T::zero();
-        if !positive {
+        if !positive || !self.0.iter().all(|w| w.finite()) {
             return Self::zero();
         }
         let peak = self.max_abs();
         if peak > max_speed {
             let k = max_speed / peak;
-            Self(self.0.map(|w| w * k))
+            // `min`/`max`, not `clamp`: no panic path (and no float formatting) on the MCU.
+            Self(self.0.map(|w| (w * k).min(max_speed).max(-max_speed)))
         } else {
             self
         }
