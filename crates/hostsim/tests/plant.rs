@@ -719,8 +719,9 @@ fn ripple_makes_a_strafe_speed_ripple_at_the_roller_frequency() {
     assert!(corr(50) > 0.0 && corr(25) < 0.0);
 }
 
-#[test]
-fn faults_freeze_or_silence_the_feedback() {
+/// The example DJI plant after 200 ms of driving forward at 0.5 m/s under the wheel PI, its
+/// feedback so far taken: the PI and the wheel setpoints to go on with.
+fn cruising() -> (Plant<DjiDrive>, WheelPi, [f64; 4]) {
     let setpoints = kin().inverse(ChassisVelocity::new(0.5, 0.0, 0.0)).0;
     let mut plant = Plant::dji_m3508_example().expect("valid");
     let mut pi = WheelPi::new();
@@ -729,6 +730,12 @@ fn faults_freeze_or_silence_the_feedback() {
         plant.step(1e-3).expect("valid");
     }
     plant.take_feedback();
+    (plant, pi, setpoints)
+}
+
+#[test]
+fn faults_freeze_or_silence_the_feedback() {
+    let (mut plant, mut pi, setpoints) = cruising();
     plant.set_stuck_encoder(Wheel::FrontLeft, true);
     plant.set_offline(Wheel::RearRight, true);
     let angle_before = plant.state().wheel_angle[0];
@@ -765,14 +772,7 @@ fn faults_freeze_or_silence_the_feedback() {
 
 #[test]
 fn faults_set_for_an_instant_take_effect_exactly_then() {
-    let setpoints = kin().inverse(ChassisVelocity::new(0.5, 0.0, 0.0)).0;
-    let mut plant = Plant::dji_m3508_example().expect("valid");
-    let mut pi = WheelPi::new();
-    for _ in 0..200 {
-        pi.control(&mut plant, &setpoints, 1e-3);
-        plant.step(1e-3).expect("valid");
-    }
-    plant.take_feedback();
+    let (mut plant, ..) = cruising();
     // RR offline from 205.5 ms, in the middle of the next 10 ms: its frames of 201..=205 ms
     // go out, those of 206..=210 ms do not; the others send all ten.
     plant.set_faults_at(205_500_000, [false; 4], [false, false, false, true]);

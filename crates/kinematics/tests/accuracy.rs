@@ -1,7 +1,9 @@
-//! Regression tests for the review findings, one section per finding. Each test failed on the
-//! code before the fix (the numbers it produced then are in the comments), except the two of
-//! finding 6, which pin the corrected documentation's figures (the code already met them), and
-//! `condition_limit_is_stated_per_type`, which tests an accessor added with the fix.
+//! Numerical accuracy and input limits: the least-squares forward map in `f32`, layouts at the
+//! edge of the float type, angle wrapping by the true 2π, desaturation's limit, negative
+//! distances, and the documented exactness figures. Most of these tests failed on the code
+//! before 2026-11-22 (the numbers it produced then are in the comments); the two on the
+//! documented figures pin what the docs say, and `condition_limit_is_stated_per_type` tests
+//! an accessor added then.
 
 use kinematics::{
     ChassisVelocity, Encoder, EncoderConfig, GeometryError, MecanumKinematics, Odometry, Pose2,
@@ -20,9 +22,9 @@ fn reference_wrap(x: f64) -> f64 {
     r - turns * TAU_LO
 }
 
-// ---- Finding 1: the f32 forward map was computed as (JᵀJ)⁻¹Jᵀ in f32. -------------------------
+// ---- the f32 forward map was computed as (JᵀJ)⁻¹Jᵀ in f32. -------------------------
 
-/// A general f32 layout of condition number about 21 (the reviewer's).
+/// A general f32 layout of condition number about 21 .
 fn ill_conditioned_f32() -> [WheelGeometry<f32>; 4] {
     [
         (0.057_432_9, -0.242_964_95, 5.322_169_3, 0.785),
@@ -134,7 +136,7 @@ proptest! {
     }
 }
 
-// ---- Finding 2: angles were reduced by fl(2π), not by 2π. ----------------------------------
+// ---- angles were reduced by fl(2π), not by 2π. ----------------------------------
 
 #[test]
 fn f32_wrap_angle_reduces_by_the_true_two_pi() {
@@ -213,7 +215,7 @@ fn f32_odometry_heading_survives_ten_thousand_turns() {
     );
 }
 
-// ---- Finding 3: desaturate let NaN through and overshot by an ulp. ---------------------------
+// ---- desaturate let NaN through and overshot by an ulp. ---------------------------
 
 #[test]
 fn desaturate_stops_on_non_finite_wheels() {
@@ -250,7 +252,7 @@ proptest! {
     }
 }
 
-// ---- Finding 4: extreme finite layouts returned Ok with a zero or NaN forward map. ---------
+// ---- extreme finite layouts returned Ok with a zero or NaN forward map. ---------
 
 fn round_trip_error<T: kinematics::Real>(
     k: &MecanumKinematics<T, 4>,
@@ -316,7 +318,7 @@ fn unrepresentable_layouts_are_refused_with_the_real_cause() {
     );
 }
 
-// ---- Finding 5: the standard layout took negative distances. ---------------------------------
+// ---- the standard layout took negative distances. ---------------------------------
 
 #[test]
 fn negative_standard_distances_are_refused() {
@@ -353,7 +355,7 @@ fn negative_standard_distances_are_refused() {
     ));
 }
 
-// ---- Finding 6: the documented precision figures. --------------------------------------------
+// ---- the documented precision figures. --------------------------------------------
 
 #[test]
 fn encoder_counts_are_exact_to_the_mantissa_of_t() {
