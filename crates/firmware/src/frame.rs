@@ -121,6 +121,9 @@ impl CanFrame {
                 dlc,
                 data: [0; MAX_DLC],
             })
+        } else if frame.dlc() > MAX_DLC {
+            // Before `data()`, which a driver reporting a DLC of 9-15 may panic in.
+            None
         } else {
             Self::data_frame(frame.id(), frame.data())
         }

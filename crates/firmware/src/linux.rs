@@ -393,8 +393,11 @@ pub struct Report {
     pub overruns: u64,
     /// Frames read from the bus and passed to the controller.
     pub frames_received: u64,
-    /// Receive errors (the bus reported an error instead of a frame).
+    /// Receive errors (reading the bus failed); the drain stops for that step.
     pub rx_errors: u64,
+    /// Error frames of the CAN controller ([`BusErrorFrame`]: bus errors, error-passive,
+    /// bus-off, restarts, lost arbitration...); the drain goes on after each.
+    pub bus_error_frames: u64,
     /// Steps that left frames on the bus because [`RunOptions::max_rx_per_step`] was reached.
     pub rx_capped_steps: u64,
     /// Frames sent by the loop (not counting the shutdown frames).
@@ -435,12 +438,13 @@ impl fmt::Display for Report {
         writeln!(f, "step time (start - last frame sent): {}", self.step_time)?;
         writeln!(
             f,
-            "bus: {} frames received, {} sent, {} send retries, {} send errors, {} receive errors, {} capped drains",
+            "bus: {} frames received, {} sent, {} send retries, {} send errors, {} receive errors, {} bus error frames, {} capped drains",
             self.frames_received,
             self.frames_sent,
             self.send_retries,
             self.send_errors,
             self.rx_errors,
+            self.bus_error_frames,
             self.rx_capped_steps
         )?;
         if let Some(first) = &self.first_error {
@@ -526,6 +530,7 @@ pub fn error_line(error: &(dyn std::error::Error + 'static)) -> String {
 struct Counters {
     frames_received: u64,
     rx_errors: u64,
+    bus_error_frames: u64,
     rx_capped_steps: u64,
     frames_sent: u64,
     send_retries: u64,
@@ -668,6 +673,12 @@ pub fn run<B: Bus, C: Clock>(
                     drained += 1;
                 }
                 Ok(None) => break,
+                Err(e) if is_bus_error_frame(&e) => {
+                    // A bus event, not a failed read: the frames behind it are due too.
+                    counters.bus_error_frames += 1;
+                    counters.errors.record(format_args!("receive"), &e);
+                    drained += 1;
+                }
                 Err(e) => {
                     counters.rx_errors += 1;
                     counters.errors.record(format_args!("receive"), &e);
@@ -736,6 +747,7 @@ pub fn run<B: Bus, C: Clock>(
         overruns,
         frames_received: counters.frames_received,
         rx_errors: counters.rx_errors,
+        bus_error_frames: counters.bus_error_frames,
         rx_capped_steps: counters.rx_capped_steps,
         frames_sent: counters.frames_sent,
         send_retries: counters.send_retries,
@@ -816,7 +828,31 @@ pub enum OpenError {
     },
 }
 
-/// A raw SocketCAN socket on one interface, non-blocking, classic CAN frames.
+/// An error frame of the CAN controller, as [`Bus::try_recv`] of [`SocketCanBus`] reports it
+/// (inside an [`io::Error`]; see [`is_bus_error_frame`]): a bus error, error-passive or
+/// bus-off, a controller problem (RX overflow), a restart, a missing ACK. The text is
+/// SocketCAN's decoding of the frame.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct BusErrorFrame(pub String);
+
+impl fmt::Display for BusErrorFrame {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "error frame: {}", self.0)
+    }
+}
+
+impl std::error::Error for BusErrorFrame {}
+
+/// Whether `e` is a [`BusErrorFrame`]: a bus event to count, after which the bus goes on
+/// delivering frames, unlike a failed read.
+#[must_use]
+pub fn is_bus_error_frame(e: &io::Error) -> bool {
+    e.get_ref().is_some_and(|inner| inner.is::<BusErrorFrame>())
+}
+
+/// A raw SocketCAN socket on one interface, non-blocking, classic CAN frames, and the
+/// controller's error frames (every error class: bus errors, error-passive, bus-off,
+/// restarts), which SocketCAN does not deliver unless asked to.
 #[derive(Debug)]
 pub struct SocketCanBus {
     socket: socketcan::CanSocket,
@@ -828,7 +864,7 @@ impl SocketCanBus {
     /// # Errors
     /// An [`OpenError`] naming the interface.
     pub fn open(iface: &str) -> Result<Self, OpenError> {
-        use socketcan::Socket as _;
+        use socketcan::{Socket as _, SocketOptions as _};
         let socket = socketcan::CanSocket::open(iface).map_err(|source| {
             let iface = iface.to_string();
             match source.raw_os_error() {
@@ -844,6 +880,7 @@ impl SocketCanBus {
         })?;
         socket
             .set_nonblocking(true)
+            .and_then(|()| socket.set_error_filter_accept_all())
             .map_err(|source| OpenError::Io {
                 iface: iface.to_string(),
                 source,
@@ -870,7 +907,7 @@ impl Bus for SocketCanBus {
         use socketcan::Socket as _;
         match self.socket.read_frame() {
             Ok(socketcan::CanFrame::Error(e)) => {
-                Err(io::Error::other(format!("error frame: {}", e.into_error())))
+                Err(io::Error::other(BusErrorFrame(e.into_error().to_string())))
             }
             Ok(frame) => CanFrame::from_frame(&frame).map(Some).ok_or_else(|| {
                 io::Error::new(
@@ -1314,6 +1351,54 @@ mod tests {
         assert!(r.first_error.unwrap().starts_with("receive: "));
         assert!(r.last_error.unwrap().starts_with("shutdown send 0x200: "));
         assert_eq!(r.shutdown.failed, 1);
+    }
+
+    #[test]
+    fn bus_error_frames_are_counted_and_the_frames_behind_them_still_read() {
+        /// Two twist commands with a controller error frame between them, then nothing.
+        struct Noisy(VecDeque<io::Result<Option<CanFrame>>>);
+        impl Bus for Noisy {
+            fn try_recv(&mut self) -> io::Result<Option<CanFrame>> {
+                self.0.pop_front().unwrap_or(Ok(None))
+            }
+            fn send(&mut self, _: &CanFrame) -> io::Result<()> {
+                Ok(())
+            }
+        }
+        let twist = Command::Twist(TwistCmd {
+            vx: 0.1,
+            vy: 0.0,
+            wz: 0.0,
+            seq: 0,
+        })
+        .to_can_frame();
+        let error = io::Error::other(BusErrorFrame("bus-off".into()));
+        assert!(is_bus_error_frame(&error));
+        assert!(!is_bus_error_frame(&io::Error::from_raw_os_error(
+            libc::ENETDOWN
+        )));
+        let mut bus = Noisy(VecDeque::from([
+            Ok(Some(twist)),
+            Err(error),
+            Ok(Some(twist)),
+        ]));
+        let clock = FakeClock::at(T0);
+        let r = run(
+            &mut dji(),
+            &mut bus,
+            &*clock,
+            &for_ms(2),
+            &AtomicUsize::new(0),
+        );
+        assert_eq!(
+            (r.frames_received, r.bus_error_frames, r.rx_errors),
+            (2, 1, 0)
+        );
+        assert_eq!(
+            r.first_error.as_deref(),
+            Some("receive: error frame: bus-off")
+        );
+        assert!(r.to_string().contains("1 bus error frames"), "{r}");
     }
 
     #[test]

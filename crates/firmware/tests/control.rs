@@ -509,6 +509,61 @@ fn rejected_commands_are_counted_and_never_feed_the_watchdog() {
     assert_eq!(status.unknown_ids, 0);
 }
 
+/// A frame as a driver that reports the DLC register unchanged gives it (embassy-stm32 0.6):
+/// a classic frame may carry DLC 9-15, and `data()` slices the 8-byte buffer by the DLC.
+struct RawDlcFrame {
+    id: embedded_can::Id,
+    dlc: usize,
+    data: [u8; 8],
+}
+
+impl embedded_can::Frame for RawDlcFrame {
+    fn new(_: impl Into<embedded_can::Id>, _: &[u8]) -> Option<Self> {
+        None
+    }
+    fn new_remote(_: impl Into<embedded_can::Id>, _: usize) -> Option<Self> {
+        None
+    }
+    fn is_extended(&self) -> bool {
+        false
+    }
+    fn is_remote_frame(&self) -> bool {
+        false
+    }
+    fn id(&self) -> embedded_can::Id {
+        self.id
+    }
+    fn dlc(&self) -> usize {
+        self.dlc
+    }
+    fn data(&self) -> &[u8] {
+        &self.data[..self.dlc]
+    }
+}
+
+#[test]
+fn a_dlc_above_8_is_a_wrong_dlc_not_a_panic() {
+    for (mut rig, ids) in [
+        (Rig::dji(), [0x201u16, 0x301, 0x300]),
+        (Rig::odrive(), [0x009, 0x001, 0x301]),
+    ] {
+        rig.run_ms(5);
+        let before = rig.ctl.snapshot().rx_errors.wrong_dlc;
+        for id in ids {
+            for dlc in 9..=15 {
+                let frame = RawDlcFrame {
+                    id: embedded_can::StandardId::new(id).unwrap().into(),
+                    dlc,
+                    data: [0; 8],
+                };
+                rig.ctl.on_frame(rig.now(), &frame);
+                assert_eq!(CanFrame::from_frame(&frame), None);
+            }
+        }
+        assert_eq!(rig.ctl.snapshot().rx_errors.wrong_dlc - before, 3 * 7);
+    }
+}
+
 #[test]
 fn non_finite_feedback_is_rejected_and_counted() {
     let mut rig = Rig::odrive();

@@ -124,24 +124,28 @@ fn main() -> ExitCode {
     let clock = MonotonicClock::new(args.spin_us);
     let report = linux::run(&mut controller, &mut bus, &clock, &options, &stop);
 
+    // The statistics first, and stderr without a panic: a stderr pipe that closed with the
+    // same Ctrl-C (`... 2>&1 | tee log`) must not cost the report file or the exit status.
     let mut status = ExitCode::SUCCESS;
-    if !args.quiet {
-        eprintln!("mecanum-runner: {report}");
-    }
-    if report.shutdown.failed > 0 {
-        eprintln!(
-            "mecanum-runner: {} of {} shutdown frames NOT sent ({}): the motors may still be \
-             commanded",
-            report.shutdown.failed,
-            report.shutdown.frames,
-            report.last_error.as_deref().unwrap_or("no error recorded")
-        );
-        status = ExitCode::FAILURE;
-    }
+    let say = |line: std::fmt::Arguments<'_>| {
+        let _ = writeln!(std::io::stderr(), "mecanum-runner: {line}");
+    };
     if let Some((path, file)) = stats
         && let Err(e) = write_stats(&path, file, &report)
     {
-        eprintln!("mecanum-runner: {}", linux::error_line(e.as_ref()));
+        say(format_args!("{}", linux::error_line(e.as_ref())));
+        status = ExitCode::FAILURE;
+    }
+    if !args.quiet {
+        say(format_args!("{report}"));
+    }
+    if report.shutdown.failed > 0 {
+        say(format_args!(
+            "{} of {} shutdown frames NOT sent ({}): the motors may still be commanded",
+            report.shutdown.failed,
+            report.shutdown.frames,
+            report.last_error.as_deref().unwrap_or("no error recorded")
+        ));
         status = ExitCode::FAILURE;
     }
     status

@@ -343,12 +343,23 @@ pub(crate) fn unknown<F: Frame>(frame: &F) -> DecodeError {
 /// Checks that `frame` is a data frame whose DLC is one of `accepted`, and returns its
 /// payload. `accepted[0]` is the DLC reported as expected.
 ///
+/// The DLC is checked before the data is touched: a classic frame may carry a DLC of 9-15
+/// (8 data bytes), and a driver that reports it unchanged can panic in `data()` (embassy-stm32
+/// 0.6 slices its 8-byte buffer by the DLC).
+///
 /// # Errors
 /// [`DecodeError::Remote`] or [`DecodeError::WrongDlc`].
 #[inline]
 pub fn data_payload<F: Frame>(frame: &F, id: u16, accepted: &[u8]) -> Result<Payload, DecodeError> {
     if frame.is_remote_frame() {
         return Err(DecodeError::Remote { id });
+    }
+    if frame.dlc() > MAX_DLC {
+        return Err(DecodeError::WrongDlc {
+            id,
+            expected: accepted.first().copied().unwrap_or(0),
+            got: u8::try_from(frame.dlc()).unwrap_or(u8::MAX),
+        });
     }
     let data = frame.data();
     let got = u8::try_from(data.len()).unwrap_or(u8::MAX);
