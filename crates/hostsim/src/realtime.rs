@@ -324,7 +324,8 @@ pub struct PlantReport {
     pub skipped_us: u64,
     /// Frames read from the bus (all of them; the drives use the ones addressed to them).
     pub frames_received: u64,
-    /// Receive errors.
+    /// Receive errors: failed reads (the drain stops for the tick) and the controller's error
+    /// frames on a real interface (bus errors, bus-off; the drain goes on).
     pub rx_errors: u64,
     /// Ticks that left frames waiting because [`PlantOptions::max_rx_per_tick`] was reached.
     pub rx_capped_ticks: u64,
@@ -483,7 +484,11 @@ pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
                 Err(e) => {
                     rx_errors += 1;
                     errors.record(format_args!("receive"), &e);
-                    break;
+                    // A controller's error frame is a bus event; the frames behind it are due.
+                    if !firmware::linux::is_bus_error_frame(&e) {
+                        break;
+                    }
+                    drained += 1;
                 }
             }
         }
