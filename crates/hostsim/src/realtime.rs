@@ -586,6 +586,9 @@ pub struct PlantLog {
 /// Period of the pose messages of a [`PlantLog`], µs.
 const PLANT_LOG_POSE_PERIOD_US: u64 = 10_000;
 
+/// The longest [`play_frames`] sleeps without looking at its stop flag, µs.
+const STOP_POLL_US: u64 = 50_000;
+
 impl PlantLog {
     /// Starts logging into `log`.
     #[must_use]
@@ -760,13 +763,20 @@ pub fn play_frames<B: Bus, C: Clock>(
     for f in frames {
         let offset_us = (f.t_ns.saturating_sub(t_first) as f64 / 1000.0 / speed) as u64;
         let due = start.saturating_add(offset_us);
-        if let Some(n) = stop_requested(stop) {
-            stopped_by = Some(n);
-            break;
+        // Sleep in slices, so that a stop is seen within STOP_POLL_US even in a long gap (a
+        // log's gaps may be a minute, ten at --speed 0.1).
+        loop {
+            if let Some(n) = stop_requested(stop) {
+                stopped_by = Some(n);
+                break;
+            }
+            let now = clock.now_micros();
+            if now >= due {
+                break;
+            }
+            clock.sleep_until(due.min(now.saturating_add(STOP_POLL_US)));
         }
-        clock.sleep_until(due);
-        if let Some(n) = stop_requested(stop) {
-            stopped_by = Some(n);
+        if stopped_by.is_some() {
             break;
         }
         let now = clock.now_micros();
@@ -915,5 +925,55 @@ mod tests {
         assert_eq!(r.stopped_by, None);
         let stopped = play_frames(&frames, &mut bus, &h, &options, &AtomicUsize::new(2));
         assert_eq!((stopped.sent, stopped.stopped_by), (0, Some(2)));
+    }
+
+    #[test]
+    fn play_frames_sees_a_stop_in_the_middle_of_a_long_gap() {
+        /// A clock whose first sleep past 1 s brings a SIGINT (the flag set mid-gap).
+        struct Signalled<'a> {
+            now: core::cell::Cell<u64>,
+            stop: &'a AtomicUsize,
+        }
+        impl Clock for Signalled<'_> {
+            fn now_micros(&self) -> u64 {
+                self.now.get()
+            }
+            fn sleep_until(&self, deadline_us: u64) {
+                self.now.set(self.now.get().max(deadline_us));
+                if self.now.get() >= 1_000_000 {
+                    self.stop.store(2, Ordering::Relaxed);
+                }
+            }
+        }
+        struct Null;
+        impl Bus for Null {
+            fn try_recv(&mut self) -> io::Result<Option<CanFrame>> {
+                Ok(None)
+            }
+            fn send(&mut self, _: &CanFrame) -> io::Result<()> {
+                Ok(())
+            }
+        }
+        // 59 s between two frames, played at a tenth of the speed: a 590 s gap.
+        let frames = [(0, 1), (59_000_000_000, 2)].map(|(t_ns, id)| TimedFrame {
+            t_ns,
+            frame: frame(id),
+        });
+        let stop = AtomicUsize::new(0);
+        let clock = Signalled {
+            now: core::cell::Cell::new(0),
+            stop: &stop,
+        };
+        let options = PlayOptions {
+            speed: 0.1,
+            ..PlayOptions::default()
+        };
+        let r = play_frames(&frames, &mut Null, &clock, &options, &stop);
+        assert_eq!((r.sent, r.stopped_by), (1, Some(2)));
+        assert!(
+            clock.now_micros() <= 1_000_000 + STOP_POLL_US,
+            "stopped at {} us",
+            clock.now_micros()
+        );
     }
 }
