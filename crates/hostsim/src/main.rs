@@ -96,9 +96,10 @@ enum Cmd {
     /// byte offset of the damage and what was read before it.
     ///
     /// Exit status: 0 if the frames match (candump: or the odometry agrees within the
-    /// tolerances), 1 if not, 2 for a bad log (nothing readable, no configuration, a time
-    /// line with a gap over 60 s), configuration or argument, 3 if the frames of a damaged
-    /// log's complete part match (the log is damaged: see the warning).
+    /// tolerances), 1 if not, 2 for a bad log (nothing readable, no configuration, no
+    /// firmware frames to compare, as in a `plant` log or one cut before its first step, a
+    /// time line with a gap over 60 s), configuration or argument, 3 if the frames of a
+    /// damaged log's complete part match (the log is damaged: see the warning).
     ///
     /// With --iface: plays the log's frames onto a SocketCAN interface in real time (each at
     /// its logged time relative to the first, divided by --speed) and reports frames sent

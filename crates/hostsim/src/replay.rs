@@ -119,6 +119,15 @@ pub enum ReplayError {
         /// The gap.
         source: TimeGap,
     },
+    /// No firmware frame to compare with: a log of `hostsim plant` (the bus only, no
+    /// `/can/rx` or `/can/tx`), or a log cut short before its first complete step.
+    #[error("{path}: nothing to replay: {why}")]
+    NothingToReplay {
+        /// The log file.
+        path: PathBuf,
+        /// Which of the two it is.
+        why: &'static str,
+    },
 }
 
 /// Longest silence replay accepts between two consecutive frames of a log (in time order),
@@ -336,6 +345,20 @@ pub fn replay_mcap(path: &Path) -> Result<ReplayReport, ReplayError> {
         source: Box::new(source),
     })?;
     let (rx, tx) = complete_part(&content);
+    if rx.is_empty() && tx.is_empty() {
+        let logged = |topic: &str| content.topics.get(topic).is_some_and(|&n| n > 0);
+        return Err(ReplayError::NothingToReplay {
+            path: path.to_path_buf(),
+            why: if logged("/can/rx") || logged("/can/tx") {
+                "the log was cut short before its first complete step"
+            } else if logged("/can/bus") {
+                "no firmware frames (/can/rx, /can/tx): a log of `hostsim plant`, which records \
+                 the bus only"
+            } else {
+                "the log holds no CAN frames"
+            },
+        });
+    }
     let mut report = replay_frames(&config, &rx, &tx).map_err(|e| match e {
         ReplayRunError::Config(source) => ReplayError::Refused {
             path: path.to_path_buf(),
@@ -350,14 +373,18 @@ pub fn replay_mcap(path: &Path) -> Result<ReplayReport, ReplayError> {
     Ok(report)
 }
 
-/// The frames of a log to replay: all of an intact log's; of a damaged log, those before the
-/// time of the last message read (every step before it is complete; see the
+/// The frames of a log to replay: all of an intact log's, and of one whose every message was
+/// read (damage after the data section, in the summary); of a log cut short, those before
+/// the time of the last message read (every step before it is complete; see the
 /// [module documentation](self#damaged-logs)).
 #[must_use]
 pub fn complete_part(content: &LogContent) -> (Vec<TimedFrame>, Vec<TimedFrame>) {
     let read = &content.read;
-    let keep =
-        |f: &&TimedFrame| read.is_complete() || read.last_time_ns.is_some_and(|last| f.t_ns < last);
+    let keep = |f: &&TimedFrame| {
+        read.is_complete()
+            || read.data_complete
+            || read.last_time_ns.is_some_and(|last| f.t_ns < last)
+    };
     (
         content.rx.iter().filter(keep).copied().collect(),
         content.tx.iter().filter(keep).copied().collect(),

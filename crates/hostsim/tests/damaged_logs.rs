@@ -8,11 +8,13 @@
 
 mod common;
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 use embedded_can::StandardId;
 use firmware::CanFrame;
+use hostsim::bus::{Fate, Node};
 use hostsim::log::{Direction, McapLog, Problem, ReadReport, for_each_message};
 use hostsim::replay::{self, MAX_GAP_NS, ReplayError, ReplayRunError, TimedFrame};
 use hostsim::scenario::Scenario;
@@ -419,6 +421,31 @@ fn replay_of_a_cut_log_is_bit_identical_up_to_the_cut_and_summary_reports_it() {
     let path = dir.write("no-metadata.mcap", &fx.bytes[..metadata.0 + 20]);
     let err = replay::replay_mcap(&path).unwrap_err();
     assert!(matches!(err, ReplayError::NoConfig { .. }), "{err}");
+    // Cut inside the first chunk: the configuration is there, no message is. Nothing to
+    // compare is an error that says so, not a "difference" of the replay's first frame.
+    let path = dir.write("first-chunk.mcap", &fx.bytes[..fx.chunks[0].0 + 20]);
+    let err = replay::replay_mcap(&path).unwrap_err();
+    assert!(matches!(err, ReplayError::NothingToReplay { .. }), "{err}");
+    assert!(err.to_string().contains("no CAN frames"), "{err}");
+}
+
+#[test]
+fn a_log_without_firmware_frames_is_nothing_to_replay() {
+    // What `hostsim plant --log` writes: the configuration and the bus, no /can/rx or /can/tx.
+    let dir = TempDir::new("plant-log");
+    let path = dir.0.join("plant.mcap");
+    let config = firmware::Config::dji_m3508_example().to_toml_string();
+    let mut log =
+        McapLog::create(&path, &BTreeMap::from([("config".to_string(), config)])).unwrap();
+    let frame = CanFrame::standard(StandardId::new(0x201).unwrap(), &[0; 8]).unwrap();
+    for ms in 0..100 {
+        log.bus(ms * 1_000_000, &frame, Node::Drives, Fate::Delivered)
+            .unwrap();
+    }
+    log.finish().unwrap();
+    let err = replay::replay_mcap(&path).unwrap_err();
+    assert!(matches!(err, ReplayError::NothingToReplay { .. }), "{err}");
+    assert!(err.to_string().contains("hostsim plant"), "{err}");
 }
 
 /// A log written by the real writer whose last `/can/tx` frame has a corrupt time near
