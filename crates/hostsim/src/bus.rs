@@ -327,19 +327,40 @@ fn raw_id(frame: &CanFrame) -> u16 {
 /// Length of `frame` on the wire in bits, stuff bits and the 13 fixed trailing bits (CRC
 /// delimiter, ACK slot and delimiter, EOF, intermission) included.
 ///
-/// Works on whole bytes with two tables built at compile time: the 19 header bits (SOF, id,
-/// RTR, IDE, r0, DLC) are padded in front to three bytes, with zeros for the CRC (leading
-/// zeros leave a zero CRC register zero) and with `10101` for the stuff count (alternating
-/// bits never stuff, and the pad ends like the idle bus: the SOF starts a fresh run).
+/// Works on whole bytes with two tables built at compile time. The header bits are padded
+/// in front to whole bytes, with zeros for the CRC (leading zeros leave a zero CRC register
+/// zero) and, for the stuff count, with bits that end like the idle bus so that the SOF
+/// starts a fresh run: `10101` before the 19 bits of a standard header (SOF, id, RTR, IDE,
+/// r0, DLC; alternating bits never stuff), `1` before the 39 of an extended one (SOF, base
+/// id, SRR, IDE, extended id, RTR, r1, r0, DLC).
 #[must_use]
 pub fn frame_bits(frame: &CanFrame) -> u32 {
-    let id = u32::from(raw_id(frame) & 0x7FF);
     let remote = frame.is_remote_frame();
-    // SOF(0) id(11) RTR IDE(0) r0(0) DLC(4): 19 bits.
-    let header = (id << 7) | (u32::from(remote) << 6) | frame.dlc() as u32;
+    let rtr_dlc = (u32::from(remote) << 6) | frame.dlc() as u32;
     let data: &[u8] = if remote { &[] } else { frame.data() };
-    let head = [(header >> 16) as u8, (header >> 8) as u8, header as u8];
+    match frame.id() {
+        Id::Standard(id) => {
+            // SOF(0) id(11) RTR IDE(0) r0(0) DLC(4): 19 bits.
+            let header = (u32::from(id.as_raw()) << 7) | rtr_dlc;
+            let [_, a, b, c] = header.to_be_bytes();
+            19 + stuffed_crc_bits([a, b, c], 0b1010_1000, data)
+        }
+        Id::Extended(id) => {
+            // SOF(0) base id(11) SRR(1) IDE(1) extended id(18) RTR r1(0) r0(0) DLC(4): 39 bits.
+            let id = u64::from(id.as_raw());
+            let header =
+                ((id >> 18) << 27) | (0b11 << 25) | ((id & 0x3_FFFF) << 7) | u64::from(rtr_dlc);
+            let [_, _, _, a, b, c, d, e] = header.to_be_bytes();
+            39 + stuffed_crc_bits([a, b, c, d, e], 0b1000_0000, data)
+        }
+    }
+}
 
+/// The bits after the header: data, the 15-bit CRC, the stuff bits from SOF to the CRC's
+/// end, and the 13 fixed ones. `head` is the header padded in front to whole bytes with
+/// zeros; `pad` holds the stuff-count pad bits (see [`frame_bits`]).
+#[inline(always)]
+fn stuffed_crc_bits<const N: usize>(head: [u8; N], pad: u8, data: &[u8]) -> u32 {
     let crc_byte = |crc: u16, b: u8| {
         ((crc << 8) ^ CRC15_TABLE[usize::from(((crc >> 7) ^ u16::from(b)) & 0xFF)]) & 0x7FFF
     };
@@ -351,19 +372,15 @@ pub fn frame_bits(frame: &CanFrame) -> u32 {
         let entry = STUFF_TABLE[usize::from(state % 10)][usize::from(byte)];
         (entry & 0x0F, n + u32::from(entry >> 4))
     };
-    let mut acc = eat((IDLE, 0), head[0] | STUFF_PAD);
-    acc = eat(acc, head[1]);
-    acc = eat(acc, head[2]);
+    let mut acc = eat((IDLE, 0), head[0] | pad);
+    acc = head[1..].iter().fold(acc, |a, &b| eat(a, b));
     acc = data.iter().fold(acc, |a, &b| eat(a, b));
     // The 15 CRC bits: eight, then the last seven through the 7-bit table.
     let (state, n) = eat(acc, (crc >> 7) as u8);
     let last = STUFF_TABLE_7[usize::from(state % 10)][usize::from(crc & 0x7F)];
     let stuffed = n + u32::from(last >> 4);
-    19 + 8 * data.len() as u32 + 15 + stuffed + 13
+    8 * data.len() as u32 + 15 + stuffed + 13
 }
-
-/// The stuff-count pad in front of the 19 header bits: `10101` in the top five bits.
-const STUFF_PAD: u8 = 0b1010_1000;
 
 /// The idle bus before SOF: recessive, no run counted (`last 1, run 0`).
 const IDLE: u8 = StuffState { last: true, run: 0 }.index();
@@ -526,11 +543,25 @@ mod tests {
             }
         };
         push(0, 1);
-        push(u32::from(raw_id(frame)), 11);
-        push(0, 3);
+        match frame.id() {
+            Id::Standard(id) => {
+                push(u32::from(id.as_raw()), 11);
+                push(u32::from(frame.is_remote_frame()), 1);
+                push(0, 2);
+            }
+            Id::Extended(id) => {
+                push(id.as_raw() >> 18, 11);
+                push(0b11, 2);
+                push(id.as_raw() & 0x3_FFFF, 18);
+                push(u32::from(frame.is_remote_frame()), 1);
+                push(0, 2);
+            }
+        }
         push(frame.dlc() as u32, 4);
-        for &b in frame.data() {
-            push(u32::from(b), 8);
+        if !frame.is_remote_frame() {
+            for &b in frame.data() {
+                push(u32::from(b), 8);
+            }
         }
         let crc = crc15(&bits);
         for i in (0..15).rev() {
@@ -576,6 +607,27 @@ mod tests {
             let f = frame(ids[((r >> 8) % ids.len() as u64) as usize], &data);
             assert_eq!(frame_bits(&f), reference_bits(&f), "{f:?}");
         }
+        // Extended ids and remote frames, the same way.
+        for _ in 0..5000 {
+            let r = rng.next_u64();
+            let dlc = (r % 9) as usize;
+            let id = embedded_can::ExtendedId::new((r >> 8) as u32 & 0x1FFF_FFFF).unwrap();
+            let data: Vec<u8> = (0..dlc).map(|_| rng.next_u64() as u8).collect();
+            let f = <CanFrame as embedded_can::Frame>::new(id, &data).unwrap();
+            assert_eq!(frame_bits(&f), reference_bits(&f), "{f:?}");
+            let remote = <CanFrame as embedded_can::Frame>::new_remote(id, dlc).unwrap();
+            assert_eq!(frame_bits(&remote), reference_bits(&remote), "{remote:?}");
+            let std = StandardId::new((r >> 40) as u16 & 0x7FF).unwrap();
+            let remote = <CanFrame as embedded_can::Frame>::new_remote(std, dlc).unwrap();
+            assert_eq!(frame_bits(&remote), reference_bits(&remote), "{remote:?}");
+        }
+        // An extended frame of 8 bytes: 39 + 64 + 15 + 13 = 131 bits before stuffing.
+        let ext = <CanFrame as embedded_can::Frame>::new(
+            embedded_can::ExtendedId::new(0x0AAA_AAAA).unwrap(),
+            &[0x55; 8],
+        )
+        .unwrap();
+        assert!((131..131 + 25).contains(&frame_bits(&ext)));
         // Worst case for an 8-byte standard frame: 135 bits with intermission is the bound
         // usually quoted; no frame exceeds it.
         assert!(frame_bits(&frame(0, &[0; 8])) <= 135);

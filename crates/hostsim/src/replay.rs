@@ -250,8 +250,12 @@ pub struct FrameJson<'a> {
     pub id: u64,
     /// Data length code.
     pub dlc: u64,
-    /// 29-bit id (never in these logs: the firmware's frames are standard).
+    /// 29-bit id (the firmware's own frames are standard; a plant log records whatever is
+    /// on a real bus).
     pub is_extended: bool,
+    /// Remote (RTR) frame: no data, `dlc` is the requested length.
+    #[serde(default)]
+    pub is_rtr: bool,
     /// Data bytes, padded to 8.
     pub data: Vec<u8>,
     /// `/can/bus` only: `delivered`, `dropped` or `corrupted`.
@@ -266,19 +270,25 @@ impl FrameJson<'_> {
         serde_json::from_slice(data).ok()
     }
 
-    /// The frame; `None` for an extended id, an id over 0x7FF or a DLC over 8.
+    /// The frame, standard or extended, data or remote; `None` for an id out of its range or
+    /// a DLC over 8.
     #[must_use]
     pub fn frame(&self) -> Option<CanFrame> {
-        let id = u16::try_from(self.id).ok()?;
-        let dlc = u8::try_from(self.dlc).ok()?;
-        if dlc > 8 || self.is_extended {
-            return None;
+        use embedded_can::{ExtendedId, Frame as _, Id};
+        let id: Id = if self.is_extended {
+            ExtendedId::new(u32::try_from(self.id).ok()?)?.into()
+        } else {
+            StandardId::new(u16::try_from(self.id).ok()?)?.into()
+        };
+        let dlc = usize::try_from(self.dlc).ok().filter(|&d| d <= 8)?;
+        if self.is_rtr {
+            return CanFrame::new_remote(id, dlc);
         }
         let mut buf = [0u8; 8];
         for (b, x) in buf.iter_mut().zip(&self.data) {
             *b = *x;
         }
-        Some(CanFrame::from_buffer(StandardId::new(id)?, buf, dlc))
+        CanFrame::new(id, &buf[..dlc])
     }
 }
 

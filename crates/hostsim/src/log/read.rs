@@ -13,7 +13,19 @@
 //! always the file's first messages, in whole chunks, and never anything from a damaged chunk
 //! or after it: a log replayed from them has no hole in its time line.
 //!
-//! Checked besides the chunks: the record framing (a known opcode, a length within the file),
+//! One limit: a chunk whose writer left its CRC out (0, "not computed", which the
+//! specification allows) cannot be checked by itself. Its flipped bytes show only at the Data
+//! End record, whose CRC covers the whole data section, and by then its messages have been
+//! delivered; the report names the damage, but the messages before it are not all
+//! trustworthy. hostsim's own logs always carry chunk CRCs.
+//!
+//! A second, chosen one: private records (opcodes 0x80-0xFF, which the specification lets a
+//! reader skip) are reported as damage, not skipped. A flipped opcode byte turns a chunk into
+//! such a record, and skipping it would drop that chunk silently and deliver the ones after
+//! it: the file's messages would no longer be a prefix. hostsim writes no private records;
+//! the message says what the record may be.
+//!
+//! Checked besides the chunks: the record framing (a known opcode; a length within the file),
 //! the record contents (the `mcap` crate's parser), the data section CRC (in the Data End
 //! record, which covers the records outside chunks), the summary section CRC (in the Footer)
 //! and the closing magic. A file that ends after a complete record without a Footer (its writer
@@ -171,6 +183,12 @@ impl fmt::Display for Damage {
                 f,
                 "the {record} record at byte {at} states a length of {len} bytes, more than \
                  the file has and than the {limit} this reader accepts (a corrupt length)"
+            ),
+            Problem::UnknownOpcode { opcode } if *opcode >= 0x80 => write!(
+                f,
+                "record opcode {opcode:#04x} at byte {at}: a private record of another \
+                 writer, or a corrupt opcode (private records are not skipped, so that a \
+                 corrupt one never hides a chunk)"
             ),
             Problem::UnknownOpcode { opcode } => write!(
                 f,
@@ -719,5 +737,55 @@ impl Reader {
             }
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn record(opcode: u8, content: &[u8]) -> Vec<u8> {
+        let mut r = vec![opcode];
+        r.extend_from_slice(&(content.len() as u64).to_le_bytes());
+        r.extend_from_slice(content);
+        r
+    }
+
+    fn string(s: &str) -> Vec<u8> {
+        let mut v = (s.len() as u32).to_le_bytes().to_vec();
+        v.extend_from_slice(s.as_bytes());
+        v
+    }
+
+    /// Magic, Header, `middle`, Data End (no CRC), an empty Footer, magic.
+    fn file_with(middle: &[u8]) -> Vec<u8> {
+        let mut f = MAGIC.to_vec();
+        f.extend(record(op::HEADER, &[string(""), string("test")].concat()));
+        f.extend_from_slice(middle);
+        f.extend(record(op::DATA_END, &0u32.to_le_bytes()));
+        f.extend(record(op::FOOTER, &[0u8; 20]));
+        f.extend_from_slice(MAGIC);
+        f
+    }
+
+    #[test]
+    fn private_records_are_reported_with_what_they_may_be() {
+        for opcode in [0x80u8, 0xF0] {
+            let file = file_with(&record(opcode, &[1, 2, 3, 4]));
+            let report = for_each_message(&file, |_, _, _| {}, |_, _| {}).unwrap();
+            let damage = report.damage.expect("damage");
+            assert!(
+                matches!(damage.problem, Problem::UnknownOpcode { opcode: o } if o == opcode),
+                "{damage}"
+            );
+            assert!(damage.to_string().contains("private record"), "{damage}");
+        }
+        let report =
+            for_each_message(&file_with(&record(0x7F, &[])), |_, _, _| {}, |_, _| {}).unwrap();
+        let damage = report.damage.expect("damage");
+        assert!(damage.to_string().contains("a corrupt record"), "{damage}");
+        // The frame around them is well formed: without them the file is intact.
+        let report = for_each_message(&file_with(&[]), |_, _, _| {}, |_, _| {}).unwrap();
+        assert!(report.is_complete() && report.data_complete, "{report}");
     }
 }
