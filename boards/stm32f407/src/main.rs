@@ -119,14 +119,21 @@ async fn main(_spawner: Spawner) {
         Fifo::Fifo0,
         Mask32::frames_with_std_id(StandardId::ZERO, StandardId::ZERO),
     );
+    // Automatic retransmission stays on (MCR.NART = 0 after reset). Not through
+    // `set_automatic_retransmit`: in embassy-stm32 0.6.0 `set_automatic_retransmit(true)`
+    // *sets* NART (upstream issue #5944), and every frame that lost arbitration or met an
+    // error would be sent once and lost. The check after `enable` holds it.
     can.modify_config()
         .set_bit_timing(bit_timing_1mbit())
         .set_loopback(false)
-        .set_silent(false)
-        .set_automatic_retransmit(true);
+        .set_silent(false);
     // Send in the order the core emitted the frames, not by id priority.
     can.set_tx_fifo_scheduling(true);
     can.enable().await;
+    defmt::assert!(
+        !embassy_stm32::pac::CAN1.mcr().read().nart(),
+        "CAN1: automatic retransmission is off (MCR.NART set)"
+    );
     info!("CAN1 enabled (bus idle seen)");
 
     let (tx, mut rx) = can.split();
@@ -138,11 +145,13 @@ async fn main(_spawner: Spawner) {
     info!("control loop: {} us period", period);
 
     loop {
+        // Before any read: reading a frame releases it with a read-modify-write of RF0R, which
+        // writes back the overrun flag it read and so clears it.
+        counters.check_fifo_overrun();
         match select(ticker.next(), rx.read()).await {
             Either::First(()) => {
                 // Frames that arrived since the task last ran go in before the step.
                 drain_fifo(&mut rx, &mut ctl, &mut counters);
-                counters.check_fifo_overrun();
                 let now = now();
                 let outbox = ctl.step(now);
                 for frame in &outbox {
@@ -175,9 +184,11 @@ async fn main(_spawner: Spawner) {
     }
 }
 
-/// Hands every frame still in RX FIFO 0 to the core, in arrival order.
+/// Hands every frame still in RX FIFO 0 to the core, in arrival order, checking the overrun
+/// flag before each read (a read clears it).
 fn drain_fifo(rx: &mut CanRx<'_>, ctl: &mut Controller, counters: &mut Counters) {
     loop {
+        counters.check_fifo_overrun();
         match rx.try_read() {
             Ok(envelope) => {
                 let (frame, ts) = envelope.parts();
