@@ -141,7 +141,7 @@ pub struct Bus {
     /// Frames waiting, all nodes: when each is ready, its arbitration key, the frame (three
     /// parallel lists, so that the scans per frame read only what they compare).
     ready_ns: Vec<u64>,
-    keys: Vec<u64>,
+    keys: Vec<u128>,
     frames: Vec<(Node, CanFrame)>,
     /// Frames queued so far (the tie-break after id and node).
     queued: u64,
@@ -155,10 +155,27 @@ pub struct Bus {
     stats: BusStats,
 }
 
-/// The arbitration key of a queued frame: its id, then the node order, then the order of
-/// queueing (46 bits, enough for 7·10¹³ frames), in one integer.
-fn arbitration_key(frame: &CanFrame, from: Node, seq: u64) -> u64 {
-    (u64::from(raw_id(frame)) << 48) | ((node_index(from) as u64) << 46) | (seq & ((1 << 46) - 1))
+/// The arbitration key of a queued frame, lowest wins: the arbitration field as it goes on
+/// the wire (dominant 0 first), then the node order, then the order of queueing.
+fn arbitration_key(frame: &CanFrame, from: Node, seq: u64) -> u128 {
+    (u128::from(arbitration_field(frame)) << 66)
+        | ((node_index(from) as u128) << 64)
+        | u128::from(seq)
+}
+
+/// The bits a frame arbitrates with, in wire order, left-aligned in 32 bits: the base id,
+/// RTR (standard) or SRR (extended, recessive), IDE, then for an extended frame its 18 low
+/// id bits and RTR. A data frame beats a remote frame of the same id, a standard frame an
+/// extended one of the same base id.
+fn arbitration_field(frame: &CanFrame) -> u32 {
+    let rtr = u32::from(frame.is_remote_frame());
+    match frame.id() {
+        Id::Standard(id) => (u32::from(id.as_raw()) << 21) | (rtr << 20),
+        Id::Extended(id) => {
+            let id = id.as_raw();
+            ((id >> 18) << 21) | (0b11 << 19) | ((id & 0x3_FFFF) << 1) | rtr
+        }
+    }
 }
 
 fn node_index(n: Node) -> usize {
@@ -240,7 +257,7 @@ impl Bus {
             // Arbitration among the frames on offer at start_ns: each node offers its lowest
             // id; the lowest id on the bus wins (ties: node order, i.e. a fixed priority;
             // then a node's own queueing order).
-            let mut best: Option<(u64, usize)> = None;
+            let mut best: Option<(u128, usize)> = None;
             for (i, (&ready, &key)) in self.ready_ns.iter().zip(&self.keys).enumerate() {
                 if ready <= start_ns && best.is_none_or(|(k, _)| key < k) {
                     best = Some((key, i));
@@ -263,9 +280,13 @@ impl Bus {
                 Fate::Corrupted => self.stats.corrupted += 1,
                 Fate::Delivered => {}
             }
+            // A sender's frames reach the receivers in their wire order (a delay does not let a
+            // later one overtake); a dropped frame reaches nobody and holds nothing back.
             let last = &mut self.last_delivered_ns[node_index(from)];
             let delivered_ns = (end_ns + delay_ns).max(*last);
-            *last = delivered_ns;
+            if fate != Fate::Dropped {
+                *last = delivered_ns;
+            }
             out.push(Transmission {
                 from,
                 queued_ns,
@@ -278,9 +299,9 @@ impl Bus {
         }
     }
 
-    fn apply_faults(&mut self, end_ns: u64, from: Node, frame: CanFrame) -> (CanFrame, Fate, u64) {
+    fn apply_faults(&mut self, end_ns: u64, from: Node, sent: CanFrame) -> (CanFrame, Fate, u64) {
         let end_us = end_ns / 1000;
-        let mut frame = frame;
+        let mut frame = sent;
         let mut fate = Fate::Delivered;
         let mut delay_ns = 0;
         for f in &self.faults {
@@ -312,15 +333,11 @@ impl Bus {
                 }
             }
         }
+        // A frame a later fault dropped after an earlier one corrupted it: as sent.
+        if fate == Fate::Dropped {
+            frame = sent;
+        }
         (frame, fate, delay_ns)
-    }
-}
-
-fn raw_id(frame: &CanFrame) -> u16 {
-    match frame.id() {
-        Id::Standard(id) => id.as_raw(),
-        // The project's frames are all standard; an extended id loses arbitration here.
-        Id::Extended(_) => u16::MAX,
     }
 }
 
@@ -516,6 +533,64 @@ mod tests {
 
     fn frame(id: u16, data: &[u8]) -> CanFrame {
         CanFrame::standard(StandardId::new(id).unwrap(), data).unwrap()
+    }
+
+    fn raw_id(frame: &CanFrame) -> u16 {
+        match frame.id() {
+            Id::Standard(id) => id.as_raw(),
+            Id::Extended(_) => u16::MAX,
+        }
+    }
+
+    #[test]
+    fn arbitration_follows_the_bits_on_the_wire() {
+        use embedded_can::{ExtendedId, Frame as _};
+        let mut bus = Bus::new(1_000_000, vec![], 1);
+        // Queued in reverse order of priority, the controller (first in node order) last.
+        let ext_low = CanFrame::new(ExtendedId::new(0x1).unwrap(), &[0]).unwrap();
+        let std_high = frame(0x7FF, &[0]);
+        let remote = CanFrame::new_remote(StandardId::new(0x123).unwrap(), 8).unwrap();
+        let data = frame(0x123, &[0; 8]);
+        let ext_same_base = CanFrame::new(ExtendedId::new(0x123 << 18).unwrap(), &[0]).unwrap();
+        bus.send(0, Node::Host, std_high);
+        bus.send(0, Node::Host, ext_same_base);
+        bus.send(0, Node::Controller, remote);
+        bus.send(0, Node::Host, data);
+        bus.send(0, Node::Host, ext_low);
+        let order: Vec<CanFrame> = bus.advance(10_000_000).iter().map(|t| t.frame).collect();
+        // Extended 0x1 has base id 0: it wins. A data frame beats the remote frame of its id
+        // (RTR is recessive), which beats the extended frame of the same base id (IDE).
+        assert_eq!(order, [ext_low, data, remote, ext_same_base, std_high]);
+    }
+
+    #[test]
+    fn a_dropped_frame_holds_nothing_back_and_is_logged_as_sent() {
+        let window = |kind| Fault {
+            kind,
+            from_us: 0,
+            until_us: 300,
+            sender: Some(Node::Drives),
+        };
+        let mut bus = Bus::new(
+            1_000_000,
+            vec![
+                window(FaultKind::Corrupt { rate: 1.0 }),
+                window(FaultKind::Delay { micros: 5_000 }),
+                window(FaultKind::Burst),
+            ],
+            1,
+        );
+        let sent = frame(0x201, &[0; 8]);
+        bus.send(0, Node::Drives, sent);
+        bus.send(1_000_000, Node::Drives, frame(0x202, &[0; 8]));
+        let tx = bus.advance(20_000_000);
+        // Corrupted, then dropped by the burst: recorded as it was sent, counted as dropped.
+        assert_eq!((tx[0].fate, tx[0].frame), (Fate::Dropped, sent));
+        assert_eq!((bus.stats().dropped, bus.stats().corrupted), (1, 0));
+        // The next frame, outside every window, arrives at its end of frame, not after the
+        // dropped frame's 5 ms delay.
+        assert_eq!(tx[1].fate, Fate::Delivered);
+        assert_eq!(tx[1].delivered_ns, 1_000_000 + u64::from(tx[1].bits) * 1000);
     }
 
     #[test]

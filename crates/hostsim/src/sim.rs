@@ -17,9 +17,14 @@
 //!    `[from, until)` covers exactly the feedback stamped in that window, while the motion of
 //!    the period before `from` does not feel it.
 //!
-//! A frame the firmware sends at `t` therefore reaches the drives at `t + 1 ms`, and feedback
-//! measured at `t` reaches the firmware's step at `t + 1 ms`: one period of latency each way,
-//! as on a real loop that reads the bus at the top of its period.
+//! Feedback measured at `t` therefore reaches the firmware's step at `t + 1 ms`, as on a real
+//! loop that reads the bus at the top of its period. A command the firmware sends at `t` is
+//! on the drives' side of the bus some 130 µs later but acts from `t + 1 ms`, when the plant
+//! has got there: a real C620 or ODrive applies it within microseconds of its arrival, so the
+//! simulated loop has up to one period more dead time than the real one (about 0.87 ms at
+//! 1 kHz, 1.87 ms at 500 Hz). It is a known simplification of the lockstep: applying each
+//! command at its delivery time needs the bus and the plant advanced together, event by
+//! event, within the period.
 //!
 //! Nothing here reads a clock or draws an unseeded random number: the same scenario gives
 //! the same frames, bit for bit. The log's `/can/rx` stream and the configuration are all

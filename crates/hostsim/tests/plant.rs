@@ -818,6 +818,12 @@ fn bad_parameters_are_refused_with_the_field() {
     assert_eq!(err.field, "chassis.wheels");
     println!("{err}");
 
+    // A step longer than a day is refused (it used to spin on 1e300 s for ever).
+    let mut chassis = Chassis::new(ChassisParams::default()).expect("valid");
+    let zero = [WheelInput::Torque(0.0); 4];
+    assert_eq!(chassis.step(1e300, &zero).expect_err("1e300 s").field, "dt");
+    chassis.step(1e-3, &zero).expect("a millisecond");
+
     let ripple = ChassisParams {
         ripple: Some(Ripple::new(9, 0.2)),
         ..ChassisParams::default()
