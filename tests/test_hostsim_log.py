@@ -10,6 +10,8 @@ import subprocess
 import cantools
 import pytest
 from mcap.reader import make_reader
+from mcap.records import Message
+from mcap.stream_reader import StreamReader
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
@@ -74,6 +76,21 @@ def test_every_message_reads_back_with_the_python_mcap_reader(circle_run, dbs) -
     assert {0x200, 0x310, 0x311, 0x312, 0x31F} <= tx_ids
     known = {m.frame_id for db in dbs.values() for m in db.messages}
     assert tx_ids <= known
+
+
+def test_messages_are_in_time_order_in_the_file(circle_run) -> None:
+    """A streaming reader (file order, no index) sees log time never step back. The circle
+    changes its twist between control steps (at 12.666371 s), the case that used to."""
+    out, _ = circle_run
+    back, last, count = 0, 0, 0
+    with open(out / "circle.mcap", "rb") as f:
+        for record in StreamReader(f, skip_magic=False, emit_chunks=False).records:
+            if isinstance(record, Message):
+                count += 1
+                back += record.log_time < last
+                last = max(last, record.log_time)
+    assert count > 100_000
+    assert back == 0, f"{back} messages earlier than one before them in the file"
 
 
 def test_the_plot_is_a_png(circle_run) -> None:

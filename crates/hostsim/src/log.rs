@@ -10,7 +10,7 @@
 //! | `/firmware/snapshot` | JSON | per control step: state, fault, commanded and measured twist, wheel setpoints, speeds, currents |
 //! | `/cmd/twist` | JSON | the host's twist setpoint when it changes |
 //! | `/motors/feedback` | JSON | decoded drive feedback (DJI: rotor angle, rpm, current, temperature; ODrive: estimates, heartbeat), every 10th frame per drive |
-//! | `/odom/pose` | `foxglove.PoseInFrame` | the firmware's odometry (frame `odom`) |
+//! | `/odom/pose` | `foxglove.PoseInFrame` | the firmware's odometry (frame `world`: its origin is the start of the run, where the robot starts) |
 //! | `/ground_truth/pose` | `foxglove.PoseInFrame` | the plant's pose (frame `world`) |
 //! | `/tf` | `foxglove.FrameTransform` | `world → base_link` (truth) and `world → base_link_odom` (odometry) |
 //! | `/firmware/log` | `foxglove.Log` | state changes and faults, as text |
@@ -512,7 +512,7 @@ impl McapLog {
         self.push(event, t_ns, 1)
     }
 
-    /// Logs the odometry pose (`odom` frame) and the ground-truth pose (`world` frame), and
+    /// Logs the odometry pose and the ground-truth pose (both in the `world` frame), and
     /// both as transforms for Foxglove's 3D panel.
     ///
     /// # Errors

@@ -292,8 +292,10 @@ pub fn run_observed<P: SimPlant>(
     let mut track = Vec::with_capacity((duration_us / 10_000 + 2) as usize);
 
     set_wheel_faults(scenario, plant, 0);
+    let mut twists_to_log = Vec::new();
     while t_us <= duration_us {
         let t_ns = t_us * 1000;
+        twists_to_log.clear();
         // 1. Host.
         while let Some(&(at_us, action)) = actions.get(host.next_action)
             && at_us <= t_us
@@ -310,10 +312,9 @@ pub fn run_observed<P: SimPlant>(
                     host.next_command_us = at_us;
                 }
             }
-            if let Some(l) = log.as_deref_mut()
-                && !matches!(action, HostAction::Send(_))
-            {
-                l.twist(at_us * 1000, host.twist, host.streaming)?;
+            if !matches!(action, HostAction::Send(_)) {
+                // Logged among the step's deliveries, in time order (below).
+                twists_to_log.push((at_us * 1000, host.twist, host.streaming));
             }
             host.next_action += 1;
         }
@@ -354,11 +355,19 @@ pub fn run_observed<P: SimPlant>(
         let due = in_flight.partition_point(|tx| tx.delivered_ns <= t_ns);
         delivered.clear();
         delivered.extend(in_flight.drain(..due));
+        let mut twists_logged = 0;
         for tx in &delivered {
-            if let Some(l) = log.as_deref_mut()
-                && options.bus
-            {
-                l.bus(tx.delivered_ns, &tx.frame, tx.from, tx.fate)?;
+            if let Some(l) = log.as_deref_mut() {
+                // The host's setpoint changes in time order with the deliveries.
+                while let Some(&(at_ns, twist, streaming)) = twists_to_log.get(twists_logged)
+                    && at_ns <= tx.delivered_ns
+                {
+                    l.twist(at_ns, twist, streaming)?;
+                    twists_logged += 1;
+                }
+                if options.bus {
+                    l.bus(tx.delivered_ns, &tx.frame, tx.from, tx.fate)?;
+                }
             }
             if tx.fate == Fate::Dropped {
                 continue;
@@ -380,6 +389,11 @@ pub fn run_observed<P: SimPlant>(
             }
             if tx.from != Node::Drives {
                 plant.on_frame(tx.delivered_ns / 1000, &tx.frame);
+            }
+        }
+        if let Some(l) = log.as_deref_mut() {
+            for &(at_ns, twist, streaming) in &twists_to_log[twists_logged..] {
+                l.twist(at_ns, twist, streaming)?;
             }
         }
 

@@ -323,3 +323,39 @@ fn the_summary_compares_odometry_and_truth_at_the_same_step() {
     let want = (x - last_truth[0]).hypot(y - last_truth[1]);
     assert!((r.final_position_error - want).abs() < 1e-12);
 }
+
+#[test]
+fn every_pose_is_in_a_frame_the_transforms_place() {
+    use foxglove::Decode;
+    use foxglove::schemas::{FrameTransform, PoseInFrame};
+    let path = common::scratch("sim", "frames.mcap");
+    let mut s = Scenario::builtin("circle").unwrap();
+    s.duration_s = 0.5;
+    common::logged_run(&s, &path);
+    let bytes = std::fs::read(&path).unwrap();
+    let (mut pose_frames, mut placed) = (Vec::new(), vec!["world".to_string()]);
+    hostsim::log::for_each_message(
+        &bytes,
+        |topic, _, data| match topic {
+            "/odom/pose" | "/ground_truth/pose" => {
+                let p = PoseInFrame::decode(data).unwrap();
+                pose_frames.push((topic.to_string(), p.frame_id));
+            }
+            "/tf" => {
+                let tf = FrameTransform::decode(data).unwrap();
+                assert!(placed.contains(&tf.parent_frame_id), "{tf:?}");
+                placed.push(tf.child_frame_id);
+            }
+            _ => {}
+        },
+        |_, _| {},
+    )
+    .unwrap();
+    assert!(pose_frames.len() >= 2 * 50, "{}", pose_frames.len());
+    for (topic, frame) in &pose_frames {
+        assert!(
+            placed.contains(frame),
+            "{topic} in frame {frame:?}, which no transform places ({placed:?})"
+        );
+    }
+}

@@ -316,7 +316,9 @@ impl Chunker {
             Event::Poses { t_ns, index } => {
                 let [odom, truth] = batch.poses[index as usize];
                 for (pose, frame, child, pose_ch) in [
-                    (odom, "odom", "base_link_odom", ch.odom),
+                    // The odometry's origin is where the run starts, the world's origin: its
+                    // pose is in `world`, the frame /tf places, so a viewer can draw it.
+                    (odom, "world", "base_link_odom", ch.odom),
                     (truth, "world", "base_link", ch.truth),
                 ] {
                     self.message(sink, pose_ch, t_ns, |buf| {
