@@ -124,6 +124,20 @@ impl SimPlant for SimDrives {
         };
     }
 
+    fn advance_ns(&mut self, dt_ns: u64) {
+        match self {
+            Self::Dji { plant, .. } => plant.advance_ns(dt_ns),
+            Self::Odrive { plant, .. } => plant.advance_ns(dt_ns),
+        }
+    }
+
+    fn next_feedback_ns(&self) -> u64 {
+        match self {
+            Self::Dji { plant, .. } => plant.next_feedback_ns(),
+            Self::Odrive { plant, .. } => plant.next_feedback_ns(),
+        }
+    }
+
     fn truth(&self) -> [f64; 3] {
         let p = match self {
             Self::Dji { plant, .. } => plant.pose(),

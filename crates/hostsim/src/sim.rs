@@ -5,26 +5,25 @@
 //!
 //! 1. The host acts: scenario actions due by `t`, a `TWIST_CMD` when the stream is due, and
 //!    the non-finite twists of a `non_finite_twist` fault when they are due.
-//! 2. The drives queue the feedback frames due at `t`.
+//! 2. The drives queue the feedback frames due at `t` that are not on the bus yet (at `t = 0`;
+//!    later, step 6 has queued them as they were sent).
 //! 3. The bus transmits everything that starts before `t` (arbitration, exact frame times,
 //!    faults); each frame reaches the other nodes at its end of transmission.
-//! 4. Frames delivered by `t` go to the firmware (`on_frame` with their delivery time) and to
-//!    the drives (commands).
+//! 4. Frames delivered by `t` go to the firmware (`on_frame` with their delivery time).
 //! 5. The firmware steps at `t`; its frames are queued on the bus at `t`. An observer
 //!    ([`run_observed`]) sees the step: the controller, the deliveries, the frames sent.
-//! 6. The plant advances one period. The scenario's wheel faults (stuck encoder, drive
-//!    offline) of the period's end are set to take effect when it gets there, so a fault over
-//!    `[from, until)` covers exactly the feedback stamped in that window, while the motion of
-//!    the period before `from` does not feel it.
+//! 6. The plant advances to `t + period` together with the bus: each frame for the drives
+//!    (the firmware's commands, the host's) acts from its delivery time, and the drives'
+//!    feedback goes on the bus when it is sent. The bus runs ahead of the plant only up to
+//!    the drives' next feedback, whose frames may win arbitration over the ones waiting. The
+//!    scenario's wheel faults (stuck encoder, drive offline) of the period's end are set to
+//!    take effect when the plant gets there, so a fault over `[from, until)` covers exactly
+//!    the feedback stamped in that window, while the motion of the period before `from` does
+//!    not feel it.
 //!
 //! Feedback measured at `t` therefore reaches the firmware's step at `t + 1 ms`, as on a real
-//! loop that reads the bus at the top of its period. A command the firmware sends at `t` is
-//! on the drives' side of the bus some 130 µs later but acts from `t + 1 ms`, when the plant
-//! has got there: a real C620 or ODrive applies it within microseconds of its arrival, so the
-//! simulated loop has up to one period more dead time than the real one (about 0.87 ms at
-//! 1 kHz, 1.87 ms at 500 Hz). It is a known simplification of the lockstep: applying each
-//! command at its delivery time needs the bus and the plant advanced together, event by
-//! event, within the period.
+//! loop that reads the bus at the top of its period, and a command the firmware sends at `t`
+//! acts on the drives when it arrives, some 130 µs later, as a real C620 or ODrive applies it.
 //!
 //! Nothing here reads a clock or draws an unseeded random number: the same scenario gives
 //! the same frames, bit for bit. The log's `/can/rx` stream and the configuration are all
@@ -50,6 +49,16 @@ pub trait SimPlant {
     fn feedback(&mut self, until_ns: u64, out: &mut Vec<(u64, CanFrame)>);
     /// Advances the physics by `dt` seconds.
     fn advance(&mut self, dt: f64);
+    /// Advances the physics by `dt_ns` nanoseconds ([`Self::advance`] by default).
+    fn advance_ns(&mut self, dt_ns: u64) {
+        self.advance(dt_ns as f64 * 1e-9);
+    }
+    /// When the drives next send feedback, ns of the plant's time (`u64::MAX`: not known,
+    /// the runner then takes the period's end). The runner lets the bus run no further
+    /// before it has those frames, which may win arbitration over the ones waiting.
+    fn next_feedback_ns(&self) -> u64 {
+        u64::MAX
+    }
     /// Ground-truth pose `[x, y, heading]` in the world frame (m, m, rad).
     fn truth(&self) -> [f64; 3];
     /// Ground-truth body velocity `[vx, vy, wz]`.
@@ -261,7 +270,7 @@ pub fn run_observed<P: SimPlant>(
 ) -> Result<RunSummary, SimError> {
     let mut ctl = Controller::new(&scenario.config)?;
     let period_us = ctl.period_micros();
-    let dt = period_us as f64 * 1e-6;
+    let period_ns = period_us * 1000;
     let mut bus = Bus::new(1_000_000, scenario.bus_faults.clone(), scenario.seed);
     let mut host = Host {
         twist: [0.0; 3],
@@ -387,9 +396,6 @@ pub fn run_observed<P: SimPlant>(
                     }
                 }
             }
-            if tx.from != Node::Drives {
-                plant.on_frame(tx.delivered_ns / 1000, &tx.frame);
-            }
         }
         if let Some(l) = log.as_deref_mut() {
             for &(at_ns, twist, streaming) in &twists_to_log[twists_logged..] {
@@ -458,7 +464,14 @@ pub fn run_observed<P: SimPlant>(
         // 6. Plant, with the wheel faults of the period's end: the feedback stamped then
         // (emitted as the plant gets there) already shows them.
         set_wheel_faults(scenario, plant, t_us + period_us);
-        plant.advance(dt);
+        advance_period(
+            plant,
+            &mut bus,
+            &mut in_flight,
+            &mut feedback,
+            t_ns,
+            period_ns,
+        );
         t_us += period_us;
         step += 1;
     }
@@ -495,6 +508,45 @@ fn id_of(frame: &CanFrame) -> u16 {
     match embedded_can::Frame::id(frame) {
         embedded_can::Id::Standard(id) => id.as_raw(),
         embedded_can::Id::Extended(_) => 0,
+    }
+}
+
+/// Advances the plant over the period `(t_ns, t_ns + period_ns]`, together with the bus: the
+/// frames for the drives (commands from the firmware and the host) act from their delivery
+/// time, as on a real drive, and the drives' feedback goes on the bus as it is sent. The bus
+/// runs ahead of the plant only up to the drives' next feedback, whose frames may win
+/// arbitration over the ones waiting. Every transmission stays in `in_flight` for the
+/// firmware's side (step 4 of the next ticks).
+fn advance_period<P: SimPlant>(
+    plant: &mut P,
+    bus: &mut Bus,
+    in_flight: &mut Vec<Transmission>,
+    feedback: &mut Vec<(u64, CanFrame)>,
+    t_ns: u64,
+    period_ns: u64,
+) {
+    let end_ns = t_ns + period_ns;
+    let mut now_ns = t_ns;
+    while now_ns < end_ns {
+        let horizon = end_ns.min(plant.next_feedback_ns().max(now_ns + 1));
+        // Frames delivered by `horizon` started before it: all of them are known after this.
+        bus.advance_into(horizon, in_flight);
+        in_flight.sort_by_key(|tx| tx.delivered_ns);
+        for tx in in_flight.iter() {
+            let for_drives = tx.from != Node::Drives && tx.fate != Fate::Dropped;
+            if for_drives && tx.delivered_ns > now_ns && tx.delivered_ns <= horizon {
+                plant.advance_ns(tx.delivered_ns - now_ns);
+                now_ns = tx.delivered_ns;
+                plant.on_frame(tx.delivered_ns / 1000, &tx.frame);
+            }
+        }
+        plant.advance_ns(horizon - now_ns);
+        now_ns = horizon;
+        feedback.clear();
+        plant.feedback(now_ns, feedback);
+        for &(at_ns, f) in feedback.iter() {
+            bus.send(at_ns, Node::Drives, f);
+        }
     }
 }
 

@@ -359,3 +359,80 @@ fn every_pose_is_in_a_frame_the_transforms_place() {
         );
     }
 }
+
+/// The drives, recording the plant's time whenever a frame reaches them.
+struct Spy {
+    drives: SimDrives,
+    now_ns: u64,
+    applied: Vec<(u64, u64, firmware::CanFrame)>,
+}
+
+impl SimPlant for Spy {
+    fn on_frame(&mut self, t_us: u64, frame: &firmware::CanFrame) {
+        self.applied.push((self.now_ns, t_us, *frame));
+        self.drives.on_frame(t_us, frame);
+    }
+    fn feedback(&mut self, until_ns: u64, out: &mut Vec<(u64, firmware::CanFrame)>) {
+        self.drives.feedback(until_ns, out);
+    }
+    fn advance(&mut self, dt: f64) {
+        self.advance_ns((dt * 1e9).round() as u64);
+    }
+    fn advance_ns(&mut self, dt_ns: u64) {
+        self.now_ns += dt_ns;
+        self.drives.advance_ns(dt_ns);
+    }
+    fn next_feedback_ns(&self) -> u64 {
+        self.drives.next_feedback_ns()
+    }
+    fn truth(&self) -> [f64; 3] {
+        self.drives.truth()
+    }
+    fn truth_velocity(&self) -> [f64; 3] {
+        self.drives.truth_velocity()
+    }
+    fn set_faults(&mut self, at_ns: u64, stuck: [bool; 4], offline: [bool; 4]) {
+        self.drives.set_faults(at_ns, stuck, offline);
+    }
+}
+
+#[test]
+fn a_command_acts_on_the_drives_when_it_arrives() {
+    for control_hz in [1000u32, 500] {
+        let mut s = Scenario::builtin("square").unwrap();
+        s.duration_s = 0.5;
+        s.config.timing.control_hz = control_hz;
+        s.config.timing.setpoint_hz = control_hz;
+        let mut spy = Spy {
+            drives: SimDrives::new(&s.config).unwrap(),
+            now_ns: 0,
+            applied: Vec::new(),
+        };
+        run(&s, &mut spy, None, LogOptions::default(), |_| {}).unwrap();
+        let period_ns = 1_000_000_000 / u64::from(control_hz);
+        let currents: Vec<(u64, u64)> = spy
+            .applied
+            .iter()
+            .filter(|(_, _, f)| {
+                embedded_can::Frame::id(f)
+                    == embedded_can::Id::Standard(embedded_can::StandardId::new(0x200).unwrap())
+            })
+            .map(|&(plant_ns, t_us, _)| (plant_ns, t_us))
+            .collect();
+        assert!(
+            currents.len() as u64 >= 400_000_000 / period_ns,
+            "{}",
+            currents.len()
+        );
+        for &(plant_ns, t_us) in &currents {
+            // Applied at its delivery time: one frame (111-135 µs) after the step that sent
+            // it, when the bus was free or after the one frame on it, not a period later.
+            assert_eq!(plant_ns / 1000, t_us);
+            let after_step = plant_ns % period_ns;
+            assert!(
+                (100_000..300_000).contains(&after_step),
+                "{control_hz} Hz: applied {after_step} ns after its step"
+            );
+        }
+    }
+}

@@ -484,6 +484,16 @@ impl<D: Drive> Plant<D> {
         Ok(())
     }
 
+    /// When the next feedback of any drive is due, ns of the plant's time.
+    #[must_use]
+    pub fn next_feedback_ns(&self) -> u64 {
+        self.drives
+            .iter()
+            .map(Drive::next_feedback_ns)
+            .min()
+            .unwrap_or(u64::MAX)
+    }
+
     /// Advances by `dt_ns` nanoseconds.
     pub fn advance_ns(&mut self, dt_ns: u64) {
         let end = self.now_ns.saturating_add(dt_ns);
