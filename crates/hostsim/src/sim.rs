@@ -532,9 +532,12 @@ fn advance_period<P: SimPlant>(
         // Frames delivered by `horizon` started before it: all of them are known after this.
         bus.advance_into(horizon, in_flight);
         in_flight.sort_by_key(|tx| tx.delivered_ns);
+        // This segment's deliveries, `(segment_start, horizon]`, each once and in order (two
+        // may share an instant when a delay fault moves one).
+        let segment_start = now_ns;
         for tx in in_flight.iter() {
             let for_drives = tx.from != Node::Drives && tx.fate != Fate::Dropped;
-            if for_drives && tx.delivered_ns > now_ns && tx.delivered_ns <= horizon {
+            if for_drives && tx.delivered_ns > segment_start && tx.delivered_ns <= horizon {
                 plant.advance_ns(tx.delivered_ns - now_ns);
                 now_ns = tx.delivered_ns;
                 plant.on_frame(tx.delivered_ns / 1000, &tx.frame);
@@ -619,4 +622,74 @@ pub fn run_metadata(scenario: &Scenario) -> BTreeMap<String, String> {
             env!("CARGO_PKG_VERSION").to_string(),
         ),
     ])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bus::{Fault, FaultKind, frame_bits};
+    use embedded_can::StandardId;
+
+    /// Records the plant time of every frame it is given.
+    #[derive(Default)]
+    struct Recorder {
+        now_ns: u64,
+        applied: Vec<(u64, u16)>,
+    }
+
+    impl SimPlant for Recorder {
+        fn on_frame(&mut self, _: u64, frame: &CanFrame) {
+            self.applied.push((self.now_ns, id_of(frame)));
+        }
+        fn feedback(&mut self, _: u64, _: &mut Vec<(u64, CanFrame)>) {}
+        fn advance(&mut self, dt: f64) {
+            self.advance_ns((dt * 1e9).round() as u64);
+        }
+        fn advance_ns(&mut self, dt_ns: u64) {
+            self.now_ns += dt_ns;
+        }
+        fn truth(&self) -> [f64; 3] {
+            [0.0; 3]
+        }
+        fn truth_velocity(&self) -> [f64; 3] {
+            [0.0; 3]
+        }
+        fn set_faults(&mut self, _: u64, _: [bool; 4], _: [bool; 4]) {}
+    }
+
+    #[test]
+    fn frames_for_the_drives_act_at_their_delivery_even_at_the_same_instant() {
+        let frame = |id| CanFrame::standard(StandardId::new(id).unwrap(), &[0; 8]).unwrap();
+        let (a, b) = (frame(0x200), frame(0x300));
+        // 0x200 wins arbitration and ends first; delayed by the length of 0x300, it reaches
+        // the drives at the very instant 0x300 does.
+        let delay_us = u64::from(frame_bits(&b));
+        let mut bus = Bus::new(
+            1_000_000,
+            vec![Fault {
+                kind: FaultKind::Delay { micros: delay_us },
+                from_us: 0,
+                until_us: 1_000,
+                sender: Some(Node::Controller),
+            }],
+            1,
+        );
+        bus.send(0, Node::Controller, a);
+        bus.send(0, Node::Host, b);
+        let mut plant = Recorder::default();
+        let (mut in_flight, mut feedback) = (Vec::new(), Vec::new());
+        advance_period(
+            &mut plant,
+            &mut bus,
+            &mut in_flight,
+            &mut feedback,
+            0,
+            1_000_000,
+        );
+        let at = u64::from(frame_bits(&a) + frame_bits(&b)) * 1000;
+        assert_eq!(plant.applied, [(at, 0x200), (at, 0x300)]);
+        assert_eq!(plant.now_ns, 1_000_000);
+        // Both stay in flight for the firmware's side.
+        assert_eq!(in_flight.len(), 2);
+    }
 }
