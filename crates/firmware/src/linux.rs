@@ -396,7 +396,7 @@ pub struct Report {
     /// Receive errors (reading the bus failed); the drain stops for that step.
     pub rx_errors: u64,
     /// Error frames of the CAN controller ([`BusErrorFrame`]: bus errors, error-passive,
-    /// bus-off, restarts, lost arbitration...); the drain goes on after each.
+    /// bus-off, restarts, missing ACKs...); the drain goes on after each.
     pub bus_error_frames: u64,
     /// Steps that left frames on the bus because [`RunOptions::max_rx_per_step`] was reached.
     pub rx_capped_steps: u64,
@@ -850,9 +850,14 @@ pub fn is_bus_error_frame(e: &io::Error) -> bool {
     e.get_ref().is_some_and(|inner| inner.is::<BusErrorFrame>())
 }
 
+/// The error frames [`SocketCanBus`] asks SocketCAN for: every class (`CAN_ERR_MASK`) but
+/// lost arbitration (`CAN_ERR_LOSTARB`, 0x2), which is how a CAN bus shares itself, not a
+/// fault: on a busy bus it would drown the real errors.
+const ERROR_CLASSES: u32 = 0x1FFF_FFFF & !0x0000_0002;
+
 /// A raw SocketCAN socket on one interface, non-blocking, classic CAN frames, and the
-/// controller's error frames (every error class: bus errors, error-passive, bus-off,
-/// restarts), which SocketCAN does not deliver unless asked to.
+/// controller's error frames (every class but lost arbitration: bus errors, error-passive,
+/// bus-off, restarts, missing ACKs), which SocketCAN does not deliver unless asked to.
 #[derive(Debug)]
 pub struct SocketCanBus {
     socket: socketcan::CanSocket,
@@ -880,7 +885,7 @@ impl SocketCanBus {
         })?;
         socket
             .set_nonblocking(true)
-            .and_then(|()| socket.set_error_filter_accept_all())
+            .and_then(|()| socket.set_error_filter(ERROR_CLASSES))
             .map_err(|source| OpenError::Io {
                 iface: iface.to_string(),
                 source,
