@@ -58,6 +58,13 @@ VM = os.environ.get("MECANUM_VCAN_MODE") == "vm"
 # much on top of each and prints it. Natively the budgets hold as written (slack 0).
 TIMING_SLACK_S = 0.050 if VM else 0.0
 
+# The share of its 1 kHz steps a runner must make, and so of any stream it sends per step. An
+# overrun re-anchors the schedule instead of catching up, so late steps are lost; the emulated
+# machine is late often, and how often depends on the host's load (25-90 % of the steps were
+# measured there in CI runs), a real one seldom. There the bound only catches a loop that
+# stalls.
+MIN_STEP_RATIO = 0.2 if VM else 0.95
+
 
 # ... and the motor feedback, due every 1 ms, can arrive 100 ms late there: the stale-feedback
 # fault (3 periods natively) would trip on emulation stalls, so the VM allows 200 periods.
@@ -203,12 +210,8 @@ def test_motion_session_runner_kept_its_rate(motion: Robot) -> None:
     assert stats["controller"]["fault_at_stop"] in ("None", "Watchdog"), stats["controller"]
     assert stats["send_errors"] == 0 and stats["rx_errors"] == 0, stats
     assert stats["bus_error_frames"] == 0, stats  # vcan has no controller to report errors
-    # 1 kHz: one step per millisecond. An overrun re-anchors the schedule instead of
-    # catching up, so late steps are lost; the emulated machine is late often, and how often
-    # depends on the host's load (50-90 % of the steps were measured there in CI runs), a
-    # real one seldom. There the bound only catches a loop that stalls.
-    min_ratio = 0.25 if VM else 0.95
-    assert stats["steps"] >= min_ratio * elapsed * 1000, (stats["steps"], elapsed)
+    # 1 kHz: one step per millisecond (see MIN_STEP_RATIO).
+    assert stats["steps"] >= MIN_STEP_RATIO * elapsed * 1000, (stats["steps"], elapsed)
 
 
 # --- stops: watchdog, status polls, e-stop ---------------------------------------------------
@@ -470,9 +473,10 @@ def test_odrive_non_finite_estimates_are_counted_and_ignored(odrive: Robot) -> N
     got = (mean(v["vx"] for _, v in vel), mean(v["wz"] for _, v in vel))
     print(f"ODrive odometry during the injection: vx {got[0]:.4f} m/s, wz {got[1]:.4f} rad/s")
     assert abs(got[0] - 0.3) <= VEL_TOL and abs(got[1] - 0.4) <= WZ_TOL, got
-    # The ODrive side of the protocol: velocity setpoints (Set_Input_Vel, 0x0D) at 200 Hz.
+    # The ODrive side of the protocol: velocity setpoints (Set_Input_Vel, 0x0D) at 200 Hz,
+    # sent by the steps that run (MIN_STEP_RATIO; one CI run in the emulated machine made 28 %).
     setpoints = odrive.of(0x0D, t0, t1)
-    assert len(setpoints) >= (0.3 if VM else 0.95) * 200 * (t1 - t0), len(setpoints)
+    assert len(setpoints) >= MIN_STEP_RATIO * 200 * (t1 - t0), len(setpoints)
 
 
 # --- a candump session, replayed ----------------------------------------------------------
