@@ -443,6 +443,10 @@ fn rms_distance<T: Real, const N: usize>(wheels: &[WheelGeometry<T>; N]) -> f64 
 /// `A = Q R`, `A⁺ = R⁻¹ Qᵀ`. Its error is a few `cond(A) · ε`, where the normal equations
 /// `(AᵀA)⁻¹Aᵀ` give `cond(A)² · ε`. Column `k` of `A⁺` is the least-squares solution for the
 /// unit vector `e_k`.
+///
+/// Written out rather than `nalgebra::QR`: for a generic `N` that needs
+/// `Const<N>: DimMin<Const<3>>` bounds (a typenum conversion), which would leak into every
+/// public constructor's signature.
 fn least_squares_inverse<const N: usize>(a: &SMatrix<f64, N, 3>) -> SMatrix<f64, 3, N> {
     let mut r = *a;
     // Householder vector k in column k, rows k..N; H_k = I - 2 v vᵀ / vᵀv.
