@@ -324,9 +324,12 @@ pub struct PlantReport {
     pub skipped_us: u64,
     /// Frames read from the bus (all of them; the drives use the ones addressed to them).
     pub frames_received: u64,
-    /// Receive errors: failed reads (the drain stops for the tick) and the controller's error
-    /// frames on a real interface (bus errors, bus-off; the drain goes on).
+    /// Receive errors: reads that failed (the drain stops for the tick).
     pub rx_errors: u64,
+    /// Error frames of the CAN controller on a real interface (bus errors, error-passive,
+    /// bus-off, missing ACKs; [`firmware::linux::BusErrorFrame`]); the drain goes on after
+    /// each. Counted as `mecanum-runner` counts them.
+    pub bus_error_frames: u64,
     /// Ticks that left frames waiting because [`PlantOptions::max_rx_per_tick`] was reached.
     pub rx_capped_ticks: u64,
     /// Feedback frames sent.
@@ -365,12 +368,13 @@ impl fmt::Display for PlantReport {
         writeln!(
             f,
             "bus: {} frames received, {} feedback frames sent, {} send retries, {} send \
-             errors, {} receive errors, {} capped drains",
+             errors, {} receive errors, {} bus error frames, {} capped drains",
             self.frames_received,
             self.frames_sent,
             self.send_retries,
             self.send_errors,
             self.rx_errors,
+            self.bus_error_frames,
             self.rx_capped_ticks
         )?;
         if let Some(e) = &self.first_error {
@@ -438,6 +442,7 @@ pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
     let mut errors = ErrorLog::default();
     let mut jitter = LatencyHistogram::new();
     let (mut ticks, mut overruns, mut received, mut rx_errors, mut capped) = (0, 0, 0, 0, 0);
+    let mut bus_error_frames = 0;
     let (mut sent, mut retries, mut send_errors) = (0, 0, 0);
     // Simulated time of the plant, and wall time that was not simulated (catch-up cap).
     let mut sim_us: u64 = 0;
@@ -482,12 +487,13 @@ pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
                 }
                 Ok(None) => break,
                 Err(e) => {
-                    rx_errors += 1;
                     errors.record(format_args!("receive"), &e);
                     // A controller's error frame is a bus event; the frames behind it are due.
                     if !firmware::linux::is_bus_error_frame(&e) {
+                        rx_errors += 1;
                         break;
                     }
+                    bus_error_frames += 1;
                     drained += 1;
                 }
             }
@@ -550,6 +556,7 @@ pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
         skipped_us,
         frames_received: received,
         rx_errors,
+        bus_error_frames,
         rx_capped_ticks: capped,
         frames_sent: sent,
         send_retries: retries,

@@ -335,3 +335,60 @@ fn played_frames_reach_the_other_nodes_in_order_and_on_time() {
     let want: Vec<CanFrame> = frames.iter().map(|f| f.frame).collect();
     assert_eq!(got, want);
 }
+
+#[test]
+fn the_plant_counts_bus_error_frames_apart_and_reads_the_frames_behind_them() {
+    /// A DJI current command, a controller error frame, another command, then a failed read.
+    struct Noisy(std::collections::VecDeque<io::Result<Option<CanFrame>>>);
+    impl Bus for Noisy {
+        fn try_recv(&mut self) -> io::Result<Option<CanFrame>> {
+            self.0.pop_front().unwrap_or(Ok(None))
+        }
+        fn send(&mut self, _: &CanFrame) -> io::Result<()> {
+            Ok(())
+        }
+    }
+    let current = firmware::protocol::dji::CurrentCommand {
+        model: firmware::protocol::dji::EscModel::C620,
+        group: firmware::protocol::dji::EscGroup::Esc1To4,
+        raw: [1000; 4],
+    }
+    .to_can_frame();
+    let mut bus = Noisy(std::collections::VecDeque::from([
+        Ok(Some(current)),
+        Err(io::Error::other(linux::BusErrorFrame("bus-off".into()))),
+        Ok(Some(current)),
+        Err(io::Error::from_raw_os_error(libc::ENETDOWN)),
+    ]));
+    let clock = LateClock {
+        now: Cell::new(T0),
+        late: vec![],
+        calls: Cell::new(0),
+    };
+    let mut drives = SimDrives::new(&Config::dji_m3508_example()).unwrap();
+    let options = PlantOptions {
+        duration_us: Some(2_000),
+        ..PlantOptions::default()
+    };
+    let r = run_plant(
+        &mut drives,
+        &mut bus,
+        &clock,
+        &options,
+        &AtomicUsize::new(0),
+    );
+    assert_eq!(
+        (r.frames_received, r.bus_error_frames, r.rx_errors),
+        (2, 1, 1),
+        "{r:?}"
+    );
+    assert_eq!(
+        r.first_error.as_deref(),
+        Some("receive: error frame: bus-off")
+    );
+    let text = r.to_string();
+    assert!(
+        text.contains("1 receive errors, 1 bus error frames"),
+        "{text}"
+    );
+}
