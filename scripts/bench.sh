@@ -21,7 +21,7 @@ for arg in "$@"; do
     case $arg in
     --quick) quick=1 ;;
     --no-vcan) vcan=0 ;;
-    -h | --help) sed -n '2,16p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    -h | --help) sed -n '2,15p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
     *) echo "bench.sh: unknown argument $arg (see --help)" >&2; exit 2 ;;
     esac
 done
@@ -88,12 +88,18 @@ row "MCAP write throughput, Rust / Python" "${ratio}x" "ratio"
 if [ "$vcan" = 1 ]; then
     log "vcan0: frames/s the runner takes without loss (the vcan lane's rate test)"
     cargo build --release --locked -q -p firmware --features firmware/linux --bin mecanum-runner
+    # The test prints its `rate:` line before it checks for loss: the figure counts only when
+    # the lane passed (pipefail: the status is vcan.sh's, not tee's).
+    lane_rc=0
     out=$(MECANUM_RUNNER="$PWD/target/release/mecanum-runner" scripts/vcan.sh -- \
-        "$PY" -m pytest tests/test_vcan_runner.py -q -s -p no:cacheprovider -k test_rate_ 2>&1 | tee /dev/stderr || true)
+        "$PY" -m pytest tests/test_vcan_runner.py -q -s -p no:cacheprovider -k test_rate_ 2>&1 | tee /dev/stderr) ||
+        lane_rc=$?
     where=native
     grep -q 'vcan.sh: vm:' <<<"$out" && where="micro-VM, software-emulated CPU"
-    line=$(grep '^rate: ' <<<"$out" | tail -1)
-    if [ -n "$line" ]; then
+    line=$(grep '^rate: ' <<<"$out" | tail -1 || true)
+    if [ -n "$line" ] && [ "$lane_rc" != 0 ]; then
+        row "vcan0 frames/s into the runner" "FAILED (the rate test exited $lane_rc; its output is above)" ""
+    elif [ -n "$line" ]; then
         row "vcan0 frames/s into the runner, 30 s, no loss ($where)" "$(sed -n 's/.* = \([0-9]*\) frames\/s.*/\1/p' <<<"$line")" "frames/s"
         row "runner loop jitter during it ($where)" "$(sed -n 's/.*jitter \(p50 .*\)/\1/p' <<<"$line")" "µs"
     else

@@ -1,16 +1,24 @@
 #!/usr/bin/env bash
-# The project's whole test suite: what CI runs and what a user runs (README, "Run the tests").
+# The project's whole test suite: what CI runs and what a user runs (README, "Two commands").
 # Each stage is a separate check that fails on its own; the script stops at the first failure
 # and names it. It installs what it needs: the thumbv7em target (rustup) and a Python virtual
 # environment for the Python tests (pip), into .venv beside this repository.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# The stages find build outputs under ./target and each board's own target/: a target
+# directory or build target set in the environment would move them.
+unset CARGO_TARGET_DIR CARGO_BUILD_TARGET
 
 THUMB=thumbv7em-none-eabihf
 # no_std crates that must build for the MCU target.
 NO_STD_CRATES=(kinematics firmware)
 
-stage() { printf '\n==> %s\n' "$*"; }
+STAGE=
+stage() {
+    STAGE=$*
+    printf '\n==> %s\n' "$*"
+}
+trap 'printf "\n==> FAILED (exit %s): %s\n" "$?" "$STAGE" >&2' ERR
 
 stage "toolchain: $(rustc --version); installing target $THUMB"
 rustup component add rustfmt clippy >/dev/null

@@ -44,10 +44,14 @@ How $IFACE comes up, first that works:
      (installed with apt-get when run as root and missing) and PyPI $VNG_REQUIREMENT
      (pip-installed into $VENV when missing). Allow ~1 min of boot.
      The environment variables the tools need are passed on (paths, locale, toolchains,
-     Python, CI, MECANUM_*), no others. Output is also
-     kept in target/vcan-lane/output.log, the VM's exit code in target/vcan-lane/exit-code.
-  3. neither: with CI=true that is a failure (exit 1, saying why); elsewhere the script
-     prints "SKIP: <why>" and exits 0 without running COMMAND.
+     Python, CI, MECANUM_*; none whose name says token, secret, password or key), no
+     others. Output is also kept in target/vcan-lane/output.log, the VM's exit code in
+     target/vcan-lane/exit-code.
+  3. neither: in CI (CI set to anything but empty, 0 or false) that is a failure (exit 1,
+     saying why); elsewhere the script prints "SKIP: <why>" and exits 0 without running
+     COMMAND.
+
+Ctrl-C (or SIGTERM, SIGHUP) stops COMMAND, or the VM, and the script exits 130.
 
 Options:
   --native     only try the native way      (or VCAN_MODE=native)
@@ -58,7 +62,8 @@ Environment: VCAN_VM_TIMEOUT (seconds, default 1800; bounds a native COMMAND too
 VCAN_VM_MEMORY (default 2G),
 VCAN_VM_CPUS (default: host CPUs, at most 4), VCAN_KERNEL (a vmlinuz to boot instead of the
 one linux-image-amd64 installed), VCAN_VENV (where virtme-ng is, default .venv),
-VCAN_NO_INSTALL=1 (install nothing: what is missing makes the lane unavailable).
+VCAN_NO_INSTALL=1 (install nothing: what is missing makes the lane unavailable),
+VCAN_VM_APPEND (more kernel command-line arguments for the VM).
 EOF
 }
 
@@ -66,15 +71,49 @@ log() { printf 'vcan.sh: %s\n' "$*" >&2; }
 now() { date +%s.%N; }
 elapsed() { awk -v a="$1" -v b="$2" 'BEGIN { printf "%.1f", b - a }'; }
 
-# The lane cannot run here: a failure with CI=true, else a skip that says why.
+# The lane cannot run here: a failure in CI, else a skip that says why.
 unavailable() {
-    if [ "${CI:-}" = "true" ]; then
+    case ${CI:-} in
+    "" | 0 | false | False | FALSE) ;;
+    *)
         log "FAIL: the vcan lane cannot run: $*"
-        log "(CI=true: a lane that cannot run is a failure, not a skip)"
+        log "(CI=${CI}: in CI a lane that cannot run is a failure, not a skip)"
         exit 1
-    fi
+        ;;
+    esac
     printf 'SKIP: vcan lane: %s\n' "$*"
     exit 0
+}
+
+# Runs `timeout -k KILL_AFTER VM_TIMEOUT COMMAND...` and returns its status, passing SIGINT,
+# SIGTERM and SIGHUP on to it. `timeout` runs in a process group of its own, so a Ctrl-C at the
+# terminal (or a CI runner's signal to this script's group) would not reach COMMAND, which would
+# then run on until the timeout. On such a signal the script exits 130 once COMMAND has ended.
+INTERRUPTED=0
+run_bounded() {
+    local kill_after=$1 pid rc
+    shift
+    # 9>&-: COMMAND must not hold the lane's lock (a stray child would keep it).
+    timeout -k "$kill_after" "$VM_TIMEOUT" "$@" 9>&- &
+    pid=$!
+    trap 'INTERRUPTED=1; kill -TERM "$pid" 2>/dev/null || true' INT TERM HUP
+    while :; do
+        rc=0
+        wait "$pid" || rc=$?
+        # A trapped signal ends `wait` early; the process (or its zombie) is still there.
+        kill -0 "$pid" 2>/dev/null || break
+    done
+    trap - INT TERM HUP
+    [ "$rc" = 124 ] && log "COMMAND did not finish within $VM_TIMEOUT s (VCAN_VM_TIMEOUT)"
+    return "$rc"
+}
+
+# After run_bounded: exit as interrupted if a signal came.
+exit_if_interrupted() {
+    if [ "$INTERRUPTED" = 1 ]; then
+        log "interrupted; COMMAND stopped"
+        exit 130
+    fi
 }
 
 while [ $# -gt 0 ]; do
@@ -97,8 +136,8 @@ mkdir -p "$LANE"
 if command -v flock >/dev/null; then
     exec 9>"$LANE/lock"
     if ! flock -n 9; then
-        log "another vcan lane is running in this repository; waiting for it"
-        flock 9
+        log "another vcan lane is running in this repository; waiting for it (at most ${VM_TIMEOUT} s)"
+        flock -w "$VM_TIMEOUT" 9 || unavailable "another vcan lane held $LANE/lock for ${VM_TIMEOUT} s"
     fi
 fi
 
@@ -152,11 +191,22 @@ native_up() {
             NATIVE_WHY="$IFACE exists but is not a CAN interface"
             return 1
         fi
-        if ! err=$(ip link set up dev "$IFACE" 2>&1); then
+        # IFF_UP (bit 0 of flags): already up, which needs no privilege to use; bringing it
+        # up needs CAP_NET_ADMIN.
+        if (($(cat "/sys/class/net/$IFACE/flags") & 1)); then
+            log "native: using the existing $IFACE (up)"
+        elif ! err=$(ip link set up dev "$IFACE" 2>&1); then
             NATIVE_WHY="$IFACE exists but cannot be brought up: $err"
             return 1
+        else
+            log "native: using the existing $IFACE (brought up)"
         fi
-        log "native: using the existing $IFACE"
+        local qlen
+        qlen=$(cat "/sys/class/net/$IFACE/tx_queue_len")
+        if [ "$qlen" -lt "$TXQUEUELEN" ] &&
+            ! ip link set dev "$IFACE" txqueuelen "$TXQUEUELEN" 2>/dev/null; then
+            log "native: warning: $IFACE has txqueuelen $qlen (< $TXQUEUELEN): a burst may be dropped"
+        fi
         return 0
     fi
     if command -v modprobe >/dev/null; then
@@ -183,12 +233,10 @@ run_native() {
         apt_install can-utils || log "native: installing can-utils failed"
     fi
     cd "$ROOT"
-    set +e
-    MECANUM_VCAN_REQUIRED=1 MECANUM_VCAN_MODE=native timeout --kill-after=10 "$VM_TIMEOUT" "$@"
-    rc=$?
-    [ "$rc" = 124 ] && log "native: COMMAND did not finish within $VM_TIMEOUT s (VCAN_VM_TIMEOUT)"
-    set -e
+    rc=0
+    MECANUM_VCAN_REQUIRED=1 MECANUM_VCAN_MODE=native run_bounded 10 "$@" || rc=$?
     teardown_native
+    exit_if_interrupted
     exit "$rc"
 }
 
@@ -291,6 +339,7 @@ write_guest_env() {
     local name
     for name in $(compgen -e); do
         case $name in
+        *TOKEN* | *SECRET* | *PASSWORD* | *CREDENTIAL* | *_KEY) ;;
         PATH | HOME | USER | LOGNAME | LANG | LC_* | TZ | TMPDIR | CI | HOSTSIM | MECANUM_* | VCAN_* | \
             RUST* | CARGO* | PYTHON* | PYTEST_* | VIRTUAL_ENV)
             printf 'export %s=%q\n' "$name" "${!name}" ;;
@@ -321,17 +370,24 @@ fast_shares+=" -fsdev local,id=vcanrepo,path=$(qemu_path "$ROOT"),security_model
 fast_shares+=" -device virtio-9p-pci,fsdev=vcanrepo,mount_tag=vcanrepo"
 log "vm: booting $KERNEL (software emulation, $VM_CPUS CPUs, $VM_MEMORY; timeout ${VM_TIMEOUT}s)"
 T_BOOT=$(now)
-set +e
 # KVM stays off: in nested virtualization it may be there and still fail (QEMU aborts on an
 # MSR, or the guest hangs). stdin is /dev/null: QEMU would otherwise take over a terminal.
-# Piped, not redirected to a file: QEMU opens the guest's stdout and stderr as files of their
-# own, and two descriptions of one regular file overwrite each other's output.
-(cd "$ROOT" && PATH="$VENV/bin:$PATH" timeout -k 30 "$VM_TIMEOUT" "$VENV/bin/vng" \
+# Through a pipe (a FIFO to tee), not redirected to a file: QEMU opens the guest's stdout and
+# stderr as files of their own, and two descriptions of one regular file overwrite each
+# other's output.
+rm -f "$LANE/output.fifo"
+mkfifo "$LANE/output.fifo"
+tee "$LANE/output.log" <"$LANE/output.fifo" &
+tee_pid=$!
+cd "$ROOT"
+vng_rc=0
+PATH="$VENV/bin:$PATH" run_bounded 30 "$VENV/bin/vng" \
     --disable-kvm --run "$KERNEL" --user root --cpus "$VM_CPUS" --memory "$VM_MEMORY" \
     --rwdir="$ROOT" --append "modprobe.blacklist=$VM_MODULE_BLACKLIST clocksource=tsc tsc=reliable ${VCAN_VM_APPEND:-}" \
-    --exec "$guest_cmd" --qemu-opts="$fast_shares" </dev/null 2>&1) | tee "$LANE/output.log"
-vng_rc=${PIPESTATUS[0]}
-set -e
+    --exec "$guest_cmd" --qemu-opts="$fast_shares" </dev/null >"$LANE/output.fifo" 2>&1 || vng_rc=$?
+wait "$tee_pid" || true
+rm -f "$LANE/output.fifo"
+exit_if_interrupted
 T_END=$(now)
 
 timing=
@@ -350,7 +406,6 @@ if [ -e "$LANE/setup-failed" ]; then
     unavailable "VM: $(cat "$LANE/setup-failed")${NATIVE_WHY:+ (native: $NATIVE_WHY)}"
 fi
 if [ -e "$LANE/started" ]; then
-    [ "$vng_rc" = 124 ] && log "vm: timed out after ${VM_TIMEOUT}s (VCAN_VM_TIMEOUT)"
     log "FAIL: the command started in the VM but reported no exit code (vng exited with $vng_rc)"
     exit 1
 fi

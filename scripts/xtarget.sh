@@ -19,7 +19,8 @@ icount=1
 case "${1:-}" in
     "") ;;
     --no-icount) icount=0 ;;
-    *) echo "usage: $0 [--no-icount]" >&2; exit 2 ;;
+    -h | --help) sed -n '2,14p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    *) echo "usage: $0 [--no-icount] (see --help)" >&2; exit 2 ;;
 esac
 
 THUMB=thumbv7em-none-eabihf
@@ -116,7 +117,7 @@ if [ "$icount" = 1 ]; then
     [0-7].* | 8.0*) one_insn=(-singlestep) ;;
     *) one_insn=(-accel tcg,one-insn-per-tb=on) ;;
     esac
-    run_m4 "$icount_elf" "${one_insn[@]}" -d exec,nochain -D /dev/stdout | awk -v guest="$work/icount.txt" '
+    { run_m4 "$icount_elf" "${one_insn[@]}" -d exec,nochain -D /dev/stdout | awk -v guest="$work/icount.txt" '
         /^Trace/ {
             if (index($0, "xtarget_mark_")) {
                 tag = $NF; sub(/.*xtarget_mark_/, "", tag); sub(/17h[0-9a-f]+E$/, "", tag)
@@ -138,7 +139,8 @@ if [ "$icount" = 1 ]; then
             for (k in n)
                 printf "instructions per control step (Cortex-M4, %s, %d steps): mean %.0f, min %d, max %d\n",
                     k, n[k], sum[k] / n[k], lo[k], hi[k]
-        }' | sort
+        }' | sort; } || die "the instruction-count run failed (exit $?; QEMU_TIMEOUT is ${QEMU_TIMEOUT} s)"
+    [ -s "$work/icount.txt" ] || die "the instruction-count run printed no report"
     # The instrumented build must compute the same frames as the host up to its last step
     # (both setups: no report line would otherwise pass unchecked).
     checked=$(grep -c '^icount [a-z]* steps=' "$work/icount.txt" || true)
