@@ -6,6 +6,8 @@
 # usage: scripts/bench-sim.sh [RUNS]
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# Build outputs are read from ./target and the boards' own target/ directories.
+unset CARGO_TARGET_DIR CARGO_BUILD_TARGET
 runs=${1:-3}
 cargo build --release --locked -p hostsim --bin hostsim >&2
 bin=target/release/hostsim

@@ -15,6 +15,8 @@
 # Needs what scripts/test.sh installs (the Python .venv, the thumbv7em target, QEMU).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# Build outputs are read from ./target and the boards' own target/ directories.
+unset CARGO_TARGET_DIR CARGO_BUILD_TARGET
 
 quick=0 vcan=1
 for arg in "$@"; do

@@ -23,6 +23,8 @@ set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 fuzz="$root/fuzz"
 cd "$root"
+# Build outputs are read from ./target and fuzz/target.
+unset CARGO_TARGET_DIR CARGO_BUILD_TARGET
 
 runs=""
 seconds=""

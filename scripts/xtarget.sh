@@ -14,6 +14,8 @@
 # setup or build error.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# Build outputs are read from ./target and the boards' own target/ directories.
+unset CARGO_TARGET_DIR CARGO_BUILD_TARGET
 
 icount=1
 case "${1:-}" in
