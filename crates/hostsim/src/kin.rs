@@ -133,8 +133,9 @@ mod tests {
     }
 
     #[test]
-    fn inverse_and_forward_match_the_seed_example() {
-        // Seed 002: 0.22, 0.11 m/s, 30 mm wheels -> 3.66, 11, 11, 3.66 rad/s.
+    fn inverse_and_forward_match_the_worked_example() {
+        // The documentation page's worked example (kinematics README, References): 0.22, 0.11 m/s,
+        // 30 mm wheels -> 3.66, 11, 11, 3.66 rad/s.
         let out =
             answer(r#"{"op":"inverse","lx":0.1,"ly":0.075,"r":0.03,"vx":0.22,"vy":0.11,"wz":0}"#);
         for (k, want) in [("fl", 3.6667), ("fr", 11.0), ("rl", 11.0), ("rr", 3.6667)] {

@@ -609,7 +609,8 @@ impl Scenario {
     /// - `strafe`: 0.5 m/s to the left for 3 s, then back.
     /// - `spin`: two turns on the spot at 1.5 rad/s.
     /// - `figure-eight`: a left circle then a right circle.
-    /// - `compass`: the eight compass directions of seed 001 Table I in turn, 1.5 s each.
+    /// - `compass`: the eight compass directions of Table I of Tlale and de Villiers in
+    ///   turn, 1.5 s each.
     /// - `watchdog`: drive forward, then go silent: the firmware must stop and disable.
     ///
     /// # Errors

@@ -1,6 +1,7 @@
-//! The simulated plant against the seeds and against itself: strafe loss (seed 004), the wheel
-//! patterns of seed 001 Table I, sign conventions against the kinematics crate, energy, motor
-//! limits, the 13-bit rotor angle, the ODrive watchdog and velocity loop, determinism.
+//! The simulated plant against the references and against itself: strafe loss (as FTC mecanum
+//! tutorials report), the wheel patterns of Tlale and de Villiers, Table I, sign conventions
+//! against the kinematics crate, energy, motor limits, the 13-bit rotor angle, the ODrive watchdog
+//! and velocity loop, determinism.
 
 use core::f64::consts::{FRAC_PI_2, PI, TAU};
 
@@ -23,7 +24,7 @@ fn kin() -> MecanumKinematics<f64, 4> {
 }
 
 /// A test-local wheel velocity PI on the C620 current, run at 1 kHz on the true wheel speed:
-/// the "ideal velocity loop" the seeds' claims assume.
+/// the "ideal velocity loop" the references' claims assume.
 struct WheelPi {
     integral: [f64; WHEELS],
 }
@@ -101,7 +102,7 @@ fn strafe_reaches_70_to_80_percent_of_forward() {
         vf.vy.abs() < 1e-3 && vf.wz.abs() < 1e-3,
         "forward drifts: {vf:?}"
     );
-    // Seed 004: strafe 70-80 % of forward.
+    // FTC mecanum tutorials: strafe 70-80 % of forward.
     assert!((0.70..=0.80).contains(&ratio), "strafe/forward = {ratio}");
     assert!(
         vs.vx.abs() < 0.01 && vs.wz.abs() < 0.01,
@@ -133,7 +134,7 @@ fn strafe_ratio_holds_at_other_speeds() {
     }
 }
 
-/// Seed 001, Table I: wheel 1 = FR, 2 = FL, 3 = RL, 4 = RR; north = +x, east = −y.
+/// Tlale and de Villiers, Table I: wheel 1 = FR, 2 = FL, 3 = RL, 4 = RR; north = +x, east = −y.
 const TABLE_I: [(&str, &str, f64); 16] = [
     ("N", "++++", 0.0),
     ("N", "++00", 0.0),
@@ -164,9 +165,9 @@ fn table_i_patterns_move_in_their_compass_direction() {
     // so a pattern with two held wheels moves slower than the least-squares half speed; the
     // direction of the N/S/E/W patterns holds by the layout's mirror symmetry (within 0.5°).
     // The diagonals lose their lateral component to the roller drag exactly as a strafe
-    // does (seed 004): they travel at atan(0.75) = 36.9° off the x axis instead of 45°, so
-    // their tolerance is 10°. Heading: below 1° over the 2 s run (each pattern is symmetric
-    // under a mirror or a half-turn, so the yaw torques cancel).
+    // does (as FTC mecanum tutorials report): they travel at atan(0.75) = 36.9° off the x axis
+    // instead of 45°, so their tolerance is 10°. Heading: below 1° over the 2 s run (each pattern
+    // is symmetric under a mirror or a half-turn, so the yaw torques cancel).
     const W: f64 = 10.0;
     let mut worst = (0.0_f64, 0.0_f64);
     for (name, pattern, compass) in TABLE_I {

@@ -54,8 +54,8 @@ fn same_scenario_same_frames_and_faults_follow_the_seed() {
 fn square_closes_and_odometry_tracks_forward_motion() {
     let s = simulate(&Scenario::builtin("square").unwrap());
     assert_eq!(s.last.state, RobotState::Enabled);
-    // Back near the start: the strafe legs slip (70-80 % of commanded, seed 004) but the two
-    // strafe legs cancel.
+    // Back near the start: the strafe legs slip (70-80 % of commanded, as FTC mecanum tutorials
+    // report) but the two strafe legs cancel.
     assert!(
         s.truth[0].hypot(s.truth[1]) < 0.05,
         "truth ends at {:?}",

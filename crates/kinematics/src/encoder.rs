@@ -8,9 +8,9 @@
 //!
 //! The wheel angle per count is `2π / (counts_per_rev · gear_ratio)`, with the sign flipped for
 //! a mirrored mounting, and the speed is the angle increment over the sample interval
-//! (seed 001, eq. 2: `θ̇ = C Δm / ΔT`). The difference is unambiguous only while the counter
-//! moves less than half its range between two readings: for a 13-bit rotor angle read at
-//! 1 kHz that is 4096 counts per ms, 30,000 rpm of the rotor.
+//! (Tlale and de Villiers, eq. 2: `θ̇ = C Δm / ΔT`). The difference is unambiguous only while the
+//! counter moves less than half its range between two readings: for a 13-bit rotor angle read at 1
+//! kHz that is 4096 counts per ms, 30,000 rpm of the rotor.
 
 use crate::error::EncoderError;
 use crate::real::Real;
@@ -141,7 +141,7 @@ impl<T: Real> Encoder<T> {
         T::lit(c) * self.radians_per_count
     }
 
-    /// Wheel speed from a count increment over `dt` seconds, rad/s (seed 001, eq. 2).
+    /// Wheel speed from a count increment over `dt` seconds, rad/s (Tlale and de Villiers, eq. 2).
     #[must_use]
     #[inline]
     pub fn speed(&self, counts: i64, dt: T) -> T {

@@ -24,7 +24,7 @@ pub enum GeometryError {
         radius: f64,
     },
     /// A roller axis is parallel to the wheel axle (`sin δ = 0`): the wheel cannot drive the
-    /// chassis at all (seed 001, eq. 3: effectiveness `sin δ`).
+    /// chassis at all (Tlale and de Villiers, eq. 3: effectiveness `sin δ`).
     RollerParallelToAxle {
         /// Index of the wheel.
         wheel: usize,
@@ -33,7 +33,7 @@ pub enum GeometryError {
     },
     /// The wheel map has rank < 3, or so nearly that the float type cannot invert it
     /// reliably: some body motion is (almost) invisible to the wheels and forward kinematics
-    /// is not unique. The roller axes are concurrent or all parallel (seed 000, Theorem 2), or
+    /// is not unique. The roller axes are concurrent or all parallel (Gfrerrer 2008, Theorem 2), or
     /// close to it. `condition` is the (dimensionless) condition number found, possibly
     /// infinite; the limit is
     /// [`MecanumKinematics::max_condition_number`](crate::MecanumKinematics::max_condition_number)

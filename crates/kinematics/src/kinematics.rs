@@ -3,7 +3,7 @@
 //! A mecanum wheel can only push the chassis along the axis of the roller touching the ground;
 //! motion along the roller is free. Wheel `i`, centred at `(a_x, a_y)` in the body frame, with
 //! its axle at angle `α` from the body x axis, rollers at angle `δ` to the axle and radius `r`,
-//! must turn at (seed 000, eq. 16)
+//! must turn at (Gfrerrer 2008, eq. 16)
 //!
 //! ```text
 //! w_i = -1 / (r sin δ) · [cos(α+δ) vx + sin(α+δ) vy + (a_x sin(α+δ) - a_y cos(α+δ)) wz]
@@ -12,7 +12,7 @@
 //! for the body to move with twist `(vx, vy, wz)`. Stacking one row per wheel gives the
 //! inverse map `J` (N × 3). Row `i` is, up to scale, the Plücker coordinates of the line of
 //! the roller axis in the ground plane, so `J` has rank 3 unless all roller axes meet in one
-//! point or are all parallel (seed 000, Theorem 2). Such layouts are refused at construction.
+//! point or are all parallel (Gfrerrer 2008, Theorem 2). Such layouts are refused at construction.
 //!
 //! With more than three wheels the forward map is over-determined: the crate uses the
 //! least-squares inverse `J⁺ = (JᵀJ)⁻¹Jᵀ`, computed once at construction. What it cannot
@@ -64,7 +64,7 @@ impl<T: Real> WheelGeometry<T> {
         }
     }
 
-    /// This wheel's row of the inverse map (seed 000, eq. 16), or why it has none.
+    /// This wheel's row of the inverse map (Gfrerrer 2008, eq. 16), or why it has none.
     ///
     /// The trigonometry is done in `T` (libm), the products and the quotient in `f64`, so the
     /// row is rounded to `T` once, in [`MecanumKinematics::new`], where an overflow or
@@ -120,7 +120,7 @@ pub struct MecanumKinematics<T: Real, const N: usize> {
 }
 
 impl<T: Real, const N: usize> MecanumKinematics<T, N> {
-    /// The kinematics of a general layout, one [`WheelGeometry`] per wheel (seed 000, eq. 16).
+    /// The kinematics of a general layout, one [`WheelGeometry`] per wheel (Gfrerrer 2008, eq. 16).
     ///
     /// # Errors
     /// [`GeometryError`] for a non-finite parameter, a non-positive radius, a roller within
@@ -352,8 +352,8 @@ impl<T: Real, const N: usize> MecanumKinematics<T, N> {
 }
 
 impl<T: Real> MecanumKinematics<T, 4> {
-    /// The standard four-wheel layout (seed 002): wheels at `(±lx, ±ly)` in the order FL, FR,
-    /// RL, RR, radius `r`, 45° rollers pointing to the centre seen from above.
+    /// The standard four-wheel layout (the usual matrix form): wheels at `(±lx, ±ly)` in the order
+    /// FL, FR, RL, RR, radius `r`, 45° rollers pointing to the centre seen from above.
     ///
     /// ```text
     /// FL = (vx - vy - (lx+ly) wz) / r      FR = (vx + vy + (lx+ly) wz) / r

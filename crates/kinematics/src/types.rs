@@ -120,8 +120,8 @@ impl<T: Real, const N: usize> WheelSpeeds<T, N> {
     /// Scales all wheels by one factor so that none exceeds `max_speed` in magnitude.
     ///
     /// One common factor keeps the ratios between the wheels, so the direction of travel and
-    /// the centre of rotation are kept; only the overall speed drops (seed 004, "power
-    /// normalisation"). Wheels already within the limit are returned unchanged.
+    /// the centre of rotation are kept; only the overall speed drops (as FTC mecanum tutorials do,
+    /// "power normalisation"). Wheels already within the limit are returned unchanged.
     ///
     /// The limit holds for every output, always: the factor `max_speed / peak` is rounded,
     /// so each scaled wheel is also limited to `[-max_speed, max_speed]` (which moves the

@@ -5,7 +5,7 @@
 //! The body has mass `m` and yaw inertia `I`, a world pose `(x, y, θ)` and a body-frame
 //! velocity `v = (vx, vy)`, `ω = wz` (x forward, y left, yaw counter-clockwise). Wheel `i`
 //! sits at `a_i` in the body frame with the geometry of [`WheelGeometry`]: axle angle `α`,
-//! roller angle `δ`, radius `r` (seed 000, the same parameters the kinematics crate uses).
+//! roller angle `δ`, radius `r` (Gfrerrer 2008, the same parameters the kinematics crate uses).
 //! Each wheel spins at `ω_i` (positive rolls the robot forward) with spin inertia `J_i` as
 //! seen at the wheel.
 //!
@@ -22,7 +22,7 @@
 //! roller spin speed      s_f  = s·e_f = v_c·e_f + r ω_i cos δ       (d·e_f = −cos δ)
 //! ```
 //!
-//! `s_a = 0` is exactly the wheel's row of the inverse kinematics (seed 000, eq. 16), so a
+//! `s_a = 0` is exactly the wheel's row of the inverse kinematics (Gfrerrer 2008, eq. 16), so a
 //! chassis whose wheels turn at `MecanumKinematics::inverse(v)` moves at `v` without slip.
 //!
 //! **Contact force** (on the chassis, from the ground): anisotropic Coulomb friction with a
@@ -81,7 +81,7 @@
 //! velocities. The step is at most [`ChassisParams::max_substep`] (1 ms by default: one step
 //! per control period, so a 60 s run costs 60,000 steps).
 
-//! # Why strafing is slower than driving forward (seed 004)
+//! # Why strafing is slower than driving forward
 //!
 //! Driving straight, every contact velocity is along `d`, so `s_f = 0`: the rollers do not
 //! spin and nothing but the axial traction acts. Strafing (or rotating), the rollers must
@@ -95,22 +95,22 @@
 //! ```
 //!
 //! independent of speed, μ and s0. The default `ε = 1/7` puts a pure strafe at 75 % of
-//! forward speed, the middle of the 70-80 % that seed 004 reports. The price is real: at
-//! 1 m/s commanded the contacts slide at about 0.18 m/s along the roller axes and the wheels
-//! carry a steady torque (about 10 A per M3508 on the default 20 kg chassis), which shows up
-//! as motor current. Diagonal motion loses its lateral part the same way: wheel patterns
-//! that ask for 45° travel at `atan(0.75)` ≈ 36.9° from the x axis.
+//! forward speed, the middle of the 70-80 % that FTC mecanum tutorials report. The price is
+//! real: at 1 m/s commanded the contacts slide at about 0.18 m/s along the roller axes and the
+//! wheels carry a steady torque (about 10 A per M3508 on the default 20 kg chassis), which shows up
+//! as motor current. Diagonal motion loses its lateral part the same way: wheel patterns that ask
+//! for 45° travel at `atan(0.75)` ≈ 36.9° from the x axis.
 //!
 //! Why one friction ellipse and not a separate roller resistance: with the traction saturated
 //! at `μN` and a Coulomb roller friction `μ_r N`, the balance fixes the *slip*, not the
 //! ratio (tuned to 75 % at 1 m/s, a strafe falls the same 0.25 m/s short at any speed: 17 %
 //! of the command at 0.3 m/s, 88 % at 2 m/s);
 //! with a viscous one `c_r s_f` the drag grows past `μN` and a fast strafe stalls. Weighting
-//! the slip keeps seed 004's ratio at every speed. Its limit: a roller spun much faster than
+//! the slip keeps the tutorial's ratio at every speed. Its limit: a roller spun much faster than
 //! `s0/ε` (0.35 m/s) along its free direction by a wheel that is *held* still drags with
 //! nearly the full `μN`, more than a real free roller would.
 //!
-//! # Contact-point ripple (seed 000, eq. 10 and 11)
+//! # Contact-point ripple (Gfrerrer 2008, eq. 10 and 11)
 //!
 //! A real mecanum wheel touches the ground with one of its `k` rollers at a time, and the
 //! contact point is not under the wheel centre: with `u` the wheel's rotation angle measured
@@ -143,7 +143,7 @@ use super::error::{ParamError, finite, non_negative, positive};
 /// Standard gravity, m/s².
 pub const STANDARD_GRAVITY: f64 = 9.806_65;
 
-/// Contact-point ripple after seed 000, eq. 10-11 (see the [module docs](self)).
+/// Contact-point ripple after Gfrerrer 2008, eq. 10-11 (see the [module docs](self)).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Ripple {
     /// Number of rollers `k` per wheel (≥ 3; 8-12 is common).
@@ -207,7 +207,7 @@ pub struct ChassisParams {
     /// sliding along its axis (0 = ideal free rollers). Pure strafe settles at
     /// `(1 − ε)/(1 + ε)` of the commanded speed.
     pub roller_drag: f64,
-    /// Contact-point ripple (seed 000, eq. 11); `None` (default) for the contact under the
+    /// Contact-point ripple (Gfrerrer 2008, eq. 11); `None` (default) for the contact under the
     /// wheel centre.
     pub ripple: Option<Ripple>,
     /// Largest integration step, s (1 ms by default; the implicit contact is stable at any

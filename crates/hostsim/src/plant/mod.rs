@@ -8,7 +8,8 @@
 //! ([`DjiFeedback::to_firmware`], [`OdriveFeedback::to_firmware`]).
 //!
 //! - [`chassis`]: the rigid body on mecanum rollers, friction-limited slip, the physics of
-//!   slower strafing (seed 004) and the contact-point ripple (seed 000, eq. 11).
+//!   slower strafing (as FTC mecanum tutorials report) and the contact-point ripple (Gfrerrer 2008,
+//!   eq. 11).
 //! - [`dji`]: C620 ESC + M3508 gear motor (current in, 1 kHz feedback with a 13-bit rotor
 //!   angle).
 //! - [`odrive`]: an ODrive axis (velocity loop, watchdog, 10 ms encoder estimates, 100 ms

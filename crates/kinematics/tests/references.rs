@@ -1,9 +1,10 @@
-//! The seed documents' worked examples, as test vectors.
+//! The references' worked examples (crates/kinematics/README.md, "References"), as test vectors.
 
 use kinematics::{ChassisVelocity, MecanumKinematics, Real, WheelSpeeds};
 
-/// Seed 002: a 15 cm x 20 cm robot with 60 mm wheels at its corners, vx = 0.22, vy = 0.11.
-fn seed_002<T: Real + core::fmt::Debug>() {
+/// A documentation page's worked example: a 15 cm x 20 cm robot with 60 mm wheels at its corners,
+/// vx = 0.22, vy = 0.11.
+fn doc_page_worked_example<T: Real + core::fmt::Debug>() {
     // Wheels at the extremities: lx = 0.20 / 2, ly = 0.15 / 2, r = 0.060 / 2.
     let kin =
         MecanumKinematics::<T, 4>::standard(T::lit(0.10), T::lit(0.075), T::lit(0.03)).unwrap();
@@ -16,7 +17,7 @@ fn seed_002<T: Real + core::fmt::Debug>() {
     ] {
         assert!(
             (got.to_f64() - want).abs() < 0.01,
-            "{name}: {got:?} rad/s, seed says {want}"
+            "{name}: {got:?} rad/s, the reference says {want}"
         );
     }
     // And its forward equations bring the twist back.
@@ -26,19 +27,19 @@ fn seed_002<T: Real + core::fmt::Debug>() {
 }
 
 #[test]
-fn seed_002_worked_example_f64() {
-    seed_002::<f64>();
+fn doc_page_worked_example_f64() {
+    doc_page_worked_example::<f64>();
 }
 
 #[test]
-fn seed_002_worked_example_f32() {
-    seed_002::<f32>();
+fn doc_page_worked_example_f32() {
+    doc_page_worked_example::<f32>();
 }
 
-/// Seed 003, eq. 8: the same map written with L1 + L2 for lx + ly, wheels 1-4 = FL, FR, RL,
+/// The vendor page, eq. 8: the same map written with L1 + L2 for lx + ly, wheels 1-4 = FL, FR, RL,
 /// RR, and its y axis pointing right (its eq. 7 for wheel 1 has +vy where ours has -vy).
 #[test]
-fn seed_003_eq_8() {
+fn vendor_page_eq_8() {
     let (l1, l2, big_r) = (0.3, 0.2, 0.1);
     let kin = MecanumKinematics::<f64, 4>::standard(l1, l2, big_r).unwrap();
     let m = [
@@ -66,7 +67,7 @@ fn seed_003_eq_8() {
     }
 }
 
-/// Seed 004: forward 0.6, strafe 0.4, rotation 0.3 give raw powers -0.1, 1.3, 0.7, 0.5;
+/// The FTC tutorial: forward 0.6, strafe 0.4, rotation 0.3 give raw powers -0.1, 1.3, 0.7, 0.5;
 /// normalising by the largest keeps the ratios: -0.077, 1.0, 0.538, 0.385.
 ///
 /// The seed's rows (FL = forward - strafe - rotation, ...) are exactly our standard rows with
@@ -74,7 +75,7 @@ fn seed_003_eq_8() {
 /// its prose calls them right-positive and clockwise, but with rollers pointing to the centre
 /// (the layout it draws) strafing right turns FL forward, which its FL row only does for
 /// left-positive strafe. The numbers are what the test checks.
-fn seed_004<T: Real + core::fmt::Debug>() {
+fn ftc_normalisation<T: Real + core::fmt::Debug>() {
     let kin = MecanumKinematics::<T, 4>::standard(T::lit(0.5), T::lit(0.5), T::one()).unwrap();
     let raw = kin.inverse(ChassisVelocity::new(T::lit(0.6), T::lit(0.4), T::lit(0.3)));
     let want_raw = [-0.1, 1.3, 0.7, 0.5];
@@ -87,7 +88,7 @@ fn seed_004<T: Real + core::fmt::Debug>() {
         let got = norm.0[i].to_f64();
         assert!(
             (got - want[i]).abs() < 0.001,
-            "{name}: {got}, seed says {}",
+            "{name}: {got}, the reference says {}",
             want[i]
         );
     }
@@ -97,19 +98,19 @@ fn seed_004<T: Real + core::fmt::Debug>() {
 }
 
 #[test]
-fn seed_004_normalisation_f64() {
-    seed_004::<f64>();
+fn ftc_normalisation_f64() {
+    ftc_normalisation::<f64>();
 }
 
 #[test]
-fn seed_004_normalisation_f32() {
-    seed_004::<f32>();
+fn ftc_normalisation_f32() {
+    ftc_normalisation::<f32>();
 }
 
-/// Seed 001, Table I: wheel sign patterns for the eight compass directions. The table numbers
-/// the wheels 1 = FR, 2 = FL, 3 = RL, 4 = RR. North is forward (+x), west is left (+y).
+/// Tlale and de Villiers, Table I: wheel sign patterns for the eight compass directions. The table
+/// numbers the wheels 1 = FR, 2 = FL, 3 = RL, 4 = RR. North is forward (+x), west is left (+y).
 #[test]
-fn seed_001_table_i_compass_directions() {
+fn tlale_de_villiers_table_i_compass_directions() {
     let s = core::f64::consts::FRAC_1_SQRT_2;
     #[rustfmt::skip]
     let table: [(&str, [i8; 4], (f64, f64)); 16] = [
