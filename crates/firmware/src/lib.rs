@@ -1,5 +1,5 @@
-//! Firmware core of the mecanum drive: the CAN codecs the control loop, the Linux runner and
-//! the simulator share.
+//! Firmware core of the mecanum drive: the CAN codecs and the control loop that the MCU
+//! boards, the Linux runner and the simulator share.
 //!
 //! This crate is `no_std`, allocation-free and free of `unsafe`; it builds for
 //! `thumbv7em-none-eabihf`. It talks three CAN protocols, each in its own module under

@@ -8,8 +8,8 @@
 //! Wheel speeds in rad/s (FL, FR, RL, RR), body twist in m/s and rad/s (x forward, y left,
 //! counter-clockwise), standard layout with the wheel contacts at `(±lx, ±ly)` metres from the
 //! centre (half the wheelbase, half the track; both > 0) and wheel radius `r` metres (> 0). A
-//! line that cannot be answered (not JSON, not UTF-8, a missing or bad field, a result too
-//! large to be finite) gives `{"error":"..."}` naming the field and the value, and the next
+//! line that cannot be answered (not JSON, not UTF-8, a missing, bad or unknown field, a
+//! result too large to be finite) gives `{"error":"..."}` naming the field and the value, and the next
 //! line is read as usual. Blank lines are skipped, without an answer.
 
 use std::io::{BufRead, Write};
@@ -70,35 +70,44 @@ fn compute(line: &str) -> Result<Value, String> {
         .get("op")
         .and_then(Value::as_str)
         .ok_or_else(|| "missing field \"op\" (\"inverse\" or \"forward\")".to_string())?;
+    let (inverse, fields): (bool, &[&str]) = match op {
+        "inverse" => (true, &["op", "lx", "ly", "r", "vx", "vy", "wz"]),
+        "forward" => (false, &["op", "lx", "ly", "r", "fl", "fr", "rl", "rr"]),
+        other => {
+            return Err(format!(
+                "unknown op {other:?}: expected \"inverse\" or \"forward\""
+            ));
+        }
+    };
+    // A field the op does not take is a mistake (a typo, or a forward input sent as inverse).
+    if let Some(key) = obj.keys().find(|k| !fields.contains(&k.as_str())) {
+        return Err(format!(
+            "unknown field {key:?} for op {op:?}: it takes {}",
+            fields.join(", ")
+        ));
+    }
     let lx = positive(obj, "lx", "centre to wheel along x, m")?;
     let ly = positive(obj, "ly", "centre to wheel along y, m")?;
     let r = positive(obj, "r", "wheel radius, m")?;
     let kin = MecanumKinematics::<f64, 4>::standard(lx, ly, r).map_err(|e| e.to_string())?;
-    match op {
-        "inverse" => {
-            let v =
-                ChassisVelocity::new(number(obj, "vx")?, number(obj, "vy")?, number(obj, "wz")?);
-            let w = kin.inverse(v);
-            finite_object(&[
-                ("fl", w.fl()),
-                ("fr", w.fr()),
-                ("rl", w.rl()),
-                ("rr", w.rr()),
-            ])
-        }
-        "forward" => {
-            let w = WheelSpeeds::new(
-                number(obj, "fl")?,
-                number(obj, "fr")?,
-                number(obj, "rl")?,
-                number(obj, "rr")?,
-            );
-            let v = kin.forward(&w);
-            finite_object(&[("vx", v.vx), ("vy", v.vy), ("wz", v.wz)])
-        }
-        other => Err(format!(
-            "unknown op {other:?}: expected \"inverse\" or \"forward\""
-        )),
+    if inverse {
+        let v = ChassisVelocity::new(number(obj, "vx")?, number(obj, "vy")?, number(obj, "wz")?);
+        let w = kin.inverse(v);
+        finite_object(&[
+            ("fl", w.fl()),
+            ("fr", w.fr()),
+            ("rl", w.rl()),
+            ("rr", w.rr()),
+        ])
+    } else {
+        let w = WheelSpeeds::new(
+            number(obj, "fl")?,
+            number(obj, "fr")?,
+            number(obj, "rl")?,
+            number(obj, "rr")?,
+        );
+        let v = kin.forward(&w);
+        finite_object(&[("vx", v.vx), ("vy", v.vy), ("wz", v.wz)])
     }
 }
 
@@ -157,11 +166,12 @@ mod tests {
                      {\"op\":\"inverse\",\"lx\":0.2,\"ly\":0.15,\"r\":-1,\"vx\":1,\"vy\":0,\"wz\":0}\n\
                      {\"op\":\"forward\",\"lx\":0.2,\"ly\":0.15,\"r\":0.05,\"fl\":1,\"fr\":\"x\",\"rl\":1,\"rr\":1}\n\
                      {\"op\":\"sideways\",\"lx\":0.2,\"ly\":0.15,\"r\":0.05}\n\
+                     {\"op\":\"forward\",\"lx\":0.2,\"ly\":0.15,\"r\":0.05,\"fl\":1,\"fr\":1,\"rl\":1,\"rr\":1,\"vx\":1}\n\
                      {\"op\":\"forward\",\"lx\":0.2,\"ly\":0.15,\"r\":0.05,\"fl\":20,\"fr\":20,\"rl\":20,\"rr\":20}\n";
         let mut out = Vec::new();
         run(input.as_bytes(), &mut out).unwrap();
         let lines: Vec<&str> = std::str::from_utf8(&out).unwrap().lines().collect();
-        assert_eq!(lines.len(), 6, "{lines:?}");
+        assert_eq!(lines.len(), 7, "{lines:?}");
         assert!((field(lines[0], "fl") - 20.0).abs() < 1e-12);
         assert!(lines[1].contains("\"error\"") && lines[1].contains("not JSON"));
         assert!(
@@ -171,7 +181,12 @@ mod tests {
         );
         assert!(lines[3].contains("\\\"fr\\\""), "{}", lines[3]);
         assert!(lines[4].contains("sideways"), "{}", lines[4]);
-        assert!((field(lines[5], "vx") - 1.0).abs() < 1e-12);
+        assert!(
+            lines[5].contains("unknown field \\\"vx\\\" for op \\\"forward\\\""),
+            "{}",
+            lines[5]
+        );
+        assert!((field(lines[6], "vx") - 1.0).abs() < 1e-12);
     }
 
     #[test]

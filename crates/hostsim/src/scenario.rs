@@ -7,7 +7,10 @@
 //! the host streams `TWIST_CMD` frames at `command_hz`, as a teleoperation or navigation
 //! stack would.
 //!
-//! Scenarios are written in TOML or taken from the built-ins ([`Scenario::builtin`]):
+//! Scenarios are written in TOML or taken from the built-ins ([`Scenario::builtin`]). This
+//! one drives forward, loses a fifth of the host's frames for half a second (the watchdog
+//! rides it out), then goes silent, and the watchdog stops the robot (a test runs it as
+//! written):
 //!
 //! ```toml
 //! name = "forward and stop"
@@ -34,7 +37,7 @@
 //! from_s = 1.0
 //! until_s = 1.5
 //! rate = 0.2                # drop, corrupt
-//! sender = "drives"         # optional: controller | drives | host
+//! sender = "host"           # optional: controller | drives | host
 //! ```
 
 use std::path::{Path, PathBuf};
@@ -525,7 +528,7 @@ impl Scenario {
                 Some(r) if (0.0..=1.0).contains(&r) => Ok(r),
                 other => Err(invalid(
                     &format!("faults[{i}].rate"),
-                    format!("{other:?}"),
+                    given(other),
                     "a probability in 0..=1",
                 )),
             };
@@ -542,7 +545,7 @@ impl Scenario {
                     other => {
                         return Err(invalid(
                             &format!("faults[{i}].delay_ms"),
-                            format!("{other:?}"),
+                            given(other),
                             "a delay in 0..=10000 ms",
                         ));
                     }
@@ -576,7 +579,7 @@ impl Scenario {
                     other => {
                         return Err(invalid(
                             &format!("faults[{i}].wheel"),
-                            format!("{other:?}"),
+                            given(other),
                             "a wheel index 0..=3 (FL, FR, RL, RR)",
                         ));
                     }
@@ -695,6 +698,11 @@ impl Scenario {
     }
 }
 
+/// A field's value for an error message: as written, or `(missing)`.
+fn given<T: std::fmt::Display>(value: Option<T>) -> String {
+    value.map_or_else(|| "(missing)".to_owned(), |v| v.to_string())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -760,11 +768,19 @@ mod tests {
             ("name = \" \"\nduration_s = 1.0", "name = \" \": a name"),
             (
                 "duration_s = 1.0\n[[faults]]\nkind = \"drop\"\nfrom_s = 0.0\nuntil_s = 1.0",
-                "rate",
+                "faults[0].rate = (missing): a probability",
+            ),
+            (
+                "duration_s = 1.0\n[[faults]]\nkind = \"corrupt\"\nrate = 2.0\nfrom_s = 0.0\nuntil_s = 1.0",
+                "faults[0].rate = 2: a probability",
             ),
             (
                 "duration_s = 1.0\n[[faults]]\nkind = \"motor_offline\"\nwheel = 4\nfrom_s = 0.0\nuntil_s = 1.0",
-                "wheel",
+                "faults[0].wheel = 4: a wheel index",
+            ),
+            (
+                "duration_s = 1.0\n[[faults]]\nkind = \"delay\"\ndelay_ms = -5.0\nfrom_s = 0.0\nuntil_s = 1.0",
+                "faults[0].delay_ms = -5: a delay",
             ),
             (
                 "duration_s = 1.0\n[[faults]]\nkind = \"burst\"\nfrom_s = 2.0\nuntil_s = 1.0",

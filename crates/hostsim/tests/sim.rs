@@ -436,3 +436,47 @@ fn a_command_acts_on_the_drives_when_it_arrives() {
         }
     }
 }
+
+#[test]
+fn the_scenario_module_example_does_what_its_comments_say() {
+    // The TOML block of `hostsim::scenario`'s documentation, as written there.
+    let source = include_str!("../src/scenario.rs");
+    let text: String = source
+        .lines()
+        .skip_while(|l| *l != "//! ```toml")
+        .skip(1)
+        .take_while(|l| *l != "//! ```")
+        .map(|l| format!("{}\n", l.trim_start_matches("//!").trim_start()))
+        .collect();
+    assert!(text.contains("silence = true"), "{text}");
+    let text = text.replace(
+        r#"config = "config/dji_m3508.toml""#,
+        r#"config = "../../config/dji_m3508.toml""#,
+    );
+    let s = Scenario::from_toml(
+        &text,
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("x.toml")
+            .as_path(),
+    )
+    .unwrap();
+    let r = simulate(&s);
+    // The drop window lost host frames, and the watchdog rode it out: the only stop is
+    // the silence's, a watchdog timeout after 2.0 s.
+    assert!(r.bus.dropped > 0, "{:?}", r.bus);
+    let stops: Vec<_> = r
+        .transitions
+        .iter()
+        .filter(|(_, _, fault)| fault != "None")
+        .collect();
+    assert!(!stops.is_empty(), "{:?}", r.transitions);
+    for (t, state, fault) in &stops {
+        assert!(
+            *t > 2.0 && *t < 2.3,
+            "{t} s: {state} {fault}; {:?}",
+            r.transitions
+        );
+        assert_eq!(fault, "Watchdog", "{t} s: {state}");
+    }
+    assert_eq!(r.last.fault, Fault::Watchdog);
+}

@@ -59,7 +59,10 @@ fn main() -> ExitCode {
             "--dji-model" => match it.next().map(String::as_str) {
                 Some("c620") => model = EscModel::C620,
                 Some("c610") => model = EscModel::C610,
-                other => return usage(&format!("--dji-model takes c620 or c610, got {other:?}")),
+                Some(other) => {
+                    return usage(&format!("--dji-model takes c620 or c610, got {other:?}"));
+                }
+                None => return usage("--dji-model takes c620 or c610, got nothing"),
             },
             "decode" | "golden" if command.is_none() => command = Some(arg.clone()),
             other => return usage(&format!("unexpected argument {other:?}")),
