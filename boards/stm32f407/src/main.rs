@@ -5,7 +5,7 @@
 //! ```text
 //! CAN1 RX FIFO 0 ──(RX0 interrupt wakes the task)──► on_frame(arrival time, frame)
 //! TIM2 (embassy-time, 1 MHz) ──(1 kHz Ticker)──► drain FIFO 0 ─► step(now) ─► outbox
-//! outbox ─► TX queue (24 frames) ──(TX interrupt)──► 3 TX mailboxes (FIFO order) ─► CAN1
+//! outbox ─► TX queue (28 frames) ──(TX interrupt)──► 3 TX mailboxes (FIFO order) ─► CAN1
 //! ```
 //!
 //! See the README for the pins, clocks, bounds and how to flash it.
@@ -207,7 +207,7 @@ fn report(ctl: &Controller, c: &Counters) {
     info!(
         // State and fault as their protocol codes (dbc/, STATUS frame); the legend costs no
         // flash, defmt keeps format strings on the host.
-        "steps {} state {=u8} (0 disabled 1 enabled 2 fault 3 e-stop) fault {=u8} (0 none 1 motor stale 2 motor missing 3 drive error 4 watchdog) motors {=u8:04b} | rx {} rejected {} overruns {} bus errors {} | tx {} dropped {}",
+        "steps {} state {=u8} (0 disabled 1 enabled 2 fault 3 e-stop) fault {=u8} (0 none 1 motor stale 2 motor missing 3 drive error 4 watchdog 5 config 6 encoder stuck) motors {=u8:04b} | rx {} rejected {} overruns {} bus errors {} | tx {} dropped {}",
         s.steps,
         s.state as u8,
         s.fault as u8,
