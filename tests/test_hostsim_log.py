@@ -146,6 +146,9 @@ def test_replay_of_the_log_is_bit_identical(hostsim_bin, circle_run) -> None:
 def test_kin_calculator_answers_each_line(hostsim_bin) -> None:
     lines = [
         {"op": "inverse", "lx": 0.1, "ly": 0.075, "r": 0.03, "vx": 0.22, "vy": 0.11, "wz": 0},
+        # With rotation, k = lx + ly: FL (vx - vy - k wz) / r, FR (vx + vy + k wz) / r,
+        # RL (vx + vy - k wz) / r, RR (vx - vy + k wz) / r.
+        {"op": "inverse", "lx": 0.1, "ly": 0.075, "r": 0.03, "vx": 0.22, "vy": 0.11, "wz": 0.4},
         "garbage",
         {"op": "forward", "lx": 0.2, "ly": 0.15, "r": 0.05, "fl": 20, "fr": 20, "rl": 20, "rr": 20},
     ]
@@ -153,10 +156,12 @@ def test_kin_calculator_answers_each_line(hostsim_bin) -> None:
     proc = run_hostsim(hostsim_bin, "kin", stdin=stdin)
     assert proc.returncode == 0, proc.stderr
     out = [json.loads(line) for line in proc.stdout.splitlines()]
-    assert len(out) == 3
-    assert out[0]["fl"] == pytest.approx(3.66, abs=0.01) and out[0]["fr"] == pytest.approx(11.0, abs=0.01)
-    assert "error" in out[1]
-    assert out[2] == pytest.approx({"vx": 1.0, "vy": 0.0, "wz": 0.0}, abs=1e-12)
+    assert len(out) == 4
+    # The documentation page's worked example (crates/kinematics/README.md, References).
+    assert out[0] == pytest.approx({"fl": 11 / 3, "fr": 11.0, "rl": 11.0, "rr": 11 / 3}, abs=1e-9)
+    assert out[1] == pytest.approx({"fl": 4 / 3, "fr": 40 / 3, "rl": 26 / 3, "rr": 6.0}, abs=1e-9)
+    assert "error" in out[2]
+    assert out[3] == pytest.approx({"vx": 1.0, "vy": 0.0, "wz": 0.0}, abs=1e-12)
 
 
 def test_bad_inputs_give_clear_errors(hostsim_bin, tmp_path) -> None:

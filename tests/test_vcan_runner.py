@@ -335,7 +335,10 @@ def test_estop_stops_at_once_and_latches(stops: Robot) -> None:
     twists = stops.of(TWIST_CMD, zero, reset)
     assert len(twists) >= 10, len(twists)
     assert stops.of(0x302, zero, reset), "the enable in e-stop was not sent"
-    for t, status in stops.decoded(STATUS, zero + 0.01, reset):
+    statuses = stops.decoded(STATUS, zero + 0.01, reset)
+    # STATUS at 10 Hz from the steps that run (MIN_STEP_RATIO): the check looked at some.
+    assert len(statuses) >= max(1, int(MIN_STEP_RATIO * 10 * (reset - zero))), statuses
+    for t, status in statuses:
         assert status["state"] == STATE_ESTOP, (t, status)
     # Reset, enable and twist: it drives again.
     enable = _next_mode(stops, reset, MODE_ENABLE)
@@ -407,7 +410,9 @@ def test_malformed_frames_are_counted_exactly(malformed: Robot) -> None:
 
 def test_malformed_flood_is_ignored_and_the_rate_kept(malformed: Robot) -> None:
     t0, t1 = malformed.marks["flood"], malformed.marks["flood_end"]
-    for t, status in malformed.decoded(STATUS, t0, t1 + 0.5):
+    statuses = malformed.decoded(STATUS, t0, t1 + 0.5)
+    assert len(statuses) >= max(1, int(MIN_STEP_RATIO * 10 * (t1 + 0.5 - t0))), statuses
+    for t, status in statuses:
         assert (status["state"], status["fault"]) == (STATE_ENABLED, FAULT_NONE), (t, status)
     # The control rate: one motor command per 1 ms period, during the flood as before it.
     during = len(malformed.of(DJI_CMD_1_4, t0, t1)) / (t1 - t0)
@@ -467,16 +472,20 @@ def test_odrive_non_finite_estimates_are_counted_and_ignored(odrive: Robot) -> N
     assert counted["non_finite"] == NON_FINITE, counted
     assert sum(counted.values()) == NON_FINITE, counted
     t0, t1 = odrive.marks["nan"], odrive.marks["end"]
-    for t, status in odrive.decoded(STATUS, t0, t1):
+    statuses = odrive.decoded(STATUS, t0, t1)
+    assert len(statuses) >= max(1, int(MIN_STEP_RATIO * 10 * (t1 - t0))), statuses
+    for t, status in statuses:
         assert (status["state"], status["fault"]) == (STATE_ENABLED, FAULT_NONE), (t, status)
     vel = odrive.decoded(ODOM_VELOCITY, t0, t1)
     got = (mean(v["vx"] for _, v in vel), mean(v["wz"] for _, v in vel))
     print(f"ODrive odometry during the injection: vx {got[0]:.4f} m/s, wz {got[1]:.4f} rad/s")
     assert abs(got[0] - 0.3) <= VEL_TOL and abs(got[1] - 0.4) <= WZ_TOL, got
-    # The ODrive side of the protocol: velocity setpoints (Set_Input_Vel, 0x0D) at 200 Hz,
-    # sent by the steps that run (MIN_STEP_RATIO; one CI run in the emulated machine made 28 %).
-    setpoints = odrive.of(0x0D, t0, t1)
-    assert len(setpoints) >= MIN_STEP_RATIO * 200 * (t1 - t0), len(setpoints)
+    # The ODrive side of the protocol: velocity setpoints (Set_Input_Vel, node << 5 | 0x0D) at
+    # 200 Hz to every node, the two whose estimates were non-finite included, sent by the
+    # steps that run (MIN_STEP_RATIO; one CI run in the emulated machine made 28 %).
+    for node in range(4):
+        setpoints = odrive.of(node << 5 | 0x0D, t0, t1)
+        assert len(setpoints) >= MIN_STEP_RATIO * 200 * (t1 - t0), (node, len(setpoints))
 
 
 # --- a candump session, replayed ----------------------------------------------------------
@@ -645,8 +654,9 @@ def test_rate_8000_frames_per_second_for_30_s_without_loss(
         text=True,
     )
     try:
-        time.sleep(1.0)
-        assert runner.poll() is None, runner.communicate()[1]
+        # The runner prints this line once its socket is bound: frames sent before would be lost.
+        ready = runner.stderr.readline()
+        assert "stop with Ctrl-C" in ready, ready + runner.communicate(timeout=10)[1]
         # BURST frames every 1 ms: 10,000/s nominal natively. The emulated machine's sleeps
         # overshoot by about a millisecond, so there the bursts are bigger. (The rate is
         # measured either way.)
@@ -667,7 +677,11 @@ def test_rate_8000_frames_per_second_for_30_s_without_loss(
         time.sleep(0.5)
     finally:
         runner.send_signal(signal.SIGINT)
-        _, err = runner.communicate(timeout=60)
+        try:
+            _, err = runner.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            runner.kill()  # not left on vcan0 for the tests that follow
+            _, err = runner.communicate()
     assert runner.returncode == 0, err
     stats = json.loads(stats_path.read_text())
     rate = count / elapsed
@@ -681,4 +695,5 @@ def test_rate_8000_frames_per_second_for_30_s_without_loss(
     assert stats["controller"]["rx_errors"]["unknown_id"] == count
     assert stats["rx_errors"] == 0
     assert rate >= RATE_TARGET, f"only {rate:.0f} frames/s offered"
-    assert elapsed >= RATE_S, f"the stream lasted {elapsed:.1f} s, not {RATE_S:.0f}"
+    # ... and it kept its 1 kHz loop while it did (the stalled-loop bound).
+    assert stats["steps"] >= MIN_STEP_RATIO * stats["elapsed_us"] * 1e-3, stats

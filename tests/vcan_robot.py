@@ -143,6 +143,7 @@ class Robot:
         self._status_rx: can.BusABC | None = None
         self._stream: threading.Thread | None = None
         self._stream_stop = threading.Event()
+        self._stream_error: BaseException | None = None
         self._stream_lock = threading.Lock()
         self._twist = (0.0, 0.0, 0.0)
         self._seq = 0
@@ -248,6 +249,8 @@ class Robot:
     def send(self, name: str, *, mark: str | None = None, **signals: float) -> float:
         """Encodes `name` from the robot DBC (all signals; reserved ones default to 0)."""
         msg = self.db.get_message_by_name(name)
+        unknown = set(signals) - {s.name for s in msg.signals}
+        assert not unknown, f"{name} has no signals {sorted(unknown)}"
         values = {s.name: signals.get(s.name, 0) for s in msg.signals}
         return self.send_raw(msg.frame_id, msg.encode(values), mark=mark)
 
@@ -269,26 +272,34 @@ class Robot:
 
         def loop() -> None:
             deadline = time.monotonic()
-            while not self._stream_stop.is_set():
-                with self._stream_lock:
-                    vx, vy, wz = self._twist
-                    seq = self._seq
-                    self._seq = (self._seq + 1) & 0xFF
-                self.send("TWIST_CMD", vx=vx, vy=vy, wz=wz, seq=seq)
-                deadline += period_s
-                self._stream_stop.wait(max(0.0, deadline - time.monotonic()))
+            try:
+                while not self._stream_stop.is_set():
+                    with self._stream_lock:
+                        vx, vy, wz = self._twist
+                        seq = self._seq
+                        self._seq = (self._seq + 1) & 0xFF
+                    self.send("TWIST_CMD", vx=vx, vy=vy, wz=wz, seq=seq)
+                    deadline += period_s
+                    self._stream_stop.wait(max(0.0, deadline - time.monotonic()))
+            except BaseException as err:  # noqa: BLE001 - re-raised by stop_stream
+                self._stream_error = err
 
         self._stream = threading.Thread(target=loop, name="twist-stream", daemon=True)
         self._stream.start()
 
     def stop_stream(self, mark: str | None = None) -> None:
-        """Stops streaming; returns after the last TWIST_CMD went out."""
+        """Stops streaming; returns after the last TWIST_CMD went out. Raises what ended the
+        stream early, if anything did (a send that failed), rather than let a test read the
+        robot's reaction to a stream that stopped as a watchdog fault."""
         if self._stream is not None:
             self._stream_stop.set()
             self._stream.join()
             self._stream = None
             if mark:
                 self.marks[mark] = time.time()
+        if self._stream_error is not None:
+            err, self._stream_error = self._stream_error, None
+            raise RuntimeError("the TWIST_CMD stream failed") from err
 
     def wait_status(self, ok, timeout: float, what: str) -> dict:
         """Waits for a STATUS frame for which `ok(decoded)` holds; returns it."""
@@ -336,7 +347,8 @@ def run_cangen(cangen: str, iface: str, arg_sets: Iterable[Sequence[str]], timeo
 def wait_until_quiet(path: pathlib.Path, quiet_s: float = 1.0, timeout: float = 120.0) -> None:
     """Waits until the file a recorder writes stops growing for `quiet_s`: on a slow machine
     a recorder (candump, can.logger) falls behind, its large receive buffer holding the
-    backlog, and on SIGINT it quits at once, dropping what it has not written yet."""
+    backlog, and on SIGINT it quits at once, dropping what it has not written yet. Fails if
+    it is still growing after `timeout` (the recording would be cut short)."""
     deadline = time.monotonic() + timeout
     size, since = -1, time.monotonic()
     while time.monotonic() < deadline:
@@ -346,6 +358,7 @@ def wait_until_quiet(path: pathlib.Path, quiet_s: float = 1.0, timeout: float = 
         elif time.monotonic() - since >= quiet_s:
             return
         time.sleep(0.05)
+    raise AssertionError(f"{path} still growing after {timeout:.0f} s ({size} bytes)")
 
 
 def mean(values: Iterable[float]) -> float:
