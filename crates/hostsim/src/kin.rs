@@ -9,8 +9,8 @@
 //! counter-clockwise), standard layout with the wheel contacts at `(±lx, ±ly)` metres from the
 //! centre (half the wheelbase, half the track; both > 0) and wheel radius `r` metres (> 0). A
 //! line that cannot be answered (not JSON, not UTF-8, a missing, bad or unknown field, a
-//! result too large to be finite) gives `{"error":"..."}` naming the field and the value, and the next
-//! line is read as usual. Blank lines are skipped, without an answer.
+//! result too large to be finite) gives `{"error":"..."}` naming the field and the value,
+//! and the next line is read as usual. Blank lines are skipped, without an answer.
 
 use std::io::{BufRead, Write};
 
