@@ -17,6 +17,7 @@ import json
 import math
 import os
 import pathlib
+import re
 import signal
 import struct
 import subprocess
@@ -631,6 +632,23 @@ def test_plant_mcap_log_holds_every_frame_candump_saw(motion: Robot, plant_bin) 
     )
     assert summary.returncode == 0, summary.stderr
     print(summary.stdout)
+    # The firmware's odometry (its ODOM frames, as the plant logged them) against the plant's
+    # ground truth at the end of the session: the motion checks above compare the odometry
+    # with the commands, so a convention error shared by the firmware's kinematics and its
+    # odometry (a mirrored y, a reversed yaw) would pass them; here it shows as metres or tens
+    # of degrees. The two differ honestly by the rollers' slip (a strafe makes 75 % of its
+    # commanded travel; one VM run: 0.25 m and 5° after 1.5 m).
+    number = r"([+-]\d+\.\d+)"
+    m = re.search(
+        rf"odometry x {number} y {number} heading {number}°; "
+        rf"ground truth x {number} y {number} heading {number}°",
+        summary.stdout,
+    )
+    assert m, summary.stdout
+    ox, oy, oh, tx, ty, th = map(float, m.groups())
+    assert math.hypot(tx, ty) > 0.5, (tx, ty)
+    assert math.hypot(ox - tx, oy - ty) < 0.5, ((ox, oy), (tx, ty))
+    assert abs((oh - th + 180.0) % 360.0 - 180.0) < 15.0, (oh, th)
 
 
 # --- rate: the runner under a sustained stream of frames -----------------------------------
