@@ -352,24 +352,25 @@ impl Bus {
 /// id, SRR, IDE, extended id, RTR, r1, r0, DLC).
 #[must_use]
 pub fn frame_bits(frame: &CanFrame) -> u32 {
-    let remote = frame.is_remote_frame();
-    let rtr_dlc = (u32::from(remote) << 6) | frame.dlc() as u32;
-    let data: &[u8] = if remote { &[] } else { frame.data() };
-    match frame.id() {
-        Id::Standard(id) => {
-            // SOF(0) id(11) RTR IDE(0) r0(0) DLC(4): 19 bits.
-            let header = (u32::from(id.as_raw()) << 7) | rtr_dlc;
-            let [_, a, b, c] = header.to_be_bytes();
-            19 + stuffed_crc_bits([a, b, c], 0b1010_1000, data)
-        }
-        Id::Extended(id) => {
-            // SOF(0) base id(11) SRR(1) IDE(1) extended id(18) RTR r1(0) r0(0) DLC(4): 39 bits.
-            let id = u64::from(id.as_raw());
-            let header =
-                ((id >> 18) << 27) | (0b11 << 25) | ((id & 0x3_FFFF) << 7) | u64::from(rtr_dlc);
-            let [_, _, _, a, b, c, d, e] = header.to_be_bytes();
-            39 + stuffed_crc_bits([a, b, c, d, e], 0b1000_0000, data)
-        }
+    let data: &[u8] = if frame.is_remote_frame() {
+        &[]
+    } else {
+        frame.data()
+    };
+    // The arbitration field, then IDE / r1 and r0 (dominant) and the DLC; SOF (dominant) is
+    // the zero in front.
+    let arbitration = arbitration_field(frame);
+    let dlc = frame.dlc() as u32;
+    if frame.is_extended() {
+        // SOF base id(11) SRR IDE extended id(18) RTR r1 r0 DLC(4): 39 bits.
+        let header = (u64::from(arbitration) << 6) | u64::from(dlc);
+        let [_, _, _, a, b, c, d, e] = header.to_be_bytes();
+        39 + stuffed_crc_bits([a, b, c, d, e], 0b1000_0000, data)
+    } else {
+        // SOF id(11) RTR IDE r0 DLC(4): 19 bits.
+        let header = ((arbitration >> 20) << 6) | dlc;
+        let [_, a, b, c] = header.to_be_bytes();
+        19 + stuffed_crc_bits([a, b, c], 0b1010_1000, data)
     }
 }
 

@@ -234,6 +234,17 @@ struct LateClock {
     calls: Cell<usize>,
 }
 
+impl LateClock {
+    /// At `T0`; the n-th sleep wakes `late[n]` µs after its deadline (on time past the list).
+    fn new(late: Vec<u64>) -> Self {
+        Self {
+            now: Cell::new(T0),
+            late,
+            calls: Cell::new(0),
+        }
+    }
+}
+
 impl Clock for LateClock {
     fn now_micros(&self) -> u64 {
         self.now.get()
@@ -270,11 +281,7 @@ impl SimPlant for CountingPlant {
 fn late_ticks_catch_up_and_overruns_re_anchor() {
     // Tick 2 wakes 2.5 ms late (an overrun); tick 5 wakes 300 ms late, beyond the 100-step
     // catch-up cap.
-    let clock = LateClock {
-        now: Cell::new(T0),
-        late: vec![0, 0, 2500, 0, 0, 300_000],
-        calls: Cell::new(0),
-    };
+    let clock = LateClock::new(vec![0, 0, 2500, 0, 0, 300_000]);
     let mut plant = CountingPlant { steps: 0 };
     let bus = MemoryBus::new();
     let mut port = bus.port();
@@ -360,11 +367,7 @@ fn the_plant_counts_bus_error_frames_apart_and_reads_the_frames_behind_them() {
         Ok(Some(current)),
         Err(io::Error::from_raw_os_error(libc::ENETDOWN)),
     ]));
-    let clock = LateClock {
-        now: Cell::new(T0),
-        late: vec![],
-        calls: Cell::new(0),
-    };
+    let clock = LateClock::new(vec![]);
     let mut drives = SimDrives::new(&Config::dji_m3508_example()).unwrap();
     let options = PlantOptions {
         duration_us: Some(2_000),

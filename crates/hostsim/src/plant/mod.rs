@@ -505,11 +505,7 @@ impl<D: Drive> Plant<D> {
                 break;
             }
             let faults_ns = self.pending_faults.map_or(end, |(at_ns, ..)| at_ns);
-            let next = self
-                .drives
-                .iter()
-                .map(Drive::next_feedback_ns)
-                .fold(end.min(faults_ns), u64::min);
+            let next = self.next_feedback_ns().min(end).min(faults_ns);
             let h_ns = self.substep_ns.min(next.saturating_sub(self.now_ns)).max(1);
             self.substep(h_ns);
             self.now_ns += h_ns;
