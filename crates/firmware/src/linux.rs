@@ -853,7 +853,7 @@ pub fn is_bus_error_frame(e: &io::Error) -> bool {
 /// The error frames [`SocketCanBus`] asks SocketCAN for: every class (`CAN_ERR_MASK`) but
 /// lost arbitration (`CAN_ERR_LOSTARB`, 0x2), which is how a CAN bus shares itself, not a
 /// fault: on a busy bus it would drown the real errors.
-const ERROR_CLASSES: u32 = 0x1FFF_FFFF & !0x0000_0002;
+const ERROR_CLASSES: u32 = libc::CAN_ERR_MASK & !libc::CAN_ERR_LOSTARB;
 
 /// A raw SocketCAN socket on one interface, non-blocking, classic CAN frames, and the
 /// controller's error frames (every class but lost arbitration: bus errors, error-passive,
