@@ -449,17 +449,9 @@ fn the_scenario_module_example_does_what_its_comments_say() {
         .map(|l| format!("{}\n", l.trim_start_matches("//!").trim_start()))
         .collect();
     assert!(text.contains("silence = true"), "{text}");
-    let text = text.replace(
-        r#"config = "config/dji_m3508.toml""#,
-        r#"config = "../../config/dji_m3508.toml""#,
-    );
-    let s = Scenario::from_toml(
-        &text,
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("x.toml")
-            .as_path(),
-    )
-    .unwrap();
+    // As a file in the repository's root, where its `config` path points.
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let s = Scenario::from_toml(&text, &root.join("example.toml")).unwrap();
     let r = simulate(&s);
     // The drop window lost host frames, and the watchdog rode it out: the only stop is
     // the silence's, a watchdog timeout after 2.0 s.
