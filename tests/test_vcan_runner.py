@@ -293,6 +293,14 @@ def _next_mode(robot: Robot, t: float, request: int | None = None) -> float:
     raise AssertionError(f"no MODE_CMD {request} after {t}")
 
 
+def _statuses(robot: Robot, t0: float, t1: float) -> list[tuple[float, dict]]:
+    """The STATUS frames of [t0, t1], at least as many as its steps that run send (10 Hz,
+    MIN_STEP_RATIO), and one: a check over them then looked at some."""
+    statuses = robot.decoded(STATUS, t0, t1)
+    assert len(statuses) >= max(1, int(MIN_STEP_RATIO * 10 * (t1 - t0))), (t1 - t0, statuses)
+    return statuses
+
+
 def _status_at(robot: Robot, t: float) -> dict:
     after = robot.decoded(STATUS, t)
     assert after, f"no STATUS after {t}"
@@ -336,10 +344,7 @@ def test_estop_stops_at_once_and_latches(stops: Robot) -> None:
     twists = stops.of(TWIST_CMD, zero, reset)
     assert len(twists) >= 10, len(twists)
     assert stops.of(0x302, zero, reset), "the enable in e-stop was not sent"
-    statuses = stops.decoded(STATUS, zero + 0.01, reset)
-    # STATUS at 10 Hz from the steps that run (MIN_STEP_RATIO): the check looked at some.
-    assert len(statuses) >= max(1, int(MIN_STEP_RATIO * 10 * (reset - zero))), statuses
-    for t, status in statuses:
+    for t, status in _statuses(stops, zero + 0.01, reset):
         assert status["state"] == STATE_ESTOP, (t, status)
     # Reset, enable and twist: it drives again.
     enable = _next_mode(stops, reset, MODE_ENABLE)
@@ -411,9 +416,7 @@ def test_malformed_frames_are_counted_exactly(malformed: Robot) -> None:
 
 def test_malformed_flood_is_ignored_and_the_rate_kept(malformed: Robot) -> None:
     t0, t1 = malformed.marks["flood"], malformed.marks["flood_end"]
-    statuses = malformed.decoded(STATUS, t0, t1 + 0.5)
-    assert len(statuses) >= max(1, int(MIN_STEP_RATIO * 10 * (t1 + 0.5 - t0))), statuses
-    for t, status in statuses:
+    for t, status in _statuses(malformed, t0, t1 + 0.5):
         assert (status["state"], status["fault"]) == (STATE_ENABLED, FAULT_NONE), (t, status)
     # The control rate: one motor command per 1 ms period, during the flood as before it.
     during = len(malformed.of(DJI_CMD_1_4, t0, t1)) / (t1 - t0)
@@ -473,9 +476,7 @@ def test_odrive_non_finite_estimates_are_counted_and_ignored(odrive: Robot) -> N
     assert counted["non_finite"] == NON_FINITE, counted
     assert sum(counted.values()) == NON_FINITE, counted
     t0, t1 = odrive.marks["nan"], odrive.marks["end"]
-    statuses = odrive.decoded(STATUS, t0, t1)
-    assert len(statuses) >= max(1, int(MIN_STEP_RATIO * 10 * (t1 - t0))), statuses
-    for t, status in statuses:
+    for t, status in _statuses(odrive, t0, t1):
         assert (status["state"], status["fault"]) == (STATE_ENABLED, FAULT_NONE), (t, status)
     vel = odrive.decoded(ODOM_VELOCITY, t0, t1)
     got = (mean(v["vx"] for _, v in vel), mean(v["wz"] for _, v in vel))
