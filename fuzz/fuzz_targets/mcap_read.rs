@@ -1,5 +1,5 @@
 //! The MCAP reading path of `hostsim replay` and `hostsim summary`: `log::for_each_message`,
-//! `replay::read_log_bytes` (with `parse_frame_json` on every `/can/*` message),
+//! `replay::read_log_bytes` (decoding every `/can/rx` and `/can/tx` message's CDR),
 //! `summary::summarize`, and `replay::replay_frames` on what was read (with the log's own
 //! configuration when it loads, else the example one) for logs spanning at most 0.5 s.
 //! Garbage, truncated and corrupted files give errors, never a panic.
@@ -25,7 +25,7 @@ const MAX_REPLAY_SPAN_NS: u64 = 500_000_000;
 
 fuzz_target!(|data: &[u8]| {
     let mut messages = 0usize;
-    let walked = hostsim::log::for_each_message(data, |_, _, _| messages += 1, |_, _| {});
+    let walked = hostsim::log::for_each_message(data, |_| messages += 1, |_, _| {});
 
     let content = replay::read_log_bytes(data);
     assert_eq!(walked.is_ok(), content.is_ok());
@@ -47,7 +47,11 @@ fuzz_target!(|data: &[u8]| {
 
     std::fs::write(scratch(), data).expect("scratch file");
     let summary = hostsim::summary::summarize(scratch());
-    assert_eq!(summary.is_ok(), content.is_ok());
+    // The summary also refuses a readable log in another layout than this project's.
+    let ours = content
+        .as_ref()
+        .is_ok_and(|c| !replay::is_old_layout(&c.read));
+    assert_eq!(summary.is_ok(), ours);
     if let Ok(s) = &summary {
         assert!(s.duration_s >= 0.0);
     }

@@ -186,6 +186,9 @@ struct Motor {
     last_pos: Option<f32>,
     /// Wheel angle accumulated since the last step, rad (robot-forward positive).
     pending: f32,
+    /// Wheel angle since the start, rad (robot-forward positive): what the encoders say the
+    /// wheel turned, in f32 (its resolution coarsens as it grows: 8 mrad at 65,536 rad).
+    angle: f32,
     /// Latest wheel speed, rad/s (robot-forward positive).
     speed: f32,
     /// ODrive: latest heartbeat.
@@ -288,6 +291,9 @@ pub struct Snapshot {
     pub wheel_setpoints: WheelSpeeds<f32, 4>,
     /// Measured wheel speeds, rad/s.
     pub wheel_speeds: WheelSpeeds<f32, 4>,
+    /// Wheel angles since the start, rad (robot-forward positive), as the odometry
+    /// integrated them (f32: about 8 mrad resolution at 65,536 rad).
+    pub wheel_angles: [f32; 4],
     /// Motor currents commanded, A (current-mode drives; zero otherwise).
     pub currents: [f32; 4],
     /// Bit i set when wheel i's motor is online: its last feedback was within the
@@ -423,6 +429,7 @@ impl Controller {
             encoder,
             last_pos: None,
             pending: 0.0,
+            angle: 0.0,
             speed: 0.0,
             axis_error: 0,
             axis_state: None,
@@ -525,6 +532,7 @@ impl Controller {
             commanded: self.commanded,
             wheel_setpoints: self.setpoints,
             wheel_speeds: WheelSpeeds(self.motors.map(|m| m.speed)),
+            wheel_angles: self.motors.map(|m| m.angle),
             currents: self.currents,
             motors_online: self.online,
             rx_errors: self.rx_errors,
@@ -969,6 +977,7 @@ impl Controller {
     fn integrate_odometry(&mut self) {
         let deltas = WheelDeltas(self.motors.map(|m| m.pending));
         for m in &mut self.motors {
+            m.angle += m.pending;
             m.pending = 0.0;
         }
         self.odometry.update(&self.kin, &deltas);

@@ -1,5 +1,5 @@
-//! MCAP write throughput: how many CAN frames per second [`McapLog`] writes (JSON
-//! `can_msgs/Frame` messages in zstd chunks, as `hostsim run` logs them).
+//! MCAP write throughput: how many CAN frames per second [`McapLog`] writes (CDR
+//! `can_msgs/msg/Frame` messages in zstd chunks, as `hostsim run` logs them).
 //!
 //! `cargo run --release -p hostsim --example mcap_throughput -- [FRAMES] [FILE]` prints one
 //! JSON line `{"frames":..,"seconds":..,"frames_per_s":..,"bytes":..}`.
@@ -38,7 +38,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut log = McapLog::create(&path, &BTreeMap::new())?;
     for i in 0..frames {
         let (t_ns, f) = frame(i);
-        log.can(t_ns, Direction::Rx, &f)?;
+        log.frame(Direction::Rx, t_ns, t_ns, t_ns, &f)?;
         log.maybe_flush()?;
     }
     log.finish()?;

@@ -100,6 +100,18 @@ pub enum Fate {
     Corrupted,
 }
 
+impl Fate {
+    /// Lower-case name, as used in logs.
+    #[must_use]
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::Delivered => "delivered",
+            Self::Dropped => "dropped",
+            Self::Corrupted => "corrupted",
+        }
+    }
+}
+
 /// One frame's transmission.
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
 pub struct Transmission {
@@ -109,8 +121,12 @@ pub struct Transmission {
     pub queued_ns: u64,
     /// Start of frame on the wire, ns.
     pub start_ns: u64,
+    /// End of frame on the wire (the last bit of its end-of-frame field), ns.
+    pub end_ns: u64,
     /// When the receivers get it (end of frame plus any delay fault), ns.
     pub delivered_ns: u64,
+    /// The frame as its sender queued it.
+    pub sent: CanFrame,
     /// The frame as received (after any corruption); as sent if dropped.
     pub frame: CanFrame,
     /// Bits on the wire, stuff bits and intermission included.
@@ -274,6 +290,7 @@ impl Bus {
             self.stats.frames += 1;
             self.stats.busy_ns += end_ns - start_ns;
             self.stats.max_queue_ns = self.stats.max_queue_ns.max(start_ns - queued_ns);
+            let sent = frame;
             let (frame, fate, delay_ns) = self.apply_faults(end_ns, from, frame);
             match fate {
                 Fate::Dropped => self.stats.dropped += 1,
@@ -291,7 +308,9 @@ impl Bus {
                 from,
                 queued_ns,
                 start_ns,
+                end_ns,
                 delivered_ns,
+                sent,
                 frame,
                 bits,
                 fate,

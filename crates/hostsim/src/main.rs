@@ -13,6 +13,7 @@ use hostsim::plot::plot_run;
 use hostsim::realtime::{
     PlantLog, PlantOptions, PlayOptions, play_frames, run_plant, run_plant_observed,
 };
+use hostsim::replay::PLANT_PROGRAM;
 use hostsim::replay::{
     CandumpReplayError, LogFormat, OdometryTolerance, detect_format, mcap_playback, replay_candump,
     replay_mcap, split_candump,
@@ -849,6 +850,7 @@ fn plant(args: &PlantArgs) -> Result<ExitCode> {
                 .map_or(0, |d| d.as_nanos());
             let metadata = std::collections::BTreeMap::from([
                 ("config".to_string(), config.to_toml_string()),
+                ("program".to_string(), PLANT_PROGRAM.to_string()),
                 (
                     "source".to_string(),
                     format!("hostsim plant --iface {iface}"),
@@ -958,7 +960,11 @@ fn summary(path: &Path) -> Result<ExitCode> {
         );
     }
     for (t, level, text) in &s.events {
-        let tag = if *level >= 4 { "FAULT" } else { "     " };
+        let tag = if *level >= hostsim::log::msg::Log::ERROR {
+            "FAULT"
+        } else {
+            "     "
+        };
         println!("  {tag} {t:9.3} s  {text}");
     }
     for (topic, n) in &s.topics {

@@ -53,8 +53,7 @@ use serde::Serialize;
 
 use firmware::protocol::robot;
 
-use crate::bus::{Fate, Node};
-use crate::log::{LogError, McapLog};
+use crate::log::{Direction, LogError, McapLog, OdometrySource};
 use crate::replay::TimedFrame;
 use crate::sim::SimPlant;
 
@@ -572,21 +571,22 @@ pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
 // ---------------------------------------------------------------------------------------------
 // The plant's log
 
-/// A [`PlantObserver`] that writes an MCAP log of a real-time run (`hostsim plant --log`):
-/// every frame on the bus as the plant saw it (`/can/bus`: received frames with sender
-/// `host` for the robot protocol's commands and `controller` for the rest, the plant's own
-/// feedback with sender `drives`), the host's twist commands (`/cmd/twist`), and every
-/// 10 ms the firmware's odometry (decoded from its `ODOM_*` frames) and the plant's ground
-/// truth (`/odom/pose`, `/ground_truth/pose`, `/tf`). Log time counts from the plant's start:
-/// a frame is stamped with the clock at the tick that received or sent it, a pose with the
-/// plant's simulated time, which follows the clock except for time skipped after a stall
-/// ([`PlantReport::skipped_us`]).
+/// A [`PlantObserver`] that writes an MCAP log of a real-time run (`hostsim plant --log`), in
+/// the simulator's format ([`crate::log`]), every frame on the bus once, seen from the
+/// firmware: `/can/rx` for the plant's own feedback and the robot protocol's commands (what
+/// the firmware receives), `/can/tx` for every other frame (what the firmware sends); the
+/// host's twist commands (`/cmd_vel`); and every 10 ms the firmware's odometry (decoded from
+/// its `ODOM_*` frames, `/odom`) and the plant's ground truth (`/ground_truth/odom`, `/tf`).
+/// Log time counts from the plant's start: a frame is stamped with the clock at the tick
+/// that received or sent it, a pose with the plant's simulated time, which follows the clock
+/// except for time skipped after a stall ([`PlantReport::skipped_us`]).
 ///
 /// A write error stops the logging (the run goes on) and is kept for [`PlantLog::finish`].
 pub struct PlantLog {
     log: Option<McapLog>,
     error: Option<LogError>,
     odom: [f64; 3],
+    odom_twist: [f64; 3],
     next_pose_us: u64,
 }
 
@@ -604,6 +604,7 @@ impl PlantLog {
             log: Some(log),
             error: None,
             odom: [0.0; 3],
+            odom_twist: [0.0; 3],
             next_pose_us: 0,
         }
     }
@@ -638,10 +639,12 @@ impl PlantLog {
 impl<P: SimPlant> PlantObserver<P> for PlantLog {
     fn frame(&mut self, t_us: u64, frame: &CanFrame, sent: bool) {
         let message = robot::decode(frame).ok();
-        let sender = match message {
-            _ if sent => Node::Drives,
-            Some(robot::Message::Command(_)) => Node::Host,
-            _ => Node::Controller,
+        // The firmware receives the drives' feedback and the host's commands, and sends the
+        // rest.
+        let direction = match message {
+            _ if sent => Direction::Rx,
+            Some(robot::Message::Command(_)) => Direction::Rx,
+            _ => Direction::Tx,
         };
         match message {
             Some(robot::Message::Telemetry(robot::Telemetry::OdomPosition(p))) => {
@@ -650,21 +653,27 @@ impl<P: SimPlant> PlantObserver<P> for PlantLog {
             }
             Some(robot::Message::Telemetry(robot::Telemetry::OdomVelocity(v))) => {
                 self.odom[2] = f64::from(v.heading);
+                self.odom_twist = [v.vx, v.vy, v.wz].map(f64::from);
             }
             _ => {}
         }
         let t_ns = t_us.saturating_mul(1000);
-        self.write(|log| log.bus(t_ns, frame, sender, Fate::Delivered));
+        self.write(|log| log.frame(direction, t_ns, t_ns, t_ns, frame));
         if let Some(robot::Message::Command(robot::Command::Twist(t))) = message {
-            self.write(|log| log.twist(t_ns, [t.vx, t.vy, t.wz], true));
+            self.write(|log| log.twist(t_ns, [t.vx, t.vy, t.wz]));
         }
     }
 
     fn tick(&mut self, t_us: u64, plant: &P) {
         if t_us >= self.next_pose_us {
             self.next_pose_us = t_us - t_us % PLANT_LOG_POSE_PERIOD_US + PLANT_LOG_POSE_PERIOD_US;
-            let (odom, truth) = (self.odom, plant.truth());
-            self.write(|log| log.poses(t_us.saturating_mul(1000), odom, truth));
+            let t_ns = t_us.saturating_mul(1000);
+            let (odom, odom_twist) = (self.odom, self.odom_twist);
+            let (truth, truth_twist) = (plant.truth(), plant.truth_velocity());
+            self.write(|log| {
+                log.odometry(t_ns, OdometrySource::Firmware, odom, odom_twist)?;
+                log.odometry(t_ns, OdometrySource::GroundTruth, truth, truth_twist)
+            });
         }
     }
 }

@@ -1,13 +1,16 @@
 //! Replay: run the firmware core again on a log's inbound frames and check that it sends the
 //! same frames, bit for bit.
 //!
-//! A hostsim MCAP log holds the configuration (metadata record `hostsim`, key `config`), every
-//! frame the firmware received (`/can/rx`, at its delivery time) and every frame it sent
-//! (`/can/tx`, at the step that sent it). Steps happen every control period from time 0.
-//! Replay builds a fresh [`Controller`] from the logged configuration, feeds each received
-//! frame before the first step at or after its time — the order the simulator used — and
-//! compares what comes out with `/can/tx`, frame by frame. The first difference is reported
-//! with its time, the expected frame and the replayed one.
+//! An MCAP log ([`crate::log`]) holds the configuration (metadata record `mecanum_drive`, key
+//! `config`), every frame the firmware received (`/can/rx`, log time: when the firmware took
+//! it) and every frame it sent (`/can/tx`, publish time: the step that sent it). Steps happen
+//! every control period from time 0. Replay builds a fresh [`Controller`] from the logged
+//! configuration, feeds each received frame before the first step at or after its time — the
+//! order the simulator used — and compares what comes out with `/can/tx`, frame by frame. The
+//! frames of one step are compared in arbitration order ([`wire_order`]), the order in which
+//! they left on the bus and were logged, so a step's frames are compared as a whole whatever
+//! order the core queued them in. The first difference is reported with its time, the
+//! expected frame and the replayed one.
 //!
 //! A candump log (`candump -L`, see [`crate::candump`]) has every frame on the bus, both
 //! directions mixed and no configuration: [`split_candump`] classifies the frames with the
@@ -20,9 +23,11 @@
 //!
 //! The reader ([`crate::log::for_each_message`]) takes every complete, intact chunk before
 //! the first damage. A damaged MCAP log (cut short by a killed run, or corrupt) is replayed up
-//! to, not including, the time of the last message read: the simulator writes all of a
-//! step's messages before any message of a later time, so every step before that time is
-//! complete in what was read, while the last one may have lost frames to the cut.
+//! to a cut-off: the time `L` of the last message read, less the longest time a sent frame
+//! took to reach the bus's end in what was read (`LogContent::tx_lag_ns`). Messages are
+//! written in log-time order, and a sent frame is logged when it comes off the wire, so the
+//! frames received before `L` are all there, and so are the frames sent by the steps before
+//! the cut-off, as long as none of them waited on the bus longer than any frame read did.
 //! [`ReplayReport::read`] says what was read and where the damage is, with its byte offset.
 //!
 //! # Bounded work
@@ -36,7 +41,6 @@
 
 use std::path::{Path, PathBuf};
 
-use embedded_can::StandardId;
 use firmware::CanFrame;
 use firmware::config::Config;
 use firmware::control::{Controller, Instant};
@@ -60,10 +64,15 @@ pub struct LogContent {
     pub config: Option<String>,
     /// Scenario name from the metadata.
     pub scenario: Option<String>,
+    /// The program that wrote the log, from the metadata (`hostsim run`, [`PLANT_PROGRAM`]).
+    pub program: Option<String>,
     /// Frames the firmware received.
     pub rx: Vec<TimedFrame>,
-    /// Frames the firmware sent.
+    /// Frames the firmware sent, at the step that sent them, in [`wire_order`].
     pub tx: Vec<TimedFrame>,
+    /// The longest a sent frame took from its step to the end of its transmission, among
+    /// those read, ns.
+    pub tx_lag_ns: u64,
     /// Messages per topic.
     pub topics: std::collections::BTreeMap<String, u64>,
     /// What the reader read, and where the log is damaged if it is.
@@ -89,8 +98,17 @@ pub enum ReplayError {
         /// The reader's error.
         reason: String,
     },
+    /// A log in the JSON layout of earlier versions, which this version does not read.
+    #[error("{path}: {}", OLD_LAYOUT)]
+    OldLayout {
+        /// The log file.
+        path: PathBuf,
+    },
     /// The log has no configuration to rebuild the firmware from.
-    #[error("{path}: no `hostsim` metadata with a `config` entry (was it written by hostsim?)")]
+    #[error(
+        "{path}: no `mecanum_drive` metadata with a `config` entry (was it written by hostsim or \
+         mecanum-runner?)"
+    )]
     NoConfig {
         /// The log file.
         path: PathBuf,
@@ -201,10 +219,42 @@ pub fn read_log(path: &Path) -> Result<LogContent, ReplayError> {
         path: path.to_path_buf(),
         source,
     })?;
-    read_log_bytes(&bytes).map_err(|damage| ReplayError::NotMcap {
+    let content = read_log_bytes(&bytes).map_err(|damage| ReplayError::NotMcap {
         path: path.to_path_buf(),
         reason: damage.to_string(),
-    })
+    })?;
+    if is_old_layout(&content.read) {
+        return Err(ReplayError::OldLayout {
+            path: path.to_path_buf(),
+        });
+    }
+    Ok(content)
+}
+
+/// What a log in the earlier JSON layout is, in one line.
+pub const OLD_LAYOUT: &str = "a log in the JSON layout of hostsim before its logs became ROS 2 \
+     bags (MCAP profile `ros2`, CDR messages); this version reads only the new layout: record \
+     the run again";
+
+/// `true` for a log in the JSON layout of earlier versions: MCAP without the `ros2` profile.
+#[must_use]
+pub fn is_old_layout(read: &ReadReport) -> bool {
+    read.profile != crate::log::PROFILE
+}
+
+/// The order in which a node's frames queued together leave on the bus: the one with the
+/// lower arbitration field first (a standard id before the extended ids that share its top 11
+/// bits), in queueing order among equals. [`read_log_bytes`] sorts the sent frames by their
+/// step and then this; [`replay_frames`] sorts each step's frames by this.
+#[must_use]
+pub fn wire_order(frame: &CanFrame) -> u64 {
+    use embedded_can::{Frame as _, Id};
+    match frame.id() {
+        Id::Standard(id) => u64::from(id.as_raw()) << 19,
+        Id::Extended(id) => {
+            (u64::from(id.as_raw() >> 18) << 19) | (1 << 18) | u64::from(id.as_raw() & 0x3FFFF)
+        }
+    }
 }
 
 /// As [`read_log`], from bytes.
@@ -212,91 +262,47 @@ pub fn read_log(path: &Path) -> Result<LogContent, ReplayError> {
 /// # Errors
 /// The [`Damage`] at the start if nothing is readable (not an MCAP file).
 pub fn read_log_bytes(bytes: &[u8]) -> Result<LogContent, Damage> {
+    use crate::log::msg::{Frame, decode};
     let mut content = LogContent::default();
     let mut config = None;
     let mut scenario = None;
+    let mut program = None;
     let read = crate::log::for_each_message(
         bytes,
-        |topic, t_ns, data| {
-            *content.topics.entry(topic.to_string()).or_default() += 1;
-            let list = match topic {
-                "/can/rx" => &mut content.rx,
-                "/can/tx" => &mut content.tx,
+        |m| {
+            *content.topics.entry(m.topic.to_string()).or_default() += 1;
+            let (list, t_ns) = match m.topic {
+                "/can/rx" => (&mut content.rx, m.log_time),
+                "/can/tx" => {
+                    let lag = m.log_time.saturating_sub(m.publish_time);
+                    content.tx_lag_ns = content.tx_lag_ns.max(lag);
+                    (&mut content.tx, m.publish_time)
+                }
                 _ => return,
             };
-            if let Some(frame) = parse_frame_json(data) {
+            if let Some(frame) = decode::<Frame>(m.data).ok().and_then(|f| f.to_can()) {
                 list.push(TimedFrame { t_ns, frame });
             }
         },
         |name, kv| {
-            if name == "hostsim" {
+            if name == crate::log::METADATA_NAME {
                 config = kv.get("config").cloned();
                 scenario = kv.get("scenario").cloned();
+                program = kv.get("program").cloned();
             }
         },
     )?;
+    // Stable: frames of one step with equal arbitration fields keep their logged order.
+    content.tx.sort_by_key(|f| (f.t_ns, wire_order(&f.frame)));
     content.config = config;
     content.scenario = scenario;
+    content.program = program;
     content.read = read;
     Ok(content)
 }
 
-/// The fields of a `/can/*` JSON message (see [`crate::log::write_frame_json`]) that replay
-/// and summary read. Typed rather than a `serde_json::Value`: several times faster, and logs
-/// hold hundreds of thousands of these.
-#[derive(Debug, serde::Deserialize)]
-pub struct FrameJson<'a> {
-    /// Arbitration id.
-    pub id: u64,
-    /// Data length code.
-    pub dlc: u64,
-    /// 29-bit id (the firmware's own frames are standard; a plant log records whatever is
-    /// on a real bus).
-    pub is_extended: bool,
-    /// Remote (RTR) frame: no data, `dlc` is the requested length.
-    #[serde(default)]
-    pub is_rtr: bool,
-    /// Data bytes, padded to 8.
-    pub data: Vec<u8>,
-    /// `/can/bus` only: `delivered`, `dropped` or `corrupted`.
-    #[serde(borrow, default)]
-    pub fate: Option<std::borrow::Cow<'a, str>>,
-}
-
-impl FrameJson<'_> {
-    /// Parses a `/can/*` JSON message; `None` if it is not one.
-    #[must_use]
-    pub fn parse(data: &[u8]) -> Option<FrameJson<'_>> {
-        serde_json::from_slice(data).ok()
-    }
-
-    /// The frame, standard or extended, data or remote; `None` for an id out of its range or
-    /// a DLC over 8.
-    #[must_use]
-    pub fn frame(&self) -> Option<CanFrame> {
-        use embedded_can::{ExtendedId, Frame as _, Id};
-        let id: Id = if self.is_extended {
-            ExtendedId::new(u32::try_from(self.id).ok()?)?.into()
-        } else {
-            StandardId::new(u16::try_from(self.id).ok()?)?.into()
-        };
-        let dlc = usize::try_from(self.dlc).ok().filter(|&d| d <= 8)?;
-        if self.is_rtr {
-            return CanFrame::new_remote(id, dlc);
-        }
-        let mut buf = [0u8; 8];
-        for (b, x) in buf.iter_mut().zip(&self.data) {
-            *b = *x;
-        }
-        CanFrame::new(id, &buf[..dlc])
-    }
-}
-
-/// Parses a `/can/*` JSON message back into a frame; `None` if it is not one.
-#[must_use]
-pub fn parse_frame_json(data: &[u8]) -> Option<CanFrame> {
-    FrameJson::parse(data)?.frame()
-}
+/// The `program` metadata of `hostsim plant`'s logs.
+pub const PLANT_PROGRAM: &str = "hostsim plant";
 
 /// The first frame where the replay and the log differ.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -354,6 +360,14 @@ pub fn replay_mcap(path: &Path) -> Result<ReplayReport, ReplayError> {
         path: path.to_path_buf(),
         source: Box::new(source),
     })?;
+    if content.program.as_deref() == Some(PLANT_PROGRAM) {
+        return Err(ReplayError::NothingToReplay {
+            path: path.to_path_buf(),
+            why: "a log of `hostsim plant`, which stamps the firmware's frames when the plant \
+                  saw them on the interface, not at the firmware's steps: replay the firmware's \
+                  own log, or a candump capture of the interface (`candump -L`)",
+        });
+    }
     let (rx, tx) = complete_part(&content);
     if rx.is_empty() && tx.is_empty() {
         let logged = |topic: &str| content.topics.get(topic).is_some_and(|&n| n > 0);
@@ -361,9 +375,6 @@ pub fn replay_mcap(path: &Path) -> Result<ReplayReport, ReplayError> {
             path: path.to_path_buf(),
             why: if logged("/can/rx") || logged("/can/tx") {
                 "the log was cut short before its first complete step"
-            } else if logged("/can/bus") {
-                "no firmware frames (/can/rx, /can/tx): a log of `hostsim plant`, which records \
-                 the bus only"
             } else {
                 "the log holds no CAN frames"
             },
@@ -385,15 +396,15 @@ pub fn replay_mcap(path: &Path) -> Result<ReplayReport, ReplayError> {
 
 /// The frames of a log to replay: all of an intact log's, and of one whose every message was
 /// read (damage after the data section, in the summary); of a log cut short, those before
-/// the time of the last message read (every step before it is complete; see the
-/// [module documentation](self#damaged-logs)).
+/// its cut-off (see the [module documentation](self#damaged-logs)).
 #[must_use]
 pub fn complete_part(content: &LogContent) -> (Vec<TimedFrame>, Vec<TimedFrame>) {
     let read = &content.read;
+    let cut_off = read
+        .last_time_ns
+        .map(|last| last.saturating_sub(content.tx_lag_ns));
     let keep = |f: &&TimedFrame| {
-        read.is_complete()
-            || read.data_complete
-            || read.last_time_ns.is_some_and(|last| f.t_ns < last)
+        read.is_complete() || read.data_complete || cut_off.is_some_and(|c| f.t_ns < c)
     };
     (
         content.rx.iter().filter(keep).copied().collect(),
@@ -428,7 +439,13 @@ pub fn replay_frames(
             ctl.on_frame(Instant::from_micros(f.t_ns / 1000), &f.frame);
             next_rx += 1;
         }
-        for frame in ctl.step(Instant::from_micros(t_ns / 1000)) {
+        let mut sent: Vec<CanFrame> = ctl
+            .step(Instant::from_micros(t_ns / 1000))
+            .iter()
+            .copied()
+            .collect();
+        sent.sort_by_key(wire_order);
+        for frame in sent {
             let replayed = TimedFrame { t_ns, frame };
             let logged = tx.get(out_index).copied();
             if logged != Some(replayed) {
@@ -863,8 +880,15 @@ pub fn replay_split(
             ctl.on_frame(now, &f.frame);
             next_rx += 1;
         }
-        for frame in ctl.step(now) {
-            let logged = log.tx.get(out_index);
+        // A step's frames leave in the bus's order (a capture of a simulated or a real CAN
+        // bus), or in the order the core queued them (a vcan capture): compared in one order.
+        let mut sent: Vec<CanFrame> = ctl.step(now).iter().copied().collect();
+        sent.sort_by_key(wire_order);
+        let end = (out_index + sent.len()).min(log.tx.len());
+        let mut logged: Vec<TimedFrame> = log.tx[out_index.min(end)..end].to_vec();
+        logged.sort_by_key(|f| wire_order(&f.frame));
+        for (i, frame) in sent.into_iter().enumerate() {
+            let logged = logged.get(i);
             if first_difference.is_none() && logged.map(|l| l.frame) != Some(frame) {
                 first_difference = Some(StreamDifference {
                     index: out_index,

@@ -28,6 +28,18 @@
 //! Nothing here reads a clock or draws an unseeded random number: the same scenario gives
 //! the same frames, bit for bit. The log's `/can/rx` stream and the configuration are all
 //! that [`crate::replay`] needs to run the firmware again.
+//!
+//! # What a run logs
+//!
+//! Every frame on the bus once, as the firmware sees it ([`crate::log`]): a frame it received
+//! on `/can/rx` when it took it, a frame it sent on `/can/tx` when it reached the drives (its
+//! publish time is the step that sent it), both stamped with the end of the frame on the
+//! wire; the frames the fault injector dropped or corrupted, with their sender, on
+//! `/can/faults`. A frame of the host or the drives that was dropped reached nobody: it is on
+//! `/can/faults` only. Every 10 ms (by default): the firmware's odometry (`/odom`), wheels
+//! (`/joint_states`) and diagnostics, and the ground truth; the host's setpoint when it
+//! changes (`/cmd_vel`); state changes and faults (`/rosout`). The frames the firmware sent at
+//! the last step are logged once they complete on the wire, after the run's end.
 
 use std::collections::BTreeMap;
 
@@ -36,7 +48,7 @@ use firmware::control::{Controller, Instant, Snapshot};
 use firmware::protocol::robot::{self, Command, ModeRequest, RobotState, TwistCmd};
 
 use crate::bus::{Bus, BusStats, Fate, Node, Transmission};
-use crate::log::{Direction, LogError, McapLog};
+use crate::log::{Direction, LogError, McapLog, OdometrySource};
 use crate::scenario::Scenario;
 
 /// The plant as the runner sees it: drives that take command frames and produce feedback
@@ -72,23 +84,20 @@ pub trait SimPlant {
 /// What to log.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct LogOptions {
-    /// Log every bus transmission on `/can/bus` (all senders, dropped ones too).
-    pub bus: bool,
-    /// Log a firmware snapshot every this many steps (0: never).
+    /// Log the frames the fault injector dropped or corrupted on `/can/faults`.
+    pub faults: bool,
+    /// Log the firmware's wheels and diagnostics every this many steps (0: never).
     pub snapshot_every: u32,
-    /// Log poses every this many steps (0: never).
+    /// Log the odometry and the ground truth every this many steps (0: never).
     pub pose_every: u32,
-    /// Log every this many-th feedback frame of the drives, decoded (0: never).
-    pub feedback_every: u32,
 }
 
 impl Default for LogOptions {
     fn default() -> Self {
         Self {
-            bus: true,
+            faults: true,
             snapshot_every: 10,
             pose_every: 10,
-            feedback_every: 10,
         }
     }
 }
@@ -237,6 +246,47 @@ pub fn non_finite_twist_frames(twist: [f32; 3], seq: u8) -> [CanFrame; 3] {
     ]
 }
 
+/// How long after a run's last step the bus runs on, so that the frames the firmware sent at
+/// its last steps are logged: far longer than a frame waits on a loaded bus.
+const DRAIN_NS: u64 = 100_000_000;
+
+/// Logs one transmission: on `/can/rx` if the firmware received it, on `/can/tx` if it sent
+/// it (dropped or not), and on `/can/faults` if the fault injector dropped or corrupted it.
+fn log_transmission(
+    l: &mut McapLog,
+    tx: &Transmission,
+    options: LogOptions,
+) -> Result<(), LogError> {
+    if options.faults && tx.fate != Fate::Delivered {
+        l.bus_fault(
+            tx.end_ns,
+            tx.from.name(),
+            tx.fate.name(),
+            &tx.sent,
+            &tx.frame,
+        )?;
+    }
+    if tx.from == Node::Controller {
+        l.frame(
+            Direction::Tx,
+            tx.delivered_ns,
+            tx.queued_ns,
+            tx.end_ns,
+            &tx.sent,
+        )
+    } else if tx.fate != Fate::Dropped {
+        l.frame(
+            Direction::Rx,
+            tx.delivered_ns,
+            tx.queued_ns,
+            tx.end_ns,
+            &tx.frame,
+        )
+    } else {
+        Ok(())
+    }
+}
+
 /// Runs `scenario` with `plant`, logging to `log` if given; `progress` is called with the
 /// simulated time (µs) every simulated 100 ms.
 ///
@@ -297,7 +347,6 @@ pub fn run_observed<P: SimPlant>(
     let mut last_state = (RobotState::Disabled, firmware::control::Fault::None);
     let mut t_us = 0u64;
     let mut step = 0u64;
-    let mut feedback_count = vec![0u64; 0x800];
     let mut track = Vec::with_capacity((duration_us / 10_000 + 2) as usize);
 
     set_wheel_faults(scenario, plant, 0);
@@ -321,9 +370,9 @@ pub fn run_observed<P: SimPlant>(
                     host.next_command_us = at_us;
                 }
             }
-            if !matches!(action, HostAction::Send(_)) {
+            if matches!(action, HostAction::Twist(_)) {
                 // Logged among the step's deliveries, in time order (below).
-                twists_to_log.push((at_us * 1000, host.twist, host.streaming));
+                twists_to_log.push((at_us * 1000, host.twist));
             }
             host.next_action += 1;
         }
@@ -368,38 +417,23 @@ pub fn run_observed<P: SimPlant>(
         for tx in &delivered {
             if let Some(l) = log.as_deref_mut() {
                 // The host's setpoint changes in time order with the deliveries.
-                while let Some(&(at_ns, twist, streaming)) = twists_to_log.get(twists_logged)
+                while let Some(&(at_ns, twist)) = twists_to_log.get(twists_logged)
                     && at_ns <= tx.delivered_ns
                 {
-                    l.twist(at_ns, twist, streaming)?;
+                    l.twist(at_ns, twist)?;
                     twists_logged += 1;
                 }
-                if options.bus {
-                    l.bus(tx.delivered_ns, &tx.frame, tx.from, tx.fate)?;
-                }
+                log_transmission(l, tx, options)?;
             }
-            if tx.fate == Fate::Dropped {
+            if tx.fate == Fate::Dropped || tx.from == Node::Controller {
                 continue;
             }
-            if tx.from != Node::Controller {
-                ctl.on_frame(Instant::from_micros(tx.delivered_ns / 1000), &tx.frame);
-                summary_rx += 1;
-                if let Some(l) = log.as_deref_mut() {
-                    l.can(tx.delivered_ns, Direction::Rx, &tx.frame)?;
-                    if tx.from == Node::Drives && options.feedback_every > 0 {
-                        // Every n-th frame of each id, so every drive shows up.
-                        let count = &mut feedback_count[usize::from(id_of(&tx.frame))];
-                        if count.is_multiple_of(u64::from(options.feedback_every)) {
-                            l.motor_feedback(tx.delivered_ns, &tx.frame, &scenario.config.drive)?;
-                        }
-                        *count += 1;
-                    }
-                }
-            }
+            ctl.on_frame(Instant::from_micros(tx.delivered_ns / 1000), &tx.frame);
+            summary_rx += 1;
         }
         if let Some(l) = log.as_deref_mut() {
-            for &(at_ns, twist, streaming) in &twists_to_log[twists_logged..] {
-                l.twist(at_ns, twist, streaming)?;
+            for &(at_ns, twist) in &twists_to_log[twists_logged..] {
+                l.twist(at_ns, twist)?;
             }
         }
 
@@ -409,18 +443,15 @@ pub fn run_observed<P: SimPlant>(
             bus.send(t_ns, Node::Controller, *f);
             hash.add(t_us, f);
             summary_tx += 1;
-            if let Some(l) = log.as_deref_mut() {
-                l.can(t_ns, Direction::Tx, f)?;
-            }
         }
         let state = (ctl.state(), ctl.fault());
         if state != last_state {
             let msg = format!("state {:?}, fault {:?}", state.0, state.1);
             if let Some(l) = log.as_deref_mut() {
                 let level = if state.0 == RobotState::Fault || state.0 == RobotState::Estop {
-                    4
+                    crate::log::msg::Log::ERROR
                 } else {
-                    2
+                    crate::log::msg::Log::INFO
                 };
                 l.text(t_ns, level, &msg)?;
             }
@@ -448,7 +479,11 @@ pub fn run_observed<P: SimPlant>(
                 l.snapshot(t_ns, &ctl.snapshot())?;
             }
             if every(options.pose_every) {
-                l.poses(t_ns, odom, truth)?;
+                let measured = ctl.snapshot().measured;
+                let twist = [measured.vx, measured.vy, measured.wz].map(f64::from);
+                l.odometry(t_ns, OdometrySource::Firmware, odom, twist)?;
+                let truth_twist = plant.truth_velocity();
+                l.odometry(t_ns, OdometrySource::GroundTruth, truth, truth_twist)?;
             }
             l.maybe_flush()?;
         }
@@ -476,17 +511,26 @@ pub fn run_observed<P: SimPlant>(
         step += 1;
     }
 
+    let end_ns = t_us * 1000;
+    let (bus_stats, bus_load) = (bus.stats(), bus.load(end_ns));
+    if let Some(l) = log {
+        // The frames the firmware sent at its last steps, once they are off the wire.
+        bus.advance_into(end_ns + DRAIN_NS, &mut in_flight);
+        in_flight.sort_by_key(|tx| tx.delivered_ns);
+        for tx in in_flight.iter().filter(|tx| tx.from == Node::Controller) {
+            log_transmission(l, tx, options)?;
+        }
+    }
     let odom = pose_array(ctl.pose());
     let truth = last_truth;
-    let end_ns = t_us * 1000;
     Ok(RunSummary {
         scenario: scenario.name.clone(),
         duration_s: scenario.duration_s,
         steps: step,
         tx_frames: summary_tx,
         rx_frames: summary_rx,
-        bus: bus.stats(),
-        bus_load: bus.load(end_ns),
+        bus: bus_stats,
+        bus_load,
         truth,
         odometry: odom,
         final_position_error: libm::hypot(odom[0] - truth[0], odom[1] - truth[1]),
@@ -504,6 +548,7 @@ fn pose_array(p: kinematics::Pose2<f32>) -> [f64; 3] {
     [f64::from(p.x), f64::from(p.y), f64::from(p.heading)]
 }
 
+#[cfg(test)]
 fn id_of(frame: &CanFrame) -> u16 {
     match embedded_can::Frame::id(frame) {
         embedded_can::Id::Standard(id) => id.as_raw(),
@@ -617,9 +662,14 @@ pub fn run_metadata(scenario: &Scenario) -> BTreeMap<String, String> {
         ("config".to_string(), scenario.config.to_toml_string()),
         ("scenario".to_string(), scenario.name.clone()),
         ("seed".to_string(), scenario.seed.to_string()),
+        ("program".to_string(), "hostsim run".to_string()),
         (
             "hostsim_version".to_string(),
             env!("CARGO_PKG_VERSION").to_string(),
+        ),
+        (
+            "protocol_version".to_string(),
+            robot::PROTOCOL_VERSION.to_string(),
         ),
     ])
 }

@@ -9,12 +9,9 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use foxglove::Decode;
-use foxglove::schemas::{Log, PoseInFrame};
-
 use crate::bus::frame_bits;
+use crate::log::msg::{self, decode};
 use crate::log::{ReadReport, for_each_message};
-use crate::replay::FrameJson;
 
 /// Figures of a logged run.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -31,54 +28,48 @@ pub struct LogSummary {
     pub truth: Option<[f64; 3]>,
     /// Final and largest odometry position error against ground truth, m.
     pub drift: Option<(f64, f64)>,
-    /// Bus load from `/can/bus` (bits at 1 Mbit/s over the duration), 0..1.
+    /// Bus load from the frames (`/can/rx`, `/can/tx`, and the frames on `/can/faults` that
+    /// reached neither), in bits at 1 Mbit/s over the duration, 0..1.
     pub bus_load: Option<f64>,
-    /// Frames on the bus by fate.
+    /// Frames on the bus by fate (`delivered`, `dropped`, `corrupted`).
     pub fates: BTreeMap<String, u64>,
-    /// Firmware log lines `(time s, level, text)`: state changes and faults.
-    pub events: Vec<(f64, i32, String)>,
+    /// Firmware log lines `(time s, level, text)` from `/rosout` (`rcl_interfaces/msg/Log`
+    /// levels: 20 info, 40 error): state changes and faults.
+    pub events: Vec<(f64, u8, String)>,
     /// What was read, and where the log is damaged if it is.
     pub read: ReadReport,
 }
 
-fn yaw(q: &foxglove::schemas::Quaternion) -> f64 {
-    2.0 * q.z.atan2(q.w)
-}
-
-fn pose_of(p: &PoseInFrame) -> Option<[f64; 3]> {
-    let pose = p.pose.as_ref()?;
-    let pos = pose.position.as_ref()?;
-    Some([pos.x, pos.y, yaw(pose.orientation.as_ref()?)])
-}
-
-/// Summarises a hostsim MCAP log.
+/// Summarises a log.
 ///
 /// # Errors
-/// A description naming the file if it cannot be read or nothing in it is readable (not
-/// MCAP). A damaged log is not an error: [`LogSummary::read`] says where the damage is.
+/// A description naming the file if it cannot be read, nothing in it is readable (not
+/// MCAP), or it is in the JSON layout of earlier versions. A damaged log is not an error:
+/// [`LogSummary::read`] says where the damage is.
 pub fn summarize(path: &Path) -> Result<LogSummary, String> {
     let bytes = std::fs::read(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
     let mut s = LogSummary::default();
     let mut odom: Option<(u64, [f64; 3])> = None;
     let mut truth: Option<(u64, [f64; 3])> = None;
     let mut max_err = 0.0f64;
-    let mut bus_bits = 0u64;
+    let mut bus_bits = 0i64;
+    let mut frames = 0u64;
     let mut last_ns = 0u64;
     let read = for_each_message(
         &bytes,
-        |topic, t, data| {
-            *s.topics.entry(topic.to_string()).or_default() += 1;
-            last_ns = last_ns.max(t);
-            match topic {
-                "/odom/pose" | "/ground_truth/pose" => {
-                    let Ok(p) = PoseInFrame::decode(data) else {
+        |m| {
+            *s.topics.entry(m.topic.to_string()).or_default() += 1;
+            last_ns = last_ns.max(m.log_time);
+            match m.topic {
+                "/odom" | "/ground_truth/odom" => {
+                    let Ok(o) = decode::<msg::Odometry>(m.data) else {
                         return;
                     };
-                    let Some(pose) = pose_of(&p) else { return };
-                    if topic == "/odom/pose" {
-                        odom = Some((t, pose));
+                    let pose = o.pose.pose.to_planar();
+                    if m.topic == "/odom" {
+                        odom = Some((m.log_time, pose));
                     } else {
-                        truth = Some((t, pose));
+                        truth = Some((m.log_time, pose));
                     }
                     if let (Some((to, o)), Some((tt, g))) = (odom, truth)
                         && to == tt
@@ -86,31 +77,59 @@ pub fn summarize(path: &Path) -> Result<LogSummary, String> {
                         max_err = max_err.max((o[0] - g[0]).hypot(o[1] - g[1]));
                     }
                 }
-                "/can/bus" => {
-                    let parsed = FrameJson::parse(data);
-                    if let Some(frame) = parsed.as_ref().and_then(FrameJson::frame) {
-                        bus_bits += u64::from(frame_bits(&frame));
+                "/can/rx" | "/can/tx" => {
+                    if let Some(f) = decode::<msg::Frame>(m.data).ok().and_then(|f| f.to_can()) {
+                        bus_bits += i64::from(frame_bits(&f));
+                        frames += 1;
                     }
-                    let fate = parsed.as_ref().and_then(|p| p.fate.as_deref());
-                    *s.fates
-                        .entry(fate.unwrap_or("unknown").to_string())
-                        .or_default() += 1;
                 }
-                "/firmware/log" => {
-                    if let Ok(l) = Log::decode(data) {
-                        s.events.push((t as f64 * 1e-9, l.level, l.message));
+                "/can/faults" => {
+                    let Ok(fault) = decode::<msg::BusFault>(m.data) else {
+                        return;
+                    };
+                    *s.fates.entry(fault.fate.clone()).or_default() += 1;
+                    let Some(sent) = fault.frame.to_can() else {
+                        return;
+                    };
+                    // A frame the firmware sent is on /can/tx as sent, dropped or not. One of
+                    // the other nodes is on /can/rx as received, unless it was dropped.
+                    if fault.sender == "controller" {
+                        return;
+                    }
+                    if fault.fate == "dropped" {
+                        bus_bits += i64::from(frame_bits(&sent));
+                        frames += 1;
+                    } else {
+                        let received = msg::Frame {
+                            data: fault.received,
+                            ..fault.frame.clone()
+                        };
+                        if let Some(received) = received.to_can() {
+                            // The bus timed the frame as sent: its stuff bits, not the
+                            // corrupted data's.
+                            bus_bits +=
+                                i64::from(frame_bits(&sent)) - i64::from(frame_bits(&received));
+                        }
+                    }
+                }
+                "/rosout" => {
+                    if let Ok(l) = decode::<msg::Log>(m.data) {
+                        s.events.push((m.log_time as f64 * 1e-9, l.level, l.msg));
                     }
                 }
                 _ => {}
             }
         },
         |name, kv| {
-            if name == "hostsim" {
+            if name == crate::log::METADATA_NAME {
                 s.scenario = kv.get("scenario").cloned();
             }
         },
     )
     .map_err(|e| format!("{}: not a readable MCAP file: {e}", path.display()))?;
+    if crate::replay::is_old_layout(&read) {
+        return Err(format!("{}: {}", path.display(), crate::replay::OLD_LAYOUT));
+    }
     s.read = read;
     s.duration_s = last_ns as f64 * 1e-9;
     s.odometry = odom.map(|o| o.1);
@@ -118,9 +137,12 @@ pub fn summarize(path: &Path) -> Result<LogSummary, String> {
     if let (Some(o), Some(g)) = (s.odometry, s.truth) {
         s.drift = Some(((o[0] - g[0]).hypot(o[1] - g[1]), max_err));
     }
-    if s.topics.contains_key("/can/bus") && last_ns > 0 {
+    if frames > 0 && last_ns > 0 {
+        let faulty: u64 = s.fates.values().sum();
+        s.fates
+            .insert("delivered".to_string(), frames.saturating_sub(faulty));
         // 1 Mbit/s: one bit per microsecond.
-        s.bus_load = Some(bus_bits as f64 * 1000.0 / last_ns as f64);
+        s.bus_load = Some(bus_bits.max(0) as f64 * 1000.0 / last_ns as f64);
     }
     Ok(s)
 }
@@ -131,7 +153,7 @@ mod tests {
 
     #[test]
     fn garbage_is_refused_with_a_reason() {
-        let e = for_each_message(b"definitely not mcap", |_, _, _| {}, |_, _| {}).unwrap_err();
+        let e = for_each_message(b"definitely not mcap", |_| {}, |_, _| {}).unwrap_err();
         assert_eq!(e.offset, 0);
         assert!(e.to_string().contains("MCAP magic"), "{e}");
     }

@@ -14,14 +14,13 @@ use std::sync::OnceLock;
 
 use embedded_can::StandardId;
 use firmware::CanFrame;
-use hostsim::bus::{Fate, Node};
 use hostsim::log::{Direction, McapLog, Problem, ReadReport, for_each_message};
 use hostsim::replay::{self, MAX_GAP_NS, ReplayError, ReplayRunError, TimedFrame};
 use hostsim::scenario::Scenario;
 use hostsim::sim::run_metadata;
 
-/// A message: topic, log time, data.
-type Msg = (String, u64, Vec<u8>);
+/// A message: topic, log time, data, publish time.
+type Msg = (String, u64, Vec<u8>, u64);
 
 /// A log written by the real writer, and what the `mcap` crate reads from it.
 struct Fixture {
@@ -67,7 +66,7 @@ impl Fixture {
     }
 }
 
-/// Half a second of the square with 16 KiB chunks: many chunk boundaries in a small file.
+/// Half a second of the square with 4 KiB chunks: many chunk boundaries in a small file.
 /// The built-in square, `duration_s` long, logged by the real writer into `path` (with
 /// `chunk_size`-byte chunks, or the writer's default); the log is left open.
 fn square_log(path: &Path, duration_s: f64, chunk_size: Option<u64>) -> McapLog {
@@ -87,7 +86,7 @@ fn fixture() -> &'static Fixture {
     FIXTURE.get_or_init(|| {
         let dir = TempDir::new("fixture");
         let path = dir.0.join("square.mcap");
-        square_log(&path, 0.5, Some(16 << 10)).finish().unwrap();
+        square_log(&path, 0.5, Some(4 << 10)).finish().unwrap();
         let bytes = std::fs::read(&path).unwrap();
 
         let summary = mcap::Summary::read(&bytes).unwrap().expect("a summary");
@@ -98,7 +97,12 @@ fn fixture() -> &'static Fixture {
         for c in &index {
             for m in summary.stream_chunk(&bytes, c).unwrap() {
                 let m = m.unwrap();
-                messages.push((m.channel.topic.clone(), m.log_time, m.data.to_vec()));
+                messages.push((
+                    m.channel.topic.clone(),
+                    m.log_time,
+                    m.data.to_vec(),
+                    m.publish_time,
+                ));
             }
             let start = c.chunk_start_offset as usize;
             chunks.push((start, start + c.chunk_length as usize, messages.len()));
@@ -147,10 +151,13 @@ fn read(bytes: &[u8]) -> (Result<ReadReport, hostsim::log::Damage>, Option<usize
     let mut same = true;
     let r = for_each_message(
         bytes,
-        |topic, t, data| {
-            same &= expected
-                .get(n)
-                .is_some_and(|m| m.0 == topic && m.1 == t && m.2 == data);
+        |msg| {
+            same &= expected.get(n).is_some_and(|m| {
+                m.0 == msg.topic
+                    && m.1 == msg.log_time
+                    && m.2 == msg.data
+                    && m.3 == msg.publish_time
+            });
             n += 1;
         },
         |_, _| {},
@@ -397,14 +404,18 @@ fn replay_of_a_cut_log_is_bit_identical_up_to_the_cut_and_summary_reports_it() {
         let read = report.read.clone().unwrap();
         assert!(!read.is_complete(), "cut at {cut}");
         assert!(report.identical(), "cut at {cut}: {:?}", report.difference);
-        // Every /can/tx frame before the last message's time was compared.
+        // Every /can/tx frame read whose step is before the cut-off was compared: the last
+        // message's time less the longest a sent frame read took to come off the wire.
         let last = read.last_time_ns.unwrap();
-        let want = fx
-            .messages
-            .iter()
-            .take(read.messages as usize)
-            .filter(|m| m.0 == "/can/tx" && m.1 < last)
-            .count();
+        let read_tx = || {
+            fx.messages
+                .iter()
+                .take(read.messages as usize)
+                .filter(|m| m.0 == "/can/tx")
+        };
+        let lag = read_tx().map(|m| m.1 - m.3).max().unwrap();
+        assert!(lag > 0 && lag < 2_000_000, "{lag} ns");
+        let want = read_tx().filter(|m| m.3 + lag < last).count();
         assert_eq!(report.compared, want, "cut at {cut}");
         assert!(report.compared > 0, "cut at {cut}");
 
@@ -431,16 +442,20 @@ fn replay_of_a_cut_log_is_bit_identical_up_to_the_cut_and_summary_reports_it() {
 
 #[test]
 fn a_log_without_firmware_frames_is_nothing_to_replay() {
-    // What `hostsim plant --log` writes: the configuration and the bus, no /can/rx or /can/tx.
+    // What `hostsim plant --log` writes: the frames as the plant saw them on the interface,
+    // not at the firmware's steps.
     let dir = TempDir::new("plant-log");
     let path = dir.0.join("plant.mcap");
     let config = firmware::Config::dji_m3508_example().to_toml_string();
-    let mut log =
-        McapLog::create(&path, &BTreeMap::from([("config".to_string(), config)])).unwrap();
+    let metadata = BTreeMap::from([
+        ("config".to_string(), config),
+        ("program".to_string(), replay::PLANT_PROGRAM.to_string()),
+    ]);
+    let mut log = McapLog::create(&path, &metadata).unwrap();
     let frame = CanFrame::standard(StandardId::new(0x201).unwrap(), &[0; 8]).unwrap();
     for ms in 0..100 {
-        log.bus(ms * 1_000_000, &frame, Node::Drives, Fate::Delivered)
-            .unwrap();
+        let t = ms * 1_000_000;
+        log.frame(Direction::Rx, t, t, t, &frame).unwrap();
     }
     log.finish().unwrap();
     let err = replay::replay_mcap(&path).unwrap_err();
@@ -454,7 +469,7 @@ fn log_with_time(dir: &TempDir, name: &str, t_ns: u64) -> PathBuf {
     let path = dir.0.join(name);
     let mut log = square_log(&path, 0.2, None);
     let frame = CanFrame::standard(StandardId::new(0x200).unwrap(), &[0; 8]).unwrap();
-    log.can(t_ns, Direction::Tx, &frame).unwrap();
+    log.frame(Direction::Tx, t_ns, t_ns, t_ns, &frame).unwrap();
     log.finish().unwrap();
     path
 }
@@ -546,24 +561,24 @@ fn remote_and_extended_frames_read_back_as_written_and_count_on_the_bus() {
         CanFrame::new(ext, &[1, 2, 3]).unwrap(),
         CanFrame::new_remote(ext, 4).unwrap(),
     ];
-    for frame in frames {
-        let mut json = Vec::new();
-        hostsim::log::write_frame_json(&mut json, 0, &frame, Some((Node::Drives, Fate::Delivered)));
-        assert_eq!(replay::parse_frame_json(&json), Some(frame), "{frame:?}");
-    }
-    // A second of a bus carrying only these (a plant log of a real bus): the summary's load
-    // is their exact length, as the simulated bus would time them.
+    // A second of a bus carrying only these (a plant log of a real bus): they read back as
+    // written, and the summary's load is their exact length, as the simulated bus would time
+    // them.
     let dir = TempDir::new("remote-extended");
     let path = dir.0.join("bus.mcap");
     let mut log = McapLog::create(&path, &BTreeMap::new()).unwrap();
     let mut bits = 0u64;
+    let mut written = Vec::new();
     for ms in 0..=1000u64 {
         let frame = frames[(ms % 3) as usize];
-        log.bus(ms * 1_000_000, &frame, Node::Drives, Fate::Delivered)
-            .unwrap();
+        let t = ms * 1_000_000;
+        log.frame(Direction::Rx, t, t, t, &frame).unwrap();
+        written.push(TimedFrame { t_ns: t, frame });
         bits += u64::from(hostsim::bus::frame_bits(&frame));
     }
     log.finish().unwrap();
+    let content = replay::read_log(&path).unwrap();
+    assert_eq!(content.rx, written);
     let s = hostsim::summary::summarize(&path).unwrap();
     let load = s.bus_load.unwrap();
     assert!(

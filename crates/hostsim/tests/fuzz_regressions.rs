@@ -62,7 +62,7 @@ fn huge_record_in_zstd_chunk() -> Vec<u8> {
 fn mcap_huge_record_length_in_compressed_chunk_is_an_error_not_an_abort() {
     let bytes = huge_record_in_zstd_chunk();
     let mut messages = 0;
-    let read = for_each_message(&bytes, |_, _, _| messages += 1, |_, _| {})
+    let read = for_each_message(&bytes, |_| messages += 1, |_, _| {})
         .expect("the header record was read: damage, not an error");
     assert_eq!(messages, 0);
     let damage = read.damage.expect("reading stopped at the corrupt chunk");

@@ -326,38 +326,97 @@ fn the_summary_compares_odometry_and_truth_at_the_same_step() {
 
 #[test]
 fn every_pose_is_in_a_frame_the_transforms_place() {
-    use foxglove::Decode;
-    use foxglove::schemas::{FrameTransform, PoseInFrame};
+    use hostsim::log::msg::{Odometry, TfMessage, decode};
     let path = common::scratch("sim", "frames.mcap");
     let mut s = Scenario::builtin("circle").unwrap();
     s.duration_s = 0.5;
     common::logged_run(&s, &path);
     let bytes = std::fs::read(&path).unwrap();
-    let (mut pose_frames, mut placed) = (Vec::new(), vec!["world".to_string()]);
+    let (mut odometry, mut placed) = (Vec::new(), vec!["odom".to_string()]);
     hostsim::log::for_each_message(
         &bytes,
-        |topic, _, data| match topic {
-            "/odom/pose" | "/ground_truth/pose" => {
-                let p = PoseInFrame::decode(data).unwrap();
-                pose_frames.push((topic.to_string(), p.frame_id));
+        |m| match m.topic {
+            "/odom" | "/ground_truth/odom" => {
+                let o: Odometry = decode(m.data).unwrap();
+                odometry.push((m.topic.to_string(), o.header.frame_id, o.child_frame_id));
             }
             "/tf" => {
-                let tf = FrameTransform::decode(data).unwrap();
-                assert!(placed.contains(&tf.parent_frame_id), "{tf:?}");
-                placed.push(tf.child_frame_id);
+                for tf in decode::<TfMessage>(m.data).unwrap().transforms {
+                    assert!(placed.contains(&tf.header.frame_id), "{tf:?}");
+                    placed.push(tf.child_frame_id);
+                }
             }
             _ => {}
         },
         |_, _| {},
     )
     .unwrap();
-    assert!(pose_frames.len() >= 2 * 50, "{}", pose_frames.len());
-    for (topic, frame) in &pose_frames {
-        assert!(
-            placed.contains(frame),
-            "{topic} in frame {frame:?}, which no transform places ({placed:?})"
-        );
+    assert!(odometry.len() >= 2 * 50, "{}", odometry.len());
+    for (topic, frame, child) in &odometry {
+        for f in [frame, child] {
+            assert!(
+                placed.contains(f),
+                "{topic} in frame {f:?}, which no transform places ({placed:?})"
+            );
+        }
     }
+}
+
+#[test]
+fn every_frame_on_the_bus_is_logged_once() {
+    use hostsim::log::msg::{BusFault, Frame, decode};
+    // The example fault scenario: drives' frames dropped, host frames corrupted, a burst.
+    let s = Scenario::from_file(std::path::Path::new("../../scenarios/faults.toml")).unwrap();
+    let path = common::scratch("sim", "once.mcap");
+    let r = common::logged_run(&s, &path);
+    let bytes = std::fs::read(&path).unwrap();
+    let (mut rx, mut tx, mut faults) = (0u64, 0u64, Vec::new());
+    let mut stamps_ok = true;
+    hostsim::log::for_each_message(
+        &bytes,
+        |m| match m.topic {
+            "/can/rx" | "/can/tx" => {
+                let f: Frame = decode(m.data).unwrap();
+                // Stamped at the end of the frame on the wire: after its sender queued it,
+                // no later than when it was taken.
+                let stamp = f.header.stamp.to_ns();
+                stamps_ok &= m.publish_time < stamp && stamp <= m.log_time;
+                if m.topic == "/can/rx" {
+                    rx += 1;
+                } else {
+                    tx += 1;
+                }
+            }
+            "/can/faults" => faults.push(decode::<BusFault>(m.data).unwrap()),
+            _ => {}
+        },
+        |_, _| {},
+    )
+    .unwrap();
+    assert!(stamps_ok);
+    // The firmware's view: what it received, what it sent (dropped or not, the last
+    // step's frames included).
+    assert_eq!(rx, r.rx_frames);
+    assert_eq!(tx, r.tx_frames);
+    // Each frame once: the frames of the others that were dropped are on /can/faults only.
+    let dropped_elsewhere = faults
+        .iter()
+        .filter(|f| f.fate == "dropped" && f.sender != "controller")
+        .count() as u64;
+    // The bus's count also has the frames of the others that came off the wire after the
+    // firmware's last step (which it never took): the last period's feedback at most.
+    let logged = rx + tx + dropped_elsewhere;
+    assert!(
+        (0..=8).contains(&(r.bus.frames - logged)),
+        "{logged} logged, {} on the bus",
+        r.bus.frames
+    );
+    let count = |fate: &str| faults.iter().filter(|f| f.fate == fate).count() as u64;
+    assert_eq!(
+        (count("dropped"), count("corrupted")),
+        (r.bus.dropped, r.bus.corrupted)
+    );
+    assert!(r.bus.dropped > 0 && r.bus.corrupted > 0, "{:?}", r.bus);
 }
 
 /// The drives, recording the plant's time whenever a frame reaches them.

@@ -1,0 +1,154 @@
+//! The mecanum drive's logs: ROS 2 bags in MCAP.
+//!
+//! One format for every log the project writes (the simulator's runs, `hostsim plant` on a
+//! real interface, and the firmware's runner on a robot): MCAP profile `ros2`, every channel
+//! a ROS 2 message type (schema encoding `ros2msg` with the full `.msg` text, message
+//! encoding `cdr`), so Foxglove, PlotJuggler, `ros2 bag` (rosbag2's MCAP storage) and Python's
+//! `rosbags` read them without this project's code.
+//!
+//! # Channels
+//!
+//! | topic | type | what |
+//! |---|---|---|
+//! | `/can/rx` | `can_msgs/msg/Frame` | every frame the firmware received. Log time: when the firmware took it (end of frame on the wire, plus any delay fault); publish time: when its sender queued it; `header.stamp`: when it completed on the wire |
+//! | `/can/tx` | `can_msgs/msg/Frame` | every frame the firmware sent, dropped ones included. Log time and `header.stamp`: when it completed on the wire; publish time: the control step that sent it |
+//! | `/can/faults` | `mecanum_drive_msgs/msg/BusFault` | the frames the simulated bus's fault injector dropped or corrupted: sender, fate, the frame as sent and the data as received |
+//! | `/cmd_vel` | `geometry_msgs/msg/TwistStamped` | the host's twist setpoint, when it changes (frame `base_link`) |
+//! | `/odom` | `nav_msgs/msg/Odometry` | the firmware's odometry: pose in `odom`, measured twist in `base_link` |
+//! | `/ground_truth/odom` | `nav_msgs/msg/Odometry` | the plant's true pose in `odom` (the simulator's `odom` origin is where the robot starts) and body twist in `base_link_truth` |
+//! | `/tf` | `tf2_msgs/msg/TFMessage` | `odom` → `base_link` (odometry) and `odom` → `base_link_truth` (ground truth) |
+//! | `/joint_states` | `sensor_msgs/msg/JointState` | wheels `fl`, `fr`, `rl`, `rr`: angle (rad, robot-forward positive, accumulated since start), speed (rad/s), effort: the commanded motor current (A; 0 for velocity-mode drives) |
+//! | `/diagnostics` | `diagnostic_msgs/msg/DiagnosticArray` | the firmware's state, fault, motors online, commanded and measured twist, wheel setpoints, rejected-frame counters |
+//! | `/rosout` | `rcl_interfaces/msg/Log` | state changes and faults, as text |
+//!
+//! Log time 0 is the start of the run. The run's configuration (TOML) and its origin
+//! (scenario, seed, program and versions) are the [`METADATA_NAME`] metadata record, written
+//! before the first message, so that `replay` can rebuild the same firmware.
+//!
+//! # Writing
+//!
+//! [`McapLog`] is what a run calls: it records each message's values in a batch (a few
+//! dozen bytes a message, no encoding), and hands each batch to a thread of its own, which
+//! encodes the messages in CDR ([`msg`]) and writes them with the `mcap` crate's [`Writer`]
+//! (zstd chunks with message indexes, the summary section with chunk indexes and statistics).
+//! See [`mod@write`] for the crash safety: a chunk ends at least every quarter second of log time,
+//! a killed run loses at most the last second, and a `.mcap` file always opens.
+//!
+//! # Reading
+//!
+//! [`for_each_message`] reads a log with the `mcap` crate's reader, every complete chunk of a
+//! damaged file included, and names the byte offset of the damage ([`read`]).
+//!
+//! [`Writer`]: mcap::Writer
+
+pub mod msg;
+pub mod read;
+pub mod write;
+
+pub use read::{Damage, Message, Problem, ReadReport, for_each_message};
+pub use write::{CHUNK_SIZE, Direction, LogError, McapLog, OdometrySource, part_path};
+
+/// The MCAP profile of every log.
+pub const PROFILE: &str = "ros2";
+
+/// The name of the metadata record that holds the run's configuration (`config`, TOML) and
+/// origin (`scenario`, `seed`, `program`, `firmware_version`, `protocol_version`).
+pub const METADATA_NAME: &str = "mecanum_drive";
+
+/// The wheels' joint names, in the project's wheel order.
+pub const WHEEL_NAMES: [&str; 4] = ["fl", "fr", "rl", "rr"];
+
+/// A channel of the logs.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub enum Channel {
+    /// `/can/rx`.
+    CanRx,
+    /// `/can/tx`.
+    CanTx,
+    /// `/can/faults`.
+    CanFaults,
+    /// `/cmd_vel`.
+    CmdVel,
+    /// `/odom`.
+    Odom,
+    /// `/ground_truth/odom`.
+    GroundTruth,
+    /// `/tf`.
+    Tf,
+    /// `/joint_states`.
+    JointStates,
+    /// `/diagnostics`.
+    Diagnostics,
+    /// `/rosout`.
+    Rosout,
+}
+
+impl Channel {
+    /// Every channel, in channel id order (id = index + 1).
+    pub const ALL: [Self; 10] = [
+        Self::CanRx,
+        Self::CanTx,
+        Self::CanFaults,
+        Self::CmdVel,
+        Self::Odom,
+        Self::GroundTruth,
+        Self::Tf,
+        Self::JointStates,
+        Self::Diagnostics,
+        Self::Rosout,
+    ];
+
+    /// The topic.
+    #[must_use]
+    pub const fn topic(self) -> &'static str {
+        match self {
+            Self::CanRx => "/can/rx",
+            Self::CanTx => "/can/tx",
+            Self::CanFaults => "/can/faults",
+            Self::CmdVel => "/cmd_vel",
+            Self::Odom => "/odom",
+            Self::GroundTruth => "/ground_truth/odom",
+            Self::Tf => "/tf",
+            Self::JointStates => "/joint_states",
+            Self::Diagnostics => "/diagnostics",
+            Self::Rosout => "/rosout",
+        }
+    }
+
+    /// The message type.
+    #[must_use]
+    pub fn def(self) -> &'static msg::MsgDef {
+        match self {
+            Self::CanRx | Self::CanTx => &msg::FRAME,
+            Self::CanFaults => &msg::BUS_FAULT,
+            Self::CmdVel => &msg::TWIST_STAMPED,
+            Self::Odom | Self::GroundTruth => &msg::ODOMETRY,
+            Self::Tf => &msg::TF_MESSAGE,
+            Self::JointStates => &msg::JOINT_STATE,
+            Self::Diagnostics => &msg::DIAGNOSTIC_ARRAY,
+            Self::Rosout => &msg::LOG,
+        }
+    }
+
+    /// The channel of `topic`.
+    #[must_use]
+    pub fn from_topic(topic: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|c| c.topic() == topic)
+    }
+
+    /// Channel id in the file.
+    #[must_use]
+    pub const fn id(self) -> u16 {
+        self as u16 + 1
+    }
+}
+
+/// Frames of reference.
+pub mod frames {
+    /// The odometry's fixed frame.
+    pub const ODOM: &str = "odom";
+    /// The robot, as its odometry places it.
+    pub const BASE_LINK: &str = "base_link";
+    /// The robot, where it really is (simulator).
+    pub const BASE_LINK_TRUTH: &str = "base_link_truth";
+}
