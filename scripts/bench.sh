@@ -4,7 +4,8 @@
 #   kinematics full step (f32, f64) and the control step on the host (criterion medians),
 #   instructions per control step on the emulated Cortex-M4 (QEMU, scripts/xtarget.sh),
 #   flash and static RAM of the STM32F407 board build,
-#   simulator real-time factor of the 60 s square with and without MCAP logging,
+#   simulator real-time factor of the 60 s square with and without MCAP logging, the cost
+#   of logging (with / without, interleaved runs) and the log's size,
 #   MCAP write throughput against the Python mcap writer on the same frames (ratio),
 #   frames/s the firmware runner takes on vcan0 without loss (the vcan lane's rate test;
 #   natively where the kernel has vcan, else in the micro-VM, which the table says).
@@ -30,7 +31,7 @@ done
 if [ "$quick" = 1 ]; then
     crit=(--warm-up-time 1 --measurement-time 2) sim_runs=1 mcap_frames=200000
 else
-    crit=(--warm-up-time 2 --measurement-time 5) sim_runs=3 mcap_frames=1000000
+    crit=(--warm-up-time 2 --measurement-time 5) sim_runs=5 mcap_frames=1000000
 fi
 PY=.venv/bin/python
 [ -x "$PY" ] || { echo "bench.sh: no .venv (run scripts/test.sh once, or python3 -m venv .venv && .venv/bin/pip install -r tests/requirements.txt)" >&2; exit 2; }
@@ -68,10 +69,12 @@ size=$(python3 boards/stm32f407/size.py boards/stm32f407/target/thumbv7em-none-e
 row "board flash (STM32F407, release, LTO)" "$(sed -n 's/^flash: \([0-9]*\) bytes.*/\1/p' <<<"$size") B" "bytes"
 row "board static RAM" "$(sed -n 's/^RAM: *\([0-9]*\) bytes.*/\1/p' <<<"$size") B" "bytes"
 
-log "simulator real-time factor (60 s square, best of $sim_runs)"
+log "simulator real-time factor (60 s square, best of $sim_runs, interleaved)"
 sim=$(scripts/bench-sim.sh "$sim_runs" | tee /dev/stderr)
 row "simulator, 60 s square at 1 kHz, 4 x C620, MCAP logging" "$(grep '^| MCAP' <<<"$sim" | awk -F'|' '{gsub(/ /,"",$4); print $4}')" "real-time factor"
 row "simulator, same, no logging" "$(grep '^| none' <<<"$sim" | awk -F'|' '{gsub(/ /,"",$4); print $4}')" "real-time factor"
+row "simulator, cost of MCAP logging (wall time with / without, interleaved)" "$(grep '^| cost' <<<"$sim" | awk -F'|' '{gsub(/ /,"",$3); print $3}')" "ratio"
+row "60 s square's MCAP log (ROS 2 messages, every frame once, zstd)" "$(sed -n 's/^| MCAP (ROS 2 messages, zstd), \([0-9.]*\) MB.*/\1/p' <<<"$sim") MB" "MB"
 
 log "MCAP write throughput: Rust (McapLog) against the Python mcap writer, $mcap_frames frames"
 cargo build --release --locked -q -p hostsim --example mcap_throughput

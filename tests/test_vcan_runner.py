@@ -598,7 +598,12 @@ def test_hostsim_replay_of_the_session_log_agrees(recorded: dict, plant_bin, con
 
 
 def test_plant_mcap_log_holds_every_frame_candump_saw(motion: Robot, plant_bin) -> None:
+    """The plant's log, a ROS 2 bag read with rosbags (types from the file's own schemas):
+    every frame candump saw, once, on /can/rx (what the firmware received: the plant's
+    feedback and the host's commands) or /can/tx (what it sent)."""
     from mcap.reader import make_reader
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
 
     if motion.plant_mcap is None:
         pytest.skip("this session's plant writes no log (the ODrive one does)")
@@ -606,28 +611,31 @@ def test_plant_mcap_log_holds_every_frame_candump_saw(motion: Robot, plant_bin) 
     topics = collections.Counter()
     last_ns = 0
     with open(motion.plant_mcap, "rb") as f:
-        reader = make_reader(f)
         start_ns = next(
-            int(m.metadata["start_unix_ns"]) for m in reader.iter_metadata() if m.name == "hostsim"
+            int(m.metadata["start_unix_ns"])
+            for m in make_reader(f).iter_metadata()
+            if m.name == "mecanum_drive"
         )
-        for _schema, channel, message in reader.iter_messages():
-            topics[channel.topic] += 1
-            if channel.topic == "/can/bus":
-                m = json.loads(message.data)
-                data = b"" if m["is_rtr"] else bytes(m["data"][: m["dlc"]])
-                logged[(m["id"], data)] += 1
-                last_ns = max(last_ns, message.log_time)
+    with AnyReader([motion.plant_mcap], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
+        for connection, log_ns, raw in reader.messages():
+            topics[connection.topic] += 1
+            message = reader.deserialize(raw, connection.msgtype)
+            if connection.topic in ("/can/rx", "/can/tx"):
+                assert connection.msgtype == "can_msgs/msg/Frame"
+                data = b"" if message.is_rtr else bytes(message.data[: message.dlc])
+                logged[(message.id, data)] += 1
+                last_ns = max(last_ns, log_ns)
     # The plant can only log what crossed the bus while it ran: from its start (its socket
     # was open by then) to its last tick; 20 ms margins for the frames in flight at either end.
     t0, t1 = (start_ns * 1e-9) + 0.02, (start_ns + last_ns) * 1e-9 - 0.02
     seen = collections.Counter((f.id, f.data) for f in motion.frames if t0 <= f.t <= t1)
     edge = collections.Counter((f.id, f.data) for f in motion.frames if not t0 <= f.t <= t1)
     print(f"candump saw {sum(seen.values())} frames; the plant's log holds {sum(logged.values())} "
-          f"on /can/bus; topics {dict(topics)}")
+          f"on /can/rx and /can/tx; topics {dict(topics)}")
     missing = seen - logged
     assert not missing, f"{sum(missing.values())} frames candump saw are not in the log: {list(missing.items())[:5]}"
     assert not logged - seen - edge, "the log holds frames candump did not see"
-    assert topics["/ground_truth/pose"] > 0 and topics["/odom/pose"] > 0
+    assert topics["/ground_truth/odom"] > 0 and topics["/odom"] > 0 and topics["/tf"] > 0
     summary = subprocess.run(
         [str(plant_bin), "summary", str(motion.plant_mcap)], capture_output=True, text=True, timeout=120
     )

@@ -39,6 +39,36 @@
 //! [`for_each_message`] reads a log with the `mcap` crate's reader, every complete chunk of a
 //! damaged file included, and names the byte offset of the damage ([`read`]).
 //!
+//! # Example
+//!
+//! ```
+//! use std::collections::BTreeMap;
+//! use drivelog::{Direction, McapLog, for_each_message, msg};
+//! use embedded_can::StandardId;
+//! use firmware::CanFrame;
+//!
+//! let path = std::env::temp_dir().join(format!("drivelog-doc-{}.mcap", std::process::id()));
+//! let metadata = BTreeMap::from([("scenario".to_string(), "doc".to_string())]);
+//! let mut log = McapLog::create(&path, &metadata)?;
+//! let frame = CanFrame::standard(StandardId::new(0x201).unwrap(), &[1, 2, 3]).unwrap();
+//! // Received by the firmware at 1 ms, queued by its sender 130 µs before, off the wire at 1 ms.
+//! log.frame(Direction::Rx, 1_000_000, 870_000, 1_000_000, &frame)?;
+//! log.finish()?;
+//!
+//! let bytes = std::fs::read(&path)?;
+//! let mut frames = Vec::new();
+//! let report = for_each_message(
+//!     &bytes,
+//!     |m| frames.push((m.topic.to_string(), msg::decode::<msg::Frame>(m.data).unwrap())),
+//!     |_, _| {},
+//! )?;
+//! assert!(report.is_complete());
+//! assert_eq!(frames[0].0, "/can/rx");
+//! assert_eq!(frames[0].1.to_can(), Some(frame));
+//! # std::fs::remove_file(&path)?;
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+//!
 //! [`Writer`]: mcap::Writer
 
 pub mod msg;

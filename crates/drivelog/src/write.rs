@@ -886,3 +886,294 @@ impl Drop for BatchWriter {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use std::collections::HashMap;
+
+    use embedded_can::{Frame as _, StandardId};
+
+    use super::*;
+    use crate::read::for_each_message;
+
+    /// A file of its own for a test, removed when dropped.
+    struct TempFile(PathBuf);
+
+    impl TempFile {
+        fn new(test: &str) -> Self {
+            let name = format!("drivelog-{}-{test}.mcap", std::process::id());
+            Self(std::env::temp_dir().join(name))
+        }
+    }
+
+    impl Drop for TempFile {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_file(&self.0);
+        }
+    }
+
+    fn frame(i: u64) -> CanFrame {
+        let id = StandardId::new(0x201 + (i % 4) as u16).unwrap();
+        let b = i.to_le_bytes();
+        CanFrame::standard(id, &[b[0], b[1], b[2], 7, 0, 255, 100, 9]).unwrap()
+    }
+
+    /// Logs milliseconds `steps` of every kind of message (5 frames a millisecond, the rest
+    /// every 10 ms).
+    fn log_steps(log: &mut McapLog, steps: std::ops::Range<u64>) -> Result<(), LogError> {
+        let snapshot = firmware::Controller::new(&firmware::Config::dji_m3508_example())
+            .unwrap()
+            .snapshot();
+        for i in steps {
+            let t = i * 1_000_000;
+            for k in 0..4 {
+                let f = frame(i * 4 + k);
+                log.frame(Direction::Rx, t + 100 * k, t + 100 * k, t + 100 * k, &f)?;
+            }
+            log.frame(Direction::Tx, t + 500, t, t + 450, &frame(i))?;
+            if i % 10 == 0 {
+                log.snapshot(t, &snapshot)?;
+                log.odometry(
+                    t,
+                    OdometrySource::Firmware,
+                    [0.1, 0.2, 0.3],
+                    [0.5, 0.0, 0.1],
+                )?;
+                log.odometry(
+                    t,
+                    OdometrySource::GroundTruth,
+                    [0.1, 0.2, 0.31],
+                    [0.5, 0.0, 0.1],
+                )?;
+                log.twist(t, [0.5, 0.0, -0.25])?;
+                log.bus_fault(t, "drives", "dropped", &frame(i), &frame(i))?;
+            }
+            if i % 100 == 0 {
+                log.text(t, msg::Log::INFO, "state Enabled")?;
+            }
+            log.maybe_flush()?;
+        }
+        Ok(())
+    }
+
+    #[test]
+    fn a_log_reads_back_through_the_crates_index_and_our_reader_alike() {
+        let file = TempFile::new("indexes");
+        let metadata = BTreeMap::from([("config".to_string(), "x = 1".to_string())]);
+        let mut log = McapLog::create_with_chunk_size(&file.0, &metadata, 64 << 10).unwrap();
+        log_steps(&mut log, 0..1500).unwrap();
+        let written = log.messages();
+        log.finish().unwrap();
+        let bytes = std::fs::read(&file.0).unwrap();
+
+        // This crate's reader: complete, every CRC checked, in file order.
+        let mut read = Vec::new();
+        let mut meta = Vec::new();
+        let report = for_each_message(
+            &bytes,
+            |m| {
+                read.push((
+                    m.topic.to_string(),
+                    m.log_time,
+                    m.publish_time,
+                    m.data.to_vec(),
+                ));
+            },
+            |name, kv| meta.push((name.to_string(), kv.clone())),
+        )
+        .unwrap();
+        assert!(report.is_complete(), "{report}");
+        assert_eq!(report.messages, written);
+        assert_eq!(report.profile, "ros2");
+        assert_eq!(meta, vec![(METADATA_NAME.to_string(), metadata)]);
+
+        // The mcap crate: statistics, schemas, and every chunk through its index.
+        let summary = mcap::Summary::read(&bytes).unwrap().unwrap();
+        let stats = summary.stats.as_ref().unwrap();
+        assert_eq!(stats.message_count, written);
+        assert_eq!(stats.channel_count, Channel::ALL.len() as u32);
+        assert_eq!(stats.metadata_count, 1);
+        assert!(summary.chunk_indexes.len() > 10);
+        for c in summary.channels.values() {
+            let channel = Channel::from_topic(&c.topic).unwrap();
+            assert_eq!(c.id, channel.id());
+            assert_eq!(c.message_encoding, "cdr");
+            let schema = c.schema.as_ref().unwrap();
+            assert_eq!(
+                (schema.name.as_str(), schema.encoding.as_str()),
+                (channel.def().name, "ros2msg")
+            );
+            assert_eq!(&*schema.data, channel.def().schema_text().as_bytes());
+        }
+        let mut from_index = Vec::new();
+        let mut indexes = summary.chunk_indexes.clone();
+        indexes.sort_by_key(|c| c.chunk_start_offset);
+        for index in &indexes {
+            // Each chunk's message index lists its messages (the first chunk holds the
+            // schemas and channels only, and has none).
+            let listed: usize = if index.message_index_offsets.is_empty() {
+                0
+            } else {
+                summary
+                    .read_message_indexes(&bytes, index)
+                    .unwrap()
+                    .values()
+                    .map(Vec::len)
+                    .sum()
+            };
+            let before = from_index.len();
+            for m in summary.stream_chunk(&bytes, index).unwrap() {
+                let m = m.unwrap();
+                from_index.push((
+                    m.channel.topic.clone(),
+                    m.log_time,
+                    m.publish_time,
+                    m.data.to_vec(),
+                ));
+            }
+            assert_eq!(listed, from_index.len() - before);
+        }
+        assert_eq!(from_index, read);
+        let counts: HashMap<&str, usize> = read.iter().fold(HashMap::new(), |mut m, r| {
+            *m.entry(r.0.as_str()).or_default() += 1;
+            m
+        });
+        assert_eq!(counts["/can/rx"], 6000);
+        assert_eq!(counts["/can/tx"], 1500);
+        assert_eq!(counts["/tf"], 300);
+        assert_eq!(counts["/rosout"], 15);
+
+        // The messages decode to what was logged.
+        let tx = read.iter().find(|r| r.0 == "/can/tx").unwrap();
+        let f: msg::Frame = msg::decode(&tx.3).unwrap();
+        assert_eq!((tx.1, tx.2, f.header.stamp.to_ns()), (500, 0, 450));
+        assert_eq!(f.to_can(), Some(frame(0)));
+        let fault = read.iter().find(|r| r.0 == "/can/faults").unwrap();
+        let fault: msg::BusFault = msg::decode(&fault.3).unwrap();
+        assert_eq!(
+            (fault.sender.as_str(), fault.fate.as_str()),
+            ("drives", "dropped")
+        );
+        assert_eq!(fault.received.to_vec(), frame(0).data().to_vec());
+        let js = read.iter().find(|r| r.0 == "/joint_states").unwrap();
+        let js: msg::JointState = msg::decode(&js.3).unwrap();
+        assert_eq!(js.name, WHEEL_NAMES.map(str::to_string).to_vec());
+        assert_eq!(
+            (js.position.len(), js.velocity.len(), js.effort.len()),
+            (4, 4, 4)
+        );
+        let diag = read.iter().find(|r| r.0 == "/diagnostics").unwrap();
+        let diag: msg::DiagnosticArray = msg::decode(&diag.3).unwrap();
+        let status = &diag.status[0];
+        assert_eq!(status.value("state"), Some("Disabled"));
+        assert_eq!(status.value("rx_wrong_dlc"), Some("0"));
+        let tf = read.iter().rfind(|r| r.0 == "/tf").unwrap();
+        let tf: msg::TfMessage = msg::decode(&tf.3).unwrap();
+        let t = &tf.transforms[0];
+        assert_eq!(
+            (t.header.frame_id.as_str(), t.child_frame_id.as_str()),
+            ("odom", "base_link_truth")
+        );
+        assert!((t.transform.rotation.yaw() - 0.31).abs() < 1e-12);
+    }
+
+    #[test]
+    fn the_same_messages_make_the_same_file() {
+        let (a, b) = (TempFile::new("same-a"), TempFile::new("same-b"));
+        for file in [&a, &b] {
+            let mut log = McapLog::create(&file.0, &BTreeMap::new()).unwrap();
+            log_steps(&mut log, 0..1200).unwrap();
+            log.finish().unwrap();
+        }
+        // Chunks close on log time here, long before the half second of wall-clock time.
+        assert_eq!(std::fs::read(&a.0).unwrap(), std::fs::read(&b.0).unwrap());
+    }
+
+    #[test]
+    fn an_event_is_small() {
+        // What the caller's thread writes per frame, instead of the encoded message.
+        assert!(size_of::<Event>() <= 48, "{}", size_of::<Event>());
+    }
+
+    /// A file that takes `room` bytes, then fails as a full disk does (or panics).
+    struct Full {
+        room: usize,
+        panic: bool,
+    }
+
+    impl Write for Full {
+        fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+            if self.room == 0 {
+                assert!(!self.panic, "a writer that panics");
+                return Err(io::ErrorKind::StorageFull.into());
+            }
+            let n = buf.len().min(self.room);
+            self.room -= n;
+            Ok(n)
+        }
+
+        fn flush(&mut self) -> io::Result<()> {
+            Ok(())
+        }
+    }
+
+    fn log_on(path: &Path, out: Full) -> McapLog {
+        McapLog::on_writer(path, Box::new(out), &BTreeMap::new(), 16 << 10).unwrap()
+    }
+
+    #[test]
+    fn a_full_disk_comes_back_as_an_error_naming_the_file() {
+        let path = Path::new("/nowhere/full.mcap");
+        let mut log = log_on(
+            path,
+            Full {
+                room: 100_000,
+                panic: false,
+            },
+        );
+        let err = log_steps(&mut log, 0..10_000).unwrap_err();
+        let LogError::Io { path: p, source } = &err;
+        assert_eq!(p, path);
+        assert_eq!(source.kind(), io::ErrorKind::StorageFull, "{err}");
+        // Found at the hand-over after the batch whose write failed (100 kB hold some 1.2 s
+        // of these messages, a batch is 250 ms), not at the end of the run.
+        assert!(log.messages() < 2_000 * 6, "{}", log.messages());
+        // Every later hand-over fails too, and so does finishing.
+        let err = log_steps(&mut log, 20_000..21_000).unwrap_err();
+        assert!(err.to_string().contains("an earlier write failed"), "{err}");
+        let LogError::Io { path: p, source } = log.finish().unwrap_err();
+        assert_eq!(
+            (p.as_path(), source.kind()),
+            (path, io::ErrorKind::StorageFull)
+        );
+    }
+
+    #[test]
+    fn a_writer_thread_that_panics_is_an_error_not_a_panic() {
+        let path = Path::new("/nowhere/panic.mcap");
+        // Room for the header, schemas and metadata; the first batch's chunk panics.
+        let mut log = log_on(
+            path,
+            Full {
+                room: 20_000,
+                panic: true,
+            },
+        );
+        let err = log_steps(&mut log, 0..10_000).unwrap_err();
+        assert!(
+            err.to_string().contains("writer thread has stopped"),
+            "{err}"
+        );
+        assert!(log.finish().is_err());
+        // Dropped without finishing: no panic either.
+        let mut log = log_on(
+            path,
+            Full {
+                room: 20_000,
+                panic: true,
+            },
+        );
+        let _ = log_steps(&mut log, 0..1000);
+        drop(log);
+    }
+}

@@ -221,10 +221,11 @@ struct PlantArgs {
     /// more CPU. Default 0.
     #[arg(long, value_name = "MICROS", default_value_t = 0)]
     spin_us: u64,
-    /// Write an MCAP log of the run to FILE: every frame on the interface as the plant
-    /// saw it (/can/bus, with its sender), the host's twist commands, the firmware's
-    /// odometry and the plant's ground truth every 10 ms (/odom/pose, /ground_truth/pose,
-    /// /tf). Flushed at least every second. `hostsim summary FILE` reads it.
+    /// Write an MCAP log (a ROS 2 bag) of the run to FILE: every frame on the interface
+    /// once, as the firmware sees it (/can/rx: the drives' feedback and the host's commands;
+    /// /can/tx: the rest), the host's twist commands (/cmd_vel), the firmware's odometry and
+    /// the plant's ground truth every 10 ms (/odom, /ground_truth/odom, /tf). A chunk ends at
+    /// least every half second. `hostsim summary FILE` reads it.
     #[arg(long, value_name = "FILE")]
     log: Option<PathBuf>,
     /// Print only errors (no start line, no statistics on stderr).

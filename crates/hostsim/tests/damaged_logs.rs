@@ -588,3 +588,40 @@ fn remote_and_extended_frames_read_back_as_written_and_count_on_the_bus() {
     // A remote frame has no data bits: far below eight-byte frames' load.
     assert!(load < 0.1, "{load}");
 }
+
+#[test]
+fn a_log_in_the_old_json_layout_is_refused_in_one_line() {
+    // What earlier versions wrote: MCAP without the ros2 profile, JSON messages.
+    let dir = TempDir::new("old-layout");
+    let path = dir.0.join("old.mcap");
+    let mut w = mcap::Writer::new(std::io::BufWriter::new(
+        std::fs::File::create(&path).unwrap(),
+    ))
+    .unwrap();
+    let schema = w
+        .add_schema("can_msgs/msg/Frame", "jsonschema", b"{}")
+        .unwrap();
+    let channel = w
+        .add_channel(schema, "/can/rx", "json", &BTreeMap::new())
+        .unwrap();
+    let header = mcap::records::MessageHeader {
+        channel_id: channel,
+        sequence: 1,
+        log_time: 0,
+        publish_time: 0,
+    };
+    w.write_to_known_channel(&header, br#"{"id":513,"dlc":0,"data":[]}"#)
+        .unwrap();
+    w.finish().unwrap();
+    drop(w);
+    let err = replay::replay_mcap(&path).unwrap_err();
+    assert!(matches!(err, ReplayError::OldLayout { .. }), "{err}");
+    let text = err.to_string();
+    assert!(
+        text.contains("old.mcap") && text.contains("JSON layout"),
+        "{text}"
+    );
+    assert!(!text.contains('\n'), "{text}");
+    let err = hostsim::summary::summarize(&path).unwrap_err();
+    assert!(err.contains("JSON layout"), "{err}");
+}
