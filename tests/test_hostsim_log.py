@@ -1,4 +1,12 @@
-"""The simulator's MCAP logs, read with the format's own Python reader, and its CLI."""
+"""The simulator's MCAP logs, read with the format's own Python reader, and its CLI.
+
+The logs are ROS 2 bags (crates/drivelog/src/lib.rs, "Channels"): profile `ros2`, schemas
+`ros2msg` (the `.msg` text with its dependencies, as rosbag2 writes them), messages in CDR.
+Here the `mcap` package reads the records and `rosbags` decodes the CDR, with the ROS 2 Humble
+definitions of the standard types and the file's own schema text for the rest
+(can_msgs/msg/Frame, mecanum_drive_msgs/msg/BusFault), as a tool that knows neither would.
+tests/test_ros2_logs.py reads whole logs with rosbags' own bag reader.
+"""
 
 from __future__ import annotations
 
@@ -10,10 +18,37 @@ import subprocess
 import cantools
 import pytest
 from mcap.reader import make_reader
-from mcap.records import Message
+from mcap.records import Message, Statistics
 from mcap.stream_reader import StreamReader
+from rosbags.typesys import Stores, get_typestore, get_types_from_msg
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
+
+
+#: Every channel's topic and ROS 2 type (crates/drivelog/src/lib.rs, the channel table).
+CHANNEL_TYPES = {
+    "/can/rx": "can_msgs/msg/Frame",
+    "/can/tx": "can_msgs/msg/Frame",
+    "/can/faults": "mecanum_drive_msgs/msg/BusFault",
+    "/cmd_vel": "geometry_msgs/msg/TwistStamped",
+    "/odom": "nav_msgs/msg/Odometry",
+    "/ground_truth/odom": "nav_msgs/msg/Odometry",
+    "/tf": "tf2_msgs/msg/TFMessage",
+    "/joint_states": "sensor_msgs/msg/JointState",
+    "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
+    "/rosout": "rcl_interfaces/msg/Log",
+}
+
+
+def typestore_for(schemas):
+    """The ROS 2 Humble type store, plus the types of `schemas` (the summary's Schema records)
+    that it lacks, parsed from their `ros2msg` text: the dependency sections included, so
+    can_msgs/msg/Frame comes with the file."""
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    for schema in schemas:
+        types = get_types_from_msg(schema.data.decode(), schema.name)
+        store.register({name: fields for name, fields in types.items() if name not in store.fielddefs})
+    return store
 
 
 def run_hostsim(binary: pathlib.Path, *args: str, stdin: str | None = None) -> subprocess.CompletedProcess:
@@ -33,63 +68,86 @@ def circle_run(hostsim_bin: pathlib.Path, tmp_path_factory: pytest.TempPathFacto
 def test_every_message_reads_back_with_the_python_mcap_reader(circle_run, dbs) -> None:
     out, summary = circle_run
     counts: dict[str, int] = {}
-    schemas: dict[str, tuple[str, str]] = {}
     tx_ids: set[int] = set()
-    feedback_ids: set[int] = set()
+    joint_states = []
     with open(out / "circle.mcap", "rb") as f:
         # Every chunk's CRC checked; messages found through the summary's chunk indexes.
         reader = make_reader(f, validate_crcs=True)
+        header = reader.get_header()
         meta = {m.name: m.metadata for m in reader.iter_metadata()}
-        stats = reader.get_summary().statistics
-        channel_topics = {c.id: c.topic for c in reader.get_summary().channels.values()}
+        file_summary = reader.get_summary()
+        stats = file_summary.statistics
+        channel_topics = {c.id: c.topic for c in file_summary.channels.values()}
+        store = typestore_for(file_summary.schemas.values())
         for schema, channel, message in reader.iter_messages():
             counts[channel.topic] = counts.get(channel.topic, 0) + 1
-            schemas[channel.topic] = (schema.name, schema.encoding)
+            decoded = store.deserialize_cdr(message.data, schema.name)
             if channel.topic in ("/can/rx", "/can/tx"):
-                frame = json.loads(message.data)
-                assert set(frame) >= {"id", "is_rtr", "is_extended", "is_error", "dlc", "data"}
-                assert len(frame["data"]) == 8 and all(0 <= b <= 255 for b in frame["data"])
+                assert 0 <= decoded.dlc <= 8 and len(decoded.data) == 8, decoded
+                assert not (decoded.is_rtr or decoded.is_extended or decoded.is_error), decoded
+                # The stamp: when the frame completed on the wire. The firmware takes a
+                # received frame then or later (a delay fault); a sent frame is logged then,
+                # after the control step that sent it (its publish time).
+                stamp = decoded.header.stamp.sec * 1_000_000_000 + decoded.header.stamp.nanosec
+                assert stamp <= message.log_time, (stamp, message)
                 if channel.topic == "/can/tx":
-                    tx_ids.add(frame["id"])
-            if channel.topic == "/motors/feedback":
-                fb = json.loads(message.data)
-                assert fb["protocol"] == "dji" and 0 <= fb["rotor_angle"] <= 8191
-                assert abs(fb["current_a"]) <= 20.0 and 0 < fb["temperature_c"] < 100
-                feedback_ids.add(fb["id"])
-    assert feedback_ids == {1, 2, 3, 4}
+                    assert stamp == message.log_time and message.publish_time <= stamp, (stamp, message)
+                    tx_ids.add(decoded.id)
+            if channel.topic == "/joint_states":
+                joint_states.append(decoded)
+    # The ROS 2 bag conventions: rosbag2's profile, .msg schemas, CDR messages.
+    assert header.profile == "ros2"
+    assert {
+        c.topic: (file_summary.schemas[c.schema_id].name, file_summary.schemas[c.schema_id].encoding)
+        for c in file_summary.channels.values()
+    } == {topic: (name, "ros2msg") for topic, name in CHANNEL_TYPES.items()}
+    assert {c.message_encoding for c in file_summary.channels.values()} == {"cdr"}
     # The Statistics record agrees with what is in the file.
     assert stats.message_count == sum(counts.values())
-    assert {channel_topics[i]: n for i, n in stats.channel_message_counts.items()} == counts
+    assert {channel_topics[i]: n for i, n in stats.channel_message_counts.items() if n} == counts
     assert stats.chunk_count >= 1 and stats.metadata_count == 1
     # Counts agree with what the simulator reports.
     assert counts["/can/tx"] == summary["tx_frames"]
     assert counts["/can/rx"] == summary["rx_frames"]
-    assert counts["/firmware/snapshot"] == (summary["steps"] + 9) // 10  # every 10th step
-    # Foxglove schemas for poses and transforms; JSON schema for frames.
-    assert schemas["/odom/pose"] == ("foxglove.PoseInFrame", "protobuf")
-    assert schemas["/ground_truth/pose"] == ("foxglove.PoseInFrame", "protobuf")
-    assert schemas["/tf"] == ("foxglove.FrameTransform", "protobuf")
-    assert schemas["/can/tx"] == ("can_msgs/msg/Frame", "jsonschema")
+    for topic in ("/joint_states", "/diagnostics", "/odom", "/ground_truth/odom"):
+        assert counts[topic] == (summary["steps"] + 9) // 10, topic  # every 10th step
+    assert counts["/tf"] == 2 * counts["/odom"]  # odometry and ground truth
     # The configuration travels with the log.
-    assert "config" in meta["hostsim"] and meta["hostsim"]["scenario"] == "circle"
+    assert "config" in meta["mecanum_drive"] and meta["mecanum_drive"]["scenario"] == "circle"
     # The firmware sent DJI current commands and the robot's telemetry, all in the DBC files.
     assert {0x200, 0x310, 0x311, 0x312, 0x31F} <= tx_ids
     known = {m.frame_id for db in dbs.values() for m in db.messages}
     assert tx_ids <= known
+    # The wheels (what /motors/feedback used to carry): four named joints, finite numbers,
+    # and a circle's worth of turning by the end (6.3 m of travel on 76 mm wheels is 83 rad
+    # on average; 1 rad is a wheel that certainly turned).
+    for state in joint_states:
+        assert list(state.name) == ["fl", "fr", "rl", "rr"], state
+        for values in (state.position, state.velocity, state.effort):
+            assert len(values) == 4 and all(math.isfinite(v) for v in values), state
+    assert all(abs(p) > 1.0 for p in joint_states[-1].position), joint_states[-1]
 
 
 def test_messages_are_in_time_order_in_the_file(circle_run) -> None:
     """A streaming reader (file order, no index) sees log time never step back. The circle
-    changes its twist between control steps (at 12.666371 s), the case that used to."""
-    out, _ = circle_run
-    back, last, count = 0, 0, 0
+    changes its twist between control steps (at 12.666371 s), the case that used to; and
+    /can/tx is logged at the end of each frame on the wire, up to 2 ms after the control
+    step that sent it, which the writer must not let fall behind the later steps' messages."""
+    out, summary = circle_run
+    back, last, count, stats = 0, 0, 0, None
     with open(out / "circle.mcap", "rb") as f:
         for record in StreamReader(f, skip_magic=False, emit_chunks=False).records:
             if isinstance(record, Message):
                 count += 1
                 back += record.log_time < last
                 last = max(last, record.log_time)
-    assert count > 100_000
+            elif isinstance(record, Statistics):
+                stats = record
+    # Every message was seen (the frames alone are over 70,000), and the last one is the end
+    # of the run: the last frames of its last step completing on the wire.
+    assert stats is not None and count == stats.message_count
+    assert count > summary["tx_frames"] + summary["rx_frames"] > 70_000
+    assert last == pytest.approx(summary["duration_s"] * 1e9, abs=2e6)
     assert back == 0, f"{back} messages earlier than one before them in the file"
 
 
@@ -117,12 +175,14 @@ def test_odometry_frames_decode_with_the_dbc(circle_run, dbs) -> None:
     last = {}
     headings = []
     with open(out / "circle.mcap", "rb") as f:
-        for _, channel, message in make_reader(f).iter_messages(topics=["/can/tx"]):
-            frame = json.loads(message.data)
-            if frame["id"] in (0x310, 0x311):
-                msg = db.get_message_by_frame_id(frame["id"])
-                last[frame["id"]] = msg.decode(bytes(frame["data"][: frame["dlc"]]))
-                if frame["id"] == 0x311:
+        reader = make_reader(f)
+        store = typestore_for(reader.get_summary().schemas.values())
+        for _, _, message in reader.iter_messages(topics=["/can/tx"]):
+            frame = store.deserialize_cdr(message.data, "can_msgs/msg/Frame")
+            if frame.id in (0x310, 0x311):
+                msg = db.get_message_by_frame_id(frame.id)
+                last[frame.id] = msg.decode(bytes(frame.data[: frame.dlc]))
+                if frame.id == 0x311:
                     headings.append(last[0x311]["heading"])
     x, y, heading = summary["odometry"]
     assert last[0x310]["x"] == pytest.approx(x, abs=2e-3)

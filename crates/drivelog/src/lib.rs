@@ -82,7 +82,8 @@ pub use write::{CHUNK_SIZE, Direction, LogError, McapLog, OdometrySource, part_p
 pub const PROFILE: &str = "ros2";
 
 /// The name of the metadata record that holds the run's configuration (`config`, TOML) and
-/// origin (`scenario`, `seed`, `program`, `firmware_version`, `protocol_version`).
+/// origin (`program`: `hostsim run`, `hostsim plant`; `scenario`, `seed`, `hostsim_version`,
+/// `protocol_version` as the program knows them).
 pub const METADATA_NAME: &str = "mecanum_drive";
 
 /// The wheels' joint names, in the project's wheel order.

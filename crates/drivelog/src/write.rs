@@ -98,7 +98,7 @@ const CALLS_PER_CLOCK_READ: u64 = 64;
 const MAX_BATCH_EVENTS: usize = 1 << 16;
 
 /// Uncompressed size at which the writer closes a chunk, bytes. The square scenario logs
-/// about 100 kB of messages in the quarter second between two hand-overs, so its chunks close
+/// about 150 kB of messages in the quarter second between two hand-overs, so its chunks close
 /// at the hand-overs.
 pub const CHUNK_SIZE: u64 = 1 << 20;
 

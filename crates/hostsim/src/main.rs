@@ -92,9 +92,11 @@ enum Cmd {
     /// and the odometry: the last logged ODOM_POSITION/ODOM_VELOCITY against the replayed
     /// core's pose at that time. All interfaces in a candump log are taken as one bus.
     ///
-    /// A damaged MCAP log (cut short by a killed run, or corrupt) is replayed up to the time
-    /// of the last message in its last complete, intact chunk; a warning on stderr names the
-    /// byte offset of the damage and what was read before it.
+    /// A damaged MCAP log (cut short by a killed run, or corrupt) is replayed up to shortly
+    /// before the time of the last message in its last complete, intact chunk (less the
+    /// longest a sent frame waited on the bus); a warning on stderr names the byte offset of
+    /// the damage and what was read before it. A log in the JSON layout of earlier versions
+    /// is refused.
     ///
     /// Exit status: 0 if the frames match (candump: or the odometry agrees within the
     /// tolerances), 1 if not, 2 for a bad log (nothing readable, no configuration, no
@@ -961,10 +963,10 @@ fn summary(path: &Path) -> Result<ExitCode> {
         );
     }
     for (t, level, text) in &s.events {
-        let tag = if *level >= hostsim::log::msg::Log::ERROR {
-            "FAULT"
-        } else {
-            "     "
+        let tag = match *level {
+            l if l >= hostsim::log::msg::Log::ERROR => "FAULT",
+            l if l >= hostsim::log::msg::Log::WARN => "STOP ",
+            _ => "     ",
         };
         println!("  {tag} {t:9.3} s  {text}");
     }

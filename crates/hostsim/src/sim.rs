@@ -448,10 +448,11 @@ pub fn run_observed<P: SimPlant>(
         if state != last_state {
             let msg = format!("state {:?}, fault {:?}", state.0, state.1);
             if let Some(l) = log.as_deref_mut() {
-                let level = if state.0 == RobotState::Fault || state.0 == RobotState::Estop {
-                    crate::log::msg::Log::ERROR
-                } else {
-                    crate::log::msg::Log::INFO
+                // As `/diagnostics` rates them: a fault is an error, an e-stop a warning.
+                let level = match state.0 {
+                    RobotState::Fault => crate::log::msg::Log::ERROR,
+                    RobotState::Estop => crate::log::msg::Log::WARN,
+                    _ => crate::log::msg::Log::INFO,
                 };
                 l.text(t_ns, level, &msg)?;
             }
