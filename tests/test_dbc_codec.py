@@ -12,7 +12,9 @@ Field names are the DBC signal names; values are physical (scaled) values.
 from __future__ import annotations
 
 import math
+import pathlib
 import random
+import re
 import struct
 
 import pytest
@@ -129,7 +131,7 @@ def check_decoded(db_msg, rust: dict, expected: dict, tol_of, where: str) -> Non
 def test_dbc_files_load_strictly(dbs):
     assert {m.name for m in dbs["robot"].messages} == {
         "ESTOP", "TWIST_CMD", "MODE_CMD", "STATUS_REQ",
-        "ODOM_POSITION", "ODOM_VELOCITY", "STATUS", "HEARTBEAT",
+        "ODOM_POSITION", "ODOM_VELOCITY", "STATUS", "STATUS_COUNTERS", "HEARTBEAT",
     }
     assert all(0x300 <= m.frame_id <= 0x31F for m in dbs["robot"].messages)
     assert sorted(m.frame_id for m in dbs["dji"].messages) == [0x1FF, *range(0x200, 0x209)]
@@ -155,6 +157,38 @@ def golden(run_codec):
     lines = run_codec("golden")
     assert len(lines) >= 60
     return lines
+
+
+ROBOT_DBC = pathlib.Path(__file__).resolve().parent.parent / "dbc" / "mecanum_robot.dbc"
+
+
+def test_dbc_version_line_is_the_firmwares_protocol_version(golden):
+    """The DBC's first comment names the protocol version in a fixed form (other packages
+    parse it: "Mecanum robot CAN protocol, version N (...)"); N is the version the Rust
+    encoder puts in HEARTBEAT, and the HEARTBEAT comment says the same."""
+    text = ROBOT_DBC.read_text()
+    comments = re.findall(r'^CM_ "(.*)";$', text, re.M)
+    assert comments, "no file comment"
+    m = re.fullmatch(r"Mecanum robot CAN protocol, version (\d+) \(.+?\)\. .*", comments[0])
+    assert m, comments[0][:120]
+    version = int(m.group(1))
+    assert version == 3
+    beats = [g for g in golden if g.get("message") == "HEARTBEAT"]
+    assert beats and all(g["fields"]["protocol_version"] == version for g in beats), beats
+    assert f'protocol_version "Protocol version: {version} for this file.' in text
+
+
+def test_twist_seq_is_documented_as_an_alive_counter(dbs):
+    """TWIST_CMD.seq's comment tells a host to increment it and what a repeat does, and the
+    counter frame that counts repeats follows STATUS in the block."""
+    seq = dbs["robot"].get_message_by_name("TWIST_CMD").get_signal_by_name("seq")
+    for words in ("Alive counter", "increments", "not apply", "watchdog", "repeated_seq",
+                  "255 -> 0", "enable or reset"):
+        assert words in seq.comment, (words, seq.comment)
+    counters = dbs["robot"].get_message_by_name("STATUS_COUNTERS")
+    assert (counters.frame_id, counters.length, counters.senders) == (0x313, 8, ["ROBOT"])
+    assert [s.name for s in counters.signals] == ["repeated_seq", "wrong_dlc", "out_of_range", "non_finite"]
+    assert all((s.length, s.is_signed, s.minimum, s.maximum) == (16, False, 0, 65535) for s in counters.signals)
 
 
 def test_golden_covers_every_implemented_message(golden, dbs):
@@ -306,7 +340,7 @@ def test_cantools_encoded_frames_decode_in_rust(run_codec, dbs):
         # ... and = the values cantools encoded, within half an LSB.
         check_decoded(msg, rust, values, lambda s, v: half_lsb(s) + f32_slack(v), where)
         messages.add(msg.name)
-    assert len(messages) == 8 + 10 + 4 * len(ODRIVE_MESSAGES)
+    assert len(messages) == 9 + 10 + 4 * len(ODRIVE_MESSAGES)
     assert len(cases) >= len(messages) * RANDOM_SETS_PER_MESSAGE
 
 
@@ -348,6 +382,7 @@ MALFORMED = [
     ("300#", "wrong_dlc", {"expected": 1, "got": 0}),
     ("303#00", "wrong_dlc", {"expected": 0, "got": 1}),
     ("312#00000000000000", "wrong_dlc", {"expected": 8, "got": 7}),
+    ("313#000000000000", "wrong_dlc", {"expected": 8, "got": 6}),
     ("201#1FFF03E8FC1825", "wrong_dlc", {"expected": 8, "got": 7}),
     ("200#0000", "wrong_dlc", {"expected": 8, "got": 2}),
     ("00D#" + ONE.hex(), "wrong_dlc", {"expected": 8, "got": 4}),
@@ -357,6 +392,7 @@ MALFORMED = [
     # unknown ids
     ("123#00", "unknown_id", {}),
     ("304#", "unknown_id", {}),
+    ("314#0000000000000000", "unknown_id", {}),
     ("31E#0000000000000000", "unknown_id", {}),
     ("320#00", "unknown_id", {}),
     ("209#0000000000000000", "unknown_id", {}),

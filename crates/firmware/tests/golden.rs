@@ -9,7 +9,8 @@ use firmware::protocol::odrive::{
     self, Addressed, AxisState, ControlMode, InputMode, NodeId, split_id,
 };
 use firmware::protocol::robot::{
-    self, Fault, Heartbeat, ModeRequest, OdomPosition, OdomVelocity, RobotState, Status, TwistCmd,
+    self, Fault, Heartbeat, ModeRequest, OdomPosition, OdomVelocity, RobotState, Status,
+    StatusCounters, TwistCmd,
 };
 use firmware::protocol::{DecodeError, ErrorKind};
 
@@ -228,8 +229,48 @@ fn robot_status() {
 }
 
 #[test]
+fn robot_status_counters() {
+    // repeated_seq 0x0102, wrong_dlc 3, out_of_range 0xFFFF, non_finite 0x8000.
+    let f = frame(0x313, &[0x02, 0x01, 0x03, 0x00, 0xFF, 0xFF, 0x00, 0x80]);
+    let c = StatusCounters {
+        repeated_seq: 0x0102,
+        wrong_dlc: 3,
+        out_of_range: 0xFFFF,
+        non_finite: 0x8000,
+    };
+    assert_eq!(
+        robot::Telemetry::decode(&f),
+        Ok(robot::Telemetry::StatusCounters(c))
+    );
+    assert_eq!(robot::Telemetry::StatusCounters(c).to_can_frame(), f);
+    assert_eq!(
+        robot::decode(&f),
+        Ok(robot::Message::Telemetry(robot::Telemetry::StatusCounters(
+            c
+        )))
+    );
+    // Robot -> host only, 8 bytes only.
+    assert_eq!(
+        robot::Command::decode(&f),
+        Err(DecodeError::UnknownId {
+            id: Id::Standard(sid(0x313))
+        })
+    );
+    assert_eq!(
+        robot::Telemetry::decode(&frame(0x313, &[0; 6])),
+        Err(DecodeError::WrongDlc {
+            id: 0x313,
+            expected: 8,
+            got: 6
+        })
+    );
+}
+
+#[test]
 fn robot_heartbeat() {
-    let f = frame(0x31F, &[0x78, 0x56, 0x34, 0x12, 0x03, 0x02, 0x00, 0x00]);
+    // uptime 0x12345678 ms, state 3 (e-stop), protocol version 3.
+    let f = frame(0x31F, &[0x78, 0x56, 0x34, 0x12, 0x03, 0x03, 0x00, 0x00]);
+    assert_eq!(robot::PROTOCOL_VERSION, 3);
     let h = Heartbeat {
         uptime_ms: 0x1234_5678,
         state: RobotState::Estop,

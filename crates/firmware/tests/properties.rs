@@ -9,7 +9,8 @@ use firmware::CanFrame;
 use firmware::protocol::dji::{self, EscGroup, EscId, EscModel};
 use firmware::protocol::odrive::{self, AxisState, ControlMode, InputMode, NodeId};
 use firmware::protocol::robot::{
-    self, Fault, Heartbeat, ModeRequest, OdomPosition, OdomVelocity, RobotState, Status, TwistCmd,
+    self, Fault, Heartbeat, ModeRequest, OdomPosition, OdomVelocity, RobotState, Status,
+    StatusCounters, TwistCmd,
 };
 use proptest::prelude::*;
 
@@ -139,6 +140,11 @@ proptest! {
             motors_online: motors, seq,
         });
         prop_assert_eq!(robot::Telemetry::decode(&s.to_can_frame()), Ok(s));
+        let c = robot::Telemetry::StatusCounters(StatusCounters {
+            repeated_seq: rx_errors, wrong_dlc: unknown_ids, out_of_range: rx_errors ^ 0x5A5A,
+            non_finite: u16::from(seq) << 8 | u16::from(motors),
+        });
+        prop_assert_eq!(robot::Telemetry::decode(&c.to_can_frame()), Ok(c));
         let h = robot::Telemetry::Heartbeat(Heartbeat { uptime_ms, state, protocol_version: version });
         prop_assert_eq!(robot::Telemetry::decode(&h.to_can_frame()), Ok(h));
         let m = robot::Command::Mode(ModeRequest::from_raw(mode).unwrap());

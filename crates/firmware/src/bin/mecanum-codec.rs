@@ -312,6 +312,11 @@ fn robot_fields(msg: &robot::Message) -> Decoded {
             .i(&l::STATUS_UNKNOWN_IDS, s.unknown_ids)
             .i(&l::STATUS_MOTORS_ONLINE, s.motors_online)
             .i(&l::STATUS_SEQ, s.seq),
+        robot::Message::Telemetry(T::StatusCounters(c)) => d
+            .i(&l::COUNTERS_REPEATED_SEQ, c.repeated_seq)
+            .i(&l::COUNTERS_WRONG_DLC, c.wrong_dlc)
+            .i(&l::COUNTERS_OUT_OF_RANGE, c.out_of_range)
+            .i(&l::COUNTERS_NON_FINITE, c.non_finite),
         robot::Message::Telemetry(T::Heartbeat(h)) => d
             .i(&l::HEARTBEAT_UPTIME, h.uptime_ms)
             .i(&l::HEARTBEAT_STATE, h.state.raw())
@@ -529,6 +534,22 @@ fn golden_set() -> Vec<(AnyMessage, Decoded)> {
                 vx: -32.767,
                 vy: 32.767,
                 wz: -0.001,
+            },
+        ))),
+        AnyMessage::Robot(robot::Message::Telemetry(RT::StatusCounters(
+            robot::StatusCounters {
+                repeated_seq: 65535,
+                wrong_dlc: 0,
+                out_of_range: 513,
+                non_finite: 7,
+            },
+        ))),
+        AnyMessage::Robot(robot::Message::Telemetry(RT::StatusCounters(
+            robot::StatusCounters {
+                repeated_seq: 258,
+                wrong_dlc: 65535,
+                out_of_range: 0,
+                non_finite: 1,
             },
         ))),
         AnyMessage::Robot(robot::Message::Telemetry(RT::Heartbeat(robot::Heartbeat {

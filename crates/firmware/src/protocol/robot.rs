@@ -1,4 +1,4 @@
-//! The robot's own protocol: twist setpoints in; odometry, status and heartbeat out.
+//! The robot's own protocol: twist setpoints in; odometry, status, counters and heartbeat out.
 //!
 //! # The protocol
 //!
@@ -11,13 +11,14 @@
 //! | id | message | dir | DLC | fields |
 //! |---|---|---|---|---|
 //! | `0x300` | `ESTOP` | host → robot | 1 | `magic` u8, must be `0xE5` |
-//! | `0x301` | `TWIST_CMD` | host → robot | 8 | `vx`, `vy` i16 0.001 m/s; `wz` i16 0.001 rad/s; `seq` u8; reserved u8 |
+//! | `0x301` | `TWIST_CMD` | host → robot | 8 | `vx`, `vy` i16 0.001 m/s; `wz` i16 0.001 rad/s; `seq` u8 (alive counter); reserved u8 |
 //! | `0x302` | `MODE_CMD` | host → robot | 1 | `request` u8: 0 disable, 1 enable, 2 reset |
 //! | `0x303` | `STATUS_REQ` | host → robot | 0 | asks for an immediate `STATUS` |
 //! | `0x310` | `ODOM_POSITION` | robot → host | 8 | `x`, `y` i32 0.0001 m (odometry frame) |
 //! | `0x311` | `ODOM_VELOCITY` | robot → host | 8 | `heading` i16 0.0001 rad; `vx`, `vy` i16 0.001 m/s; `wz` i16 0.001 rad/s |
 //! | `0x312` | `STATUS` | robot → host | 8 | `state` u8, `fault` u8, `rx_errors` u16, `unknown_ids` u16, `motors_online` u8, `seq` u8 |
-//! | `0x31F` | `HEARTBEAT` | robot → host | 8 | `uptime_ms` u32, `state` u8, `protocol_version` u8 (= 2), reserved u16 |
+//! | `0x313` | `STATUS_COUNTERS` | robot → host | 8 | `repeated_seq`, `wrong_dlc`, `out_of_range`, `non_finite` u16 |
+//! | `0x31F` | `HEARTBEAT` | robot → host | 8 | `uptime_ms` u32, `state` u8, `protocol_version` u8 (= 3), reserved u16 |
 //!
 //! Velocities are in the body frame (x forward, y left, yaw counter-clockwise positive).
 //! The raw value `-32768` of the i16 velocity fields is reserved as "invalid" and rejected,
@@ -25,6 +26,20 @@
 //! `STATUS_REQ` never counts as a motion command. Reserved bytes are sent as 0 and ignored
 //! on receipt. Values of `state`, `fault` and `request` not listed are reserved for later
 //! versions and rejected.
+//!
+//! `TWIST_CMD.seq` is an alive counter: the host increments it in every `TWIST_CMD` (it may
+//! skip values; 255 → 0 is an increment). A twist whose `seq` equals that of the last twist
+//! the robot accepted is a repeat, as a host, a USB adapter or a gateway that resends one
+//! frame forever sends: the robot does not apply it, it does not feed the command watchdog,
+//! and it is counted (`STATUS_COUNTERS.repeated_seq`). The first twist after an enable or a
+//! reset is accepted whatever its `seq`. (The codec only carries the number;
+//! [`crate::control`] applies the rule.)
+//!
+//! `STATUS_COUNTERS` follows every `STATUS` (periodic or requested). `STATUS` has no room
+//! left, and the counters a host needs to tell a stuck sender from a noisy bus belong
+//! together: the repeats, and the three kinds of malformed frames of this stack's own
+//! protocols, split out of `STATUS.rx_errors` (the rest of which, extended ids and remote
+//! frames, is foreign traffic like `unknown_ids`).
 //!
 //! # Encoding and decoding
 //!
@@ -41,8 +56,11 @@ use crate::frame::CanFrame;
 
 /// The protocol version this module implements, sent in [`Heartbeat::protocol_version`].
 ///
-/// Version 2 added `STATUS.fault` 6 (`ENCODER_STUCK`); a version 1 receiver rejects it.
-pub const PROTOCOL_VERSION: u8 = 2;
+/// Version 3 made `TWIST_CMD.seq` an alive counter (a repeated `seq` is not applied) and
+/// added `STATUS_COUNTERS`; a version 2 host that sends one `seq` forever stops the robot
+/// after one command timeout. Version 2 added `STATUS.fault` 6 (`ENCODER_STUCK`); a version
+/// 1 receiver rejects it.
+pub const PROTOCOL_VERSION: u8 = 3;
 
 /// The frame layout: the Rust mirror of `dbc/mecanum_robot.dbc`. Every id, DLC, offset,
 /// scale and range the codec uses is here.
@@ -96,6 +114,12 @@ pub mod layout {
         id: 0x312,
         dlc: 8,
     };
+    /// `STATUS_COUNTERS`, robot → host (sent with every `STATUS`).
+    pub const STATUS_COUNTERS: MessageDef = MessageDef {
+        name: "STATUS_COUNTERS",
+        id: 0x313,
+        dlc: 8,
+    };
     /// `HEARTBEAT`, robot → host.
     pub const HEARTBEAT: MessageDef = MessageDef {
         name: "HEARTBEAT",
@@ -128,7 +152,7 @@ pub mod layout {
     pub const TWIST_WZ: Field = Field::int("wz", 4, I16, Little)
         .scaled(ANGULAR_SCALE)
         .range(-VEL_RAW_MAX, VEL_RAW_MAX);
-    /// `TWIST_CMD.seq`, rolling counter.
+    /// `TWIST_CMD.seq`, alive counter (see the [module documentation](super)).
     pub const TWIST_SEQ: Field = Field::int("seq", 6, U8, Little);
 
     /// `MODE_CMD.request`: 0 disable, 1 enable, 2 reset.
@@ -177,6 +201,17 @@ pub mod layout {
         Field::int("motors_online", 6, U8, Little).range(0, MOTORS_ONLINE_MASK as i64);
     /// `STATUS.seq`: rolling counter.
     pub const STATUS_SEQ: Field = Field::int("seq", 7, U8, Little);
+
+    /// `STATUS_COUNTERS.repeated_seq`: twists not applied because their `seq` repeated the
+    /// last accepted one, saturating.
+    pub const COUNTERS_REPEATED_SEQ: Field = Field::int("repeated_seq", 0, U16, Little);
+    /// `STATUS_COUNTERS.wrong_dlc`: rejected frames with a wrong DLC, saturating.
+    pub const COUNTERS_WRONG_DLC: Field = Field::int("wrong_dlc", 2, U16, Little);
+    /// `STATUS_COUNTERS.out_of_range`: rejected frames with a field out of range, saturating.
+    pub const COUNTERS_OUT_OF_RANGE: Field = Field::int("out_of_range", 4, U16, Little);
+    /// `STATUS_COUNTERS.non_finite`: rejected frames with a NaN or infinite float,
+    /// saturating.
+    pub const COUNTERS_NON_FINITE: Field = Field::int("non_finite", 6, U16, Little);
 
     /// `HEARTBEAT.uptime_ms`.
     pub const HEARTBEAT_UPTIME: Field = Field::int("uptime_ms", 0, U32, Little);
@@ -277,7 +312,9 @@ pub struct TwistCmd {
     pub vy: f32,
     /// Yaw rate, counter-clockwise positive, rad/s (±32.767, LSB 0.001).
     pub wz: f32,
-    /// Rolling counter set by the host.
+    /// Alive counter set by the host: one more (mod 256, or any other new value) in every
+    /// twist it sends. A repeat of the last accepted one is not applied (see the
+    /// [module documentation](self)).
     pub seq: u8,
 }
 
@@ -334,6 +371,21 @@ pub struct Status {
     pub seq: u8,
 }
 
+/// Counters of frames the robot did not use (`STATUS_COUNTERS`), each saturating at
+/// `u16::MAX`; sent right after every [`Status`].
+#[derive(Clone, Copy, PartialEq, Eq, Debug, Default)]
+pub struct StatusCounters {
+    /// Twists not applied because their `seq` equalled that of the last accepted twist. Not
+    /// part of [`Status::rx_errors`]: those frames are well-formed.
+    pub repeated_seq: u16,
+    /// Rejected frames with a wrong DLC.
+    pub wrong_dlc: u16,
+    /// Rejected frames with a field out of range.
+    pub out_of_range: u16,
+    /// Rejected frames with a NaN or infinite float field.
+    pub non_finite: u16,
+}
+
 /// Robot heartbeat (`HEARTBEAT`).
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
 pub struct Heartbeat {
@@ -354,6 +406,8 @@ pub enum Telemetry {
     OdomVelocity(OdomVelocity),
     /// `STATUS`.
     Status(Status),
+    /// `STATUS_COUNTERS`.
+    StatusCounters(StatusCounters),
     /// `HEARTBEAT`.
     Heartbeat(Heartbeat),
 }
@@ -492,6 +546,7 @@ impl Telemetry {
             Self::OdomPosition(_) => layout::ODOM_POSITION,
             Self::OdomVelocity(_) => layout::ODOM_VELOCITY,
             Self::Status(_) => layout::STATUS,
+            Self::StatusCounters(_) => layout::STATUS_COUNTERS,
             Self::Heartbeat(_) => layout::HEARTBEAT,
         }
     }
@@ -506,6 +561,7 @@ impl Telemetry {
             x if x == layout::ODOM_POSITION.id => layout::ODOM_POSITION,
             x if x == layout::ODOM_VELOCITY.id => layout::ODOM_VELOCITY,
             x if x == layout::STATUS.id => layout::STATUS,
+            x if x == layout::STATUS_COUNTERS.id => layout::STATUS_COUNTERS,
             x if x == layout::HEARTBEAT.id => layout::HEARTBEAT,
             _ => return Err(wire::unknown(frame)),
         };
@@ -537,6 +593,12 @@ impl Telemetry {
                     seq: layout::STATUS_SEQ.raw(&p) as u8,
                 })
             }
+            x if x == layout::STATUS_COUNTERS.id => Self::StatusCounters(StatusCounters {
+                repeated_seq: layout::COUNTERS_REPEATED_SEQ.raw(&p) as u16,
+                wrong_dlc: layout::COUNTERS_WRONG_DLC.raw(&p) as u16,
+                out_of_range: layout::COUNTERS_OUT_OF_RANGE.raw(&p) as u16,
+                non_finite: layout::COUNTERS_NON_FINITE.raw(&p) as u16,
+            }),
             _ => Self::Heartbeat(Heartbeat {
                 uptime_ms: layout::HEARTBEAT_UPTIME.raw(&p) as u32,
                 state: state_of(layout::HEARTBEAT_STATE.checked(&p)?),
@@ -571,6 +633,12 @@ impl Telemetry {
                     (s.motors_online & layout::MOTORS_ONLINE_MASK).into(),
                 );
                 layout::STATUS_SEQ.put_raw(&mut p, s.seq.into());
+            }
+            Self::StatusCounters(c) => {
+                layout::COUNTERS_REPEATED_SEQ.put_raw(&mut p, c.repeated_seq.into());
+                layout::COUNTERS_WRONG_DLC.put_raw(&mut p, c.wrong_dlc.into());
+                layout::COUNTERS_OUT_OF_RANGE.put_raw(&mut p, c.out_of_range.into());
+                layout::COUNTERS_NON_FINITE.put_raw(&mut p, c.non_finite.into());
             }
             Self::Heartbeat(h) => {
                 layout::HEARTBEAT_UPTIME.put_raw(&mut p, h.uptime_ms.into());
