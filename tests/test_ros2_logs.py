@@ -202,8 +202,8 @@ def test_final_odometry_and_ground_truth_are_what_the_summary_prints(log: Log) -
     summary`'s line (x and y to 0.1 mm, the heading to 0.01°: the tolerances are what it
     prints), and against the run's own final report (`hostsim run --json`), which is up to
     9 ms later than the last tenth step: within what the logged twist moves the robot in
-    that time, plus 1 µm. The faults run ends on a tenth step: there the two are the same
-    numbers, to the bit."""
+    that time, plus 1 µm, and in heading plus 1 µrad and one encoder count of one wheel. The
+    faults run ends on a tenth step: there the two are the same numbers, to the bit."""
     match = POSE_LINE.search(log.summary)
     assert match, log.summary
     ox, oy, oh, gx, gy, gh = map(float, match.groups())
@@ -213,13 +213,21 @@ def test_final_odometry_and_ground_truth_are_what_the_summary_prints(log: Log) -
         assert pose.position.y == pytest.approx(y, abs=1e-4), topic
         assert abs(angle_diff(math.degrees(yaw(pose.orientation)), heading, 360.0)) <= 0.01, topic
         assert pose.position.z == 0.0 and pose.orientation.x == 0.0 and pose.orientation.y == 0.0
+    # The odometry moves in encoder counts: a wheel that stands at the edge of a count can tick
+    # once in those 9 ms while the logged twist says 0. One count of one wheel (8192 per rotor
+    # turn) turns the heading by its travel over 4 (lx + ly), 2.0 µrad on the example chassis
+    # (it moves the position by a quarter of its travel, 0.76 µm, within the 1 µm).
+    geometry, drive = log.config["geometry"], log.config["drive"]
+    assert drive["protocol"] == "dji", drive
+    count_m = geometry["wheel_radius"] * 2 * math.pi / (8192 * drive["gear_ratio"])
+    count_rad = count_m / (4 * (geometry["lx"] + geometry["ly"]))
     for topic, final in (("/odom", log.run["odometry"]), ("/ground_truth/odom", log.run["truth"])):
         last = log.last(topic)
         dt = log.run["duration_s"] - ns(last.header.stamp) * 1e-9
         assert 0.0 <= dt < 0.01, (topic, dt)
         twist, pose = last.twist.twist, last.pose.pose
         moved = math.hypot(twist.linear.x, twist.linear.y) * dt + 1e-6
-        turned = abs(twist.angular.z) * dt + 1e-6
+        turned = abs(twist.angular.z) * dt + 1e-6 + (count_rad if topic == "/odom" else 0.0)
         assert math.hypot(pose.position.x - final[0], pose.position.y - final[1]) <= moved, (topic, final)
         assert abs(angle_diff(yaw(pose.orientation), final[2])) <= turned, (topic, final)
         if log.name == "faults":

@@ -46,7 +46,7 @@ bind_interrupts!(struct Irqs {
 });
 
 /// Frames waiting for a TX mailbox. One step emits at most
-/// [`firmware::control::OUTBOX_CAPACITY`] (24) frames, so a whole outbox fits even when the
+/// [`firmware::control::OUTBOX_CAPACITY`] (25) frames, so a whole outbox fits even when the
 /// three mailboxes are still busy with the previous step's frames, with room for a few more.
 const TX_QUEUE_LEN: usize = firmware::control::OUTBOX_CAPACITY + 4;
 

@@ -725,8 +725,9 @@ pub const DIAGNOSTIC_NAME: &str = "mecanum_drive: firmware";
 
 /// `/diagnostics` of a snapshot: one status, [`DIAGNOSTIC_NAME`], whose values are named
 /// `state`, `fault`, `motors_online` (a mask, wheel i at bit i), `steps`, `commanded_vx`...,
-/// `measured_vx`..., `setpoint_fl`... (rad/s) and one counter per rejected-frame kind
-/// (`rx_unknown_id`, `rx_wrong_dlc`...).
+/// `measured_vx`..., `setpoint_fl`... (rad/s), one counter per rejected-frame kind
+/// (`rx_unknown_id`, `rx_wrong_dlc`...) and `repeated_seq` (twists not applied because their
+/// `seq` repeated the last accepted one's).
 fn diagnostics(t_ns: u64, s: &Snapshot) -> msg::DiagnosticArray {
     use firmware::protocol::robot::RobotState;
     let level = match s.state {
@@ -766,6 +767,7 @@ fn diagnostics(t_ns: u64, s: &Snapshot) -> msg::DiagnosticArray {
         ("rx_wrong_dlc", e.wrong_dlc),
         ("rx_non_finite", e.non_finite),
         ("rx_out_of_range", e.out_of_range),
+        ("repeated_seq", s.repeated_seq),
     ] {
         kv(key, n.to_string());
     }
@@ -1067,6 +1069,7 @@ mod tests {
         let status = &diag.status[0];
         assert_eq!(status.value("state"), Some("Disabled"));
         assert_eq!(status.value("rx_wrong_dlc"), Some("0"));
+        assert_eq!(status.value("repeated_seq"), Some("0"));
         let tf = read.iter().rfind(|r| r.0 == "/tf").unwrap();
         let tf: msg::TfMessage = msg::decode(&tf.3).unwrap();
         let t = &tf.transforms[0];

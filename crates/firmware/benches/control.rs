@@ -30,8 +30,9 @@ fn feedback(esc: u8, angle: u16, rpm: i16) -> CanFrame {
 }
 
 /// A controller on `config` that has seen `first` (one message of each motor) at t = 0,
-/// stepped once and enabled; and the twist frame the benches keep sending.
-fn enabled(config: &Config, first: &[CanFrame]) -> (Controller, CanFrame) {
+/// stepped once and enabled; and the twist frames the benches keep sending, one per `seq`
+/// (a host increments it: the same frame again would not feed the watchdog).
+fn enabled(config: &Config, first: &[CanFrame]) -> (Controller, [CanFrame; 256]) {
     let mut ctl = Controller::new(config).unwrap();
     let t0 = Instant::from_micros(0);
     for frame in first {
@@ -39,19 +40,21 @@ fn enabled(config: &Config, first: &[CanFrame]) -> (Controller, CanFrame) {
     }
     ctl.step(t0);
     ctl.on_frame(t0, &Command::Mode(ModeRequest::Enable).to_can_frame());
-    let twist = Command::Twist(TwistCmd {
-        vx: 0.8,
-        vy: -0.3,
-        wz: 0.5,
-        seq: 0,
-    })
-    .to_can_frame();
-    (ctl, twist)
+    let twists = core::array::from_fn(|seq| {
+        Command::Twist(TwistCmd {
+            vx: 0.8,
+            vy: -0.3,
+            wz: 0.5,
+            seq: seq as u8,
+        })
+        .to_can_frame()
+    });
+    (ctl, twists)
 }
 
 fn bench(c: &mut Criterion) {
     let first: Vec<CanFrame> = (1..=4).map(|esc| feedback(esc, 0, 0)).collect();
-    let (mut ctl, twist) = enabled(&Config::dji_m3508_example(), &first);
+    let (mut ctl, twists) = enabled(&Config::dji_m3508_example(), &first);
     let mut t = 0u64;
     let mut angle = [0u16; 4];
     let rpm = [2400i16, -2600, 2100, -2300];
@@ -60,7 +63,7 @@ fn bench(c: &mut Criterion) {
             t += 1000;
             let now = Instant::from_micros(t);
             // Keep the watchdog fed without a per-iteration branch cost worth measuring.
-            ctl.on_frame(now, &twist);
+            ctl.on_frame(now, &twists[(t / 1000) as u8 as usize]);
             for w in 0..4 {
                 angle[w] = (angle[w] + (rpm[w].unsigned_abs() / 8)) % 8192;
                 ctl.on_frame(now, &feedback(w as u8 + 1, angle[w], rpm[w]));
@@ -88,7 +91,7 @@ fn bench_odrive(c: &mut Criterion) {
     let first: Vec<CanFrame> = (0..4)
         .flat_map(|node| [heartbeat(node), estimates(node, 0.0, 0.0)])
         .collect();
-    let (mut ctl, twist) = enabled(&Config::odrive_example(), &first);
+    let (mut ctl, twists) = enabled(&Config::odrive_example(), &first);
     let mut t = 0u64;
     let mut step = 0u64;
     let mut pos = [0f32; 4];
@@ -98,7 +101,7 @@ fn bench_odrive(c: &mut Criterion) {
             t += 1000;
             step += 1;
             let now = Instant::from_micros(t);
-            ctl.on_frame(now, &twist);
+            ctl.on_frame(now, &twists[step as u8 as usize]);
             if step.is_multiple_of(10) {
                 for w in 0..4 {
                     pos[w] += vel[w] * 0.01;

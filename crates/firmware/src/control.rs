@@ -10,7 +10,8 @@
 //!           ─► acceleration limits ─► inverse kinematics ─► desaturation
 //!           ─► per-wheel velocity PI (current drives) │ velocity setpoints (ODrive)
 //!           ─► odometry (encoder increments → forward kinematics → SE(2) exp)
-//!           ─► frames: motor commands every period, odometry / status / heartbeat at their rates
+//!           ─► frames: motor commands every period, odometry / status (+ counters) / heartbeat
+//!              at their rates
 //! ```
 //!
 //! # States
@@ -77,13 +78,31 @@
 //! velocity loop on the same encoder and reports encoder and spin-out failures in its axis
 //! error, which becomes `DriveError`.
 //!
-//! Only a valid `TWIST_CMD` received while enabled feeds the watchdog: status requests, mode
-//! commands and rejected twists never do. After an enable the robot holds still until a
-//! twist command arrives *after* the enable (a fresh command), so a stale setpoint can never
-//! restart motion. When the watchdog expires the commanded twist ramps to zero at
-//! [`Limits::stop_linear_decel`](crate::config::Limits) and the state then drops to
-//! `Disabled` with fault reason `Watchdog` reported: motion resumes only after an explicit
-//! enable and a fresh command.
+//! # Command watchdog
+//!
+//! Only a valid `TWIST_CMD` received while enabled, whose `seq` differs from the last accepted
+//! twist's, feeds the watchdog: status requests, mode commands, rejected twists and repeated
+//! ones never do. After an enable the robot holds still until a twist command arrives *after*
+//! the enable (a fresh command), so a stale setpoint can never restart motion. When the
+//! watchdog expires the commanded twist ramps to zero at
+//! [`Limits::stop_linear_decel`](crate::config::Limits) and the state then drops to `Disabled`
+//! with fault reason `Watchdog` reported: motion resumes only after an explicit enable and a
+//! fresh command.
+//!
+//! `TWIST_CMD.seq` is an alive counter ([`robot`]): a twist whose `seq` equals the last
+//! accepted one's is a *repeat* (a host, a USB adapter or a gateway that resends one frame
+//! forever) and is neither applied nor fed to the watchdog, so a sender stuck on one frame
+//! stops the robot exactly as silence does: the watchdog fires one
+//! `timing.command_timeout_ms` after the last accepted twist and the stop ramp follows. Any
+//! other `seq` is accepted (255 → 0 is an increment; the host may skip values). Repeats are
+//! counted ([`Snapshot::repeated_seq`], `STATUS_COUNTERS.repeated_seq`) in every state, so
+//! a sender that keeps repeating after the stop still shows; they are not rejected frames
+//! (`rx_errors`). The last accepted `seq` is forgotten at an enable and at a reset: the
+//! first twist after either is accepted whatever its `seq` (after a watchdog stop the robot
+//! is disabled, and only an enable lets it move again). A repeat is judged after the
+//! limits, so a twist beyond them is an `OutOfRange` rejection whatever its `seq`.
+//!
+//! # Determinism
 //!
 //! The core reads no clock and allocates nothing: time comes in as [`Instant`], frames go out
 //! through a fixed-capacity [`Outbox`]. The same inputs give the same frames, bit for bit, on
@@ -166,8 +185,8 @@ impl Instant {
 
 /// Most frames one [`Controller::step`] can emit: two DJI command frames, or for four ODrive
 /// axes `Clear_Errors` (after a reset), three state commands (after an enable) and a velocity
-/// setpoint each; plus odometry (2), status and heartbeat (2).
-pub const OUTBOX_CAPACITY: usize = 24;
+/// setpoint each; plus odometry (2), status, status counters and heartbeat (3).
+pub const OUTBOX_CAPACITY: usize = 25;
 
 /// The frames one step emits, in the order they should be sent.
 pub type Outbox = heapless::Vec<CanFrame, OUTBOX_CAPACITY>;
@@ -301,6 +320,10 @@ pub struct Snapshot {
     pub motors_online: u8,
     /// Rejected frames by kind.
     pub rx_errors: RxErrorCounters,
+    /// `TWIST_CMD`s not applied because their `seq` repeated the last accepted one's
+    /// (saturating; see the [module documentation](self#command-watchdog)). Not rejected
+    /// frames: they decode, so `rx_errors` does not count them.
+    pub repeated_seq: u32,
     /// Steps run.
     pub steps: u64,
 }
@@ -335,8 +358,13 @@ pub struct Controller {
     fault: Fault,
     /// Time of the last valid twist command accepted while enabled (watchdog).
     last_command: Option<Instant>,
+    /// `seq` of the last twist accepted since the last enable or reset; `None`: the next
+    /// twist is accepted whatever its `seq`.
+    last_seq: Option<u8>,
+    /// Twists not applied because their `seq` equalled `last_seq` (saturating).
+    repeated_seq: u32,
     /// The twist being followed: zero, or a twist that passed `check_twist` (`on_command`
-    /// relies on this to accept a repeat of it without checking it again).
+    /// relies on this to take a twist with the same values without checking it again).
     target: ChassisVelocity<f32>,
     commanded: ChassisVelocity<f32>,
     /// Watchdog expired: ramping down, then disable.
@@ -451,6 +479,8 @@ impl Controller {
             state: RobotState::Disabled,
             fault: Fault::None,
             last_command: None,
+            last_seq: None,
+            repeated_seq: 0,
             target: ChassisVelocity::default(),
             commanded: ChassisVelocity::default(),
             stopping: false,
@@ -536,6 +566,7 @@ impl Controller {
             currents: self.currents,
             motors_online: self.online,
             rx_errors: self.rx_errors,
+            repeated_seq: self.repeated_seq,
             steps: self.steps,
         }
     }
@@ -576,15 +607,19 @@ impl Controller {
             Command::Twist(t) => {
                 let v = ChassisVelocity::new(t.vx, t.vy, t.wz);
                 // `target` only ever holds zero or a twist that passed `check_twist` under
-                // the same (fixed) limits, so a twist equal to it passes too: the usual
-                // repeated command skips the check.
-                let t = if v == self.target {
+                // the same (fixed) limits, so a twist equal to it passes too: a stream that
+                // holds one setpoint skips the check.
+                let v = if v == self.target {
                     v
                 } else {
                     self.check_twist(t)?
                 };
-                if self.state == RobotState::Enabled && !self.stopping {
-                    self.target = t;
+                if self.last_seq == Some(t.seq) {
+                    // The same frame again (a stuck host, adapter or gateway): not a command.
+                    self.repeated_seq = self.repeated_seq.saturating_add(1);
+                } else if self.state == RobotState::Enabled && !self.stopping {
+                    self.target = v;
+                    self.last_seq = Some(t.seq);
                     // A frame stamped before the last one does not move the mark back.
                     self.last_command = Some(self.last_command.map_or(now, |t| t.max(now)));
                 }
@@ -594,6 +629,8 @@ impl Controller {
                     self.state = RobotState::Enabled;
                     self.fault = Fault::None;
                     self.halt();
+                    // A new session: its first twist is accepted whatever its seq.
+                    self.last_seq = None;
                     self.axis_request = self.odrive_axis(AxisState::ClosedLoopControl);
                     // States reported from now until the request goes out predate it.
                     self.closed_loop_at = Some(now);
@@ -613,6 +650,7 @@ impl Controller {
                     self.state = RobotState::Disabled;
                     self.fault = Fault::None;
                     self.halt();
+                    self.last_seq = None;
                     // An ODrive reports its errors until told to clear them.
                     if matches!(self.config.drive, Drive::Odrive { .. }) {
                         self.clear_errors = true;
@@ -1107,20 +1145,31 @@ impl Controller {
         if status_due || self.status_requested {
             self.status_requested = false;
             let e = &self.rx_errors;
-            let rejected = e.total().saturating_sub(e.unknown_id);
+            let sat = |n: u32| u16::try_from(n).unwrap_or(u16::MAX);
             push(
                 out,
                 robot::Telemetry::Status(robot::Status {
                     state: self.state,
                     fault: self.fault,
-                    rx_errors: u16::try_from(rejected).unwrap_or(u16::MAX),
-                    unknown_ids: u16::try_from(e.unknown_id).unwrap_or(u16::MAX),
+                    rx_errors: sat(e.total().saturating_sub(e.unknown_id)),
+                    unknown_ids: sat(e.unknown_id),
                     motors_online: self.online,
                     seq: self.status_seq,
                 })
                 .to_can_frame(),
             );
             self.status_seq = self.status_seq.wrapping_add(1);
+            // Right after STATUS, which has no room left for them.
+            push(
+                out,
+                robot::Telemetry::StatusCounters(robot::StatusCounters {
+                    repeated_seq: sat(self.repeated_seq),
+                    wrong_dlc: sat(e.wrong_dlc),
+                    out_of_range: sat(e.out_of_range),
+                    non_finite: sat(e.non_finite),
+                })
+                .to_can_frame(),
+            );
         }
         if status_due {
             let uptime_ms = now.micros_since(boot) / 1000;

@@ -365,6 +365,9 @@ pub struct ControllerReport {
     pub motors_online: u8,
     /// Frames the controller rejected, by kind.
     pub rx_errors: RxErrorCounters,
+    /// `TWIST_CMD`s not applied because their `seq` repeated the last accepted one's
+    /// ([`Snapshot::repeated_seq`](crate::control::Snapshot::repeated_seq)).
+    pub repeated_seq: u32,
 }
 
 /// The shutdown frames and how many went out.
@@ -462,6 +465,11 @@ impl fmt::Display for Report {
             f,
             "rejected frames: unknown_id {}, extended_id {}, remote {}, wrong_dlc {}, non_finite {}, out_of_range {}",
             e.unknown_id, e.extended_id, e.remote, e.wrong_dlc, e.non_finite, e.out_of_range
+        )?;
+        writeln!(
+            f,
+            "repeated twists (seq of the last accepted one): {}",
+            c.repeated_seq
         )?;
         write!(
             f,
@@ -768,6 +776,7 @@ pub fn run<B: Bus, C: Clock>(
             steps: after.steps,
             motors_online: at_stop.motors_online,
             rx_errors: at_stop.rx_errors,
+            repeated_seq: at_stop.repeated_seq,
         },
     }
 }
@@ -1080,10 +1089,11 @@ mod tests {
         assert_eq!(motor_times(&bus), expected);
         assert_eq!(r.jitter.samples, 10);
         assert_eq!(r.jitter.max_us, Some(0));
-        // Step 0: motor command, odometry (2), status, heartbeat; steps 1-9: motor command.
-        assert_eq!(r.frames_sent, 5 + 9);
-        let first: Vec<u16> = bus.sent_ids().iter().take(5).map(|x| x.1).collect();
-        assert_eq!(first, [0x200, 0x310, 0x311, 0x312, 0x31F]);
+        // Step 0: motor command, odometry (2), status, status counters, heartbeat; steps 1-9:
+        // motor command.
+        assert_eq!(r.frames_sent, 6 + 9);
+        let first: Vec<u16> = bus.sent_ids().iter().take(6).map(|x| x.1).collect();
+        assert_eq!(first, [0x200, 0x310, 0x311, 0x312, 0x313, 0x31F]);
         assert_eq!(r.send_errors, 0);
         assert_eq!(r.shutdown.sent, 1);
     }
@@ -1299,7 +1309,7 @@ mod tests {
         );
         assert_eq!(r.send_retries, 3);
         assert_eq!(r.send_errors, 0);
-        assert_eq!(r.frames_sent, 5 + 2);
+        assert_eq!(r.frames_sent, 6 + 2);
         // The first frame went out after three 20 µs back-offs.
         assert_eq!(bus.sent[0], (T0 + 60, bus.sent[0].1));
         assert!(r.first_error.is_none());
@@ -1320,7 +1330,7 @@ mod tests {
         assert_eq!(r.steps, 4);
         assert_eq!(r.overruns, 0);
         assert_eq!(r.frames_sent, 0);
-        assert_eq!(r.send_errors, 5 + 3);
+        assert_eq!(r.send_errors, 6 + 3);
         // Retries end half a period after the deadline.
         assert!(r.jitter.max_us.unwrap() < 1000, "{r:?}");
         assert_eq!(r.shutdown.failed, 1);
@@ -1351,7 +1361,7 @@ mod tests {
         );
         assert_eq!(r.steps, 2);
         assert_eq!(r.send_retries, 0);
-        assert_eq!(r.send_errors, 6);
+        assert_eq!(r.send_errors, 6 + 1);
         assert_eq!(r.rx_errors, 2);
         assert!(r.first_error.unwrap().starts_with("receive: "));
         assert!(r.last_error.unwrap().starts_with("shutdown send 0x200: "));
@@ -1370,22 +1380,24 @@ mod tests {
                 Ok(())
             }
         }
-        let twist = Command::Twist(TwistCmd {
-            vx: 0.1,
-            vy: 0.0,
-            wz: 0.0,
-            seq: 0,
-        })
-        .to_can_frame();
+        let twist = |seq| {
+            Command::Twist(TwistCmd {
+                vx: 0.1,
+                vy: 0.0,
+                wz: 0.0,
+                seq,
+            })
+            .to_can_frame()
+        };
         let error = io::Error::other(BusErrorFrame("bus-off".into()));
         assert!(is_bus_error_frame(&error));
         assert!(!is_bus_error_frame(&io::Error::from_raw_os_error(
             libc::ENETDOWN
         )));
         let mut bus = Noisy(VecDeque::from([
-            Ok(Some(twist)),
+            Ok(Some(twist(0))),
             Err(error),
-            Ok(Some(twist)),
+            Ok(Some(twist(1))),
         ]));
         let clock = FakeClock::at(T0);
         let r = run(
@@ -1447,6 +1459,7 @@ mod tests {
         assert_eq!(v["jitter"]["p99_us"], 0);
         assert_eq!(v["controller"]["state_at_stop"], "Disabled");
         assert_eq!(v["controller"]["rx_errors"]["wrong_dlc"], 0);
+        assert_eq!(v["controller"]["repeated_seq"], 0);
         assert_eq!(v["shutdown"]["sent"], 1);
         let stopped = serde_json::to_value(StopReason::Signal(2)).unwrap();
         assert_eq!(stopped, serde_json::json!({ "signal": 2 }));

@@ -482,11 +482,12 @@ fn print_summary(s: &RunSummary, wall_s: f64) {
     );
     let e = s.last.rx_errors;
     println!(
-        "firmware: final state {:?} (fault {:?}); rejected frames {}, unknown ids {}",
+        "firmware: final state {:?} (fault {:?}); rejected frames {}, unknown ids {}, repeated twists {}",
         s.last.state,
         s.last.fault,
         e.total() - e.unknown_id,
-        e.unknown_id
+        e.unknown_id,
+        s.last.repeated_seq
     );
     for (t, state, fault) in &s.transitions {
         println!("  {t:8.3} s  {state} ({fault})");

@@ -30,19 +30,22 @@ the robot's commands from the bus, and sends the motor commands, odometry, statu
 heartbeat. The same core runs on the motor-controller MCU and in the simulator.
 
 Robot protocol (dbc/mecanum_robot.dbc; CAN 2.0A, little-endian, ids 0x300-0x31F):
-  host -> robot   0x300 ESTOP (magic 0xE5)    0x301 TWIST_CMD (vx, vy, wz, seq)
+  host -> robot   0x300 ESTOP (magic 0xE5)    0x301 TWIST_CMD (vx, vy, wz, seq: +1 each)
                   0x302 MODE_CMD (0 disable, 1 enable, 2 reset)    0x303 STATUS_REQ
   robot -> host   0x310 ODOM_POSITION, 0x311 ODOM_VELOCITY (timing.odometry_hz, 100 Hz)
-                  0x312 STATUS, 0x31F HEARTBEAT (timing.status_hz, 10 Hz)
+                  0x312 STATUS, 0x313 STATUS_COUNTERS, 0x31F HEARTBEAT (timing.status_hz,
+                  10 Hz)
 Motor side: DJI C620/C610 current commands on 0x200 (ESC 1-4) / 0x1FF (ESC 5-8) every
 period, feedback on 0x201-0x208; or ODrive CAN Simple (node << 5 | command).
 The robot starts disabled: send MODE_CMD enable, then TWIST_CMD at least every
-timing.command_timeout_ms (100 ms), or it ramps to a stop and disables itself.
+timing.command_timeout_ms (100 ms), or it ramps to a stop and disables itself. TWIST_CMD.seq
+is an alive counter: a twist with the seq of the last accepted one is a repeat, not applied
+and not fed to the watchdog (counted in STATUS_COUNTERS), so increment it in every frame.
 
 Exit: on SIGINT or SIGTERM (or when --duration has elapsed) the runner stops the loop,
 sends the frames that leave the motors safe (DJI: zero current; ODrive: zero velocity, then
 the idle state), prints statistics to stderr (loop jitter p50/p99/max, frame counts, bus
-errors, the controller's state and rejected-frame counters) and exits 0. A second SIGINT or
+errors, the controller's state, rejected-frame and repeated-twist counters) and exits 0. A second SIGINT or
 SIGTERM during that shutdown exits at once with status 1.
 Exit status: 0 after a clean stop; 1 if the shutdown frames could not all be sent or the
 statistics could not be written; 2 for a startup error (bad arguments, a configuration file
