@@ -2,7 +2,7 @@
 //!
 //! A scenario is a list of timed host [`Action`]s (enable, twist setpoints, e-stop, silence)
 //! and timed [`FaultSpec`]s (bus faults, a stuck encoder, a motor offline, a host sending
-//! non-finite twists), plus the drive
+//! non-finite twists or repeating one twist frame), plus the drive
 //! configuration and a seed. While a twist setpoint is active and the host is not silent,
 //! the host streams `TWIST_CMD` frames at `command_hz`, as a teleoperation or navigation
 //! stack would.
@@ -33,7 +33,7 @@
 //!
 //! [[faults]]
 //! kind = "drop"             # drop | burst | delay | corrupt | stuck_encoder | motor_offline
-//!                           # | non_finite_twist
+//!                           # | non_finite_twist | repeated_twist
 //! from_s = 1.0
 //! until_s = 1.5
 //! rate = 0.2                # drop, corrupt
@@ -109,8 +109,8 @@ impl Action {
 #[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct FaultSpec {
-    /// `drop`, `burst`, `delay`, `corrupt`, `stuck_encoder`, `motor_offline` or
-    /// `non_finite_twist`.
+    /// `drop`, `burst`, `delay`, `corrupt`, `stuck_encoder`, `motor_offline`,
+    /// `non_finite_twist` or `repeated_twist`.
     pub kind: FaultName,
     /// Start, s.
     pub from_s: f64,
@@ -149,6 +149,10 @@ pub enum FaultName {
     /// Besides its own stream, the host sends `TWIST_CMD` frames whose values are not finite
     /// numbers (see [`crate::sim::non_finite_twist_frames`]), once per command period.
     NonFiniteTwist,
+    /// The host's stream stops incrementing `TWIST_CMD.seq`: each frame it sends is its last
+    /// one before the fault, unchanged (a stuck host, USB adapter or gateway repeating one
+    /// frame), whatever its setpoint; afterwards it sends fresh frames again.
+    RepeatedTwist,
 }
 
 impl FaultName {
@@ -163,6 +167,7 @@ impl FaultName {
             Self::StuckEncoder => "stuck_encoder",
             Self::MotorOffline => "motor_offline",
             Self::NonFiniteTwist => "non_finite_twist",
+            Self::RepeatedTwist => "repeated_twist",
         }
     }
 }
@@ -213,12 +218,20 @@ impl WheelFault {
 /// A host-side fault: what the commanding node sends wrong, when.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct HostFault {
-    /// What it sends (`NonFiniteTwist`).
+    /// What it sends (`NonFiniteTwist`, `RepeatedTwist`).
     pub kind: FaultName,
     /// Start, µs.
     pub from_us: u64,
     /// End, µs.
     pub until_us: u64,
+}
+
+impl HostFault {
+    /// Whether the fault is active at `t_us`.
+    #[must_use]
+    pub const fn active(&self, t_us: u64) -> bool {
+        self.from_us <= t_us && t_us < self.until_us
+    }
 }
 
 /// A complete scenario.
@@ -505,7 +518,9 @@ impl Scenario {
                 FaultName::StuckEncoder | FaultName::MotorOffline => {
                     (false, false, false, true, "wheel")
                 }
-                FaultName::NonFiniteTwist => (false, false, false, false, "no other field"),
+                FaultName::NonFiniteTwist | FaultName::RepeatedTwist => {
+                    (false, false, false, false, "no other field")
+                }
             };
             for (field, given, used) in [
                 ("rate", f.rate.map(|x| x.to_string()), rate_used),
@@ -550,11 +565,12 @@ impl Scenario {
                         ));
                     }
                 },
-                FaultName::StuckEncoder | FaultName::MotorOffline | FaultName::NonFiniteTwist => {
-                    None
-                }
+                FaultName::StuckEncoder
+                | FaultName::MotorOffline
+                | FaultName::NonFiniteTwist
+                | FaultName::RepeatedTwist => None,
             };
-            if f.kind == FaultName::NonFiniteTwist {
+            if matches!(f.kind, FaultName::NonFiniteTwist | FaultName::RepeatedTwist) {
                 host_faults.push(HostFault {
                     kind: f.kind,
                     from_us,
@@ -744,6 +760,10 @@ mod tests {
             kind = "non_finite_twist"
             from_s = 1.5
             until_s = 1.6
+            [[faults]]
+            kind = "repeated_twist"
+            from_s = 2.0
+            until_s = 2.5
         "#;
         let s = Scenario::from_toml(text, Path::new("x.toml")).unwrap();
         assert_eq!((s.name.as_str(), s.seed, s.actions.len()), ("x", 9, 2));
@@ -755,12 +775,20 @@ mod tests {
         );
         assert_eq!(
             s.host_faults,
-            [HostFault {
-                kind: FaultName::NonFiniteTwist,
-                from_us: 1_500_000,
-                until_us: 1_600_000
-            }]
+            [
+                HostFault {
+                    kind: FaultName::NonFiniteTwist,
+                    from_us: 1_500_000,
+                    until_us: 1_600_000
+                },
+                HostFault {
+                    kind: FaultName::RepeatedTwist,
+                    from_us: 2_000_000,
+                    until_us: 2_500_000
+                }
+            ]
         );
+        assert!(s.host_faults[1].active(2_000_000) && !s.host_faults[1].active(2_500_000));
         assert_eq!(s.bus_faults.len(), 1);
 
         for (bad, field) in [
@@ -811,6 +839,10 @@ mod tests {
                 "duration_s = 1.0\n[[faults]]\nkind = \"stuck_encoder\"\nwheel = 1\nrate = 0.5\nfrom_s = 0.0\nuntil_s = 1.0",
                 "faults[0].rate = 0.5: not used by a \"stuck_encoder\" fault (it takes wheel)",
             ),
+            (
+                "duration_s = 1.0\n[[faults]]\nkind = \"repeated_twist\"\nwheel = 1\nfrom_s = 0.0\nuntil_s = 1.0",
+                "faults[0].wheel = 1: not used by a \"repeated_twist\" fault (it takes no other field)",
+            ),
         ] {
             let e = Scenario::from_toml(bad, Path::new("bad.toml"))
                 .unwrap_err()
@@ -834,6 +866,7 @@ mod tests {
             StuckEncoder,
             MotorOffline,
             NonFiniteTwist,
+            RepeatedTwist,
         ] {
             let parsed: FaultName =
                 serde::de::Deserialize::deserialize(serde::de::value::StrDeserializer::<

@@ -3,8 +3,10 @@
 //!
 //! # One tick (one control period, 1 ms by default) at time `t`
 //!
-//! 1. The host acts: scenario actions due by `t`, a `TWIST_CMD` when the stream is due, and
-//!    the non-finite twists of a `non_finite_twist` fault when they are due.
+//! 1. The host acts: scenario actions due by `t`, a `TWIST_CMD` when the stream is due (each
+//!    with the next `seq`, the alive counter; during a `repeated_twist` fault its last frame
+//!    again, unchanged), and the non-finite twists of a `non_finite_twist` fault when they
+//!    are due.
 //! 2. The drives queue the feedback frames due at `t` that are not on the bus yet (at `t = 0`;
 //!    later, step 6 has queued them as they were sent).
 //! 3. The bus transmits everything that starts before `t` (arbitration, exact frame times,
@@ -49,7 +51,7 @@ use firmware::protocol::robot::{self, Command, ModeRequest, RobotState, TwistCmd
 
 use crate::bus::{Bus, BusStats, Fate, Node, Transmission};
 use crate::log::{Direction, LogError, McapLog, OdometrySource};
-use crate::scenario::Scenario;
+use crate::scenario::{FaultName, Scenario};
 
 /// The plant as the runner sees it: drives that take command frames and produce feedback
 /// frames, and a body with a true pose.
@@ -196,7 +198,10 @@ pub enum SimError {
 struct Host {
     twist: [f32; 3],
     streaming: bool,
+    /// The next twist's `seq`: one more in every fresh frame.
     seq: u8,
+    /// The last fresh twist frame, which a `repeated_twist` fault sends again.
+    last_twist: Option<CanFrame>,
     next_action: usize,
     command_period_us: u64,
     next_command_us: u64,
@@ -326,6 +331,7 @@ pub fn run_observed<P: SimPlant>(
         twist: [0.0; 3],
         streaming: false,
         seq: 0,
+        last_twist: None,
         next_action: 0,
         command_period_us: (1e6 / scenario.command_hz).round().max(1.0) as u64,
         next_command_us: 0,
@@ -378,19 +384,34 @@ pub fn run_observed<P: SimPlant>(
         }
         // Every command due by now (more than one a step when command_hz > control_hz).
         while host.streaming && host.next_command_us <= t_us {
-            let [vx, vy, wz] = host.twist;
-            let frame = Command::Twist(TwistCmd {
-                vx,
-                vy,
-                wz,
-                seq: host.seq,
-            })
-            .to_can_frame();
-            host.seq = host.seq.wrapping_add(1);
-            bus.send(host.next_command_us * 1000, Node::Host, frame);
+            let at_us = host.next_command_us;
+            let repeating = scenario
+                .host_faults
+                .iter()
+                .any(|f| f.kind == FaultName::RepeatedTwist && f.active(at_us));
+            let frame = match host.last_twist {
+                Some(last) if repeating => last,
+                _ => {
+                    let [vx, vy, wz] = host.twist;
+                    let frame = Command::Twist(TwistCmd {
+                        vx,
+                        vy,
+                        wz,
+                        seq: host.seq,
+                    })
+                    .to_can_frame();
+                    host.seq = host.seq.wrapping_add(1);
+                    host.last_twist = Some(frame);
+                    frame
+                }
+            };
+            bus.send(at_us * 1000, Node::Host, frame);
             host.next_command_us += host.command_period_us;
         }
         for (fault, next_us) in scenario.host_faults.iter().zip(&mut host.next_injection_us) {
+            if fault.kind != FaultName::NonFiniteTwist {
+                continue;
+            }
             while *next_us <= t_us && *next_us < fault.until_us {
                 for frame in non_finite_twist_frames(host.twist, host.seq) {
                     bus.send(*next_us * 1000, Node::Host, frame);
