@@ -41,7 +41,11 @@ struct Step {
     commanded: ChassisVelocity<f32>,
     /// The step's DJI current frame, A (motor sign).
     currents: [f32; 4],
+    /// The wheel speed setpoints are all zero.
+    setpoints_zero: bool,
     rx_errors: u64,
+    /// Twists the firmware counted as repeats of the last accepted one.
+    repeated_seq: u64,
     odom_error_m: f64,
     /// A motor's feedback gap has exceeded the stale limit by this step (the oracle).
     stale_due: bool,
@@ -58,6 +62,11 @@ struct Record {
     steps: Vec<Step>,
     /// Delivery times (µs) of the twist commands the firmware must accept.
     twists: Vec<u64>,
+    /// Delivery times (µs) of the twists that repeat the `seq` of the last one in `twists`:
+    /// the firmware must count them and not accept them.
+    repeats: Vec<u64>,
+    /// Repeats whose bytes differ from the twist they repeat.
+    repeats_changed: u64,
     /// Host frames corrupted on the bus.
     corrupted_host: u64,
     /// Largest gap (µs) between two decodable feedback frames of one motor, at step times.
@@ -92,14 +101,15 @@ impl Record {
     }
 }
 
-/// Whether the firmware must accept `frame` as a twist command: it decodes and is within
-/// the configured limits.
-fn acceptable_twist(config: &Config, frame: &firmware::CanFrame) -> bool {
+/// The `seq` of `frame` if it is a twist the firmware must take: it decodes and is within
+/// the configured limits. (It is a command if its `seq` differs from the last command's,
+/// else a repeat: see [`run`].)
+fn acceptable_twist(config: &Config, frame: &firmware::CanFrame) -> Option<u8> {
     let Ok(Command::Twist(t)) = Command::decode(frame) else {
-        return false;
+        return None;
     };
     let l = &config.limits;
-    t.vx.hypot(t.vy) <= l.max_linear_speed && t.wz.abs() <= l.max_angular_speed
+    (t.vx.hypot(t.vy) <= l.max_linear_speed && t.wz.abs() <= l.max_angular_speed).then_some(t.seq)
 }
 
 fn run(s: &Scenario) -> Record {
@@ -109,14 +119,25 @@ fn run(s: &Scenario) -> Record {
     let mut rec = Record::default();
     let mut last_feedback: [Option<u64>; 4] = [None; 4];
     let mut stale_seen = false;
+    // The last twist command: its seq and its frame. (The host never repeats a seq on its
+    // own, so across its enables this is the firmware's rule too.)
+    let mut last_twist: Option<(u8, firmware::CanFrame)> = None;
     let observe = |v: &StepView<'_>| {
         for tx in v.delivered.iter().filter(|tx| tx.fate != Fate::Dropped) {
             let t_us = tx.delivered_ns / 1000;
             match tx.from {
                 Node::Host => {
                     rec.corrupted_host += u64::from(tx.fate == Fate::Corrupted);
-                    if acceptable_twist(&config, &tx.frame) {
-                        rec.twists.push(t_us);
+                    match (acceptable_twist(&config, &tx.frame), last_twist) {
+                        (Some(seq), Some((last, frame))) if seq == last => {
+                            rec.repeats.push(t_us);
+                            rec.repeats_changed += u64::from(tx.frame != frame);
+                        }
+                        (Some(seq), _) => {
+                            rec.twists.push(t_us);
+                            last_twist = Some((seq, tx.frame));
+                        }
+                        (None, _) => {}
                     }
                 }
                 Node::Drives => {
@@ -148,7 +169,9 @@ fn run(s: &Scenario) -> Record {
             fault: snap.fault,
             commanded: snap.commanded,
             currents,
+            setpoints_zero: snap.wheel_setpoints.0.iter().all(|&w| w == 0.0),
             rx_errors: u64::from(snap.rx_errors.total()),
+            repeated_seq: u64::from(snap.repeated_seq),
             odom_error_m: (f64::from(p.x) - v.truth[0]).hypot(f64::from(p.y) - v.truth[1]),
             stale_due: stale_seen,
         });
@@ -607,6 +630,9 @@ fn matrix() -> Vec<Row> {
             &run(&s),
         ));
     }
+    for m in MOMENTS {
+        rows.push(repeated_twist_row(m));
+    }
     for (m, base) in MOMENTS.into_iter().zip(&bases) {
         rows.push(non_finite_row(m, Some(base)));
     }
@@ -643,6 +669,63 @@ fn matrix() -> Vec<Row> {
     rows
 }
 
+/// The host stops incrementing `seq` and repeats its last twist frame unchanged at 50 Hz
+/// from the onset to the end: the watchdog stops the robot as if the host were silent, and
+/// every repeat is counted (those after the stop too).
+fn repeated_twist_row(m: (f64, &str)) -> Row {
+    let mut s = at(m.0);
+    let onset_us = us(m.0);
+    let end_us = s.duration_us();
+    s.host_faults.push(HostFault {
+        kind: FaultName::RepeatedTwist,
+        from_us: onset_us,
+        until_us: end_us + 1,
+    });
+    let rec = run(&s);
+    let mut row = watchdog_row(
+        "repeated twist: the host stops incrementing seq, its last frame again at 50 Hz",
+        m,
+        &s,
+        &rec,
+    );
+    row.expected = format!("{}; repeats counted", row.expected);
+    // The firmware's count against the repeats delivered; at 50 Hz from the first frame due at
+    // or after the onset to the end.
+    let counted = rec.at(end_us).repeated_seq - rec.at(onset_us - MS).repeated_seq;
+    let delivered = rec.repeats.len() as u64;
+    let due = (TAIL_S * 50.0) as u64;
+    // Each repeat is the last frame before the onset, byte for byte, and no twist after
+    // the onset is taken for a command.
+    let all_repeats = rec.repeats_changed == 0 && rec.last_twist(end_us) < Some(onset_us);
+    // The wheel setpoints are zero from the step the currents are (the stop's end) on.
+    let zero_current = rec
+        .first(onset_us, |st| {
+            st.zero_current() && st.state == RobotState::Disabled
+        })
+        .map(|st| st.t_us);
+    let zero_setpoints = rec
+        .first(onset_us, |st| st.setpoints_zero)
+        .map(|st| st.t_us);
+    let setpoints_ok = zero_setpoints.is_some()
+        && zero_setpoints == zero_current
+        && rec
+            .steps
+            .iter()
+            .filter(|st| zero_setpoints.is_some_and(|t| st.t_us >= t))
+            .all(|st| st.setpoints_zero);
+    row.pass &= counted == delivered
+        && (due..=due + 1).contains(&delivered)
+        && all_repeats
+        && setpoints_ok
+        && rec.at(end_us).rx_errors == rec.at(onset_us - MS).rx_errors;
+    row.detail = format!(
+        "{}; wheel setpoints zero at the same step{}; {counted} of {delivered} repeats counted, none a rejected frame",
+        row.detail,
+        if setpoints_ok { "" } else { " NOT" },
+    );
+    row
+}
+
 /// Host-side faults the firmware must ride through: Enabled, no fault, every gap between
 /// accepted twists below the timeout; rejected frames counted.
 fn host_tolerated_row(fault: &str, onset: (f64, &str), s: &Scenario) -> Row {
@@ -657,12 +740,15 @@ fn host_tolerated_row(fault: &str, onset: (f64, &str), s: &Scenario) -> Row {
     let gap = rec.max_twist_gap(onset_us, onset_us + us(0.3));
     let last = rec.at(end_us);
     let rejected = last.rx_errors - rec.at(onset_us).rx_errors;
+    // A byte flipped into `seq` can repeat the last command's: counted, not taken.
+    let repeated = last.repeated_seq - rec.at(onset_us).repeated_seq;
     let pass = gap < timeout_us
         && rec
             .first(onset_us, |st| st.state != RobotState::Enabled)
             .is_none()
         && last.fault == Fault::None
-        && rejected <= rec.corrupted_host;
+        && repeated == rec.repeats.len() as u64
+        && rejected + repeated <= rec.corrupted_host;
     Row {
         fault: fault.into(),
         onset: moment(onset),
@@ -674,11 +760,16 @@ fn host_tolerated_row(fault: &str, onset: (f64, &str), s: &Scenario) -> Row {
         budget: format!("twist gaps < {}", ms(timeout_us)),
         measured: format!("{:?}, {:?}", last.state, last.fault),
         detail: if rec.corrupted_host > 0 {
+            let repeats = if repeated > 0 {
+                format!(", {repeated} a repeat of the last seq")
+            } else {
+                String::new()
+            };
             format!(
-                "largest twist gap {}; {} corrupted: {rejected} rejected, {} accepted as another valid twist",
+                "largest twist gap {}; {} corrupted: {rejected} rejected{repeats}, {} accepted as another valid twist",
                 ms(gap),
                 rec.corrupted_host,
-                rec.corrupted_host - rejected
+                rec.corrupted_host - rejected - repeated
             )
         } else {
             format!("largest twist gap {}", ms(gap))
