@@ -39,6 +39,7 @@ from vcan_robot import (
     STATE_ENABLED,
     STATE_ESTOP,
     STATUS,
+    STATUS_COUNTERS,
     STATUS_REQ,
     TWIST_CMD,
     Robot,
@@ -351,6 +352,86 @@ def test_estop_stops_at_once_and_latches(stops: Robot) -> None:
     driven = [c for c in stops.of(DJI_CMD_1_4, enable) if dji_currents(c) != (0,) * 4]
     assert len(driven) > 100, "no motion after reset and enable"
     assert _status_at(stops, enable + 0.2)["state"] == STATE_ENABLED
+
+
+# --- a sender stuck on one TWIST_CMD frame -------------------------------------------------
+
+REPEAT_S = 1.0  # how long the one frame is repeated
+TWIST_PERIOD_S = 0.02  # the stream's rate, 50 Hz
+
+
+@pytest.fixture(scope="module")
+def repeated(robot_factory) -> Robot:
+    """Driving at 0.5 m/s for HOLD_S; then the host stops making new TWIST_CMD frames and its
+    last one goes out again, unchanged (the same seq), at 50 Hz for REPEAT_S, as a stuck host,
+    USB adapter or gateway would send it (python-can, the stream's own thread and cadence, so
+    the first repeat comes 20 ms after the last new frame); then nothing."""
+    with robot_factory("repeated") as robot:
+        robot.mode(MODE_ENABLE)
+        robot.twist(0.5, 0.0, 0.0)
+        robot.start_stream(TWIST_PERIOD_S)
+        time.sleep(HOLD_S)
+        robot.repeat_last_twist(mark="stuck")
+        time.sleep(REPEAT_S)
+        robot.stop_stream(mark="end")
+        # STATUS and STATUS_COUNTERS (10 Hz; fewer where steps are lost) after the last repeat.
+        time.sleep(1.5 if VM else 0.4)
+    return robot
+
+
+def test_a_repeated_twist_frame_stops_the_robot_and_is_counted(repeated: Robot) -> None:
+    stuck = repeated.repeated_twist
+    assert stuck is not None
+    seq = repeated.db.decode_message(TWIST_CMD, stuck)["seq"]
+    # The last new frame (the host's; the robot takes it), then the same bytes again.
+    same = repeated.of(TWIST_CMD, repeated.marks["stuck"] - 0.5)
+    same = [f for f in same if f.data == stuck]
+    assert len(same) >= 2, "no repeat on the bus"
+    last, repeats = same[0], same[1:]
+    # Only repeats after the last new frame: the sender is stuck, not interleaving.
+    assert not [f for f in repeated.of(TWIST_CMD, last.t) if f.data != stuck]
+    gaps = [b.t - a.t for a, b in zip(same, same[1:])]
+    print(f"repeated twist: seq {seq}, {len(repeats)} repeats in {repeats[-1].t - last.t:.3f} s after "
+          f"the last new frame (gaps {min(gaps) * 1e3:.1f} to {max(gaps) * 1e3:.1f} ms)")
+    want = REPEAT_S / TWIST_PERIOD_S
+    assert (0.5 if VM else 0.9) * want <= len(repeats) <= want + 2, len(repeats)
+    if not VM:
+        # Often enough that a robot taking them would never see its command time out.
+        assert max(gaps) < COMMAND_TIMEOUT_S / 2, max(gaps)
+
+    # The motors stop as if the host were silent: counted from the last new frame.
+    zero = _zero_from(repeated, last.t, repeated.marks["end"] + 0.3)
+    latency = zero - last.t
+    during = sum(1 for f in repeats if f.t < zero)
+    print(f"repeated twist: zero currents {latency * 1e3:.1f} ms after the last new TWIST_CMD, "
+          f"{during} repeats before (budget {STOP_BUDGET_S * 1e3:.0f} ms{timing_note()})")
+    assert COMMAND_TIMEOUT_S - 0.002 <= latency <= STOP_BUDGET_S + TIMING_SLACK_S
+    assert during >= (1 if VM else 3), "the stop came before the repeats could have kept it going"
+    status = _status_at(repeated, zero + 0.05)
+    assert (status["state"], status["fault"]) == (STATE_DISABLED, FAULT_WATCHDOG), status
+
+    # Every repeat counted, those after the stop too; none is a rejected frame.
+    controller = repeated.runner_stats["controller"]
+    print(f"repeated twist: the runner counted {controller['repeated_seq']} repeats of "
+          f"{len(repeats)} on the bus; rejected {controller['rx_errors']}")
+    assert controller["repeated_seq"] == len(repeats), controller
+    assert sum(controller["rx_errors"].values()) == 0, controller
+
+    # On the bus: a STATUS_COUNTERS after every STATUS, its count never ahead of the repeats
+    # candump saw before it and, but for those still on their way to the runner, not behind.
+    _statuses(repeated, repeated.marks["stuck"], repeated.marks["end"])
+    statuses = repeated.of(STATUS)
+    counters = repeated.decoded(STATUS_COUNTERS)
+    assert len(counters) == len(statuses), (len(counters), len(statuses))
+    for (t, c), s in zip(counters, statuses):
+        assert 0.0 <= t - s.t <= 0.002 + TIMING_SLACK_S, (t, s.t)
+        on_bus = sum(1 for f in repeats if f.t <= t)
+        arrived = sum(1 for f in repeats if f.t < t - 0.002 - TIMING_SLACK_S)
+        assert arrived <= c["repeated_seq"] <= on_bus, (t, c, arrived, on_bus)
+        assert (c["wrong_dlc"], c["out_of_range"], c["non_finite"]) == (0, 0, 0), c
+    t, c = counters[-1]
+    assert t > repeats[-1].t + 0.002 + TIMING_SLACK_S, "no STATUS_COUNTERS after the last repeat"
+    assert c["repeated_seq"] == len(repeats), c
 
 
 # --- malformed frames ------------------------------------------------------------------------

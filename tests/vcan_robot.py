@@ -35,7 +35,7 @@ ROBOT_DBC = ROOT / "dbc" / "mecanum_robot.dbc"
 
 # Robot protocol ids (dbc/mecanum_robot.dbc).
 ESTOP, TWIST_CMD, MODE_CMD, STATUS_REQ = 0x300, 0x301, 0x302, 0x303
-ODOM_POSITION, ODOM_VELOCITY, STATUS, HEARTBEAT = 0x310, 0x311, 0x312, 0x31F
+ODOM_POSITION, ODOM_VELOCITY, STATUS, STATUS_COUNTERS, HEARTBEAT = 0x310, 0x311, 0x312, 0x313, 0x31F
 ESTOP_MAGIC = 0xE5
 MODE_DISABLE, MODE_ENABLE, MODE_RESET = 0, 1, 2
 STATE_DISABLED, STATE_ENABLED, STATE_FAULT, STATE_ESTOP = 0, 1, 2, 3
@@ -146,7 +146,14 @@ class Robot:
         self._stream_error: BaseException | None = None
         self._stream_lock = threading.Lock()
         self._twist = (0.0, 0.0, 0.0)
+        # TWIST_CMD.seq is an alive counter: one more in every frame the stream sends.
         self._seq = 0
+        # The stream's last TWIST_CMD data, and whether it sends that frame again instead of a
+        # new one (`repeat_last_twist`).
+        self._last_twist: bytes | None = None
+        self._repeat_last = False
+        # The frame `repeat_last_twist` repeats.
+        self.repeated_twist: bytes | None = None
         self.last_status: dict | None = None
         self.frames: list[Frame] = []
         self.runner_stats: dict = {}
@@ -246,13 +253,17 @@ class Robot:
             self.marks[mark] = t
         return t
 
-    def send(self, name: str, *, mark: str | None = None, **signals: float) -> float:
-        """Encodes `name` from the robot DBC (all signals; reserved ones default to 0)."""
+    def encode(self, name: str, **signals: float) -> tuple[int, bytes]:
+        """(id, data) of `name` from the robot DBC (all signals; reserved ones default to 0)."""
         msg = self.db.get_message_by_name(name)
         unknown = set(signals) - {s.name for s in msg.signals}
         assert not unknown, f"{name} has no signals {sorted(unknown)}"
         values = {s.name: signals.get(s.name, 0) for s in msg.signals}
-        return self.send_raw(msg.frame_id, msg.encode(values), mark=mark)
+        return msg.frame_id, msg.encode(values)
+
+    def send(self, name: str, *, mark: str | None = None, **signals: float) -> float:
+        """Encodes `name` from the robot DBC (`encode`) and sends it."""
+        return self.send_raw(*self.encode(name, **signals), mark=mark)
 
     def mode(self, request: int, *, mark: str | None = None) -> float:
         return self.send("MODE_CMD", request=request, mark=mark)
@@ -266,19 +277,23 @@ class Robot:
             self._twist = (vx, vy, wz)
 
     def start_stream(self, period_s: float = 0.02) -> None:
-        """Streams TWIST_CMD with the current twist every `period_s` from a thread."""
+        """Streams TWIST_CMD with the current twist every `period_s` from a thread, `seq`
+        one more in each frame (the protocol's alive counter)."""
         assert self._stream is None
         self._stream_stop.clear()
+        self._repeat_last = False
 
         def loop() -> None:
             deadline = time.monotonic()
             try:
                 while not self._stream_stop.is_set():
                     with self._stream_lock:
-                        vx, vy, wz = self._twist
-                        seq = self._seq
-                        self._seq = (self._seq + 1) & 0xFF
-                    self.send("TWIST_CMD", vx=vx, vy=vy, wz=wz, seq=seq)
+                        if not (self._repeat_last and self._last_twist is not None):
+                            vx, vy, wz = self._twist
+                            _, self._last_twist = self.encode("TWIST_CMD", vx=vx, vy=vy, wz=wz, seq=self._seq)
+                            self._seq = (self._seq + 1) & 0xFF
+                        data = self._last_twist
+                    self.send_raw(TWIST_CMD, data)
                     deadline += period_s
                     self._stream_stop.wait(max(0.0, deadline - time.monotonic()))
             except BaseException as err:  # noqa: BLE001 - re-raised by stop_stream
@@ -286,6 +301,19 @@ class Robot:
 
         self._stream = threading.Thread(target=loop, name="twist-stream", daemon=True)
         self._stream.start()
+
+    def repeat_last_twist(self, mark: str | None = None) -> bytes:
+        """From now on the stream sends its last TWIST_CMD frame again, unchanged (the same
+        seq), at its rate, instead of new ones: a host, USB adapter or gateway stuck on one
+        frame. Returns that frame's data. `start_stream` streams new frames again."""
+        assert self._stream is not None, "no stream to repeat"
+        with self._stream_lock:
+            assert self._last_twist is not None, "the stream has sent nothing yet"
+            self._repeat_last = True
+            self.repeated_twist = self._last_twist
+            if mark:
+                self.marks[mark] = time.time()
+            return self._last_twist
 
     def stop_stream(self, mark: str | None = None) -> None:
         """Stops streaming; returns after the last TWIST_CMD went out. Raises what ended the
