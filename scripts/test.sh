@@ -90,6 +90,9 @@ if [ -d tests ] && compgen -G "tests/test_*.py" >/dev/null; then
         python3 -m venv .venv
     fi
     .venv/bin/python -m pip install --quiet --disable-pip-version-check -r tests/requirements.txt
+    # The project's own Python package (python/), as a user installs it: its wheel carries the
+    # robot DBC from dbc/. Reinstalled every run, so the tests see this checkout's code.
+    .venv/bin/python -m pip install --quiet --disable-pip-version-check --force-reinstall --no-deps ./python
     cargo build -p firmware --features std --bin mecanum-codec --locked
     .venv/bin/python -m pytest tests -q -m "not vcan"
 

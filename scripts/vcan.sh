@@ -9,7 +9,7 @@ ROOT=$(cd "$SCRIPT_DIR/.." && pwd -P)
 IFACE=vcan0
 LANE=$ROOT/target/vcan-lane
 TXQUEUELEN=10000
-DEB_PACKAGES=(qemu-system-x86 linux-image-amd64 busybox-static can-utils kmod iproute2)
+DEB_PACKAGES=(qemu-system-x86 linux-image-amd64 busybox-static can-utils kmod iproute2 tmux)
 VNG_REQUIREMENT='virtme-ng>=1.42,<2'
 VENV=${VCAN_VENV:-$ROOT/.venv}
 MODE=${VCAN_MODE:-auto}

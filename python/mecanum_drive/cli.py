@@ -1,0 +1,251 @@
+"""`mecanum-drive`: the robot from a shell. `mecanum-drive --help` lists the commands."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from collections.abc import Sequence
+
+import can
+
+from . import protocol
+from .robot import Robot, RobotError
+
+#: Teleop: a key held down repeats (the terminal's auto-repeat); when no key has come for
+#: this long, every key is taken as released and the setpoint goes to zero.
+TELEOP_RELEASE_S = 0.3
+
+#: Teleop keys: key -> (vx, vy, wz) direction; speeds are the --speed and --turn options.
+TELEOP_KEYS = {
+    "w": (1, 0, 0),
+    "s": (-1, 0, 0),
+    "a": (0, 1, 0),
+    "d": (0, -1, 0),
+    "q": (0, 0, 1),
+    "e": (0, 0, -1),
+}
+
+TELEOP_HELP = """mecanum-drive teleop: hold a key to drive, release it to stop
+  w / s  forward / back      a / d  strafe left / right      q / e  turn left / right
+  space  stop                x      E-STOP (latches; `r` resets)   r  reset and enable
+  Ctrl-C or Esc  quit (the robot is stopped and disabled)"""
+
+
+def _robot(args: argparse.Namespace) -> Robot:
+    kwargs: dict[str, object] = {"rate_hz": args.rate}
+    if args.bitrate is not None:
+        kwargs["bitrate"] = args.bitrate
+    try:
+        return Robot.open(channel=args.channel, interface=args.interface, **kwargs)
+    except (can.CanError, OSError, ValueError) as err:
+        raise SystemExit(f"mecanum-drive: cannot open {args.interface} channel {args.channel}: {err}") from err
+
+
+def _wait_first_status(robot: Robot, timeout: float) -> None:
+    robot.request_status()
+    deadline = time.monotonic() + timeout
+    while robot.status is None or robot.heartbeat is None:
+        if time.monotonic() > deadline:
+            robot.check()  # names what is wrong: NotResponding, ProtocolMismatch
+            raise SystemExit(f"mecanum-drive: no STATUS and HEARTBEAT from the robot within {timeout} s")
+        time.sleep(0.01)
+
+
+def _status_dict(robot: Robot) -> dict:
+    s, o, h = robot.status, robot.odometry, robot.heartbeat
+    return {
+        "state": s.state if s else None,
+        "fault": s.fault if s else None,
+        "motors_online": list(s.motors_online) if s else None,
+        "rx_errors": s.rx_errors if s else None,
+        "unknown_ids": s.unknown_ids if s else None,
+        "odometry": None if o is None else {"x": o.x, "y": o.y, "heading": o.heading, "vx": o.vx, "vy": o.vy, "wz": o.wz},
+        "uptime_s": h.uptime_ms / 1000 if h else None,
+        "protocol_version": h.protocol_version if h else None,
+        "responding": robot.responding,
+    }
+
+
+def _status_text(robot: Robot) -> str:
+    d = _status_dict(robot)
+    wheels = "  ".join(f"{n} {'on' if up else 'OFF'}" for n, up in zip(("FL", "FR", "RL", "RR"), d["motors_online"] or []))
+    o = d["odometry"]
+    lines = [
+        f"state     {d['state']}   fault {d['fault']}   {'responding' if d['responding'] else 'NOT RESPONDING'}",
+        f"motors    {wheels}",
+        f"odometry  x {o['x']:+.4f} m  y {o['y']:+.4f} m  heading {math.degrees(o['heading']):+.2f}°" if o else "odometry  (none yet)",
+        f"velocity  vx {o['vx']:+.3f} m/s  vy {o['vy']:+.3f} m/s  wz {o['wz']:+.3f} rad/s" if o else "",
+        f"counters  rejected frames {d['rx_errors']}   unknown ids {d['unknown_ids']}",
+        f"robot     up {d['uptime_s']:.1f} s, protocol version {d['protocol_version']}" if d["uptime_s"] is not None else "",
+    ]
+    return "\n".join(line for line in lines if line)
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    with _robot(args) as robot:
+        _wait_first_status(robot, args.timeout)
+        if args.once or args.json:
+            time.sleep(0.05)  # one odometry period
+            print(json.dumps(_status_dict(robot)) if args.json else _status_text(robot))
+            return 0
+        try:
+            while True:
+                sys.stdout.write("\x1b[H\x1b[2J" + _status_text(robot) + "\n\n(Ctrl-C to quit)\n")
+                sys.stdout.flush()
+                time.sleep(0.2)
+        except KeyboardInterrupt:
+            return 0
+
+
+def cmd_drive(args: argparse.Namespace) -> int:
+    if not (math.isfinite(args.duration) and args.duration > 0):
+        raise SystemExit(f"mecanum-drive: --duration {args.duration}: must be a positive number of seconds")
+    with _robot(args) as robot:
+        _wait_first_status(robot, args.timeout)
+        robot.enable()
+        robot.wait_state("ENABLED", timeout=args.timeout)
+        robot.drive(args.vx, args.vy, args.wz)
+        end = time.monotonic() + args.duration
+        while time.monotonic() < end:
+            robot.check()
+            time.sleep(min(0.02, max(0.0, end - time.monotonic())))
+        robot.stop()
+        time.sleep(0.3)  # let it come to rest before the disable
+        print(_status_text(robot))
+    return 0
+
+
+def cmd_estop(args: argparse.Namespace) -> int:
+    with _robot(args) as robot:
+        robot.estop()
+        try:
+            robot.wait_state("ESTOP", timeout=args.timeout)
+        except (TimeoutError, RobotError) as err:
+            print(f"mecanum-drive: ESTOP sent; {err}", file=sys.stderr)
+            return 1
+        print("ESTOP: the robot is stopped and latched (`mecanum-drive reset` clears it)")
+    return 0
+
+
+def cmd_reset(args: argparse.Namespace) -> int:
+    with _robot(args) as robot:
+        robot.reset()
+        robot.wait_state("DISABLED", timeout=args.timeout)
+        print("reset: the robot is DISABLED, fault cleared")
+    return 0
+
+
+def cmd_teleop(args: argparse.Namespace) -> int:
+    import curses
+
+    with _robot(args) as robot:
+        _wait_first_status(robot, args.timeout)
+        robot.enable()
+        robot.wait_state("ENABLED", timeout=args.timeout)
+
+        def loop(screen: curses.window) -> None:
+            curses.curs_set(0)
+            screen.nodelay(True)
+            last_key, direction, message = 0.0, (0, 0, 0), ""
+            while True:
+                key = screen.getch()
+                now = time.monotonic()
+                if key in (27, 3):  # Esc, Ctrl-C in raw mode
+                    return
+                if key != -1:
+                    ch = chr(key) if 0 <= key < 256 else ""
+                    if ch in TELEOP_KEYS:
+                        direction, last_key = TELEOP_KEYS[ch], now
+                    elif ch == " ":
+                        direction, last_key = (0, 0, 0), 0.0
+                    elif ch == "x":
+                        robot.estop()
+                        direction, message = (0, 0, 0), "E-STOP sent: `r` resets and enables"
+                    elif ch == "r":
+                        robot.reset()
+                        robot.wait_state("DISABLED", timeout=args.timeout)
+                        robot.enable()
+                        message = "reset and enabled"
+                if now - last_key > TELEOP_RELEASE_S:
+                    direction = (0, 0, 0)
+                twist = (direction[0] * args.speed, direction[1] * args.speed, direction[2] * args.turn)
+                try:
+                    robot.drive(*twist)
+                except RobotError as err:
+                    robot.stop()
+                    message = f"robot: {err}"
+                screen.erase()
+                screen.addstr(0, 0, TELEOP_HELP)
+                screen.addstr(6, 0, f"twist     vx {twist[0]:+.2f} m/s  vy {twist[1]:+.2f} m/s  wz {twist[2]:+.2f} rad/s")
+                screen.addstr(7, 0, _status_text(robot))
+                if message:
+                    screen.addstr(15, 0, message)
+                screen.refresh()
+                time.sleep(0.01)
+
+        try:
+            curses.wrapper(loop)
+        except KeyboardInterrupt:
+            pass
+    print("teleop: stopped, the robot is disabled")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="mecanum-drive",
+        description=(
+            "Drive a mecanum robot running the mecanum-drive firmware over CAN (robot protocol "
+            f"version {protocol.protocol_version()}). Every command stops the robot's stream, sends a "
+            "zero twist and disables the robot when it ends, however it ends."
+        ),
+        epilog="Bring a SocketCAN interface up first: sudo ip link set can0 up type can bitrate 1000000",
+    )
+    parser.add_argument("--channel", default="can0", help="CAN channel (default can0; vcan0 for tests)")
+    parser.add_argument(
+        "--interface", default="socketcan",
+        help="python-can interface: socketcan (default), slcan, pcan, gs_usb, kvaser, virtual, ...",
+    )
+    parser.add_argument("--bitrate", type=int, default=None, help="bitrate for adapters that set it (slcan, pcan); SocketCAN sets it with ip link")
+    parser.add_argument("--rate", type=float, default=50.0, help="keep-alive rate of the twist stream, Hz (default 50)")
+    parser.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for the robot's answers (default 2)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("status", help="live view of state, fault, motors, odometry, counters")
+    p.add_argument("--once", action="store_true", help="print one view and exit")
+    p.add_argument("--json", action="store_true", help="print one view as JSON and exit")
+    p.set_defaults(func=cmd_status)
+
+    p = sub.add_parser("drive", help="enable, drive a twist for a time, stop, disable")
+    p.add_argument("--vx", type=float, default=0.0, help="forward speed, m/s")
+    p.add_argument("--vy", type=float, default=0.0, help="leftward speed, m/s")
+    p.add_argument("--wz", type=float, default=0.0, help="yaw rate, rad/s (counter-clockwise)")
+    p.add_argument("--duration", type=float, required=True, help="seconds to drive")
+    p.set_defaults(func=cmd_drive)
+
+    p = sub.add_parser("estop", help="emergency stop (latched until reset)")
+    p.set_defaults(func=cmd_estop)
+    p = sub.add_parser("reset", help="clear a fault or the e-stop latch (the robot stays disabled)")
+    p.set_defaults(func=cmd_reset)
+
+    p = sub.add_parser("teleop", help="drive with the keyboard in a terminal (keys shown on screen)")
+    p.add_argument("--speed", type=float, default=0.3, help="linear speed of a key, m/s (default 0.3)")
+    p.add_argument("--turn", type=float, default=0.8, help="yaw rate of a key, rad/s (default 0.8)")
+    p.set_defaults(func=cmd_teleop)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args))
+    except (RobotError, TimeoutError, ValueError) as err:
+        print(f"mecanum-drive {args.command}: {err}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,486 @@
+"""`Robot`: one mecanum robot on a CAN bus, driven through the robot protocol.
+
+A `Robot` owns three things on any python-can bus:
+
+- a **keep-alive stream**: a thread that sends the current twist setpoint as TWIST_CMD at a
+  fixed rate (default 50 Hz, a period well inside the firmware's command timeout of 100 ms),
+  with an alive counter (`seq`) that it increments on every frame, so a stuck sender (this
+  process frozen, an adapter repeating its last frame) lets the robot's watchdog stop it;
+- a **receiver**: python-can's `Notifier` thread decodes ODOM_POSITION, ODOM_VELOCITY, STATUS
+  and HEARTBEAT into the latest `Odometry` and `Status`, and watches the heartbeat;
+- **the way out**: leaving the `with` block, an exception through it, `close()` and the
+  interpreter's exit all stop the stream, send a zero twist and MODE_CMD disable.
+
+Commands that change the robot's mode (`enable`, `disable`, `reset`, `estop`) are sent at
+once from the caller's thread; sends are serialised by a lock, so an e-stop waits for at most
+one twist frame already being written, never for a queue.
+
+Problems the robot reports are raised from the next call that depends on the robot
+(`drive`, `enable`, `wait_state`, `check`): `NotResponding` when no HEARTBEAT arrived for three
+periods, `ProtocolMismatch` when the robot speaks another protocol version (the stream then
+sends only zero twists), `RobotFault` when STATUS or HEARTBEAT says FAULT, naming the fault.
+"""
+
+from __future__ import annotations
+
+import atexit
+import dataclasses
+import math
+import queue
+import threading
+import time
+import weakref
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import can
+
+from . import protocol
+
+#: The firmware's default command timeout, s (config `command_timeout_ms = 100`).
+DEFAULT_COMMAND_TIMEOUT_S = 0.1
+
+#: The firmware's default STATUS and HEARTBEAT period, s (config `status_hz = 10`).
+DEFAULT_HEARTBEAT_PERIOD_S = 0.1
+
+#: Heartbeat periods without a HEARTBEAT after which the robot is not responding.
+MISSED_HEARTBEATS = 3
+
+
+class RobotError(Exception):
+    """Something the robot reported, or its silence."""
+
+
+class NotResponding(RobotError):
+    """No HEARTBEAT from the robot for three heartbeat periods."""
+
+
+class ProtocolMismatch(RobotError):
+    """The robot speaks another protocol version than this package."""
+
+
+class RobotFault(RobotError):
+    """The robot is in FAULT; `fault` names why (MOTOR_STALE, ...)."""
+
+    def __init__(self, fault: str, message: str) -> None:
+        super().__init__(message)
+        self.fault = fault
+
+
+@dataclasses.dataclass(frozen=True)
+class Odometry:
+    """The robot's odometry: pose in its odometry frame and body-frame velocity (SI units, x
+    forward, y left, yaw counter-clockwise), and when this process received it."""
+
+    x: float
+    y: float
+    heading: float
+    vx: float
+    vy: float
+    wz: float
+    received: float  # time.monotonic() of the ODOM_VELOCITY frame
+
+
+@dataclasses.dataclass(frozen=True)
+class Status:
+    """The robot's last STATUS: state and fault by name (the DBC's value tables), counters,
+    and which motors are online (wheel order FL, FR, RL, RR)."""
+
+    state: str
+    fault: str
+    rx_errors: int
+    unknown_ids: int
+    motors_online: tuple[bool, bool, bool, bool]
+    received: float  # time.monotonic()
+
+
+@dataclasses.dataclass(frozen=True)
+class Heartbeat:
+    """The robot's last HEARTBEAT."""
+
+    uptime_ms: int
+    state: str
+    protocol_version: int
+    received: float  # time.monotonic()
+
+
+def _check_speed(name: str, value: float, unit: str) -> float:
+    low, high = protocol.signal_range("TWIST_CMD", name)
+    value = float(value)
+    if not math.isfinite(value):
+        raise ValueError(f"{name} = {value} {unit}: not a finite number")
+    if not low <= value <= high:
+        raise ValueError(f"{name} = {value} {unit} is outside the protocol's range {low}..{high} {unit}")
+    return value
+
+
+class Robot:
+    """A robot on `bus`. See the module documentation.
+
+    `rate_hz`: keep-alive rate; its period must be at most half `command_timeout_s` (the
+    firmware's command timeout), so that one lost frame does not stop the robot.
+    `heartbeat_period_s`: the robot's HEARTBEAT period (its `status_hz`).
+    `owns_bus`: shut `bus` down on `close()` (as `Robot.open` does).
+    """
+
+    def __init__(
+        self,
+        bus: can.BusABC,
+        *,
+        rate_hz: float = 50.0,
+        command_timeout_s: float = DEFAULT_COMMAND_TIMEOUT_S,
+        heartbeat_period_s: float = DEFAULT_HEARTBEAT_PERIOD_S,
+        owns_bus: bool = False,
+    ) -> None:
+        if not (math.isfinite(rate_hz) and rate_hz > 0):
+            raise ValueError(f"rate_hz = {rate_hz}: must be a positive number")
+        if 1.0 / rate_hz > command_timeout_s / 2:
+            raise ValueError(
+                f"rate_hz = {rate_hz}: a period of {1000 / rate_hz:.1f} ms is more than half the "
+                f"command timeout ({command_timeout_s * 1000:.0f} ms); use at least "
+                f"{2 / command_timeout_s:.0f} Hz"
+            )
+        if not (math.isfinite(heartbeat_period_s) and heartbeat_period_s > 0):
+            raise ValueError(f"heartbeat_period_s = {heartbeat_period_s}: must be a positive number")
+        self.bus = bus
+        self.period_s = 1.0 / rate_hz
+        self.heartbeat_period_s = heartbeat_period_s
+        self._owns_bus = owns_bus
+        self._db = protocol.database()
+        self._msg = {name: self._db.get_message_by_name(name) for name in (
+            "ESTOP", "TWIST_CMD", "MODE_CMD", "STATUS_REQ",
+            "ODOM_POSITION", "ODOM_VELOCITY", "STATUS", "HEARTBEAT",
+        )}
+        self._by_id = {m.frame_id: m for m in self._msg.values()}
+        self._version = protocol.protocol_version()
+        self._states = protocol.choices("STATUS", "state")
+        self._faults = protocol.choices("STATUS", "fault")
+
+        self._send_lock = threading.Lock()
+        self._lock = threading.Condition()
+        self._setpoint = (0.0, 0.0, 0.0)
+        self._seq = 0
+        self._twists_sent = 0
+        self._position: tuple[float, float] | None = None
+        self._odometry: Odometry | None = None
+        self._status: Status | None = None
+        self._heartbeat: Heartbeat | None = None
+        self._mismatch: ProtocolMismatch | None = None
+        self._started = time.monotonic()
+        self._callbacks: list[Callable[[Odometry], None]] = []
+        self._queues: list[queue.Queue[Odometry]] = []
+
+        self._closed = False
+        self._stop_stream = threading.Event()
+        self._stream: threading.Thread | None = None
+        self._notifier = can.Notifier(bus, [self._on_message], timeout=0.05)
+        # At interpreter exit: stop the robot even if nobody called close().
+        ref = weakref.ref(self)
+        self._atexit = lambda: (r := ref()) is not None and r.close()
+        atexit.register(self._atexit)
+
+    @classmethod
+    def open(cls, channel: str = "can0", interface: str = "socketcan", **kwargs: Any) -> Robot:
+        """A robot on a new python-can bus (`interface`, `channel`; other keyword arguments go
+        to `Robot` if it takes them, else to `can.Bus`, e.g. `bitrate` for slcan or pcan).
+        The bus is shut down on `close()`."""
+        robot_keys = {"rate_hz", "command_timeout_s", "heartbeat_period_s"}
+        robot_args = {k: v for k, v in kwargs.items() if k in robot_keys}
+        bus_args = {k: v for k, v in kwargs.items() if k not in robot_keys}
+        bus = can.Bus(channel=channel, interface=interface, **bus_args)
+        try:
+            return cls(bus, owns_bus=True, **robot_args)
+        except BaseException:
+            bus.shutdown()
+            raise
+
+    # --- context manager and closing --------------------------------------------------
+
+    def __enter__(self) -> Robot:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stops the stream, sends a zero twist and MODE_CMD disable, stops receiving (and
+        shuts the bus down if this robot owns it). Safe to call twice."""
+        if self._closed:
+            return
+        self._closed = True
+        atexit.unregister(self._atexit)
+        self._stop_stream.set()
+        if self._stream is not None and self._stream is not threading.current_thread():
+            self._stream.join(timeout=1.0)
+        try:
+            self._send_twist((0.0, 0.0, 0.0))
+            self._send("MODE_CMD", request=self._mode("DISABLE"))
+        except can.CanError:
+            pass  # the bus is gone: nothing more can be said to the robot
+        finally:
+            self._notifier.stop(timeout=1.0)
+            if self._owns_bus:
+                self.bus.shutdown()
+
+    # --- commands ------------------------------------------------------------------------
+
+    def _mode(self, name: str) -> int:
+        table = {v: k for k, v in protocol.choices("MODE_CMD", "request").items()}
+        return table[name]
+
+    def _send(self, name: str, **signals: float) -> None:
+        message = self._msg[name]
+        data = message.encode(signals, strict=True) if message.signals else b""
+        frame = can.Message(arbitration_id=message.frame_id, data=data, is_extended_id=False)
+        with self._send_lock:
+            self.bus.send(frame, timeout=0.1)
+
+    def _send_twist(self, twist: tuple[float, float, float]) -> None:
+        with self._send_lock:
+            seq = self._seq
+            self._seq = (self._seq + 1) % 256
+            data = self._msg["TWIST_CMD"].encode(
+                {"vx": twist[0], "vy": twist[1], "wz": twist[2], "seq": seq, "reserved": 0}, strict=True
+            )
+            self.bus.send(can.Message(arbitration_id=self._msg["TWIST_CMD"].frame_id, data=data,
+                                      is_extended_id=False), timeout=0.1)
+            self._twists_sent += 1
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise RuntimeError("this Robot is closed")
+
+    def enable(self) -> None:
+        """MODE_CMD enable. The keep-alive stream starts first (with a zero setpoint unless
+        `drive` set one), since the robot's watchdog stops it again within its command timeout
+        when no twist arrives; the robot then follows the stream's twists."""
+        self._check_open()
+        self.check()
+        self._ensure_stream()
+        self._send("MODE_CMD", request=self._mode("ENABLE"))
+
+    def disable(self) -> None:
+        """MODE_CMD disable: motors off."""
+        self._check_open()
+        self._send("MODE_CMD", request=self._mode("DISABLE"))
+
+    def reset(self) -> None:
+        """MODE_CMD reset: clears a fault or the e-stop latch; the robot stays disabled."""
+        self._check_open()
+        with self._lock:
+            self._status = None  # a fault reported before the reset no longer counts
+        self._send("MODE_CMD", request=self._mode("RESET"))
+
+    def estop(self) -> None:
+        """ESTOP, sent at once (after at most the one twist frame being written): the robot
+        stops and latches until `reset()`. The stream's setpoint becomes zero."""
+        with self._lock:
+            self._setpoint = (0.0, 0.0, 0.0)
+        self._send("ESTOP", magic=protocol.ESTOP_MAGIC)
+
+    def request_status(self) -> None:
+        """STATUS_REQ: the robot answers with a STATUS at once."""
+        self._check_open()
+        self._send("STATUS_REQ")
+
+    def drive(self, vx: float, vy: float, wz: float) -> None:
+        """Sets the twist setpoint (m/s, m/s, rad/s, body frame) that the keep-alive stream
+        sends from now on, starting the stream if it is not running.
+
+        Raises ValueError naming the field for a speed outside the protocol's range or not a
+        number, and the robot's own error (`check`) if there is one.
+        """
+        self._check_open()
+        twist = (_check_speed("vx", vx, "m/s"), _check_speed("vy", vy, "m/s"), _check_speed("wz", wz, "rad/s"))
+        self.check()
+        with self._lock:
+            self._setpoint = twist
+        self._ensure_stream()
+
+    def stop(self) -> None:
+        """Zero twist: the stream goes on (the robot stays enabled and holds still)."""
+        with self._lock:
+            self._setpoint = (0.0, 0.0, 0.0)
+        self._ensure_stream()
+
+    @property
+    def setpoint(self) -> tuple[float, float, float]:
+        """The twist the stream sends."""
+        with self._lock:
+            return self._setpoint
+
+    @property
+    def twists_sent(self) -> int:
+        """TWIST_CMD frames sent so far."""
+        return self._twists_sent
+
+    def _ensure_stream(self) -> None:
+        if self._stream is None or not self._stream.is_alive():
+            self._stop_stream.clear()
+            self._stream = threading.Thread(target=self._stream_loop, name="mecanum-drive keep-alive", daemon=True)
+            self._stream.start()
+
+    def _stream_loop(self) -> None:
+        next_t = time.monotonic()
+        while not self._stop_stream.is_set():
+            with self._lock:
+                twist = self._setpoint if self._mismatch is None else (0.0, 0.0, 0.0)
+            try:
+                self._send_twist(twist)
+            except can.CanError:
+                pass  # a full queue or a bus error: the next period tries again
+            next_t += self.period_s
+            delay = next_t - time.monotonic()
+            if delay < 0:
+                next_t = time.monotonic()  # late: restart the schedule rather than burst
+                delay = 0
+            self._stop_stream.wait(delay)
+
+    # --- what the robot says ---------------------------------------------------------------
+
+    def _on_message(self, msg: can.Message) -> None:
+        if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame:
+            return
+        message = self._by_id.get(msg.arbitration_id)
+        if message is None or message.senders != ["ROBOT"]:
+            return
+        try:
+            values = message.decode(bytes(msg.data), decode_choices=False, scaling=True)
+        except Exception:  # noqa: BLE001 - a malformed frame is not this package's to raise
+            return
+        now = time.monotonic()
+        odometry = None
+        with self._lock:
+            if message.name == "ODOM_POSITION":
+                self._position = (float(values["x"]), float(values["y"]))
+            elif message.name == "ODOM_VELOCITY":
+                x, y = self._position if self._position is not None else (math.nan, math.nan)
+                odometry = Odometry(x, y, float(values["heading"]), float(values["vx"]), float(values["vy"]),
+                                    float(values["wz"]), now)
+                self._odometry = odometry
+            elif message.name == "STATUS":
+                mask = int(values["motors_online"])
+                self._status = Status(
+                    state=self._states.get(int(values["state"]), str(values["state"])),
+                    fault=self._faults.get(int(values["fault"]), str(values["fault"])),
+                    rx_errors=int(values["rx_errors"]),
+                    unknown_ids=int(values["unknown_ids"]),
+                    motors_online=tuple(bool(mask >> i & 1) for i in range(4)),  # type: ignore[arg-type]
+                    received=now,
+                )
+            elif message.name == "HEARTBEAT":
+                version = int(values["protocol_version"])
+                self._heartbeat = Heartbeat(
+                    uptime_ms=int(values["uptime_ms"]),
+                    state=self._states.get(int(values["state"]), str(values["state"])),
+                    protocol_version=version,
+                    received=now,
+                )
+                if version != self._version and self._mismatch is None:
+                    self._mismatch = ProtocolMismatch(
+                        f"the robot speaks protocol version {version}; this package speaks version "
+                        f"{self._version} (its DBC, {protocol.DBC_NAME}): update the package or the "
+                        "robot's firmware so that they match. Until then only zero twists are sent."
+                    )
+            self._lock.notify_all()
+            callbacks, queues = list(self._callbacks), list(self._queues)
+        if odometry is not None:
+            for q in queues:
+                q.put(odometry)
+            for callback in callbacks:
+                callback(odometry)
+
+    @property
+    def odometry(self) -> Odometry | None:
+        """The latest odometry, or None before the first."""
+        with self._lock:
+            return self._odometry
+
+    @property
+    def status(self) -> Status | None:
+        """The latest STATUS, or None before the first."""
+        with self._lock:
+            return self._status
+
+    @property
+    def heartbeat(self) -> Heartbeat | None:
+        """The latest HEARTBEAT, or None before the first."""
+        with self._lock:
+            return self._heartbeat
+
+    @property
+    def responding(self) -> bool:
+        """False when no HEARTBEAT arrived for three heartbeat periods (counted from this
+        robot's creation before the first)."""
+        with self._lock:
+            last = self._heartbeat.received if self._heartbeat is not None else self._started
+        return time.monotonic() - last <= MISSED_HEARTBEATS * self.heartbeat_period_s
+
+    def _check_link(self) -> None:
+        """Raises ProtocolMismatch or NotResponding if the robot cannot be talked to."""
+        with self._lock:
+            mismatch, heartbeat = self._mismatch, self._heartbeat
+        if mismatch is not None:
+            raise mismatch
+        if not self.responding:
+            silent = time.monotonic() - (heartbeat.received if heartbeat else self._started)
+            raise NotResponding(
+                f"no HEARTBEAT from the robot for {silent:.2f} s (more than {MISSED_HEARTBEATS} periods of "
+                f"{self.heartbeat_period_s:.2f} s): is it powered, on this bus ({self.bus.channel_info}), "
+                "at the same bitrate?"
+            )
+
+    def check(self) -> None:
+        """Raises what the robot reported: ProtocolMismatch, NotResponding, or RobotFault with
+        the fault's name; returns if all is well."""
+        self._check_link()
+        with self._lock:
+            status = self._status
+        if status is not None and status.state == "FAULT":
+            raise RobotFault(status.fault, f"the robot is in FAULT: {status.fault} (reset() clears it)")
+
+    def wait_state(self, state: str, timeout: float = 1.0) -> Status:
+        """Waits until STATUS reports `state` (DISABLED, ENABLED, FAULT, ESTOP) and returns that
+        STATUS. Raises ValueError for another name, TimeoutError after `timeout` s, and what
+        `check` raises meanwhile (a FAULT only when waiting for another state)."""
+        if state not in self._states.values():
+            raise ValueError(f"state = {state!r}: not one of {sorted(self._states.values())}")
+        deadline = time.monotonic() + timeout
+        while True:
+            with self._lock:
+                status = self._status
+            if status is not None and status.state == state:
+                return status
+            if state == "FAULT":
+                self._check_link()
+            else:
+                self.check()
+            left = deadline - time.monotonic()
+            if left <= 0:
+                seen = status.state if status is not None else "no STATUS yet"
+                raise TimeoutError(f"the robot did not reach {state} within {timeout} s (last: {seen})")
+            with self._lock:
+                if self._status is status:
+                    self._lock.wait(min(left, 0.05))
+
+    def on_odometry(self, callback: Callable[[Odometry], None]) -> None:
+        """Calls `callback(odometry)` on every new odometry, from the receiving thread (keep it
+        short)."""
+        with self._lock:
+            self._callbacks.append(callback)
+
+    def odometry_updates(self, timeout: float | None = None) -> Iterator[Odometry]:
+        """Every new odometry from now on, in order; ends when none arrives for `timeout` s
+        (None: waits for ever)."""
+        q: queue.Queue[Odometry] = queue.Queue()
+        with self._lock:
+            self._queues.append(q)
+        try:
+            while True:
+                try:
+                    yield q.get(timeout=timeout)
+                except queue.Empty:
+                    return
+        finally:
+            with self._lock:
+                self._queues.remove(q)

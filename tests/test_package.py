@@ -1,0 +1,275 @@
+"""The Python package `mecanum_drive` (python/) on python-can's virtual bus, against a scripted
+robot (tests/scripted_robot.py): the keep-alive stream's rate and alive counter, the e-stop
+ordering, what every way out sends, and every error path. The package is the installed one
+(scripts/test.sh installs ./python into the virtual environment); its behaviour against the
+real firmware on vcan0 is in tests/test_vcan_drive.py.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import pathlib
+import statistics
+import subprocess
+import sys
+import textwrap
+import time
+
+import can
+import pytest
+
+import mecanum_drive
+from mecanum_drive import NotResponding, ProtocolMismatch, Robot, RobotFault, cli, protocol
+from scripted_robot import ScriptedRobot
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+_channels = itertools.count()
+
+
+@pytest.fixture
+def channel() -> str:
+    """A virtual channel of its own for each test."""
+    return f"mecanum-test-{next(_channels)}"
+
+
+def host_bus(channel: str) -> can.BusABC:
+    return can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+
+
+def test_the_package_carries_the_repositorys_dbc() -> None:
+    """One source of the layout: the installed copy is the repository's file, byte for byte,
+    and the package speaks the version its comment states."""
+    path = protocol.dbc_path()
+    assert "site-packages" in str(path) or "dist-packages" in str(path), path
+    assert path.read_bytes() == (ROOT / "dbc" / "mecanum_robot.dbc").read_bytes()
+    text = (ROOT / "dbc" / "mecanum_robot.dbc").read_text()
+    assert f'CM_ "Mecanum robot CAN protocol, version {mecanum_drive.protocol_version()} ' in text
+    assert (pathlib.Path(mecanum_drive.__file__).parent / "py.typed").is_file()
+
+
+def test_the_keep_alive_streams_at_its_rate_with_an_alive_counter(channel: str) -> None:
+    """50 Hz by default: over 1.5 s the robot receives 75 frames (within 4), no gap longer
+    than 2.5 periods, and `seq` counting up by one, wrapping at 256."""
+    with ScriptedRobot(channel) as fake, Robot(host_bus(channel), owns_bus=True) as robot:
+        robot.enable()
+        robot.wait_state("ENABLED", timeout=1.0)
+        robot.drive(0.2, 0.0, 0.0)
+        time.sleep(0.2)
+        t0 = time.monotonic()
+        time.sleep(1.5)
+        window = [r for r in fake.frames("TWIST_CMD") if r.t >= t0][:-1]
+    assert abs(len(window) - 75) <= 4, len(window)
+    gaps = [b.t - a.t for a, b in zip(window, window[1:])]
+    assert max(gaps) < 2.5 * 0.02, max(gaps)
+    assert statistics.mean(gaps) == pytest.approx(0.02, rel=0.05)
+    seqs = [r.signals["seq"] for r in window]
+    assert all((b - a) % 256 == 1 for a, b in zip(seqs, seqs[1:])), seqs
+    assert all(r.signals["vx"] == pytest.approx(0.2) for r in window)
+
+
+def test_the_robot_moves_and_odometry_arrives_by_callback_and_iterator(channel: str) -> None:
+    seen: list[mecanum_drive.Odometry] = []
+    with ScriptedRobot(channel) as fake, Robot(host_bus(channel), owns_bus=True) as robot:
+        robot.on_odometry(seen.append)
+        robot.enable()
+        robot.wait_state("ENABLED", timeout=1.0)
+        robot.drive(0.5, 0.0, 0.0)
+        updates = list(itertools.islice(robot.odometry_updates(timeout=1.0), 30))
+        time.sleep(0.5)
+        odom, status = robot.odometry, robot.status
+    # 30 updates at 100 Hz in order, x rising at 0.5 m/s.
+    assert len(updates) == 30
+    assert all(b.received >= a.received for a, b in zip(updates, updates[1:]))
+    assert updates[-1].x > updates[0].x
+    assert odom is not None and odom.vx == pytest.approx(0.5, abs=1e-3)
+    assert odom.x == pytest.approx(fake.pose[0], abs=0.02)
+    assert len(seen) >= 60
+    assert status is not None and status.state == "ENABLED" and status.motors_online == (True,) * 4
+
+
+def test_estop_goes_out_at_once_and_no_motion_follows_it(channel: str) -> None:
+    """Streaming at 200 Hz: the ESTOP reaches the robot within 20 ms of the call, and every
+    twist after it is zero; the robot latches ESTOP."""
+    with ScriptedRobot(channel) as fake, Robot(host_bus(channel), owns_bus=True, rate_hz=200) as robot:
+        robot.enable()
+        robot.wait_state("ENABLED", timeout=1.0)
+        robot.drive(1.0, 0.5, 0.2)
+        time.sleep(0.3)
+        called = time.monotonic()
+        robot.estop()
+        robot.wait_state("ESTOP", timeout=1.0)
+        time.sleep(0.2)
+        (estop,) = fake.frames("ESTOP")
+        after = [r for r in fake.frames("TWIST_CMD") if r.t > estop.t]
+    assert estop.t - called < 0.02, estop.t - called
+    assert estop.signals["magic"] == 0xE5
+    assert len(after) >= 20
+    assert all((r.signals["vx"], r.signals["vy"], r.signals["wz"]) == (0, 0, 0) for r in after)
+
+
+def test_leaving_the_block_sends_a_zero_twist_then_disable(channel: str) -> None:
+    for how in ("normally", "by an exception"):
+        with ScriptedRobot(channel + how) as fake:
+            try:
+                with Robot(host_bus(channel + how), owns_bus=True) as robot:
+                    robot.enable()
+                    robot.wait_state("ENABLED", timeout=1.0)
+                    robot.drive(0.3, 0.0, 0.1)
+                    time.sleep(0.1)
+                    if how != "normally":
+                        raise KeyError("the user's program failed")
+            except KeyError:
+                pass
+            time.sleep(0.1)
+            last_two = [(r.name, r.signals) for r in fake.received[-2:]]
+            assert fake.state == "DISABLED", how
+        assert last_two[0][0] == "TWIST_CMD" and (last_two[0][1]["vx"], last_two[0][1]["wz"]) == (0, 0), how
+        assert last_two[1] == ("MODE_CMD", {"request": 0}), how
+
+
+def test_the_interpreters_exit_stops_the_robot(tmp_path: pathlib.Path) -> None:
+    """A program that drives and ends without closing: at exit the package sends a zero twist
+    and the disable (the robot in the same process records them; its report is printed by an
+    exit handler registered before the robot's, so it runs after it)."""
+    script = tmp_path / "forgetful.py"
+    script.write_text(textwrap.dedent(
+        f"""
+        import atexit, json, sys, time
+        sys.path.insert(0, {str(ROOT / "tests")!r})
+        import can
+        from scripted_robot import ScriptedRobot
+        from mecanum_drive import Robot
+
+        fake = ScriptedRobot("exit").__enter__()
+        atexit.register(lambda: print(json.dumps([(r.name, r.signals) for r in fake.received[-2:]])))
+        robot = Robot(can.Bus(interface="virtual", channel="exit"))
+        robot.enable()
+        robot.wait_state("ENABLED", timeout=1.0)
+        robot.drive(0.4, 0.0, 0.0)
+        time.sleep(0.2)
+        sys.exit(0)  # no close(), no with block
+        """
+    ))
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60, check=False)
+    assert proc.returncode == 0, proc.stderr
+    last_two = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert last_two[0][0] == "TWIST_CMD" and last_two[0][1]["vx"] == 0, last_two
+    assert last_two[1] == ["MODE_CMD", {"request": 0}], last_two
+
+
+@pytest.mark.parametrize(
+    ("twist", "field"),
+    [((40.0, 0, 0), "vx"), ((0, -33.0, 0), "vy"), ((0, 0, 1e9), "wz"), ((math.nan, 0, 0), "vx"), ((0, math.inf, 0), "vy")],
+)
+def test_speeds_outside_the_protocol_are_refused_naming_the_field(channel: str, twist, field: str) -> None:
+    with ScriptedRobot(channel) as fake, Robot(host_bus(channel), owns_bus=True) as robot:
+        with pytest.raises(ValueError, match=rf"^{field} = "):
+            robot.drive(*twist)
+        assert robot.setpoint == (0.0, 0.0, 0.0)
+        assert fake.frames("TWIST_CMD") == []
+
+
+def test_bad_settings_are_refused(channel: str) -> None:
+    bus = host_bus(channel)
+    try:
+        with pytest.raises(ValueError, match="rate_hz = 5.*at least 20 Hz"):
+            Robot(bus, rate_hz=5)
+        with pytest.raises(ValueError, match="rate_hz = nan"):
+            Robot(bus, rate_hz=math.nan)
+        with ScriptedRobot(channel) as _fake, Robot(bus) as robot:
+            with pytest.raises(ValueError, match="'MOVING': not one of"):
+                robot.wait_state("MOVING")
+            with pytest.raises(TimeoutError, match="did not reach ESTOP within 0.3 s"):
+                robot.wait_state("ESTOP", timeout=0.3)
+        with pytest.raises(RuntimeError, match="closed"):
+            robot.drive(0, 0, 0)
+    finally:
+        bus.shutdown()
+
+
+def test_a_silent_robot_is_not_responding(channel: str) -> None:
+    """Three heartbeat periods (0.3 s) without a HEARTBEAT: flagged and raised, naming how long."""
+    with ScriptedRobot(channel) as fake, Robot(host_bus(channel), owns_bus=True) as robot:
+        robot.wait_state("DISABLED", timeout=1.0)
+        robot.check()
+        fake.heartbeats = False
+        time.sleep(0.45)
+        assert not robot.responding
+        with pytest.raises(NotResponding, match=r"no HEARTBEAT from the robot for 0\.\d\d s"):
+            robot.drive(0.1, 0, 0)
+        fake.heartbeats = True
+        time.sleep(0.25)
+        assert robot.responding
+        robot.check()
+    # Nobody on the bus at all.
+    with Robot(host_bus(channel + "-empty"), owns_bus=True) as robot:
+        assert robot.responding
+        time.sleep(0.35)
+        with pytest.raises(NotResponding):
+            robot.enable()
+
+
+def test_another_protocol_version_is_refused_and_never_driven(channel: str) -> None:
+    version = mecanum_drive.protocol_version()
+    with ScriptedRobot(channel, protocol_version=version + 7) as fake, Robot(host_bus(channel), owns_bus=True) as robot:
+        robot.stop()  # the stream runs
+        time.sleep(0.25)
+        with pytest.raises(ProtocolMismatch, match=rf"protocol version {version + 7}; this package speaks version {version}"):
+            robot.drive(0.5, 0, 0)
+        with pytest.raises(ProtocolMismatch):
+            robot.enable()
+        time.sleep(0.1)
+        twists = fake.frames("TWIST_CMD")
+    assert len(twists) >= 10
+    assert all(r.signals["vx"] == 0 for r in twists)
+
+
+def test_a_fault_is_raised_by_name_and_reset_clears_it(channel: str) -> None:
+    with ScriptedRobot(channel) as fake, Robot(host_bus(channel), owns_bus=True) as robot:
+        robot.enable()
+        robot.wait_state("ENABLED", timeout=1.0)
+        robot.drive(0.2, 0, 0)
+        fake.set_fault("MOTOR_STALE")
+        with pytest.raises(RobotFault, match="MOTOR_STALE") as caught:
+            robot.wait_state("ESTOP", timeout=1.0)
+        assert caught.value.fault == "MOTOR_STALE"
+        assert robot.wait_state("FAULT", timeout=0.5).fault == "MOTOR_STALE"
+        with pytest.raises(RobotFault):
+            robot.drive(0.2, 0, 0)
+        robot.reset()
+        robot.wait_state("DISABLED", timeout=1.0)
+        robot.check()
+
+
+def test_the_command_line_on_a_virtual_bus(channel: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """`mecanum-drive` commands in this process, against the scripted robot."""
+    common = ["--interface", "virtual", "--channel", channel]
+    with ScriptedRobot(channel) as fake:
+        assert cli.main([*common, "status", "--json"]) == 0
+        status = json.loads(capsys.readouterr().out)
+        assert status["state"] == "DISABLED" and status["responding"] and status["motors_online"] == [True] * 4
+        assert status["protocol_version"] == mecanum_drive.protocol_version()
+
+        assert cli.main([*common, "drive", "--vx", "0.5", "--duration", "0.4"]) == 0
+        out = capsys.readouterr().out
+        assert "state     ENABLED" in out
+        assert fake.pose[0] == pytest.approx(0.2, abs=0.05)
+        assert fake.state == "DISABLED"
+
+        assert cli.main([*common, "estop"]) == 0
+        assert fake.state == "ESTOP"
+        assert cli.main([*common, "reset"]) == 0
+        assert fake.state == "DISABLED"
+
+        assert cli.main([*common, "drive", "--vx", "99", "--duration", "0.1"]) == 1
+        assert "vx = 99.0 m/s is outside the protocol's range" in capsys.readouterr().err
+    with pytest.raises(SystemExit, match="--duration -1.0: must be a positive number"):
+        cli.main([*common, "drive", "--duration", "-1"])
+    with pytest.raises(SystemExit):
+        cli.main([*common, "drive"])  # --duration is required
+    capsys.readouterr()
+    # Nobody answers: the error says so and the status is 1.
+    assert cli.main(["--interface", "virtual", "--channel", channel + "-none", "--timeout", "0.4", "status", "--json"]) == 1
+    assert "no HEARTBEAT" in capsys.readouterr().err

@@ -1,0 +1,235 @@
+"""The Python package (python/, `mecanum_drive`) driving the real firmware on a real vcan0.
+
+`mecanum-runner` and `hostsim plant` run as processes (tests/vcan_robot.py starts them, with
+candump recording the bus); the host is the package: its `Robot` API in this process, a child
+program that is SIGKILLed mid-drive, and `mecanum-drive teleop` in a terminal under tmux. What
+the tests check is what crossed the bus (candump's record) and where the plant's chassis
+really ended (its ground truth).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import pathlib
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+from conftest import vcan_unavailable
+from test_vcan_runner import (  # noqa: F401 - fixtures, used by name
+    STOP_BUDGET_S,
+    TIMING_SLACK_S,
+    VM,
+    config,
+    configs,
+    plant_bin,
+    robot_factory,
+    runner_bin,
+)
+from vcan_robot import DJI_CMD_1_4, MODE_CMD, ODOM_POSITION, ODOM_VELOCITY, ROOT, TWIST_CMD, dji_currents
+
+import mecanum_drive
+
+pytestmark = pytest.mark.vcan
+
+#: The square: (vx, vy) for LEG_S seconds each, then a stop.
+SQUARE = [(0.4, 0.0), (0.0, 0.4), (-0.4, 0.0), (0.0, -0.4)]
+LEG_S = 1.5
+#: How far the odometry may end from the chassis's true pose. The rollers slip (a strafe
+#: makes about 75 % of its commanded travel, which the odometry cannot see), and the emulated
+#: machine's runner loses steps to overruns: there the bound is coarse.
+END_POS_TOL_M = 0.35 if VM else 0.12
+END_HEADING_TOL_RAD = math.radians(15 if VM else 5)
+#: How the odometry's corners may differ from the commanded legs (0.6 m each).
+CORNER_TOL_M = 0.25 if VM else 0.06
+#: Waits for the robot's answers: the emulated machine is slow to start.
+ANSWER_S = 10.0 if VM else 2.0
+
+#: The README's example, as written there.
+README = ROOT / "README.md"
+
+
+def readme_example() -> str:
+    """The Python block under "Drive a real robot" in the README."""
+    text = README.read_text()
+    section = text[text.index("## Drive a real robot") :]
+    match = re.search(r"```python\n(.*?)```", section, re.DOTALL)
+    assert match, "the README's Drive a real robot section has no Python example"
+    return match.group(1)
+
+
+def test_a_square_through_the_api_ends_where_the_odometry_says(robot_factory, vcan) -> None:
+    """Enable, drive a 0.6 m square leg by leg through `Robot.drive`, stop; leaving the block
+    disables the robot. The keep-alive ran at 50 Hz with a counting `seq`, the API's last
+    odometry is the robot's last ODOM frames, the odometry's corners are the legs', and the
+    chassis ended where the odometry says (within END_POS_TOL_M / END_HEADING_TOL_RAD)."""
+    with robot_factory("api-square") as session:
+        with mecanum_drive.Robot.open(channel=vcan, interface="socketcan") as robot:
+            robot.enable()
+            robot.wait_state("ENABLED", timeout=ANSWER_S)
+            corners = []
+            for vx, vy in SQUARE:
+                robot.drive(vx, vy, 0.0)
+                time.sleep(LEG_S)
+                odom = robot.odometry
+                corners.append((odom.x, odom.y))
+            robot.stop()
+            time.sleep(0.6)
+            final = robot.odometry
+            closed_at = time.time()
+            time.sleep(0.3)
+        time.sleep(0.3)
+    truth = session.plant_stats["truth"]
+    print(f"API square: corners {[(round(x, 3), round(y, 3)) for x, y in corners]}; odometry end "
+          f"x {final.x:+.4f} y {final.y:+.4f} heading {final.heading:+.4f}; truth x {truth['x']:+.4f} "
+          f"y {truth['y']:+.4f} heading {truth['heading']:+.4f}")
+
+    # The keep-alive: 50 Hz, seq counting up by one.
+    twists = session.decoded(TWIST_CMD)
+    assert len(twists) > 0.8 * 50 * len(SQUARE) * LEG_S, len(twists)
+    seqs = [v["seq"] for _, v in twists]
+    assert sum((b - a) % 256 == 1 for a, b in zip(seqs, seqs[1:])) == len(seqs) - 1
+    gaps = sorted(b - a for (a, _), (b, _) in zip(twists, twists[1:]))
+    assert gaps[len(gaps) // 2] == pytest.approx(0.02, abs=0.005), gaps[len(gaps) // 2]
+
+    # The API reports what the robot said last (the frames' resolution: 0.1 mm, 0.1 mrad).
+    last_pos = session.decoded(ODOM_POSITION, t1=closed_at)[-1][1]
+    last_vel = session.decoded(ODOM_VELOCITY, t1=closed_at)[-1][1]
+    assert (final.x, final.y) == pytest.approx((last_pos["x"], last_pos["y"]), abs=2e-4)
+    assert final.heading == pytest.approx(last_vel["heading"], abs=2e-4)
+
+    # The legs, as the odometry saw them.
+    want = [(0.6, 0.0), (0.6, 0.6), (0.0, 0.6), (0.0, 0.0)]
+    for (x, y), (wx, wy) in zip(corners, want):
+        assert math.hypot(x - wx, y - wy) < CORNER_TOL_M, (corners, want)
+
+    # The chassis is where the odometry says.
+    assert math.hypot(final.x - truth["x"], final.y - truth["y"]) < END_POS_TOL_M
+    assert abs(math.remainder(final.heading - truth["heading"], math.tau)) < END_HEADING_TOL_RAD
+
+    # Leaving the block: a zero twist, then the disable, and nothing from the host after.
+    host = [f for f in session.frames if f.id in (TWIST_CMD, MODE_CMD)]
+    zero, disable = host[-2], host[-1]
+    assert zero.id == TWIST_CMD and session.db.decode_message(TWIST_CMD, zero.data)["vx"] == 0
+    assert disable.id == MODE_CMD and disable.data == bytes([0])
+
+
+def test_a_program_killed_mid_drive_leaves_the_robot_stopped(robot_factory, vcan, tmp_path) -> None:
+    """A program drives forward through the package and is SIGKILLed: nothing can run in it
+    any more, so the robot's own watchdog stops it: every motor command is zero within the
+    firmware's budget after the program's last TWIST_CMD."""
+    program = tmp_path / "driver.py"
+    program.write_text(textwrap.dedent(
+        f"""
+        import time
+        import mecanum_drive
+
+        robot = mecanum_drive.Robot.open(channel={vcan!r}, interface="socketcan")
+        robot.enable()
+        robot.wait_state("ENABLED", timeout={ANSWER_S})
+        robot.drive(0.4, 0.0, 0.0)
+        print("driving", flush=True)
+        time.sleep(600)
+        """
+    ))
+    with robot_factory("api-kill") as session:
+        child = subprocess.Popen([sys.executable, str(program)], stdout=subprocess.PIPE, text=True)
+        try:
+            assert child.stdout.readline().strip() == "driving"
+            time.sleep(1.0)
+            child.send_signal(signal.SIGKILL)
+            killed = time.time()
+            child.wait(timeout=10)
+        finally:
+            if child.poll() is None:
+                child.kill()
+        time.sleep(0.5)
+    last_twist = session.of(TWIST_CMD)[-1]
+    assert killed - 0.1 < last_twist.t < killed + 0.05, (killed, last_twist.t)
+    moving = [f for f in session.of(DJI_CMD_1_4, t1=last_twist.t) if any(dji_currents(f))]
+    assert len(moving) > 100, "the program never drove"
+    after = session.of(DJI_CMD_1_4, t0=last_twist.t)
+    first_zero = next(f for f in after if not any(dji_currents(f)))
+    latency = first_zero.t - last_twist.t
+    print(f"killed program: zero currents {latency * 1000:.1f} ms after its last TWIST_CMD "
+          f"(budget {STOP_BUDGET_S * 1000:.0f} ms + {TIMING_SLACK_S * 1000:.0f} ms emulation slack)")
+    assert latency <= STOP_BUDGET_S + TIMING_SLACK_S
+    assert all(not any(dji_currents(f)) for f in after if f.t >= first_zero.t)
+
+
+def test_teleop_under_tmux_moves_forward_and_stops(robot_factory, vcan, tmp_path) -> None:
+    """`mecanum-drive teleop` in a real terminal (tmux): holding `w` (the key repeated, as a
+    terminal's auto-repeat does) drives forward; releasing it stops the twist within the
+    release time; Esc quits and the robot is disabled."""
+    tmux = shutil.which("tmux")
+    if tmux is None:
+        vcan_unavailable("tmux not installed", "tmux is not installed (scripts/vcan.sh installs it as root)")
+    drive = pathlib.Path(sys.executable).with_name("mecanum-drive")
+    assert drive.is_file(), f"{drive}: the package is not installed in this environment"
+    socket = str(tmp_path / "tmux.sock")
+
+    def tmux_cmd(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([tmux, "-S", socket, *args], capture_output=True, text=True, timeout=30, check=False)
+
+    from mecanum_drive.cli import TELEOP_RELEASE_S
+
+    with robot_factory("teleop") as session:
+        started = tmux_cmd("new-session", "-d", "-x", "100", "-y", "30",
+                           f"{drive} --channel {vcan} --timeout {ANSWER_S} teleop; sleep 30")
+        assert started.returncode == 0, started.stderr
+        try:
+            deadline = time.monotonic() + 3 * ANSWER_S
+            while "state     ENABLED" not in (screen := tmux_cmd("capture-pane", "-p").stdout):
+                assert time.monotonic() < deadline, f"teleop never showed ENABLED:\n{screen}"
+                time.sleep(0.2)
+            pressed = time.time()
+            for _ in range(60):  # 1.2 s of a held key at 50 repeats per second
+                tmux_cmd("send-keys", "w")
+                time.sleep(0.02)
+            released = time.time()
+            time.sleep(1.0)
+            screen = tmux_cmd("capture-pane", "-p").stdout
+            tmux_cmd("send-keys", "Escape")
+            deadline = time.monotonic() + ANSWER_S
+            while "teleop: stopped" not in (after := tmux_cmd("capture-pane", "-p").stdout):
+                assert time.monotonic() < deadline, f"teleop did not quit:\n{after}"
+                time.sleep(0.2)
+        finally:
+            tmux_cmd("kill-server")
+        time.sleep(0.3)
+    print(f"teleop screen while stopped:\n{screen}")
+    twists = session.decoded(TWIST_CMD, t0=pressed)
+    forward = [t for t, v in twists if v["vx"] > 0]
+    assert forward and forward[0] - pressed < 0.5, "holding w did not drive forward"
+    assert all(v["vy"] == 0 and v["wz"] == 0 for _, v in twists)
+    # Released: the twist is zero within the release time (plus the key delivery's jitter).
+    stopped = next(t for t, v in twists if t > released and v["vx"] == 0)
+    assert stopped - released < TELEOP_RELEASE_S + 0.1 + TIMING_SLACK_S, stopped - released
+    assert all(v["vx"] == 0 for t, v in twists if t > stopped)
+    # The robot moved forward, and stands.
+    pos = session.decoded(ODOM_POSITION)
+    x0 = next(v["x"] for t, v in pos if t >= pressed)
+    x1 = [v["x"] for t, v in pos if t <= released + 1.0][-1]
+    assert x1 - x0 > 0.1, (x0, x1)
+    vel = [v["vx"] for t, v in session.decoded(ODOM_VELOCITY) if released + 0.8 < t < released + 1.0]
+    assert vel and max(abs(v) for v in vel) < 0.02, vel
+    # Quitting disabled the robot.
+    assert session.of(MODE_CMD)[-1].data == bytes([0])
+
+
+def test_the_readme_example_runs_as_written(robot_factory, vcan) -> None:
+    """The README's example, unchanged, on vcan0 (its channel comes from CAN_CHANNEL)."""
+    example = readme_example()
+    with robot_factory("readme") as session:
+        proc = subprocess.run([sys.executable, "-c", example], capture_output=True, text=True, timeout=120,
+                              env={**os.environ, "CAN_CHANNEL": vcan}, check=False)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    print(f"README example printed:\n{proc.stdout}")
+    assert session.decoded(TWIST_CMD), "the example sent no twist"
+    assert session.of(MODE_CMD)[-1].data == bytes([0])
