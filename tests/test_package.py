@@ -273,3 +273,11 @@ def test_the_command_line_on_a_virtual_bus(channel: str, capsys: pytest.CaptureF
     # Nobody answers: the error says so and the status is 1.
     assert cli.main(["--interface", "virtual", "--channel", channel + "-none", "--timeout", "0.4", "status", "--json"]) == 1
     assert "no HEARTBEAT" in capsys.readouterr().err
+
+
+def test_the_package_type_checks_strictly() -> None:
+    """`py.typed` is a promise: the installed package passes `mypy --strict`."""
+    proc = subprocess.run([sys.executable, "-m", "mypy", "--strict", "--no-incremental", "-p", "mecanum_drive"],
+                          capture_output=True, text=True, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "no issues found in 5 source files" in proc.stdout, proc.stdout

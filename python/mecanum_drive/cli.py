@@ -8,6 +8,7 @@ import math
 import sys
 import time
 from collections.abc import Sequence
+from typing import Any
 
 import can
 
@@ -54,7 +55,7 @@ def _wait_first_status(robot: Robot, timeout: float) -> None:
         time.sleep(0.01)
 
 
-def _status_dict(robot: Robot) -> dict:
+def _status_dict(robot: Robot) -> dict[str, Any]:
     s, o, h = robot.status, robot.odometry, robot.heartbeat
     return {
         "state": s.state if s else None,

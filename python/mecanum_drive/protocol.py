@@ -41,7 +41,10 @@ def dbc_path() -> pathlib.Path:
 @functools.cache
 def database() -> Database:
     """The robot protocol's database, loaded strictly (overlapping signals are an error)."""
-    return cantools.database.load_file(str(dbc_path()), strict=True)
+    db = cantools.database.load_file(str(dbc_path()), strict=True)
+    if not isinstance(db, Database):
+        raise TypeError(f"{dbc_path()} is not a CAN database")
+    return db
 
 
 @functools.cache

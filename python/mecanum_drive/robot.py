@@ -30,8 +30,8 @@ import queue
 import threading
 import time
 import weakref
-from collections.abc import Callable, Iterator
-from typing import Any
+from collections.abc import Callable, Iterator, Mapping
+from typing import Any, cast
 
 import can
 
@@ -176,8 +176,14 @@ class Robot:
         self._notifier = can.Notifier(bus, [self._on_message], timeout=0.05)
         # At interpreter exit: stop the robot even if nobody called close().
         ref = weakref.ref(self)
-        self._atexit = lambda: (r := ref()) is not None and r.close()
-        atexit.register(self._atexit)
+
+        def at_exit() -> None:
+            robot = ref()
+            if robot is not None:
+                robot.close()
+
+        self._atexit = at_exit
+        atexit.register(at_exit)
 
     @classmethod
     def open(cls, channel: str = "can0", interface: str = "socketcan", **kwargs: Any) -> Robot:
@@ -345,7 +351,8 @@ class Robot:
         if message is None or message.senders != ["ROBOT"]:
             return
         try:
-            values = message.decode(bytes(msg.data), decode_choices=False, scaling=True)
+            # Without choices, every value is a number.
+            values = cast(Mapping[str, float], message.decode(bytes(msg.data), decode_choices=False, scaling=True))
         except Exception:  # noqa: BLE001 - a malformed frame is not this package's to raise
             return
         now = time.monotonic()
