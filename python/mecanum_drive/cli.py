@@ -13,7 +13,7 @@ from typing import Any
 import can
 
 from . import protocol
-from .robot import Robot, RobotError
+from .robot import NotResponding, Robot, RobotError
 
 #: Teleop: a key held down repeats (the terminal's auto-repeat); when no key has come for
 #: this long, every key is taken as released and the setpoint goes to zero.
@@ -50,8 +50,11 @@ def _wait_first_status(robot: Robot, timeout: float) -> None:
     deadline = time.monotonic() + timeout
     while robot.status is None or robot.heartbeat is None:
         if time.monotonic() > deadline:
-            robot.check()  # names what is wrong: NotResponding, ProtocolMismatch
-            raise SystemExit(f"mecanum-drive: no STATUS and HEARTBEAT from the robot within {timeout} s")
+            robot.check()  # names what is wrong: ProtocolMismatch, a fault
+            raise NotResponding(
+                f"no HEARTBEAT and STATUS from the robot within {timeout} s on {robot.bus.channel_info}: "
+                "is it powered, on this bus, at the same bitrate?"
+            )
         time.sleep(0.01)
 
 

@@ -46,6 +46,10 @@ DEFAULT_HEARTBEAT_PERIOD_S = 0.1
 #: Heartbeat periods without a HEARTBEAT after which the robot is not responding.
 MISSED_HEARTBEATS = 3
 
+#: How long a new `Robot` waits for the first HEARTBEAT before it says the robot is not
+#: responding, s (then the three periods count).
+FIRST_HEARTBEAT_S = 1.0
+
 
 class RobotError(Exception):
     """Something the robot reported, or its silence."""
@@ -193,12 +197,25 @@ class Robot:
         robot_keys = {"rate_hz", "command_timeout_s", "heartbeat_period_s"}
         robot_args = {k: v for k, v in kwargs.items() if k in robot_keys}
         bus_args = {k: v for k, v in kwargs.items() if k not in robot_keys}
+        bus_args.setdefault("can_filters", cls.receive_filters())
         bus = can.Bus(channel=channel, interface=interface, **bus_args)
         try:
             return cls(bus, owns_bus=True, **robot_args)
         except BaseException:
             bus.shutdown()
             raise
+
+    @staticmethod
+    def receive_filters() -> list[can.typechecking.CanFilter]:
+        """python-can filters that pass only the robot's frames (ODOM_*, STATUS, HEARTBEAT).
+        `Robot.open` sets them; on a bus of your own, pass them as `can_filters` where the
+        interface filters in hardware or in the kernel (SocketCAN), so that the drives'
+        kilohertz traffic never reaches Python."""
+        return [
+            {"can_id": m.frame_id, "can_mask": 0x7FF, "extended": False}
+            for m in protocol.database().messages
+            if m.senders == ["ROBOT"]
+        ]
 
     # --- context manager and closing --------------------------------------------------
 
@@ -417,11 +434,13 @@ class Robot:
 
     @property
     def responding(self) -> bool:
-        """False when no HEARTBEAT arrived for three heartbeat periods (counted from this
-        robot's creation before the first)."""
+        """False when no HEARTBEAT arrived for three heartbeat periods, or none at all within
+        FIRST_HEARTBEAT_S of this robot's creation."""
         with self._lock:
-            last = self._heartbeat.received if self._heartbeat is not None else self._started
-        return time.monotonic() - last <= MISSED_HEARTBEATS * self.heartbeat_period_s
+            heartbeat = self._heartbeat
+        if heartbeat is None:
+            return time.monotonic() - self._started <= max(FIRST_HEARTBEAT_S, MISSED_HEARTBEATS * self.heartbeat_period_s)
+        return time.monotonic() - heartbeat.received <= MISSED_HEARTBEATS * self.heartbeat_period_s
 
     def _check_link(self) -> None:
         """Raises ProtocolMismatch or NotResponding if the robot cannot be talked to."""
@@ -430,7 +449,13 @@ class Robot:
         if mismatch is not None:
             raise mismatch
         if not self.responding:
-            silent = time.monotonic() - (heartbeat.received if heartbeat else self._started)
+            if heartbeat is None:
+                raise NotResponding(
+                    f"no HEARTBEAT from the robot in the {time.monotonic() - self._started:.2f} s since this "
+                    f"program started listening: is it powered, on this bus ({self.bus.channel_info}), at "
+                    "the same bitrate?"
+                )
+            silent = time.monotonic() - heartbeat.received
             raise NotResponding(
                 f"no HEARTBEAT from the robot for {silent:.2f} s (more than {MISSED_HEARTBEATS} periods of "
                 f"{self.heartbeat_period_s:.2f} s): is it powered, on this bus ({self.bus.channel_info}), "
