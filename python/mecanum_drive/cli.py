@@ -147,13 +147,20 @@ def cmd_teleop(args: argparse.Namespace) -> int:
 
     with _robot(args) as robot:
         _wait_first_status(robot, args.timeout)
-        robot.enable()
-        robot.wait_state("ENABLED", timeout=args.timeout)
 
         def loop(screen: curses.window) -> None:
             curses.curs_set(0)
-            screen.nodelay(True)
+            # Enabled once the terminal is set up: setting it up can hold the interpreter
+            # for longer than the robot's command timeout on a slow machine, and the
+            # keep-alive thread would miss its frames.
+            robot.enable()
+            robot.wait_state("ENABLED", timeout=args.timeout)
+            # getch waits up to 20 ms for a key: the loop sleeps in it rather than spinning,
+            # so the keep-alive and receiving threads keep their time on a slow machine.
+            screen.timeout(20)
             last_key, direction, message = 0.0, (0, 0, 0), ""
+            twist: tuple[float, float, float] = (0.0, 0.0, 0.0)
+            next_draw = 0.0
             while True:
                 key = screen.getch()
                 now = time.monotonic()
@@ -175,20 +182,23 @@ def cmd_teleop(args: argparse.Namespace) -> int:
                         message = "reset and enabled"
                 if now - last_key > TELEOP_RELEASE_S:
                     direction = (0, 0, 0)
-                twist = (direction[0] * args.speed, direction[1] * args.speed, direction[2] * args.turn)
-                try:
-                    robot.drive(*twist)
-                except RobotError as err:
-                    robot.stop()
-                    message = f"robot: {err}"
-                screen.erase()
-                screen.addstr(0, 0, TELEOP_HELP)
-                screen.addstr(6, 0, f"twist     vx {twist[0]:+.2f} m/s  vy {twist[1]:+.2f} m/s  wz {twist[2]:+.2f} rad/s")
-                screen.addstr(7, 0, _status_text(robot))
-                if message:
-                    screen.addstr(15, 0, message)
-                screen.refresh()
-                time.sleep(0.01)
+                wanted = (direction[0] * args.speed, direction[1] * args.speed, direction[2] * args.turn)
+                if wanted != twist or key != -1:
+                    twist = wanted
+                    try:
+                        robot.drive(*twist)
+                    except RobotError as err:
+                        robot.stop()
+                        twist, message = (0.0, 0.0, 0.0), f"robot: {err}"
+                if now >= next_draw or key != -1:
+                    next_draw = now + 0.1
+                    screen.erase()
+                    screen.addstr(0, 0, TELEOP_HELP)
+                    screen.addstr(6, 0, f"twist     vx {twist[0]:+.2f} m/s  vy {twist[1]:+.2f} m/s  wz {twist[2]:+.2f} rad/s")
+                    screen.addstr(7, 0, _status_text(robot))
+                    if message:
+                        screen.addstr(15, 0, message)
+                    screen.refresh()
 
         try:
             curses.wrapper(loop)
