@@ -2,8 +2,9 @@
 
 It plays the firmware's side of the robot protocol, encoded by cantools from
 dbc/mecanum_robot.dbc: HEARTBEAT and STATUS every `period_s` (and STATUS at once on
-STATUS_REQ), ODOM_POSITION and ODOM_VELOCITY every `odom_period_s` integrating the last
-accepted twist, the enable latch (MODE_CMD), the e-stop latch, a command watchdog, and a
+STATUS_REQ, each followed by STATUS_COUNTERS), ODOM_POSITION and ODOM_VELOCITY every
+`odom_period_s` integrating the last accepted twist, the enable latch (MODE_CMD), the e-stop
+latch, a command watchdog that a twist repeating the last accepted `seq` does not feed, and a
 fault on demand. It records every frame it receives with its arrival time, so a test can
 measure what the package sent and when. It is a test double of the firmware's behaviour on
 the bus, not of its control; the real firmware is tested on vcan0 (tests/test_vcan_*.py).
@@ -58,6 +59,8 @@ class ScriptedRobot:
         self.twist = (0.0, 0.0, 0.0)
         self.pose = [0.0, 0.0, 0.0]
         self.last_command: float | None = None
+        self.last_seq: int | None = None
+        self.repeated_seq = 0
         self.received: list[Received] = []
         self.heartbeats = True  # False: the robot goes silent
         self._lock = threading.Lock()
@@ -93,6 +96,8 @@ class ScriptedRobot:
     def _status(self) -> None:
         self._send("STATUS", state=STATES[self.state], fault=FAULTS[self.fault], rx_errors=0, unknown_ids=0,
                    motors_online=0x0F, seq=0)
+        self._send("STATUS_COUNTERS", repeated_seq=min(self.repeated_seq, 0xFFFF), wrong_dlc=0, out_of_range=0,
+                   non_finite=0)
 
     def _receive(self) -> None:
         while not self._stop.is_set():
@@ -105,12 +110,17 @@ class ScriptedRobot:
             with self._lock:
                 self.received.append(Received(now, message.name, signals))
                 if message.name == "TWIST_CMD" and self.state == "ENABLED":
-                    self.twist = (signals["vx"], signals["vy"], signals["wz"])
-                    self.last_command = now
+                    # Protocol version 3: a repeat of the last accepted seq is not a command.
+                    if signals["seq"] == self.last_seq:
+                        self.repeated_seq += 1
+                    else:
+                        self.last_seq = signals["seq"]
+                        self.twist = (signals["vx"], signals["vy"], signals["wz"])
+                        self.last_command = now
                 elif message.name == "MODE_CMD":
                     request = signals["request"]
                     if request == 1 and self.state == "DISABLED":
-                        self.state, self.fault, self.last_command = "ENABLED", "NONE", now
+                        self.state, self.fault, self.last_command, self.last_seq = "ENABLED", "NONE", now, None
                     elif request == 0 and self.state == "ENABLED":
                         self.state, self.twist = "DISABLED", (0.0, 0.0, 0.0)
                     elif request == 2 and self.state in ("FAULT", "ESTOP"):

@@ -60,7 +60,12 @@ def test_the_keep_alive_streams_at_its_rate_with_an_alive_counter(channel: str) 
         t0 = time.monotonic()
         time.sleep(1.5)
         window = [r for r in fake.frames("TWIST_CMD") if r.t >= t0][:-1]
+        time.sleep(0.15)
+        counters = robot.counters
     assert abs(len(window) - 75) <= 4, len(window)
+    # The robot took every frame as new (version 3's rule), and said so.
+    assert fake.repeated_seq == 0
+    assert counters is not None and counters.repeated_seq == 0
     gaps = [b.t - a.t for a, b in zip(window, window[1:])]
     assert max(gaps) < 2.5 * 0.02, max(gaps)
     assert statistics.mean(gaps) == pytest.approx(0.02, rel=0.05)
@@ -252,6 +257,7 @@ def test_the_command_line_on_a_virtual_bus(channel: str, capsys: pytest.CaptureF
         status = json.loads(capsys.readouterr().out)
         assert status["state"] == "DISABLED" and status["responding"] and status["motors_online"] == [True] * 4
         assert status["protocol_version"] == mecanum_drive.protocol_version()
+        assert status["counters"] == {"repeated_seq": 0, "wrong_dlc": 0, "out_of_range": 0, "non_finite": 0}
 
         assert cli.main([*common, "drive", "--vx", "0.5", "--duration", "0.4"]) == 0
         out = capsys.readouterr().out

@@ -17,6 +17,7 @@ The command line `mecanum-drive` (`mecanum-drive --help`) does the same from a s
 
 from .protocol import database, protocol_version
 from .robot import (
+    Counters,
     Heartbeat,
     NotResponding,
     Odometry,
@@ -28,6 +29,7 @@ from .robot import (
 )
 
 __all__ = [
+    "Counters",
     "Heartbeat",
     "NotResponding",
     "Odometry",

@@ -59,13 +59,17 @@ def _wait_first_status(robot: Robot, timeout: float) -> None:
 
 
 def _status_dict(robot: Robot) -> dict[str, Any]:
-    s, o, h = robot.status, robot.odometry, robot.heartbeat
+    s, o, h, c = robot.status, robot.odometry, robot.heartbeat, robot.counters
     return {
         "state": s.state if s else None,
         "fault": s.fault if s else None,
         "motors_online": list(s.motors_online) if s else None,
         "rx_errors": s.rx_errors if s else None,
         "unknown_ids": s.unknown_ids if s else None,
+        "counters": None if c is None else {
+            "repeated_seq": c.repeated_seq, "wrong_dlc": c.wrong_dlc,
+            "out_of_range": c.out_of_range, "non_finite": c.non_finite,
+        },
         "odometry": None if o is None else {"x": o.x, "y": o.y, "heading": o.heading, "vx": o.vx, "vy": o.vy, "wz": o.wz},
         "uptime_s": h.uptime_ms / 1000 if h else None,
         "protocol_version": h.protocol_version if h else None,
@@ -83,6 +87,8 @@ def _status_text(robot: Robot) -> str:
         f"odometry  x {o['x']:+.4f} m  y {o['y']:+.4f} m  heading {math.degrees(o['heading']):+.2f}°" if o else "odometry  (none yet)",
         f"velocity  vx {o['vx']:+.3f} m/s  vy {o['vy']:+.3f} m/s  wz {o['wz']:+.3f} rad/s" if o else "",
         f"counters  rejected frames {d['rx_errors']}   unknown ids {d['unknown_ids']}",
+        "" if d["counters"] is None else "          repeated twists {repeated_seq}   wrong DLC {wrong_dlc}   "
+        "out of range {out_of_range}   not finite {non_finite}".format(**d["counters"]),
         f"robot     up {d['uptime_s']:.1f} s, protocol version {d['protocol_version']}" if d["uptime_s"] is not None else "",
     ]
     return "\n".join(line for line in lines if line)
@@ -193,11 +199,18 @@ def cmd_teleop(args: argparse.Namespace) -> int:
                 if now >= next_draw or key != -1:
                     next_draw = now + 0.1
                     screen.erase()
-                    screen.addstr(0, 0, TELEOP_HELP)
-                    screen.addstr(6, 0, f"twist     vx {twist[0]:+.2f} m/s  vy {twist[1]:+.2f} m/s  wz {twist[2]:+.2f} rad/s")
-                    screen.addstr(7, 0, _status_text(robot))
-                    if message:
-                        screen.addstr(15, 0, message)
+                    text = "\n".join([
+                        TELEOP_HELP,
+                        "",
+                        f"twist     vx {twist[0]:+.2f} m/s  vy {twist[1]:+.2f} m/s  wz {twist[2]:+.2f} rad/s",
+                        _status_text(robot),
+                        "",
+                        message,
+                    ])
+                    try:
+                        screen.addstr(0, 0, text)
+                    except curses.error:
+                        pass  # a terminal too small for all of it shows what fits
                     screen.refresh()
 
         try:

@@ -4,10 +4,12 @@ A `Robot` owns three things on any python-can bus:
 
 - a **keep-alive stream**: a thread that sends the current twist setpoint as TWIST_CMD at a
   fixed rate (default 50 Hz, a period well inside the firmware's command timeout of 100 ms),
-  with an alive counter (`seq`) that it increments on every frame, so a stuck sender (this
-  process frozen, an adapter repeating its last frame) lets the robot's watchdog stop it;
-- a **receiver**: python-can's `Notifier` thread decodes ODOM_POSITION, ODOM_VELOCITY, STATUS
-  and HEARTBEAT into the latest `Odometry` and `Status`, and watches the heartbeat;
+  with the alive counter (`seq`) that the protocol asks for incremented on every frame: the
+  robot refuses a twist that repeats the last accepted `seq`, so a stuck sender (this process
+  frozen, an adapter repeating its last frame) lets its watchdog stop it;
+- a **receiver**: python-can's `Notifier` thread decodes ODOM_POSITION, ODOM_VELOCITY, STATUS,
+  STATUS_COUNTERS and HEARTBEAT into the latest `Odometry`, `Status`, `Counters` and
+  `Heartbeat`, and watches the heartbeat;
 - **the way out**: leaving the `with` block, an exception through it, `close()` and the
   interpreter's exit all stop the stream, send a zero twist and MODE_CMD disable.
 
@@ -99,6 +101,19 @@ class Status:
 
 
 @dataclasses.dataclass(frozen=True)
+class Counters:
+    """The robot's last STATUS_COUNTERS (protocol version 3): twists it refused as repeats of
+    the last accepted `seq` (a sender stuck on one frame), and frames of its own protocols it
+    rejected by kind. Saturating counts since the robot started."""
+
+    repeated_seq: int
+    wrong_dlc: int
+    out_of_range: int
+    non_finite: int
+    received: float  # time.monotonic()
+
+
+@dataclasses.dataclass(frozen=True)
 class Heartbeat:
     """The robot's last HEARTBEAT."""
 
@@ -153,7 +168,7 @@ class Robot:
         self._db = protocol.database()
         self._msg = {name: self._db.get_message_by_name(name) for name in (
             "ESTOP", "TWIST_CMD", "MODE_CMD", "STATUS_REQ",
-            "ODOM_POSITION", "ODOM_VELOCITY", "STATUS", "HEARTBEAT",
+            "ODOM_POSITION", "ODOM_VELOCITY", "STATUS", "STATUS_COUNTERS", "HEARTBEAT",
         )}
         self._by_id = {m.frame_id: m for m in self._msg.values()}
         self._version = protocol.protocol_version()
@@ -168,6 +183,7 @@ class Robot:
         self._position: tuple[float, float] | None = None
         self._odometry: Odometry | None = None
         self._status: Status | None = None
+        self._counters: Counters | None = None
         self._heartbeat: Heartbeat | None = None
         self._mismatch: ProtocolMismatch | None = None
         self._started = time.monotonic()
@@ -392,6 +408,14 @@ class Robot:
                     motors_online=tuple(bool(mask >> i & 1) for i in range(4)),  # type: ignore[arg-type]
                     received=now,
                 )
+            elif message.name == "STATUS_COUNTERS":
+                self._counters = Counters(
+                    repeated_seq=int(values["repeated_seq"]),
+                    wrong_dlc=int(values["wrong_dlc"]),
+                    out_of_range=int(values["out_of_range"]),
+                    non_finite=int(values["non_finite"]),
+                    received=now,
+                )
             elif message.name == "HEARTBEAT":
                 version = int(values["protocol_version"])
                 self._heartbeat = Heartbeat(
@@ -425,6 +449,12 @@ class Robot:
         """The latest STATUS, or None before the first."""
         with self._lock:
             return self._status
+
+    @property
+    def counters(self) -> Counters | None:
+        """The latest STATUS_COUNTERS, or None before the first."""
+        with self._lock:
+            return self._counters
 
     @property
     def heartbeat(self) -> Heartbeat | None:
