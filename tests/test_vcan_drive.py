@@ -50,6 +50,9 @@ END_HEADING_TOL_RAD = math.radians(15 if VM else 5)
 CORNER_TOL_M = 0.25 if VM else 0.06
 #: Waits for the robot's answers: the emulated machine is slow to start.
 ANSWER_S = 10.0 if VM else 2.0
+#: How late a key typed through tmux may act: each `tmux send-keys` is a process start,
+#: which the emulated machine takes a good part of a second for when it is busy.
+KEY_SLACK_S = 1.5 if VM else 0.2
 
 #: The README's example, as written there.
 README = ROOT / "README.md"
@@ -206,11 +209,14 @@ def test_teleop_under_tmux_moves_forward_and_stops(robot_factory, vcan, tmp_path
     print(f"teleop screen while stopped:\n{screen}")
     twists = session.decoded(TWIST_CMD, t0=pressed)
     forward = [t for t, v in twists if v["vx"] > 0]
-    assert forward and forward[0] - pressed < 0.5, "holding w did not drive forward"
+    assert forward, "holding w did not drive forward"
+    assert forward[0] - pressed < KEY_SLACK_S, f"the first w acted {forward[0] - pressed:.3f} s after it was sent"
     assert all(v["vy"] == 0 and v["wz"] == 0 for _, v in twists)
     # Released: the twist is zero within the release time (plus the key delivery's jitter).
     stopped = next(t for t, v in twists if t > released and v["vx"] == 0)
-    assert stopped - released < TELEOP_RELEASE_S + 0.1 + TIMING_SLACK_S, stopped - released
+    print(f"teleop: forward {forward[0] - pressed:.3f} s after the first key, zero twist "
+          f"{stopped - released:.3f} s after the last (release time {TELEOP_RELEASE_S} s)")
+    assert stopped - released < TELEOP_RELEASE_S + KEY_SLACK_S, stopped - released
     assert all(v["vx"] == 0 for t, v in twists if t > stopped)
     # The robot moved forward, and stands.
     pos = session.decoded(ODOM_POSITION)
