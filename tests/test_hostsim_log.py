@@ -21,23 +21,9 @@ from mcap.reader import make_reader
 from mcap.records import Message, Statistics
 from mcap.stream_reader import StreamReader
 from rosbags.typesys import Stores, get_typestore, get_types_from_msg
+from test_ros2_logs import CHANNEL_TYPES
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-
-
-#: Every channel's topic and ROS 2 type (crates/drivelog/src/lib.rs, the channel table).
-CHANNEL_TYPES = {
-    "/can/rx": "can_msgs/msg/Frame",
-    "/can/tx": "can_msgs/msg/Frame",
-    "/can/faults": "mecanum_drive_msgs/msg/BusFault",
-    "/cmd_vel": "geometry_msgs/msg/TwistStamped",
-    "/odom": "nav_msgs/msg/Odometry",
-    "/ground_truth/odom": "nav_msgs/msg/Odometry",
-    "/tf": "tf2_msgs/msg/TFMessage",
-    "/joint_states": "sensor_msgs/msg/JointState",
-    "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
-    "/rosout": "rcl_interfaces/msg/Log",
-}
 
 
 def typestore_for(schemas):
