@@ -92,7 +92,7 @@ row "MCAP write throughput, Rust / Python" "${ratio}x" "ratio"
 
 if [ "$vcan" = 1 ]; then
     log "vcan0: frames/s the runner takes without loss (the vcan lane's rate test)"
-    cargo build --release --locked -q -p firmware --features firmware/linux --bin mecanum-runner
+    cargo build --release --locked -q -p mecanum-runner
     # The test prints its `rate:` line before it checks for loss: the figure counts only when
     # the lane passed (pipefail: the status is vcan.sh's, not tee's).
     lane_rc=0

@@ -101,8 +101,7 @@ if [ -d tests ] && compgen -G "tests/test_*.py" >/dev/null; then
     # The runner and the plant run in real time there: release builds (the micro-VM emulates
     # its CPU, some 20x slower than the host). -s: the tests print their measured figures.
     stage "vcan lane: tests marked vcan on a real vcan0 (native, else a micro-VM)"
-    cargo build --release --locked -p hostsim --bin hostsim \
-        -p firmware --features firmware/linux --bin mecanum-runner
+    cargo build --release --locked -p hostsim --bin hostsim -p mecanum-runner --bin mecanum-runner
     HOSTSIM="$PWD/target/release/hostsim" MECANUM_RUNNER="$PWD/target/release/mecanum-runner" \
         MECANUM_CODEC="$PWD/target/debug/mecanum-codec" \
         VCAN_VM_TIMEOUT=${VCAN_VM_TIMEOUT:-900} \

@@ -2,10 +2,8 @@
 //! status 2, a message naming the file, field or interface, never a panic).
 //!
 //! `runs_on_vcan0` needs a virtual CAN interface and is ignored by default; run it where one
-//! exists with `cargo test -p firmware --features linux --test runner_cli -- --ignored`
+//! exists with `cargo test -p mecanum-runner --test cli -- --ignored`
 //! after `ip link add dev vcan0 type vcan && ip link set up vcan0`.
-
-#![cfg(feature = "linux")]
 
 use std::path::PathBuf;
 use std::process::{Command, Output};

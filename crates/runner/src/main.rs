@@ -1,6 +1,8 @@
 //! `mecanum-runner`: the firmware's control core on a Linux SocketCAN interface, at a fixed
-//! rate (see `--help`). The loop itself is `firmware::linux::run`; this file is the command
-//! line, signal handling and reporting around it.
+//! rate (see `--help`). The loop itself is `firmware::linux::run`; this crate is the command
+//! line, signal handling and reporting around it. It is a package of its own, not a binary
+//! of `firmware`, so that it can write its log through `drivelog` (which depends on
+//! `firmware`).
 
 use std::fs::File;
 use std::io::Write as _;
