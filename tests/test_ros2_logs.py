@@ -41,6 +41,7 @@ CHANNEL_TYPES = {
     "/joint_states": "sensor_msgs/msg/JointState",
     "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
     "/rosout": "rcl_interfaces/msg/Log",
+    "/firmware/steps": "mecanum_drive_msgs/msg/Step",
 }
 
 #: The two runs: a built-in, and a scenario file with bus faults.
@@ -175,7 +176,7 @@ def test_the_standard_types_are_ros2_humbles(log: Log) -> None:
     """A reader that decodes with its own ROS 2 definitions (a `ros 2 bag play` with the
     packages installed) rather than the file's gets the same fields: every standard type in
     the schemas, dependencies included, is field for field the Humble type store's. Only the
-    two types Humble lacks come from the file alone."""
+    three types Humble lacks come from the file alone."""
     humble = get_typestore(Stores.ROS2_HUMBLE)
     seen, own = set(), set()
     for name, text in log.schemas.items():
@@ -185,7 +186,7 @@ def test_the_standard_types_are_ros2_humbles(log: Log) -> None:
                 seen.add(typename)
             else:
                 own.add(typename)
-    assert own == {"can_msgs/msg/Frame", "mecanum_drive_msgs/msg/BusFault"}
+    assert own == {"can_msgs/msg/Frame", "mecanum_drive_msgs/msg/BusFault", "mecanum_drive_msgs/msg/Step"}
     assert seen == {
         "builtin_interfaces/msg/Time", "std_msgs/msg/Header", "rcl_interfaces/msg/Log",
         "geometry_msgs/msg/Vector3", "geometry_msgs/msg/Point", "geometry_msgs/msg/Quaternion",

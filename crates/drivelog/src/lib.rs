@@ -19,7 +19,8 @@
 //! | `/tf` | `tf2_msgs/msg/TFMessage` | `odom` → `base_link` (odometry) and `odom` → `base_link_truth` (ground truth) |
 //! | `/joint_states` | `sensor_msgs/msg/JointState` | wheels `fl`, `fr`, `rl`, `rr`: angle (rad, robot-forward positive, accumulated since start), speed (rad/s), effort: the commanded motor current (A; 0 for velocity-mode drives) |
 //! | `/diagnostics` | `diagnostic_msgs/msg/DiagnosticArray` | the firmware's state, fault, motors online, commanded and measured twist, wheel setpoints, rejected-frame counters |
-//! | `/rosout` | `rcl_interfaces/msg/Log` | state changes and faults, as text |
+//! | `/rosout` | `rcl_interfaces/msg/Log` | state changes and faults, as text; messages dropped because the writer fell behind ([`McapLog::drop_when_behind`]) |
+//! | `/firmware/steps` | `mecanum_drive_msgs/msg/Step` | `mecanum-runner` only: the time of each control step and of the shutdown (log time = `stamp` = the time passed to the core). The simulator steps every control period from 0 and logs none |
 //!
 //! Log time 0 is the start of the run. The run's configuration (TOML) and its origin
 //! (scenario, seed, program and versions) are the [`METADATA_NAME`] metadata record, written
@@ -82,8 +83,8 @@ pub use write::{CHUNK_SIZE, Direction, LogError, McapLog, OdometrySource, part_p
 pub const PROFILE: &str = "ros2";
 
 /// The name of the metadata record that holds the run's configuration (`config`, TOML) and
-/// origin (`program`: `hostsim run`, `hostsim plant`; `scenario`, `seed`, `hostsim_version`,
-/// `protocol_version` as the program knows them).
+/// origin (`program`: `hostsim run`, `hostsim plant`, `mecanum-runner`; `scenario`, `seed`,
+/// `hostsim_version`, `firmware_version`, `protocol_version` as the program knows them).
 pub const METADATA_NAME: &str = "mecanum_drive";
 
 /// The wheels' joint names, in the project's wheel order.
@@ -112,11 +113,13 @@ pub enum Channel {
     Diagnostics,
     /// `/rosout`.
     Rosout,
+    /// `/firmware/steps`.
+    Steps,
 }
 
 impl Channel {
     /// Every channel, in channel id order (id = index + 1).
-    pub const ALL: [Self; 10] = [
+    pub const ALL: [Self; 11] = [
         Self::CanRx,
         Self::CanTx,
         Self::CanFaults,
@@ -127,6 +130,7 @@ impl Channel {
         Self::JointStates,
         Self::Diagnostics,
         Self::Rosout,
+        Self::Steps,
     ];
 
     /// The topic.
@@ -143,6 +147,7 @@ impl Channel {
             Self::JointStates => "/joint_states",
             Self::Diagnostics => "/diagnostics",
             Self::Rosout => "/rosout",
+            Self::Steps => "/firmware/steps",
         }
     }
 
@@ -158,6 +163,7 @@ impl Channel {
             Self::JointStates => &msg::JOINT_STATE,
             Self::Diagnostics => &msg::DIAGNOSTIC_ARRAY,
             Self::Rosout => &msg::LOG,
+            Self::Steps => &msg::STEP,
         }
     }
 

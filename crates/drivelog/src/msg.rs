@@ -736,6 +736,35 @@ pub static BUS_FAULT: MsgDef = MsgDef {
 };
 ros_msg!(BusFault, BUS_FAULT);
 
+/// `mecanum_drive_msgs/msg/Step`: a control step of a runner in real time, whose steps are not
+/// on the control period's grid (`/firmware/steps`): replay steps its core at these times.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Step {
+    /// The time passed to the core's step (the message's log time).
+    pub stamp: Time,
+    /// [`Step::STEP`] or [`Step::SHUTDOWN`].
+    pub kind: u8,
+}
+
+impl Step {
+    /// A control step (`Controller::step`).
+    pub const STEP: u8 = 0;
+    /// The shutdown (`Controller::shutdown`), after the last step.
+    pub const SHUTDOWN: u8 = 1;
+}
+
+/// Definition of [`Step`].
+pub static STEP: MsgDef = MsgDef {
+    name: "mecanum_drive_msgs/msg/Step",
+    text: "# A control step of a runner in real time (not on the control period's grid).\n\
+           uint8 STEP=0\n\
+           uint8 SHUTDOWN=1\n\
+           builtin_interfaces/Time stamp # the time passed to the core\n\
+           uint8 kind # STEP or SHUTDOWN\n",
+    deps: &[&TIME],
+};
+ros_msg!(Step, STEP);
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -35,12 +35,26 @@
 //! batch) or from [`McapLog::finish`]; every later hand-over fails too. A panic of that
 //! thread comes back the same way, as an error. After an error nothing more is written to
 //! the file (not even a summary), so the file stays a prefix of what was logged.
+//!
+//! # A control loop that must not wait: dropping instead of blocking
+//!
+//! By default a hand-over waits until the batch before it is in the file: a run that logs
+//! faster than the disk writes slows down to the disk's pace, and loses nothing. A control
+//! loop in real time must not wait. After [`McapLog::drop_when_behind`] a hand-over never
+//! blocks: if the writing thread is still busy with the previous batch, the open batch stays
+//! open and the hand-over is tried again at the next [`McapLog::maybe_flush`]. A batch that
+//! reaches the given number of messages is handed over at once; if the writer is still busy
+//! then, further messages are dropped and counted ([`McapLog::dropped`]) until it has caught
+//! up. The count goes into the log too: a
+//! `/rosout` warning (`N messages dropped: the log writer fell behind`) at the next batch the
+//! writer takes, and at the end. The logging thread's work per message stays a push of a few
+//! dozen bytes; its memory, the open batch and the one being written.
 
 use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::{self, BufWriter, Write};
 use std::path::{Path, PathBuf};
-use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
+use std::sync::mpsc::{Receiver, SyncSender, TryRecvError, TrySendError, sync_channel};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant as WallInstant};
 
@@ -135,6 +149,8 @@ enum Event {
     Odometry { t_ns: u64, index: u32 },
     /// `/rosout`: [`Batch::texts`]`[index]`.
     Text { t_ns: u64, level: u8, index: u32 },
+    /// `/firmware/steps`.
+    Step { t_ns: u64, kind: u8 },
 }
 
 /// A `/can/faults` message's values.
@@ -279,6 +295,13 @@ pub struct McapLog {
     last_flush: WallInstant,
     /// Calls of `maybe_flush`, to read the wall clock only every few.
     flush_calls: u64,
+    /// [`McapLog::drop_when_behind`]: hand-overs never wait, and a batch holds at most this
+    /// many events (more are dropped).
+    max_pending: Option<usize>,
+    /// Messages dropped because the writer was behind.
+    dropped: u64,
+    /// `dropped` when last reported on `/rosout`.
+    dropped_reported: u64,
 }
 
 impl McapLog {
@@ -358,6 +381,9 @@ impl McapLog {
             flushed_log_ns: 0,
             last_flush: WallInstant::now(),
             flush_calls: 0,
+            max_pending: None,
+            dropped: 0,
+            dropped_reported: 0,
         })
     }
 
@@ -371,6 +397,57 @@ impl McapLog {
         LogError::Io {
             path: self.path.clone(),
             source,
+        }
+    }
+
+    /// Never wait for the writing thread from now on: drop (and count) messages instead once
+    /// the open batch holds `max_pending_events` events while the writer is still busy with
+    /// the previous batch (a batch that reaches that size is handed over early otherwise) (see [the module documentation](self#a-control-loop-that-must-not-wait-dropping-instead-of-blocking)).
+    /// [`finish`](Self::finish) still waits for the writer.
+    pub fn drop_when_behind(&mut self, max_pending_events: usize) {
+        self.max_pending = Some(max_pending_events.max(1));
+    }
+
+    /// Messages dropped so far because the writer was behind ([`Self::drop_when_behind`]).
+    #[must_use]
+    pub const fn dropped(&self) -> u64 {
+        self.dropped
+    }
+
+    /// In the non-blocking mode, a full batch is handed over early; `Ok(false)` (and the
+    /// messages counted as dropped) if the writer is still busy with the previous one.
+    #[inline]
+    fn admit(&mut self, t_ns: u64, messages: u64) -> Result<bool, LogError> {
+        match self.max_pending {
+            Some(max) if self.batch.events.len() >= max => {
+                self.hand_over()?;
+                if self.batch.events.len() < max {
+                    return Ok(true);
+                }
+                self.dropped += messages;
+                self.last_log_ns = self.last_log_ns.max(t_ns);
+                Ok(false)
+            }
+            _ => Ok(true),
+        }
+    }
+
+    /// Adds the `/rosout` warning of the messages dropped since the last one to the batch.
+    fn report_drops(&mut self) {
+        if self.dropped > self.dropped_reported {
+            let n = self.dropped - self.dropped_reported;
+            self.dropped_reported = self.dropped;
+            let index = self.batch.texts.len() as u32;
+            self.batch.texts.push(format!(
+                "{n} messages dropped: the log writer fell behind ({} in all)",
+                self.dropped
+            ));
+            self.batch.events.push(Event::Text {
+                t_ns: self.last_log_ns,
+                level: msg::Log::WARN,
+                index,
+            });
+            self.messages += 1;
         }
     }
 
@@ -406,6 +483,27 @@ impl McapLog {
             return Ok(());
         };
         let full = std::mem::take(&mut self.batch);
+        if self.max_pending.is_some() {
+            return match writer.try_send(full) {
+                Ok(Ok(spare)) => {
+                    if let Some(spare) = spare {
+                        self.batch = spare;
+                    }
+                    self.report_drops();
+                    Ok(())
+                }
+                Ok(Err(back)) => {
+                    // The writer is busy: keep the batch open, try again at the next call.
+                    self.batch = back;
+                    self.flushed_log_ns = self.last_log_ns.saturating_sub(FLUSH_LOG_INTERVAL_NS);
+                    Ok(())
+                }
+                Err(e) => {
+                    self.failed = Some((e.kind(), e.to_string()));
+                    Err(self.io_err(e))
+                }
+            };
+        }
         match writer.send(full) {
             Ok(spare) => {
                 if let Some(spare) = spare {
@@ -436,6 +534,9 @@ impl McapLog {
         stamp_ns: u64,
         frame: &CanFrame,
     ) -> Result<(), LogError> {
+        if !self.admit(log_ns, 1)? {
+            return Ok(());
+        }
         let event = Event::Frame {
             log_ns,
             publish_ns,
@@ -460,6 +561,9 @@ impl McapLog {
         received: &CanFrame,
     ) -> Result<(), LogError> {
         use embedded_can::Frame as _;
+        if !self.admit(t_ns, 1)? {
+            return Ok(());
+        }
         let mut data = [0u8; 8];
         data[..received.data().len()].copy_from_slice(received.data());
         let index = self.batch.faults.len() as u32;
@@ -477,6 +581,9 @@ impl McapLog {
     /// # Errors
     /// [`LogError`] if writing the log failed.
     pub fn twist(&mut self, t_ns: u64, twist: [f32; 3]) -> Result<(), LogError> {
+        if !self.admit(t_ns, 1)? {
+            return Ok(());
+        }
         self.push(Event::Twist { t_ns, twist }, t_ns, 1)
     }
 
@@ -486,6 +593,9 @@ impl McapLog {
     /// # Errors
     /// [`LogError`] if writing the log failed.
     pub fn snapshot(&mut self, t_ns: u64, s: &Snapshot) -> Result<(), LogError> {
+        if !self.admit(t_ns, 2)? {
+            return Ok(());
+        }
         let index = self.batch.snapshots.len() as u32;
         self.batch.snapshots.push(*s);
         self.push(Event::Snapshot { t_ns, index }, t_ns, 2)
@@ -503,6 +613,9 @@ impl McapLog {
         pose: [f64; 3],
         twist: [f64; 3],
     ) -> Result<(), LogError> {
+        if !self.admit(t_ns, 2)? {
+            return Ok(());
+        }
         let index = self.batch.odometry.len() as u32;
         self.batch.odometry.push(OdometryRecord {
             source,
@@ -518,9 +631,25 @@ impl McapLog {
     /// # Errors
     /// [`LogError`] if writing the log failed.
     pub fn text(&mut self, t_ns: u64, level: u8, message: &str) -> Result<(), LogError> {
+        if !self.admit(t_ns, 1)? {
+            return Ok(());
+        }
         let index = self.batch.texts.len() as u32;
         self.batch.texts.push(message.to_string());
         self.push(Event::Text { t_ns, level, index }, t_ns, 1)
+    }
+
+    /// Logs a control step of a runner in real time at `t_ns`, the time passed to the core
+    /// (`/firmware/steps`, `kind` [`msg::Step::STEP`] or [`msg::Step::SHUTDOWN`]).
+    ///
+    /// # Errors
+    /// [`LogError`] if writing the log failed.
+    #[inline]
+    pub fn step(&mut self, t_ns: u64, kind: u8) -> Result<(), LogError> {
+        if !self.admit(t_ns, 1)? {
+            return Ok(());
+        }
+        self.push(Event::Step { t_ns, kind }, t_ns, 1)
     }
 
     /// Hands the messages logged so far to the writing thread if a quarter of a second of log
@@ -560,6 +689,9 @@ impl McapLog {
         if self.writer.is_none() {
             return Ok(());
         }
+        // The end waits for the writer: the last batch and the last drop count go in whole.
+        self.max_pending = None;
+        self.report_drops();
         let handed = self.hand_over();
         let Some(mut writer) = self.writer.take() else {
             return handed;
@@ -704,6 +836,13 @@ impl Encoder {
                     ..msg::Log::default()
                 };
                 self.write(Channel::Rosout, t_ns, t_ns, &m)
+            }
+            Event::Step { t_ns, kind } => {
+                let m = msg::Step {
+                    stamp: msg::Time::from_ns(t_ns),
+                    kind,
+                };
+                self.write(Channel::Steps, t_ns, t_ns, &m)
             }
         }
     }
@@ -860,6 +999,36 @@ impl BatchWriter {
         }
         self.in_flight = true;
         Ok(previous)
+    }
+
+    /// As [`send`](Self::send), without waiting: if the batch in flight is not in the file
+    /// yet, gives `batch` back (`Ok(Err(batch))`) instead.
+    fn try_send(&mut self, batch: Batch) -> io::Result<Result<Option<Batch>, Batch>> {
+        let mut spare = None;
+        if self.in_flight {
+            match self.from_thread.try_recv() {
+                Ok(result) => {
+                    self.in_flight = false;
+                    spare = Some(result?);
+                }
+                Err(TryRecvError::Empty) => return Ok(Err(batch)),
+                Err(TryRecvError::Disconnected) => {
+                    self.in_flight = false;
+                    return Err(stopped());
+                }
+            }
+        }
+        let Some(to_thread) = self.to_thread.as_ref() else {
+            return Err(stopped());
+        };
+        match to_thread.try_send(batch) {
+            Ok(()) => {
+                self.in_flight = true;
+                Ok(Ok(spare))
+            }
+            Err(TrySendError::Full(batch)) => Ok(Err(batch)),
+            Err(TrySendError::Disconnected(_)) => Err(stopped()),
+        }
     }
 
     /// Waits for the batch in flight, stops the thread and returns the `mcap` writer.
@@ -1178,5 +1347,101 @@ mod tests {
         );
         let _ = log_steps(&mut log, 0..1000);
         drop(log);
+    }
+
+    /// A file whose writes wait while `stalled` is set (a disk that stops answering), kept
+    /// in memory.
+    struct Stalling {
+        stalled: std::sync::Arc<std::sync::atomic::AtomicBool>,
+        bytes: std::sync::Arc<std::sync::Mutex<Vec<u8>>>,
+    }
+
+    impl Write for Stalling {
+        fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+            while self.stalled.load(std::sync::atomic::Ordering::Relaxed) {
+                std::thread::sleep(Duration::from_millis(1));
+            }
+            self.bytes.lock().unwrap().extend_from_slice(buf);
+            Ok(buf.len())
+        }
+
+        fn flush(&mut self) -> io::Result<()> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn behind_a_stalled_writer_messages_are_dropped_and_counted_not_waited_for() {
+        use std::sync::atomic::Ordering;
+        let stalled = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let bytes = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+        let out = Stalling {
+            stalled: stalled.clone(),
+            bytes: bytes.clone(),
+        };
+        let path = Path::new("/nowhere/stalled.mcap");
+        let mut log = McapLog::on_writer(path, Box::new(out), &BTreeMap::new(), CHUNK_SIZE)
+            .expect("header written before the stall");
+        log.drop_when_behind(1000);
+        stalled.store(true, Ordering::Relaxed);
+        // A failed assertion must not leave the writer stalled: the log's drop waits for it.
+        struct Unstall(std::sync::Arc<std::sync::atomic::AtomicBool>);
+        impl Drop for Unstall {
+            fn drop(&mut self) {
+                self.0.store(false, std::sync::atomic::Ordering::Relaxed);
+            }
+        }
+        let _unstall = Unstall(stalled.clone());
+        let mut slowest = Duration::ZERO;
+        let mut steps = |log: &mut McapLog, range: std::ops::Range<u64>| {
+            for i in range {
+                let t = i * 1_000_000;
+                for k in 0..5 {
+                    log.frame(Direction::Rx, t, t, t, &frame(i * 5 + k))
+                        .unwrap();
+                }
+                let begin = WallInstant::now();
+                // A blocking hand-over would wait for the stalled writer forever.
+                log.maybe_flush().unwrap();
+                slowest = slowest.max(begin.elapsed());
+            }
+        };
+        // Two seconds of 5 frames a millisecond: the first 1000 frames (full batch) go to the
+        // writer, which stalls on them; the next batch fills up to 1000 and the rest of the
+        // 10 000 are dropped.
+        steps(&mut log, 0..2000);
+        assert_eq!(log.dropped(), 10_000 - 1000 - 1000);
+        assert_eq!(log.messages(), 1000 + 1000);
+        // The disk answers again: once the writer has caught up, nothing more is dropped (here
+        // less than a batch: this loop runs far faster than the writer).
+        stalled.store(false, Ordering::Relaxed);
+        std::thread::sleep(Duration::from_millis(500));
+        steps(&mut log, 2000..2100);
+        assert_eq!(log.dropped(), 8000);
+        assert!(slowest < Duration::from_millis(100), "{slowest:?}");
+        log.finish().unwrap();
+
+        let bytes = bytes.lock().unwrap().clone();
+        let mut frames = 0;
+        let mut warnings = Vec::new();
+        let report = for_each_message(
+            &bytes,
+            |m| match m.topic {
+                "/can/rx" => frames += 1,
+                "/rosout" => warnings.push(msg::decode::<msg::Log>(m.data).unwrap()),
+                _ => {}
+            },
+            |_, _| {},
+        )
+        .unwrap();
+        assert!(report.is_complete(), "{report}");
+        assert_eq!(frames, 1000 + 1000 + 500);
+        assert_eq!(warnings.len(), 1);
+        assert_eq!(warnings[0].level, msg::Log::WARN);
+        assert!(
+            warnings[0].msg.starts_with("8000 messages dropped"),
+            "{}",
+            warnings[0].msg
+        );
     }
 }
