@@ -11,8 +11,17 @@
 //! - a [`Clock`]: microseconds since an arbitrary epoch and "sleep until";
 //!   [`MonotonicClock`] is `CLOCK_MONOTONIC` (through [`std::time::Instant`]).
 //!
-//! The `mecanum-runner` binary is [`SocketCanBus`] + [`MonotonicClock`] + [`run`] + a
-//! command line and signal handling.
+//! The `mecanum-runner` binary is [`SocketCanBus`] + [`MonotonicClock`] + [`run_recorded`] +
+//! a command line, signal handling and its log (a [`Recorder`]).
+//!
+//! # Recording
+//!
+//! [`run_recorded`] tells a [`Recorder`] what the loop did, from the loop's thread, with the
+//! times the core saw (µs since the first step's clock reading): each frame passed to
+//! [`Controller::on_frame`], each step (before its frames go out), each frame the step
+//! produced with the time it was handed to the bus (or given up), and the shutdown. The
+//! shutdown is stamped at least 1 µs after the last step, so that its frames never share a
+//! time with that step's. A recorder must only push small values: the loop waits for it.
 //!
 //! # Scheduling
 //!
@@ -625,6 +634,37 @@ fn state_name(s: &Snapshot) -> (&'static str, &'static str) {
     (state, fault)
 }
 
+/// What the loop did, as [`run_recorded`] reports it (see [Recording](self#recording)).
+/// Times are µs since the first step's clock reading: exactly what the core was given. Every
+/// method does nothing by default; `()` records nothing.
+pub trait Recorder {
+    /// `frame` was passed to [`Controller::on_frame`] at `t_us`.
+    fn received(&mut self, t_us: u64, frame: &CanFrame) {
+        let _ = (t_us, frame);
+    }
+
+    /// [`Controller::step`] ran at `t_us`; its frames follow ([`Self::sent`]).
+    fn stepped(&mut self, t_us: u64, controller: &Controller) {
+        let _ = (t_us, controller);
+    }
+
+    /// [`Controller::shutdown`] ran, stamped `t_us`; its frames follow.
+    fn shut_down(&mut self, t_us: u64, controller: &Controller) {
+        let _ = (t_us, controller);
+    }
+
+    /// A frame of the step (or shutdown) at `step_us` was handed to the bus at `sent_us`
+    /// (`sent`), or given up then (not `sent`).
+    fn sent(&mut self, step_us: u64, sent_us: u64, frame: &CanFrame, sent: bool) {
+        let _ = (step_us, sent_us, frame, sent);
+    }
+
+    /// A step and its frames are done: the place to hand the records over.
+    fn step_done(&mut self) {}
+}
+
+impl Recorder for () {}
+
 /// Runs `controller` on `bus` at its fixed rate until `stop` is non-zero or
 /// `options.duration_us` has elapsed, then sends the shutdown frames. See the
 /// [module documentation](self) for the schedule, the retry policy and what is measured.
@@ -637,6 +677,18 @@ pub fn run<B: Bus, C: Clock>(
     options: &RunOptions,
     stop: &AtomicUsize,
 ) -> Report {
+    run_recorded(controller, bus, clock, options, stop, &mut ())
+}
+
+/// [`run`], telling `recorder` what the loop does (see [Recording](self#recording)).
+pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
+    controller: &mut Controller,
+    bus: &mut B,
+    clock: &C,
+    options: &RunOptions,
+    stop: &AtomicUsize,
+    recorder: &mut R,
+) -> Report {
     let period = controller.period_micros().max(1);
     let mut counters = Counters::default();
     let mut jitter = LatencyHistogram::new();
@@ -645,6 +697,7 @@ pub fn run<B: Bus, C: Clock>(
     let mut steps = 0;
 
     let start = clock.now_micros();
+    let mut last_step_us = None;
     let mut anchor = start;
     let mut k: u64 = 0;
     let stop_reason = loop {
@@ -670,13 +723,15 @@ pub fn run<B: Bus, C: Clock>(
             anchor = woke;
             k = 0;
         }
-        let now = Instant::from_micros(woke - start);
+        let now_us = woke - start;
+        let now = Instant::from_micros(now_us);
 
         let mut drained = 0;
         while drained < options.max_rx_per_step {
             match bus.try_recv() {
                 Ok(Some(frame)) => {
                     controller.on_frame(now, &frame);
+                    recorder.received(now_us, &frame);
                     counters.frames_received += 1;
                     drained += 1;
                 }
@@ -699,6 +754,8 @@ pub fn run<B: Bus, C: Clock>(
         }
 
         let out = controller.step(now);
+        recorder.stepped(now_us, controller);
+        last_step_us = Some(now_us);
         steps += 1;
         let give_up = deadline.max(woke).saturating_add(period / 2);
         for frame in &out {
@@ -710,21 +767,28 @@ pub fn run<B: Bus, C: Clock>(
                 options.retry_backoff_us,
                 &mut counters.send_retries,
             ) {
-                Ok(()) => counters.frames_sent += 1,
+                Ok(()) => {
+                    counters.frames_sent += 1;
+                    recorder.sent(now_us, clock.now_micros() - start, frame, true);
+                }
                 Err(e) => {
                     counters.send_errors += 1;
                     counters
                         .errors
                         .record(format_args!("send {}", id_text(frame)), &e);
+                    recorder.sent(now_us, clock.now_micros() - start, frame, false);
                 }
             }
         }
         step_time.record(clock.now_micros().saturating_sub(woke));
+        recorder.step_done();
         k += 1;
     };
 
     let at_stop = controller.snapshot();
     let frames = controller.shutdown();
+    let shutdown_us = (clock.now_micros() - start).max(last_step_us.map_or(0, |t| t + 1));
+    recorder.shut_down(shutdown_us, controller);
     let give_up = clock
         .now_micros()
         .saturating_add(options.shutdown_budget_us);
@@ -738,12 +802,19 @@ pub fn run<B: Bus, C: Clock>(
             options.retry_backoff_us,
             &mut counters.send_retries,
         ) {
-            Ok(()) => sent += 1,
-            Err(e) => counters
-                .errors
-                .record(format_args!("shutdown send {}", id_text(frame)), &e),
+            Ok(()) => {
+                sent += 1;
+                recorder.sent(shutdown_us, clock.now_micros() - start, frame, true);
+            }
+            Err(e) => {
+                counters
+                    .errors
+                    .record(format_args!("shutdown send {}", id_text(frame)), &e);
+                recorder.sent(shutdown_us, clock.now_micros() - start, frame, false);
+            }
         }
     }
+    recorder.step_done();
     let after = controller.snapshot();
     let (state_at_stop, fault_at_stop) = state_name(&at_stop);
 

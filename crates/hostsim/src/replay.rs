@@ -12,6 +12,18 @@
 //! order the core queued them in. The first difference is reported with its time, the
 //! expected frame and the replayed one.
 //!
+//! # Logs of `mecanum-runner`
+//!
+//! A runner in real time steps when its clock says so: late by the wake-up latency, or
+//! re-anchored after an overrun, never on an exact period grid. Its log therefore records
+//! the time of every step, and of the shutdown, on `/firmware/steps` (log time = the time
+//! passed to the core, as for the received frames). When a log has step records, replay
+//! steps at exactly those times instead of on the grid ([`replay_at_steps`]), and runs the
+//! core's shutdown at the shutdown record, whose frames the runner logged too: the rest is
+//! the same, so a runner's log replays bit for bit. The frames' own times would not do: a
+//! step that sends nothing and receives nothing leaves no frame, yet moves the core's
+//! timers. The simulator's logs have no step records and replay on the grid as before.
+//!
 //! A candump log (`candump -L`, see [`crate::candump`]) has every frame on the bus, both
 //! directions mixed and no configuration: [`split_candump`] classifies the frames with the
 //! firmware's codecs ([`firmware_sends`]) and [`replay_split`] runs a fresh core on the
@@ -57,6 +69,15 @@ pub struct TimedFrame {
     pub frame: CanFrame,
 }
 
+/// A recorded step of a runner: when, and whether it was the shutdown.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StepTime {
+    /// The time passed to the core, ns.
+    pub t_ns: u64,
+    /// `Controller::shutdown` rather than `Controller::step`.
+    pub shutdown: bool,
+}
+
 /// What a log holds for replay.
 #[derive(Debug, Clone, Default)]
 pub struct LogContent {
@@ -70,6 +91,8 @@ pub struct LogContent {
     pub rx: Vec<TimedFrame>,
     /// Frames the firmware sent, at the step that sent them, in [`wire_order`].
     pub tx: Vec<TimedFrame>,
+    /// The recorded steps (`/firmware/steps`, a runner's log; empty for the simulator's).
+    pub steps: Vec<StepTime>,
     /// The longest a sent frame took from its step to the end of its transmission, among
     /// those read, ns.
     pub tx_lag_ns: u64,
@@ -272,6 +295,15 @@ pub fn read_log_bytes(bytes: &[u8]) -> Result<LogContent, Damage> {
         |m| {
             *content.topics.entry(m.topic.to_string()).or_default() += 1;
             let (list, t_ns) = match m.topic {
+                "/firmware/steps" => {
+                    if let Ok(step) = decode::<crate::log::msg::Step>(m.data) {
+                        content.steps.push(StepTime {
+                            t_ns: m.log_time,
+                            shutdown: step.kind == crate::log::msg::Step::SHUTDOWN,
+                        });
+                    }
+                    return;
+                }
                 "/can/rx" => (&mut content.rx, m.log_time),
                 "/can/tx" => {
                     let lag = m.log_time.saturating_sub(m.publish_time);
@@ -368,7 +400,7 @@ pub fn replay_mcap(path: &Path) -> Result<ReplayReport, ReplayError> {
                   own log, or a candump capture of the interface (`candump -L`)",
         });
     }
-    let (rx, tx) = complete_part(&content);
+    let (rx, tx, steps) = complete_part(&content);
     if rx.is_empty() && tx.is_empty() {
         let logged = |topic: &str| content.topics.get(topic).is_some_and(|&n| n > 0);
         return Err(ReplayError::NothingToReplay {
@@ -380,7 +412,12 @@ pub fn replay_mcap(path: &Path) -> Result<ReplayReport, ReplayError> {
             },
         });
     }
-    let mut report = replay_frames(&config, &rx, &tx).map_err(|e| match e {
+    let replayed = if steps.is_empty() {
+        replay_frames(&config, &rx, &tx)
+    } else {
+        replay_at_steps(&config, &rx, &tx, &steps)
+    };
+    let mut report = replayed.map_err(|e| match e {
         ReplayRunError::Config(source) => ReplayError::Refused {
             path: path.to_path_buf(),
             source,
@@ -398,17 +435,32 @@ pub fn replay_mcap(path: &Path) -> Result<ReplayReport, ReplayError> {
 /// read (damage after the data section, in the summary); of a log cut short, those before
 /// its cut-off (see the [module documentation](self#damaged-logs)).
 #[must_use]
-pub fn complete_part(content: &LogContent) -> (Vec<TimedFrame>, Vec<TimedFrame>) {
+pub fn complete_part(content: &LogContent) -> (Vec<TimedFrame>, Vec<TimedFrame>, Vec<StepTime>) {
     let read = &content.read;
     let cut_off = read
         .last_time_ns
         .map(|last| last.saturating_sub(content.tx_lag_ns));
-    let keep = |f: &&TimedFrame| {
-        read.is_complete() || read.data_complete || cut_off.is_some_and(|c| f.t_ns < c)
-    };
+    let keep =
+        |t_ns: u64| read.is_complete() || read.data_complete || cut_off.is_some_and(|c| t_ns < c);
     (
-        content.rx.iter().filter(keep).copied().collect(),
-        content.tx.iter().filter(keep).copied().collect(),
+        content
+            .rx
+            .iter()
+            .filter(|f| keep(f.t_ns))
+            .copied()
+            .collect(),
+        content
+            .tx
+            .iter()
+            .filter(|f| keep(f.t_ns))
+            .copied()
+            .collect(),
+        content
+            .steps
+            .iter()
+            .filter(|s| keep(s.t_ns))
+            .copied()
+            .collect(),
     )
 }
 
@@ -423,27 +475,58 @@ pub fn replay_frames(
     rx: &[TimedFrame],
     tx: &[TimedFrame],
 ) -> Result<ReplayReport, ReplayRunError> {
-    let mut ctl = Controller::new(config)?;
+    let ctl = Controller::new(config)?;
     check_time_gaps(rx.iter().chain(tx))?;
     let period_ns = ctl.period_micros() * 1000;
     let end_ns = rx.iter().chain(tx).map(|f| f.t_ns).max().unwrap_or(0);
+    let grid = std::iter::successors(Some(0u64), |t| t.checked_add(period_ns))
+        .take_while(|&t| t <= end_ns)
+        .map(|t_ns| StepTime {
+            t_ns,
+            shutdown: false,
+        });
+    Ok(replay_schedule(ctl, rx, tx, grid))
+}
+
+/// Runs the core on `rx` and compares its output with `tx`, stepping at the recorded
+/// `steps` (a runner's log, see [the module documentation](self#logs-of-mecanum-runner)).
+///
+/// # Errors
+/// [`ReplayRunError`] if the firmware refuses `config`.
+pub fn replay_at_steps(
+    config: &Config,
+    rx: &[TimedFrame],
+    tx: &[TimedFrame],
+    steps: &[StepTime],
+) -> Result<ReplayReport, ReplayRunError> {
+    let ctl = Controller::new(config)?;
+    Ok(replay_schedule(ctl, rx, tx, steps.iter().copied()))
+}
+
+/// Feeds `rx` to `ctl` and steps it at `schedule`, comparing its frames with `tx`.
+fn replay_schedule(
+    mut ctl: Controller,
+    rx: &[TimedFrame],
+    tx: &[TimedFrame],
+    schedule: impl Iterator<Item = StepTime>,
+) -> ReplayReport {
     let mut next_rx = 0;
     let mut out_index = 0;
     let mut steps = 0;
     let mut difference = None;
-    let mut t_ns = 0;
-    'run: while t_ns <= end_ns {
+    'run: for StepTime { t_ns, shutdown } in schedule {
         while let Some(f) = rx.get(next_rx)
             && f.t_ns <= t_ns
         {
             ctl.on_frame(Instant::from_micros(f.t_ns / 1000), &f.frame);
             next_rx += 1;
         }
-        let mut sent: Vec<CanFrame> = ctl
-            .step(Instant::from_micros(t_ns / 1000))
-            .iter()
-            .copied()
-            .collect();
+        let out = if shutdown {
+            ctl.shutdown()
+        } else {
+            ctl.step(Instant::from_micros(t_ns / 1000))
+        };
+        let mut sent: Vec<CanFrame> = out.iter().copied().collect();
         sent.sort_by_key(wire_order);
         for frame in sent {
             let replayed = TimedFrame { t_ns, frame };
@@ -472,11 +555,6 @@ pub fn replay_frames(
             break 'run;
         }
         steps += 1;
-        // The gap check bounds end_ns far below u64::MAX; stop rather than wrap regardless.
-        let Some(next) = t_ns.checked_add(period_ns) else {
-            break;
-        };
-        t_ns = next;
     }
     if difference.is_none() && out_index < tx.len() {
         difference = Some(Difference {
@@ -486,13 +564,13 @@ pub fn replay_frames(
             replayed: None,
         });
     }
-    Ok(ReplayReport {
+    ReplayReport {
         compared: out_index,
         fed: next_rx,
         steps,
         difference,
         read: None,
-    })
+    }
 }
 
 // ---------------------------------------------------------------------------------------------
