@@ -16,6 +16,7 @@ use clap::Parser;
 use firmware::config::Drive;
 use firmware::linux::{self, MonotonicClock, Report, RunOptions, SocketCanBus};
 use firmware::{Config, Controller};
+use mecanum_runner::McapRecorder;
 
 /// Exit status for a startup error (bad arguments, configuration or interface).
 const EXIT_STARTUP: u8 = 2;
@@ -50,7 +51,7 @@ the idle state), prints statistics to stderr (loop jitter p50/p99/max, frame cou
 errors, the controller's state, rejected-frame and repeated-twist counters) and exits 0. A second SIGINT or
 SIGTERM during that shutdown exits at once with status 1.
 Exit status: 0 after a clean stop; 1 if the shutdown frames could not all be sent or the
-statistics could not be written; 2 for a startup error (bad arguments, a configuration file
+statistics or the log could not be written; 2 for a startup error (bad arguments, a configuration file
 that cannot be read or is invalid, a CAN interface that is missing or down).";
 
 #[derive(Debug, Parser)]
@@ -80,6 +81,14 @@ struct Args {
     #[arg(long, value_name = "MICROS", default_value_t = 0)]
     spin_us: u64,
 
+    /// Record the run in FILE (an MCAP log, a ROS 2 bag in the simulator's format: every
+    /// frame received and sent with the times the core saw, its step times, odometry, wheel
+    /// states, diagnostics and state changes; `hostsim replay FILE` replays it bit for bit).
+    /// The loop never waits for the disk: if it falls behind, messages are dropped and
+    /// counted.
+    #[arg(long, value_name = "FILE")]
+    log: Option<PathBuf>,
+
     /// Print only errors (no start line, no statistics on stderr).
     #[arg(long, short)]
     quiet: bool,
@@ -98,6 +107,7 @@ struct Setup {
     controller: Controller,
     bus: SocketCanBus,
     stats: Option<(PathBuf, File)>,
+    log: Option<McapRecorder>,
     stop: Arc<AtomicUsize>,
     summary: String,
 }
@@ -116,6 +126,7 @@ fn main() -> ExitCode {
         mut controller,
         mut bus,
         stats,
+        mut log,
         stop,
         summary,
     } = setup;
@@ -127,7 +138,14 @@ fn main() -> ExitCode {
         ..RunOptions::default()
     };
     let clock = MonotonicClock::new(args.spin_us);
-    let report = linux::run(&mut controller, &mut bus, &clock, &options, &stop);
+    let report = match log.as_mut() {
+        Some(recorder) => {
+            linux::run_recorded(&mut controller, &mut bus, &clock, &options, &stop, recorder)
+        }
+        None => linux::run(&mut controller, &mut bus, &clock, &options, &stop),
+    };
+    let log_stats = log.as_ref().map(|l| (l.messages(), l.dropped()));
+    let log_result = log.map(McapRecorder::finish);
 
     // The statistics first, and stderr without a panic: a stderr pipe that closed with the
     // same Ctrl-C (`... 2>&1 | tee log`) must not cost the report file or the exit status.
@@ -136,13 +154,23 @@ fn main() -> ExitCode {
         let _ = writeln!(std::io::stderr(), "mecanum-runner: {line}");
     };
     if let Some((path, file)) = stats
-        && let Err(e) = write_stats(&path, file, &report)
+        && let Err(e) = write_stats(&path, file, &report, log_stats, args.log.as_deref())
     {
         say(format_args!("{}", linux::error_line(e.as_ref())));
         status = ExitCode::FAILURE;
     }
     if !args.quiet {
         say(format_args!("{report}"));
+        if let (Some((messages, dropped)), Some(path)) = (log_stats, &args.log) {
+            say(format_args!(
+                "log {}: {messages} messages, {dropped} dropped (writer behind)",
+                path.display()
+            ));
+        }
+    }
+    if let Some(Err(e)) = log_result {
+        say(format_args!("log: {}", linux::error_line(&e)));
+        status = ExitCode::FAILURE;
     }
     if report.shutdown.failed > 0 {
         say(format_args!(
@@ -177,6 +205,11 @@ fn startup(args: &Args) -> Result<Setup> {
 
     let bus = SocketCanBus::open(&args.iface)?;
 
+    let log = match &args.log {
+        Some(path) => Some(McapRecorder::create(path, &config.to_toml_string())?),
+        None => None,
+    };
+
     // The statistics file is created before the loop starts (and after everything else
     // checked), so a bad path fails now and not after a long run.
     let stats = match &args.stats_json {
@@ -201,13 +234,31 @@ fn startup(args: &Args) -> Result<Setup> {
         controller,
         bus,
         stats,
+        log,
         stop,
         summary,
     })
 }
 
-fn write_stats(path: &Path, mut file: File, report: &Report) -> Result<()> {
-    serde_json::to_writer_pretty(&mut file, report)
+fn write_stats(
+    path: &Path,
+    mut file: File,
+    report: &Report,
+    log: Option<(u64, u64)>,
+    log_path: Option<&Path>,
+) -> Result<()> {
+    let mut json = serde_json::to_value(report)?;
+    if let (Some((messages, dropped)), Some(object)) = (log, json.as_object_mut()) {
+        object.insert(
+            "log".to_string(),
+            serde_json::json!({
+                "path": log_path.map(|p| p.display().to_string()),
+                "messages": messages,
+                "dropped": dropped,
+            }),
+        );
+    }
+    serde_json::to_writer_pretty(&mut file, &json)
         .map_err(anyhow::Error::from)
         .and_then(|()| Ok(file.write_all(b"\n")?))
         .with_context(|| format!("cannot write --stats-json file {}", path.display()))

@@ -1,0 +1,167 @@
+//! The runner's loop with its log on, against a bus and a clock in memory (late wake-ups, an
+//! overrun), then `hostsim`'s replay of that log: bit-identical outbound frames.
+
+use std::cell::{Cell, RefCell};
+use std::collections::VecDeque;
+use std::io;
+use std::rc::Rc;
+use std::sync::atomic::AtomicUsize;
+
+use embedded_can::StandardId;
+use firmware::linux::{Bus, Clock, RunOptions, run_recorded};
+use firmware::protocol::robot::{Command, ModeRequest, TwistCmd};
+use firmware::{CanFrame, Config, Controller};
+use mecanum_runner::McapRecorder;
+
+/// Simulated time: `sleep_until` jumps to the deadline plus a scripted lateness.
+struct FakeClock {
+    now: Cell<u64>,
+    lateness: RefCell<VecDeque<u64>>,
+}
+
+impl Clock for FakeClock {
+    fn now_micros(&self) -> u64 {
+        self.now.get()
+    }
+    fn sleep_until(&self, deadline_us: u64) {
+        let late = self.lateness.borrow_mut().pop_front().unwrap_or(0);
+        self.now.set(self.now.get().max(deadline_us) + late);
+    }
+}
+
+/// Frames arrive at given times; every send takes 7 µs.
+struct MemoryBus {
+    clock: Rc<FakeClock>,
+    incoming: VecDeque<(u64, CanFrame)>,
+    sent: Vec<CanFrame>,
+}
+
+impl Bus for MemoryBus {
+    fn try_recv(&mut self) -> io::Result<Option<CanFrame>> {
+        match self.incoming.front() {
+            Some(&(t, f)) if t <= self.clock.now_micros() => {
+                self.incoming.pop_front();
+                Ok(Some(f))
+            }
+            _ => Ok(None),
+        }
+    }
+    fn send(&mut self, frame: &CanFrame) -> io::Result<()> {
+        self.clock.now.set(self.clock.now.get() + 7);
+        self.sent.push(*frame);
+        Ok(())
+    }
+}
+
+const T0: u64 = 5_000_000;
+
+fn std_frame(id: u16, data: &[u8]) -> CanFrame {
+    CanFrame::standard(StandardId::new(id).unwrap(), data).unwrap()
+}
+
+/// 600 ms: the four ESCs report every millisecond (wheels turning); the host enables at
+/// 10 ms, drives from 20 ms to 300 ms, then falls silent (the watchdog stops the robot); a
+/// TWIST_CMD of the wrong length at 350 ms; an e-stop at 450 ms.
+fn session() -> VecDeque<(u64, CanFrame)> {
+    let mut frames = Vec::new();
+    for ms in 0..600u64 {
+        let angle = ((ms * 37) % 8192) as u16;
+        for esc in 0..4u16 {
+            let mut data = [0u8; 8];
+            data[..2].copy_from_slice(&angle.to_be_bytes());
+            data[2..4].copy_from_slice(&300i16.to_be_bytes());
+            data[6] = 30;
+            frames.push((
+                T0 + ms * 1000 + 100 + u64::from(esc) * 3,
+                std_frame(0x201 + esc, &data),
+            ));
+        }
+    }
+    frames.push((
+        T0 + 10_000,
+        Command::Mode(ModeRequest::Enable).to_can_frame(),
+    ));
+    for (seq, ms) in (20..300u64).step_by(20).enumerate() {
+        let twist = TwistCmd {
+            vx: 0.5,
+            vy: 0.1,
+            wz: 0.2,
+            seq: seq as u8,
+        };
+        frames.push((T0 + ms * 1000 + 50, Command::Twist(twist).to_can_frame()));
+    }
+    frames.push((T0 + 350_000, std_frame(0x301, &[1, 2, 3])));
+    frames.push((T0 + 450_000, Command::Estop.to_can_frame()));
+    frames.sort_by_key(|f| f.0);
+    frames.into()
+}
+
+#[test]
+fn a_runner_log_replays_bit_for_bit_at_its_recorded_steps() {
+    let config = Config::dji_m3508_example();
+    let path = std::path::PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("runner_log.mcap");
+    let clock = Rc::new(FakeClock {
+        now: Cell::new(T0),
+        // Wake-ups late by 0 to 290 µs, and one 2.5 ms overrun at step 200 (re-anchored).
+        lateness: RefCell::new(
+            (0..600u64)
+                .map(|k| if k == 200 { 2500 } else { (k * 53) % 300 })
+                .collect(),
+        ),
+    });
+    let mut bus = MemoryBus {
+        clock: Rc::clone(&clock),
+        incoming: session(),
+        sent: Vec::new(),
+    };
+    let mut controller = Controller::new(&config).unwrap();
+    let mut recorder = McapRecorder::create(&path, &config.to_toml_string()).unwrap();
+    let options = RunOptions {
+        duration_us: Some(600_000),
+        ..RunOptions::default()
+    };
+    let report = run_recorded(
+        &mut controller,
+        &mut bus,
+        &*clock,
+        &options,
+        &AtomicUsize::new(0),
+        &mut recorder,
+    );
+    assert_eq!(report.overruns, 1);
+    assert_eq!(report.controller.state_at_stop, "Estop");
+    assert_eq!(report.controller.rx_errors.wrong_dlc, 1);
+    assert_eq!(recorder.dropped(), 0);
+    recorder.finish().unwrap();
+
+    // What the log holds: every frame, every step and the shutdown, off the period grid.
+    let content = hostsim::replay::read_log(&path).unwrap();
+    assert!(content.read.is_complete());
+    assert_eq!(content.program.as_deref(), Some("mecanum-runner"));
+    assert_eq!(content.rx.len() as u64, report.frames_received);
+    assert_eq!(content.tx.len(), bus.sent.len());
+    assert_eq!(content.steps.len() as u64, report.steps + 1);
+    assert!(content.steps.last().unwrap().shutdown);
+    let off_grid = content
+        .steps
+        .iter()
+        .filter(|s| s.t_ns % 1_000_000 != 0)
+        .count();
+    assert!(off_grid > 400, "{off_grid} steps off the grid");
+    let rosout = content.topics.get("/rosout").copied().unwrap_or(0);
+    // Disabled, Enabled, the watchdog's stop, Estop (and the shutdown's state, unchanged).
+    assert!(rosout >= 4, "{rosout} state changes");
+    assert_eq!(content.topics["/odom"], report.steps.div_ceil(10) + 1);
+
+    // Replay at the recorded steps: bit-identical, every frame compared.
+    let replay = hostsim::replay::replay_mcap(&path).unwrap();
+    assert!(replay.identical(), "{:?}", replay.difference);
+    assert_eq!(replay.compared, bus.sent.len());
+    assert_eq!(replay.fed as u64, report.frames_received);
+    assert_eq!(replay.steps, report.steps + 1);
+
+    // On the simulator's grid instead, the same frames do not replay: the step times matter.
+    let (rx, tx, _) = hostsim::replay::complete_part(&content);
+    let grid = hostsim::replay::replay_frames(&config, &rx, &tx).unwrap();
+    assert!(!grid.identical());
+}
