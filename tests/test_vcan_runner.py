@@ -224,7 +224,7 @@ HOLD_S = 1.0  # driving before each stop
 @pytest.fixture(scope="module")
 def stops(robot_factory) -> Robot:
     """Three stops in one run: the host falls silent; the host only polls STATUS; e-stop."""
-    with robot_factory("stops") as robot:
+    with robot_factory("stops", runner_log=True) as robot:
         # 1. Silence: the watchdog stops the robot and latches (Disabled, fault Watchdog).
         robot.mode(MODE_ENABLE, mark="enable1")
         robot.twist(0.5, 0.0, 0.0)
@@ -455,7 +455,7 @@ MALFORMED = [
 def malformed(robot_factory, can_utils) -> Robot:
     """Driving at 0.4 m/s while a flood of malformed frames arrives for FLOOD_S seconds."""
     cangen = can_utils("cangen")
-    with robot_factory("malformed") as robot:
+    with robot_factory("malformed", runner_log=True) as robot:
         robot.mode(MODE_ENABLE)
         robot.twist(0.4, 0.0, 0.0)
         robot.start_stream()
@@ -673,6 +673,64 @@ def test_hostsim_replay_of_the_session_log_agrees(recorded: dict, plant_bin, con
     print(f"hostsim replay: {json.dumps(report)[:600]}")
     odometry = report["odometry"]
     assert odometry is not None and odometry["agrees"], odometry
+
+
+# --- the runner's own MCAP log (`mecanum-runner --log`) ------------------------------------
+
+
+@pytest.mark.parametrize("session", ["stops", "malformed"])
+def test_runner_log_replays_bit_identical_and_reads_with_rosbags(request, session, plant_bin) -> None:
+    """The runner's log of a session (stops: driving, the watchdog's stop, status polls, an
+    e-stop and its reset; malformed: driving through a flood of malformed frames):
+    `hostsim replay` runs a fresh core at the logged step times on the logged inbound frames
+    and gets every outbound frame bit for bit (exit 0); rosbags reads every message, and the
+    counts are the runner's own."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    robot: Robot = request.getfixturevalue(session)
+    assert robot.runner_mcap is not None and robot.runner_mcap.is_file()
+    stats = robot.runner_stats
+    proc = subprocess.run(
+        [str(plant_bin), "replay", str(robot.runner_mcap), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    report = json.loads(proc.stdout)
+    print(f"{session}: hostsim replay of the runner's log: {report['steps']} steps, {report['fed']} "
+          f"frames fed, {report['compared']} compared, {report['verdict']}; log {stats['log']}")
+    assert report["identical"] and report["complete"], report
+    # Every step, plus the shutdown; every frame the runner took; every frame its core sent.
+    assert report["steps"] == stats["steps"] + 1
+    assert report["fed"] == stats["frames_received"]
+    sent = stats["frames_sent"] + stats["send_errors"] + stats["shutdown"]["frames"]
+    assert report["compared"] == sent
+    assert stats["log"]["dropped"] == 0, stats["log"]
+
+    topics = collections.Counter()
+    texts = []
+    with AnyReader([robot.runner_mcap], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
+        for connection, _, raw in reader.messages():
+            topics[connection.topic] += 1
+            message = reader.deserialize(raw, connection.msgtype)
+            if connection.topic == "/rosout":
+                texts.append(message.msg)
+            elif connection.topic == "/firmware/steps":
+                assert message.kind in (0, 1)
+    assert topics["/can/rx"] == stats["frames_received"]
+    assert topics["/can/tx"] == sent
+    assert topics["/firmware/steps"] == stats["steps"] + 1
+    assert topics["/odom"] == topics["/joint_states"] == topics["/diagnostics"] > stats["steps"] // 10
+    assert sum(topics.values()) == stats["log"]["messages"]
+    print(f"{session}: rosbags read {dict(topics)}; /rosout {texts}")
+    assert "state Enabled" in texts
+    if session == "stops":
+        assert "state Disabled, fault Watchdog" in texts
+        assert any(t.startswith("state Estop") for t in texts)
+    else:
+        assert stats["controller"]["rx_errors"]["wrong_dlc"] > 0
 
 
 # --- the plant's MCAP log of a vcan run -----------------------------------------------------

@@ -99,7 +99,8 @@ class Robot:
     """The plant and the runner on `iface`, candump recording, and a host to command them.
 
     Use as a context manager; after it exits, `frames`, `runner_stats` and `plant_stats` are
-    filled in. `plant_args` are extra arguments of `hostsim plant` (e.g. `--log FILE`)."""
+    filled in. `plant_args` are extra arguments of `hostsim plant` (e.g. `--log FILE`);
+    `runner_log` has the runner record the session in `runner_mcap` (`--log`)."""
 
     def __init__(
         self,
@@ -113,6 +114,7 @@ class Robot:
         plant_args: Sequence[str] = (),
         runner_args: Sequence[str] = (),
         plant_log: bool = False,
+        runner_log: bool = False,
     ) -> None:
         self.iface = iface
         self.config = config
@@ -125,6 +127,9 @@ class Robot:
         self.plant_mcap = workdir / "plant.mcap" if plant_log else None
         if self.plant_mcap is not None:
             plant_args = [*plant_args, "--log", str(self.plant_mcap)]
+        self.runner_mcap = workdir / "runner.mcap" if runner_log else None
+        if self.runner_mcap is not None:
+            runner_args = [*runner_args, "--log", str(self.runner_mcap)]
         self._cmds = {
             "plant": [
                 str(hostsim), "plant", "--iface", iface, "--config", str(config),
