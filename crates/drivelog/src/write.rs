@@ -54,6 +54,8 @@ use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::{self, BufWriter, Write};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, SyncSender, TryRecvError, TrySendError, sync_channel};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant as WallInstant};
@@ -201,6 +203,8 @@ impl Batch {
 struct Out {
     inner: Box<dyn Write + Send>,
     failed: bool,
+    /// Bytes passed on so far: [`McapLog::bytes_written`].
+    written: Arc<AtomicU64>,
 }
 
 impl Out {
@@ -215,7 +219,9 @@ impl Out {
 impl Write for Out {
     fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
         self.check()?;
-        self.inner.write(buf).inspect_err(|_| self.failed = true)
+        let n = self.inner.write(buf).inspect_err(|_| self.failed = true)?;
+        self.written.fetch_add(n as u64, Ordering::Relaxed);
+        Ok(n)
     }
 
     fn flush(&mut self) -> io::Result<()> {
@@ -239,6 +245,7 @@ fn start_file(
     out: Box<dyn Write + Send>,
     metadata: &BTreeMap<String, String>,
     chunk_size: u64,
+    written: Arc<AtomicU64>,
 ) -> io::Result<Writer> {
     let options = mcap::WriteOptions::new()
         .profile(PROFILE)
@@ -254,6 +261,7 @@ fn start_file(
         .create(NoSeek::new(Out {
             inner: out,
             failed: false,
+            written,
         }))
         .map_err(mcap_err)?;
     // The metadata first: a log cut anywhere after it still has its configuration.
@@ -302,6 +310,8 @@ pub struct McapLog {
     dropped: u64,
     /// `dropped` when last reported on `/rosout`.
     dropped_reported: u64,
+    /// Bytes the writing thread has passed to the file (or writer) so far.
+    written: Arc<AtomicU64>,
 }
 
 impl McapLog {
@@ -333,17 +343,19 @@ impl McapLog {
             source,
         };
         let file = File::create(&part).map_err(part_err)?;
+        let written = Arc::new(AtomicU64::new(0));
         let writer = start_file(
             Box::new(BufWriter::with_capacity(1 << 16, file)),
             metadata,
             chunk_size,
+            Arc::clone(&written),
         )
         .map_err(part_err)?;
         std::fs::rename(&part, path).map_err(|source| LogError::Io {
             path: path.to_path_buf(),
             source,
         })?;
-        Self::start(path, writer)
+        Self::start(path, writer, written)
     }
 
     /// A log of `path` written to `out` (header, channels and metadata at once), for tests
@@ -362,11 +374,12 @@ impl McapLog {
             path: path.to_path_buf(),
             source,
         };
-        let writer = start_file(out, metadata, chunk_size).map_err(io_err)?;
-        Self::start(path, writer)
+        let written = Arc::new(AtomicU64::new(0));
+        let writer = start_file(out, metadata, chunk_size, Arc::clone(&written)).map_err(io_err)?;
+        Self::start(path, writer, written)
     }
 
-    fn start(path: &Path, writer: Writer) -> Result<Self, LogError> {
+    fn start(path: &Path, writer: Writer, written: Arc<AtomicU64>) -> Result<Self, LogError> {
         let writer = BatchWriter::start(writer).map_err(|source| LogError::Io {
             path: path.to_path_buf(),
             source,
@@ -384,7 +397,17 @@ impl McapLog {
             max_pending: None,
             dropped: 0,
             dropped_reported: 0,
+            written,
         })
+    }
+
+    /// Bytes the writing thread has written so far (to the buffered file: at each hand-over,
+    /// not each message). The header, channels and metadata count from the start; what is
+    /// still in the open batch does not. One relaxed atomic load: cheap enough for a control
+    /// loop to read every step (the runner's `--log-max-mb` rotation does).
+    #[must_use]
+    pub fn bytes_written(&self) -> u64 {
+        self.written.load(Ordering::Relaxed)
     }
 
     /// The log's file.
@@ -1247,6 +1270,23 @@ mod tests {
             ("odom", "base_link_truth")
         );
         assert!((t.transform.rotation.yaw() - 0.31).abs() < 1e-12);
+    }
+
+    #[test]
+    fn bytes_written_counts_what_the_writer_thread_wrote() {
+        let tmp = TempFile::new("bytes-written");
+        let mut log = McapLog::create(&tmp.0, &BTreeMap::new()).unwrap();
+        let header = log.bytes_written();
+        // The header, schemas, channels and metadata, on disk at creation.
+        assert_eq!(header, std::fs::metadata(&tmp.0).unwrap().len());
+        assert!(header > 1000, "{header} bytes");
+        // 600 ms: hand-overs at 250 and 500 ms, the second waits for the first's writing.
+        log_steps(&mut log, 0..600).unwrap();
+        let written = log.bytes_written();
+        assert!(written > header + 10_000, "{header} -> {written} bytes");
+        log.finish().unwrap();
+        let len = std::fs::metadata(&tmp.0).unwrap().len();
+        assert!(written < len, "{written} written, file {len}");
     }
 
     #[test]
