@@ -86,8 +86,22 @@ struct Args {
     /// states, diagnostics and state changes; `hostsim replay FILE` replays it bit for bit).
     /// The loop never waits for the disk: if it falls behind, messages are dropped and
     /// counted.
+    /// With --log-max-mb, FILE is a directory (created if missing) of numbered files
+    /// runner-000001.mcap, runner-000002.mcap, ...
     #[arg(long, value_name = "FILE")]
     log: Option<PathBuf>,
+
+    /// Rotate the log: start the next file of the --log directory once the current one has
+    /// reached MB megabytes (10^6 bytes; it ends a little past that, at a hand-over to the
+    /// writer). Each file is a complete log with the same metadata; the first replays bit
+    /// for bit, a later one starts with the core's state at that point, which replay from an
+    /// empty core does not have. Default: no rotation, one file.
+    #[arg(long, value_name = "MB", requires = "log", value_parser = parse_megabytes, allow_hyphen_values = true)]
+    log_max_mb: Option<f64>,
+
+    /// With --log-max-mb, keep the newest K files and remove older ones (K >= 1).
+    #[arg(long, value_name = "K", requires = "log_max_mb", default_value_t = 10, value_parser = parse_keep)]
+    log_keep: usize,
 
     /// Print only errors (no start line, no statistics on stderr).
     #[arg(long, short)]
@@ -99,6 +113,24 @@ fn parse_seconds(s: &str) -> Result<f64, String> {
         Ok(v) if (0.0..1e9).contains(&v) => Ok(v),
         Ok(v) => Err(format!("expected a number of seconds >= 0, got {v}")),
         Err(e) => Err(format!("expected a number of seconds, got {s:?}: {e}")),
+    }
+}
+
+fn parse_megabytes(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v > 0.0 && v < 1e9 => Ok(v),
+        Ok(v) => Err(format!("--log-max-mb {v}: expected megabytes > 0")),
+        Err(e) => Err(format!(
+            "--log-max-mb {s:?}: expected a number of megabytes: {e}"
+        )),
+    }
+}
+
+fn parse_keep(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(0) => Err("--log-keep 0: at least 1 file must be kept".to_string()),
+        Ok(v) => Ok(v),
+        Err(e) => Err(format!("--log-keep {s:?}: expected a number of files: {e}")),
     }
 }
 
@@ -205,9 +237,15 @@ fn startup(args: &Args) -> Result<Setup> {
 
     let bus = SocketCanBus::open(&args.iface)?;
 
-    let log = match &args.log {
-        Some(path) => Some(McapRecorder::create(path, &config.to_toml_string())?),
-        None => None,
+    let log = match (&args.log, args.log_max_mb) {
+        (Some(dir), Some(mb)) => Some(McapRecorder::rotating(
+            dir,
+            &config.to_toml_string(),
+            ((mb * 1e6).round() as u64).max(1),
+            args.log_keep,
+        )?),
+        (Some(path), None) => Some(McapRecorder::create(path, &config.to_toml_string())?),
+        (None, _) => None,
     };
 
     // The statistics file is created before the loop starts (and after everything else

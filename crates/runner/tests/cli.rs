@@ -113,6 +113,21 @@ fn bad_arguments_exit_2() {
 }
 
 #[test]
+fn bad_rotation_values_exit_2_naming_option_and_value() {
+    let log = ["--iface", "vcan0", "--log", "/tmp/unused-rotation-dir"];
+    let with = |extra: &[&str]| runner(&[&log[..], extra].concat());
+    let err = assert_startup_error(&with(&["--log-max-mb", "1", "--log-keep", "0"]));
+    assert!(err.contains("--log-keep 0"), "{err}");
+    let err = assert_startup_error(&with(&["--log-max-mb", "0"]));
+    assert!(err.contains("--log-max-mb 0"), "{err}");
+    let err = assert_startup_error(&with(&["--log-max-mb", "-3"]));
+    assert!(err.contains("--log-max-mb -3"), "{err}");
+    // --log-keep without --log-max-mb would silently do nothing: refused.
+    assert_startup_error(&with(&["--log-keep", "3"]));
+    assert!(!std::path::Path::new("/tmp/unused-rotation-dir").exists());
+}
+
+#[test]
 fn a_failed_startup_writes_no_stats_file() {
     let stats = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("never_written.json");
     let _ = std::fs::remove_file(&stats);

@@ -1,0 +1,278 @@
+//! `--log-max-mb`/`--log-keep`: the runner's loop with a rotated log, against a bus and a
+//! clock in memory. Several files, at most K kept, the oldest removed, each a complete MCAP
+//! file; the first replays bit for bit.
+
+use std::cell::{Cell, RefCell};
+use std::collections::VecDeque;
+use std::io;
+use std::path::{Path, PathBuf};
+use std::rc::Rc;
+use std::sync::atomic::AtomicUsize;
+
+use embedded_can::StandardId;
+use firmware::linux::{Bus, Clock, RunOptions, run_recorded};
+use firmware::protocol::robot::{Command, ModeRequest, TwistCmd};
+use firmware::{CanFrame, Config, Controller};
+use mecanum_runner::{McapRecorder, rotated_path};
+
+/// Simulated time, at ten times real time: `sleep_until` jumps to the deadline plus a scripted lateness.
+struct FakeClock {
+    now: Cell<u64>,
+    lateness: RefCell<VecDeque<u64>>,
+}
+
+impl Clock for FakeClock {
+    fn now_micros(&self) -> u64 {
+        self.now.get()
+    }
+    fn sleep_until(&self, deadline_us: u64) {
+        let late = self.lateness.borrow_mut().pop_front().unwrap_or(0);
+        // A tenth of real time: the log's hand-overs are due to log time, as in a real run,
+        // and the writer keeps up.
+        let ahead = deadline_us.saturating_sub(self.now.get());
+        std::thread::sleep(std::time::Duration::from_micros(ahead / 10));
+        self.now.set(self.now.get().max(deadline_us) + late);
+    }
+}
+
+/// Frames arrive at given times; every send takes 7 µs.
+struct MemoryBus {
+    clock: Rc<FakeClock>,
+    incoming: VecDeque<(u64, CanFrame)>,
+    sent: Vec<CanFrame>,
+}
+
+impl Bus for MemoryBus {
+    fn try_recv(&mut self) -> io::Result<Option<CanFrame>> {
+        match self.incoming.front() {
+            Some(&(t, f)) if t <= self.clock.now_micros() => {
+                self.incoming.pop_front();
+                Ok(Some(f))
+            }
+            _ => Ok(None),
+        }
+    }
+    fn send(&mut self, frame: &CanFrame) -> io::Result<()> {
+        self.clock.now.set(self.clock.now.get() + 7);
+        self.sent.push(*frame);
+        Ok(())
+    }
+}
+
+const T0: u64 = 5_000_000;
+
+fn std_frame(id: u16, data: &[u8]) -> CanFrame {
+    CanFrame::standard(StandardId::new(id).unwrap(), data).unwrap()
+}
+
+/// Run length: 3 s, 3000 steps.
+const RUN_MS: u64 = 3000;
+
+/// The ESCs report every millisecond; the host enables at 10 ms and drives until 2.5 s.
+fn session() -> VecDeque<(u64, CanFrame)> {
+    let mut frames = Vec::new();
+    for ms in 0..RUN_MS {
+        let angle = ((ms * 37) % 8192) as u16;
+        for esc in 0..4u16 {
+            let mut data = [0u8; 8];
+            data[..2].copy_from_slice(&angle.to_be_bytes());
+            data[2..4].copy_from_slice(&300i16.to_be_bytes());
+            data[6] = 30;
+            frames.push((
+                T0 + ms * 1000 + 100 + u64::from(esc) * 3,
+                std_frame(0x201 + esc, &data),
+            ));
+        }
+    }
+    frames.push((
+        T0 + 10_000,
+        Command::Mode(ModeRequest::Enable).to_can_frame(),
+    ));
+    for (seq, ms) in (20..2500u64).step_by(20).enumerate() {
+        let twist = TwistCmd {
+            vx: 0.5,
+            vy: 0.1,
+            wz: 0.2,
+            seq: seq as u8,
+        };
+        frames.push((T0 + ms * 1000 + 50, Command::Twist(twist).to_can_frame()));
+    }
+    frames.sort_by_key(|f| f.0);
+    frames.into()
+}
+
+/// What a run left: the recorder's totals, the frames sent, the files of the directory.
+struct Run {
+    files: u64,
+    messages: u64,
+    steps: u64,
+    frames_received: u64,
+    sent: usize,
+    slowest_rotation: std::time::Duration,
+}
+
+/// A 3 s run logged in `dir`, rotated at `max_bytes`, keeping `keep` files.
+fn run(dir: &Path, max_bytes: u64, keep: usize) -> Run {
+    let _ = std::fs::remove_dir_all(dir);
+    let config = Config::dji_m3508_example();
+    let clock = Rc::new(FakeClock {
+        now: Cell::new(T0),
+        lateness: RefCell::new((0..RUN_MS).map(|k| (k * 53) % 300).collect()),
+    });
+    let mut bus = MemoryBus {
+        clock: Rc::clone(&clock),
+        incoming: session(),
+        sent: Vec::new(),
+    };
+    let mut controller = Controller::new(&config).unwrap();
+    let mut recorder =
+        McapRecorder::rotating(dir, &config.to_toml_string(), max_bytes, keep).unwrap();
+    let options = RunOptions {
+        duration_us: Some(RUN_MS * 1000),
+        ..RunOptions::default()
+    };
+    let report = run_recorded(
+        &mut controller,
+        &mut bus,
+        &*clock,
+        &options,
+        &AtomicUsize::new(0),
+        &mut recorder,
+    );
+    assert_eq!(recorder.dropped(), 0);
+    let result = Run {
+        files: recorder.files(),
+        messages: recorder.messages(),
+        steps: report.steps,
+        frames_received: report.frames_received,
+        sent: bus.sent.len(),
+        slowest_rotation: recorder.slowest_rotation(),
+    };
+    recorder.finish().unwrap();
+    result
+}
+
+/// The `.mcap` files of `dir`, sorted, and nothing else (no `.part` left over).
+fn listing(dir: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    names.sort();
+    names
+}
+
+/// Reads `path` with drivelog's reader: complete, with its metadata; its message count.
+fn complete_messages(path: &Path) -> u64 {
+    let bytes = std::fs::read(path).unwrap();
+    let mut messages = 0u64;
+    let mut program = None;
+    let report = drivelog::for_each_message(
+        &bytes,
+        |_| messages += 1,
+        |_, meta| program = meta.get("program").cloned(),
+    )
+    .unwrap();
+    assert!(report.is_complete(), "{}: {report}", path.display());
+    assert_eq!(
+        program.as_deref(),
+        Some("mecanum-runner"),
+        "{}",
+        path.display()
+    );
+    messages
+}
+
+fn tmp(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(name)
+}
+
+/// About a quarter of a second of the run per hand-over, some 10-30 kB compressed: a limit of
+/// 40 kB rotates every one or two hand-overs.
+const MAX_BYTES: u64 = 40_000;
+
+#[test]
+fn a_rotated_log_keeps_the_newest_k_complete_files() {
+    let dir = tmp("rotated_keep3");
+    let run = run(&dir, MAX_BYTES, 3);
+    assert!(run.files >= 5, "{} files", run.files);
+    let expected: Vec<String> = (run.files - 2..=run.files)
+        .map(|i| format!("runner-{i:06}.mcap"))
+        .collect();
+    assert_eq!(listing(&dir), expected);
+    assert!(!rotated_path(&dir, 1).exists());
+    for name in &expected {
+        let path = dir.join(name);
+        let messages = complete_messages(&path);
+        assert!(messages > 100, "{name}: {messages} messages");
+        let content = hostsim::replay::read_log(&path).unwrap();
+        assert!(!content.steps.is_empty(), "{name}: no steps");
+        // Every file but the last ended past the limit (it rotated there), not far past it.
+        let len = std::fs::metadata(&path).unwrap().len();
+        if *name != expected[2] {
+            assert!(
+                (MAX_BYTES..4 * MAX_BYTES).contains(&len),
+                "{name}: {len} bytes"
+            );
+        }
+    }
+    // What the loop paid for a rotation: starting the next file, not finishing the last.
+    eprintln!("slowest rotation: {:?}", run.slowest_rotation);
+    assert!(
+        run.slowest_rotation < std::time::Duration::from_millis(10),
+        "{:?}",
+        run.slowest_rotation
+    );
+}
+
+#[test]
+fn every_file_of_a_rotated_log_is_whole_and_the_first_replays_bit_for_bit() {
+    let dir = tmp("rotated_keep_all");
+    let run = run(&dir, MAX_BYTES, 1000);
+    assert!(run.files >= 5, "{} files", run.files);
+    let names = listing(&dir);
+    assert_eq!(names.len() as u64, run.files);
+    // The files hold every message, every step (and the shutdown), every frame, once.
+    let (mut messages, mut steps, mut rx, mut tx) = (0, 0, 0, 0);
+    let mut last_step = 0;
+    for name in &names {
+        let path = dir.join(name);
+        messages += complete_messages(&path);
+        let content = hostsim::replay::read_log(&path).unwrap();
+        assert!(
+            content.steps[0].t_ns > last_step || last_step == 0,
+            "{name}"
+        );
+        last_step = content.steps.last().unwrap().t_ns;
+        steps += content.steps.len() as u64;
+        rx += content.rx.len() as u64;
+        tx += content.tx.len();
+    }
+    assert_eq!(messages, run.messages);
+    assert_eq!(steps, run.steps + 1);
+    assert_eq!(rx, run.frames_received);
+    assert_eq!(tx, run.sent);
+
+    // The first file starts with an empty core: bit-identical, every frame compared.
+    let first = rotated_path(&dir, 1);
+    let content = hostsim::replay::read_log(&first).unwrap();
+    let replay = hostsim::replay::replay_mcap(&first).unwrap();
+    assert!(replay.identical(), "{:?}", replay.difference);
+    assert_eq!(replay.compared, content.tx.len());
+    assert!(replay.compared > 250, "{} frames compared", replay.compared);
+    // A later file starts mid-drive (the core enabled and moving): from an empty core its
+    // frames differ, as the documentation says.
+    let third = rotated_path(&dir, 3);
+    let later = hostsim::replay::replay_mcap(&third).unwrap();
+    assert!(!later.identical());
+}
+
+#[test]
+fn rotation_rejects_a_zero_size_or_keep_naming_the_option() {
+    let toml = Config::dji_m3508_example().to_toml_string();
+    let dir = tmp("rotated_bad");
+    let e = McapRecorder::rotating(&dir, &toml, 1000, 0).err().unwrap();
+    assert!(e.to_string().contains("--log-keep 0"), "{e}");
+    let e = McapRecorder::rotating(&dir, &toml, 0, 3).err().unwrap();
+    assert!(e.to_string().contains("--log-max-mb 0"), "{e}");
+}
