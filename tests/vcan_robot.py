@@ -144,6 +144,8 @@ class Robot:
         # -d: report drops.
         self._candump_cmd = [candump, "-L", "-d", "-r", str(32 << 20), iface]
         self._procs: dict[str, subprocess.Popen] = {}
+        # Processes the test SIGKILLed on purpose (`kill`): their status -9 is no failure.
+        self.killed: set[str] = set()
         self._tx: can.BusABC | None = None
         self._status_rx: can.BusABC | None = None
         self._stream: threading.Thread | None = None
@@ -226,7 +228,10 @@ class Robot:
                 proc.wait()
             path = self.workdir / ("candump.err" if name == "candump" else f"{name}.out")
             self.outputs[name] = path.read_text() if path.exists() else ""
-            if name != "candump" and proc.returncode != 0:
+            if name in self.killed:
+                if proc.returncode != -signal.SIGKILL:
+                    failures.append(f"{name} was SIGKILLed but exited with {proc.returncode}")
+            elif name != "candump" and proc.returncode != 0:
                 failures.append(f"{name} exited with {proc.returncode}:\n{self.outputs[name]}")
             if name == "runner":
                 # Its shutdown frames reach candump before candump stops.
@@ -243,6 +248,17 @@ class Robot:
         for path, attr in ((self.runner_json, "runner_stats"), (self.plant_json, "plant_stats")):
             if path.exists() and path.stat().st_size:
                 setattr(self, attr, json.loads(path.read_text()))
+
+    def kill(self, name: str) -> float:
+        """SIGKILLs the process `name` ("runner" or "plant") and waits for it; the session's
+        end then expects status -9 from it instead of 0. Returns the wall time of the kill."""
+        proc = self._procs[name]
+        assert proc.poll() is None, f"{name} had already exited with {proc.returncode}"
+        self.killed.add(name)
+        proc.send_signal(signal.SIGKILL)
+        t = time.time()
+        proc.wait(timeout=30)
+        return t
 
     def _let_candump_catch_up(self) -> None:
         wait_until_quiet(self.candump_log)
