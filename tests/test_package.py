@@ -151,7 +151,7 @@ def test_the_interpreters_exit_stops_the_robot(tmp_path: pathlib.Path) -> None:
         atexit.register(lambda: print(json.dumps([(r.name, r.signals) for r in fake.received[-2:]])))
         robot = Robot(can.Bus(interface="virtual", channel="exit"))
         robot.enable()
-        robot.wait_state("ENABLED", timeout=1.0)
+        robot.wait_state("ENABLED", timeout=5.0)  # a loaded machine starts threads slowly
         robot.drive(0.4, 0.0, 0.0)
         time.sleep(0.2)
         sys.exit(0)  # no close(), no with block
