@@ -1,63 +1,16 @@
 //! The runner's loop with its log on, against a bus and a clock in memory (late wake-ups, an
 //! overrun), then `hostsim`'s replay of that log: bit-identical outbound frames.
 
-use std::cell::{Cell, RefCell};
 use std::collections::VecDeque;
-use std::io;
-use std::rc::Rc;
 use std::sync::atomic::AtomicUsize;
 
-use embedded_can::StandardId;
-use firmware::linux::{Bus, Clock, RunOptions, run_recorded};
+use firmware::linux::{RunOptions, run_recorded};
 use firmware::protocol::robot::{Command, ModeRequest, TwistCmd};
 use firmware::{CanFrame, Config, Controller};
+
+mod common;
+use common::{FakeClock, MemoryBus, T0, std_frame};
 use mecanum_runner::McapRecorder;
-
-/// Simulated time: `sleep_until` jumps to the deadline plus a scripted lateness.
-struct FakeClock {
-    now: Cell<u64>,
-    lateness: RefCell<VecDeque<u64>>,
-}
-
-impl Clock for FakeClock {
-    fn now_micros(&self) -> u64 {
-        self.now.get()
-    }
-    fn sleep_until(&self, deadline_us: u64) {
-        let late = self.lateness.borrow_mut().pop_front().unwrap_or(0);
-        self.now.set(self.now.get().max(deadline_us) + late);
-    }
-}
-
-/// Frames arrive at given times; every send takes 7 µs.
-struct MemoryBus {
-    clock: Rc<FakeClock>,
-    incoming: VecDeque<(u64, CanFrame)>,
-    sent: Vec<CanFrame>,
-}
-
-impl Bus for MemoryBus {
-    fn try_recv(&mut self) -> io::Result<Option<CanFrame>> {
-        match self.incoming.front() {
-            Some(&(t, f)) if t <= self.clock.now_micros() => {
-                self.incoming.pop_front();
-                Ok(Some(f))
-            }
-            _ => Ok(None),
-        }
-    }
-    fn send(&mut self, frame: &CanFrame) -> io::Result<()> {
-        self.clock.now.set(self.clock.now.get() + 7);
-        self.sent.push(*frame);
-        Ok(())
-    }
-}
-
-const T0: u64 = 5_000_000;
-
-fn std_frame(id: u16, data: &[u8]) -> CanFrame {
-    CanFrame::standard(StandardId::new(id).unwrap(), data).unwrap()
-}
 
 /// 600 ms: the four ESCs report every millisecond (wheels turning); the host enables at
 /// 10 ms, drives from 20 ms to 300 ms, then falls silent (the watchdog stops the robot); a
@@ -100,20 +53,12 @@ fn session() -> VecDeque<(u64, CanFrame)> {
 fn a_runner_log_replays_bit_for_bit_at_its_recorded_steps() {
     let config = Config::dji_m3508_example();
     let path = std::path::PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("runner_log.mcap");
-    let clock = Rc::new(FakeClock {
-        now: Cell::new(T0),
-        // Wake-ups late by 0 to 290 µs, and one 2.5 ms overrun at step 200 (re-anchored).
-        lateness: RefCell::new(
-            (0..600u64)
-                .map(|k| if k == 200 { 2500 } else { (k * 53) % 300 })
-                .collect(),
-        ),
-    });
-    let mut bus = MemoryBus {
-        clock: Rc::clone(&clock),
-        incoming: session(),
-        sent: Vec::new(),
-    };
+    // Wake-ups late by 0 to 290 µs, and one 2.5 ms overrun at step 200 (re-anchored).
+    let clock = FakeClock::new(
+        (0..600u64).map(|k| if k == 200 { 2500 } else { (k * 53) % 300 }),
+        0,
+    );
+    let mut bus = MemoryBus::new(&clock, session());
     let mut controller = Controller::new(&config).unwrap();
     let mut recorder = McapRecorder::create(&path, &config.to_toml_string()).unwrap();
     let options = RunOptions {

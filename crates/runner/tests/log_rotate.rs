@@ -2,68 +2,17 @@
 //! clock in memory. Several files, at most K kept, the oldest removed, each a complete MCAP
 //! file; the first replays bit for bit.
 
-use std::cell::{Cell, RefCell};
 use std::collections::VecDeque;
-use std::io;
 use std::path::{Path, PathBuf};
-use std::rc::Rc;
 use std::sync::atomic::AtomicUsize;
 
-use embedded_can::StandardId;
-use firmware::linux::{Bus, Clock, RunOptions, run_recorded};
+use firmware::linux::{RunOptions, run_recorded};
 use firmware::protocol::robot::{Command, ModeRequest, TwistCmd};
 use firmware::{CanFrame, Config, Controller};
+
+mod common;
+use common::{FakeClock, MemoryBus, T0, std_frame};
 use mecanum_runner::{McapRecorder, rotated_path};
-
-/// Simulated time, at ten times real time: `sleep_until` jumps to the deadline plus a scripted lateness.
-struct FakeClock {
-    now: Cell<u64>,
-    lateness: RefCell<VecDeque<u64>>,
-}
-
-impl Clock for FakeClock {
-    fn now_micros(&self) -> u64 {
-        self.now.get()
-    }
-    fn sleep_until(&self, deadline_us: u64) {
-        let late = self.lateness.borrow_mut().pop_front().unwrap_or(0);
-        // A tenth of real time: the log's hand-overs are due to log time, as in a real run,
-        // and the writer keeps up.
-        let ahead = deadline_us.saturating_sub(self.now.get());
-        std::thread::sleep(std::time::Duration::from_micros(ahead / 10));
-        self.now.set(self.now.get().max(deadline_us) + late);
-    }
-}
-
-/// Frames arrive at given times; every send takes 7 µs.
-struct MemoryBus {
-    clock: Rc<FakeClock>,
-    incoming: VecDeque<(u64, CanFrame)>,
-    sent: Vec<CanFrame>,
-}
-
-impl Bus for MemoryBus {
-    fn try_recv(&mut self) -> io::Result<Option<CanFrame>> {
-        match self.incoming.front() {
-            Some(&(t, f)) if t <= self.clock.now_micros() => {
-                self.incoming.pop_front();
-                Ok(Some(f))
-            }
-            _ => Ok(None),
-        }
-    }
-    fn send(&mut self, frame: &CanFrame) -> io::Result<()> {
-        self.clock.now.set(self.clock.now.get() + 7);
-        self.sent.push(*frame);
-        Ok(())
-    }
-}
-
-const T0: u64 = 5_000_000;
-
-fn std_frame(id: u16, data: &[u8]) -> CanFrame {
-    CanFrame::standard(StandardId::new(id).unwrap(), data).unwrap()
-}
 
 /// Run length: 3 s, 3000 steps.
 const RUN_MS: u64 = 3000;
@@ -115,15 +64,9 @@ struct Run {
 fn run(dir: &Path, max_bytes: u64, keep: usize) -> Run {
     let _ = std::fs::remove_dir_all(dir);
     let config = Config::dji_m3508_example();
-    let clock = Rc::new(FakeClock {
-        now: Cell::new(T0),
-        lateness: RefCell::new((0..RUN_MS).map(|k| (k * 53) % 300).collect()),
-    });
-    let mut bus = MemoryBus {
-        clock: Rc::clone(&clock),
-        incoming: session(),
-        sent: Vec::new(),
-    };
+    // At a tenth of real time: the log's hand-overs are due to log time, as in a real run.
+    let clock = FakeClock::new((0..RUN_MS).map(|k| (k * 53) % 300), 10);
+    let mut bus = MemoryBus::new(&clock, session());
     let mut controller = Controller::new(&config).unwrap();
     let mut recorder =
         McapRecorder::rotating(dir, &config.to_toml_string(), max_bytes, keep).unwrap();
