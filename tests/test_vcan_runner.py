@@ -678,10 +678,11 @@ def test_hostsim_replay_of_the_session_log_agrees(recorded: dict, plant_bin, con
 # --- the runner's own MCAP log (`mecanum-runner --log`) ------------------------------------
 
 
-@pytest.mark.parametrize("session", ["stops", "malformed"])
+@pytest.mark.parametrize("session", ["stops", "malformed", "link_gap"])
 def test_runner_log_replays_bit_identical_and_reads_with_rosbags(request, session, plant_bin) -> None:
     """The runner's log of a session (stops: driving, the watchdog's stop, status polls, an
-    e-stop and its reset; malformed: driving through a flood of malformed frames):
+    e-stop and its reset; malformed: driving through a flood of malformed frames; link_gap:
+    the interface down for 2 s mid-drive):
     `hostsim replay` runs a fresh core at the logged step times on the logged inbound frames
     and gets every outbound frame bit for bit (exit 0); rosbags reads every message, and the
     counts are the runner's own."""
@@ -705,7 +706,8 @@ def test_runner_log_replays_bit_identical_and_reads_with_rosbags(request, sessio
     # Every step, plus the shutdown; every frame the runner took; every frame its core sent.
     assert report["steps"] == stats["steps"] + 1
     assert report["fed"] == stats["frames_received"]
-    sent = stats["frames_sent"] + stats["send_errors"] + stats["shutdown"]["frames"]
+    sent = (stats["frames_sent"] + stats["send_errors"] + stats["link"]["frames_not_sent"]
+            + stats["shutdown"]["frames"])
     assert report["compared"] == sent
     assert stats["log"]["dropped"] == 0, stats["log"]
 
@@ -729,8 +731,130 @@ def test_runner_log_replays_bit_identical_and_reads_with_rosbags(request, sessio
     if session == "stops":
         assert "state Disabled, fault Watchdog" in texts
         assert any(t.startswith("state Estop") for t in texts)
-    else:
+    elif session == "malformed":
         assert stats["controller"]["rx_errors"]["wrong_dlc"] > 0
+    else:
+        assert sum(t.startswith("CAN link lost") for t in texts) == 1, texts
+        assert sum(t.startswith("CAN link back after") for t in texts) == 1, texts
+
+
+# --- the link: the interface goes down mid-drive and comes back ------------------------------
+
+LINK_DOWN_S = 2.0
+# The runner tries to reopen the interface 10 ms after the loss, doubling to every 200 ms: it
+# is back at most that long after the link (plus a step, and the emulation's slack).
+LINK_RETRY_MAX_S = 0.2
+
+
+def _ip_link(iface: str, state: str) -> None:
+    from conftest import vcan_unavailable
+
+    proc = subprocess.run(["ip", "link", "set", state, "dev", iface], capture_output=True, text=True)
+    if proc.returncode != 0:
+        vcan_unavailable(f"cannot set {iface} {state} (needs CAP_NET_ADMIN)",
+                         f"ip link set {state} dev {iface}: {proc.stderr.strip()}")
+
+
+@pytest.fixture(scope="module")
+def link_gap(robot_factory) -> Robot:
+    """Driving forward, the interface is set down for LINK_DOWN_S and up again, while the host
+    goes on streaming twists (it does not know: its sends fail meanwhile). The runner must
+    survive, say so, and keep the robot stopped until a reset and a new enable, which then
+    drive it again."""
+    with robot_factory("link", runner_log=True) as robot:
+        robot.mode(MODE_ENABLE, mark="enable")
+        robot.twist(0.3, 0.0, 0.0)
+        robot.start_stream(tolerate_send_errors=True)
+        time.sleep(1.0)
+        robot.marks["down"] = time.time()
+        _ip_link(robot.iface, "down")
+        time.sleep(LINK_DOWN_S)
+        _ip_link(robot.iface, "up")
+        robot.marks["up"] = time.time()
+        # Twists keep coming: not an enable.
+        time.sleep(1.0)
+        robot.mode(MODE_RESET, mark="reset")
+        time.sleep(0.1)
+        robot.mode(MODE_ENABLE, mark="enable2")
+        time.sleep(1.0)
+        robot.stop_stream(mark="end")
+        time.sleep(0.3)
+    return robot
+
+
+def test_the_runner_survives_the_link_going_down_and_keeps_the_robot_stopped(link_gap: Robot) -> None:
+    robot = link_gap
+    stats = robot.runner_stats
+    link = stats["link"]
+    down_s = link["down_us"] / 1e6
+    out = robot.outputs["runner"]
+    print(f"link gap: runner link report {link}; send errors {stats['send_errors_by_kind']}, receive "
+          f"errors {stats['rx_errors_by_kind']}; host sends that failed: {robot.stream_send_errors}")
+    print("\n".join(line for line in out.splitlines() if "link" in line))
+    # One loss, one recovery, and the gap as long as the link was down (the runner notices the
+    # loss at its next step and the recovery at its next reopen attempt).
+    assert (link["losses"], link["recoveries"], link["down_at_stop"]) == (1, 1, False), link
+    assert LINK_DOWN_S - 0.1 <= down_s <= LINK_DOWN_S + LINK_RETRY_MAX_S + 0.1 + 10 * TIMING_SLACK_S, down_s
+    assert link["reopen_attempts"] >= 2 and link["frames_not_sent"] > 0, link
+    kinds = stats["send_errors_by_kind"]["link_down"] + stats["rx_errors_by_kind"]["link_down"]
+    assert kinds >= 1, (stats["send_errors_by_kind"], stats["rx_errors_by_kind"])
+    assert robot.stream_send_errors > 0, "the host's sends did not fail: was the link down?"
+    # It said so as it happened: the loss, then the recovery with the core's (not driving) state.
+    lost = re.search(r"link LOST at [\d.]+ s \((.*)\)", out)
+    back = re.search(r"link back at [\d.]+ s after ([\d.]+) s down \(\d+ reopen attempts\); the core is (\w+)", out)
+    assert lost and back, out
+    assert "Network is down" in lost.group(1)
+    assert abs(float(back.group(1)) - down_s) < 0.002, (back.group(1), down_s)
+    assert back.group(2) != "Enabled", back.group(0)
+    # The core kept stepping through the gap: its steps over the run are those of the elapsed
+    # time, the gap included.
+    assert stats["steps"] >= MIN_STEP_RATIO * stats["elapsed_us"] / 1e3, stats["steps"]
+
+    # Driving before: currents commanded.
+    before = robot.of(DJI_CMD_1_4, robot.marks["enable"] + 0.5, robot.marks["down"])
+    assert any(dji_currents(c) != (0, 0, 0, 0) for c in before)
+    # After the link is back, with twists still streaming: zero currents, never Enabled.
+    up, reset = robot.marks["up"], robot.marks["reset"]
+    settled = up + LINK_RETRY_MAX_S + 0.1 + 10 * TIMING_SLACK_S
+    after = robot.of(DJI_CMD_1_4, settled, reset)
+    assert after, "no motor commands after the link came back"
+    assert all(dji_currents(c) == (0, 0, 0, 0) for c in after), [dji_currents(c) for c in after[:5]]
+    statuses = _statuses(robot, settled, reset)
+    assert all(s["state"] != STATE_ENABLED for _, s in statuses), statuses[:3]
+    # A reset and an enable drive it again.
+    enable2 = _next_mode(robot, robot.marks["enable2"] - 0.05, MODE_ENABLE)
+    assert _status_at(robot, enable2 + 0.3)["state"] == STATE_ENABLED
+    again = robot.of(DJI_CMD_1_4, enable2 + 0.3, robot.marks["end"])
+    assert any(dji_currents(c) != (0, 0, 0, 0) for c in again)
+    # The link is in the plant's statistics too (it survived: its sends failed meanwhile).
+    assert robot.plant_stats["send_errors"] > 0, robot.plant_stats
+
+
+def test_exit_on_link_loss_stops_with_status_3(runner_bin, vcan, config, tmp_path) -> None:
+    """`--exit-on-link-loss`: the runner stops at the loss with status 3 and a message."""
+    stats = tmp_path / "runner.json"
+    proc = subprocess.Popen(
+        [str(runner_bin), "--iface", vcan, "--config", str(config), "--exit-on-link-loss",
+         "--stats-json", str(stats)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    try:
+        time.sleep(1.0)
+        assert proc.poll() is None, proc.communicate()[0]
+        _ip_link(vcan, "down")
+        try:
+            out, _ = proc.communicate(timeout=30)
+        finally:
+            _ip_link(vcan, "up")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    print(out)
+    assert proc.returncode == 3, out
+    assert "CAN link lost" in out and "--exit-on-link-loss" in out, out
+    report = json.loads(stats.read_text())
+    assert report["stop"] == "link_lost" and report["link"]["losses"] == 1, report
 
 
 # What a SIGKILLed runner's log may lack at its end: the open batch and the one being written

@@ -141,8 +141,8 @@ class Robot:
             ],
         }
         # -r: a large receive buffer, so a slow (emulated) machine does not drop frames;
-        # -d: report drops.
-        self._candump_cmd = [candump, "-L", "-d", "-r", str(32 << 20), iface]
+        # -d: report drops; -D: go on recording when the interface is set down (and up again).
+        self._candump_cmd = [candump, "-L", "-d", "-D", "-r", str(32 << 20), iface]
         self._procs: dict[str, subprocess.Popen] = {}
         # Processes the test SIGKILLed on purpose (`kill`): their status -9 is no failure.
         self.killed: set[str] = set()
@@ -161,6 +161,8 @@ class Robot:
         self._repeat_last = False
         # The frame `repeat_last_twist` repeats.
         self.repeated_twist: bytes | None = None
+        # Sends of a `tolerate_send_errors` stream that failed.
+        self.stream_send_errors = 0
         self.last_status: dict | None = None
         self.frames: list[Frame] = []
         self.runner_stats: dict = {}
@@ -297,9 +299,11 @@ class Robot:
         with self._stream_lock:
             self._twist = (vx, vy, wz)
 
-    def start_stream(self, period_s: float = 0.02) -> None:
+    def start_stream(self, period_s: float = 0.02, *, tolerate_send_errors: bool = False) -> None:
         """Streams TWIST_CMD with the current twist every `period_s` from a thread, `seq`
-        one more in each frame (the protocol's alive counter)."""
+        one more in each frame (the protocol's alive counter). With `tolerate_send_errors` a
+        send that fails (the interface is down) is counted in `stream_send_errors` and the
+        stream goes on, like a host that does not know the link is gone."""
         assert self._stream is None
         self._stream_stop.clear()
         self._repeat_last = False
@@ -314,7 +318,12 @@ class Robot:
                             _, self._last_twist = self.encode("TWIST_CMD", vx=vx, vy=vy, wz=wz, seq=self._seq)
                             self._seq = (self._seq + 1) & 0xFF
                         data = self._last_twist
-                    self.send_raw(TWIST_CMD, data)
+                    try:
+                        self.send_raw(TWIST_CMD, data)
+                    except can.CanOperationError:
+                        if not tolerate_send_errors:
+                            raise
+                        self.stream_send_errors += 1
                     deadline += period_s
                     self._stream_stop.wait(max(0.0, deadline - time.monotonic()))
             except BaseException as err:  # noqa: BLE001 - re-raised by stop_stream

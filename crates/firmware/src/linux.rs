@@ -49,6 +49,23 @@
 //! [`Report::send_errors`]. Any other error (interface down, ...) is counted at once. Nothing
 //! on the bus ever stops the loop.
 //!
+//! # The link
+//!
+//! On a robot the interface itself fails: a USB adapter is unplugged, a cable breaks, the
+//! link is set down. SocketCAN then reports `ENETDOWN` (the link is down: every send, and
+//! one receive) or `ENODEV`/`ENXIO` (the device is gone: the socket stays dead even when a
+//! device of the same name comes back). Either is a **link loss** ([`classify`]). The loop
+//! keeps stepping the core at its rate, so the watchdog and the state machine see the silence
+//! as it is (no motor feedback: the core faults and stays faulted until a reset and a new
+//! enable, as for any other loss of its motors); it stops reading and sending, counts the
+//! frames it did not send ([`LinkReport::frames_not_sent`]) and tries [`Bus::reopen`] with an
+//! exponential back-off ([`RunOptions::link_retry_min_us`] doubling up to
+//! [`RunOptions::link_retry_max_us`]). The first reopen that succeeds resumes reading and
+//! sending; the gap is in [`Report::link`] and told to the [`Recorder`] ([`LinkEvent`]) as
+//! it happens. With [`RunOptions::exit_on_link_loss`] the loop stops instead
+//! ([`StopReason::LinkLost`]). Errors are counted by kind ([`ErrorCounts`]) for sends and
+//! receives.
+//!
 //! # Stopping
 //!
 //! The loop stops when the `stop` flag becomes non-zero (the binary stores the signal number
@@ -96,6 +113,18 @@ pub trait Bus {
     /// # Errors
     /// Whatever the bus reports.
     fn send(&mut self, frame: &CanFrame) -> io::Result<()>;
+
+    /// Makes the bus usable again after a link loss ([`ErrorKind::LinkDown`],
+    /// [`ErrorKind::NoDevice`]): for SocketCAN, opens a new socket on the interface once it
+    /// exists and is up. Called by the runner with a back-off while the link is down, from
+    /// the loop's thread, so it must not block. The default does nothing and succeeds (a bus
+    /// that recovers by itself).
+    ///
+    /// # Errors
+    /// The bus is still unusable; the runner tries again later.
+    fn reopen(&mut self) -> io::Result<()> {
+        Ok(())
+    }
 }
 
 /// A monotonic clock in microseconds that can sleep.
@@ -156,6 +185,108 @@ pub fn is_busy(error: &io::Error) -> bool {
     error.kind() == io::ErrorKind::WouldBlock || error.raw_os_error() == Some(libc::ENOBUFS)
 }
 
+/// What an I/O error of the bus means to the runner, for the counters ([`ErrorCounts`]) and
+/// the link handling (see [The link](self#the-link)).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ErrorKind {
+    /// The transmit queue is full ([`is_busy`]): retried.
+    Busy,
+    /// The link is down (`ENETDOWN`): a link loss.
+    LinkDown,
+    /// The device is gone (`ENODEV`, `ENXIO`: unplugged, or removed): a link loss; the bus
+    /// must be reopened.
+    NoDevice,
+    /// Anything else.
+    Other,
+}
+
+/// Classifies a bus error (see [`ErrorKind`]).
+#[must_use]
+pub fn classify(error: &io::Error) -> ErrorKind {
+    if is_busy(error) {
+        return ErrorKind::Busy;
+    }
+    match error.raw_os_error() {
+        Some(libc::ENETDOWN) => ErrorKind::LinkDown,
+        Some(libc::ENODEV | libc::ENXIO) => ErrorKind::NoDevice,
+        _ => ErrorKind::Other,
+    }
+}
+
+/// Errors counted by [`ErrorKind`].
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct ErrorCounts {
+    /// Busy: for sends, frames still refused as busy when their retries ran out.
+    pub busy: u64,
+    /// Link down (`ENETDOWN`).
+    pub link_down: u64,
+    /// Device gone (`ENODEV`, `ENXIO`).
+    pub no_device: u64,
+    /// Anything else.
+    pub other: u64,
+}
+
+impl ErrorCounts {
+    fn count(&mut self, kind: ErrorKind) {
+        let n = match kind {
+            ErrorKind::Busy => &mut self.busy,
+            ErrorKind::LinkDown => &mut self.link_down,
+            ErrorKind::NoDevice => &mut self.no_device,
+            ErrorKind::Other => &mut self.other,
+        };
+        *n += 1;
+    }
+}
+
+impl fmt::Display for ErrorCounts {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "busy {}, link down {}, no device {}, other {}",
+            self.busy, self.link_down, self.no_device, self.other
+        )
+    }
+}
+
+/// Link losses and recoveries over a run (see [The link](self#the-link)).
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct LinkReport {
+    /// Times the link was lost.
+    pub losses: u64,
+    /// Times it came back ([`Bus::reopen`] succeeded).
+    pub recoveries: u64,
+    /// Calls of [`Bus::reopen`].
+    pub reopen_attempts: u64,
+    /// Time the link was down in total (a loss not recovered counts up to the stop), µs.
+    pub down_us: u64,
+    /// The longest single gap, µs.
+    pub longest_down_us: u64,
+    /// Frames of the core not sent because the link was down.
+    pub frames_not_sent: u64,
+    /// Whether the link was down when the loop stopped.
+    pub down_at_stop: bool,
+}
+
+/// A change of the link, as [`run_recorded`] tells its [`Recorder`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LinkEvent<'a> {
+    /// The link was lost; `error` is what the bus said (`send 0x200: Network is down (os
+    /// error 100)`).
+    Lost {
+        /// The error, with what was being done.
+        error: &'a str,
+    },
+    /// [`Bus::reopen`] succeeded after the link had been down for `down_us`, at its
+    /// `attempts`-th try since the loss.
+    Restored {
+        /// How long the link was down, µs.
+        down_us: u64,
+        /// Reopen attempts since the loss.
+        attempts: u64,
+    },
+}
+
 /// Tuning of [`run`]. [`Default`] is what the binary uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct RunOptions {
@@ -169,6 +300,15 @@ pub struct RunOptions {
     pub retry_backoff_us: u64,
     /// How long the shutdown frames may be retried in total. Default 100 ms.
     pub shutdown_budget_us: u64,
+    /// First pause before [`Bus::reopen`] after a link loss; it doubles after each failed
+    /// attempt. Default 10 ms.
+    pub link_retry_min_us: u64,
+    /// Longest pause between two [`Bus::reopen`] attempts: a link that comes back is in use
+    /// again at most this long after. Default 200 ms.
+    pub link_retry_max_us: u64,
+    /// Stop the loop on a link loss ([`StopReason::LinkLost`]) instead of waiting for the
+    /// link to come back. Default `false`.
+    pub exit_on_link_loss: bool,
 }
 
 impl Default for RunOptions {
@@ -178,6 +318,9 @@ impl Default for RunOptions {
             max_rx_per_step: 1024,
             retry_backoff_us: 20,
             shutdown_budget_us: 100_000,
+            link_retry_min_us: 10_000,
+            link_retry_max_us: 200_000,
+            exit_on_link_loss: false,
         }
     }
 }
@@ -190,6 +333,9 @@ pub enum StopReason {
     Signal(usize),
     /// [`RunOptions::duration_us`] elapsed.
     Duration,
+    /// The link was lost and [`RunOptions::exit_on_link_loss`] is set; the error is
+    /// [`Report::link_error`].
+    LinkLost,
 }
 
 impl fmt::Display for StopReason {
@@ -199,6 +345,7 @@ impl fmt::Display for StopReason {
             Self::Signal(15) => f.write_str("SIGTERM"),
             Self::Signal(n) => write!(f, "stop flag {n}"),
             Self::Duration => f.write_str("duration elapsed"),
+            Self::LinkLost => f.write_str("link lost (exit on link loss)"),
         }
     }
 }
@@ -416,8 +563,18 @@ pub struct Report {
     pub frames_sent: u64,
     /// Send attempts repeated because the bus was busy (`ENOBUFS`, `EAGAIN`).
     pub send_retries: u64,
-    /// Frames the loop could not send (dropped).
+    /// Frames the loop could not send (dropped) because sending failed; frames not tried
+    /// while the link was down are [`LinkReport::frames_not_sent`].
     pub send_errors: u64,
+    /// [`Self::send_errors`] (and the failed shutdown frames) by kind.
+    pub send_errors_by_kind: ErrorCounts,
+    /// [`Self::rx_errors`] by kind.
+    pub rx_errors_by_kind: ErrorCounts,
+    /// Link losses, gaps and recoveries.
+    pub link: LinkReport,
+    /// The error that caused the last link loss (`receive: Network is down (os error
+    /// 100)`), if the link was lost.
+    pub link_error: Option<String>,
     /// The first bus error, with the frame id, for the log.
     pub first_error: Option<String>,
     /// The last bus error.
@@ -459,6 +616,29 @@ impl fmt::Display for Report {
             self.bus_error_frames,
             self.rx_capped_steps
         )?;
+        if self.send_errors_by_kind != ErrorCounts::default()
+            || self.rx_errors_by_kind != ErrorCounts::default()
+        {
+            writeln!(
+                f,
+                "send errors: {}; receive errors: {}",
+                self.send_errors_by_kind, self.rx_errors_by_kind
+            )?;
+        }
+        let l = &self.link;
+        if l.losses > 0 {
+            writeln!(
+                f,
+                "link: lost {} time(s), back {} time(s){}; down {:.3} s in total, longest {:.3} s; {} reopen attempts; {} frames not sent while down",
+                l.losses,
+                l.recoveries,
+                if l.down_at_stop { ", DOWN at stop" } else { "" },
+                l.down_us as f64 / 1e6,
+                l.longest_down_us as f64 / 1e6,
+                l.reopen_attempts,
+                l.frames_not_sent
+            )?;
+        }
         if let Some(first) = &self.first_error {
             writeln!(f, "first bus error: {first}")?;
         }
@@ -552,6 +732,8 @@ struct Counters {
     frames_sent: u64,
     send_retries: u64,
     send_errors: u64,
+    send_kinds: ErrorCounts,
+    rx_kinds: ErrorCounts,
     errors: ErrorLog,
 }
 
@@ -659,6 +841,11 @@ pub trait Recorder {
         let _ = (step_us, sent_us, frame, sent);
     }
 
+    /// The link was lost or came back at `t_us` (see [The link](self#the-link)).
+    fn link(&mut self, t_us: u64, event: LinkEvent<'_>) {
+        let _ = (t_us, event);
+    }
+
     /// A step and its frames are done: the place to hand the records over.
     fn step_done(&mut self) {}
 }
@@ -700,8 +887,12 @@ pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
     let mut last_step_us = None;
     let mut anchor = start;
     let mut k: u64 = 0;
+    let mut link = Link::new(options);
     let stop_reason = loop {
         let deadline = anchor.saturating_add(k.saturating_mul(period));
+        if link.stop {
+            break StopReason::LinkLost;
+        }
         if let Some(reason) = stop_requested(stop) {
             break reason;
         }
@@ -725,9 +916,10 @@ pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
         }
         let now_us = woke - start;
         let now = Instant::from_micros(now_us);
+        link.maybe_reopen(bus, woke, now_us, recorder);
 
         let mut drained = 0;
-        while drained < options.max_rx_per_step {
+        while link.up() && drained < options.max_rx_per_step {
             match bus.try_recv() {
                 Ok(Some(frame)) => {
                     controller.on_frame(now, &frame);
@@ -744,7 +936,10 @@ pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
                 }
                 Err(e) => {
                     counters.rx_errors += 1;
+                    let kind = classify(&e);
+                    counters.rx_kinds.count(kind);
                     counters.errors.record(format_args!("receive"), &e);
+                    link.on_error(kind, woke, now_us, &counters.errors, recorder);
                     break;
                 }
             }
@@ -759,6 +954,11 @@ pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
         steps += 1;
         let give_up = deadline.max(woke).saturating_add(period / 2);
         for frame in &out {
+            if !link.up() {
+                link.report.frames_not_sent += 1;
+                recorder.sent(now_us, clock.now_micros() - start, frame, false);
+                continue;
+            }
             match send_with_retry(
                 bus,
                 clock,
@@ -773,10 +973,14 @@ pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
                 }
                 Err(e) => {
                     counters.send_errors += 1;
+                    let kind = classify(&e);
+                    counters.send_kinds.count(kind);
                     counters
                         .errors
                         .record(format_args!("send {}", id_text(frame)), &e);
-                    recorder.sent(now_us, clock.now_micros() - start, frame, false);
+                    let t = clock.now_micros();
+                    recorder.sent(now_us, t - start, frame, false);
+                    link.on_error(kind, t, now_us, &counters.errors, recorder);
                 }
             }
         }
@@ -788,6 +992,11 @@ pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
     let at_stop = controller.snapshot();
     let frames = controller.shutdown();
     let shutdown_us = (clock.now_micros() - start).max(last_step_us.map_or(0, |t| t + 1));
+    // One more try of a lost link: the shutdown frames are the ones that matter most.
+    if !link.up() {
+        link.next_try = 0;
+        link.maybe_reopen(bus, clock.now_micros(), shutdown_us, recorder);
+    }
     recorder.shut_down(shutdown_us, controller);
     let give_up = clock
         .now_micros()
@@ -807,6 +1016,7 @@ pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
                 recorder.sent(shutdown_us, clock.now_micros() - start, frame, true);
             }
             Err(e) => {
+                counters.send_kinds.count(classify(&e));
                 counters
                     .errors
                     .record(format_args!("shutdown send {}", id_text(frame)), &e);
@@ -815,6 +1025,7 @@ pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
         }
     }
     recorder.step_done();
+    let (link, link_error) = link.finish(clock.now_micros());
     let after = controller.snapshot();
     let (state_at_stop, fault_at_stop) = state_name(&at_stop);
 
@@ -831,6 +1042,10 @@ pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
         frames_sent: counters.frames_sent,
         send_retries: counters.send_retries,
         send_errors: counters.send_errors,
+        send_errors_by_kind: counters.send_kinds,
+        rx_errors_by_kind: counters.rx_kinds,
+        link,
+        link_error,
         first_error: counters.errors.first,
         last_error: counters.errors.last,
         jitter: jitter.summary(),
@@ -849,6 +1064,119 @@ pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
             rx_errors: at_stop.rx_errors,
             repeated_seq: at_stop.repeated_seq,
         },
+    }
+}
+
+/// The link as the loop sees it (see [The link](self#the-link)).
+struct Link {
+    /// When the link was lost (clock µs), while it is down.
+    since: Option<u64>,
+    /// Clock time of the next [`Bus::reopen`] attempt.
+    next_try: u64,
+    /// The pause before that attempt.
+    backoff: u64,
+    /// Attempts since the loss.
+    attempts: u64,
+    min_us: u64,
+    max_us: u64,
+    exit_on_loss: bool,
+    /// The error of the last loss.
+    error: Option<String>,
+    /// Stop at the next step ([`RunOptions::exit_on_link_loss`]).
+    stop: bool,
+    report: LinkReport,
+}
+
+impl Link {
+    fn new(options: &RunOptions) -> Self {
+        Self {
+            since: None,
+            next_try: 0,
+            backoff: 0,
+            attempts: 0,
+            min_us: options.link_retry_min_us.max(1),
+            max_us: options
+                .link_retry_max_us
+                .max(options.link_retry_min_us.max(1)),
+            exit_on_loss: options.exit_on_link_loss,
+            error: None,
+            stop: false,
+            report: LinkReport::default(),
+        }
+    }
+
+    fn up(&self) -> bool {
+        self.since.is_none()
+    }
+
+    /// A bus error of `kind` at clock time `t` (core time `t_us`); `errors.last` describes it.
+    fn on_error<R: Recorder + ?Sized>(
+        &mut self,
+        kind: ErrorKind,
+        t: u64,
+        t_us: u64,
+        errors: &ErrorLog,
+        recorder: &mut R,
+    ) {
+        if !matches!(kind, ErrorKind::LinkDown | ErrorKind::NoDevice) || !self.up() {
+            return;
+        }
+        self.since = Some(t);
+        self.backoff = self.min_us;
+        self.next_try = t.saturating_add(self.backoff);
+        self.attempts = 0;
+        self.report.losses += 1;
+        self.stop = self.exit_on_loss;
+        let error = errors.last.as_deref().unwrap_or("link lost");
+        recorder.link(t_us, LinkEvent::Lost { error });
+        self.error = Some(error.to_string());
+    }
+
+    /// While the link is down, tries [`Bus::reopen`] when the back-off allows (clock time
+    /// `t`, core time `t_us`).
+    fn maybe_reopen<B: Bus + ?Sized, R: Recorder + ?Sized>(
+        &mut self,
+        bus: &mut B,
+        t: u64,
+        t_us: u64,
+        recorder: &mut R,
+    ) {
+        let Some(since) = self.since else { return };
+        if t < self.next_try {
+            return;
+        }
+        self.attempts += 1;
+        self.report.reopen_attempts += 1;
+        if bus.reopen().is_ok() {
+            let down_us = t.saturating_sub(since);
+            self.close_gap(down_us);
+            self.report.recoveries += 1;
+            self.since = None;
+            recorder.link(
+                t_us,
+                LinkEvent::Restored {
+                    down_us,
+                    attempts: self.attempts,
+                },
+            );
+        } else {
+            self.backoff = self.backoff.saturating_mul(2).min(self.max_us);
+            self.next_try = t.saturating_add(self.backoff);
+        }
+    }
+
+    fn close_gap(&mut self, down_us: u64) {
+        self.report.down_us += down_us;
+        self.report.longest_down_us = self.report.longest_down_us.max(down_us);
+    }
+
+    /// The report and the last loss's error, a gap still open counted up to clock time `t`.
+    fn finish(mut self, t: u64) -> (LinkReport, Option<String>) {
+        if let Some(since) = self.since {
+            self.close_gap(t.saturating_sub(since));
+            self.report.down_at_stop = true;
+        }
+        (self.report, self.error)
     }
 }
 
@@ -941,6 +1269,7 @@ const ERROR_CLASSES: u32 = libc::CAN_ERR_MASK & !libc::CAN_ERR_LOSTARB;
 #[derive(Debug)]
 pub struct SocketCanBus {
     socket: socketcan::CanSocket,
+    iface: String,
 }
 
 impl SocketCanBus {
@@ -983,7 +1312,16 @@ impl SocketCanBus {
                 path,
             });
         }
-        Ok(Self { socket })
+        Ok(Self {
+            socket,
+            iface: iface.to_string(),
+        })
+    }
+
+    /// The interface's name.
+    #[must_use]
+    pub fn iface(&self) -> &str {
+        &self.iface
     }
 }
 
@@ -1014,6 +1352,16 @@ impl Bus for SocketCanBus {
             )
         })?;
         self.socket.write_frame(&frame)
+    }
+
+    /// Opens a new socket on the interface (see [`SocketCanBus::open`]): a socket whose
+    /// device was removed stays dead even when a device of the same name comes back, and
+    /// the frames queued before a link loss are stale. Fails while the interface is missing
+    /// or down; costs a sysfs read and a socket when it does not.
+    fn reopen(&mut self) -> io::Result<()> {
+        let fresh = Self::open(&self.iface).map_err(io::Error::other)?;
+        *self = fresh;
+        Ok(())
     }
 }
 
@@ -1064,6 +1412,11 @@ mod tests {
         busy: u64,
         attempts: u64,
         stop_at: Option<(u64, Rc<AtomicUsize>)>,
+        /// The link is down in this clock interval: sends fail with ENETDOWN, the first
+        /// receive in it too (as SocketCAN does), and reopening fails.
+        down: Option<(u64, u64)>,
+        down_reported: bool,
+        reopens: Vec<(u64, bool)>,
     }
 
     impl MemoryBus {
@@ -1075,7 +1428,15 @@ mod tests {
                 busy: 0,
                 attempts: 0,
                 stop_at: None,
+                down: None,
+                down_reported: false,
+                reopens: Vec::new(),
             }
+        }
+        fn is_down(&self) -> bool {
+            let now = self.clock.now_micros();
+            self.down
+                .is_some_and(|(from, to)| (from..to).contains(&now))
         }
         fn sent_ids(&self) -> Vec<(u64, u16)> {
             self.sent.iter().map(|(t, f)| (*t, raw_id(f))).collect()
@@ -1084,6 +1445,13 @@ mod tests {
 
     impl Bus for MemoryBus {
         fn try_recv(&mut self) -> io::Result<Option<CanFrame>> {
+            if self.is_down() {
+                if !self.down_reported {
+                    self.down_reported = true;
+                    return Err(io::Error::from_raw_os_error(libc::ENETDOWN));
+                }
+                return Ok(None);
+            }
             match self.incoming.front() {
                 Some(&(t, f)) if t <= self.clock.now_micros() => {
                     self.incoming.pop_front();
@@ -1100,12 +1468,24 @@ mod tests {
             {
                 flag.store(15, Ordering::Relaxed);
             }
+            if self.is_down() {
+                return Err(io::Error::from_raw_os_error(libc::ENETDOWN));
+            }
             if self.busy > 0 {
                 self.busy -= 1;
                 return Err(io::Error::from_raw_os_error(libc::ENOBUFS));
             }
             self.sent.push((now, *frame));
             Ok(())
+        }
+        fn reopen(&mut self) -> io::Result<()> {
+            let ok = !self.is_down();
+            self.reopens.push((self.clock.now_micros(), ok));
+            if ok {
+                Ok(())
+            } else {
+                Err(io::Error::from_raw_os_error(libc::ENETDOWN))
+            }
         }
     }
 
@@ -1416,10 +1796,10 @@ mod tests {
         struct Down;
         impl Bus for Down {
             fn try_recv(&mut self) -> io::Result<Option<CanFrame>> {
-                Err(io::Error::from_raw_os_error(libc::ENETDOWN))
+                Err(io::Error::from_raw_os_error(libc::EIO))
             }
             fn send(&mut self, _: &CanFrame) -> io::Result<()> {
-                Err(io::Error::from_raw_os_error(libc::ENETDOWN))
+                Err(io::Error::from_raw_os_error(libc::EIO))
             }
         }
         let clock = FakeClock::at(T0);
@@ -1437,6 +1817,163 @@ mod tests {
         assert!(r.first_error.unwrap().starts_with("receive: "));
         assert!(r.last_error.unwrap().starts_with("shutdown send 0x200: "));
         assert_eq!(r.shutdown.failed, 1);
+        // The shutdown frame too.
+        assert_eq!(r.send_errors_by_kind.other, 7 + 1);
+        assert_eq!(r.rx_errors_by_kind.other, 2);
+        assert_eq!(r.link, LinkReport::default());
+    }
+
+    /// What a recorder hears of the link: (core µs, "lost: error" / "back after N µs, try K").
+    #[derive(Default)]
+    struct LinkLog(Vec<(u64, String)>);
+
+    impl Recorder for LinkLog {
+        fn link(&mut self, t_us: u64, event: LinkEvent<'_>) {
+            let text = match event {
+                LinkEvent::Lost { error } => format!("lost: {error}"),
+                LinkEvent::Restored { down_us, attempts } => {
+                    format!("back after {down_us} µs, try {attempts}")
+                }
+            };
+            self.0.push((t_us, text));
+        }
+    }
+
+    #[test]
+    fn a_lost_link_keeps_the_core_stepping_and_resumes_when_it_is_back() {
+        let clock = FakeClock::at(T0);
+        let mut bus = MemoryBus::new(&clock);
+        // Down from 5 ms to 25 ms.
+        bus.down = Some((T0 + 5_000, T0 + 25_000));
+        let mut events = LinkLog::default();
+        let mut ctl = dji();
+        let r = run_recorded(
+            &mut ctl,
+            &mut bus,
+            &*clock,
+            &for_ms(60),
+            &AtomicUsize::new(0),
+            &mut events,
+        );
+        // Every step ran, on schedule.
+        assert_eq!((r.steps, r.overruns), (60, 0));
+        // Lost at the first receive of the 5 ms step; reopen tried 10 ms later (15 ms,
+        // down), then 20 ms after that (35 ms, up).
+        assert_eq!(
+            bus.reopens,
+            [(T0 + 15_000, false), (T0 + 35_000, true)],
+            "reopen attempts"
+        );
+        assert_eq!(
+            events.0,
+            [
+                (
+                    5_000,
+                    "lost: receive: Network is down (os error 100)".to_string()
+                ),
+                (35_000, "back after 30000 µs, try 2".to_string()),
+            ]
+        );
+        let l = r.link;
+        assert_eq!(
+            (l.losses, l.recoveries, l.reopen_attempts, l.down_at_stop),
+            (1, 1, 2, false)
+        );
+        assert_eq!((l.down_us, l.longest_down_us), (30_000, 30_000));
+        // Steps 5..=34 (30 steps) sent nothing, none tried: 30 motor commands and the
+        // odometry pairs of the 10, 20 and 30 ms steps.
+        assert_eq!(l.frames_not_sent, 30 + 3 * 2);
+        let times = motor_times(&bus);
+        assert_eq!(times.len(), 60 - 30 + 1, "{times:?}");
+        assert!(
+            times
+                .iter()
+                .all(|&t| !(T0 + 5_000..T0 + 35_000).contains(&t))
+        );
+        assert_eq!(r.rx_errors_by_kind.link_down, 1);
+        assert_eq!(r.send_errors, 0, "no send was tried while down");
+        assert_eq!(r.shutdown.failed, 0);
+        let text = r.to_string();
+        assert!(
+            text.contains("link: lost 1 time(s), back 1 time(s); down 0.030 s in total"),
+            "{text}"
+        );
+    }
+
+    #[test]
+    fn a_link_lost_on_a_send_backs_off_up_to_the_limit() {
+        let clock = FakeClock::at(T0);
+        let mut bus = MemoryBus::new(&clock);
+        // The receive of the first down step already happened: the send sees it first.
+        bus.down = Some((T0 + 2_000, T0 + 1_000_000));
+        bus.down_reported = true;
+        let options = RunOptions {
+            link_retry_min_us: 10_000,
+            link_retry_max_us: 40_000,
+            ..for_ms(200)
+        };
+        let r = run(
+            &mut dji(),
+            &mut bus,
+            &*clock,
+            &options,
+            &AtomicUsize::new(0),
+        );
+        let tries: Vec<u64> = bus.reopens.iter().map(|&(t, _)| t - T0).collect();
+        // 10, 20, 40, 40, 40 ms apart; then the one try before the shutdown.
+        assert_eq!(
+            tries,
+            [12_000, 32_000, 72_000, 112_000, 152_000, 192_000, 199_000]
+        );
+        assert_eq!(r.send_errors_by_kind.link_down, 1 + 1);
+        assert!(r.link.down_at_stop);
+        assert_eq!(r.link.down_us, 199_000 - 2_000);
+        assert_eq!(r.shutdown.failed, 1);
+    }
+
+    #[test]
+    fn exit_on_link_loss_stops_the_loop_with_the_reason() {
+        let clock = FakeClock::at(T0);
+        let mut bus = MemoryBus::new(&clock);
+        bus.down = Some((T0 + 3_000, u64::MAX));
+        let options = RunOptions {
+            exit_on_link_loss: true,
+            ..for_ms(50)
+        };
+        let r = run(
+            &mut dji(),
+            &mut bus,
+            &*clock,
+            &options,
+            &AtomicUsize::new(0),
+        );
+        // The step that saw the loss ran (the core is never skipped); the next one stops.
+        assert_eq!((r.stop, r.steps), (StopReason::LinkLost, 4));
+        assert_eq!(r.stop.to_string(), "link lost (exit on link loss)");
+        assert!(r.link.down_at_stop);
+        assert_eq!(r.link.losses, 1);
+        // The one reopen before the shutdown failed; the shutdown frame was tried.
+        assert_eq!(r.link.reopen_attempts, 1);
+        assert_eq!(
+            r.link_error.as_deref(),
+            Some("receive: Network is down (os error 100)")
+        );
+        assert_eq!(r.shutdown.failed, 1);
+        assert_eq!(
+            serde_json::to_value(r.stop).unwrap(),
+            serde_json::json!("link_lost")
+        );
+    }
+
+    #[test]
+    fn bus_errors_are_classified_for_the_link() {
+        let e = io::Error::from_raw_os_error;
+        assert_eq!(classify(&e(libc::ENOBUFS)), ErrorKind::Busy);
+        assert_eq!(classify(&e(libc::EAGAIN)), ErrorKind::Busy);
+        assert_eq!(classify(&e(libc::ENETDOWN)), ErrorKind::LinkDown);
+        assert_eq!(classify(&e(libc::ENODEV)), ErrorKind::NoDevice);
+        assert_eq!(classify(&e(libc::ENXIO)), ErrorKind::NoDevice);
+        assert_eq!(classify(&e(libc::EIO)), ErrorKind::Other);
     }
 
     #[test]

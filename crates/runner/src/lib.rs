@@ -16,7 +16,7 @@
 //!   simulator's grid: replay steps at these times (hostsim's `replay_at_steps`), so a run
 //!   replays bit for bit;
 //! - `/odom`, `/tf`, `/joint_states`, `/diagnostics` every [`SNAPSHOT_EVERY`] steps, and the
-//!   state and fault changes on `/rosout`;
+//!   state and fault changes and the CAN link's losses and recoveries on `/rosout`;
 //! - metadata `mecanum_drive`: `config` (the TOML), `program` = `mecanum-runner`,
 //!   `firmware_version`, `protocol_version`.
 //!
@@ -56,7 +56,7 @@ use std::thread::JoinHandle;
 use drivelog::{Direction, LogError, McapLog, OdometrySource, msg};
 use firmware::CanFrame;
 use firmware::control::{Controller, Fault};
-use firmware::linux::Recorder;
+use firmware::linux::{LinkEvent, Recorder};
 use firmware::protocol::robot::RobotState;
 
 /// The odometry, wheels and diagnostics are logged every this many steps (10 ms at 1 kHz).
@@ -408,8 +408,112 @@ impl Recorder for McapRecorder {
         self.with(|log| log.frame(Direction::Tx, at, publish, at, frame));
     }
 
+    fn link(&mut self, t_us: u64, event: LinkEvent<'_>) {
+        let (level, text) = match event {
+            LinkEvent::Lost { error } => (
+                msg::Log::ERROR,
+                format!("CAN link lost ({error}): the core keeps stepping, nothing is sent"),
+            ),
+            LinkEvent::Restored { down_us, attempts } => (
+                msg::Log::WARN,
+                format!(
+                    "CAN link back after {:.3} s down ({attempts} reopen attempts)",
+                    down_us as f64 / 1e6
+                ),
+            ),
+        };
+        self.with(|log| log.text(t_us * 1000, level, &text));
+    }
+
     fn step_done(&mut self) {
         self.with(McapLog::maybe_flush);
         self.maybe_rotate();
+    }
+}
+
+/// The binary's recorder: the log if there is one ([`McapRecorder`]), and the link's losses
+/// and recoveries on stderr as they happen (a line each, from the loop's thread: link events
+/// are rare), with the core's state after a gap:
+///
+/// ```text
+/// mecanum-runner: can0: link LOST at 12.345 s (receive: Network is down (os error 100)); the core keeps stepping, nothing is sent; reopening with back-off
+/// mecanum-runner: can0: link back at 14.367 s after 2.022 s down (5 reopen attempts); the core is Fault (MotorStale): reset and enable to drive again
+/// ```
+pub struct Console<'a> {
+    iface: &'a str,
+    log: Option<&'a mut McapRecorder>,
+    /// A recovery to print with the state of the next step.
+    restored: Option<(u64, u64, u64)>,
+}
+
+impl<'a> Console<'a> {
+    /// Tells `log` (if any) everything and stderr the link events of `iface`.
+    pub fn new(iface: &'a str, log: Option<&'a mut McapRecorder>) -> Self {
+        Self {
+            iface,
+            log,
+            restored: None,
+        }
+    }
+}
+
+impl Recorder for Console<'_> {
+    fn received(&mut self, t_us: u64, frame: &CanFrame) {
+        if let Some(log) = self.log.as_deref_mut() {
+            log.received(t_us, frame);
+        }
+    }
+
+    fn stepped(&mut self, t_us: u64, controller: &Controller) {
+        if let Some(log) = self.log.as_deref_mut() {
+            log.stepped(t_us, controller);
+        }
+        if let Some((at, down_us, attempts)) = self.restored.take() {
+            let state = match (controller.state(), controller.fault()) {
+                (RobotState::Enabled, _) => "Enabled".to_string(),
+                (s, Fault::None) => format!("{s:?}: enable to drive again"),
+                (s, f) => format!("{s:?} ({f:?}): reset and enable to drive again"),
+            };
+            eprintln!(
+                "mecanum-runner: {}: link back at {:.3} s after {:.3} s down ({attempts} reopen attempts); the core is {state}",
+                self.iface,
+                at as f64 / 1e6,
+                down_us as f64 / 1e6
+            );
+        }
+    }
+
+    fn shut_down(&mut self, t_us: u64, controller: &Controller) {
+        if let Some(log) = self.log.as_deref_mut() {
+            log.shut_down(t_us, controller);
+        }
+    }
+
+    fn sent(&mut self, step_us: u64, sent_us: u64, frame: &CanFrame, sent: bool) {
+        if let Some(log) = self.log.as_deref_mut() {
+            log.sent(step_us, sent_us, frame, sent);
+        }
+    }
+
+    fn link(&mut self, t_us: u64, event: LinkEvent<'_>) {
+        if let Some(log) = self.log.as_deref_mut() {
+            log.link(t_us, event);
+        }
+        match event {
+            LinkEvent::Lost { error } => eprintln!(
+                "mecanum-runner: {}: link LOST at {:.3} s ({error}); the core keeps stepping, nothing is sent; reopening with back-off",
+                self.iface,
+                t_us as f64 / 1e6
+            ),
+            LinkEvent::Restored { down_us, attempts } => {
+                self.restored = Some((t_us, down_us, attempts));
+            }
+        }
+    }
+
+    fn step_done(&mut self) {
+        if let Some(log) = self.log.as_deref_mut() {
+            log.step_done();
+        }
     }
 }

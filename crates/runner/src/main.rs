@@ -14,12 +14,14 @@ use std::sync::atomic::AtomicUsize;
 use anyhow::{Context as _, Result};
 use clap::Parser;
 use firmware::config::Drive;
-use firmware::linux::{self, MonotonicClock, Report, RunOptions, SocketCanBus};
+use firmware::linux::{self, MonotonicClock, Report, RunOptions, SocketCanBus, StopReason};
 use firmware::{Config, Controller};
-use mecanum_runner::McapRecorder;
+use mecanum_runner::{Console, McapRecorder};
 
 /// Exit status for a startup error (bad arguments, configuration or interface).
 const EXIT_STARTUP: u8 = 2;
+/// The CAN link was lost and `--exit-on-link-loss` asked to stop.
+const EXIT_LINK_LOST: u8 = 3;
 
 const ABOUT: &str = "\
 Runs the mecanum drive's control core on a SocketCAN interface at a fixed rate: it reads the
@@ -45,6 +47,14 @@ timing.command_timeout_ms (100 ms), or it ramps to a stop and disables itself. T
 is an alive counter: a twist with the seq of the last accepted one is a repeat, not applied
 and not fed to the watchdog (counted in STATUS_COUNTERS), so increment it in every frame.
 
+The CAN link: if the interface goes down or away (link set down, adapter unplugged, cable
+fault), the runner keeps stepping the core at its rate (its watchdog and state machine see
+the silence: without motor feedback it faults, and stays faulted until a reset and a new
+enable), sends nothing, reopens the interface with back-off (10 ms doubling to 200 ms) and
+resumes when it is back, without a restart. Each loss and recovery is printed as it happens
+(and logged on /rosout with --log); the statistics count send and receive errors by kind and
+the gaps. --exit-on-link-loss stops instead.
+
 Exit: on SIGINT or SIGTERM (or when --duration has elapsed) the runner stops the loop,
 sends the frames that leave the motors safe (DJI: zero current; ODrive: zero velocity, then
 the idle state), prints statistics to stderr (loop jitter p50/p99/max, frame counts, bus
@@ -52,7 +62,8 @@ errors, the controller's state, rejected-frame and repeated-twist counters) and 
 SIGTERM during that shutdown exits at once with status 1.
 Exit status: 0 after a clean stop; 1 if the shutdown frames could not all be sent or the
 statistics or the log could not be written; 2 for a startup error (bad arguments, a configuration file
-that cannot be read or is invalid, a CAN interface that is missing or down).";
+that cannot be read or is invalid, a CAN interface that is missing or down); 3 when the CAN link
+was lost and --exit-on-link-loss was given.";
 
 #[derive(Debug, Parser)]
 #[command(name = "mecanum-runner", version, about = ABOUT, long_about = LONG_ABOUT)]
@@ -102,6 +113,12 @@ struct Args {
     /// With --log-max-mb, keep the newest K files and remove older ones (K >= 1).
     #[arg(long, value_name = "K", requires = "log_max_mb", default_value_t = 10, value_parser = parse_keep)]
     log_keep: usize,
+
+    /// Stop on a CAN link loss (the interface set down, the adapter unplugged: ENETDOWN,
+    /// ENODEV, ENXIO) with exit status 3, instead of the default: keep stepping the core,
+    /// reopen the interface with back-off and resume when it is back.
+    #[arg(long)]
+    exit_on_link_loss: bool,
 
     /// Print only errors (no start line, no statistics on stderr).
     #[arg(long, short)]
@@ -167,14 +184,20 @@ fn main() -> ExitCode {
     }
     let options = RunOptions {
         duration_us: args.duration.map(|s| (s * 1e6).round() as u64),
+        exit_on_link_loss: args.exit_on_link_loss,
         ..RunOptions::default()
     };
     let clock = MonotonicClock::new(args.spin_us);
-    let report = match log.as_mut() {
-        Some(recorder) => {
-            linux::run_recorded(&mut controller, &mut bus, &clock, &options, &stop, recorder)
-        }
-        None => linux::run(&mut controller, &mut bus, &clock, &options, &stop),
+    let report = {
+        let mut recorder = Console::new(&args.iface, log.as_mut());
+        linux::run_recorded(
+            &mut controller,
+            &mut bus,
+            &clock,
+            &options,
+            &stop,
+            &mut recorder,
+        )
     };
     let log_stats = log.as_ref().map(|l| (l.messages(), l.dropped()));
     let log_result = log.map(McapRecorder::finish);
@@ -203,6 +226,14 @@ fn main() -> ExitCode {
     if let Some(Err(e)) = log_result {
         say(format_args!("log: {}", linux::error_line(&e)));
         status = ExitCode::FAILURE;
+    }
+    if report.stop == StopReason::LinkLost {
+        say(format_args!(
+            "{}: CAN link lost ({}); stopped as --exit-on-link-loss asks",
+            args.iface,
+            report.link_error.as_deref().unwrap_or("no error recorded")
+        ));
+        return ExitCode::from(EXIT_LINK_LOST);
     }
     if report.shutdown.failed > 0 {
         say(format_args!(
