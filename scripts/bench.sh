@@ -7,8 +7,12 @@
 #   simulator real-time factor of the 60 s square with and without MCAP logging, the cost
 #   of logging (with / without, interleaved runs) and the log's size,
 #   MCAP write throughput against the Python mcap writer on the same frames (ratio),
+#   what --log costs the runner's loop per step and the log's size per hour (in process,
+#   crates/runner/benches/recorder.rs),
 #   frames/s the firmware runner takes on vcan0 without loss (the vcan lane's rate test;
-#   natively where the kernel has vcan, else in the micro-VM, which the table says).
+#   natively where the kernel has vcan, else in the micro-VM, which the table says), and
+#   the runner's jitter and step time on vcan0 with and without --log, on a quiet bus and
+#   under an 8,000 frames/s flood (scripts/runner_log_bench.py).
 #
 # usage: scripts/bench.sh [--quick] [--no-vcan]
 #   --quick     shorter criterion runs, one simulator run each, 200,000 MCAP frames
@@ -24,7 +28,7 @@ for arg in "$@"; do
     case $arg in
     --quick) quick=1 ;;
     --no-vcan) vcan=0 ;;
-    -h | --help) sed -n '2,15p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    -h | --help) sed -n '2,19p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
     *) echo "bench.sh: unknown argument $arg (see --help)" >&2; exit 2 ;;
     esac
 done
@@ -109,6 +113,26 @@ if [ "$vcan" = 1 ]; then
         row "runner loop jitter during it ($where)" "$(sed -n 's/.*jitter \(p50 .*\)/\1/p' <<<"$line")" "µs"
     else
         row "vcan0 frames/s into the runner" "not measured: $(grep -m1 -E 'SKIP|FAIL|failed|Error' <<<"$out" || echo 'no figure printed')" ""
+    fi
+fi
+
+log "what --log costs the runner's loop (per step, in process)"
+rec=$(cargo bench --locked -q -p mecanum-runner --bench recorder 2>/dev/null | tee /dev/stderr)
+row "runner loop thread per step, no log (paced 1 kHz, in process)" "$(sed -n 's/.*no log: *//p' <<<"$rec")" "µs"
+row "runner loop thread per step, --log" "$(sed -n 's/.*--log: *//p' <<<"$rec")" "µs"
+row "logging cost per step (loop thread)" "$(sed -n 's/.*logging cost per step: //p' <<<"$rec")" "µs"
+row "runner log size, DJI x 4 at 1 kHz (in process)" "$(sed -n 's/.*= \([0-9]*\) MB per hour.*/\1/p' <<<"$rec")" "MB/h"
+
+if [ "$vcan" = 1 ]; then
+    log "vcan0: the runner's jitter and step time with and without --log, quiet and flooded"
+    cargo build --release --locked -q -p hostsim --bin hostsim
+    lane_rc=0
+    out=$(HOSTSIM="$PWD/target/release/hostsim" MECANUM_RUNNER="$PWD/target/release/mecanum-runner" \
+        scripts/vcan.sh -- "$PY" scripts/runner_log_bench.py 2>&1 | tee /dev/stderr) || lane_rc=$?
+    if [ "$lane_rc" = 0 ]; then
+        while IFS= read -r line; do rows+=("$line"); done < <(grep '^| runner at 1 kHz' <<<"$out")
+    else
+        row "runner jitter with and without --log on vcan0" "FAILED (exit $lane_rc; the output is above)" ""
     fi
 fi
 
