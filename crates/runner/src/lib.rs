@@ -102,9 +102,17 @@ impl McapRecorder {
     /// # Errors
     /// [`LogError`] naming the file.
     pub fn create(path: &Path, config_toml: &str) -> Result<Self, LogError> {
-        let mut log = McapLog::create(path, &metadata(config_toml))?;
+        Ok(Self::on_log(McapLog::create(path, &metadata(config_toml))?))
+    }
+
+    /// A recorder on an open log (its metadata already written), switched to the
+    /// non-blocking mode; for tests of a disk that stops answering
+    /// ([`McapLog::on_writer`]).
+    #[doc(hidden)]
+    #[must_use]
+    pub fn on_log(mut log: McapLog) -> Self {
         log.drop_when_behind(MAX_PENDING_EVENTS);
-        Ok(Self {
+        Self {
             log: Some(log),
             rotation: None,
             error: None,
@@ -112,7 +120,7 @@ impl McapRecorder {
             state: None,
             dropped: 0,
             messages: 0,
-        })
+        }
     }
 
     /// A log rotated in `dir` (created if missing): files `runner-NNNNNN.mcap` of about
