@@ -51,6 +51,7 @@
 //! far from the start): replay then runs at most 60 000 steps (of 1 ms) per frame. Playback
 //! onto a bus applies the same check.
 
+use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
 
 use firmware::CanFrame;
@@ -381,6 +382,49 @@ impl ReplayReport {
 /// [`ReplayError`] if the log cannot be read, has no usable configuration, or has a gap in
 /// its time line longer than [`MAX_GAP_NS`].
 pub fn replay_mcap(path: &Path) -> Result<ReplayReport, ReplayError> {
+    let log = open_mcap(path)?;
+    let replayed = if log.steps.is_empty() {
+        replay_frames(&log.config, &log.rx, &log.tx)
+    } else {
+        replay_at_steps(&log.config, &log.rx, &log.tx, &log.steps)
+    };
+    let mut report = replayed.map_err(|e| match e {
+        ReplayRunError::Config(source) => ReplayError::Refused {
+            path: path.to_path_buf(),
+            source,
+        },
+        ReplayRunError::TimeGap(source) => ReplayError::TimeGap {
+            path: path.to_path_buf(),
+            source,
+        },
+    })?;
+    report.read = Some(log.content.read);
+    Ok(report)
+}
+
+/// An MCAP log ready to replay: what [`read_log`] read, the logged configuration and the
+/// [`complete_part`] of its frames and steps.
+#[derive(Debug, Clone)]
+pub struct McapReplayInput {
+    /// Everything read from the log.
+    pub content: LogContent,
+    /// The logged configuration, loaded and validated.
+    pub config: Config,
+    /// The inbound frames to feed.
+    pub rx: Vec<TimedFrame>,
+    /// The outbound frames to compare with.
+    pub tx: Vec<TimedFrame>,
+    /// The recorded steps (empty: step on the period grid).
+    pub steps: Vec<StepTime>,
+}
+
+/// Reads an MCAP log for replay ([`replay_mcap`]): its configuration and
+/// the complete part of its frames.
+///
+/// # Errors
+/// [`ReplayError`] if the log cannot be read, has no usable configuration, is a log of
+/// `hostsim plant`, or has no firmware frames.
+pub fn open_mcap(path: &Path) -> Result<McapReplayInput, ReplayError> {
     let content = read_log(path)?;
     let text = content
         .config
@@ -412,23 +456,13 @@ pub fn replay_mcap(path: &Path) -> Result<ReplayReport, ReplayError> {
             },
         });
     }
-    let replayed = if steps.is_empty() {
-        replay_frames(&config, &rx, &tx)
-    } else {
-        replay_at_steps(&config, &rx, &tx, &steps)
-    };
-    let mut report = replayed.map_err(|e| match e {
-        ReplayRunError::Config(source) => ReplayError::Refused {
-            path: path.to_path_buf(),
-            source,
-        },
-        ReplayRunError::TimeGap(source) => ReplayError::TimeGap {
-            path: path.to_path_buf(),
-            source,
-        },
-    })?;
-    report.read = Some(content.read);
-    Ok(report)
+    Ok(McapReplayInput {
+        content,
+        config,
+        rx,
+        tx,
+        steps,
+    })
 }
 
 /// The frames of a log to replay: all of an intact log's, and of one whose every message was
@@ -476,16 +510,32 @@ pub fn replay_frames(
     tx: &[TimedFrame],
 ) -> Result<ReplayReport, ReplayRunError> {
     let ctl = Controller::new(config)?;
-    check_time_gaps(rx.iter().chain(tx))?;
-    let period_ns = ctl.period_micros() * 1000;
-    let end_ns = rx.iter().chain(tx).map(|f| f.t_ns).max().unwrap_or(0);
-    let grid = std::iter::successors(Some(0u64), |t| t.checked_add(period_ns))
-        .take_while(|&t| t <= end_ns)
-        .map(|t_ns| StepTime {
-            t_ns,
-            shutdown: false,
-        });
+    let grid = step_schedule(ctl.period_micros() * 1000, rx, tx, &[])?;
     Ok(replay_schedule(ctl, rx, tx, grid))
+}
+
+/// The steps of a replay of `rx` against `tx`: the recorded `steps` (a runner's log), or
+/// without records one every `period_ns` from 0 through the last logged frame (the grid the
+/// simulator stepped on), after [`check_time_gaps`] on the frames.
+pub(crate) fn step_schedule<'a>(
+    period_ns: u64,
+    rx: &[TimedFrame],
+    tx: &[TimedFrame],
+    steps: &'a [StepTime],
+) -> Result<Box<dyn Iterator<Item = StepTime> + 'a>, TimeGap> {
+    if !steps.is_empty() {
+        return Ok(Box::new(steps.iter().copied()));
+    }
+    check_time_gaps(rx.iter().chain(tx))?;
+    let end_ns = rx.iter().chain(tx).map(|f| f.t_ns).max().unwrap_or(0);
+    Ok(Box::new(
+        std::iter::successors(Some(0u64), move |t| t.checked_add(period_ns))
+            .take_while(move |&t| t <= end_ns)
+            .map(|t_ns| StepTime {
+                t_ns,
+                shutdown: false,
+            }),
+    ))
 }
 
 /// Runs the core on `rx` and compares its output with `tx`, stepping at the recorded
@@ -510,25 +560,11 @@ fn replay_schedule(
     tx: &[TimedFrame],
     schedule: impl Iterator<Item = StepTime>,
 ) -> ReplayReport {
-    let mut next_rx = 0;
     let mut out_index = 0;
     let mut steps = 0;
     let mut difference = None;
-    'run: for StepTime { t_ns, shutdown } in schedule {
-        while let Some(f) = rx.get(next_rx)
-            && f.t_ns <= t_ns
-        {
-            ctl.on_frame(Instant::from_micros(f.t_ns / 1000), &f.frame);
-            next_rx += 1;
-        }
-        let out = if shutdown {
-            ctl.shutdown()
-        } else {
-            ctl.step(Instant::from_micros(t_ns / 1000))
-        };
-        let mut sent: Vec<CanFrame> = out.iter().copied().collect();
-        sent.sort_by_key(wire_order);
-        for frame in sent {
+    let fed = run_schedule(&mut ctl, rx, schedule, |StepTime { t_ns, .. }, sent, _| {
+        for &frame in sent {
             let replayed = TimedFrame { t_ns, frame };
             let logged = tx.get(out_index).copied();
             if logged != Some(replayed) {
@@ -538,7 +574,7 @@ fn replay_schedule(
                     logged,
                     replayed: Some(replayed),
                 });
-                break 'run;
+                return ControlFlow::Break(());
             }
             out_index += 1;
         }
@@ -552,10 +588,11 @@ fn replay_schedule(
                 logged: Some(logged),
                 replayed: None,
             });
-            break 'run;
+            return ControlFlow::Break(());
         }
         steps += 1;
-    }
+        ControlFlow::Continue(())
+    });
     if difference.is_none() && out_index < tx.len() {
         difference = Some(Difference {
             index: out_index,
@@ -566,11 +603,46 @@ fn replay_schedule(
     }
     ReplayReport {
         compared: out_index,
-        fed: next_rx,
+        fed,
         steps,
         difference,
         read: None,
     }
+}
+
+/// The replay loop, the one place where a log's inbound frames meet a core: before each
+/// step of `schedule`, feeds `ctl` the frames of `rx` logged at or before the step's time
+/// (each at its own logged time), runs the step (or the shutdown), and passes `on_step` the
+/// step, the frames it sent in [`wire_order`] and the core after it. Stops at the end of
+/// the schedule or when `on_step` breaks. Returns the number of inbound frames fed.
+pub(crate) fn run_schedule(
+    ctl: &mut Controller,
+    rx: &[TimedFrame],
+    schedule: impl Iterator<Item = StepTime>,
+    mut on_step: impl FnMut(StepTime, &[CanFrame], &Controller) -> ControlFlow<()>,
+) -> usize {
+    let mut next_rx = 0;
+    let mut sent: Vec<CanFrame> = Vec::new();
+    for step in schedule {
+        while let Some(f) = rx.get(next_rx)
+            && f.t_ns <= step.t_ns
+        {
+            ctl.on_frame(Instant::from_micros(f.t_ns / 1000), &f.frame);
+            next_rx += 1;
+        }
+        let out = if step.shutdown {
+            ctl.shutdown()
+        } else {
+            ctl.step(Instant::from_micros(step.t_ns / 1000))
+        };
+        sent.clear();
+        sent.extend(out.iter().copied());
+        sent.sort_by_key(wire_order);
+        if on_step(step, &sent, ctl).is_break() {
+            break;
+        }
+    }
+    next_rx
 }
 
 // ---------------------------------------------------------------------------------------------
