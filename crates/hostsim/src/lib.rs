@@ -18,3 +18,4 @@ pub mod replay;
 pub mod scenario;
 pub mod sim;
 pub mod summary;
+pub mod whatif;

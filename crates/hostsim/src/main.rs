@@ -20,6 +20,7 @@ use hostsim::replay::{
 };
 use hostsim::scenario::Scenario;
 use hostsim::sim::{LogOptions, RunSummary, run_metadata};
+use hostsim::whatif::{OPEN_LOOP_NOTE, what_if_mcap};
 use indicatif::{ProgressBar, ProgressStyle};
 
 /// Host simulator of the mecanum drive stack.
@@ -77,7 +78,8 @@ enum Cmd {
         #[arg(long)]
         progress_lines: bool,
     },
-    /// Replay a log through a fresh firmware core and compare, or play it onto a CAN bus.
+    /// Replay a log through a fresh firmware core and compare, try another configuration on
+    /// it (what-if, open loop), or play it onto a CAN bus.
     ///
     /// Without --iface: the log's inbound frames go through a fresh firmware core and its
     /// outbound frames are compared with the logged ones. An MCAP log (hostsim's) carries its
@@ -92,6 +94,21 @@ enum Cmd {
     /// and the odometry: the last logged ODOM_POSITION/ODOM_VELOCITY against the replayed
     /// core's pose at that time. All interfaces in a candump log are taken as one bus.
     ///
+    /// What-if (an MCAP log with --config FILE): the same recorded inbound frames, at the
+    /// same recorded times and steps, go through a core built from FILE instead of the logged
+    /// configuration, to see what a gain or limit change would have sent. OPEN LOOP: the
+    /// motors' feedback is what was recorded; the plant's reaction to the changed outputs is
+    /// not simulated (for that, run the scenario again with `run --config`). The report
+    /// (--json: one object) gives the changed fields, the first differing frame (time, logged
+    /// and what-if frame), frames logged / sent / differing per arbitration id, the drive
+    /// setpoints per wheel (FL FR RL RR) decoded with the firmware's codecs (DJI current, A;
+    /// ODrive velocity, rev/s, and torque feed-forward, Nm): max |setpoint| of each side, max
+    /// |what-if - logged| with its time and the RMS difference, and the state changes in the
+    /// STATUS frames of each side (e.g. a fault only in the what-if). FILE must describe the
+    /// same drives: the same protocol, ESC model and ESC ids (DJI) or node ids (ODrive), and
+    /// for a runner's log (recorded step times) the same timing.control_hz; else it is refused
+    /// naming the field and both values.
+    ///
     /// A damaged MCAP log (cut short by a killed run, or corrupt) is replayed up to shortly
     /// before the time of the last message in its last complete, intact chunk (less the
     /// longest a sent frame waited on the bus); a warning on stderr names the byte offset of
@@ -102,7 +119,10 @@ enum Cmd {
     /// tolerances), 1 if not, 2 for a bad log (nothing readable, no configuration, no
     /// firmware frames to compare, as in a `plant` log or one cut before its first step, a
     /// time line with a gap over 60 s), configuration or argument, 3 if the frames of a
-    /// damaged log's complete part match (the log is damaged: see the warning).
+    /// damaged log's complete part match (the log is damaged: see the warning). What-if: 0
+    /// when it ran, whether or not the frames differ (that is the answer, not a failure); 2
+    /// if FILE does not load, is refused by the firmware or describes other drives; 3 if it
+    /// ran on a damaged log's complete part.
     ///
     /// With --iface: plays the log's frames onto a SocketCAN interface in real time (each at
     /// its logged time relative to the first, divided by --speed) and reports frames sent
@@ -115,9 +135,10 @@ enum Cmd {
     Replay {
         /// A hostsim MCAP log, or a candump log (.log / .candump).
         log: PathBuf,
-        /// Drive configuration TOML used to classify and replay a candump log. Default: the
-        /// built-in DJI example (as config/dji_m3508.toml). Not allowed with an MCAP log,
-        /// which carries its own.
+        /// Drive configuration TOML. candump log: used to classify and replay it (default:
+        /// the built-in DJI example, as config/dji_m3508.toml). MCAP log: a what-if, the
+        /// logged session replayed open loop through a core built from FILE instead of the
+        /// logged configuration (see above).
         #[arg(long, value_name = "FILE")]
         config: Option<PathBuf>,
         /// Print the report as JSON (one object on stdout).
@@ -571,16 +592,10 @@ fn replay(
         }
     }
     match detect_format(path)? {
-        LogFormat::Mcap => {
-            if config.is_some() {
-                bail!(
-                    "--config applies to candump logs; {} is an MCAP log, which carries its \
-                     own configuration",
-                    path.display()
-                );
-            }
-            replay_mcap_log(path, json)
-        }
+        LogFormat::Mcap => match config {
+            Some(config) => what_if_log(path, config, json),
+            None => replay_mcap_log(path, json),
+        },
         LogFormat::Candump => replay_candump_log(path, config, tolerance, json),
     }
 }
@@ -655,6 +670,143 @@ fn replay_mcap_log(path: &Path, json: bool) -> Result<ExitCode> {
             show(&d.replayed)
         ),
     }
+    Ok(code)
+}
+
+/// `replay LOG.mcap --config FILE`: the what-if of another configuration on a logged session.
+fn what_if_log(path: &Path, config: &Path, json: bool) -> Result<ExitCode> {
+    let r = what_if_mcap(path, config)?;
+    let damaged = r.read.as_ref().filter(|r| !r.is_complete());
+    if let Some(read) = damaged {
+        warn_if_damaged(
+            path,
+            read,
+            "replaying its complete part, up to the last message read",
+        );
+    }
+    // It ran: different or not is the answer, not a failure.
+    let code = if damaged.is_some() {
+        ExitCode::from(EXIT_DAMAGED)
+    } else {
+        ExitCode::SUCCESS
+    };
+    let verdict = if r.identical {
+        "no_difference"
+    } else {
+        "differs"
+    };
+    if json {
+        let mut v = serde_json::to_value(&r)?;
+        if let Some(o) = v.as_object_mut() {
+            o.insert("note".into(), OPEN_LOOP_NOTE.into());
+            o.insert("log".into(), path.display().to_string().into());
+            o.insert("format".into(), serde_json::to_value(LogFormat::Mcap)?);
+            o.insert("config".into(), config.display().to_string().into());
+            o.insert("verdict".into(), verdict.into());
+            o.insert("complete".into(), damaged.is_none().into());
+            o.insert("damage".into(), damaged.map(ToString::to_string).into());
+        }
+        println!("{v}");
+        return Ok(code);
+    }
+    println!("{OPEN_LOOP_NOTE}");
+    println!(
+        "log {}, what-if configuration {}",
+        path.display(),
+        config.display()
+    );
+    if r.changes.is_empty() {
+        println!("changes: none (the what-if configuration equals the logged one)");
+    } else {
+        let show = |v: &Option<String>| v.as_deref().unwrap_or("(absent)").to_string();
+        let changes: Vec<String> = r
+            .changes
+            .iter()
+            .map(|c| format!("{} {} -> {}", c.field, show(&c.logged), show(&c.what_if)))
+            .collect();
+        println!("changes: {}", changes.join(", "));
+    }
+    println!(
+        "replayed {} steps, fed {} inbound frames; the log has {} outbound frames, the what-if \
+         core sent {}",
+        r.steps, r.fed, r.logged_frames, r.what_if_frames
+    );
+    match &r.first_difference {
+        None => println!(
+            "outbound frames are bit-identical: the change makes no difference on this log"
+        ),
+        Some(d) => {
+            // A frame's own time only where it is not the step's.
+            let show = |f: &Option<hostsim::replay::ReportFrame>| match f {
+                None => "nothing".to_string(),
+                Some(f) if f.t_s == d.t_s => f.frame.clone(),
+                Some(f) => format!("{} at {} s", f.frame, f.t_s),
+            };
+            println!(
+                "first difference at {} s (outbound frame {}): log has {}, what-if sent {}",
+                d.t_s,
+                d.index,
+                show(&d.logged),
+                show(&d.what_if)
+            );
+        }
+    }
+    println!("outbound frames by arbitration id:");
+    println!(
+        "  {:<10} {:<24} {:>8} {:>8} {:>8}",
+        "id", "message", "logged", "what-if", "differ"
+    );
+    for c in &r.by_id {
+        println!(
+            "  {:<10} {:<24} {:>8} {:>8} {:>8}",
+            c.id,
+            c.message,
+            c.logged,
+            c.what_if,
+            c.differ()
+        );
+    }
+    for q in &r.setpoints {
+        println!(
+            "{} setpoints, {} (difference = what-if - logged, each held between its commands):",
+            q.quantity, q.unit
+        );
+        println!(
+            "  {:<5} {:>11} {:>12} {:>11} {:>10} {:>11}",
+            "wheel", "max|logged|", "max|what-if|", "max|diff|", "at (s)", "rms diff"
+        );
+        for w in &q.wheels {
+            let d = &w.difference;
+            println!(
+                "  {:<5} {:>11.4} {:>12.4} {:>11.4} {:>10} {:>11.4}",
+                w.wheel,
+                w.max_abs_logged,
+                w.max_abs_what_if,
+                d.max_abs_difference,
+                d.t_max_difference_s.as_deref().unwrap_or("-"),
+                d.rms_difference
+            );
+        }
+    }
+    let list = |changes: &[hostsim::whatif::StateChange]| {
+        if changes.is_empty() {
+            "none".to_string()
+        } else {
+            changes
+                .iter()
+                .map(ToString::to_string)
+                .collect::<Vec<_>>()
+                .join(", ")
+        }
+    };
+    let s = &r.states;
+    println!("state changes in the STATUS frames:");
+    println!("  logged:               {}", list(&s.logged));
+    println!("  what-if:              {}", list(&s.what_if));
+    println!("  only in the log:      {}", list(&s.only_logged));
+    println!("  only in the what-if:  {}", list(&s.only_what_if));
+    println!("  what-if core (exact): {}", list(&s.what_if_core));
+    println!("verdict: {verdict}");
     Ok(code)
 }
 

@@ -418,8 +418,8 @@ pub struct McapReplayInput {
     pub steps: Vec<StepTime>,
 }
 
-/// Reads an MCAP log for replay ([`replay_mcap`]): its configuration and
-/// the complete part of its frames.
+/// Reads an MCAP log for replay ([`replay_mcap`], [`crate::whatif::what_if_mcap`]): its
+/// configuration and the complete part of its frames.
 ///
 /// # Errors
 /// [`ReplayError`] if the log cannot be read, has no usable configuration, is a log of
@@ -832,7 +832,7 @@ pub struct ReportFrame {
 }
 
 impl ReportFrame {
-    fn new(f: &TimedFrame) -> Self {
+    pub(crate) fn new(f: &TimedFrame) -> Self {
         Self {
             t_s: format!("{:.6}", f.t_ns as f64 * 1e-9),
             frame: crate::candump::format_frame(&f.frame),

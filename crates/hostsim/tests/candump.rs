@@ -378,7 +378,7 @@ fn replay_command_on_candump_and_mcap_logs() {
         (v["format"].as_str(), v["identical"].as_bool()),
         (Some("mcap"), Some(true))
     );
-    // --config does not apply to an MCAP log.
+    // With an MCAP log, --config is a what-if; another drive protocol is refused.
     let (code, _, err) = hostsim(&[
         "replay",
         mcap.to_str().unwrap(),
@@ -386,7 +386,10 @@ fn replay_command_on_candump_and_mcap_logs() {
         odrive_cfg.to_str().unwrap(),
     ]);
     assert_eq!(code, 2);
-    assert!(err.contains("--config applies to candump logs"), "{err}");
+    assert!(
+        err.contains("drive.protocol differs (log: dji, what-if: odrive)"),
+        "{err}"
+    );
 }
 
 #[test]
