@@ -753,12 +753,12 @@ fn what_if_log(path: &Path, config: &Path, json: bool) -> Result<ExitCode> {
     }
     println!("outbound frames by arbitration id:");
     println!(
-        "  {:<10} {:<24} {:>8} {:>8} {:>8}",
+        "  {:<10} {:<28} {:>8} {:>8} {:>8}",
         "id", "message", "logged", "what-if", "differ"
     );
     for c in &r.by_id {
         println!(
-            "  {:<10} {:<24} {:>8} {:>8} {:>8}",
+            "  {:<10} {:<28} {:>8} {:>8} {:>8}",
             c.id,
             c.message,
             c.logged,

@@ -322,7 +322,7 @@ pub struct SeriesDiff {
     pub samples: usize,
     /// Largest |what-if − logged|.
     pub max_abs_difference: f64,
-    /// When the largest difference was first reached, s (`None` without samples).
+    /// When the largest difference was first reached, s (`None`: no difference).
     pub t_max_difference_s: Option<String>,
     /// RMS of what-if − logged over the samples.
     pub rms_difference: f64,
@@ -365,7 +365,7 @@ pub fn compare_series(a: &[(u64, f64)], b: &[(u64, f64)]) -> SeriesDiff {
             let d = y - x;
             out.samples += 1;
             sum_sq += d * d;
-            if t_max.is_none() || d.abs() > out.max_abs_difference {
+            if d.abs() > out.max_abs_difference {
                 out.max_abs_difference = d.abs();
                 t_max = Some(t);
             }
@@ -767,4 +767,55 @@ fn status_changes(stream: &[TimedFrame]) -> Vec<StateChange> {
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn series_are_held_between_commands_and_compared_where_either_changes() {
+        // a: 1 from 0 ms, 2 from 10 ms; b: 4 from 5 ms. At 0 only a has a value (no
+        // sample); at 5 ms: 4 - 1 = 3; at 10 ms: 4 - 2 = 2.
+        let d = compare_series(&[(0, 1.0), (10_000_000, 2.0)], &[(5_000_000, 4.0)]);
+        assert_eq!(d.samples, 2);
+        assert_eq!(d.max_abs_difference, 3.0);
+        assert_eq!(d.t_max_difference_s.as_deref(), Some("0.005000"));
+        assert_eq!(d.rms_difference, (13.0f64 / 2.0).sqrt());
+        // Two values at one time: the last one holds. The first time of the largest
+        // difference is kept.
+        let d = compare_series(
+            &[(1_000_000, 0.0), (2_000_000, 5.0), (2_000_000, 1.0)],
+            &[(1_000_000, -1.0), (3_000_000, 2.0)],
+        );
+        assert_eq!(d.samples, 3);
+        assert_eq!(d.max_abs_difference, 2.0);
+        assert_eq!(d.t_max_difference_s.as_deref(), Some("0.002000"));
+        // Equal series, and empty ones: no difference, no time.
+        let same = compare_series(&[(0, 3.0), (7, -3.0)], &[(0, 3.0), (7, -3.0)]);
+        assert_eq!((same.samples, same.max_abs_difference), (2, 0.0));
+        assert_eq!((same.t_max_difference_s, same.rms_difference), (None, 0.0));
+        assert_eq!(compare_series(&[], &[(0, 1.0)]).samples, 0);
+    }
+
+    #[test]
+    fn only_the_fields_that_differ_are_changes() {
+        let a = Config::dji_m3508_example();
+        assert!(config_changes(&a, &a).is_empty());
+        let mut b = a;
+        b.gains.ki = 45.5;
+        b.limits.max_current = 8.0;
+        let fields: Vec<_> = config_changes(&a, &b)
+            .into_iter()
+            .map(|c| (c.field, c.logged, c.what_if))
+            .collect();
+        let s = |v: &str| Some(v.to_string());
+        assert_eq!(
+            fields,
+            [
+                ("gains.ki".to_string(), s("30.0"), s("45.5")),
+                ("limits.max_current".to_string(), s("16.0"), s("8.0")),
+            ]
+        );
+    }
 }
