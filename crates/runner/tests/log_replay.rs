@@ -106,7 +106,29 @@ fn a_runner_log_replays_bit_for_bit_at_its_recorded_steps() {
     assert_eq!(replay.steps, report.steps + 1);
 
     // On the simulator's grid instead, the same frames do not replay: the step times matter.
-    let (rx, tx, _) = hostsim::replay::complete_part(&content);
+    let (rx, tx, steps) = hostsim::replay::complete_part(&content);
     let grid = hostsim::replay::replay_frames(&config, &rx, &tx).unwrap();
     assert!(!grid.identical());
+
+    // A what-if steps at the recorded steps too: the logged configuration changes nothing,
+    // a doubled velocity gain changes only the current commands.
+    use hostsim::whatif::what_if_frames;
+    let same = what_if_frames(&config, &config, &rx, &tx, &steps).unwrap();
+    assert!(same.identical, "{:?}", same.first_difference);
+    assert_eq!(same.steps, report.steps + 1);
+    let mut stiffer = config;
+    stiffer.gains.kp *= 2.0;
+    let r = what_if_frames(&config, &stiffer, &rx, &tx, &steps).unwrap();
+    assert_eq!(
+        (r.steps, r.what_if_frames),
+        (report.steps + 1, r.logged_frames)
+    );
+    let first = r.first_difference.as_ref().unwrap();
+    assert!(
+        first.what_if.as_ref().unwrap().frame.starts_with("200#"),
+        "{first:?}"
+    );
+    for c in &r.by_id {
+        assert_eq!(c.differ() > 0, c.id == "0x200", "{c:?}");
+    }
 }
