@@ -446,3 +446,24 @@ fn the_command_line_what_if() {
     assert!(help.contains("OPEN LOOP"), "{help}");
     assert!(help.contains("What-if: 0"), "{help}");
 }
+
+#[test]
+fn a_damaged_log_runs_on_its_complete_part_and_exits_3() {
+    let bytes = std::fs::read(dji_log()).unwrap();
+    let cut = common::scratch("whatif", "cut.mcap");
+    std::fs::write(&cut, &bytes[..bytes.len() * 2 / 3]).unwrap();
+    let same = config_file("cut-same.toml", &Config::dji_m3508_example());
+    let r = what_if_mcap(&cut, &same).unwrap();
+    assert!(!r.read.as_ref().unwrap().is_complete());
+    assert!(r.identical, "{:?}", r.first_difference);
+    assert!(r.steps > 100 && r.steps < 2501, "{}", r.steps);
+    let (code, out, err) = hostsim(&[
+        "replay",
+        cut.to_str().unwrap(),
+        "--config",
+        same.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 3, "{out}{err}");
+    assert!(err.contains("warning:"), "{err}");
+    assert!(out.contains("verdict: no_difference"), "{out}");
+}
