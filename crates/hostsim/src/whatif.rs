@@ -562,6 +562,9 @@ pub fn what_if_frames(
         ControlFlow::Continue(())
     });
 
+    // As the log's: by step time, then wire order (stable). Only a step at the time of the
+    // one before it (a runner's shutdown right after its last step) is not in that order yet.
+    sent.sort_by_key(|f| (f.t_ns, wire_order(&f.frame)));
     let first_difference = first_difference(tx, &sent);
     let (logged_states, what_if_states) = (status_changes(tx), status_changes(&sent));
     let only = |a: &[StateChange], b: &[StateChange]| -> Vec<StateChange> {
@@ -634,36 +637,44 @@ fn message_name(config: &Config, frame: &CanFrame) -> String {
     }
 }
 
+/// The frames of both streams (each in `(t_ns, wire_order)` order) by arbitration id,
+/// paired in one pass: in constant memory per id, whatever the log's length.
 fn by_id(config: &Config, logged: &[TimedFrame], what_if: &[TimedFrame]) -> Vec<IdComparison> {
-    // (id, step time) -> the frames of each side with that id at that step, in order.
-    type Sides = [Vec<CanFrame>; 2];
-    let mut at: BTreeMap<(u64, u64), Sides> = BTreeMap::new();
+    let key = |f: &TimedFrame| (f.t_ns, wire_order(&f.frame));
     let mut ids: BTreeMap<u64, IdComparison> = BTreeMap::new();
-    for (side, stream) in [logged, what_if].into_iter().enumerate() {
-        for f in stream {
-            let key = wire_order(&f.frame);
-            at.entry((key, f.t_ns)).or_default()[side].push(f.frame);
-            let c = ids.entry(key).or_insert_with(|| IdComparison {
-                id: id_text(&f.frame),
-                message: message_name(config, &f.frame),
-                logged: 0,
-                what_if: 0,
-                changed: 0,
-                only_logged: 0,
-                only_what_if: 0,
-            });
-            if side == 0 {
-                c.logged += 1;
-            } else {
-                c.what_if += 1;
-            }
-        }
-    }
-    for ((key, _), [a, b]) in &at {
-        let Some(c) = ids.get_mut(key) else { continue };
+    let (mut i, mut j) = (0, 0);
+    loop {
+        // The next (step time, id) in either stream, and each stream's run of frames with it.
+        let next = match (logged.get(i), what_if.get(j)) {
+            (Some(a), Some(b)) => key(a).min(key(b)),
+            (Some(a), None) => key(a),
+            (None, Some(b)) => key(b),
+            (None, None) => break,
+        };
+        let run = |stream: &[TimedFrame], from: usize| {
+            stream[from..].iter().take_while(|f| key(f) == next).count()
+        };
+        let (a, b) = (
+            &logged[i..i + run(logged, i)],
+            &what_if[j..j + run(what_if, j)],
+        );
+        (i, j) = (i + a.len(), j + b.len());
+        let first = a.first().or(b.first()).map(|f| f.frame);
+        let Some(first) = first else { break };
+        let c = ids.entry(next.1).or_insert_with(|| IdComparison {
+            id: id_text(&first),
+            message: message_name(config, &first),
+            logged: 0,
+            what_if: 0,
+            changed: 0,
+            only_logged: 0,
+            only_what_if: 0,
+        });
+        c.logged += a.len();
+        c.what_if += b.len();
         for k in 0..a.len().max(b.len()) {
             match (a.get(k), b.get(k)) {
-                (Some(x), Some(y)) if x != y => c.changed += 1,
+                (Some(x), Some(y)) if x.frame != y.frame => c.changed += 1,
                 (Some(_), None) => c.only_logged += 1,
                 (None, Some(_)) => c.only_what_if += 1,
                 _ => {}
