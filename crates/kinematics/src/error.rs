@@ -2,6 +2,38 @@
 
 use core::fmt;
 
+/// A body axis of the chassis twist, for errors that name one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Axis {
+    /// x, forward (`vx`).
+    Forward,
+    /// y, to the left (`vy`).
+    Lateral,
+    /// Yaw, counter-clockwise (`wz`).
+    Yaw,
+}
+
+impl Axis {
+    /// The three axes in twist order (x, y, yaw).
+    pub const ALL: [Self; 3] = [Self::Forward, Self::Lateral, Self::Yaw];
+
+    /// `"forward"`, `"lateral"` or `"yaw"`.
+    #[must_use]
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::Forward => "forward",
+            Self::Lateral => "lateral",
+            Self::Yaw => "yaw",
+        }
+    }
+}
+
+impl fmt::Display for Axis {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 /// Why a wheel layout was refused by [`MecanumKinematics::new`](crate::MecanumKinematics::new)
 /// or [`MecanumKinematics::standard`](crate::MecanumKinematics::standard).
 ///
@@ -60,8 +92,18 @@ pub enum GeometryError {
         /// How far off the rounded map is, relative and with the columns scaled as for the
         /// condition number: the largest error of `J` as a fraction of its largest entry
         /// (allowed: ε of the type), or else the largest entry of `|J⁺ J − I|` (allowed:
-        /// `32 N · condition · ε`). Infinite if an entry is not finite.
+        /// `32 N · condition · ε`), or else the largest error of a map scaled by the
+        /// effectiveness factors (allowed: ε). Infinite if an entry is not finite.
         deviation: f64,
+    },
+    /// An effectiveness factor (see
+    /// [`Effectiveness`](crate::Effectiveness)) is NaN, infinite, `<= 0` or above
+    /// [`MAX_EFFECTIVENESS`](crate::MAX_EFFECTIVENESS).
+    Effectiveness {
+        /// The axis of the factor.
+        axis: Axis,
+        /// The rejected factor (dimensionless).
+        value: f64,
     },
 }
 
@@ -95,6 +137,12 @@ impl fmt::Display for GeometryError {
                 f,
                 "wheel map does not fit the float type (max |J+ J - I| = {deviation:e}): \
                  lengths or radius of extreme magnitude overflow or underflow it; check units"
+            ),
+            Self::Effectiveness { axis, value } => write!(
+                f,
+                "{axis} effectiveness {value} is not in (0, {}]: it is the fraction of the \
+                 wheel-implied motion the robot makes (1 = no slip)",
+                crate::kinematics::MAX_EFFECTIVENESS
             ),
         }
     }

@@ -27,10 +27,28 @@
 //! `condition · ε` of `T`. This is the only `f64` arithmetic in the crate, done once per
 //! layout (slow software floating point on a single-precision FPU, but heap-free and a few
 //! thousand operations); every per-step method computes in `T` alone.
+//!
+//! # Effectiveness (slip-aware maps)
+//!
+//! Mecanum rollers slide, so a robot moves less than its wheels say, most of all sideways
+//! (a pure strafe commonly reaches 70-80 % of the commanded speed). [`Effectiveness`] models
+//! that per body axis: `k = (kx, ky, kw)`, the fraction of the wheel-implied motion the robot
+//! really makes. Forward kinematics (and so [`Odometry`](crate::Odometry)) reports
+//! `diag(k) J⁺ w`; inverse kinematics asks the wheels for `J diag(k)⁻¹ v`, so the robot
+//! reaches the commanded `v`. Inverse then forward stays the identity on twists, forward then
+//! inverse the projection onto the wheels' range, and desaturation (one common factor on the
+//! wheels) still keeps the direction of the command.
+//!
+//! The factors are folded into the two precomputed maps at construction (`J` divided
+//! column-wise by `k` and `J⁺` multiplied row-wise by `k`, in `f64`, each rounded to `T` once),
+//! so they cost nothing per step. The layout checks (rank, condition number) are made on the
+//! geometric map, before the factors: they describe the wheels, not the floor. With the
+//! default `k = 1` every entry is the ideal map's, bit for bit (`x / 1` and `x · 1` are exact).
+//! Road Runner's `lateralMultiplier` is `1 / ky`.
 
 use nalgebra::{Matrix3, SMatrix, Vector3};
 
-use crate::error::GeometryError;
+use crate::error::{Axis, GeometryError};
 use crate::real::Real;
 use crate::types::{ChassisVelocity, Twist2, WheelDeltas, WheelSpeeds};
 
@@ -104,6 +122,83 @@ impl<T: Real> WheelGeometry<T> {
     }
 }
 
+/// The largest effectiveness factor accepted (see [`Effectiveness`]): 1.5.
+///
+/// A factor above 1 says the robot moves *more* than its wheels imply (an effective wheel
+/// radius or lever arm larger than configured); beyond 1.5 it is a configuration error
+/// rather than a calibration.
+pub const MAX_EFFECTIVENESS: f64 = 1.5;
+
+/// Per-axis effectiveness of the wheels: the fraction of the body motion the wheels imply
+/// that the robot really makes, along x (forward), y (left) and in yaw. Dimensionless, each in
+/// `(0, MAX_EFFECTIVENESS]`; `1` (the default) is the ideal, slip-free model.
+///
+/// Plain data: [`MecanumKinematics::with_effectiveness`] and
+/// [`MecanumKinematics::standard_with_effectiveness`] check it ([`check`](Self::check)).
+/// See the [module docs](self) for how it enters the maps.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Effectiveness<T> {
+    /// Forward (x) factor: body x velocity made per unit the wheels imply.
+    pub kx: T,
+    /// Lateral (y) factor: body y velocity made per unit the wheels imply (a strafe on
+    /// mecanum rollers: typically 0.7 to 0.8).
+    pub ky: T,
+    /// Yaw factor: yaw rate made per unit the wheels imply.
+    pub kw: T,
+}
+
+impl<T: Real> Effectiveness<T> {
+    /// Factors for x (forward), y (left) and yaw, unchecked.
+    #[must_use]
+    pub const fn new(kx: T, ky: T, kw: T) -> Self {
+        Self { kx, ky, kw }
+    }
+
+    /// `k = (1, 1, 1)`: the ideal model, the robot makes exactly what its wheels imply.
+    #[must_use]
+    pub fn ideal() -> Self {
+        Self::new(T::one(), T::one(), T::one())
+    }
+
+    /// `true` if every factor is exactly 1.
+    #[must_use]
+    pub fn is_ideal(&self) -> bool {
+        self.as_array() == [T::one(); 3]
+    }
+
+    /// The factors in axis order (x, y, yaw).
+    #[must_use]
+    pub const fn as_array(&self) -> [T; 3] {
+        [self.kx, self.ky, self.kw]
+    }
+
+    /// Checks that every factor is finite and in `(0, MAX_EFFECTIVENESS]`.
+    ///
+    /// # Errors
+    /// [`GeometryError::Effectiveness`] naming the first axis out of range (x, y, yaw) and its
+    /// value.
+    pub fn check(&self) -> Result<(), GeometryError> {
+        for (axis, k) in Axis::ALL.into_iter().zip(self.as_array()) {
+            // Written so that NaN fails.
+            let in_range = k > T::zero() && k <= T::lit(MAX_EFFECTIVENESS);
+            if !in_range {
+                return Err(GeometryError::Effectiveness {
+                    axis,
+                    value: k.to_f64(),
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
+impl<T: Real> Default for Effectiveness<T> {
+    /// [`Effectiveness::ideal`].
+    fn default() -> Self {
+        Self::ideal()
+    }
+}
+
 /// Inverse and forward kinematics of an `N`-wheel mecanum chassis (`N >= 3`, checked at
 /// compile time).
 ///
@@ -112,9 +207,11 @@ impl<T: Real> WheelGeometry<T> {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MecanumKinematics<T: Real, const N: usize> {
     wheels: [WheelGeometry<T>; N],
-    /// Inverse map `J`: body twist (vx, vy, wz) to wheel speeds.
+    effectiveness: Effectiveness<T>,
+    /// Inverse map as applied, `J diag(k)⁻¹`: commanded body twist (vx, vy, wz) to wheel speeds.
     inverse: SMatrix<T, N, 3>,
-    /// Least-squares forward map `J⁺ = (JᵀJ)⁻¹Jᵀ` (computed by QR in `f64`, rounded to `T`).
+    /// Forward map as applied, `diag(k) J⁺`, with `J⁺ = (JᵀJ)⁻¹Jᵀ` the least-squares inverse
+    /// (computed by QR in `f64`, scaled and rounded to `T`).
     forward: SMatrix<T, 3, N>,
     condition: T,
 }
@@ -130,6 +227,22 @@ impl<T: Real, const N: usize> MecanumKinematics<T, N> {
     /// ([`Singular`](GeometryError::Singular)), or a layout whose numbers overflow or
     /// underflow `T` ([`Unrepresentable`](GeometryError::Unrepresentable)).
     pub fn new(wheels: [WheelGeometry<T>; N]) -> Result<Self, GeometryError> {
+        Self::with_effectiveness(wheels, Effectiveness::ideal())
+    }
+
+    /// As [`new`](Self::new), with per-axis [`Effectiveness`] factors (the slip-aware maps,
+    /// see the module docs). With [`Effectiveness::ideal`] it is [`new`](Self::new), bit for
+    /// bit.
+    ///
+    /// # Errors
+    /// As [`new`](Self::new); [`GeometryError::Effectiveness`] for a factor that is not finite
+    /// or not in `(0, MAX_EFFECTIVENESS]`, naming the axis;
+    /// [`Unrepresentable`](GeometryError::Unrepresentable) if a factor, though in range,
+    /// makes an entry of the maps overflow or underflow `T` (e.g. `1e-39` in `f32`).
+    pub fn with_effectiveness(
+        wheels: [WheelGeometry<T>; N],
+        effectiveness: Effectiveness<T>,
+    ) -> Result<Self, GeometryError> {
         let mut inverse = SMatrix::<f64, N, 3>::zeros();
         for (i, wheel) in wheels.iter().enumerate() {
             let row = wheel.inverse_row(i)?;
@@ -137,7 +250,8 @@ impl<T: Real, const N: usize> MecanumKinematics<T, N> {
                 inverse[(i, j)] = v;
             }
         }
-        Self::from_rows(wheels, &inverse)
+        effectiveness.check()?;
+        Self::from_rows(wheels, &inverse, effectiveness)
     }
 
     /// The largest condition number accepted (see
@@ -154,12 +268,14 @@ impl<T: Real, const N: usize> MecanumKinematics<T, N> {
         T::lit(max_condition(T::EPSILON.to_f64()))
     }
 
-    /// Completes construction from the validated rows of the inverse map (in `f64`): rounds
-    /// them to `T`, checks the rank, computes the conditioning figure and the least-squares
-    /// forward map (in `f64`, see the module docs).
+    /// Completes construction from the validated rows of the inverse map (in `f64`) and
+    /// checked factors: rounds the rows to `T`, checks the rank, computes the conditioning
+    /// figure and the least-squares forward map (in `f64`, see the module docs), then folds
+    /// the factors into both maps.
     fn from_rows(
         wheels: [WheelGeometry<T>; N],
         rows: &SMatrix<f64, N, 3>,
+        effectiveness: Effectiveness<T>,
     ) -> Result<Self, GeometryError> {
         const { assert!(N >= 3, "a mecanum layout needs at least three wheels") };
         let eps = T::EPSILON.to_f64();
@@ -170,24 +286,8 @@ impl<T: Real, const N: usize> MecanumKinematics<T, N> {
         // The map as `inverse` will apply it, rounded to T once. A finite layout can still
         // overflow T (or f64) or underflow it to a few digits or zero: compare, with the
         // columns scaled as for the condition number, relative to the largest entry.
-        let inverse = rows.map(T::lit);
+        let inverse = round_faithfully(rows, |_, k| if k == 2 { 1.0 / length } else { 1.0 })?;
         let j = inverse.map(Real::to_f64);
-        let mut worst = 0.0_f64;
-        let mut largest = 0.0_f64;
-        for i in 0..N {
-            for k in 0..3 {
-                let scale = if k == 2 { 1.0 / length } else { 1.0 };
-                let e = libm::fabs(j[(i, k)] - rows[(i, k)]) * scale;
-                worst = if e > worst || e.is_nan() { e } else { worst };
-                largest = largest.max(libm::fabs(rows[(i, k)]) * scale);
-            }
-        }
-        let deviation = worst / largest;
-        // Written so that NaN (an overflow) is refused.
-        let fits = deviation <= eps;
-        if !fits {
-            return Err(unrepresentable(deviation));
-        }
         let mut scaled = j;
         for i in 0..N {
             scaled[(i, 2)] /= length;
@@ -227,8 +327,36 @@ impl<T: Real, const N: usize> MecanumKinematics<T, N> {
         if !inverts {
             return Err(unrepresentable(deviation));
         }
+
+        // The factors, folded in f64 and rounded once: J diag(k)⁻¹ from the exact rows,
+        // diag(k) J⁺ from the f64 forward map. k = 1 leaves every bit as it is (x / 1 and
+        // x · 1 are exact), so the ideal maps are the ones checked above.
+        let (inverse, forward) = if effectiveness.is_ideal() {
+            (inverse, forward)
+        } else {
+            let k = effectiveness.as_array().map(Real::to_f64);
+            let mut scaled_rows = *rows;
+            for i in 0..N {
+                for (j, kj) in k.iter().enumerate() {
+                    scaled_rows[(i, j)] /= kj;
+                }
+            }
+            let mut scaled_forward = forward_f64;
+            for (i, ki) in k.iter().enumerate() {
+                for col in 0..N {
+                    scaled_forward[(i, col)] *= ki;
+                }
+            }
+            // Judged with the factors divided out again (and the yaw column or row scaled as
+            // above): an entry the factor pushed beyond T, or into its subnormals, fails.
+            let yaw = |i: usize, s: f64| if i == 2 { s } else { 1.0 };
+            let inverse = round_faithfully(&scaled_rows, |_, j| k[j] * yaw(j, 1.0 / length))?;
+            let forward = round_faithfully(&scaled_forward, |i, _| yaw(i, length) / k[i])?;
+            (inverse, forward)
+        };
         Ok(Self {
             wheels,
+            effectiveness,
             inverse,
             forward,
             condition: T::lit(condition),
@@ -241,13 +369,23 @@ impl<T: Real, const N: usize> MecanumKinematics<T, N> {
         &self.wheels
     }
 
-    /// The inverse map `J` (N × 3): wheel speeds (rad/s) = `J` · (vx, vy, wz).
+    /// The per-axis effectiveness factors folded into the maps (ideal unless built with
+    /// [`with_effectiveness`](Self::with_effectiveness) or
+    /// [`standard_with_effectiveness`](MecanumKinematics::standard_with_effectiveness)).
+    #[must_use]
+    pub const fn effectiveness(&self) -> Effectiveness<T> {
+        self.effectiveness
+    }
+
+    /// The inverse map as applied (N × 3): wheel speeds (rad/s) = `J diag(k)⁻¹` · (vx, vy, wz),
+    /// `J` itself with the ideal factors.
     #[must_use]
     pub const fn inverse_matrix(&self) -> &SMatrix<T, N, 3> {
         &self.inverse
     }
 
-    /// The least-squares forward map `J⁺` (3 × N).
+    /// The forward map as applied (3 × N): `diag(k) J⁺`, the least-squares inverse `J⁺`
+    /// itself with the ideal factors.
     #[must_use]
     pub const fn forward_matrix(&self) -> &SMatrix<T, 3, N> {
         &self.forward
@@ -265,7 +403,9 @@ impl<T: Real, const N: usize> MecanumKinematics<T, N> {
         self.condition
     }
 
-    /// Inverse kinematics: the wheel speeds that move the body with `velocity`.
+    /// Inverse kinematics: the wheel speeds that move the body with `velocity` (with the
+    /// [`effectiveness`](Self::effectiveness) factors: the ideal wheel speeds of
+    /// `velocity / k`).
     #[must_use]
     #[inline]
     pub fn inverse(&self, velocity: ChassisVelocity<T>) -> WheelSpeeds<T, N> {
@@ -287,7 +427,8 @@ impl<T: Real, const N: usize> MecanumKinematics<T, N> {
         ))
     }
 
-    /// Forward kinematics: the body velocity that best explains `speeds` (least squares).
+    /// Forward kinematics: the body velocity that best explains `speeds` (least squares),
+    /// times the [`effectiveness`](Self::effectiveness) factors.
     #[must_use]
     #[inline]
     pub fn forward(&self, speeds: &WheelSpeeds<T, N>) -> ChassisVelocity<T> {
@@ -297,7 +438,8 @@ impl<T: Real, const N: usize> MecanumKinematics<T, N> {
 
     /// Forward kinematics and the residual: per wheel, the measured speed minus the speed the
     /// fitted body velocity implies (rad/s). Zero when the wheels agree; its size is the slip
-    /// signal. With exactly three wheels it is always zero.
+    /// signal. With exactly three wheels it is always zero. The effectiveness factors cancel
+    /// in it: it is a property of the wheels, the same for any `k`.
     #[must_use]
     pub fn forward_with_residual(
         &self,
@@ -337,7 +479,8 @@ impl<T: Real, const N: usize> MecanumKinematics<T, N> {
     }
 
     /// Forward kinematics of one step: the body displacement (in the body frame at the start
-    /// of the step) that best explains the wheel angle increments.
+    /// of the step) that best explains the wheel angle increments, times the
+    /// [`effectiveness`](Self::effectiveness) factors.
     #[must_use]
     #[inline]
     pub fn displacement(&self, deltas: &WheelDeltas<T, N>) -> Twist2<T> {
@@ -372,6 +515,22 @@ impl<T: Real> MecanumKinematics<T, 4> {
     /// reverse the yaw direction), `lx + ly == 0` (no yaw authority: singular), or the values
     /// overflow `T` ([`Unrepresentable`](GeometryError::Unrepresentable)).
     pub fn standard(lx: T, ly: T, r: T) -> Result<Self, GeometryError> {
+        Self::standard_with_effectiveness(lx, ly, r, Effectiveness::ideal())
+    }
+
+    /// As [`standard`](Self::standard), with per-axis [`Effectiveness`] factors (the
+    /// slip-aware maps, see the module docs): `FL = (vx/kx − vy/ky − (lx+ly) wz/kw) / r`, and
+    /// so on. With [`Effectiveness::ideal`] it is [`standard`](Self::standard), bit for bit.
+    ///
+    /// # Errors
+    /// As [`standard`](Self::standard), and as
+    /// [`with_effectiveness`](Self::with_effectiveness) for the factors.
+    pub fn standard_with_effectiveness(
+        lx: T,
+        ly: T,
+        r: T,
+        effectiveness: Effectiveness<T>,
+    ) -> Result<Self, GeometryError> {
         let q = T::PI * T::lit(0.25);
         let axle = q + q;
         let wheels = [
@@ -400,7 +559,8 @@ impl<T: Real> MecanumKinematics<T, 4> {
             1.0,  1.0, -k,
             1.0, -1.0,  k,
         ) / r.to_f64();
-        Self::from_rows(wheels, &rows)
+        effectiveness.check()?;
+        Self::from_rows(wheels, &rows, effectiveness)
     }
 }
 
@@ -412,6 +572,37 @@ fn unrepresentable(deviation: f64) -> GeometryError {
         } else {
             deviation
         },
+    }
+}
+
+/// `exact` rounded to `T`, if that loses at most `ε` of `T` relative to the largest entry,
+/// each entry weighed by `weight(row, column)` (finite and positive); else
+/// [`GeometryError::Unrepresentable`]. Fails on an entry that overflows (or is already
+/// infinite or NaN), and on one rounded to zero or to a few digits of a subnormal while it
+/// matters at the scale of the others.
+fn round_faithfully<T: Real, const R: usize, const C: usize>(
+    exact: &SMatrix<f64, R, C>,
+    weight: impl Fn(usize, usize) -> f64,
+) -> Result<SMatrix<T, R, C>, GeometryError> {
+    let rounded = exact.map(T::lit);
+    let mut worst = 0.0_f64;
+    let mut largest = 0.0_f64;
+    for i in 0..R {
+        for j in 0..C {
+            let w = weight(i, j);
+            let e = libm::fabs(rounded[(i, j)].to_f64() - exact[(i, j)]) * w;
+            // `max` would drop a NaN.
+            worst = if e > worst || e.is_nan() { e } else { worst };
+            largest = largest.max(libm::fabs(exact[(i, j)]) * w);
+        }
+    }
+    let deviation = worst / largest;
+    // Written so that NaN (an overflow) is refused.
+    let fits = deviation <= T::EPSILON.to_f64();
+    if fits {
+        Ok(rounded)
+    } else {
+        Err(unrepresentable(deviation))
     }
 }
 

@@ -11,8 +11,8 @@ pub mod real;
 pub mod types;
 
 pub use encoder::{Encoder, EncoderConfig};
-pub use error::{EncoderError, GeometryError};
-pub use kinematics::{MecanumKinematics, WheelGeometry};
+pub use error::{Axis, EncoderError, GeometryError};
+pub use kinematics::{Effectiveness, MAX_EFFECTIVENESS, MecanumKinematics, WheelGeometry};
 pub use odometry::Odometry;
 pub use real::{Real, wrap_angle};
 pub use types::{ChassisVelocity, Pose2, Twist2, WheelDeltas, WheelSpeeds};
