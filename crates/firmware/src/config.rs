@@ -9,10 +9,31 @@
 //!
 //! Wheel arrays are in the order FL, FR, RL, RR. Units are SI unless a name says otherwise
 //! (`_ms`, `_hz`).
+//!
+//! # Effectiveness (slip)
+//!
+//! Mecanum rollers slide, so the robot moves less than its wheels say, most of all sideways.
+//! Both layouts of [`Geometry`] take three optional, dimensionless factors, each the fraction
+//! of the wheel-implied body motion the robot really makes along one axis:
+//!
+//! | key | axis | default |
+//! |---|---|---|
+//! | `forward_effectiveness` | x, forward (`vx`) | 1.0 |
+//! | `lateral_effectiveness` | y, left (`vy`); a strafe typically makes 0.7-0.8 | 1.0 |
+//! | `yaw_effectiveness` | yaw (`wz`) | 1.0 |
+//!
+//! Each must be finite and in `(0, 1.5]`. The odometry (and the measured velocity) reports
+//! the factor times what the wheels imply; the wheels are asked for the commanded twist
+//! divided by it, so the robot reaches the command (see
+//! [`kinematics::Effectiveness`]). At 1.0, the default, the maps and so every output are
+//! the ideal model's bit for bit, and a key at 1.0 is left out of the TOML a configuration
+//! serialises to (`Config::to_toml_string`, feature `std`; the text a log records), so a
+//! configuration without them writes the same text as before they existed. Road Runner's `lateralMultiplier` is
+//! `1 / lateral_effectiveness`.
 
 use core::fmt;
 
-use kinematics::{GeometryError, MecanumKinematics, WheelGeometry};
+use kinematics::{Effectiveness, GeometryError, MecanumKinematics, WheelGeometry};
 
 use crate::protocol::dji::{EscId, EscModel};
 use crate::protocol::odrive::NodeId;
@@ -54,12 +75,88 @@ pub enum Geometry {
         ly: f32,
         /// Wheel radius, m.
         wheel_radius: f32,
+        /// Fraction of the wheel-implied forward (x) motion the robot makes, in `(0, 1.5]`
+        /// (see [the module docs](crate::config#effectiveness-slip)).
+        #[cfg_attr(
+            feature = "serde",
+            serde(default = "unit::one", skip_serializing_if = "unit::is_one")
+        )]
+        forward_effectiveness: f32,
+        /// Fraction of the wheel-implied lateral (y) motion the robot makes, in `(0, 1.5]`.
+        #[cfg_attr(
+            feature = "serde",
+            serde(default = "unit::one", skip_serializing_if = "unit::is_one")
+        )]
+        lateral_effectiveness: f32,
+        /// Fraction of the wheel-implied yaw motion the robot makes, in `(0, 1.5]`.
+        #[cfg_attr(
+            feature = "serde",
+            serde(default = "unit::one", skip_serializing_if = "unit::is_one")
+        )]
+        yaw_effectiveness: f32,
     },
     /// Any four wheels, each given by its own geometry (FL, FR, RL, RR).
     General {
         /// Per-wheel geometry.
         wheels: [WheelConfig; 4],
+        /// Fraction of the wheel-implied forward (x) motion the robot makes, in `(0, 1.5]`
+        /// (see [the module docs](crate::config#effectiveness-slip)).
+        #[cfg_attr(
+            feature = "serde",
+            serde(default = "unit::one", skip_serializing_if = "unit::is_one")
+        )]
+        forward_effectiveness: f32,
+        /// Fraction of the wheel-implied lateral (y) motion the robot makes, in `(0, 1.5]`.
+        #[cfg_attr(
+            feature = "serde",
+            serde(default = "unit::one", skip_serializing_if = "unit::is_one")
+        )]
+        lateral_effectiveness: f32,
+        /// Fraction of the wheel-implied yaw motion the robot makes, in `(0, 1.5]`.
+        #[cfg_attr(
+            feature = "serde",
+            serde(default = "unit::one", skip_serializing_if = "unit::is_one")
+        )]
+        yaw_effectiveness: f32,
     },
+}
+
+impl Geometry {
+    /// The effectiveness factors (forward, lateral, yaw) of either layout.
+    #[must_use]
+    pub const fn effectiveness(&self) -> Effectiveness<f32> {
+        match *self {
+            Self::Standard {
+                forward_effectiveness,
+                lateral_effectiveness,
+                yaw_effectiveness,
+                ..
+            }
+            | Self::General {
+                forward_effectiveness,
+                lateral_effectiveness,
+                yaw_effectiveness,
+                ..
+            } => Effectiveness::new(
+                forward_effectiveness,
+                lateral_effectiveness,
+                yaw_effectiveness,
+            ),
+        }
+    }
+}
+
+/// The effectiveness keys' default and when they are left out of the TOML.
+#[cfg(feature = "serde")]
+mod unit {
+    pub const fn one() -> f32 {
+        1.0
+    }
+
+    // A bit test, so that only exactly 1.0 is left out (what reads back as the default).
+    pub const fn is_one(value: &f32) -> bool {
+        value.to_bits() == 1.0f32.to_bits()
+    }
 }
 
 /// One wheel of a [`Geometry::General`] layout (see [`WheelGeometry`]).
@@ -296,6 +393,30 @@ fn check_gear_ratio(value: f32) -> Result<(), ConfigError> {
 /// The gear ratios a configuration may give: from a 100:1 step-up to a 1000:1 reduction.
 pub const GEAR_RATIO_RANGE: core::ops::RangeInclusive<f32> = 0.01..=1000.0;
 
+/// The `[geometry]` keys of the effectiveness factors, in axis order (x, y, yaw).
+pub const EFFECTIVENESS_KEYS: [&str; 3] = [
+    "geometry.forward_effectiveness",
+    "geometry.lateral_effectiveness",
+    "geometry.yaw_effectiveness",
+];
+
+/// An effectiveness factor: finite and in `(0, MAX_EFFECTIVENESS]`.
+fn check_effectiveness(field: &'static str, value: f32) -> Result<(), ConfigError> {
+    // Written so that NaN fails.
+    #[allow(clippy::cast_possible_truncation)]
+    let in_range = value > 0.0 && value <= kinematics::MAX_EFFECTIVENESS as f32;
+    if in_range {
+        Ok(())
+    } else {
+        Err(ConfigError {
+            field,
+            value: f64::from(value),
+            expected: "a factor in (0, 1.5]: the fraction of the wheel-implied motion the \
+                       robot makes along that axis (1 = no slip)",
+        })
+    }
+}
+
 fn positive_or_inf(field: &'static str, value: f32) -> Result<(), ConfigError> {
     if value > 0.0 {
         Ok(())
@@ -330,6 +451,9 @@ impl Config {
                 lx: 0.20,
                 ly: 0.18,
                 wheel_radius: 0.076,
+                forward_effectiveness: 1.0,
+                lateral_effectiveness: 1.0,
+                yaw_effectiveness: 1.0,
             },
             drive: Drive::Dji {
                 model: EscModel::C620,
@@ -352,6 +476,9 @@ impl Config {
                 lx: 0.15,
                 ly: 0.125,
                 wheel_radius: 0.05,
+                forward_effectiveness: 1.0,
+                lateral_effectiveness: 1.0,
+                yaw_effectiveness: 1.0,
             },
             drive: Drive::Odrive {
                 node_ids: [0, 1, 2, 3],
@@ -368,20 +495,33 @@ impl Config {
         }
     }
 
-    /// The wheel maps for this geometry.
+    /// The wheel maps for this geometry, with its effectiveness factors.
     ///
     /// # Errors
-    /// The layout's [`GeometryError`] (non-finite, non-positive radius, singular).
+    /// The layout's [`GeometryError`] (non-finite, non-positive radius, singular, a factor
+    /// out of range).
     pub fn kinematics(&self) -> Result<MecanumKinematics<f32, 4>, GeometryError> {
+        self.kinematics_with(self.geometry.effectiveness())
+    }
+
+    /// The wheel maps for this geometry with the given factors.
+    fn kinematics_with(
+        &self,
+        effectiveness: Effectiveness<f32>,
+    ) -> Result<MecanumKinematics<f32, 4>, GeometryError> {
         match self.geometry {
             Geometry::Standard {
                 lx,
                 ly,
                 wheel_radius,
-            } => MecanumKinematics::standard(lx, ly, wheel_radius),
-            Geometry::General { wheels } => MecanumKinematics::new(
+                ..
+            } => {
+                MecanumKinematics::standard_with_effectiveness(lx, ly, wheel_radius, effectiveness)
+            }
+            Geometry::General { wheels, .. } => MecanumKinematics::with_effectiveness(
                 wheels
                     .map(|w| WheelGeometry::new(w.x, w.y, w.axle_angle, w.roller_angle, w.radius)),
+                effectiveness,
             ),
         }
     }
@@ -396,18 +536,38 @@ impl Config {
                 lx,
                 ly,
                 wheel_radius,
+                ..
             } => {
                 non_negative("geometry.lx", lx)?;
                 non_negative("geometry.ly", ly)?;
                 positive("geometry.wheel_radius", wheel_radius)?;
             }
-            Geometry::General { wheels } => {
+            Geometry::General { wheels, .. } => {
                 for w in &wheels {
                     positive("geometry.wheels[].radius", w.radius)?;
                 }
             }
         }
+        let k = self.geometry.effectiveness();
+        for (field, value) in EFFECTIVENESS_KEYS.into_iter().zip(k.as_array()) {
+            check_effectiveness(field, value)?;
+        }
         if let Err(e) = self.kinematics() {
+            // A factor in range can still scale the map out of f32 (a tiny one: 1e-38):
+            // name it if the layout alone fits.
+            if let GeometryError::Unrepresentable { .. } = e
+                && self.kinematics_with(Effectiveness::ideal()).is_ok()
+            {
+                let (field, value) = EFFECTIVENESS_KEYS
+                    .into_iter()
+                    .zip(k.as_array())
+                    .fold(("", f32::INFINITY), |m, c| if c.1 < m.1 { c } else { m });
+                return Err(ConfigError {
+                    field,
+                    value: f64::from(value),
+                    expected: "a factor whose scaled wheel map fits f32 (a tiny one does not)",
+                });
+            }
             return Err(geometry_error(e));
         }
 
@@ -580,6 +740,15 @@ fn geometry_error(e: GeometryError) -> ConfigError {
             value: deviation,
             expected: "lengths and radius whose wheel map fits f32 (value: relative deviation; \
                        check the units)",
+        },
+        GeometryError::Effectiveness { axis, value } => ConfigError {
+            field: match axis {
+                kinematics::Axis::Forward => EFFECTIVENESS_KEYS[0],
+                kinematics::Axis::Lateral => EFFECTIVENESS_KEYS[1],
+                kinematics::Axis::Yaw => EFFECTIVENESS_KEYS[2],
+            },
+            value,
+            expected: "a factor in (0, 1.5]",
         },
         _ => ConfigError {
             field: "geometry",

@@ -5,6 +5,7 @@
 use std::path::Path;
 
 use firmware::config::{Config, LoadError};
+use kinematics::Effectiveness;
 
 fn repo_file(name: &str) -> std::path::PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -154,4 +155,111 @@ fn an_odrive_node_whose_ids_are_the_robot_protocols_is_refused() {
         let ok = text.replacen(from, &format!("node_ids = [0, 1, {n}, 3]"), 1);
         Config::from_toml_str(&ok).unwrap();
     }
+}
+
+/// The DJI example with its three effectiveness lines removed (a configuration written before
+/// they existed).
+fn dji_without_effectiveness() -> String {
+    let text = std::fs::read_to_string(repo_file("config/dji_m3508.toml")).unwrap();
+    let kept: Vec<&str> = text
+        .lines()
+        .filter(|l| !l.contains("_effectiveness ="))
+        .collect();
+    assert_eq!(
+        kept.len() + 3,
+        text.lines().count(),
+        "three effectiveness lines"
+    );
+    kept.join("\n")
+}
+
+#[test]
+fn effectiveness_defaults_to_one_and_is_left_out_of_the_toml_at_one() {
+    let c = Config::from_toml_str(&dji_without_effectiveness()).unwrap();
+    assert_eq!(c, Config::dji_m3508_example());
+    assert_eq!(
+        c.geometry.effectiveness(),
+        Effectiveness::new(1.0, 1.0, 1.0)
+    );
+    // What the logs carry: the same text as before the keys existed.
+    let toml = c.to_toml_string();
+    assert!(!toml.contains("effectiveness"), "{toml}");
+    // A factor other than 1 is written, and reads back to the bit.
+    let c = Config::from_toml_str(&dji_with(
+        "lateral_effectiveness = 1.0",
+        "lateral_effectiveness = 0.72",
+    ))
+    .unwrap();
+    assert_eq!(
+        c.geometry.effectiveness(),
+        Effectiveness::new(1.0, 0.72, 1.0)
+    );
+    let toml = c.to_toml_string();
+    assert!(toml.contains("lateral_effectiveness = 0.72"), "{toml}");
+    assert!(!toml.contains("forward_effectiveness"), "{toml}");
+    assert_eq!(Config::from_toml_str(&toml).unwrap(), c);
+    assert_eq!(c.kinematics().unwrap().effectiveness().ky, 0.72);
+}
+
+#[test]
+fn effectiveness_out_of_range_names_the_key_and_value() {
+    for key in ["forward", "lateral", "yaw"] {
+        for (value, shown) in [
+            ("0.0", "= 0:"),
+            ("-1.0", "= -1:"),
+            ("1.6", "= 1.6:"),
+            ("nan", "= NaN:"),
+            ("inf", "= inf:"),
+            ("1.5000001", "= 1.5000001:"),
+        ] {
+            let from = format!("{key}_effectiveness = 1.0");
+            let msg = invalid(&dji_with(&from, &format!("{key}_effectiveness = {value}")));
+            let want = format!("geometry.{key}_effectiveness {shown} a factor in (0, 1.5]");
+            assert!(msg.contains(&want), "{value}: {msg}");
+        }
+        // The bounds are accepted.
+        for value in ["1.5", "0.01", "0.72"] {
+            let from = format!("{key}_effectiveness = 1.0");
+            Config::from_toml_str(&dji_with(&from, &format!("{key}_effectiveness = {value}")))
+                .unwrap();
+        }
+    }
+    // In range but so small that the scaled wheel map overflows f32: still the key.
+    let msg = invalid(&dji_with(
+        "yaw_effectiveness = 1.0",
+        "yaw_effectiveness = 1e-38",
+    ));
+    assert!(
+        msg.contains("geometry.yaw_effectiveness = 0.00000000000000000000000000000000000001"),
+        "{msg}"
+    );
+    assert!(msg.contains("fits f32"), "{msg}");
+}
+
+#[test]
+fn a_general_layout_takes_the_effectiveness_keys_too() {
+    let wheel = |x: f32, y: f32, roller: &str| {
+        format!(
+            "[[geometry.wheels]]\nx = {x}\ny = {y}\naxle_angle = 1.5707964\n\
+             roller_angle = {roller}\nradius = 0.076\n"
+        )
+    };
+    let text = std::fs::read_to_string(repo_file("config/dji_m3508.toml")).unwrap();
+    let drive = &text[text.find("[drive]").unwrap()..];
+    let general = format!(
+        "[geometry]\nlayout = \"general\"\nlateral_effectiveness = 0.75\n{}{}{}{}\n{drive}",
+        wheel(0.2, 0.18, "0.7853982"),
+        wheel(0.2, -0.18, "-0.7853982"),
+        wheel(-0.2, 0.18, "-0.7853982"),
+        wheel(-0.2, -0.18, "0.7853982"),
+    );
+    let c = Config::from_toml_str(&general).unwrap();
+    assert_eq!(
+        c.geometry.effectiveness(),
+        Effectiveness::new(1.0, 0.75, 1.0)
+    );
+    assert_eq!(c.kinematics().unwrap().effectiveness().ky, 0.75);
+    let bad = general.replace("lateral_effectiveness = 0.75", "lateral_effectiveness = 0");
+    let msg = invalid(&bad);
+    assert!(msg.contains("geometry.lateral_effectiveness = 0:"), "{msg}");
 }

@@ -260,12 +260,15 @@ impl ChassisParams {
     pub fn from_config(config: &firmware::Config) -> Self {
         use firmware::config::Geometry;
         match config.geometry {
+            // The effectiveness factors are the firmware's estimate of the slip, not the
+            // plant's physics: the plant's slip comes from its contact model.
             Geometry::Standard {
                 lx,
                 ly,
                 wheel_radius,
+                ..
             } => Self::standard(f64::from(lx), f64::from(ly), f64::from(wheel_radius)),
-            Geometry::General { wheels } => Self {
+            Geometry::General { wheels, .. } => Self {
                 wheels: wheels.map(|w| {
                     WheelGeometry::new(
                         f64::from(w.x),
