@@ -221,7 +221,8 @@ def test_final_odometry_and_ground_truth_are_what_the_summary_prints(log: Log) -
     geometry, drive = log.config["geometry"], log.config["drive"]
     assert drive["protocol"] == "dji", drive
     count_m = geometry["wheel_radius"] * 2 * math.pi / (8192 * drive["gear_ratio"])
-    count_rad = count_m / (4 * (geometry["lx"] + geometry["ly"]))
+    # The odometry reports yaw_effectiveness (default 1, left out of the TOML at 1) times it.
+    count_rad = geometry.get("yaw_effectiveness", 1.0) * count_m / (4 * (geometry["lx"] + geometry["ly"]))
     for topic, final in (("/odom", log.run["odometry"]), ("/ground_truth/odom", log.run["truth"])):
         last = log.last(topic)
         dt = log.run["duration_s"] - ns(last.header.stamp) * 1e-9
@@ -296,9 +297,11 @@ def test_wheel_states_are_the_odometry_and_the_dbc_frames(log: Log, dbs) -> None
     turned the robot by what the odometry's heading says; each speed is the last DJI feedback
     frame's rotor speed (cantools) through the gear ratio, mirrored motors negated, to the
     float; each effort the current of the step's CURRENT_CMD frame (0x200), within its
-    resolution."""
+    resolution. The forward kinematics include the configuration's effectiveness factors
+    (each 1 unless the TOML has the key): the odometry reports them times the wheels' twist."""
     geometry, drive = log.config["geometry"], log.config["drive"]
     r, k = geometry["wheel_radius"], geometry["lx"] + geometry["ly"]
+    kx, ky, kw = (geometry.get(f"{axis}_effectiveness", 1.0) for axis in ("forward", "lateral", "yaw"))
     assert geometry["layout"] == "standard" and drive["protocol"] == "dji"
     sign = [-1.0 if inverted else 1.0 for inverted in drive["inverted"]]
     rpm_to_wheel = 2 * math.pi / 60 / drive["gear_ratio"]
@@ -328,9 +331,9 @@ def test_wheel_states_are_the_odometry_and_the_dbc_frames(log: Log, dbs) -> None
         assert all(len(v) == 4 and all(map(math.isfinite, v)) for v in (state.position, state.velocity, state.effort))
         fl, fr, rl, rr = state.velocity
         twist = odom[step].twist.twist
-        assert r / 4 * (fl + fr + rl + rr) == pytest.approx(twist.linear.x, abs=1e-5), step
-        assert r / 4 * (-fl + fr + rl - rr) == pytest.approx(twist.linear.y, abs=1e-5), step
-        assert r / (4 * k) * (-fl + fr - rl + rr) == pytest.approx(twist.angular.z, abs=1e-5), step
+        assert kx * r / 4 * (fl + fr + rl + rr) == pytest.approx(twist.linear.x, abs=1e-5), step
+        assert ky * r / 4 * (-fl + fr + rl - rr) == pytest.approx(twist.linear.y, abs=1e-5), step
+        assert kw * r / (4 * k) * (-fl + fr - rl + rr) == pytest.approx(twist.angular.z, abs=1e-5), step
         for w in range(4):
             fb = feedback[w]
             while cursor[w] < len(fb) and fb[cursor[w]][0] <= step:
@@ -350,7 +353,7 @@ def test_wheel_states_are_the_odometry_and_the_dbc_frames(log: Log, dbs) -> None
     # turn, 2 pi rad), to a milliradian.
     p0, p1 = first.position, log.last("/joint_states").position
     fl, fr, rl, rr = (b - a for a, b in zip(p0, p1))
-    assert r / (4 * k) * (-fl + fr - rl + rr) == pytest.approx(heading, abs=1e-3)
+    assert kw * r / (4 * k) * (-fl + fr - rl + rr) == pytest.approx(heading, abs=1e-3)
     if log.name == "circle":
         assert heading == pytest.approx(2 * math.pi, abs=0.01)
         # A 1 m radius circle: 2 pi m of travel, as the wheels count it.
