@@ -49,13 +49,20 @@
 //! `/rosout` warning (`N messages dropped: the log writer fell behind`) at the next batch the
 //! writer takes, and at the end. The logging thread's work per message stays a push of a few
 //! dozen bytes; its memory, the open batch and the one being written.
+//!
+//! In that mode the writing thread also steps aside for the loop where the CPU is contended:
+//! on Linux it moves itself to `SCHED_BATCH` at the lowest niceness (19) before its next
+//! batch, so it runs on what the loop and its peers leave (a machine with a spare core does
+//! not notice; a loaded one drops messages rather than steps). Measured in the vcan lane's
+//! micro-VM, whose two emulated CPUs the plant, the runner and candump already saturate: see
+//! docs/benchmarks.md, "The runner's log".
 
 use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::{self, BufWriter, Write};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, SyncSender, TryRecvError, TrySendError, sync_channel};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant as WallInstant};
@@ -429,6 +436,9 @@ impl McapLog {
     /// [`finish`](Self::finish) still waits for the writer.
     pub fn drop_when_behind(&mut self, max_pending_events: usize) {
         self.max_pending = Some(max_pending_events.max(1));
+        if let Some(writer) = &self.writer {
+            writer.background.store(true, Ordering::Relaxed);
+        }
     }
 
     /// Messages dropped so far because the writer was behind ([`Self::drop_when_behind`]).
@@ -945,6 +955,24 @@ fn diagnostics(t_ns: u64, s: &Snapshot) -> msg::DiagnosticArray {
     }
 }
 
+/// Lowers the calling thread's priority as far as an unprivileged thread can (Linux:
+/// `SCHED_BATCH`, niceness 19; also out of a real-time class inherited from a runner started
+/// with `chrt`). Best effort: a refusal leaves the thread as it was.
+fn step_aside() {
+    #[cfg(target_os = "linux")]
+    {
+        use thread_priority::unix::{
+            NormalThreadSchedulePolicy, ThreadSchedulePolicy, set_thread_priority_and_policy,
+            thread_native_id,
+        };
+        let _ = set_thread_priority_and_policy(
+            thread_native_id(),
+            thread_priority::ThreadPriority::Min,
+            ThreadSchedulePolicy::Normal(NormalThreadSchedulePolicy::Batch),
+        );
+    }
+}
+
 /// The thread that writes batches, and the two channels to it: batches go there, and each
 /// comes back (emptied, for reuse) once it is in the file, or the error that stopped the
 /// thread.
@@ -954,6 +982,9 @@ struct BatchWriter {
     thread: Option<JoinHandle<Writer>>,
     /// A batch was sent and has not come back yet.
     in_flight: bool,
+    /// The thread lowers its own priority before its next batch (see [A control loop that
+    /// must not wait](self#a-control-loop-that-must-not-wait-dropping-instead-of-blocking)).
+    background: Arc<AtomicBool>,
 }
 
 impl BatchWriter {
@@ -967,10 +998,17 @@ impl BatchWriter {
         // pending (the previous batch's, and the waiting one's if the thread is quick).
         let (to_thread, batches) = sync_channel::<Batch>(1);
         let (done, from_thread) = sync_channel(2);
+        let background = Arc::new(AtomicBool::new(false));
+        let thread_background = Arc::clone(&background);
         let thread = std::thread::Builder::new()
             .name("mcap-writer".to_string())
             .spawn(move || {
+                let mut in_background = false;
                 for mut batch in batches {
+                    if !in_background && thread_background.load(Ordering::Relaxed) {
+                        in_background = true;
+                        step_aside();
+                    }
                     match encoder.batch(&batch) {
                         Ok(()) => {
                             batch.clear();
@@ -991,6 +1029,7 @@ impl BatchWriter {
             from_thread,
             thread: Some(thread),
             in_flight: false,
+            background,
         })
     }
 
