@@ -88,7 +88,12 @@ fn an_unknown_field_exits_2_naming_the_line() {
     let out = runner(&["--iface", "vcan0", "--config", path.to_str().unwrap()]);
     let err = assert_startup_error(&out);
     assert!(err.contains("unknown field `max_wheel_sped`"), "{err}");
-    assert!(err.contains("line 25"), "{err}");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let line = 1 + text
+        .lines()
+        .position(|l| l.starts_with("max_wheel_sped"))
+        .unwrap();
+    assert!(err.contains(&format!("line {line}")), "line {line}: {err}");
 }
 
 #[test]
