@@ -83,7 +83,9 @@ def main() -> int:
                             f"{j['max_us']} | µs |")
                 rows.append(f"| {what}: step time p50 / p99 / max | {st['p50_us']} / {st['p99_us']} / "
                             f"{st['max_us']} | µs |")
-                rows.append(f"| {what}: overruns / steps, frames received | {s['overruns']} / {s['steps']}, "
+                elapsed = s["elapsed_us"] / 1e6
+                rows.append(f"| {what}: steps in {elapsed:.1f} s (rate), overruns, frames received | "
+                            f"{s['steps']} ({s['steps'] / elapsed:.0f}/s), {s['overruns']}, "
                             f"{s['frames_received']} | |")
                 if log:
                     hours = s["elapsed_us"] / 3.6e9
