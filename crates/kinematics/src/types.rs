@@ -230,19 +230,45 @@ impl<T: Real> Pose2<T> {
         self.exp_arc(twist)
     }
 
+    /// The body displacement that [`exp`](Self::exp) turns into this pose from the origin:
+    /// the SE(2) logarithm, `Pose2::default().exp(p.log()) == p` (within rounding).
+    ///
+    /// With [`relative`](Self::relative) it gives the increment of a motion between two poses
+    /// in the body frame of the first, the arc of constant body velocity that joins them:
+    /// `a.relative(b).log()`. The heading is in `[-π, π]`, so the displacement is the one
+    /// that turns by less than half a turn either way.
+    #[must_use]
+    pub fn log(self) -> Twist2<T> {
+        let half = self.heading * T::lit(0.5);
+        let (sin_h, cos_h) = half.sin_cos_libm();
+        let sinc_half = sinc(half);
+        Twist2::new(
+            (cos_h * self.x + sin_h * self.y) / sinc_half,
+            (cos_h * self.y - sin_h * self.x) / sinc_half,
+            self.heading,
+        )
+    }
+
+    /// `to` seen from this pose, `self⁻¹ · to` on SE(2): its position in this pose's body
+    /// frame and the heading change from this pose to it (wrapped to `[-π, π]`).
+    #[must_use]
+    pub fn relative(self, to: Self) -> Self {
+        let (sin_t, cos_t) = self.heading.sin_cos_libm();
+        let (dx, dy) = (to.x - self.x, to.y - self.y);
+        Self::new(
+            cos_t * dx + sin_t * dy,
+            cos_t * dy - sin_t * dx,
+            to.heading - self.heading,
+        )
+    }
+
     /// [`exp`](Self::exp) by the closed form: kept out of line, so that inlining `exp` only
     /// brings the zero-step test into the caller.
     #[inline(never)]
     fn exp_arc(self, twist: Twist2<T>) -> Self {
         let half = twist.dtheta * T::lit(0.5);
         let (sin_mid, cos_mid) = (self.heading + half).sin_cos_libm();
-        let sinc_half = if half.abs() < T::lit(1e-3) {
-            // sin(h)/h = 1 - h²/6 + h⁴/120 - …; the next term, h⁶/5040, is below 2e-22.
-            let h2 = half * half;
-            T::one() - h2 / T::lit(6.0) * (T::one() - h2 / T::lit(20.0))
-        } else {
-            half.sin_cos_libm().0 / half
-        };
+        let sinc_half = sinc(half);
         let dx = twist.dx * sinc_half;
         let dy = twist.dy * sinc_half;
         Self {
@@ -250,5 +276,17 @@ impl<T: Real> Pose2<T> {
             y: self.y + sin_mid * dx + cos_mid * dy,
             heading: wrap_angle(self.heading + twist.dtheta),
         }
+    }
+}
+
+/// `sin(h) / h`, by its series below 1e-3 rad.
+#[inline]
+fn sinc<T: Real>(h: T) -> T {
+    if h.abs() < T::lit(1e-3) {
+        // sin(h)/h = 1 - h²/6 + h⁴/120 - …; the next term, h⁶/5040, is below 2e-22.
+        let h2 = h * h;
+        T::one() - h2 / T::lit(6.0) * (T::one() - h2 / T::lit(20.0))
+    } else {
+        h.sin_cos_libm().0 / h
     }
 }
