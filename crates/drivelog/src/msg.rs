@@ -824,6 +824,43 @@ mod tests {
         assert!((p[2] - 0.5).abs() < 1e-15, "{p:?}");
     }
 
+    /// A tracker's pose, as a ROS 2 publisher writes it (built by hand here, not by
+    /// [`encode`]): the doubles start at the next multiple of 8 after the frame id.
+    #[test]
+    fn a_tracker_pose_stamped_decodes_from_the_ros2_layout() {
+        let mut raw = vec![0, 1, 0, 0];
+        raw.extend_from_slice(&3i32.to_le_bytes()); // stamp 3 s
+        raw.extend_from_slice(&500u32.to_le_bytes()); // 500 ns
+        raw.extend_from_slice(&6u32.to_le_bytes()); // "world" and its NUL
+        raw.extend_from_slice(b"world\0");
+        raw.extend_from_slice(&[0; 6]); // 18 -> 24, the alignment of a double
+        let yaw: f64 = -2.5;
+        for v in [
+            1.25,
+            -0.5,
+            0.0,
+            0.0,
+            0.0,
+            (yaw / 2.0).sin(),
+            (yaw / 2.0).cos(),
+        ] {
+            raw.extend_from_slice(&f64::to_le_bytes(v));
+        }
+        let p = decode::<PoseStamped>(&raw).unwrap();
+        assert_eq!(p.header, Header::new(3_000_000_500, "world"));
+        let planar = p.pose.to_planar();
+        assert_eq!(planar[..2], [1.25, -0.5]);
+        assert!((planar[2] - yaw).abs() < 1e-15, "{planar:?}");
+        let mut out = Vec::new();
+        encode(&mut out, &p);
+        assert_eq!(out, raw);
+        assert!(
+            POSE_STAMPED
+                .schema_text()
+                .contains("\nMSG: geometry_msgs/Quaternion\n")
+        );
+    }
+
     #[test]
     fn a_schema_lists_each_dependency_once_after_its_separator() {
         let text = ODOMETRY.schema_text();
