@@ -10,7 +10,7 @@ use firmware::config::{Config, Drive as DriveConfig};
 use firmware::protocol::dji::{CurrentCommand, EscId, EscModel};
 use firmware::protocol::odrive::{self, NodeId};
 
-use crate::plant::{DjiDrive, OdriveAxis, ParamError, Plant, Wheel};
+use crate::plant::{ChassisParams, DjiDrive, OdriveAxis, ParamError, Plant, Wheel};
 use crate::sim::SimPlant;
 
 /// A plant of one drive kind, with the ids its drives answer to.
@@ -65,6 +65,33 @@ impl SimDrives {
                 })
             }
         }
+    }
+}
+
+impl SimDrives {
+    /// The plant of a scenario: [`Self::new`] for its configuration, with the robot's true
+    /// geometry and roller drag of its `[plant]` table where it has one
+    /// ([`PlantSpec`](crate::scenario::PlantSpec)).
+    ///
+    /// # Errors
+    /// [`ParamError`] as [`Self::new`], or naming the `plant.*` value the chassis refuses.
+    pub fn for_scenario(scenario: &crate::scenario::Scenario) -> Result<Self, ParamError> {
+        let drives = Self::new(&scenario.config)?;
+        if scenario.plant.is_empty() {
+            return Ok(drives);
+        }
+        let adjust = |c: &mut ChassisParams| scenario.plant.apply(c);
+        Ok(match drives {
+            Self::Dji { plant, esc, model } => Self::Dji {
+                plant: Box::new((*plant).with_chassis(adjust)?),
+                esc,
+                model,
+            },
+            Self::Odrive { plant, node } => Self::Odrive {
+                plant: Box::new((*plant).with_chassis(adjust)?),
+                node,
+            },
+        })
     }
 }
 

@@ -41,7 +41,8 @@ enum Cmd {
     /// Run a scenario: writes an MCAP log and a PNG plot, prints a summary.
     ///
     /// With no argument runs the built-in `square`. Built-ins: square, circle, strafe, spin,
-    /// figure-eight, compass, watchdog (seed 1; DJI C620 + M3508 drives on a 20 kg chassis).
+    /// figure-eight, compass, watchdog, calibration (seed 1; DJI C620 + M3508 drives on a
+    /// 20 kg chassis; see `calibrate`).
     ///
     /// A scenario file (TOML; examples in scenarios/, the format in the hostsim crate's
     /// `scenario` module docs) sets duration_s, and optionally name (default: the file's
@@ -50,7 +51,9 @@ enum Cmd {
     /// disable, reset, estop, status_request, twist = [vx, vy, wz], silence, resume) and
     /// [[faults]] (kind = drop | burst | delay | corrupt | stuck_encoder | motor_offline |
     /// non_finite_twist, from_s, until_s, and the kind's fields: rate, delay_ms, sender,
-    /// wheel). Every error names the file, the field and the value.
+    /// wheel) and [plant] (the simulated robot where it differs from the configuration:
+    /// wheel_radius, lx, ly, roller_drag; kept when --config replaces the configuration).
+    /// Every error names the file, the field and the value.
     Run {
         /// A scenario TOML file, or the name of a built-in.
         scenario: Option<String>,
@@ -422,7 +425,7 @@ fn run(
     } else {
         None
     };
-    let mut plant = hostsim::drives::SimDrives::new(&scenario.config)?;
+    let mut plant = hostsim::drives::SimDrives::for_scenario(&scenario)?;
     let bar = ProgressBar::new(scenario.duration_us() / 1000);
     bar.set_style(
         ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} ms simulated ({per_sec})")

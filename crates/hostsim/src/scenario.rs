@@ -39,6 +39,19 @@
 //! rate = 0.2                # drop, corrupt
 //! sender = "host"           # optional: controller | drives | host
 //! ```
+//!
+//! The simulated robot is the one the drive configuration describes, unless the scenario
+//! says otherwise in a `[plant]` table ([`PlantSpec`]): a real robot's wheels are not quite
+//! the configured size, and its rollers slip. Each key is optional; `hostsim run --config`
+//! then changes only what the firmware believes, not the robot:
+//!
+//! ```toml
+//! [plant]
+//! wheel_radius = 0.07752    # m, true wheel radius
+//! lx = 0.194                # m, true centre-to-wheel distances (standard layout only)
+//! ly = 0.1746
+//! roller_drag = 0.17647     # ε in [0, 1): a pure strafe makes (1 − ε)/(1 + ε) of the command
+//! ```
 
 use std::path::{Path, PathBuf};
 
@@ -46,6 +59,7 @@ use firmware::Config;
 use serde::Deserialize;
 
 use crate::bus::{Fault, FaultKind, Node};
+use crate::plant::{ChassisParams, ParamError};
 
 /// What the host does at a moment.
 #[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
@@ -234,6 +248,126 @@ impl HostFault {
     }
 }
 
+/// The simulated robot where it differs from the drive configuration (a scenario's `[plant]`
+/// table): its true wheel radius, wheel positions and roller drag. `None` keeps the value the
+/// configuration (geometry) or the plant's defaults (roller drag, [`ChassisParams`]) give.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Deserialize, serde::Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct PlantSpec {
+    /// True wheel radius, m, in `(0, 1]`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub wheel_radius: Option<f64>,
+    /// True distance from the centre to the wheels along x, m, in `(0, 5]` (standard layout).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub lx: Option<f64>,
+    /// True distance from the centre to the wheels along y, m, in `(0, 5]` (standard layout).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ly: Option<f64>,
+    /// Roller drag `ε` ([`ChassisParams::roller_drag`]) in `[0, 1)`: a pure strafe settles at
+    /// `(1 − ε)/(1 + ε)` of the command (default 1/7: 75 %).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub roller_drag: Option<f64>,
+}
+
+impl PlantSpec {
+    /// `true` if it changes nothing.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        *self == Self::default()
+    }
+
+    /// The robot of the DJI example configuration, every value given: lx 0.20 m, ly 0.18 m,
+    /// wheel radius 0.076 m (as the configuration's `f32` values), roller drag 1/7 (the
+    /// built-in `calibration` scenario's, so that `--config` changes only what the firmware
+    /// believes).
+    #[must_use]
+    pub fn dji_m3508_example() -> Self {
+        let c = ChassisParams::from_config(&Config::dji_m3508_example());
+        let w = c.wheels[0];
+        Self {
+            wheel_radius: Some(w.radius),
+            lx: Some(w.x),
+            ly: Some(w.y),
+            roller_drag: Some(c.roller_drag),
+        }
+    }
+
+    /// The first value out of its range: its field as a scenario file names it, the value and
+    /// what is expected.
+    #[must_use]
+    pub fn first_invalid(&self) -> Option<(&'static str, f64, &'static str)> {
+        let length = |v: f64, max: f64| v > 0.0 && v <= max;
+        [
+            (
+                "plant.wheel_radius",
+                self.wheel_radius,
+                length(self.wheel_radius.unwrap_or(1.0), 1.0),
+                "a radius in (0, 1] m",
+            ),
+            (
+                "plant.lx",
+                self.lx,
+                length(self.lx.unwrap_or(1.0), 5.0),
+                "a distance in (0, 5] m",
+            ),
+            (
+                "plant.ly",
+                self.ly,
+                length(self.ly.unwrap_or(1.0), 5.0),
+                "a distance in (0, 5] m",
+            ),
+            (
+                "plant.roller_drag",
+                self.roller_drag,
+                (0.0..1.0).contains(&self.roller_drag.unwrap_or(0.0)),
+                "a roller drag in [0, 1)",
+            ),
+        ]
+        .into_iter()
+        .find_map(|(field, value, ok, expected)| Some((field, value?, expected)).filter(|_| !ok))
+    }
+
+    /// Applies the values to a chassis built from a configuration.
+    ///
+    /// # Errors
+    /// [`ParamError`] naming a value out of its range ([`Self::first_invalid`]), or `plant.lx`
+    /// or `plant.ly` if the chassis is not the standard layout (wheels at `(±lx, ±ly)`).
+    pub fn apply(&self, chassis: &mut ChassisParams) -> Result<(), ParamError> {
+        if let Some((field, value, expected)) = self.first_invalid() {
+            return Err(ParamError::new(field, value, expected));
+        }
+        let standard = {
+            let w = &chassis.wheels;
+            w.iter()
+                .all(|g| g.x.abs() == w[0].x.abs() && g.y.abs() == w[0].y.abs())
+        };
+        for (field, value) in [("plant.lx", self.lx), ("plant.ly", self.ly)] {
+            if let (Some(v), false) = (value, standard) {
+                return Err(ParamError::new(
+                    field,
+                    v,
+                    "a configuration with the standard layout (wheels at ±lx, ±ly)",
+                ));
+            }
+        }
+        for w in &mut chassis.wheels {
+            if let Some(r) = self.wheel_radius {
+                w.radius = r;
+            }
+            if let Some(lx) = self.lx {
+                w.x = lx.copysign(w.x);
+            }
+            if let Some(ly) = self.ly {
+                w.y = ly.copysign(w.y);
+            }
+        }
+        if let Some(eps) = self.roller_drag {
+            chassis.roller_drag = eps;
+        }
+        Ok(())
+    }
+}
+
 /// A complete scenario.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Scenario {
@@ -255,6 +389,8 @@ pub struct Scenario {
     pub wheel_faults: Vec<WheelFault>,
     /// Host faults.
     pub host_faults: Vec<HostFault>,
+    /// The robot where it differs from the configuration (empty: as configured).
+    pub plant: PlantSpec,
 }
 
 /// Why a scenario could not be used.
@@ -329,6 +465,8 @@ struct ScenarioFile {
     actions: Vec<Action>,
     #[serde(default)]
     faults: Vec<FaultSpec>,
+    #[serde(default)]
+    plant: PlantSpec,
 }
 
 const fn default_command_hz() -> f64 {
@@ -341,7 +479,7 @@ fn secs_to_us(s: f64) -> u64 {
 
 impl Scenario {
     /// Names of the built-in scenarios.
-    pub const BUILTINS: [&'static str; 7] = [
+    pub const BUILTINS: [&'static str; 8] = [
         "square",
         "circle",
         "strafe",
@@ -349,6 +487,7 @@ impl Scenario {
         "figure-eight",
         "compass",
         "watchdog",
+        "calibration",
     ];
 
     /// Loads a scenario file; a relative `config` path is taken from the file's folder.
@@ -602,6 +741,9 @@ impl Scenario {
                 },
             }
         }
+        if let Some((field, value, expected)) = file.plant.first_invalid() {
+            return Err(invalid(field, value.to_string(), expected));
+        }
         let mut actions = file.actions;
         actions.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
         Ok(Self {
@@ -617,6 +759,7 @@ impl Scenario {
             bus_faults,
             wheel_faults,
             host_faults,
+            plant: file.plant,
         })
     }
 
@@ -631,6 +774,11 @@ impl Scenario {
     /// - `compass`: the eight compass directions of Table I of Tlale and de Villiers in
     ///   turn, 1.5 s each.
     /// - `watchdog`: drive forward, then go silent: the firmware must stop and disable.
+    /// - `calibration`: the motion `hostsim calibrate` needs, each leg both ways with a
+    ///   0.5 s stop between legs: 1 s standing still, 1 m forward and back at 0.5 m/s, 1 m
+    ///   (commanded) left and right at 0.5 m/s, one turn each way at 1.5 rad/s. Its robot is
+    ///   fixed ([`PlantSpec::dji_m3508_example`]), so a run with a calibrated `--config`
+    ///   changes only what the firmware believes.
     ///
     /// # Errors
     /// [`ScenarioError::UnknownBuiltin`] with the list of names.
@@ -676,6 +824,21 @@ impl Scenario {
                     leg(&mut actions, &mut t, 1.5, vx, vy, 0.0);
                 }
             }
+            "calibration" => {
+                leg(&mut actions, &mut t, 1.0, 0.0, 0.0, 0.0);
+                let turn = tau / 1.5;
+                for (dur, vx, vy, wz) in [
+                    (2.0, 0.5, 0.0, 0.0),
+                    (2.0, -0.5, 0.0, 0.0),
+                    (2.0, 0.0, 0.5, 0.0),
+                    (2.0, 0.0, -0.5, 0.0),
+                    (turn, 0.0, 0.0, 1.5),
+                    (turn, 0.0, 0.0, -1.5),
+                ] {
+                    leg(&mut actions, &mut t, dur, vx, vy, wz);
+                    leg(&mut actions, &mut t, 0.5, 0.0, 0.0, 0.0);
+                }
+            }
             "watchdog" => {
                 leg(&mut actions, &mut t, 1.0, 0.8, 0.0, 0.0);
                 actions.push(Action {
@@ -689,6 +852,11 @@ impl Scenario {
         if name != "watchdog" {
             leg(&mut actions, &mut t, 1.0, 0.0, 0.0, 0.0);
         }
+        let plant = if name == "calibration" {
+            PlantSpec::dji_m3508_example()
+        } else {
+            PlantSpec::default()
+        };
         Ok(Self {
             name: name.to_string(),
             duration_s: t,
@@ -699,6 +867,7 @@ impl Scenario {
             bus_faults: Vec::new(),
             wheel_faults: Vec::new(),
             host_faults: Vec::new(),
+            plant,
         })
     }
 
@@ -853,6 +1022,84 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("warp"), "{e}");
+    }
+
+    #[test]
+    fn plant_table_parses_validates_and_changes_only_the_robot() {
+        let text =
+            "duration_s = 1.0\n[plant]\nwheel_radius = 0.0775\nlx = 0.194\nroller_drag = 0.2";
+        let s = Scenario::from_toml(text, Path::new("p.toml")).unwrap();
+        assert_eq!(
+            s.plant,
+            PlantSpec {
+                wheel_radius: Some(0.0775),
+                lx: Some(0.194),
+                ly: None,
+                roller_drag: Some(0.2),
+            }
+        );
+        let mut chassis = ChassisParams::from_config(&s.config);
+        s.plant.apply(&mut chassis).unwrap();
+        let xs: Vec<[f64; 3]> = chassis
+            .wheels
+            .iter()
+            .map(|w| [w.x, w.y, w.radius])
+            .collect();
+        // ly stays the configuration's (an f32).
+        let ly = f64::from(0.18f32);
+        assert_eq!(
+            xs,
+            [
+                [0.194, ly, 0.0775],
+                [0.194, -ly, 0.0775],
+                [-0.194, ly, 0.0775],
+                [-0.194, -ly, 0.0775]
+            ]
+        );
+        assert_eq!(chassis.roller_drag, 0.2);
+        // The firmware's configuration is the file's (the DJI example), untouched.
+        assert_eq!(s.config, Config::dji_m3508_example());
+
+        for (bad, want) in [
+            (
+                "wheel_radius = 0.0",
+                "plant.wheel_radius = 0: a radius in (0, 1] m",
+            ),
+            ("lx = -0.2", "plant.lx = -0.2: a distance in (0, 5] m"),
+            ("ly = nan", "plant.ly = NaN: a distance in (0, 5] m"),
+            (
+                "roller_drag = 1.0",
+                "plant.roller_drag = 1: a roller drag in [0, 1)",
+            ),
+            ("mass = 3.0", "unknown field `mass`"),
+        ] {
+            let text = format!("duration_s = 1.0\n[plant]\n{bad}");
+            let e = Scenario::from_toml(&text, Path::new("bad.toml"))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(want) && e.contains("bad.toml"), "{bad}: {e}");
+        }
+
+        // lx and ly are the standard layout's: another layout is refused, naming the field.
+        let mut general = ChassisParams::default();
+        general.wheels[0].x = 0.3;
+        let e = PlantSpec {
+            ly: Some(0.2),
+            ..PlantSpec::default()
+        }
+        .apply(&mut general)
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("plant.ly = 0.2") && e.contains("standard layout"),
+            "{e}"
+        );
+
+        // The calibration built-in fixes its robot to the example's.
+        let c = Scenario::builtin("calibration").unwrap();
+        assert_eq!(c.plant, PlantSpec::dji_m3508_example());
+        assert_eq!(c.plant.lx, Some(f64::from(0.20f32)));
+        assert!(Scenario::builtin("square").unwrap().plant.is_empty());
     }
 
     #[test]

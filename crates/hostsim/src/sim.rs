@@ -678,9 +678,10 @@ fn expand_actions(s: &Scenario) -> Vec<(u64, HostAction)> {
 }
 
 /// The run's metadata for the log: configuration TOML, scenario name, seed, tool version.
+/// A scenario's `[plant]`, when it has one, is the `plant` key (TOML).
 #[must_use]
 pub fn run_metadata(scenario: &Scenario) -> BTreeMap<String, String> {
-    BTreeMap::from([
+    let mut metadata = BTreeMap::from([
         ("config".to_string(), scenario.config.to_toml_string()),
         ("scenario".to_string(), scenario.name.clone()),
         ("seed".to_string(), scenario.seed.to_string()),
@@ -693,7 +694,12 @@ pub fn run_metadata(scenario: &Scenario) -> BTreeMap<String, String> {
             "protocol_version".to_string(),
             robot::PROTOCOL_VERSION.to_string(),
         ),
-    ])
+    ]);
+    if !scenario.plant.is_empty() {
+        let plant = toml::to_string(&scenario.plant).unwrap_or_default();
+        metadata.insert("plant".to_string(), plant);
+    }
+    metadata
 }
 
 #[cfg(test)]

@@ -307,6 +307,24 @@ impl<D: Drive> Plant<D> {
         Ok(plant)
     }
 
+    /// The same plant with its chassis parameters changed by `adjust`: a robot whose true
+    /// geometry or rollers differ from what its configuration says (a scenario's `[plant]`
+    /// table). Call it on a plant just built: the chassis starts again at rest at the origin.
+    /// The wheel inertias `adjust` sees include the drives' reflected rotor inertia.
+    ///
+    /// # Errors
+    /// The error of `adjust`, or [`ParamError`] for the first changed parameter out of range.
+    pub fn with_chassis(
+        mut self,
+        adjust: impl FnOnce(&mut ChassisParams) -> Result<(), ParamError>,
+    ) -> Result<Self, ParamError> {
+        let mut params = *self.chassis.params();
+        adjust(&mut params)?;
+        self.chassis = Chassis::new(params)?;
+        self.substep_ns = substep_ns(self.chassis.substep());
+        Ok(self)
+    }
+
     /// Simulated time, ns since the start.
     #[must_use]
     pub const fn time_ns(&self) -> u64 {
