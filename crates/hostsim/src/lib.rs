@@ -6,6 +6,7 @@
 //! messages ([`log`]); a log can be replayed to check that the core still produces the same frames, bit for bit.
 
 pub mod bus;
+pub mod calibrate;
 pub mod candump;
 pub mod drives;
 pub mod kin;

@@ -198,6 +198,46 @@ enum Cmd {
         /// A hostsim MCAP log.
         log: PathBuf,
     },
+    /// Fit the wheel radius, lx + ly and lateral effectiveness that make a log's odometry
+    /// match a reference pose.
+    ///
+    /// The odometry is recomputed from the logged wheel angles (/joint_states) with the
+    /// logged configuration (else the firmware's /odom); the reference is the simulator's
+    /// ground truth (/ground_truth/odom) or --reference TOPIC, e.g. an external tracker's
+    /// geometry_msgs/msg/PoseStamped or nav_msgs/msg/Odometry recorded into the same MCAP
+    /// (its body frame the robot's), interpolated at the odometry's log times. Body-frame
+    /// increments over consecutive windows (SE(2) log of the relative pose) are regressed per
+    /// axis. Convention: the radius is the effective one with forward_effectiveness = 1,
+    /// lx + ly the effective one with yaw_effectiveness = 1 (lx and ly keep their ratio),
+    /// lateral_effectiveness relative to that radius; they refine the logged values, so a log
+    /// recorded with the calibrated configuration gives corrections of 1.
+    ///
+    /// Prints each correction and value with its standard error, the RMS of the per-window
+    /// residuals, and the [geometry] lines to paste; --write FILE writes the logged
+    /// configuration with them. The loop: `hostsim run calibration`, `hostsim calibrate
+    /// out/calibration.mcap --write cal.toml`, `hostsim run calibration --config cal.toml`.
+    ///
+    /// Exit status: 0, 2 if the log is refused (its motion cannot determine a value: it
+    /// needs 0.5 m of forward and of sideways travel and a full turn; no configuration or
+    /// reference in it) or FILE cannot be written, 3 if the log is damaged (the fit used its
+    /// complete part).
+    #[command(verbatim_doc_comment)]
+    Calibrate {
+        /// A log (MCAP) of `hostsim run`, `mecanum-runner --log` or `hostsim plant --log`.
+        log: PathBuf,
+        /// The reference pose topic.
+        #[arg(long, value_name = "TOPIC", default_value = hostsim::calibrate::GROUND_TRUTH)]
+        reference: String,
+        /// Window length, s.
+        #[arg(long, value_name = "SECONDS", default_value_t = 0.1)]
+        window: f64,
+        /// Write the logged configuration with the fitted [geometry] to FILE.
+        #[arg(long, value_name = "FILE")]
+        write: Option<PathBuf>,
+        /// Print the report as JSON (one object on stdout).
+        #[arg(long)]
+        json: bool,
+    },
     /// Kinematics calculator: JSON lines on stdin, one JSON line out per non-blank line.
     ///
     /// {"op":"inverse","lx":..,"ly":..,"r":..,"vx":..,"vy":..,"wz":..} gives
@@ -342,6 +382,13 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
         }
         Cmd::Plant(args) => plant(&args),
         Cmd::Summary { log } => summary(&log),
+        Cmd::Calibrate {
+            log,
+            reference,
+            window,
+            write,
+            json,
+        } => calibrate(&log, reference, window, write.as_deref(), json),
         Cmd::Kin => {
             let stdin = std::io::stdin();
             match hostsim::kin::run(stdin.lock(), std::io::stdout().lock()) {
@@ -1135,4 +1182,45 @@ fn summary(path: &Path) -> Result<ExitCode> {
         return Ok(ExitCode::from(EXIT_DAMAGED));
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// `calibrate LOG`: the fitted geometry, printed and optionally written.
+fn calibrate(
+    path: &Path,
+    reference: String,
+    window_s: f64,
+    write: Option<&Path>,
+    json: bool,
+) -> Result<ExitCode> {
+    let options = hostsim::calibrate::Options {
+        reference,
+        window_s,
+    };
+    let c = hostsim::calibrate::calibrate(path, &options)
+        .with_context(|| format!("cannot calibrate from {}", path.display()))?;
+    warn_if_damaged(path, &c.read, "the fit used its complete part");
+    if let Some(file) = write {
+        let text = format!(
+            "# The configuration of {}, [geometry] calibrated by hostsim calibrate (reference \
+             {}).\n{}",
+            path.display(),
+            c.reference,
+            c.config.to_toml_string()
+        );
+        std::fs::write(file, text).with_context(|| format!("cannot write {}", file.display()))?;
+    }
+    if json {
+        println!("{}", c.to_json());
+    } else {
+        println!("calibration from {}", path.display());
+        print!("{c}");
+        if let Some(file) = write {
+            println!("written: {}", file.display());
+        }
+    }
+    Ok(if c.read.is_complete() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(EXIT_DAMAGED)
+    })
 }
