@@ -13,7 +13,7 @@ use hostsim::sim::{LogOptions, RunSummary, run, run_metadata};
 /// Runs `scenario` on the simulated drives, logging every message into `log`, which is left
 /// open (the caller finishes it, or drops it to leave a log cut short).
 pub fn run_into(scenario: &Scenario, log: &mut McapLog) -> RunSummary {
-    let mut plant = SimDrives::new(&scenario.config).unwrap();
+    let mut plant = SimDrives::for_scenario(scenario).unwrap();
     run(
         scenario,
         &mut plant,
