@@ -238,6 +238,22 @@ enum Cmd {
         #[arg(long)]
         json: bool,
     },
+    /// Draw logged runs into one PNG: their ground truth and odometry seen from above, and
+    /// the position error over time, each run's largest drift in the legends.
+    ///
+    /// Give two logs to compare them, e.g. a run before and after `calibrate`: `hostsim plot
+    /// out/calibration.mcap recal/calibration.mcap`. Each needs /odom and /ground_truth/odom
+    /// (a `hostsim run` or `hostsim plant --log` log). Exit status 2 if a log cannot be read
+    /// or the PNG written.
+    Plot {
+        /// One or more MCAP logs (up to 3), each labelled by its path.
+        #[arg(required = true, num_args = 1..=3)]
+        logs: Vec<PathBuf>,
+        /// The PNG to write. Default: beside the first log, its name with `.png` (one log) or
+        /// `-vs-<second log's name>.png` (more).
+        #[arg(long, value_name = "FILE")]
+        out: Option<PathBuf>,
+    },
     /// Kinematics calculator: JSON lines on stdin, one JSON line out per non-blank line.
     ///
     /// {"op":"inverse","lx":..,"ly":..,"r":..,"vx":..,"vy":..,"wz":..} gives
@@ -382,6 +398,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
         }
         Cmd::Plant(args) => plant(&args),
         Cmd::Summary { log } => summary(&log),
+        Cmd::Plot { logs, out } => plot_logs(&logs, out),
         Cmd::Calibrate {
             log,
             reference,
@@ -1223,4 +1240,39 @@ fn calibrate(
     } else {
         ExitCode::from(EXIT_DAMAGED)
     })
+}
+
+/// `plot LOG...`: the runs in one figure.
+fn plot_logs(logs: &[PathBuf], out: Option<PathBuf>) -> Result<ExitCode> {
+    let stem = |p: &Path| {
+        p.file_stem()
+            .map_or_else(String::new, |s| s.to_string_lossy().into_owned())
+    };
+    let out = out.unwrap_or_else(|| {
+        let mut name = stem(&logs[0]);
+        if let Some(second) = logs.get(1) {
+            name = format!("{name}-vs-{}", stem(second));
+        }
+        logs[0].with_file_name(format!("{name}.png"))
+    });
+    let tracks = logs
+        .iter()
+        .map(|p| hostsim::plot::track_from_log(p).map_err(anyhow::Error::msg))
+        .collect::<Result<Vec<_>>>()?;
+    let labels: Vec<String> = logs.iter().map(|p| p.display().to_string()).collect();
+    let runs: Vec<(&str, &[hostsim::plot::TrackPoint])> = labels
+        .iter()
+        .zip(&tracks)
+        .map(|(l, t)| (l.as_str(), t.as_slice()))
+        .collect();
+    let title = stem(&logs[0]);
+    hostsim::plot::plot_runs(&out, &title, &runs)?;
+    for (label, track) in labels.iter().zip(&tracks) {
+        println!(
+            "{label}: max drift {:.1} mm",
+            hostsim::plot::max_drift(track) * 1000.0
+        );
+    }
+    println!("plot:  {}", out.display());
+    Ok(ExitCode::SUCCESS)
 }

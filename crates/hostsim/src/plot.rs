@@ -1,5 +1,6 @@
 //! A PNG of a run: the ground-truth path against the firmware's odometry, seen from above,
-//! and the position error over time.
+//! and the position error over time; or of several runs in one figure (`hostsim plot A B`:
+//! an uncalibrated run beside a calibrated one).
 
 use std::path::Path;
 
@@ -42,18 +43,60 @@ fn register_font() {
 /// # Errors
 /// [`PlotError`] if the file cannot be written.
 pub fn plot_run(path: &Path, title: &str, points: &[TrackPoint]) -> Result<(), PlotError> {
+    plot_runs(path, title, &[("", points)])
+}
+
+/// The largest distance between odometry and ground truth along a track, m.
+#[must_use]
+pub fn max_drift(points: &[TrackPoint]) -> f64 {
+    points
+        .iter()
+        .map(|p| (p.truth[0] - p.odom[0]).hypot(p.truth[1] - p.odom[1]))
+        .fold(0.0, f64::max)
+}
+
+/// The colours of a run's ground truth and odometry: the first run's are blue and red, the
+/// next ones' green and orange, purple and brown.
+const COLOURS: [(RGBColor, RGBColor); 3] = [
+    (BLUE, RED),
+    (RGBColor(0, 140, 0), RGBColor(240, 140, 0)),
+    (RGBColor(120, 0, 160), RGBColor(140, 90, 40)),
+];
+
+/// Draws several runs, each `(label, points)`, into one figure as [`plot_run`] draws one: a
+/// panel per run with its ground truth and odometry seen from above (the same equal axes for
+/// all, the largest drift in the legend), then one panel of every run's position error over
+/// time (600 x 600 pixels a panel). Say an uncalibrated run beside a calibrated one.
+///
+/// # Errors
+/// [`PlotError`] if the file cannot be written.
+pub fn plot_runs(
+    path: &Path,
+    title: &str,
+    runs: &[(&str, &[TrackPoint])],
+) -> Result<(), PlotError> {
     register_font();
     let err = |e: &dyn std::fmt::Display| PlotError {
         path: path.display().to_string(),
         message: e.to_string(),
     };
-    let root = BitMapBackend::new(path, (1200, 600)).into_drawing_area();
+    let panels = u32::try_from(runs.len().max(1) + 1).unwrap_or(u32::MAX);
+    let root = BitMapBackend::new(path, (600 * panels, 600)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(&e))?;
-    let (left, right) = root.split_horizontally(600);
+    let areas = root.split_evenly((1, panels as usize));
+    let (paths, right) = areas.split_at(areas.len() - 1);
+    let right = &right[0];
+    let prefix = |label: &str| {
+        if label.is_empty() {
+            String::new()
+        } else {
+            format!("{label}: ")
+        }
+    };
 
-    // Equal axes around both paths, with a margin.
+    // Equal axes around every path, with a margin, the same for every run.
     let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-    for p in points {
+    for p in runs.iter().flat_map(|r| r.1) {
         for [x, y] in [p.truth, p.odom] {
             x0 = x0.min(x);
             x1 = x1.max(x);
@@ -61,60 +104,77 @@ pub fn plot_run(path: &Path, title: &str, points: &[TrackPoint]) -> Result<(), P
             y1 = y1.max(y);
         }
     }
-    if points.is_empty() {
+    if runs.iter().all(|r| r.1.is_empty()) {
         (x0, x1, y0, y1) = (-1.0, 1.0, -1.0, 1.0);
     }
     let span = (x1 - x0).max(y1 - y0).max(0.2) * 1.15;
     let (cx, cy) = ((x0 + x1) / 2.0, (y0 + y1) / 2.0);
-    let mut chart = ChartBuilder::on(&left)
-        .caption(format!("{title}: path seen from above"), ("sans-serif", 20))
-        .margin(10)
-        .x_label_area_size(35)
-        .y_label_area_size(50)
-        .build_cartesian_2d(
-            cx - span / 2.0..cx + span / 2.0,
-            cy - span / 2.0..cy + span / 2.0,
-        )
-        .map_err(|e| err(&e))?;
-    chart
-        .configure_mesh()
-        .x_desc("x [m]")
-        .y_desc("y [m]")
-        .draw()
-        .map_err(|e| err(&e))?;
-    chart
-        .draw_series(LineSeries::new(
-            points.iter().map(|p| (p.truth[0], p.truth[1])),
-            BLUE.stroke_width(3),
-        ))
-        .map_err(|e| err(&e))?
-        .label("ground truth")
-        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLUE.stroke_width(3)));
-    chart
-        .draw_series(LineSeries::new(
-            points.iter().map(|p| (p.odom[0], p.odom[1])),
-            RED.stroke_width(1),
-        ))
-        .map_err(|e| err(&e))?
-        .label("odometry (firmware)")
-        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], RED));
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.8))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|e| err(&e))?;
+    for (i, ((label, points), area)) in runs.iter().zip(paths).enumerate() {
+        let (truth, odom) = COLOURS[i % COLOURS.len()];
+        let caption = if label.is_empty() {
+            format!("{title}: path seen from above")
+        } else {
+            format!("{label}: path seen from above")
+        };
+        let mut chart = ChartBuilder::on(area)
+            .caption(
+                caption,
+                ("sans-serif", if label.is_empty() { 20 } else { 16 }),
+            )
+            .margin(10)
+            .x_label_area_size(35)
+            .y_label_area_size(50)
+            .build_cartesian_2d(
+                cx - span / 2.0..cx + span / 2.0,
+                cy - span / 2.0..cy + span / 2.0,
+            )
+            .map_err(|e| err(&e))?;
+        chart
+            .configure_mesh()
+            .x_desc("x [m]")
+            .y_desc("y [m]")
+            .draw()
+            .map_err(|e| err(&e))?;
+        chart
+            .draw_series(LineSeries::new(
+                points.iter().map(|p| (p.truth[0], p.truth[1])),
+                truth.stroke_width(3),
+            ))
+            .map_err(|e| err(&e))?
+            .label("ground truth")
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 20, y)], truth.stroke_width(3))
+            });
+        chart
+            .draw_series(LineSeries::new(
+                points.iter().map(|p| (p.odom[0], p.odom[1])),
+                odom.stroke_width(1),
+            ))
+            .map_err(|e| err(&e))?
+            .label(format!(
+                "odometry (firmware), max drift {:.1} mm",
+                max_drift(points) * 1000.0
+            ))
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], odom));
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .draw()
+            .map_err(|e| err(&e))?;
+    }
 
-    let t_end = points.last().map_or(1.0, |p| p.t).max(1e-3);
-    let errs: Vec<(f64, f64)> = points
+    let t_end = runs
         .iter()
-        .map(|p| {
-            let e = (p.truth[0] - p.odom[0]).hypot(p.truth[1] - p.odom[1]);
-            (p.t, e * 1000.0)
-        })
-        .collect();
-    let e_max = errs.iter().map(|e| e.1).fold(1.0, f64::max) * 1.1;
-    let mut chart = ChartBuilder::on(&right)
+        .filter_map(|r| r.1.last())
+        .map(|p| p.t)
+        .fold(1e-3, f64::max);
+    let e_max = runs
+        .iter()
+        .map(|r| max_drift(r.1) * 1000.0)
+        .fold(1.0, f64::max)
+        * 1.1;
+    let mut chart = ChartBuilder::on(right)
         .caption("odometry position error", ("sans-serif", 20))
         .margin(10)
         .x_label_area_size(35)
@@ -127,9 +187,77 @@ pub fn plot_run(path: &Path, title: &str, points: &[TrackPoint]) -> Result<(), P
         .y_desc("error [mm]")
         .draw()
         .map_err(|e| err(&e))?;
-    chart
-        .draw_series(LineSeries::new(errs, RED))
-        .map_err(|e| err(&e))?;
+    for (i, (label, points)) in runs.iter().enumerate() {
+        let (_, odom) = COLOURS[i % COLOURS.len()];
+        let errs = points.iter().map(|p| {
+            let e = (p.truth[0] - p.odom[0]).hypot(p.truth[1] - p.odom[1]);
+            (p.t, e * 1000.0)
+        });
+        chart
+            .draw_series(LineSeries::new(errs, odom))
+            .map_err(|e| err(&e))?
+            .label(format!(
+                "{}max {:.1} mm",
+                prefix(label),
+                max_drift(points) * 1000.0
+            ))
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], odom));
+    }
+    if runs.len() > 1 {
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .draw()
+            .map_err(|e| err(&e))?;
+    }
     root.present().map_err(|e| err(&e))?;
     Ok(())
+}
+
+/// A logged run's track: the odometry (`/odom`) and the ground truth (`/ground_truth/odom`)
+/// at the log times both have, from the log's start (as `hostsim run` draws it).
+///
+/// # Errors
+/// A description naming the file if it cannot be read, is not MCAP, or has no odometry and
+/// ground truth at the same times.
+pub fn track_from_log(path: &Path) -> Result<Vec<TrackPoint>, String> {
+    use crate::log::msg::{self, decode};
+    let bytes = std::fs::read(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    let (mut odom, mut truth) = (Vec::new(), Vec::new());
+    crate::log::for_each_message(
+        &bytes,
+        |m| {
+            let list = match m.topic {
+                "/odom" => &mut odom,
+                "/ground_truth/odom" => &mut truth,
+                _ => return,
+            };
+            if let Ok(o) = decode::<msg::Odometry>(m.data) {
+                let [x, y, _] = o.pose.pose.to_planar();
+                list.push((m.log_time, [x, y]));
+            }
+        },
+        |_, _| {},
+    )
+    .map_err(|e| format!("{}: not a readable MCAP file: {e}", path.display()))?;
+    let truth: std::collections::BTreeMap<u64, [f64; 2]> = truth.into_iter().collect();
+    let points: Vec<TrackPoint> = odom
+        .into_iter()
+        .filter_map(|(t, odom)| {
+            Some(TrackPoint {
+                t: t as f64 * 1e-9,
+                truth: *truth.get(&t)?,
+                odom,
+            })
+        })
+        .collect();
+    if points.is_empty() {
+        return Err(format!(
+            "{}: no odometry (/odom) and ground truth (/ground_truth/odom) at the same times: \
+             nothing to plot",
+            path.display()
+        ));
+    }
+    Ok(points)
 }

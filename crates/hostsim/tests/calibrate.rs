@@ -530,3 +530,69 @@ fn the_command_line_writes_a_configuration_that_loads() {
         assert!(c.is_finite() && se.is_finite() && se < 1e-3, "{axis}");
     }
 }
+
+/// `hostsim plot A B`: both runs in one PNG, a path panel each and the errors (1800 x 600),
+/// each run's largest drift as the run measured it (within 1 mm: the log has every 10th
+/// step); a log without odometry and ground truth is refused (exit status 2).
+#[test]
+fn the_plot_draws_two_runs_side_by_side() {
+    let group = "calibrate-plot";
+    let mut after = Config::dji_m3508_example();
+    if let Geometry::Standard {
+        lateral_effectiveness,
+        ..
+    } = &mut after.geometry
+    {
+        *lateral_effectiveness = 0.75;
+    }
+    let (before_run, before) = run(
+        group,
+        &legs("before", Config::dji_m3508_example(), &SQUARE, 0.5),
+    );
+    let (after_run, after) = run(group, &legs("after", after, &SQUARE, 0.5));
+    for (path, summary) in [(&before, &before_run), (&after, &after_run)] {
+        let track = hostsim::plot::track_from_log(path).unwrap();
+        let drift = hostsim::plot::max_drift(&track);
+        println!(
+            "{}: max drift {:.1} mm from the log, {:.1} mm in the run",
+            path.display(),
+            drift * 1e3,
+            summary.max_position_error * 1e3
+        );
+        assert!((drift - summary.max_position_error).abs() < 1e-3);
+    }
+    let png = scratch(group, "before-vs-after.png");
+    let _ = std::fs::remove_file(&png);
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_hostsim"))
+        .arg("plot")
+        .args([&before, &after])
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    println!("{stdout}");
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("before-vs-after.png"), "{stdout}");
+    let bytes = std::fs::read(&png).unwrap();
+    // PNG signature, then the IHDR chunk: width and height, big-endian.
+    assert_eq!(&bytes[1..4], b"PNG");
+    let size = |at: usize| u32::from_be_bytes(bytes[at..at + 4].try_into().unwrap());
+    assert_eq!((size(16), size(20)), (1800, 600));
+
+    let log = scratch(group, "no-odometry.mcap");
+    std::fs::write(&log, b"not a log").unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_hostsim"))
+        .args(["plot".as_ref(), log.as_os_str()])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(
+        stderr.contains("no-odometry.mcap") && stderr.contains("not a readable MCAP"),
+        "{stderr}"
+    );
+}
