@@ -71,6 +71,18 @@ fn run(group: &str, scenario: &Scenario) -> (RunSummary, std::path::PathBuf) {
     (logged_run(scenario, &path), path)
 }
 
+/// The log of the built-in `calibration` run, run once for every test here that needs it.
+fn calibration_log() -> &'static Path {
+    static LOG: std::sync::OnceLock<std::path::PathBuf> = std::sync::OnceLock::new();
+    LOG.get_or_init(|| {
+        run(
+            "calibrate-shared",
+            &Scenario::builtin("calibration").unwrap(),
+        )
+        .1
+    })
+}
+
 fn fit(path: &Path) -> Calibration {
     calibrate(path, &Options::default()).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
 }
@@ -103,8 +115,7 @@ fn print_fit(what: &str, c: &Calibration) {
 fn the_calibrated_rerun_meets_the_drift_targets() {
     let wall = std::time::Instant::now();
     let group = "calibrate-rerun";
-    let (_, log) = run(group, &Scenario::builtin("calibration").unwrap());
-    let first = fit(&log);
+    let first = fit(calibration_log());
     print_fit("calibration of the example robot", &first);
     let calibrated = first.config;
 
@@ -332,11 +343,10 @@ fn a_straight_only_log_is_refused_naming_the_missing_motion() {
 fn a_tracker_pose_stamped_reference_gives_the_same_fit() {
     use hostsim::log::msg::{self, decode, encode};
     let group = "calibrate-tracker";
-    let (_, log) = run(group, &Scenario::builtin("calibration").unwrap());
-    let truth_fit = fit(&log);
+    let truth_fit = fit(calibration_log());
 
     // Rewrite the log: metadata, wheels and /cmd_vel as they are, the truth as a tracker.
-    let bytes = std::fs::read(&log).unwrap();
+    let bytes = std::fs::read(calibration_log()).unwrap();
     let path = scratch(group, "tracker.mcap");
     let mut w = mcap::WriteOptions::new()
         .profile(hostsim::log::PROFILE)
@@ -464,12 +474,10 @@ fn a_tracker_pose_stamped_reference_gives_the_same_fit() {
 /// holds the fitted values and the rest of the logged one.
 #[test]
 fn the_command_line_writes_a_configuration_that_loads() {
-    let group = "calibrate-cli";
-    let (_, log) = run(group, &Scenario::builtin("calibration").unwrap());
-    let written = scratch(group, "calibrated.toml");
+    let written = scratch("calibrate-cli", "calibrated.toml");
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_hostsim"))
         .arg("calibrate")
-        .arg(&log)
+        .arg(calibration_log())
         .arg("--write")
         .arg(&written)
         .arg("--json")
