@@ -530,6 +530,27 @@ fn the_command_line_writes_a_configuration_that_loads() {
         },
         example
     );
+    // A log cut short (its summary and last chunk lost, the motion all there): the fit of its
+    // complete part, exit status 3 and a warning naming the damage.
+    let bytes = std::fs::read(calibration_log()).unwrap();
+    let cut = scratch("calibrate-cli", "cut.mcap");
+    std::fs::write(&cut, &bytes[..bytes.len() * 97 / 100]).unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_hostsim"))
+        .arg("calibrate")
+        .arg(&cut)
+        .output()
+        .unwrap();
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    println!("cut log: exit {:?}, {stderr}", out.status.code());
+    assert_eq!(out.status.code(), Some(3), "{stderr}");
+    assert!(
+        stderr.contains("cut.mcap is damaged") && stderr.contains("complete part"),
+        "{stderr}"
+    );
+    assert!(stdout.contains("lateral_effectiveness = 0.7"), "{stdout}");
     for axis in v["axes"].as_array().unwrap() {
         let (c, se) = (
             axis["correction"].as_f64().unwrap(),
