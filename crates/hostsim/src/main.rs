@@ -238,10 +238,11 @@ enum Cmd {
         #[arg(long)]
         json: bool,
     },
-    /// Draw logged runs into one PNG: their ground truth and odometry seen from above, and
-    /// the position error over time, each run's largest drift in the legends.
+    /// Draw logged runs side by side in one PNG, e.g. before and after `calibrate`.
     ///
-    /// Give two logs to compare them, e.g. a run before and after `calibrate`: `hostsim plot
+    /// A panel per run with its ground truth and odometry seen from above (the same axes for
+    /// all), then one of every run's position error over time; the legends give each run's
+    /// largest drift. Give two logs to compare them, e.g. a run before and after `calibrate`: `hostsim plot
     /// out/calibration.mcap recal/calibration.mcap`. Each needs /odom and /ground_truth/odom
     /// (a `hostsim run` or `hostsim plant --log` log). Exit status 2 if a log cannot be read
     /// or the PNG written.
