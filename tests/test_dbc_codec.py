@@ -41,6 +41,7 @@ ENUM_VALUES = {
     "request": [0, 1, 2],
     "state": [0, 1, 2, 3],
     "fault": [0, 1, 2, 3, 4, 5, 6],
+    "heading_source": [0, 1, 2],
     "Axis_State": list(range(15)),
     "Axis_Requested_State": list(range(15)),
     "Control_Mode": [0, 1, 2, 3],
@@ -130,7 +131,7 @@ def check_decoded(db_msg, rust: dict, expected: dict, tol_of, where: str) -> Non
 
 def test_dbc_files_load_strictly(dbs):
     assert {m.name for m in dbs["robot"].messages} == {
-        "ESTOP", "TWIST_CMD", "MODE_CMD", "STATUS_REQ",
+        "ESTOP", "TWIST_CMD", "MODE_CMD", "STATUS_REQ", "IMU_YAW_RATE",
         "ODOM_POSITION", "ODOM_VELOCITY", "STATUS", "STATUS_COUNTERS", "HEARTBEAT",
     }
     assert all(0x300 <= m.frame_id <= 0x31F for m in dbs["robot"].messages)
@@ -189,6 +190,33 @@ def test_twist_seq_is_documented_as_an_alive_counter(dbs):
     assert (counters.frame_id, counters.length, counters.senders) == (0x313, 8, ["ROBOT"])
     assert [s.name for s in counters.signals] == ["repeated_seq", "wrong_dlc", "out_of_range", "non_finite"]
     assert all((s.length, s.is_signed, s.minimum, s.maximum) == (16, False, 0, 65535) for s in counters.signals)
+
+
+def test_imu_yaw_rate_is_an_optional_float_frame_with_an_alive_counter(dbs):
+    """IMU_YAW_RATE: host-to-robot block (0x300-0x30F), sent by its own node, a little-endian
+    float32 yaw rate in rad/s within the +-35 rad/s a MEMS gyro can read, an alive counter like
+    TWIST_CMD's, and the rules (bias, timeout, fallback, counting) in its comments. STATUS
+    carries the heading source in the high nibble of motors_online's byte."""
+    robot = dbs["robot"]
+    imu = robot.get_message_by_name("IMU_YAW_RATE")
+    assert (imu.frame_id, imu.length, imu.senders) == (0x304, 8, ["IMU"])
+    assert 0x300 <= imu.frame_id <= 0x30F
+    rate = imu.get_signal_by_name("yaw_rate")
+    assert (rate.start, rate.length, rate.is_float, rate.byte_order) == (0, 32, True, "little_endian")
+    assert (rate.minimum, rate.maximum, rate.unit) == (-35, 35, "rad/s")
+    assert [s.name for s in imu.signals] == ["yaw_rate", "seq", "reserved"]
+    assert imu.get_signal_by_name("seq").start == 32
+    for words in ("bias", "standing still", "timeout", "WHEELS_GYRO_SILENT", "not a fault",
+                  "non_finite", "out_of_range", "counter-clockwise"):
+        assert words in (imu.comment or "") + (rate.comment or ""), words
+    assert "repeated_seq" in imu.get_signal_by_name("seq").comment
+    status = robot.get_message_by_name("STATUS")
+    online, heading = status.get_signal_by_name("motors_online"), status.get_signal_by_name("heading_source")
+    assert (online.start, online.length, heading.start, heading.length) == (48, 4, 52, 4)
+    assert {int(k): str(v) for k, v in heading.choices.items()} == {
+        0: "WHEELS", 1: "GYRO", 2: "WHEELS_GYRO_SILENT"}
+    # 0.5 rad/s counter-clockwise, seq 7, as cantools writes it: float32 LE.
+    assert imu.encode({"yaw_rate": 0.5, "seq": 7, "reserved": 0}) == bytes.fromhex("0000003F07000000")
 
 
 def test_golden_covers_every_implemented_message(golden, dbs):
@@ -260,7 +288,7 @@ def signal_domain(signal):
         return "enum", ENUM_VALUES[signal.name]
     if signal.name in FLAGS:
         return "enum", FLAGS[signal.name]
-    if signal.is_float:
+    if signal.is_float and (signal.minimum is None or signal.maximum is None):
         return "float", None
     if signal.minimum is not None and signal.maximum is not None and signal.minimum < signal.maximum:
         return "range", (signal.minimum, signal.maximum)
@@ -340,7 +368,7 @@ def test_cantools_encoded_frames_decode_in_rust(run_codec, dbs):
         # ... and = the values cantools encoded, within half an LSB.
         check_decoded(msg, rust, values, lambda s, v: half_lsb(s) + f32_slack(v), where)
         messages.add(msg.name)
-    assert len(messages) == 9 + 10 + 4 * len(ODRIVE_MESSAGES)
+    assert len(messages) == 10 + 10 + 4 * len(ODRIVE_MESSAGES)
     assert len(cases) >= len(messages) * RANDOM_SETS_PER_MESSAGE
 
 
@@ -383,6 +411,8 @@ MALFORMED = [
     ("303#00", "wrong_dlc", {"expected": 0, "got": 1}),
     ("312#00000000000000", "wrong_dlc", {"expected": 8, "got": 7}),
     ("313#000000000000", "wrong_dlc", {"expected": 8, "got": 6}),
+    ("304#0000003F070000", "wrong_dlc", {"expected": 8, "got": 7}),
+    ("304#", "wrong_dlc", {"expected": 8, "got": 0}),
     ("201#1FFF03E8FC1825", "wrong_dlc", {"expected": 8, "got": 7}),
     ("200#0000", "wrong_dlc", {"expected": 8, "got": 2}),
     ("00D#" + ONE.hex(), "wrong_dlc", {"expected": 8, "got": 4}),
@@ -391,7 +421,8 @@ MALFORMED = [
     ("038#0000", "wrong_dlc", {"expected": 1, "got": 2}),
     # unknown ids
     ("123#00", "unknown_id", {}),
-    ("304#", "unknown_id", {}),
+    ("305#", "unknown_id", {}),
+    ("30F#0000000000000000", "unknown_id", {}),
     ("314#0000000000000000", "unknown_id", {}),
     ("31E#0000000000000000", "unknown_id", {}),
     ("320#00", "unknown_id", {}),
@@ -401,6 +432,8 @@ MALFORMED = [
     ("00C#0000000000000000", "unknown_id", {}),  # Set_Input_Pos: not implemented
     # extended ids, remote frames where data is expected
     ("00000301#F40106FFE8030700", "extended_id", {}),
+    ("00000304#0000003F07000000", "extended_id", {}),
+    ("304#R8", "remote", {}),
     ("301#R8", "remote", {}),
     ("02D#R8", "remote", {}),  # Set_Input_Vel carries data: not a request
     # non-finite floats
@@ -409,6 +442,11 @@ MALFORMED = [
     ("02D#" + (ONE + INF).hex(), "non_finite",
      {"field": "Input_Torque_FF", "value": "inf", "bits": "0x7f800000"}),
     ("069#" + (NAN + NAN).hex(), "non_finite", {"field": "Pos_Estimate", "value": "NaN"}),
+    ("304#" + NAN.hex() + "01000000", "non_finite",
+     {"field": "yaw_rate", "value": "NaN", "bits": f"{struct.unpack('<I', NAN)[0]:#010x}"}),
+    ("304#" + INF.hex() + "02000000", "non_finite", {"field": "yaw_rate", "value": "inf", "bits": "0x7f800000"}),
+    ("304#" + struct.pack("<f", float("-inf")).hex() + "03000000", "non_finite",
+     {"field": "yaw_rate", "value": "-inf", "bits": "0xff800000"}),
     ("049#" + (ONE + struct.pack("<f", float("-inf"))).hex(), "non_finite",
      {"field": "Vel_Estimate", "value": "-inf", "bits": "0xff800000"}),
     # out-of-range values
@@ -426,7 +464,13 @@ MALFORMED = [
     ("302#03", "out_of_range", {"field": "request", "value": 3}),
     ("312#0400000000000000", "out_of_range", {"field": "state", "value": 4}),
     ("312#0007000000000000", "out_of_range", {"field": "fault", "value": 7}),
-    ("312#0000000000001000", "out_of_range", {"field": "motors_online", "value": 16}),
+    ("312#0000000000003F00", "out_of_range", {"field": "heading_source", "value": 3}),
+    ("312#000000000000F000", "out_of_range", {"field": "heading_source", "value": 15}),
+    # beyond +-35 rad/s (the raw value of a float field is its bits)
+    ("304#" + struct.pack("<f", 35.5).hex() + "00000000", "out_of_range",
+     {"field": "yaw_rate", "value": struct.unpack("<I", struct.pack("<f", 35.5))[0]}),
+    ("304#" + struct.pack("<f", -1e30).hex() + "00000000", "out_of_range",
+     {"field": "yaw_rate", "value": struct.unpack("<I", struct.pack("<f", -1e30))[0]}),
     ("31F#0000000004010000", "out_of_range", {"field": "state", "value": 4}),
     ("001#000000000F000000", "out_of_range", {"field": "Axis_State", "value": 15}),
     ("027#0F00000000000000", "out_of_range", {"field": "Axis_Requested_State", "value": 15}),
@@ -479,6 +523,12 @@ def test_malformed_frames_are_malformed_for_the_dbc_too(dbs):
     assert raw["rotor_angle"] == 8192 > fb.get_signal_by_name("rotor_angle").maximum
     vel = dbs["odrive"].get_message_by_name("Axis0_Set_Input_Vel")
     assert math.isnan(vel.decode(NAN + ONE)["Input_Vel"])
+    imu = robot.get_message_by_name("IMU_YAW_RATE")
+    rate = imu.get_signal_by_name("yaw_rate")
+    assert imu.decode(struct.pack("<f", 35.5) + bytes(4))["yaw_rate"] > rate.maximum
+    assert math.isnan(imu.decode(NAN + bytes(4))["yaw_rate"])
+    status = robot.get_message_by_name("STATUS")
+    assert status.decode(bytes.fromhex("0000000000003F00"), decode_choices=False)["heading_source"] == 3
 
 
 def test_decode_accepts_candump_log_and_bare_lines(run_codec):

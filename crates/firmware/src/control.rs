@@ -663,6 +663,8 @@ impl Controller {
                 }
             }
             Command::StatusRequest => self.status_requested = true,
+            // Decoded (malformed frames are counted) but not used yet.
+            Command::ImuYawRate(_) => {}
         }
         Ok(())
     }
@@ -1154,6 +1156,7 @@ impl Controller {
                     rx_errors: sat(e.total().saturating_sub(e.unknown_id)),
                     unknown_ids: sat(e.unknown_id),
                     motors_online: self.online,
+                    heading_source: robot::HeadingSource::Wheels,
                     seq: self.status_seq,
                 })
                 .to_can_frame(),

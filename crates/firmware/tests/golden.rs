@@ -9,8 +9,8 @@ use firmware::protocol::odrive::{
     self, Addressed, AxisState, ControlMode, InputMode, NodeId, split_id,
 };
 use firmware::protocol::robot::{
-    self, Fault, Heartbeat, ModeRequest, OdomPosition, OdomVelocity, RobotState, Status,
-    StatusCounters, TwistCmd,
+    self, Fault, HeadingSource, Heartbeat, ImuYawRate, ModeRequest, OdomPosition, OdomVelocity,
+    RobotState, Status, StatusCounters, TwistCmd,
 };
 use firmware::protocol::{DecodeError, ErrorKind};
 
@@ -129,6 +129,80 @@ fn robot_mode_and_status_request() {
 }
 
 #[test]
+fn robot_imu_yaw_rate() {
+    // 0.5 rad/s = 0x3F000000 little-endian, seq 7, reserved 0.
+    let f = frame(0x304, &[0x00, 0x00, 0x00, 0x3F, 0x07, 0, 0, 0]);
+    let g = robot::Command::ImuYawRate(ImuYawRate {
+        yaw_rate: 0.5,
+        seq: 7,
+    });
+    assert_eq!(robot::Command::decode(&f), Ok(g));
+    assert_eq!(g.to_can_frame(), f);
+    // Clockwise: -1.5 rad/s = 0xBFC00000; reserved bytes are ignored on receipt.
+    let f = frame(0x304, &[0x00, 0x00, 0xC0, 0xBF, 0xFF, 0xAA, 0xBB, 0xCC]);
+    assert_eq!(
+        robot::Command::decode(&f),
+        Ok(robot::Command::ImuYawRate(ImuYawRate {
+            yaw_rate: -1.5,
+            seq: 255
+        }))
+    );
+    // ±35 rad/s is the edge of the range; a hair beyond is out of range (raw = the bits).
+    let at_edge = 35.0f32.to_le_bytes();
+    let beyond = 35.000_004f32;
+    assert!(
+        robot::Command::decode(&frame(
+            0x304,
+            &[at_edge[0], at_edge[1], at_edge[2], at_edge[3], 0, 0, 0, 0]
+        ))
+        .is_ok()
+    );
+    let b = beyond.to_le_bytes();
+    assert_eq!(
+        robot::Command::decode(&frame(0x304, &[b[0], b[1], b[2], b[3], 0, 0, 0, 0])),
+        Err(DecodeError::OutOfRange {
+            field: "yaw_rate",
+            value: i64::from(beyond.to_bits())
+        })
+    );
+    // NaN and infinities are non-finite, with their bits.
+    for bits in [0x7FC0_0000u32, 0x7F80_0000, 0xFF80_0000] {
+        let b = bits.to_le_bytes();
+        assert_eq!(
+            robot::Command::decode(&frame(0x304, &[b[0], b[1], b[2], b[3], 1, 0, 0, 0])),
+            Err(DecodeError::NonFinite {
+                field: "yaw_rate",
+                bits
+            })
+        );
+    }
+    assert_eq!(
+        robot::Command::decode(&frame(0x304, &[0; 7])),
+        Err(DecodeError::WrongDlc {
+            id: 0x304,
+            expected: 8,
+            got: 7
+        })
+    );
+    // The encoder never sends what the decoder refuses: NaN as 0, beyond ±35 saturated.
+    for (rate, sent) in [
+        (f32::NAN, 0.0),
+        (f32::INFINITY, 35.0),
+        (-1e9, -35.0),
+        (-0.0, -0.0),
+    ] {
+        let g = robot::Command::ImuYawRate(ImuYawRate {
+            yaw_rate: rate,
+            seq: 1,
+        });
+        let Ok(robot::Command::ImuYawRate(back)) = robot::Command::decode(&g.to_can_frame()) else {
+            panic!("{rate} did not round-trip");
+        };
+        assert_eq!(back.yaw_rate.to_bits(), f32::to_bits(sent), "{rate}");
+    }
+}
+
+#[test]
 fn robot_odom_position() {
     // x 1.0 m = 10000 = 0x00002710, y -2.5 m = -25000 = 0xFFFF9E58.
     let f = frame(0x310, &[0x10, 0x27, 0x00, 0x00, 0x58, 0x9E, 0xFF, 0xFF]);
@@ -193,6 +267,7 @@ fn robot_status() {
         rx_errors: 0x0102,
         unknown_ids: 3,
         motors_online: 0x0F,
+        heading_source: HeadingSource::Wheels,
         seq: 0x80,
     };
     assert_eq!(
@@ -200,6 +275,32 @@ fn robot_status() {
         Ok(robot::Telemetry::Status(s))
     );
     assert_eq!(robot::Telemetry::Status(s).to_can_frame(), f);
+    // heading_source shares byte 6 with motors_online: its high nibble.
+    for (nibble, source) in [
+        (0x10u8, HeadingSource::Gyro),
+        (0x20, HeadingSource::WheelsGyroSilent),
+    ] {
+        let f = frame(
+            0x312,
+            &[0x01, 0x00, 0x02, 0x01, 0x03, 0x00, nibble | 0x0B, 0x80],
+        );
+        let s = Status {
+            motors_online: 0x0B,
+            heading_source: source,
+            ..s
+        };
+        assert_eq!(
+            robot::Telemetry::decode(&f),
+            Ok(robot::Telemetry::Status(s))
+        );
+        assert_eq!(robot::Telemetry::Status(s).to_can_frame(), f);
+    }
+    // Bits 4-7 of motors_online are not encoded (they would be heading_source).
+    let wide = Status {
+        motors_online: 0xFF,
+        ..s
+    };
+    assert_eq!(robot::Telemetry::Status(wide).to_can_frame(), f);
     let faults = [
         Fault::None,
         Fault::MotorStale,
@@ -219,7 +320,8 @@ fn robot_status() {
     for (data, field, value) in [
         ([4u8, 0, 0, 0, 0, 0, 0, 0], "state", 4),
         ([0, 7, 0, 0, 0, 0, 0, 0], "fault", 7),
-        ([0, 0, 0, 0, 0, 0, 0x10, 0], "motors_online", 16),
+        ([0, 0, 0, 0, 0, 0, 0x3F, 0], "heading_source", 3),
+        ([0, 0, 0, 0, 0, 0, 0xF0, 0], "heading_source", 15),
     ] {
         assert_eq!(
             robot::Telemetry::decode(&frame(0x312, &data)),
@@ -303,7 +405,7 @@ fn robot_rejections() {
         robot::decode(&ext),
         Err(DecodeError::ExtendedId { id: 0x301 })
     );
-    for id in [0x304, 0x31E, 0x123] {
+    for id in [0x305, 0x31E, 0x123] {
         assert_eq!(
             robot::decode(&frame(id, &[0; 8])),
             Err(DecodeError::UnknownId {

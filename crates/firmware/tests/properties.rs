@@ -9,8 +9,8 @@ use firmware::CanFrame;
 use firmware::protocol::dji::{self, EscGroup, EscId, EscModel};
 use firmware::protocol::odrive::{self, AxisState, ControlMode, InputMode, NodeId};
 use firmware::protocol::robot::{
-    self, Fault, Heartbeat, ModeRequest, OdomPosition, OdomVelocity, RobotState, Status,
-    StatusCounters, TwistCmd,
+    self, Fault, HeadingSource, Heartbeat, ImuYawRate, ModeRequest, OdomPosition, OdomVelocity,
+    RobotState, Status, StatusCounters, TwistCmd,
 };
 use proptest::prelude::*;
 
@@ -134,10 +134,11 @@ proptest! {
     #[test]
     fn robot_status_heartbeat_mode_round_trip(state in robot_state(), fault in 0u8..7,
             rx_errors in any::<u16>(), unknown_ids in any::<u16>(), motors in 0u8..16,
-            seq in any::<u8>(), uptime_ms in any::<u32>(), version in any::<u8>(), mode in 0u8..3) {
+            seq in any::<u8>(), uptime_ms in any::<u32>(), version in any::<u8>(), mode in 0u8..3,
+            heading in 0u8..3) {
         let s = robot::Telemetry::Status(Status {
             state, fault: Fault::from_raw(fault).unwrap(), rx_errors, unknown_ids,
-            motors_online: motors, seq,
+            motors_online: motors, heading_source: HeadingSource::from_raw(heading).unwrap(), seq,
         });
         prop_assert_eq!(robot::Telemetry::decode(&s.to_can_frame()), Ok(s));
         let c = robot::Telemetry::StatusCounters(StatusCounters {
@@ -157,6 +158,11 @@ proptest! {
     /// decoder accepts (saturated, NaN as 0).
     #[test]
     fn robot_encoders_always_decodable(a in any_f32(), b in any_f32(), c in any_f32(), d in any_f32()) {
+        let gyro = robot::Command::ImuYawRate(ImuYawRate { yaw_rate: a, seq: 3 });
+        let Ok(robot::Command::ImuYawRate(g)) = robot::Command::decode(&gyro.to_can_frame()) else {
+            panic!("yaw rate {a} did not decode");
+        };
+        if a.is_finite() && a.abs() <= 35.0 { prop_assert_eq!(g.yaw_rate.to_bits(), a.to_bits()); }
         let twist = robot::Command::Twist(TwistCmd { vx: a, vy: b, wz: c, seq: 0 });
         let Ok(robot::Command::Twist(t)) = robot::Command::decode(&twist.to_can_frame()) else {
             panic!("twist from {a} {b} {c} did not decode");

@@ -9,7 +9,7 @@ use embedded_can::{ExtendedId, Frame, Id, StandardId};
 use firmware::CanFrame;
 use firmware::protocol::dji::{self, EscGroup, EscId, EscModel};
 use firmware::protocol::odrive::{self, AxisState, ControlMode, InputMode, NodeId};
-use firmware::protocol::robot::{self, Fault, ModeRequest, RobotState};
+use firmware::protocol::robot::{self, Fault, HeadingSource, ModeRequest, RobotState};
 use firmware::protocol::wire::Field;
 use firmware::protocol::{DecodeError, non_finite_name};
 
@@ -299,6 +299,9 @@ fn robot_fields(msg: &robot::Message) -> Decoded {
             .i(&l::TWIST_SEQ, t.seq),
         robot::Message::Command(C::Mode(m)) => d.i(&l::MODE_REQUEST, m.raw()),
         robot::Message::Command(C::StatusRequest) => d,
+        robot::Message::Command(C::ImuYawRate(g)) => d
+            .f(&l::IMU_YAW_RATE_VALUE, g.yaw_rate)
+            .i(&l::IMU_SEQ, g.seq),
         robot::Message::Telemetry(T::OdomPosition(o)) => d.f(&l::ODOM_X, o.x).f(&l::ODOM_Y, o.y),
         robot::Message::Telemetry(T::OdomVelocity(o)) => d
             .f(&l::ODOM_HEADING, o.heading)
@@ -311,6 +314,7 @@ fn robot_fields(msg: &robot::Message) -> Decoded {
             .i(&l::STATUS_RX_ERRORS, s.rx_errors)
             .i(&l::STATUS_UNKNOWN_IDS, s.unknown_ids)
             .i(&l::STATUS_MOTORS_ONLINE, s.motors_online)
+            .i(&l::STATUS_HEADING_SOURCE, s.heading_source.raw())
             .i(&l::STATUS_SEQ, s.seq),
         robot::Message::Telemetry(T::StatusCounters(c)) => d
             .i(&l::COUNTERS_REPEATED_SEQ, c.repeated_seq)
@@ -508,6 +512,18 @@ fn golden_set() -> Vec<(AnyMessage, Decoded)> {
             seq: 0,
         }))),
         AnyMessage::Robot(robot::Message::Command(RC::StatusRequest)),
+        AnyMessage::Robot(robot::Message::Command(RC::ImuYawRate(robot::ImuYawRate {
+            yaw_rate: 0.001_745_329_3,
+            seq: 0,
+        }))),
+        AnyMessage::Robot(robot::Message::Command(RC::ImuYawRate(robot::ImuYawRate {
+            yaw_rate: -34.906_586,
+            seq: 255,
+        }))),
+        AnyMessage::Robot(robot::Message::Command(RC::ImuYawRate(robot::ImuYawRate {
+            yaw_rate: 35.0,
+            seq: 17,
+        }))),
         AnyMessage::Robot(robot::Message::Telemetry(RT::OdomPosition(
             robot::OdomPosition {
                 x: 12.3456,
@@ -567,15 +583,25 @@ fn golden_set() -> Vec<(AnyMessage, Decoded)> {
             request,
         ))));
     }
-    for (state, fault) in [
-        (RobotState::Disabled, Fault::None),
-        (RobotState::Fault, Fault::MotorStale),
-        (RobotState::Fault, Fault::MotorMissing),
-        (RobotState::Fault, Fault::DriveError),
-        (RobotState::Disabled, Fault::Watchdog),
-        (RobotState::Fault, Fault::Config),
-        (RobotState::Fault, Fault::EncoderStuck),
-        (RobotState::Estop, Fault::None),
+    for (state, fault, heading_source) in [
+        (RobotState::Disabled, Fault::None, HeadingSource::Wheels),
+        (RobotState::Fault, Fault::MotorStale, HeadingSource::Wheels),
+        (RobotState::Fault, Fault::MotorMissing, HeadingSource::Gyro),
+        (RobotState::Fault, Fault::DriveError, HeadingSource::Wheels),
+        (RobotState::Disabled, Fault::Watchdog, HeadingSource::Wheels),
+        (RobotState::Fault, Fault::Config, HeadingSource::Wheels),
+        (
+            RobotState::Fault,
+            Fault::EncoderStuck,
+            HeadingSource::Wheels,
+        ),
+        (RobotState::Estop, Fault::None, HeadingSource::Wheels),
+        (
+            RobotState::Enabled,
+            Fault::None,
+            HeadingSource::WheelsGyroSilent,
+        ),
+        (RobotState::Enabled, Fault::None, HeadingSource::Gyro),
     ] {
         v.push(AnyMessage::Robot(robot::Message::Telemetry(RT::Status(
             robot::Status {
@@ -584,6 +610,7 @@ fn golden_set() -> Vec<(AnyMessage, Decoded)> {
                 rx_errors: 65535,
                 unknown_ids: 513,
                 motors_online: 0b1011,
+                heading_source,
                 seq: 42,
             },
         ))));

@@ -1,4 +1,5 @@
-//! The robot's own protocol: twist setpoints in; odometry, status, counters and heartbeat out.
+//! The robot's own protocol: twist setpoints (and an optional gyro's yaw rate) in; odometry,
+//! status, counters and heartbeat out.
 //!
 //! # The protocol
 //!
@@ -14,9 +15,10 @@
 //! | `0x301` | `TWIST_CMD` | host → robot | 8 | `vx`, `vy` i16 0.001 m/s; `wz` i16 0.001 rad/s; `seq` u8 (alive counter); reserved u8 |
 //! | `0x302` | `MODE_CMD` | host → robot | 1 | `request` u8: 0 disable, 1 enable, 2 reset |
 //! | `0x303` | `STATUS_REQ` | host → robot | 0 | asks for an immediate `STATUS` |
+//! | `0x304` | `IMU_YAW_RATE` | IMU node → robot | 8 | `yaw_rate` f32 rad/s (±35); `seq` u8 (alive counter); reserved 3 bytes |
 //! | `0x310` | `ODOM_POSITION` | robot → host | 8 | `x`, `y` i32 0.0001 m (odometry frame) |
 //! | `0x311` | `ODOM_VELOCITY` | robot → host | 8 | `heading` i16 0.0001 rad; `vx`, `vy` i16 0.001 m/s; `wz` i16 0.001 rad/s |
-//! | `0x312` | `STATUS` | robot → host | 8 | `state` u8, `fault` u8, `rx_errors` u16, `unknown_ids` u16, `motors_online` u8, `seq` u8 |
+//! | `0x312` | `STATUS` | robot → host | 8 | `state` u8, `fault` u8, `rx_errors` u16, `unknown_ids` u16, `motors_online` 4 bits, `heading_source` 4 bits, `seq` u8 |
 //! | `0x313` | `STATUS_COUNTERS` | robot → host | 8 | `repeated_seq`, `wrong_dlc`, `out_of_range`, `non_finite` u16 |
 //! | `0x31F` | `HEARTBEAT` | robot → host | 8 | `uptime_ms` u32, `state` u8, `protocol_version` u8 (= 3), reserved u16 |
 //!
@@ -34,6 +36,18 @@
 //! and it is counted (`STATUS_COUNTERS.repeated_seq`). The first twist after an enable or a
 //! reset is accepted whatever its `seq`. (The codec only carries the number;
 //! [`crate::control`] applies the rule.)
+//!
+//! `IMU_YAW_RATE` is optional: an IMU node sends its gyro's yaw rate (counter-clockwise
+//! positive, bias and all: the robot estimates the bias while it stands still) at its own
+//! rate, 200 Hz typically. Its `seq` is an alive counter like `TWIST_CMD`'s: a frame that
+//! repeats the last accepted `seq` is not used and is counted in
+//! `STATUS_COUNTERS.repeated_seq`. A robot configured for gyro heading reports in
+//! `STATUS.heading_source` where its heading comes from: `GYRO`, or `WHEELS_GYRO_SILENT` when
+//! no valid `IMU_YAW_RATE` arrived within its gyro timeout (a warning, not a fault: the robot
+//! keeps driving on wheel heading and takes the gyro again when it is back). A robot without
+//! a gyro reports `WHEELS` and sends exactly the frames it sent before the gyro existed, so
+//! these additions did not change the protocol version. (The codec only carries the
+//! numbers; [`crate::control`] applies the rules.)
 //!
 //! `STATUS_COUNTERS` follows every `STATUS` (periodic or requested). `STATUS` has no room
 //! left, and the counters a host needs to tell a stuck sender from a noisy bus belong
@@ -96,6 +110,12 @@ pub mod layout {
         id: 0x303,
         dlc: 0,
     };
+    /// `IMU_YAW_RATE`, IMU node → robot.
+    pub const IMU_YAW_RATE: MessageDef = MessageDef {
+        name: "IMU_YAW_RATE",
+        id: 0x304,
+        dlc: 8,
+    };
     /// `ODOM_POSITION`, robot → host.
     pub const ODOM_POSITION: MessageDef = MessageDef {
         name: "ODOM_POSITION",
@@ -155,6 +175,15 @@ pub mod layout {
     /// `TWIST_CMD.seq`, alive counter (see the [module documentation](super)).
     pub const TWIST_SEQ: Field = Field::int("seq", 6, U8, Little);
 
+    /// Largest `|IMU_YAW_RATE.yaw_rate|`, rad/s: beyond a MEMS gyro's ±2000 °/s full scale
+    /// (34.9 rad/s); a larger value is out of range.
+    pub const YAW_RATE_MAX: f32 = 35.0;
+    /// `IMU_YAW_RATE.yaw_rate`, rad/s, counter-clockwise positive (f32, finite, within
+    /// ±[`YAW_RATE_MAX`]).
+    pub const IMU_YAW_RATE_VALUE: Field = Field::int("yaw_rate", 0, F32, Little);
+    /// `IMU_YAW_RATE.seq`, alive counter.
+    pub const IMU_SEQ: Field = Field::int("seq", 4, U8, Little);
+
     /// `MODE_CMD.request`: 0 disable, 1 enable, 2 reset.
     pub const MODE_REQUEST: Field = Field::int("request", 0, U8, Little).range(0, 2);
 
@@ -196,9 +225,13 @@ pub mod layout {
     pub const STATUS_UNKNOWN_IDS: Field = Field::int("unknown_ids", 4, U16, Little);
     /// Bits of `STATUS.motors_online` in use: one per wheel.
     pub const MOTORS_ONLINE_MASK: u8 = 0x0F;
-    /// `STATUS.motors_online`: bit i = wheel i (FL, FR, RL, RR); bits 4-7 must be 0.
+    /// `STATUS.motors_online`: bit i = wheel i (FL, FR, RL, RR); the low 4 bits of byte 6.
     pub const STATUS_MOTORS_ONLINE: Field =
-        Field::int("motors_online", 6, U8, Little).range(0, MOTORS_ONLINE_MASK as i64);
+        Field::int("motors_online", 6, Bits { shift: 0, width: 4 }, Little);
+    /// `STATUS.heading_source`: 0 wheels, 1 gyro, 2 wheels because the gyro is silent; the
+    /// high 4 bits of byte 6 (other values reserved, rejected).
+    pub const STATUS_HEADING_SOURCE: Field =
+        Field::int("heading_source", 6, Bits { shift: 4, width: 4 }, Little).range(0, 2);
     /// `STATUS.seq`: rolling counter.
     pub const STATUS_SEQ: Field = Field::int("seq", 7, U8, Little);
 
@@ -291,8 +324,27 @@ macro_rules! u8_enum {
     };
 }
 
+/// Where the odometry's heading comes from (`STATUS.heading_source`).
+#[derive(Clone, Copy, PartialEq, Eq, Debug, Default)]
+pub enum HeadingSource {
+    /// The wheels: the robot is configured without a gyro (`heading_source = "wheels"`).
+    #[default]
+    Wheels = 0,
+    /// The gyro (`IMU_YAW_RATE`), less its estimated bias.
+    Gyro = 1,
+    /// The wheels, although the robot is configured for the gyro: no valid `IMU_YAW_RATE`
+    /// within the gyro timeout (or none yet). A warning, not a fault: the robot keeps
+    /// driving, and takes the gyro again as soon as a valid frame arrives.
+    WheelsGyroSilent = 2,
+}
+
 u8_enum!(ModeRequest { Disable = 0, Enable = 1, Reset = 2 });
 u8_enum!(RobotState { Disabled = 0, Enabled = 1, Fault = 2, Estop = 3 });
+u8_enum!(HeadingSource {
+    Wheels = 0,
+    Gyro = 1,
+    WheelsGyroSilent = 2,
+});
 u8_enum!(Fault {
     None = 0,
     MotorStale = 1,
@@ -318,7 +370,18 @@ pub struct TwistCmd {
     pub seq: u8,
 }
 
-/// A message from the host to the robot.
+/// A gyro's yaw rate (`IMU_YAW_RATE`), from an IMU node.
+#[derive(Clone, Copy, PartialEq, Debug, Default)]
+pub struct ImuYawRate {
+    /// Yaw rate about the body z axis, counter-clockwise positive, rad/s, as the gyro
+    /// measures it (bias included); finite, within ±35 rad/s.
+    pub yaw_rate: f32,
+    /// Alive counter set by the IMU node: one more (mod 256) in every frame. A repeat of the
+    /// last accepted one is not used.
+    pub seq: u8,
+}
+
+/// A message from the host (or another node, such as an IMU) to the robot.
 #[derive(Clone, Copy, PartialEq, Debug)]
 pub enum Command {
     /// `ESTOP`: stop now and latch until a reset.
@@ -329,6 +392,8 @@ pub enum Command {
     Mode(ModeRequest),
     /// `STATUS_REQ`: send a `STATUS` now. Not a motion command.
     StatusRequest,
+    /// `IMU_YAW_RATE`: the gyro's yaw rate. Not a motion command.
+    ImuYawRate(ImuYawRate),
 }
 
 /// Odometry pose position (`ODOM_POSITION`), odometry frame.
@@ -364,9 +429,11 @@ pub struct Status {
     pub rx_errors: u16,
     /// Count of frames with unknown ids (saturating).
     pub unknown_ids: u16,
-    /// Bit i set = wheel i online, wheels in the order FL, FR, RL, RR. Bits 4-7 are reserved:
-    /// encoding clears them, decoding rejects a frame that sets them.
+    /// Bit i set = wheel i online, wheels in the order FL, FR, RL, RR. Bits 4-7 are not part
+    /// of it: encoding ignores them (the wire's bits 4-7 are `heading_source`).
     pub motors_online: u8,
+    /// Where the odometry's heading comes from.
+    pub heading_source: HeadingSource,
     /// Rolling counter.
     pub seq: u8,
 }
@@ -468,6 +535,7 @@ impl Command {
             Self::Twist(_) => layout::TWIST_CMD,
             Self::Mode(_) => layout::MODE_CMD,
             Self::StatusRequest => layout::STATUS_REQ,
+            Self::ImuYawRate(_) => layout::IMU_YAW_RATE,
         }
     }
 
@@ -483,6 +551,7 @@ impl Command {
             x if x == layout::TWIST_CMD.id => layout::TWIST_CMD,
             x if x == layout::MODE_CMD.id => layout::MODE_CMD,
             x if x == layout::STATUS_REQ.id => layout::STATUS_REQ,
+            x if x == layout::IMU_YAW_RATE.id => layout::IMU_YAW_RATE,
             _ => return Err(wire::unknown(frame)),
         };
         let p = wire::data_payload(frame, id, &[def.dlc])?;
@@ -508,6 +577,21 @@ impl Command {
                     })?;
                 Self::Mode(request)
             }
+            x if x == layout::IMU_YAW_RATE.id => {
+                let field = layout::IMU_YAW_RATE_VALUE;
+                let yaw_rate = field.finite(&p)?;
+                if yaw_rate.abs() > layout::YAW_RATE_MAX {
+                    return Err(DecodeError::OutOfRange {
+                        field: field.name,
+                        // An f32 field's raw value is its bits.
+                        value: field.raw(&p),
+                    });
+                }
+                Self::ImuYawRate(ImuYawRate {
+                    yaw_rate,
+                    seq: layout::IMU_SEQ.raw(&p) as u8,
+                })
+            }
             _ => Self::StatusRequest,
         })
     }
@@ -527,6 +611,13 @@ impl Command {
             }
             Self::Mode(m) => layout::MODE_REQUEST.put_raw(&mut p, m.raw().into()),
             Self::StatusRequest => {}
+            Self::ImuYawRate(g) => {
+                // NaN as 0, beyond the range (infinities too) saturated to it.
+                let max = layout::YAW_RATE_MAX;
+                let rate = wire::saturate_f32(g.yaw_rate).max(-max).min(max);
+                layout::IMU_YAW_RATE_VALUE.put_f32(&mut p, rate);
+                layout::IMU_SEQ.put_raw(&mut p, g.seq.into());
+            }
         }
         CanFrame::from_buffer(sid(def.id), p.0, def.dlc)
     }
@@ -589,7 +680,11 @@ impl Telemetry {
                     fault,
                     rx_errors: layout::STATUS_RX_ERRORS.raw(&p) as u16,
                     unknown_ids: layout::STATUS_UNKNOWN_IDS.raw(&p) as u16,
-                    motors_online: layout::STATUS_MOTORS_ONLINE.checked(&p)? as u8,
+                    motors_online: layout::STATUS_MOTORS_ONLINE.raw(&p) as u8,
+                    heading_source: u8::try_from(layout::STATUS_HEADING_SOURCE.checked(&p)?)
+                        .ok()
+                        .and_then(HeadingSource::from_raw)
+                        .unwrap_or_default(),
                     seq: layout::STATUS_SEQ.raw(&p) as u8,
                 })
             }
@@ -632,6 +727,7 @@ impl Telemetry {
                     &mut p,
                     (s.motors_online & layout::MOTORS_ONLINE_MASK).into(),
                 );
+                layout::STATUS_HEADING_SOURCE.put_raw(&mut p, s.heading_source.raw().into());
                 layout::STATUS_SEQ.put_raw(&mut p, s.seq.into());
             }
             Self::StatusCounters(c) => {

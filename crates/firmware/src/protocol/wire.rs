@@ -33,6 +33,14 @@ pub enum ByteOrder {
 pub enum WireType {
     /// Bit 0 of one byte (a flag).
     Bit0,
+    /// `width` bits of one byte from bit `shift` (0 = least significant), unsigned: fields
+    /// that share a byte (DBC signals such as `48|4@1+` and `52|4@1+`). `shift + width <= 8`.
+    Bits {
+        /// Lowest bit of the field in its byte, 0..=7.
+        shift: u8,
+        /// Number of bits, 1..=8.
+        width: u8,
+    },
     /// Unsigned 8 bits.
     U8,
     /// Unsigned 16 bits.
@@ -52,7 +60,7 @@ impl WireType {
     #[must_use]
     pub const fn size(self) -> usize {
         match self {
-            Self::Bit0 | Self::U8 => 1,
+            Self::Bit0 | Self::Bits { .. } | Self::U8 => 1,
             Self::U16 | Self::I16 => 2,
             Self::U32 | Self::I32 | Self::F32 => 4,
         }
@@ -88,6 +96,7 @@ impl Field {
     pub const fn int(name: &'static str, offset: usize, ty: WireType, order: ByteOrder) -> Self {
         let (min, max) = match ty {
             WireType::Bit0 => (0, 1),
+            WireType::Bits { width, .. } => (0, bits_mask(width) as i64),
             WireType::U8 => (0, u8::MAX as i64),
             WireType::U16 => (0, u16::MAX as i64),
             WireType::I16 => (i16::MIN as i64, i16::MAX as i64),
@@ -133,13 +142,19 @@ impl Field {
             ByteOrder::Little => self.offset,
             ByteOrder::Big => MAX_DLC - self.offset - size,
         };
-        let mask = match self.ty {
-            WireType::Bit0 => 1,
+        let (bit, mask) = match self.ty {
+            WireType::Bit0 => (0, 1),
+            WireType::Bits { shift, width } => {
+                if shift as usize + width as usize > 8 {
+                    return None;
+                }
+                (shift as u32, bits_mask(width))
+            }
             // size <= 4, so the shift stays below 64.
-            _ => (1u64 << (8 * size)) - 1,
+            _ => (0, (1u64 << (8 * size)) - 1),
         };
         // low_byte <= 7, so the cast cannot truncate.
-        Some((8 * low_byte as u32, mask))
+        Some((8 * low_byte as u32 + bit, mask))
     }
 
     /// The payload as one `u64` in this field's byte order.
@@ -249,6 +264,12 @@ impl Field {
     pub fn put_f32(&self, payload: &mut Payload, value: f32) {
         self.put_raw(payload, i64::from(value.to_bits()));
     }
+}
+
+/// The mask of `width` low bits (at most 8: a [`WireType::Bits`] field lies in one byte).
+const fn bits_mask(width: u8) -> u64 {
+    let width = if width > 8 { 8 } else { width };
+    (1u64 << width) - 1
 }
 
 /// `value / scale` rounded to the nearest integer, ties to even (as cantools encodes: Python's
@@ -416,6 +437,40 @@ mod tests {
         assert_eq!(p.0, [0, 0xFE, 0xFF, 0, 0x12, 0x34, 0, 0]);
         assert_eq!(le.raw(&p), -2);
         assert_eq!(be.raw(&p), 0x1234);
+    }
+
+    #[test]
+    fn fields_sharing_a_byte_keep_each_others_bits() {
+        let low = Field::int(
+            "low",
+            6,
+            WireType::Bits { shift: 0, width: 4 },
+            ByteOrder::Little,
+        );
+        let high = Field::int(
+            "high",
+            6,
+            WireType::Bits { shift: 4, width: 4 },
+            ByteOrder::Little,
+        );
+        assert_eq!((low.min, low.max, high.max), (0, 15, 15));
+        let mut p = Payload([0xFF, 0, 0, 0, 0, 0, 0, 0xFF]);
+        low.put_raw(&mut p, 0b1011);
+        high.put_raw(&mut p, 2);
+        assert_eq!(p.0, [0xFF, 0, 0, 0, 0, 0, 0x2B, 0xFF]);
+        assert_eq!((low.raw(&p), high.raw(&p)), (0b1011, 2));
+        // Clamped to the field's range: the neighbour is untouched.
+        high.put_raw(&mut p, 99);
+        assert_eq!(p.0[6], 0xFB);
+        // A field that does not fit its byte reads as 0 and writes nothing.
+        let bad = Field::int(
+            "bad",
+            0,
+            WireType::Bits { shift: 6, width: 4 },
+            ByteOrder::Little,
+        );
+        bad.put_raw(&mut p, 3);
+        assert_eq!((bad.raw(&p), p.0[0]), (0, 0xFF));
     }
 
     #[test]
