@@ -30,6 +30,28 @@
 //! serialises to (`Config::to_toml_string`, feature `std`; the text a log records), so a
 //! configuration without them writes the same text as before they existed. Road Runner's `lateralMultiplier` is
 //! `1 / lateral_effectiveness`.
+//!
+//! # Heading from a gyro
+//!
+//! The optional `[odometry]` section chooses where the odometry's rotation comes from (WPILib
+//! puts a gyro heading in every odometry update; so can this robot):
+//!
+//! ```toml
+//! [odometry]
+//! heading_source = "gyro"        # "wheels" (the default) | "gyro"
+//! gyro_timeout_ms = 50           # default 50
+//! gyro_standstill_ms = 50        # default 50
+//! gyro_bias_estimation = true    # default true
+//! ```
+//!
+//! With `"gyro"`, each step's rotation is the latest `IMU_YAW_RATE` less the estimated gyro
+//! bias, times the step; the translation still comes from the wheels (see
+//! [`crate::control`]). Without a valid `IMU_YAW_RATE` for `gyro_timeout_ms` the wheels give
+//! the heading again and `STATUS.heading_source` says why, until the gyro is back. The bias is
+//! learned while the robot stands still (no motion commanded and the wheels at rest) for
+//! longer than `gyro_standstill_ms`. Every key has a default, and a section at its defaults
+//! is left out of the TOML a configuration serialises to, so a configuration without it
+//! writes, and runs, exactly as before the section existed.
 
 use core::fmt;
 
@@ -57,6 +79,14 @@ pub struct Config {
     /// Loop, telemetry and timeout timing.
     #[cfg_attr(feature = "serde", serde(default))]
     pub timing: Timing,
+    /// Where the odometry's heading comes from: the wheels, or a gyro (see
+    /// [the module docs](crate::config#heading-from-a-gyro)). Left out of the TOML at its
+    /// defaults.
+    #[cfg_attr(
+        feature = "serde",
+        serde(default, skip_serializing_if = "OdometryConfig::is_default")
+    )]
+    pub odometry: OdometryConfig,
 }
 
 /// Wheel layout.
@@ -338,6 +368,59 @@ impl Default for Timing {
     }
 }
 
+/// Where the odometry takes each step's rotation from (`odometry.heading_source`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Deserialize, serde::Serialize))]
+#[cfg_attr(feature = "serde", serde(rename_all = "snake_case"))]
+pub enum HeadingMode {
+    /// `"wheels"`: forward kinematics of the wheel increments, as without a gyro.
+    #[default]
+    Wheels,
+    /// `"gyro"`: the gyro's yaw rate (`IMU_YAW_RATE`) less its estimated bias, while the gyro
+    /// is alive; the wheels while it is silent.
+    Gyro,
+}
+
+/// The odometry's heading source and the gyro's parameters (`[odometry]`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Deserialize, serde::Serialize))]
+#[cfg_attr(feature = "serde", serde(default, deny_unknown_fields))]
+pub struct OdometryConfig {
+    /// Where each step's rotation comes from (default [`HeadingMode::Wheels`]).
+    pub heading_source: HeadingMode,
+    /// With the gyro: without a valid `IMU_YAW_RATE` for this long the wheels give the
+    /// heading (and `STATUS.heading_source` reports the gyro silent), ms. Default 50: ten
+    /// periods of a 200 Hz IMU. In `1..=10000`.
+    pub gyro_timeout_ms: u32,
+    /// With the gyro: how long the robot must stand still (no motion commanded, every wheel
+    /// online and at rest) before its gyro readings count towards the bias estimate, ms: the
+    /// chassis settles first. Default 50 (the built-in scenarios stand still for 100 ms
+    /// before their first twist). In `0..=60000`.
+    pub gyro_standstill_ms: u32,
+    /// With the gyro: learn its bias while standing still and subtract it (default `true`).
+    /// `false` for a gyro that removes its own bias.
+    pub gyro_bias_estimation: bool,
+}
+
+impl Default for OdometryConfig {
+    fn default() -> Self {
+        Self {
+            heading_source: HeadingMode::Wheels,
+            gyro_timeout_ms: 50,
+            gyro_standstill_ms: 50,
+            gyro_bias_estimation: true,
+        }
+    }
+}
+
+impl OdometryConfig {
+    /// Whether every key is at its default (the section is then left out of the TOML).
+    #[must_use]
+    pub fn is_default(&self) -> bool {
+        *self == Self::default()
+    }
+}
+
 /// A configuration value that is not acceptable: which field, which value, and why.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ConfigError {
@@ -464,6 +547,7 @@ impl Config {
             limits: Limits::default(),
             gains: Gains::default(),
             timing: Timing::default(),
+            odometry: OdometryConfig::default(),
         }
     }
 
@@ -492,6 +576,7 @@ impl Config {
             },
             gains: Gains::default(),
             timing: Timing::default(),
+            odometry: OdometryConfig::default(),
         }
     }
 
@@ -695,6 +780,24 @@ impl Config {
                 field: "timing.stale_periods",
                 value: f64::from(t.stale_periods),
                 expected: "a count in 2..=1000",
+            });
+        }
+
+        let o = &self.odometry;
+        if !(1..=10_000).contains(&o.gyro_timeout_ms) {
+            return Err(ConfigError {
+                field: "odometry.gyro_timeout_ms",
+                value: f64::from(o.gyro_timeout_ms),
+                expected: "a timeout in 1..=10000 ms (silence of IMU_YAW_RATE after which the \
+                           wheels give the heading)",
+            });
+        }
+        if o.gyro_standstill_ms > 60_000 {
+            return Err(ConfigError {
+                field: "odometry.gyro_standstill_ms",
+                value: f64::from(o.gyro_standstill_ms),
+                expected: "a time in 0..=60000 ms (standing still before the gyro bias is \
+                           learned)",
             });
         }
         Ok(())

@@ -9,7 +9,8 @@
 //!           ─► command watchdog (expired → stop ramp → disable, latched)
 //!           ─► acceleration limits ─► inverse kinematics ─► desaturation
 //!           ─► per-wheel velocity PI (current drives) │ velocity setpoints (ODrive)
-//!           ─► odometry (encoder increments → forward kinematics → SE(2) exp)
+//!           ─► odometry (encoder increments → forward kinematics → SE(2) exp; the rotation
+//!              from the gyro, less its bias, when configured and alive)
 //!           ─► frames: motor commands every period, odometry / status (+ counters) / heartbeat
 //!              at their rates
 //! ```
@@ -102,6 +103,38 @@
 //! is disabled, and only an enable lets it move again). A repeat is judged after the
 //! limits, so a twist beyond them is an `OutOfRange` rejection whatever its `seq`.
 //!
+//! # Gyro heading
+//!
+//! With `odometry.heading_source = "gyro"` ([`HeadingMode::Gyro`]) each step's rotation comes
+//! from the gyro, as WPILib's odometry takes a gyro angle in every update: the latest yaw rate
+//! of an `IMU_YAW_RATE` frame, less the estimated bias, times the step's period. The
+//! translation still comes from the wheels (forward kinematics of the step's increments), and
+//! the step moves the pose along the SE(2) arc of that displacement as without a gyro. The
+//! measured yaw rate (`ODOM_VELOCITY.wz`) is the gyro's, less the bias, too.
+//!
+//! The gyro is *alive* while its last valid frame is at most `odometry.gyro_timeout_ms` old.
+//! While it is not (silent, unplugged, every frame rejected, or not heard yet) the wheels give
+//! the rotation again and `STATUS.heading_source` says `WHEELS_GYRO_SILENT`
+//! ([`HeadingSource::WheelsGyroSilent`]): a warning, not a fault. The robot keeps its state
+//! and keeps driving; the first valid frame after the silence makes the gyro the source again.
+//! `IMU_YAW_RATE.seq` is an alive counter like `TWIST_CMD.seq`: a frame that repeats the last
+//! accepted `seq` is not used (so a node stuck on one frame goes silent), and is counted in
+//! `repeated_seq`, after a silence too. Malformed frames (wrong DLC, NaN or
+//! infinite, beyond ±35 rad/s) are rejected and counted by kind like every other frame.
+//!
+//! **Bias.** A MEMS gyro reads a small rate when still (its bias, 0.1 °/s is common: 6° of
+//! heading a minute). The core learns it while the robot *stands still*: no motion commanded
+//! (not enabled, or a zero target and a zero commanded twist) and every wheel online with a
+//! speed below [`STANDSTILL_WHEEL_SPEED`], for longer than `odometry.gyro_standstill_ms` (the
+//! chassis settles first). Each valid frame received then is a sample of the bias: the
+//! estimate is their running mean, which becomes an exponential average over the last
+//! [`GYRO_BIAS_MAX_SAMPLES`] once it has that many (10 s of a 200 Hz gyro), so a bias that
+//! drifts with temperature is followed across standstills. It starts at zero, and is not
+//! learned with `odometry.gyro_bias_estimation = false` (a gyro that removes its own bias).
+//! With `heading_source = "wheels"`, the default, `IMU_YAW_RATE` frames are decoded and
+//! counted but not used, `STATUS.heading_source` is always `WHEELS`, and every frame the core
+//! sends is what it sent before the gyro existed.
+//!
 //! # Determinism
 //!
 //! The core reads no clock and allocates nothing: time comes in as [`Instant`], frames go out
@@ -114,14 +147,14 @@ use kinematics::{
     WheelSpeeds,
 };
 
-use crate::config::{Config, ConfigError, Drive, Gains, Limits};
+use crate::config::{Config, ConfigError, Drive, Gains, HeadingMode, Limits};
 use crate::frame::CanFrame;
 use crate::protocol::dji::{self, CurrentCommand, EscGroup, EscId, EscModel};
 use crate::protocol::odrive::{self, AxisState, ControlMode, InputMode, NodeId};
-use crate::protocol::robot::{self, Command, ModeRequest, RobotState, TwistCmd};
+use crate::protocol::robot::{self, Command, ImuYawRate, ModeRequest, RobotState, TwistCmd};
 use crate::protocol::{DecodeError, RxErrorCounters};
 
-pub use crate::protocol::robot::Fault;
+pub use crate::protocol::robot::{Fault, HeadingSource};
 
 /// Stuck-encoder band: a rotor angle within this many counts (of 8192 per rotor turn) of
 /// where the rotor last moved counts as not moving.
@@ -151,6 +184,14 @@ pub const ODRIVE_STATE_GRACE_US: u64 = 150_000;
 /// One and a half heartbeat periods, as [`ODRIVE_STATE_GRACE_US`]; a cause that persists
 /// shows in the first heartbeat after it.
 pub const ODRIVE_CLEAR_GRACE_US: u64 = 150_000;
+
+/// A wheel turning slower than this (either way) is at rest for the gyro's bias estimate,
+/// rad/s: 3.8 mm/s at the rim of a 76 mm wheel.
+pub const STANDSTILL_WHEEL_SPEED: f32 = 0.05;
+/// The gyro's bias estimate is the running mean of its standstill readings up to this many,
+/// then an exponential average with this weight (see
+/// [the module documentation](self#gyro-heading)).
+pub const GYRO_BIAS_MAX_SAMPLES: u32 = 2000;
 
 /// A point in time, microseconds since an arbitrary epoch; monotonic. The core never reads a
 /// clock: the adapter (runner, board, simulator) passes it in.
@@ -286,6 +327,26 @@ impl Every {
     }
 }
 
+/// The gyro (`IMU_YAW_RATE`), its bias estimate and the standstill that feeds it (see
+/// [the module documentation](self#gyro-heading)).
+#[derive(Debug, Clone, Copy, Default)]
+struct Gyro {
+    /// Latest accepted yaw rate, bias included, rad/s.
+    rate: f32,
+    /// Arrival of the latest accepted frame (never moved back).
+    last_at: Option<Instant>,
+    /// `seq` of the latest accepted frame; `None`: the next is accepted whatever its `seq`.
+    last_seq: Option<u8>,
+    /// Bias estimate, rad/s.
+    bias: f32,
+    /// Readings in the estimate, at most [`GYRO_BIAS_MAX_SAMPLES`].
+    samples: u32,
+    /// Since when the robot stands still, as of the last step; `None` while it does not.
+    still_since: Option<Instant>,
+    /// The heading source of the last step.
+    source: HeadingSource,
+}
+
 /// Distance between two readings of a counter that wraps at `modulus`, the short way round.
 #[inline]
 fn circular_distance(a: u16, b: u16, modulus: u16) -> u16 {
@@ -322,8 +383,15 @@ pub struct Snapshot {
     pub rx_errors: RxErrorCounters,
     /// `TWIST_CMD`s not applied because their `seq` repeated the last accepted one's
     /// (saturating; see the [module documentation](self#command-watchdog)). Not rejected
-    /// frames: they decode, so `rx_errors` does not count them.
+    /// frames: they decode, so `rx_errors` does not count them. Repeated `IMU_YAW_RATE`
+    /// frames are counted here too.
     pub repeated_seq: u32,
+    /// Where the odometry's heading came from at the last step.
+    pub heading_source: HeadingSource,
+    /// The gyro's estimated bias, rad/s (0 until learned, and without a gyro).
+    pub gyro_bias: f32,
+    /// Standstill readings in the gyro's bias estimate (at most [`GYRO_BIAS_MAX_SAMPLES`]).
+    pub gyro_bias_samples: u32,
     /// Steps run.
     pub steps: u64,
 }
@@ -389,6 +457,7 @@ pub struct Controller {
     setpoints: WheelSpeeds<f32, 4>,
     currents: [f32; 4],
     rx_errors: RxErrorCounters,
+    gyro: Gyro,
 
     boot: Option<Instant>,
     steps: u64,
@@ -503,6 +572,7 @@ impl Controller {
             setpoints: WheelSpeeds::zero(),
             currents: [0.0; 4],
             rx_errors: RxErrorCounters::new(),
+            gyro: Gyro::default(),
             boot: None,
             steps: 0,
             status_requested: false,
@@ -546,6 +616,12 @@ impl Controller {
         self.odometry.pose()
     }
 
+    /// Where the odometry's heading came from at the last step.
+    #[must_use]
+    pub const fn heading_source(&self) -> HeadingSource {
+        self.gyro.source
+    }
+
     /// Sets the odometry pose (e.g. from a localisation fix).
     pub fn set_pose(&mut self, pose: Pose2<f32>) {
         self.odometry.set_pose(pose);
@@ -567,6 +643,9 @@ impl Controller {
             motors_online: self.online,
             rx_errors: self.rx_errors,
             repeated_seq: self.repeated_seq,
+            heading_source: self.gyro.source,
+            gyro_bias: self.gyro.bias,
+            gyro_bias_samples: self.gyro.samples,
             steps: self.steps,
         }
     }
@@ -663,10 +742,36 @@ impl Controller {
                 }
             }
             Command::StatusRequest => self.status_requested = true,
-            // Decoded (malformed frames are counted) but not used yet.
-            Command::ImuYawRate(_) => {}
+            Command::ImuYawRate(g) => self.on_gyro(now, g),
         }
         Ok(())
+    }
+
+    /// Takes a valid `IMU_YAW_RATE`: the gyro's latest rate, and a bias sample while the
+    /// robot has stood still long enough (since before the last step, and still now).
+    fn on_gyro(&mut self, now: Instant, g: ImuYawRate) {
+        // Still standing still now: no twist accepted and no wheel turning since the step.
+        let still = self.standing_still();
+        let o = &self.config.odometry;
+        let gyro = &mut self.gyro;
+        if gyro.last_seq == Some(g.seq) {
+            // The same frame again (a stuck node or gateway): not a sign of life.
+            self.repeated_seq = self.repeated_seq.saturating_add(1);
+            return;
+        }
+        gyro.last_seq = Some(g.seq);
+        gyro.rate = g.yaw_rate;
+        // A frame stamped before the last one does not move the mark back.
+        gyro.last_at = Some(gyro.last_at.map_or(now, |t| t.max(now)));
+        let settle_us = u64::from(o.gyro_standstill_ms) * 1000;
+        let settled = still
+            && gyro
+                .still_since
+                .is_some_and(|t| now.micros_since(t) >= settle_us);
+        if settled && o.gyro_bias_estimation && o.heading_source == HeadingMode::Gyro {
+            gyro.samples = (gyro.samples + 1).min(GYRO_BIAS_MAX_SAMPLES);
+            gyro.bias += (g.yaw_rate - gyro.bias) / gyro.samples as f32;
+        }
     }
 
     /// Rejects twists beyond the configured limits (the decoder already rejected the rest).
@@ -829,6 +934,7 @@ impl Controller {
         self.check_motors(now, boot);
         self.run_watchdog(now);
         self.ramp();
+        self.update_gyro(now);
         self.integrate_odometry();
         // One tick of every rate divider per step, whether or not its frames go out.
         let odom_due = self.odom_clock.tick();
@@ -1014,14 +1120,62 @@ impl Controller {
         }
     }
 
+    /// With a gyro configured: whether it is alive (the heading source of this step), and
+    /// whether the robot stands still (for the bias estimate).
+    fn update_gyro(&mut self, now: Instant) {
+        let o = &self.config.odometry;
+        if o.heading_source == HeadingMode::Wheels {
+            return;
+        }
+        let timeout_us = u64::from(o.gyro_timeout_ms) * 1000;
+        let alive = self
+            .gyro
+            .last_at
+            .is_some_and(|t| now.micros_since(t) <= timeout_us);
+        // `last_seq` is kept through a silence: a node stuck on one frame stays silent. A
+        // restarted node loses at most its first frame (if its `seq` happens to repeat).
+        self.gyro.source = if alive {
+            HeadingSource::Gyro
+        } else {
+            HeadingSource::WheelsGyroSilent
+        };
+        self.gyro.still_since = if self.online == 0b1111 && self.standing_still() {
+            Some(self.gyro.still_since.unwrap_or(now))
+        } else {
+            None
+        };
+    }
+
+    /// No motion commanded (not enabled, or a zero target and a zero commanded twist) and
+    /// every wheel's latest speed below [`STANDSTILL_WHEEL_SPEED`].
+    fn standing_still(&self) -> bool {
+        let zero = ChassisVelocity::default();
+        let commanded =
+            self.state == RobotState::Enabled && (self.target != zero || self.commanded != zero);
+        !commanded
+            && self
+                .motors
+                .iter()
+                .all(|m| m.speed.abs() <= STANDSTILL_WHEEL_SPEED)
+    }
+
     fn integrate_odometry(&mut self) {
         let deltas = WheelDeltas(self.motors.map(|m| m.pending));
         for m in &mut self.motors {
             m.angle += m.pending;
             m.pending = 0.0;
         }
-        self.odometry.update(&self.kin, &deltas);
         self.measured = self.kin.forward(&WheelSpeeds(self.motors.map(|m| m.speed)));
+        if self.gyro.source == HeadingSource::Gyro {
+            // The wheels' translation, the gyro's rotation.
+            let rate = self.gyro.rate - self.gyro.bias;
+            let mut step = self.kin.displacement(&deltas);
+            step.dtheta = rate * self.dt;
+            self.odometry.apply(step);
+            self.measured.wz = rate;
+        } else {
+            self.odometry.update(&self.kin, &deltas);
+        }
     }
 
     fn emit_dji(&mut self, out: &mut Outbox, model: EscModel, enabled: bool) {
@@ -1156,7 +1310,7 @@ impl Controller {
                     rx_errors: sat(e.total().saturating_sub(e.unknown_id)),
                     unknown_ids: sat(e.unknown_id),
                     motors_online: self.online,
-                    heading_source: robot::HeadingSource::Wheels,
+                    heading_source: self.gyro.source,
                     seq: self.status_seq,
                 })
                 .to_can_frame(),

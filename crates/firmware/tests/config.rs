@@ -263,3 +263,114 @@ fn a_general_layout_takes_the_effectiveness_keys_too() {
     let msg = invalid(&bad);
     assert!(msg.contains("geometry.lateral_effectiveness = 0:"), "{msg}");
 }
+
+#[test]
+fn odometry_defaults_to_wheel_heading_and_is_left_out_of_the_toml_at_its_defaults() {
+    use firmware::config::{HeadingMode, OdometryConfig};
+    let d = OdometryConfig::default();
+    assert_eq!(
+        (
+            d.heading_source,
+            d.gyro_timeout_ms,
+            d.gyro_standstill_ms,
+            d.gyro_bias_estimation
+        ),
+        (HeadingMode::Wheels, 50, 50, true)
+    );
+    // A configuration written before the section existed loads with the defaults, and
+    // writes the same text as before (no [odometry] at all).
+    let text = std::fs::read_to_string(repo_file("config/dji_m3508.toml")).unwrap();
+    let before = text.split("\n[odometry]").next().unwrap();
+    let c = Config::from_toml_str(before).unwrap();
+    assert_eq!(c, Config::dji_m3508_example());
+    assert!(!c.to_toml_string().contains("[odometry]"));
+    assert_eq!(
+        c.to_toml_string(),
+        Config::dji_m3508_example().to_toml_string()
+    );
+    assert!(!Config::odrive_example().to_toml_string().contains("gyro"));
+
+    let gyro = Config::from_toml_file(&repo_file("config/dji_m3508_gyro.toml")).unwrap();
+    assert_eq!(gyro.odometry.heading_source, HeadingMode::Gyro);
+    assert_eq!(
+        Config {
+            odometry: OdometryConfig::default(),
+            ..gyro
+        },
+        Config::dji_m3508_example()
+    );
+    let toml = gyro.to_toml_string();
+    assert!(
+        toml.contains("[odometry]") && toml.contains("heading_source = \"gyro\""),
+        "{toml}"
+    );
+    assert_eq!(Config::from_toml_str(&toml).unwrap(), gyro);
+    // One key alone: the others take their defaults.
+    let c = Config::from_toml_str(&format!(
+        "{before}\n[odometry]\nheading_source = \"gyro\"\ngyro_bias_estimation = false\n"
+    ))
+    .unwrap();
+    assert_eq!(
+        c.odometry,
+        OdometryConfig {
+            heading_source: HeadingMode::Gyro,
+            gyro_bias_estimation: false,
+            ..OdometryConfig::default()
+        }
+    );
+}
+
+#[test]
+fn odometry_values_out_of_range_name_the_key_and_value() {
+    for (from, to, want) in [
+        (
+            "gyro_timeout_ms = 50 ",
+            "gyro_timeout_ms = 0 ",
+            "odometry.gyro_timeout_ms = 0: a timeout in 1..=10000 ms",
+        ),
+        (
+            "gyro_timeout_ms = 50 ",
+            "gyro_timeout_ms = 10001 ",
+            "odometry.gyro_timeout_ms = 10001: a timeout in 1..=10000 ms",
+        ),
+        (
+            "gyro_standstill_ms = 50 ",
+            "gyro_standstill_ms = 60001 ",
+            "odometry.gyro_standstill_ms = 60001: a time in 0..=60000 ms",
+        ),
+    ] {
+        let msg = invalid(&dji_with(from, to));
+        assert!(msg.contains(want), "{to}: {msg}");
+    }
+    // 0 ms of standstill is allowed: every standstill reading counts.
+    let c = Config::from_toml_str(&dji_with(
+        "gyro_standstill_ms = 50 ",
+        "gyro_standstill_ms = 0 ",
+    ));
+    assert_eq!(c.unwrap().odometry.gyro_standstill_ms, 0);
+    // A source that does not exist, or a misspelt key: TOML errors naming the value or key
+    // and the line.
+    for (from, to, want) in [
+        (
+            "heading_source = \"wheels\"",
+            "heading_source = \"compass\"",
+            "unknown variant `compass`, expected `wheels` or `gyro`",
+        ),
+        (
+            "gyro_timeout_ms = 50 ",
+            "gyro_timeout = 50 ",
+            "unknown field `gyro_timeout`",
+        ),
+        (
+            "gyro_bias_estimation = true",
+            "gyro_bias_estimation = 1",
+            "invalid type",
+        ),
+    ] {
+        let msg = match Config::from_toml_str(&dji_with(from, to)) {
+            Err(e @ LoadError::Toml { .. }) => e.to_string(),
+            other => panic!("{to}: {other:?}"),
+        };
+        assert!(msg.contains(want) && msg.contains("line"), "{to}: {msg}");
+    }
+}
