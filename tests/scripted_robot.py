@@ -61,6 +61,7 @@ class ScriptedRobot:
         self.last_command: float | None = None
         self.last_seq: int | None = None
         self.repeated_seq = 0
+        self.heading_source = 0  # STATUS.heading_source: 0 WHEELS, 1 GYRO, 2 WHEELS_GYRO_SILENT
         self.received: list[Received] = []
         self.heartbeats = True  # False: the robot goes silent
         self._lock = threading.Lock()
@@ -95,7 +96,7 @@ class ScriptedRobot:
 
     def _status(self) -> None:
         self._send("STATUS", state=STATES[self.state], fault=FAULTS[self.fault], rx_errors=0, unknown_ids=0,
-                   motors_online=0x0F, seq=0)
+                   motors_online=0x0F, heading_source=self.heading_source, seq=0)
         self._send("STATUS_COUNTERS", repeated_seq=min(self.repeated_seq, 0xFFFF), wrong_dlc=0, out_of_range=0,
                    non_finite=0)
 

@@ -249,6 +249,26 @@ def test_a_fault_is_raised_by_name_and_reset_clears_it(channel: str) -> None:
         robot.check()
 
 
+def test_the_heading_source_is_decoded_by_name(channel: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """STATUS.heading_source (high nibble of byte 6, beside motors_online) by its DBC name; the
+    command line shows it when it is not plain wheel heading."""
+    common = ["--interface", "virtual", "--channel", channel]
+    with ScriptedRobot(channel) as fake, Robot(host_bus(channel), owns_bus=True) as robot:
+        robot.wait_state("DISABLED", timeout=1.0)
+        status = robot.status
+        assert status is not None and status.heading_source == "WHEELS"
+        fake.heading_source = 2
+        time.sleep(0.25)
+        status = robot.status
+        assert status is not None and status.heading_source == "WHEELS_GYRO_SILENT"
+        assert status.motors_online == (True,) * 4
+        assert cli.main([*common, "status", "--once"]) == 0
+        assert "heading   from WHEELS_GYRO_SILENT" in capsys.readouterr().out
+        fake.heading_source = 1
+        assert cli.main([*common, "status", "--json"]) == 0
+        assert json.loads(capsys.readouterr().out)["heading_source"] == "GYRO"
+
+
 def test_the_command_line_on_a_virtual_bus(channel: str, capsys: pytest.CaptureFixture[str]) -> None:
     """`mecanum-drive` commands in this process, against the scripted robot."""
     common = ["--interface", "virtual", "--channel", channel]

@@ -64,6 +64,7 @@ def _status_dict(robot: Robot) -> dict[str, Any]:
         "state": s.state if s else None,
         "fault": s.fault if s else None,
         "motors_online": list(s.motors_online) if s else None,
+        "heading_source": s.heading_source if s else None,
         "rx_errors": s.rx_errors if s else None,
         "unknown_ids": s.unknown_ids if s else None,
         "counters": None if c is None else {
@@ -86,6 +87,7 @@ def _status_text(robot: Robot) -> str:
         f"motors    {wheels}",
         f"odometry  x {o['x']:+.4f} m  y {o['y']:+.4f} m  heading {math.degrees(o['heading']):+.2f}°" if o else "odometry  (none yet)",
         f"velocity  vx {o['vx']:+.3f} m/s  vy {o['vy']:+.3f} m/s  wz {o['wz']:+.3f} rad/s" if o else "",
+        f"heading   from {d['heading_source']}" if d["heading_source"] not in (None, "WHEELS") else "",
         f"counters  rejected frames {d['rx_errors']}   unknown ids {d['unknown_ids']}",
         "" if d["counters"] is None else "          repeated twists {repeated_seq}   wrong DLC {wrong_dlc}   "
         "out of range {out_of_range}   not finite {non_finite}".format(**d["counters"]),

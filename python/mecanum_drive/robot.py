@@ -90,13 +90,17 @@ class Odometry:
 @dataclasses.dataclass(frozen=True)
 class Status:
     """The robot's last STATUS: state and fault by name (the DBC's value tables), counters,
-    and which motors are online (wheel order FL, FR, RL, RR)."""
+    which motors are online (wheel order FL, FR, RL, RR), and where the odometry's heading
+    comes from: "WHEELS" (no gyro configured), "GYRO", or "WHEELS_GYRO_SILENT" (configured for
+    a gyro that sent no valid IMU_YAW_RATE within its timeout: a warning, the robot keeps
+    driving on wheel heading)."""
 
     state: str
     fault: str
     rx_errors: int
     unknown_ids: int
     motors_online: tuple[bool, bool, bool, bool]
+    heading_source: str
     received: float  # time.monotonic()
 
 
@@ -174,6 +178,7 @@ class Robot:
         self._version = protocol.protocol_version()
         self._states = protocol.choices("STATUS", "state")
         self._faults = protocol.choices("STATUS", "fault")
+        self._heading_sources = protocol.choices("STATUS", "heading_source")
 
         self._send_lock = threading.Lock()
         self._lock = threading.Condition()
@@ -406,6 +411,8 @@ class Robot:
                     rx_errors=int(values["rx_errors"]),
                     unknown_ids=int(values["unknown_ids"]),
                     motors_online=tuple(bool(mask >> i & 1) for i in range(4)),  # type: ignore[arg-type]
+                    heading_source=self._heading_sources.get(int(values["heading_source"]),
+                                                             str(values["heading_source"])),
                     received=now,
                 )
             elif message.name == "STATUS_COUNTERS":

@@ -37,6 +37,7 @@ heartbeat. The same core runs on the motor-controller MCU and in the simulator.
 Robot protocol (dbc/mecanum_robot.dbc; CAN 2.0A, little-endian, ids 0x300-0x31F):
   host -> robot   0x300 ESTOP (magic 0xE5)    0x301 TWIST_CMD (vx, vy, wz, seq: +1 each)
                   0x302 MODE_CMD (0 disable, 1 enable, 2 reset)    0x303 STATUS_REQ
+  IMU -> robot    0x304 IMU_YAW_RATE (f32 rad/s, seq), optional: [odometry] heading_source
   robot -> host   0x310 ODOM_POSITION, 0x311 ODOM_VELOCITY (timing.odometry_hz, 100 Hz)
                   0x312 STATUS, 0x313 STATUS_COUNTERS, 0x31F HEARTBEAT (timing.status_hz,
                   10 Hz)
