@@ -18,8 +18,8 @@
 //! | `/ground_truth/odom` | `nav_msgs/msg/Odometry` | the plant's true pose in `odom` (the simulator's `odom` origin is where the robot starts) and body twist in `base_link_truth` |
 //! | `/tf` | `tf2_msgs/msg/TFMessage` | `odom` → `base_link` (odometry) and `odom` → `base_link_truth` (ground truth) |
 //! | `/joint_states` | `sensor_msgs/msg/JointState` | wheels `fl`, `fr`, `rl`, `rr`: angle (rad, robot-forward positive, accumulated since start), speed (rad/s), effort: the commanded motor current (A; 0 for velocity-mode drives) |
-//! | `/diagnostics` | `diagnostic_msgs/msg/DiagnosticArray` | the firmware's state, fault, motors online, commanded and measured twist, wheel setpoints, rejected-frame counters |
-//! | `/rosout` | `rcl_interfaces/msg/Log` | state changes and faults, as text; messages dropped because the writer fell behind ([`McapLog::drop_when_behind`]) |
+//! | `/diagnostics` | `diagnostic_msgs/msg/DiagnosticArray` | the firmware's state, fault, motors online, commanded and measured twist, wheel setpoints, rejected-frame counters; with gyro heading, the heading source and the gyro bias |
+//! | `/rosout` | `rcl_interfaces/msg/Log` | state changes and faults, as text; heading source changes ([`heading_source_line`]); messages dropped because the writer fell behind ([`McapLog::drop_when_behind`]) |
 //! | `/firmware/steps` | `mecanum_drive_msgs/msg/Step` | `mecanum-runner` only: the time of each control step and of the shutdown (log time = `stamp` = the time passed to the core). The simulator steps every control period from 0 and logs none |
 //!
 //! Log time 0 is the start of the run. The run's configuration (TOML) and its origin
@@ -78,6 +78,29 @@ pub mod write;
 
 pub use read::{Damage, Message, Problem, ReadReport, for_each_message};
 pub use write::{CHUNK_SIZE, Direction, LogError, McapLog, OdometrySource, part_path};
+
+use firmware::protocol::robot::HeadingSource;
+
+/// The `/rosout` line for the firmware's heading source changing to `source`: its level and
+/// text. Losing the gyro is a warning (the robot keeps driving on wheel heading), getting it
+/// (back) is information. `gyro_timeout_ms` is the configuration's `odometry.gyro_timeout_ms`.
+#[must_use]
+pub fn heading_source_line(source: HeadingSource, gyro_timeout_ms: u32) -> (u8, String) {
+    match source {
+        HeadingSource::WheelsGyroSilent => (
+            msg::Log::WARN,
+            format!(
+                "heading source WheelsGyroSilent: no valid IMU_YAW_RATE for {gyro_timeout_ms} ms, \
+                 the wheels give the heading"
+            ),
+        ),
+        HeadingSource::Gyro => (
+            msg::Log::INFO,
+            "heading source Gyro: IMU_YAW_RATE alive, the gyro gives the heading".to_string(),
+        ),
+        HeadingSource::Wheels => (msg::Log::INFO, "heading source Wheels".to_string()),
+    }
+}
 
 /// The MCAP profile of every log.
 pub const PROFILE: &str = "ros2";

@@ -898,20 +898,28 @@ pub const DIAGNOSTIC_NAME: &str = "mecanum_drive: firmware";
 /// `/diagnostics` of a snapshot: one status, [`DIAGNOSTIC_NAME`], whose values are named
 /// `state`, `fault`, `motors_online` (a mask, wheel i at bit i), `steps`, `commanded_vx`...,
 /// `measured_vx`..., `setpoint_fl`... (rad/s), one counter per rejected-frame kind
-/// (`rx_unknown_id`, `rx_wrong_dlc`...) and `repeated_seq` (twists not applied because their
-/// `seq` repeated the last accepted one's).
+/// (`rx_unknown_id`, `rx_wrong_dlc`...) and `repeated_seq` (twists and gyro frames not used
+/// because their `seq` repeated the last accepted one's). A robot configured for gyro heading
+/// adds `heading_source` (`Gyro`, or `WheelsGyroSilent`: the gyro is silent and the wheels
+/// give the heading, which makes the status a warning), `gyro_bias` (rad/s) and
+/// `gyro_bias_samples`; without a gyro these keys are absent, as before they existed.
 fn diagnostics(t_ns: u64, s: &Snapshot) -> msg::DiagnosticArray {
-    use firmware::protocol::robot::RobotState;
+    use firmware::protocol::robot::{HeadingSource, RobotState};
+    let gyro_silent = s.heading_source == HeadingSource::WheelsGyroSilent;
     let level = match s.state {
         RobotState::Fault => msg::DiagnosticStatus::ERROR,
         RobotState::Estop => msg::DiagnosticStatus::WARN,
+        _ if gyro_silent => msg::DiagnosticStatus::WARN,
         _ => msg::DiagnosticStatus::OK,
     };
-    let message = if s.fault == firmware::protocol::robot::Fault::None {
+    let mut message = if s.fault == firmware::protocol::robot::Fault::None {
         format!("{:?}", s.state)
     } else {
         format!("{:?}, fault {:?}", s.state, s.fault)
     };
+    if gyro_silent {
+        message.push_str(", heading from the wheels: gyro silent");
+    }
     let mut values = Vec::with_capacity(24);
     let mut kv = |key: &str, value: String| {
         values.push(msg::KeyValue {
@@ -942,6 +950,11 @@ fn diagnostics(t_ns: u64, s: &Snapshot) -> msg::DiagnosticArray {
         ("repeated_seq", s.repeated_seq),
     ] {
         kv(key, n.to_string());
+    }
+    if s.heading_source != HeadingSource::Wheels {
+        kv("heading_source", format!("{:?}", s.heading_source));
+        kv("gyro_bias", s.gyro_bias.to_string());
+        kv("gyro_bias_samples", s.gyro_bias_samples.to_string());
     }
     msg::DiagnosticArray {
         header: Header::new(t_ns, ""),

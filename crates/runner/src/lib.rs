@@ -16,7 +16,8 @@
 //!   simulator's grid: replay steps at these times (hostsim's `replay_at_steps`), so a run
 //!   replays bit for bit;
 //! - `/odom`, `/tf`, `/joint_states`, `/diagnostics` every [`SNAPSHOT_EVERY`] steps, and the
-//!   state and fault changes and the CAN link's losses and recoveries on `/rosout`;
+//!   state and fault changes, the heading source's changes (gyro heading), and the CAN
+//!   link's losses and recoveries on `/rosout`;
 //! - metadata `mecanum_drive`: `config` (the TOML), `program` = `mecanum-runner`,
 //!   `firmware_version`, `protocol_version`.
 //!
@@ -53,11 +54,11 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::thread::JoinHandle;
 
-use drivelog::{Direction, LogError, McapLog, OdometrySource, msg};
+use drivelog::{Direction, LogError, McapLog, OdometrySource, heading_source_line, msg};
 use firmware::CanFrame;
 use firmware::control::{Controller, Fault};
 use firmware::linux::{LinkEvent, Recorder};
-use firmware::protocol::robot::RobotState;
+use firmware::protocol::robot::{HeadingSource, RobotState};
 
 /// The odometry, wheels and diagnostics are logged every this many steps (10 ms at 1 kHz).
 pub const SNAPSHOT_EVERY: u64 = 10;
@@ -92,6 +93,8 @@ pub struct McapRecorder {
     error: Option<LogError>,
     steps: u64,
     state: Option<(RobotState, Fault)>,
+    /// The heading source last logged (a change is a `/rosout` line).
+    heading: HeadingSource,
     dropped: u64,
     messages: u64,
 }
@@ -118,6 +121,7 @@ impl McapRecorder {
             error: None,
             steps: 0,
             state: None,
+            heading: HeadingSource::Wheels,
             dropped: 0,
             messages: 0,
         }
@@ -256,6 +260,7 @@ impl McapRecorder {
         rotation.slowest_start = rotation.slowest_start.max(started.elapsed());
         // The new file opens with the state at its start.
         self.state = None;
+        self.heading = HeadingSource::Wheels;
     }
 
     /// Messages dropped so far because the writer was behind.
@@ -334,6 +339,12 @@ impl McapRecorder {
             } else {
                 format!("state {:?}, fault {:?}", s.state, s.fault)
             };
+            self.with(|log| log.text(t_ns, level, &text));
+        }
+        if s.heading_source != self.heading {
+            self.heading = s.heading_source;
+            let timeout_ms = controller.config().odometry.gyro_timeout_ms;
+            let (level, text) = heading_source_line(s.heading_source, timeout_ms);
             self.with(|log| log.text(t_ns, level, &text));
         }
     }
