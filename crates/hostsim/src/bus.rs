@@ -36,6 +36,8 @@ pub enum Node {
     Drives,
     /// The host that commands the robot.
     Host,
+    /// An IMU node sending its gyro's yaw rate ([`crate::imu`]).
+    Imu,
 }
 
 impl Node {
@@ -46,6 +48,7 @@ impl Node {
             Self::Controller => "controller",
             Self::Drives => "drives",
             Self::Host => "host",
+            Self::Imu => "imu",
         }
     }
 }
@@ -166,7 +169,7 @@ pub struct Bus {
     faults: Vec<Fault>,
     /// Per sender ([`node_index`]), when its last frame is delivered: no later frame of the
     /// same sender is delivered before it.
-    last_delivered_ns: [u64; 3],
+    last_delivered_ns: [u64; 4],
     rng: SplitMix64,
     stats: BusStats,
 }
@@ -199,6 +202,7 @@ fn node_index(n: Node) -> usize {
         Node::Controller => 0,
         Node::Drives => 1,
         Node::Host => 2,
+        Node::Imu => 3,
     }
 }
 
@@ -218,7 +222,7 @@ impl Bus {
             queued: 0,
             idle_at_ns: 0,
             faults,
-            last_delivered_ns: [0; 3],
+            last_delivered_ns: [0; 4],
             rng: SplitMix64(seed),
             stats: BusStats::default(),
         }

@@ -9,6 +9,7 @@ pub mod bus;
 pub mod calibrate;
 pub mod candump;
 pub mod drives;
+pub mod imu;
 pub mod kin;
 /// The logs: ROS 2 messages in MCAP (the `drivelog` crate, shared with the firmware's runner).
 pub use drivelog as log;

@@ -51,9 +51,11 @@ enum Cmd {
     /// disable, reset, estop, status_request, twist = [vx, vy, wz], silence, resume) and
     /// [[faults]] (kind = drop | burst | delay | corrupt | stuck_encoder | motor_offline |
     /// non_finite_twist, from_s, until_s, and the kind's fields: rate, delay_ms, sender,
-    /// wheel) and [plant] (the simulated robot where it differs from the configuration:
-    /// wheel_radius, lx, ly, roller_drag; kept when --config replaces the configuration).
-    /// Every error names the file, the field and the value.
+    /// wheel), [plant] (the simulated robot where it differs from the configuration:
+    /// wheel_radius, lx, ly, roller_drag; kept when --config replaces the configuration) and
+    /// [imu] (an IMU node sending IMU_YAW_RATE for gyro heading: rate_hz, bias_deg_s,
+    /// noise_density in °/s/√Hz, enabled). Every error names the file, the field and the
+    /// value.
     Run {
         /// A scenario TOML file, or the name of a built-in.
         scenario: Option<String>,
@@ -314,6 +316,14 @@ struct PlantArgs {
     /// Print only errors (no start line, no statistics on stderr).
     #[arg(long, short)]
     quiet: bool,
+    /// Put an IMU node on the interface too: it sends IMU_YAW_RATE (0x304) from the plant's
+    /// true yaw rate at 200 Hz with white noise (0.005 °/s/√Hz, seed 0) and a constant bias,
+    /// for a runner configured with [odometry] heading_source = "gyro".
+    #[arg(long)]
+    imu: bool,
+    /// With --imu: the gyro's bias, °/s. Default 0.1.
+    #[arg(long, value_name = "DEG_S", requires = "imu")]
+    imu_bias_deg_s: Option<f64>,
 }
 
 /// The exit status of a process killed by SIGPIPE, as a shell reports it.
@@ -581,6 +591,18 @@ fn print_summary(s: &RunSummary, wall_s: f64) {
     for (t, state, fault) in &s.transitions {
         println!("  {t:8.3} s  {state} ({fault})");
     }
+    if s.last.heading_source != firmware::protocol::robot::HeadingSource::Wheels {
+        println!(
+            "gyro heading: final source {:?}, bias estimate {:+.4} °/s from {} standstill \
+             samples; heading source changes:",
+            s.last.heading_source,
+            f64::from(s.last.gyro_bias).to_degrees(),
+            s.last.gyro_bias_samples
+        );
+        for (t, source) in &s.heading_changes {
+            println!("  {t:8.3} s  {source}");
+        }
+    }
     println!("outbound stream hash {:016x}", s.tx_hash);
 }
 
@@ -604,6 +626,7 @@ fn summary_json(s: &RunSummary, wall_s: f64) -> String {
         "state": format!("{:?}", s.last.state),
         "fault": format!("{:?}", s.last.fault),
         "transitions": s.transitions,
+        "heading_changes": s.heading_changes,
         "tx_hash": format!("{:016x}", s.tx_hash),
     })
     .to_string()
@@ -1056,6 +1079,17 @@ fn plant(args: &PlantArgs) -> Result<ExitCode> {
     let (config, source) = load_config(args.config.as_deref())?;
     let mut drives = hostsim::drives::SimDrives::new(&config)
         .with_context(|| format!("configuration {source}: the plant cannot model it"))?;
+    let imu = args.imu.then(|| hostsim::imu::ImuParams {
+        bias_deg_s: args.imu_bias_deg_s.unwrap_or(0.1),
+        ..hostsim::imu::ImuParams::default()
+    });
+    if let Some((key, value, expected)) = imu.as_ref().and_then(|i| i.invalid()) {
+        bail!(
+            "--imu-{}: {value}: expected {expected}",
+            key.replace('_', "-")
+        );
+    }
+    let mut drives = hostsim::imu::WithImu::new(&mut drives, imu.as_ref(), 0);
     let stop = firmware::linux::stop_on_signals()?;
     let mut bus = SocketCanBus::open(iface)?;
     // Created before the loop starts, so a bad path fails now and not after a long run.
@@ -1186,7 +1220,9 @@ fn summary(path: &Path) -> Result<ExitCode> {
     for (t, level, text) in &s.events {
         let tag = match *level {
             l if l >= hostsim::log::msg::Log::ERROR => "FAULT",
-            l if l >= hostsim::log::msg::Log::WARN => "STOP ",
+            // An e-stop; other warnings (a silent gyro, a lost CAN link) do not stop.
+            l if l >= hostsim::log::msg::Log::WARN && text.starts_with("state") => "STOP ",
+            l if l >= hostsim::log::msg::Log::WARN => "WARN ",
             _ => "     ",
         };
         println!("  {tag} {t:9.3} s  {text}");

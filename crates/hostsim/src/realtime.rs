@@ -27,7 +27,8 @@
 //!    clock (after a late tick it catches up with several steps, at most
 //!    [`PlantOptions::max_catch_up`]; time beyond that is skipped and reported as
 //!    [`PlantReport::skipped_us`]);
-//! 3. the feedback frames the drives produced meanwhile ([`SimPlant::feedback`]) are sent,
+//! 3. the feedback frames the drives produced meanwhile ([`SimPlant::feedback`]), then an
+//!    IMU node's frames if the plant has one ([`SimPlant::imu_frames`]), are sent,
 //!    busy errors (`ENOBUFS`, `EAGAIN`) retried until half a period after the deadline.
 //!
 //! The loop stops when the stop flag becomes non-zero (a signal) or the duration has
@@ -518,6 +519,7 @@ pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
         // 3. Feedback.
         feedback.clear();
         plant.feedback(sim_us * 1000, &mut feedback);
+        plant.imu_frames(sim_us * 1000, &mut feedback);
         let give_up = deadline.max(woke).saturating_add(period / 2);
         for (_, frame) in &feedback {
             match send_with_retry(

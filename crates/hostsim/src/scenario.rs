@@ -37,7 +37,7 @@
 //! from_s = 1.0
 //! until_s = 1.5
 //! rate = 0.2                # drop, corrupt
-//! sender = "host"           # optional: controller | drives | host
+//! sender = "host"           # optional: controller | drives | host | imu
 //! ```
 //!
 //! The simulated robot is the one the drive configuration describes, unless the scenario
@@ -52,6 +52,20 @@
 //! ly = 0.1746
 //! roller_drag = 0.17647     # ε in [0, 1): a pure strafe makes (1 − ε)/(1 + ε) of the command
 //! ```
+//!
+//! An optional `[imu]` table puts an IMU node on the bus that sends the robot protocol's
+//! `IMU_YAW_RATE` from the plant's true yaw rate (see [`crate::imu`]; a configuration with
+//! `[odometry] heading_source = "gyro"` uses it). Without the table there is none:
+//!
+//! ```toml
+//! [imu]
+//! rate_hz = 200.0           # default 200
+//! bias_deg_s = 0.1          # default 0.1, constant
+//! noise_density = 0.005     # °/s/√Hz, white rate noise; default 0.005
+//! enabled = true            # default true
+//! ```
+//!
+//! A `burst` fault with `sender = "imu"` silences it.
 
 use std::path::{Path, PathBuf};
 
@@ -196,6 +210,8 @@ pub enum SenderName {
     Drives,
     /// The commanding host.
     Host,
+    /// The IMU node (`[imu]`).
+    Imu,
 }
 
 impl From<SenderName> for Node {
@@ -204,6 +220,7 @@ impl From<SenderName> for Node {
             SenderName::Controller => Self::Controller,
             SenderName::Drives => Self::Drives,
             SenderName::Host => Self::Host,
+            SenderName::Imu => Self::Imu,
         }
     }
 }
@@ -391,6 +408,8 @@ pub struct Scenario {
     pub host_faults: Vec<HostFault>,
     /// The robot where it differs from the configuration (empty: as configured).
     pub plant: PlantSpec,
+    /// The IMU node on the plant (`[imu]`), if any.
+    pub imu: Option<crate::imu::ImuParams>,
 }
 
 /// Why a scenario could not be used.
@@ -467,6 +486,7 @@ struct ScenarioFile {
     faults: Vec<FaultSpec>,
     #[serde(default)]
     plant: PlantSpec,
+    imu: Option<crate::imu::ImuParams>,
 }
 
 const fn default_command_hz() -> f64 {
@@ -626,6 +646,9 @@ impl Scenario {
                 ));
             }
         }
+        if let Some((key, value, expected)) = file.imu.as_ref().and_then(|i| i.invalid()) {
+            return Err(invalid(&format!("imu.{key}"), value.to_string(), expected));
+        }
         let mut bus_faults = Vec::new();
         let mut wheel_faults = Vec::new();
         let mut host_faults = Vec::new();
@@ -760,6 +783,7 @@ impl Scenario {
             wheel_faults,
             host_faults,
             plant: file.plant,
+            imu: file.imu,
         })
     }
 
@@ -868,6 +892,7 @@ impl Scenario {
             wheel_faults: Vec::new(),
             host_faults: Vec::new(),
             plant,
+            imu: None,
         })
     }
 

@@ -61,6 +61,10 @@ pub trait SimPlant {
     /// Feedback frames the drives have sent up to `until_ns`, each with its send time (ns),
     /// in time order; called once per tick.
     fn feedback(&mut self, until_ns: u64, out: &mut Vec<(u64, CanFrame)>);
+    /// `IMU_YAW_RATE` frames an IMU node on the plant has sent up to `until_ns`, as
+    /// [`Self::feedback`] (the bus node [`Node::Imu`]). None by default: see
+    /// [`crate::imu::WithImu`], which the runner puts around the plant.
+    fn imu_frames(&mut self, _until_ns: u64, _out: &mut Vec<(u64, CanFrame)>) {}
     /// Advances the physics by `dt` seconds.
     fn advance(&mut self, dt: f64);
     /// Advances the physics by `dt_ns` nanoseconds ([`Self::advance`] by default).
@@ -138,6 +142,9 @@ pub struct RunSummary {
     /// FNV-1a hash of every frame the firmware sent, with its step time: equal hashes, equal
     /// streams.
     pub tx_hash: u64,
+    /// Changes of the firmware's heading source `(time s, source)` (gyro heading only: a
+    /// robot without a gyro stays on `Wheels`).
+    pub heading_changes: Vec<(f64, String)>,
     /// Ground truth and odometry every 10 ms, for plots.
     pub track: Vec<crate::plot::TrackPoint>,
 }
@@ -323,6 +330,8 @@ pub fn run_observed<P: SimPlant>(
     options: LogOptions,
     mut observe: impl FnMut(&StepView<'_>),
 ) -> Result<RunSummary, SimError> {
+    // The scenario's IMU node, if any, on the plant (without one, a pass-through).
+    let plant = &mut crate::imu::WithImu::new(plant, scenario.imu.as_ref(), scenario.seed);
     let mut ctl = Controller::new(&scenario.config)?;
     let period_us = ctl.period_micros();
     let period_ns = period_us * 1000;
@@ -351,6 +360,7 @@ pub fn run_observed<P: SimPlant>(
     let mut last_truth = plant.truth();
     let mut transitions = Vec::new();
     let mut last_state = (RobotState::Disabled, firmware::control::Fault::None);
+    let (mut heading_changes, mut last_heading) = (Vec::new(), robot::HeadingSource::Wheels);
     let mut t_us = 0u64;
     let mut step = 0u64;
     let mut track = Vec::with_capacity((duration_us / 10_000 + 2) as usize);
@@ -421,11 +431,7 @@ pub fn run_observed<P: SimPlant>(
         }
 
         // 2. Drives (their faults of t were set before the plant reached t, below).
-        feedback.clear();
-        plant.feedback(t_ns, &mut feedback);
-        for &(at_ns, f) in &feedback {
-            bus.send(at_ns, Node::Drives, f);
-        }
+        send_feedback(plant, &mut bus, &mut feedback, t_ns);
 
         // 3. Bus up to t.
         bus.advance_into(t_ns + 1, &mut in_flight);
@@ -483,6 +489,15 @@ pub fn run_observed<P: SimPlant>(
                 format!("{:?}", state.1),
             ));
             last_state = state;
+        }
+        if ctl.heading_source() != last_heading {
+            last_heading = ctl.heading_source();
+            if let Some(l) = log.as_deref_mut() {
+                let timeout_ms = scenario.config.odometry.gyro_timeout_ms;
+                let (level, text) = crate::log::heading_source_line(last_heading, timeout_ms);
+                l.text(t_ns, level, &text)?;
+            }
+            heading_changes.push((t_us as f64 * 1e-6, format!("{last_heading:?}")));
         }
         let odom = pose_array(ctl.pose());
         let truth = plant.truth();
@@ -560,6 +575,7 @@ pub fn run_observed<P: SimPlant>(
         final_heading_error: kinematics::wrap_angle(odom[2] - truth[2]),
         last: ctl.snapshot(),
         transitions,
+        heading_changes,
         tx_hash: hash.value(),
         track,
     })
@@ -612,10 +628,26 @@ fn advance_period<P: SimPlant>(
         }
         plant.advance_ns(horizon - now_ns);
         now_ns = horizon;
+        send_feedback(plant, bus, feedback, now_ns);
+    }
+}
+
+/// Queues on the bus the drives' feedback and the IMU's frames sent up to `until_ns`.
+fn send_feedback<P: SimPlant>(
+    plant: &mut P,
+    bus: &mut Bus,
+    feedback: &mut Vec<(u64, CanFrame)>,
+    until_ns: u64,
+) {
+    for (node, imu) in [(Node::Drives, false), (Node::Imu, true)] {
         feedback.clear();
-        plant.feedback(now_ns, feedback);
+        if imu {
+            plant.imu_frames(until_ns, feedback);
+        } else {
+            plant.feedback(until_ns, feedback);
+        }
         for &(at_ns, f) in feedback.iter() {
-            bus.send(at_ns, Node::Drives, f);
+            bus.send(at_ns, node, f);
         }
     }
 }

@@ -146,7 +146,8 @@ fn run(s: &Scenario) -> Record {
                         last_feedback[wheel] = Some(t_us);
                     }
                 }
-                Node::Controller => {}
+                // The fault matrix's scenarios have no IMU.
+                Node::Controller | Node::Imu => {}
             }
         }
         // The firmware's stale rule, from the deliveries: feedback older than the limit.

@@ -395,3 +395,77 @@ fn the_plant_counts_bus_error_frames_apart_and_reads_the_frames_behind_them() {
         "{text}"
     );
 }
+
+#[test]
+fn the_real_time_plant_can_carry_the_imu_for_a_gyro_runner() {
+    // As `hostsim plant --imu` and a runner with [odometry] heading_source = "gyro".
+    let mut config = Config::dji_m3508_example();
+    config.odometry.heading_source = firmware::config::HeadingMode::Gyro;
+    let duration_us = 1_000_000;
+    let bus = MemoryBus::new();
+    let clock = VirtualClock::new(T0);
+    let (fw_clock, plant_clock, host_clock) = (clock.join(), clock.join(), clock.join());
+    let (mut fw_port, mut plant_port, host_port) = (bus.port(), bus.port(), bus.port());
+    let fw = thread::spawn(move || {
+        let mut ctl = Controller::new(&config).unwrap();
+        let options = RunOptions {
+            duration_us: Some(duration_us),
+            ..RunOptions::default()
+        };
+        let r = linux::run(
+            &mut ctl,
+            &mut fw_port,
+            &fw_clock,
+            &options,
+            &AtomicUsize::new(0),
+        );
+        (r, ctl.snapshot())
+    });
+    let plant = thread::spawn(move || {
+        let mut drives = SimDrives::new(&config).unwrap();
+        let imu = hostsim::imu::ImuParams::default();
+        let mut plant = hostsim::imu::WithImu::new(&mut drives, Some(&imu), 0);
+        plant_clock.sleep_until(T0 + 500);
+        let options = PlantOptions {
+            duration_us: Some(duration_us),
+            ..PlantOptions::default()
+        };
+        run_plant(
+            &mut plant,
+            &mut plant_port,
+            &plant_clock,
+            &options,
+            &AtomicUsize::new(0),
+        )
+    });
+    let host = thread::spawn(move || run_host(host_port, &host_clock, 0.3, duration_us));
+    let (fw_report, snapshot) = fw.join().unwrap();
+    let plant_report = plant.join().unwrap();
+    host.join().unwrap();
+    // 4 feedback frames a millisecond and an IMU frame every 5 ms.
+    assert!(
+        plant_report.frames_sent >= 4 * 990 + 198,
+        "{}",
+        plant_report.frames_sent
+    );
+    assert_eq!(fw_report.controller.state_at_stop, "Enabled");
+    assert_eq!(
+        snapshot.heading_source,
+        firmware::control::HeadingSource::Gyro
+    );
+    // It stood still from its first feedback to the twist at 100 ms: bias samples, close to
+    // the IMU's 0.1 °/s (10 noisy samples).
+    assert!(
+        (5..=12).contains(&snapshot.gyro_bias_samples),
+        "{snapshot:?}"
+    );
+    let bias = f64::from(snapshot.gyro_bias).to_degrees();
+    assert!((bias - 0.1).abs() < 0.1, "bias {bias} °/s");
+    // Driving straight: the gyro heading stays with the truth's.
+    let heading = f64::from(snapshot.pose.heading);
+    assert!(
+        (heading - plant_report.truth.heading).abs() < 0.005,
+        "heading {heading}, truth {}",
+        plant_report.truth.heading
+    );
+}
