@@ -26,6 +26,8 @@ enum Op {
     Estop,
     /// `STATUS_REQ`.
     StatusRequest,
+    /// `IMU_YAW_RATE` (any float: the encoder saturates it).
+    Imu { yaw_rate: f32, seq: u8 },
     /// DJI feedback from ESC `esc` (1..=8).
     DjiFeedback {
         esc: u8,
@@ -49,6 +51,8 @@ enum Op {
 #[derive(Arbitrary, Debug)]
 struct Input {
     odrive: bool,
+    /// `[odometry] heading_source = "gyro"`.
+    gyro: bool,
     start_us: u32,
     ops: Vec<Op>,
 }
@@ -65,11 +69,14 @@ fn check_outbox(config: &Config, out: &Outbox) {
 }
 
 fuzz_target!(|input: Input| {
-    let config = if input.odrive {
+    let mut config = if input.odrive {
         Config::odrive_example()
     } else {
         Config::dji_m3508_example()
     };
+    if input.gyro {
+        config.odometry.heading_source = firmware::config::HeadingMode::Gyro;
+    }
     let mut ctl = Controller::new(&config).expect("example configurations are valid");
     let mut now = u64::from(input.start_us);
     for op in input.ops.iter().take(2_000) {
@@ -89,6 +96,13 @@ fuzz_target!(|input: Input| {
             ),
             Op::Estop => Some(robot::Command::Estop.to_can_frame()),
             Op::StatusRequest => Some(robot::Command::StatusRequest.to_can_frame()),
+            Op::Imu { yaw_rate, seq } => Some(
+                robot::Command::ImuYawRate(robot::ImuYawRate {
+                    yaw_rate: *yaw_rate,
+                    seq: *seq,
+                })
+                .to_can_frame(),
+            ),
             Op::DjiFeedback {
                 esc,
                 angle,
