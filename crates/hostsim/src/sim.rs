@@ -8,7 +8,8 @@
 //!    again, unchanged), and the non-finite twists of a `non_finite_twist` fault when they
 //!    are due.
 //! 2. The drives queue the feedback frames due at `t` that are not on the bus yet (at `t = 0`;
-//!    later, step 6 has queued them as they were sent).
+//!    later, step 6 has queued them as they were sent), and so does the scenario's IMU node
+//!    if it has one ([`crate::imu`]: `IMU_YAW_RATE`, sent by the bus node `imu`).
 //! 3. The bus transmits everything that starts before `t` (arbitration, exact frame times,
 //!    faults); each frame reaches the other nodes at its end of transmission.
 //! 4. Frames delivered by `t` go to the firmware (`on_frame` with their delivery time).
