@@ -217,6 +217,26 @@ def test_a_silent_robot_is_not_responding(channel: str) -> None:
             robot.enable()
 
 
+def test_missed_heartbeats_sets_how_long_a_silent_robot_is_tolerated(channel: str) -> None:
+    """With `missed_heartbeats=6` a 0.45 s silence is tolerated (3 would not), 0.75 s is not;
+    a value below 1 is refused naming it."""
+    with ScriptedRobot(channel) as fake, Robot(host_bus(channel), owns_bus=True, missed_heartbeats=6) as robot:
+        robot.wait_state("DISABLED", timeout=1.0)
+        fake.heartbeats = False
+        time.sleep(0.45)
+        assert robot.responding
+        time.sleep(0.3)
+        with pytest.raises(NotResponding, match=r"more than 6 periods"):
+            robot.check()
+    bus = host_bus(channel + "-bad")
+    try:
+        for bad in (0, -1, 2.5, True):
+            with pytest.raises(ValueError, match=rf"missed_heartbeats = {bad!r}"):
+                Robot(bus, missed_heartbeats=bad)  # type: ignore[arg-type]
+    finally:
+        bus.shutdown()
+
+
 def test_another_protocol_version_is_refused_and_never_driven(channel: str) -> None:
     version = mecanum_drive.protocol_version()
     with ScriptedRobot(channel, protocol_version=version + 7) as fake, Robot(host_bus(channel), owns_bus=True) as robot:

@@ -50,6 +50,10 @@ END_HEADING_TOL_RAD = math.radians(15 if VM else 5)
 CORNER_TOL_M = 0.25 if VM else 0.06
 #: Waits for the robot's answers: the emulated machine is slow to start.
 ANSWER_S = 10.0 if VM else 2.0
+#: Heartbeat periods (0.1 s) without one before the package calls the robot not responding:
+#: the emulated machine stalls the runner or this process for a few hundred milliseconds at
+#: times when its host is busy (a CI run saw 0.34 s); natively the package's default, 3.
+MISSED_HEARTBEATS = 20 if VM else 3
 #: How late a key typed through tmux may act: each `tmux send-keys` is a process start,
 #: which the emulated machine takes a good part of a second for when it is busy.
 KEY_SLACK_S = 1.5 if VM else 0.2
@@ -73,7 +77,9 @@ def test_a_square_through_the_api_ends_where_the_odometry_says(robot_factory, vc
     odometry is the robot's last ODOM frames, the odometry's corners are the legs', and the
     chassis ended where the odometry says (within END_POS_TOL_M / END_HEADING_TOL_RAD)."""
     with robot_factory("api-square") as session:
-        with mecanum_drive.Robot.open(channel=vcan, interface="socketcan") as robot:
+        with mecanum_drive.Robot.open(
+            channel=vcan, interface="socketcan", missed_heartbeats=MISSED_HEARTBEATS
+        ) as robot:
             robot.enable()
             robot.wait_state("ENABLED", timeout=ANSWER_S)
             corners = []
@@ -133,7 +139,9 @@ def test_a_program_killed_mid_drive_leaves_the_robot_stopped(robot_factory, vcan
         import time
         import mecanum_drive
 
-        robot = mecanum_drive.Robot.open(channel={vcan!r}, interface="socketcan")
+        robot = mecanum_drive.Robot.open(
+            channel={vcan!r}, interface="socketcan", missed_heartbeats={MISSED_HEARTBEATS}
+        )
         robot.enable()
         robot.wait_state("ENABLED", timeout={ANSWER_S})
         robot.drive(0.4, 0.0, 0.0)

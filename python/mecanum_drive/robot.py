@@ -143,6 +143,8 @@ class Robot:
     `rate_hz`: keep-alive rate; its period must be at most half `command_timeout_s` (the
     firmware's command timeout), so that one lost frame does not stop the robot.
     `heartbeat_period_s`: the robot's HEARTBEAT period (its `status_hz`).
+    `missed_heartbeats`: heartbeat periods without one after which the robot counts as not
+    responding (`NotResponding`); more tolerates a computer that stalls for longer.
     `owns_bus`: shut `bus` down on `close()` (as `Robot.open` does).
     """
 
@@ -153,6 +155,7 @@ class Robot:
         rate_hz: float = 50.0,
         command_timeout_s: float = DEFAULT_COMMAND_TIMEOUT_S,
         heartbeat_period_s: float = DEFAULT_HEARTBEAT_PERIOD_S,
+        missed_heartbeats: int = MISSED_HEARTBEATS,
         owns_bus: bool = False,
     ) -> None:
         if not (math.isfinite(rate_hz) and rate_hz > 0):
@@ -165,6 +168,9 @@ class Robot:
             )
         if not (math.isfinite(heartbeat_period_s) and heartbeat_period_s > 0):
             raise ValueError(f"heartbeat_period_s = {heartbeat_period_s}: must be a positive number")
+        if isinstance(missed_heartbeats, bool) or not isinstance(missed_heartbeats, int) or missed_heartbeats < 1:
+            raise ValueError(f"missed_heartbeats = {missed_heartbeats!r}: must be a whole number >= 1")
+        self.missed_heartbeats = missed_heartbeats
         self.bus = bus
         self.period_s = 1.0 / rate_hz
         self.heartbeat_period_s = heartbeat_period_s
@@ -215,7 +221,7 @@ class Robot:
         """A robot on a new python-can bus (`interface`, `channel`; other keyword arguments go
         to `Robot` if it takes them, else to `can.Bus`, e.g. `bitrate` for slcan or pcan).
         The bus is shut down on `close()`."""
-        robot_keys = {"rate_hz", "command_timeout_s", "heartbeat_period_s"}
+        robot_keys = {"rate_hz", "command_timeout_s", "heartbeat_period_s", "missed_heartbeats"}
         robot_args = {k: v for k, v in kwargs.items() if k in robot_keys}
         bus_args = {k: v for k, v in kwargs.items() if k not in robot_keys}
         bus_args.setdefault("can_filters", cls.receive_filters())
@@ -471,13 +477,13 @@ class Robot:
 
     @property
     def responding(self) -> bool:
-        """False when no HEARTBEAT arrived for three heartbeat periods, or none at all within
+        """False when no HEARTBEAT arrived for `missed_heartbeats` heartbeat periods, or none at all within
         FIRST_HEARTBEAT_S of this robot's creation."""
         with self._lock:
             heartbeat = self._heartbeat
         if heartbeat is None:
-            return time.monotonic() - self._started <= max(FIRST_HEARTBEAT_S, MISSED_HEARTBEATS * self.heartbeat_period_s)
-        return time.monotonic() - heartbeat.received <= MISSED_HEARTBEATS * self.heartbeat_period_s
+            return time.monotonic() - self._started <= max(FIRST_HEARTBEAT_S, self.missed_heartbeats * self.heartbeat_period_s)
+        return time.monotonic() - heartbeat.received <= self.missed_heartbeats * self.heartbeat_period_s
 
     def _check_link(self) -> None:
         """Raises ProtocolMismatch or NotResponding if the robot cannot be talked to."""
@@ -494,7 +500,7 @@ class Robot:
                 )
             silent = time.monotonic() - heartbeat.received
             raise NotResponding(
-                f"no HEARTBEAT from the robot for {silent:.2f} s (more than {MISSED_HEARTBEATS} periods of "
+                f"no HEARTBEAT from the robot for {silent:.2f} s (more than {self.missed_heartbeats} periods of "
                 f"{self.heartbeat_period_s:.2f} s): is it powered, on this bus ({self.bus.channel_info}), "
                 "at the same bitrate?"
             )
