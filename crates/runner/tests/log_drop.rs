@@ -12,11 +12,10 @@ use std::time::{Duration, Instant as WallInstant};
 use drivelog::read::for_each_message;
 use drivelog::{CHUNK_SIZE, McapLog, msg};
 use firmware::linux::{LinkEvent, Recorder, RunOptions, run_recorded};
-use firmware::protocol::robot::{Command, ModeRequest};
 use firmware::{CanFrame, Config, Controller};
 
 mod common;
-use common::{FakeClock, MemoryBus, T0, std_frame};
+use common::{FakeClock, MemoryBus, enable_at, esc_feedback};
 use mecanum_runner::{MAX_PENDING_EVENTS, McapRecorder, metadata};
 
 /// A file whose writes wait while `stalled` is set (a disk that stops answering), in memory.
@@ -77,17 +76,8 @@ const STEPS: u64 = 10_000;
 
 /// The four ESCs report every millisecond; the host enables at 10 ms.
 fn session() -> VecDeque<(u64, CanFrame)> {
-    let mut frames = vec![(
-        T0 + 10_000,
-        Command::Mode(ModeRequest::Enable).to_can_frame(),
-    )];
-    for ms in 0..STEPS {
-        for esc in 0..4u16 {
-            let mut data = [0u8; 8];
-            data[..2].copy_from_slice(&(((ms * 37) % 8192) as u16).to_be_bytes());
-            frames.push((T0 + ms * 1000 + 100, std_frame(0x201 + esc, &data)));
-        }
-    }
+    let mut frames = esc_feedback(0..STEPS);
+    frames.push(enable_at(10));
     frames.sort_by_key(|f| f.0);
     frames.into()
 }

@@ -5,44 +5,20 @@ use std::collections::VecDeque;
 use std::sync::atomic::AtomicUsize;
 
 use firmware::linux::{RunOptions, run_recorded};
-use firmware::protocol::robot::{Command, ModeRequest, TwistCmd};
+use firmware::protocol::robot::Command;
 use firmware::{CanFrame, Config, Controller};
 
 mod common;
-use common::{FakeClock, MemoryBus, T0, std_frame};
+use common::{FakeClock, MemoryBus, T0, enable_at, esc_feedback, std_frame, twists};
 use mecanum_runner::McapRecorder;
 
 /// 600 ms: the four ESCs report every millisecond (wheels turning); the host enables at
 /// 10 ms, drives from 20 ms to 300 ms, then falls silent (the watchdog stops the robot); a
 /// TWIST_CMD of the wrong length at 350 ms; an e-stop at 450 ms.
 fn session() -> VecDeque<(u64, CanFrame)> {
-    let mut frames = Vec::new();
-    for ms in 0..600u64 {
-        let angle = ((ms * 37) % 8192) as u16;
-        for esc in 0..4u16 {
-            let mut data = [0u8; 8];
-            data[..2].copy_from_slice(&angle.to_be_bytes());
-            data[2..4].copy_from_slice(&300i16.to_be_bytes());
-            data[6] = 30;
-            frames.push((
-                T0 + ms * 1000 + 100 + u64::from(esc) * 3,
-                std_frame(0x201 + esc, &data),
-            ));
-        }
-    }
-    frames.push((
-        T0 + 10_000,
-        Command::Mode(ModeRequest::Enable).to_can_frame(),
-    ));
-    for (seq, ms) in (20..300u64).step_by(20).enumerate() {
-        let twist = TwistCmd {
-            vx: 0.5,
-            vy: 0.1,
-            wz: 0.2,
-            seq: seq as u8,
-        };
-        frames.push((T0 + ms * 1000 + 50, Command::Twist(twist).to_can_frame()));
-    }
+    let mut frames = esc_feedback(0..600);
+    frames.push(enable_at(10));
+    frames.extend(twists(20..300));
     frames.push((T0 + 350_000, std_frame(0x301, &[1, 2, 3])));
     frames.push((T0 + 450_000, Command::Estop.to_can_frame()));
     frames.sort_by_key(|f| f.0);

@@ -7,11 +7,10 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicUsize;
 
 use firmware::linux::{RunOptions, run_recorded};
-use firmware::protocol::robot::{Command, ModeRequest, TwistCmd};
 use firmware::{CanFrame, Config, Controller};
 
 mod common;
-use common::{FakeClock, MemoryBus, T0, std_frame};
+use common::{FakeClock, MemoryBus, enable_at, esc_feedback, twists};
 use mecanum_runner::{McapRecorder, rotated_path};
 
 /// Run length: 3 s, 3000 steps.
@@ -19,33 +18,9 @@ const RUN_MS: u64 = 3000;
 
 /// The ESCs report every millisecond; the host enables at 10 ms and drives until 2.5 s.
 fn session() -> VecDeque<(u64, CanFrame)> {
-    let mut frames = Vec::new();
-    for ms in 0..RUN_MS {
-        let angle = ((ms * 37) % 8192) as u16;
-        for esc in 0..4u16 {
-            let mut data = [0u8; 8];
-            data[..2].copy_from_slice(&angle.to_be_bytes());
-            data[2..4].copy_from_slice(&300i16.to_be_bytes());
-            data[6] = 30;
-            frames.push((
-                T0 + ms * 1000 + 100 + u64::from(esc) * 3,
-                std_frame(0x201 + esc, &data),
-            ));
-        }
-    }
-    frames.push((
-        T0 + 10_000,
-        Command::Mode(ModeRequest::Enable).to_can_frame(),
-    ));
-    for (seq, ms) in (20..2500u64).step_by(20).enumerate() {
-        let twist = TwistCmd {
-            vx: 0.5,
-            vy: 0.1,
-            wz: 0.2,
-            seq: seq as u8,
-        };
-        frames.push((T0 + ms * 1000 + 50, Command::Twist(twist).to_can_frame()));
-    }
+    let mut frames = esc_feedback(0..RUN_MS);
+    frames.push(enable_at(10));
+    frames.extend(twists(20..2500));
     frames.sort_by_key(|f| f.0);
     frames.into()
 }

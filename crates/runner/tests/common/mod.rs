@@ -11,6 +11,7 @@ use std::rc::Rc;
 use embedded_can::StandardId;
 use firmware::CanFrame;
 use firmware::linux::{Bus, Clock};
+use firmware::protocol::robot::{Command, ModeRequest, TwistCmd};
 
 /// Where simulated time starts, µs.
 pub const T0: u64 = 5_000_000;
@@ -87,4 +88,44 @@ impl Bus for MemoryBus {
 /// A standard data frame.
 pub fn std_frame(id: u16, data: &[u8]) -> CanFrame {
     CanFrame::standard(StandardId::new(id).unwrap(), data).unwrap()
+}
+
+/// The four ESCs' feedback every millisecond of `ms` (wheels turning), a few µs apart.
+pub fn esc_feedback(ms: std::ops::Range<u64>) -> Vec<(u64, CanFrame)> {
+    let mut frames = Vec::new();
+    for ms in ms {
+        let angle = ((ms * 37) % 8192) as u16;
+        for esc in 0..4u16 {
+            let mut data = [0u8; 8];
+            data[..2].copy_from_slice(&angle.to_be_bytes());
+            data[2..4].copy_from_slice(&300i16.to_be_bytes());
+            data[6] = 30;
+            frames.push((
+                T0 + ms * 1000 + 100 + u64::from(esc) * 3,
+                std_frame(0x201 + esc, &data),
+            ));
+        }
+    }
+    frames
+}
+
+/// MODE_CMD enable at `ms`.
+pub fn enable_at(ms: u64) -> (u64, CanFrame) {
+    (
+        T0 + ms * 1000,
+        Command::Mode(ModeRequest::Enable).to_can_frame(),
+    )
+}
+
+/// A host driving (0.5, 0.1, 0.2) with a TWIST_CMD every 20 ms of `ms`, `seq` counting.
+pub fn twists(ms: std::ops::Range<u64>) -> impl Iterator<Item = (u64, CanFrame)> {
+    ms.step_by(20).enumerate().map(|(seq, ms)| {
+        let twist = TwistCmd {
+            vx: 0.5,
+            vy: 0.1,
+            wz: 0.2,
+            seq: seq as u8,
+        };
+        (T0 + ms * 1000 + 50, Command::Twist(twist).to_can_frame())
+    })
 }
