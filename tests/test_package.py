@@ -329,4 +329,32 @@ def test_the_package_type_checks_strictly() -> None:
     proc = subprocess.run([sys.executable, "-m", "mypy", "--strict", "--no-incremental", "-p", "mecanum_drive"],
                           capture_output=True, text=True, timeout=300, check=False)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "no issues found in 5 source files" in proc.stdout, proc.stdout
+    # The ROS 2 bridge's three modules included (mecanum_drive.ros2: rclpy is in this
+    # environment, scripts/test.sh installs ./python[ros2]).
+    assert "no issues found in 8 source files" in proc.stdout, proc.stdout
+
+
+#: Python that runs with rclpy made unimportable (as where the ros2 extra is not installed).
+WITHOUT_RCLPY = "import sys; sys.modules['rclpy'] = None; "
+
+
+def test_the_package_works_without_rclpy_and_ros2_says_how_to_get_it() -> None:
+    """Without ROS 2's Python client the package, its command line and mecanum_drive.ros2
+    import (rclpy is imported only when the bridge starts); `mecanum-drive ros2` and
+    `python -m mecanum_drive.ros2` exit 1 saying how to install it."""
+    imports = subprocess.run(
+        [sys.executable, "-c", WITHOUT_RCLPY + "import mecanum_drive, mecanum_drive.cli, mecanum_drive.ros2; "
+         "assert 'rclpy' not in [m for m in sys.modules if sys.modules[m] is not None]; print('ok')"],
+        capture_output=True, text=True, timeout=60, check=False)
+    assert imports.returncode == 0 and imports.stdout.strip() == "ok", imports.stdout + imports.stderr
+    for code, prog in [
+        ("from mecanum_drive.cli import main; sys.exit(main(['ros2', '--channel', 'can0']))", "mecanum-drive ros2"),
+        ("import runpy; sys.argv = ['x', '--ros-args', '-p', 'channel:=can0']; "
+         "runpy.run_module('mecanum_drive.ros2', run_name='__main__')", "python -m mecanum_drive.ros2"),
+    ]:
+        proc = subprocess.run([sys.executable, "-c", WITHOUT_RCLPY + code], capture_output=True, text=True,
+                              timeout=60, check=False)
+        print(proc.stderr.strip())
+        assert proc.returncode == 1, proc.stdout + proc.stderr
+        assert proc.stderr.startswith(f"{prog}: the ROS 2 Python client is not importable ("), proc.stderr
+        assert "pip install './python[ros2]'" in proc.stderr and "source /opt/ros/jazzy/setup.bash" in proc.stderr

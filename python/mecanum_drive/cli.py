@@ -12,7 +12,7 @@ from typing import Any
 
 import can
 
-from . import protocol
+from . import protocol, ros2
 from .robot import NotResponding, Robot, RobotError
 
 #: Teleop: a key held down repeats (the terminal's auto-repeat); when no key has come for
@@ -35,14 +35,21 @@ TELEOP_HELP = """mecanum-drive teleop: hold a key to drive, release it to stop
   Ctrl-C or Esc  quit (the robot is stopped and disabled)"""
 
 
+#: --channel and --interface when not given (None in the namespace: `ros2` tells given from not).
+DEFAULT_CHANNEL = "can0"
+DEFAULT_INTERFACE = "socketcan"
+
+
 def _robot(args: argparse.Namespace) -> Robot:
     kwargs: dict[str, object] = {"rate_hz": args.rate}
     if args.bitrate is not None:
         kwargs["bitrate"] = args.bitrate
+    channel = args.channel or DEFAULT_CHANNEL
+    interface = args.interface or DEFAULT_INTERFACE
     try:
-        return Robot.open(channel=args.channel, interface=args.interface, **kwargs)
+        return Robot.open(channel=channel, interface=interface, **kwargs)
     except (can.CanError, OSError, ValueError) as err:
-        raise SystemExit(f"mecanum-drive: cannot open {args.interface} channel {args.channel}: {err}") from err
+        raise SystemExit(f"mecanum-drive: cannot open {interface} channel {channel}: {err}") from err
 
 
 def _wait_first_status(robot: Robot, timeout: float) -> None:
@@ -233,10 +240,10 @@ def build_parser() -> argparse.ArgumentParser:
         ),
         epilog="Bring a SocketCAN interface up first: sudo ip link set can0 up type can bitrate 1000000",
     )
-    parser.add_argument("--channel", default="can0", help="CAN channel (default can0; vcan0 for tests)")
+    parser.add_argument("--channel", default=None, help=f"CAN channel (default {DEFAULT_CHANNEL}; vcan0 for tests)")
     parser.add_argument(
-        "--interface", default="socketcan",
-        help="python-can interface: socketcan (default), slcan, pcan, gs_usb, kvaser, virtual, ...",
+        "--interface", default=None,
+        help=f"python-can interface: {DEFAULT_INTERFACE} (default), slcan, pcan, gs_usb, kvaser, virtual, ...",
     )
     parser.add_argument("--bitrate", type=int, default=None, help="bitrate for adapters that set it (slcan, pcan); SocketCAN sets it with ip link")
     parser.add_argument("--rate", type=float, default=50.0, help="keep-alive rate of the twist stream, Hz (default 50)")
@@ -264,11 +271,37 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--speed", type=float, default=0.3, help="linear speed of a key, m/s (default 0.3)")
     p.add_argument("--turn", type=float, default=0.8, help="yaw rate of a key, rad/s (default 0.8)")
     p.set_defaults(func=cmd_teleop)
+
+    p = sub.add_parser(
+        "ros2", help="the ROS 2 bridge: /cmd_vel in; /odom, /tf, /diagnostics out; enable/disable/reset/estop services",
+        description="The ROS 2 node mecanum_drive (needs the ros2 extra: pip install './python[ros2]', or a "
+        "sourced ROS 2 installation). Runs until Ctrl-C or SIGTERM, then leaves the robot disabled.",
+        epilog="ROS 2 arguments follow --ros-args, e.g. --ros-args -p cmd_vel_timeout:=0.5 -p "
+        "enable_on_start:=true --params-file bridge.yaml. --channel, --interface and --bitrate here or "
+        "before the command set the parameters of those names.",
+    )
+    ros2.add_arguments(p, dest_prefix="ros2_")
+    p.set_defaults(func=cmd_ros2)
     return parser
 
 
+def cmd_ros2(args: argparse.Namespace) -> int:
+    """The ROS 2 bridge (mecanum_drive.ros2); its options win over the global ones."""
+    def pick(name: str) -> Any:
+        own = getattr(args, f"ros2_{name}")
+        return own if own is not None else getattr(args, name)
+
+    return ros2.run(args.ros_args, channel=pick("channel"), interface=pick("interface"),
+                    bitrate=pick("bitrate"))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    own, ros_args = ros2.split_ros_args(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    args = parser.parse_args(own)
+    if ros_args and args.command != "ros2":
+        parser.error(f"--ros-args is for the ros2 command, not {args.command}")
+    args.ros_args = ros_args
     try:
         return int(args.func(args))
     except (RobotError, TimeoutError, ValueError) as err:

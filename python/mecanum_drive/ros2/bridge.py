@@ -1,0 +1,563 @@
+"""The ROS 2 node `mecanum_drive`: the robot on a CAN bus as the topics and services that
+Nav2, teleop_twist_keyboard / teleop_twist_joy and RViz speak.
+
+It drives the robot through the package's `Robot` (the keep-alive stream, the way out) and
+needs rclpy and the message packages geometry_msgs, nav_msgs, diagnostic_msgs and std_srvs
+(`pip install './python[ros2]'`, or a ROS 2 installation).
+
+| name | type | what |
+|---|---|---|
+| `cmd_vel` (sub) | `geometry_msgs/msg/Twist` (`TwistStamped` with `use_stamped_vel`) | body-frame setpoint: linear.x, linear.y, angular.z; streamed to the robot at 50 Hz. None for `cmd_vel_timeout` s: zero twist (the robot stays enabled and holds still) |
+| `odom` (pub) | `nav_msgs/msg/Odometry` | the robot's odometry: pose in `odom_frame_id`, measured twist in `base_frame_id`, at most `publish_rate` Hz (the robot sends 100 Hz) |
+| `/tf` (pub) | `tf2_msgs/msg/TFMessage` | `odom_frame_id` -> `base_frame_id`, with each `odom`, when `enable_odom_tf` and `tf2_msgs` is importable (a ROS 2 installation has it; the PyPI wheels do not: the node says so once at start-up) |
+| `/diagnostics` (pub) | `diagnostic_msgs/msg/DiagnosticArray` | state, fault, motors online, the robot's counters and the bridge's, at `diagnostics_rate` Hz |
+| `~/enable`, `~/disable`, `~/reset`, `~/estop` | `std_srvs/srv/Trigger` | MODE_CMD enable / disable / reset, ESTOP; `success` when the robot reports the state reached (ENABLED, DISABLED, DISABLED, ESTOP) within `service_timeout` s; `message`: its state and fault, or why not |
+
+`/joint_states` is not published: the robot protocol (dbc/mecanum_robot.dbc, version 3) carries
+no wheel states, only odometry, status, counters and the heartbeat. (The drives' own frames
+are on the bus, but decoding them is the firmware's job, at 4 kHz.)
+
+Twists beyond the robot's limits are **clamped**: the whole twist is scaled by one factor
+(direction and curvature kept) so that |(vx, vy)| <= `max_linear_speed` and |wz| <=
+`max_angular_speed`, with a warning at most every 5 s. The firmware would otherwise reject
+such a twist, and a robot fed only rejected twists stops on its command watchdog. A twist
+with a component that is not a finite number is rejected (zero twist sent, warning).
+
+On Ctrl-C or SIGTERM the bridge stops the stream and sends a zero twist and MODE_CMD disable
+(`Robot.close`); killed outright, it stops sending and the robot's own command watchdog
+stops it (100 ms by default).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import can
+import rclpy.utilities
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.context import Context
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.time import Time
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue  # type: ignore[import-untyped]
+from geometry_msgs.msg import TransformStamped, Twist, TwistStamped  # type: ignore[import-untyped]
+from nav_msgs.msg import Odometry as OdometryMsg  # type: ignore[import-untyped]
+from rcl_interfaces.msg import ParameterDescriptor  # type: ignore[import-untyped]
+from std_srvs.srv import Trigger  # type: ignore[import-untyped]
+
+from .. import protocol
+from ..robot import Odometry, Robot, RobotError, RobotFault, Status
+
+#: The node's name (services are `/mecanum_drive/enable`, ...; `-r __node:=NAME` renames it).
+NODE_NAME = "mecanum_drive"
+
+#: Warnings about /cmd_vel (clamped, rejected, not sent) come at most this often, s.
+WARN_EVERY_S = 5.0
+
+#: The clamp aims this far inside a limit (m/s, rad/s): TWIST_CMD carries 0.001 steps, and a
+#: speed rounded up past the firmware's limit would be rejected.
+LIMIT_MARGIN = 0.002
+
+#: The diagonal of diff_drive_controller's default covariances (x, y, z, roll, pitch, yaw).
+DEFAULT_COVARIANCE = [0.001, 0.001, 0.001, 0.001, 0.001, 0.01]
+
+WHEELS = ("FL", "FR", "RL", "RR")
+
+#: Parameters: name -> (default, description). All are read at start-up (read-only after).
+PARAMETERS: dict[str, tuple[Any, str]] = {
+    "channel": ("can0", "CAN channel (python-can), e.g. can0"),
+    "interface": ("socketcan", "python-can interface: socketcan, slcan, pcan, gs_usb, kvaser, ..."),
+    "bitrate": (0, "bitrate for adapters that set it (slcan, pcan), bit/s; 0: leave it"),
+    "status_rate": (10.0, "Hz, the robot's STATUS and HEARTBEAT rate (its timing.status_hz): no HEARTBEAT for three periods is not responding"),
+    "cmd_vel_timeout": (0.5, "s without /cmd_vel after which the twist becomes zero"),
+    "use_stamped_vel": (False, "subscribe geometry_msgs/msg/TwistStamped instead of Twist"),
+    "max_linear_speed": (3.0, "m/s, |(vx, vy)| limit (the firmware's limits.max_linear_speed); faster twists are scaled down"),
+    "max_angular_speed": (6.0, "rad/s, |wz| limit (the firmware's limits.max_angular_speed); faster twists are scaled down"),
+    "publish_rate": (50.0, "Hz, most /odom (and /tf) messages per second"),
+    "odom_frame_id": ("odom", "frame of the odometry's pose"),
+    "base_frame_id": ("base_link", "the robot's body frame (the odometry's child frame)"),
+    "enable_odom_tf": (True, "publish odom_frame_id -> base_frame_id on /tf (needs tf2_msgs)"),
+    "pose_covariance_diagonal": (DEFAULT_COVARIANCE, "x, y, z, roll, pitch, yaw variances of the pose"),
+    "twist_covariance_diagonal": (DEFAULT_COVARIANCE, "vx, vy, vz, wx, wy, wz variances of the twist"),
+    "diagnostics_rate": (1.0, "Hz, /diagnostics messages per second"),
+    "service_timeout": (2.0, "s a service waits for the robot to report the state it asked for"),
+    "enable_on_start": (False, "enable the robot once it answers, at start-up"),
+}
+
+
+class ParameterError(ValueError):
+    """A parameter with a value the bridge cannot use; the message names both."""
+
+    def __init__(self, name: str, value: object, why: str) -> None:
+        super().__init__(f"parameter {name} = {value!r}: {why}")
+        self.name = name
+        self.value = value
+
+
+class BusError(RuntimeError):
+    """The CAN channel cannot be opened."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+    """The bridge's parameters, checked (see PARAMETERS)."""
+
+    channel: str
+    interface: str
+    bitrate: int
+    status_rate: float
+    cmd_vel_timeout: float
+    use_stamped_vel: bool
+    max_linear_speed: float
+    max_angular_speed: float
+    publish_rate: float
+    odom_frame_id: str
+    base_frame_id: str
+    enable_odom_tf: bool
+    pose_covariance_diagonal: tuple[float, ...]
+    twist_covariance_diagonal: tuple[float, ...]
+    diagnostics_rate: float
+    service_timeout: float
+    enable_on_start: bool
+
+    @classmethod
+    def from_values(cls, values: Mapping[str, object]) -> Settings:
+        """Checks every value (type, range) and raises ParameterError naming the first bad one."""
+
+        def positive(name: str, upper: float = math.inf, unit: str = "") -> float:
+            value = values[name]
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ParameterError(name, value, "must be a number")
+            if not (math.isfinite(value) and 0 < value <= upper):
+                bound = f" at most {upper}{unit}" if math.isfinite(upper) else ""
+                raise ParameterError(name, value, f"must be a positive number{bound}")
+            return float(value)
+
+        def text(name: str) -> str:
+            value = values[name]
+            if not isinstance(value, str) or not value.strip():
+                raise ParameterError(name, value, "must be a non-empty string")
+            return value
+
+        def flag(name: str) -> bool:
+            value = values[name]
+            if not isinstance(value, bool):
+                raise ParameterError(name, value, "must be true or false")
+            return value
+
+        def covariance(name: str) -> tuple[float, ...]:
+            value = values[name]
+            items = list(value) if isinstance(value, (list, tuple)) else None
+            if (items is None or len(items) != 6
+                    or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in items)
+                    or not all(math.isfinite(v) and v >= 0 for v in items)):
+                raise ParameterError(name, value, "must be 6 finite numbers >= 0 (x, y, z, roll, pitch, yaw)")
+            return tuple(float(v) for v in items)
+
+        bitrate = values["bitrate"]
+        if isinstance(bitrate, bool) or not isinstance(bitrate, int) or bitrate < 0:
+            raise ParameterError("bitrate", bitrate, "must be an integer >= 0 (0: leave the adapter's)")
+        _, top = protocol.signal_range("TWIST_CMD", "vx")
+        return cls(
+            channel=text("channel"),
+            interface=text("interface"),
+            bitrate=bitrate,
+            status_rate=positive("status_rate"),
+            cmd_vel_timeout=positive("cmd_vel_timeout"),
+            use_stamped_vel=flag("use_stamped_vel"),
+            max_linear_speed=positive("max_linear_speed", top, " m/s (the protocol's range)"),
+            max_angular_speed=positive("max_angular_speed", top, " rad/s (the protocol's range)"),
+            publish_rate=positive("publish_rate"),
+            odom_frame_id=text("odom_frame_id"),
+            base_frame_id=text("base_frame_id"),
+            enable_odom_tf=flag("enable_odom_tf"),
+            pose_covariance_diagonal=covariance("pose_covariance_diagonal"),
+            twist_covariance_diagonal=covariance("twist_covariance_diagonal"),
+            diagnostics_rate=positive("diagnostics_rate"),
+            service_timeout=positive("service_timeout"),
+            enable_on_start=flag("enable_on_start"),
+        )
+
+
+def limit_twist(vx: float, vy: float, wz: float, max_linear: float, max_angular: float) -> tuple[tuple[float, float, float], bool]:
+    """(the twist scaled by one factor so that |(vx, vy)| and |wz| stay within the limits, less
+    LIMIT_MARGIN; whether it exceeded a limit). Direction and curvature are kept."""
+    speed = math.hypot(vx, vy)
+    over = speed > max_linear or abs(wz) > max_angular
+    scale = 1.0
+    if speed > max_linear - LIMIT_MARGIN:
+        scale = min(scale, max(0.0, max_linear - LIMIT_MARGIN) / speed)
+    if abs(wz) > max_angular - LIMIT_MARGIN:
+        scale = min(scale, max(0.0, max_angular - LIMIT_MARGIN) / abs(wz))
+    return (vx * scale, vy * scale, wz * scale), over
+
+
+def _covariance_matrix(diagonal: Sequence[float]) -> list[float]:
+    matrix = [0.0] * 36
+    for i, value in enumerate(diagonal):
+        matrix[i * 7] = value
+    return matrix
+
+
+class Bridge(Node):
+    """The node. `overrides`: parameter values that win over `--ros-args` (the command line's
+    `--channel`, `--interface`, `--bitrate`); `context`: rclpy's (default: the global one).
+    Raises ParameterError for a bad parameter, BusError when the channel cannot be opened."""
+
+    def __init__(self, overrides: Mapping[str, object] | None = None, *, context: Context | None = None) -> None:
+        given = [Parameter(k, value=v) for k, v in (overrides or {}).items()]  # type: ignore[no-untyped-call]
+        super().__init__(NODE_NAME, parameter_overrides=given, context=context)
+        # rclpy's logger is untyped: one typed handle for the whole node.
+        self.log: Any = self.get_logger()  # type: ignore[no-untyped-call]
+        values: dict[str, object] = {}
+        for name, (default, description) in PARAMETERS.items():
+            descriptor = ParameterDescriptor(description=description, read_only=True, dynamic_typing=True)
+            values[name] = self.declare_parameter(name, default, descriptor).value
+        self.settings = s = Settings.from_values(values)
+        log = self.log
+
+        self._lock = threading.Condition()
+        # Held for each command the bridge gives the robot, and by close(): once closed, no
+        # callback still running (an executor thread, the timeout thread) restarts the stream.
+        self._command_lock = threading.Lock()
+        self._last_cmd: float | None = None  # time.monotonic() of the last /cmd_vel
+        self._timed_out = True
+        self._closing = False
+        self.cmd_vel_received = 0
+        self.cmd_vel_clamped = 0
+        self.cmd_vel_rejected = 0
+        self.cmd_vel_timeouts = 0
+        self._odom_due = 0.0
+        self._odom_period = 1.0 / s.publish_rate
+        self._pose_cov = _covariance_matrix(s.pose_covariance_diagonal)
+        self._twist_cov = _covariance_matrix(s.twist_covariance_diagonal)
+
+        kwargs: dict[str, Any] = {"heartbeat_period_s": 1.0 / s.status_rate}
+        if s.bitrate:
+            kwargs["bitrate"] = s.bitrate
+        try:
+            self.robot = Robot.open(channel=s.channel, interface=s.interface, **kwargs)
+        except (can.CanError, OSError, ValueError) as err:
+            raise BusError(f"cannot open {s.interface} channel {s.channel}: {err}") from err
+
+        self._odom_pub = self.create_publisher(OdometryMsg, "odom", 10)
+        self._tf_pub = None
+        self._tf_type: Any = None
+        if s.enable_odom_tf:
+            try:
+                from tf2_msgs.msg import TFMessage  # type: ignore[import-not-found, import-untyped, unused-ignore]
+            except ImportError as err:
+                log.warning(
+                    f"no {s.odom_frame_id} -> {s.base_frame_id} on /tf: tf2_msgs is not importable ({err}). "
+                    "The ROS 2 wheels on PyPI do not include it; a ROS 2 installation does (run the bridge "
+                    "with its Python: source /opt/ros/jazzy/setup.bash). /odom carries the same pose."
+                )
+            else:
+                self._tf_type = TFMessage
+                self._tf_pub = self.create_publisher(TFMessage, "/tf", 100)
+        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+
+        # The mode services wait for the robot's answer (up to service_timeout), one at a time,
+        # in a callback group of their own: /cmd_vel and /diagnostics go on meanwhile. The
+        # e-stop has a group (and an executor thread) of its own: it never waits behind them.
+        services = MutuallyExclusiveCallbackGroup()  # type: ignore[no-untyped-call]
+        estop_group = MutuallyExclusiveCallbackGroup()  # type: ignore[no-untyped-call]
+        modes: dict[str, tuple[Callable[[], None], str, Any]] = {
+            "enable": (self.robot.enable, "ENABLED", services),
+            "disable": (self.robot.disable, "DISABLED", services),
+            "reset": (self.robot.reset, "DISABLED", services),
+            "estop": (self.robot.estop, "ESTOP", estop_group),
+        }
+        for name, (action, state, group) in modes.items():
+            self.create_service(Trigger, f"~/{name}", self._service(name, action, state), callback_group=group)
+
+        self._cmd_type = TwistStamped if s.use_stamped_vel else Twist
+        self.create_subscription(self._cmd_type, "cmd_vel", self._on_cmd_vel, 10)
+        self.create_timer(1.0 / s.diagnostics_rate, self._publish_diagnostics)
+        self.robot.on_odometry(self._on_odometry)
+
+        self._watchdog = threading.Thread(target=self._cmd_vel_watchdog, name="cmd_vel timeout", daemon=True)
+        self._watchdog.start()
+        if s.enable_on_start:
+            self._start_timer = self.create_timer(0.0, self._enable_on_start, callback_group=services)
+        log.info(
+            f"robot on {s.interface} channel {s.channel} (protocol version {protocol.protocol_version()}); "
+            f"/cmd_vel ({'TwistStamped' if s.use_stamped_vel else 'Twist'}) timeout {s.cmd_vel_timeout} s, "
+            f"limits {s.max_linear_speed} m/s, {s.max_angular_speed} rad/s (clamped); "
+            + ("enabling once it answers" if s.enable_on_start else "disabled until ~/enable")
+        )
+
+    # --- /cmd_vel ----------------------------------------------------------------------------
+
+    def _on_cmd_vel(self, msg: Any) -> None:
+        twist = msg.twist if self.settings.use_stamped_vel else msg
+        vx, vy, wz = float(twist.linear.x), float(twist.linear.y), float(twist.angular.z)
+        log = self.log
+        with self._lock:
+            self.cmd_vel_received += 1
+            self._last_cmd = time.monotonic()
+            self._timed_out = False
+            self._lock.notify_all()
+        if not all(math.isfinite(v) for v in (vx, vy, wz)):
+            with self._lock:
+                self.cmd_vel_rejected += 1
+            self._command(self.robot.stop)
+            log.warning(f"/cmd_vel rejected, zero twist sent: not finite (vx {vx}, vy {vy}, wz {wz})",
+                        throttle_duration_sec=WARN_EVERY_S)
+            return
+        s = self.settings
+        (cx, cy, cw), over = limit_twist(vx, vy, wz, s.max_linear_speed, s.max_angular_speed)
+        if over:
+            with self._lock:
+                self.cmd_vel_clamped += 1
+            log.warning(
+                f"/cmd_vel beyond the limits ({s.max_linear_speed} m/s, {s.max_angular_speed} rad/s) clamped: "
+                f"({vx:.3f}, {vy:.3f}, {wz:.3f}) -> ({cx:.3f}, {cy:.3f}, {cw:.3f})",
+                throttle_duration_sec=WARN_EVERY_S)
+        try:
+            self._command(lambda: self.robot.drive(cx, cy, cw))
+        except (RobotError, ValueError) as err:
+            self._command(self.robot.stop)
+            log.warning(f"/cmd_vel not sent, zero twist instead: {err}", throttle_duration_sec=WARN_EVERY_S)
+
+    def _command(self, command: Callable[[], None]) -> None:
+        """Runs a robot command unless the bridge is closing."""
+        with self._command_lock:
+            if not self._closing:
+                command()
+
+    def _cmd_vel_watchdog(self) -> None:
+        """Zero twist once no /cmd_vel came for cmd_vel_timeout s (a thread of its own that
+        sleeps until that moment, so the stop is on time whatever the executor is doing)."""
+        timeout = self.settings.cmd_vel_timeout
+        while True:
+            with self._lock:
+                if self._closing:
+                    return
+                if self._timed_out or self._last_cmd is None:
+                    self._lock.wait()
+                    continue
+                left = self._last_cmd + timeout - time.monotonic()
+                if left > 0:
+                    self._lock.wait(left)
+                    continue
+                self._timed_out = True
+                self.cmd_vel_timeouts += 1
+            self._command(self.robot.stop)
+            self.log.info(f"no /cmd_vel for {timeout} s: zero twist", throttle_duration_sec=WARN_EVERY_S)
+
+    # --- odometry ----------------------------------------------------------------------------
+
+    def _on_odometry(self, odom: Odometry) -> None:
+        """From the robot's receiving thread, on each ODOM_VELOCITY: /odom (and /tf) at most
+        publish_rate times a second."""
+        if self._closing or not (math.isfinite(odom.x) and math.isfinite(odom.y)):
+            return
+        period = self._odom_period
+        # A sample a little early still counts (the robot's 10 ms arrive with jitter), so a
+        # rate that divides 100 Hz is kept; the schedule restarts when samples were missed.
+        if odom.received < self._odom_due - 0.3 * period:
+            return
+        self._odom_due = self._odom_due + period if odom.received < self._odom_due + period else odom.received + period
+        s = self.settings
+        now = self.get_clock().now()
+        stamp = Time(nanoseconds=now.nanoseconds - int((time.monotonic() - odom.received) * 1e9),
+                     clock_type=now.clock_type).to_msg()
+        qz, qw = math.sin(odom.heading / 2), math.cos(odom.heading / 2)
+        msg = OdometryMsg()
+        msg.header.stamp = stamp
+        msg.header.frame_id = s.odom_frame_id
+        msg.child_frame_id = s.base_frame_id
+        msg.pose.pose.position.x = odom.x
+        msg.pose.pose.position.y = odom.y
+        msg.pose.pose.orientation.z = qz
+        msg.pose.pose.orientation.w = qw
+        msg.pose.covariance = self._pose_cov
+        msg.twist.twist.linear.x = odom.vx
+        msg.twist.twist.linear.y = odom.vy
+        msg.twist.twist.angular.z = odom.wz
+        msg.twist.covariance = self._twist_cov
+        tf = None
+        if self._tf_pub is not None:
+            tf = TransformStamped()
+            tf.header.stamp = stamp
+            tf.header.frame_id = s.odom_frame_id
+            tf.child_frame_id = s.base_frame_id
+            tf.transform.translation.x = odom.x
+            tf.transform.translation.y = odom.y
+            tf.transform.rotation.z = qz
+            tf.transform.rotation.w = qw
+        try:
+            self._odom_pub.publish(msg)
+            if self._tf_pub is not None:
+                self._tf_pub.publish(self._tf_type(transforms=[tf]))
+        except Exception:  # noqa: BLE001 - rclpy's RCLError once a signal has shut ROS down
+            if self.context.ok():
+                raise
+
+    # --- services ----------------------------------------------------------------------------
+
+    def _state_text(self) -> str:
+        status = self.robot.status
+        if status is None:
+            return "no STATUS from the robot yet"
+        return f"state {status.state}, fault {status.fault}"
+
+    def set_mode(self, action: Callable[[], None], want: str) -> tuple[bool, str]:
+        """Runs `action` (a Robot method), asks for a STATUS and waits up to service_timeout
+        for `want`: (reached, the robot's state and fault or why not)."""
+        try:
+            self._command(action)
+            self._command(self.robot.request_status)
+            status = self.robot.wait_state(want, timeout=self.settings.service_timeout)
+        except RobotFault as err:
+            return False, f"the robot is in FAULT: {err.fault} (~/reset clears it); {self._state_text()}"
+        except (RobotError, TimeoutError, RuntimeError) as err:
+            return False, f"{err}; {self._state_text()}"
+        return True, f"state {status.state}, fault {status.fault}"
+
+    def _service(self, name: str, action: Callable[[], None], want: str) -> Callable[[Any, Any], Any]:
+        def handle(request: Any, response: Any) -> Any:
+            response.success, response.message = self.set_mode(action, want)
+            # (rclpy ties a logging call site to one severity: one call per severity.)
+            if response.success:
+                self.log.info(f"~/{name}: {response.message}")
+            else:
+                self.log.warning(f"~/{name}: {response.message}")
+            return response
+
+        return handle
+
+    def _enable_on_start(self) -> None:
+        self._start_timer.cancel()  # type: ignore[no-untyped-call]
+        deadline = time.monotonic() + self.settings.service_timeout
+        while self.robot.heartbeat is None and time.monotonic() < deadline and not self._closing:
+            time.sleep(0.02)
+        ok, message = self.set_mode(self.robot.enable, "ENABLED")
+        if ok:
+            self.log.info(f"enable at start-up: {message}")
+        else:
+            self.log.error(f"enable at start-up: {message}")
+
+    # --- diagnostics -------------------------------------------------------------------------
+
+    def diagnostic_status(self) -> Any:
+        """The robot's DiagnosticStatus now: level, message, and the values by key."""
+        robot, s = self.robot, self.settings
+        status: Status | None = robot.status
+        heartbeat, counters = robot.heartbeat, robot.counters
+        problem = None
+        try:
+            robot.check()
+        except RobotFault:
+            pass  # STATUS says FAULT: below
+        except RobotError as err:  # not responding, another protocol version
+            problem = str(err)
+        if heartbeat is None and problem is None:
+            level, message = DiagnosticStatus.STALE, f"no HEARTBEAT from the robot yet on {s.interface} {s.channel}"
+        elif problem is not None:
+            level, message = DiagnosticStatus.ERROR, problem
+        elif status is None:
+            level, message = DiagnosticStatus.STALE, "no STATUS from the robot yet"
+        elif status.state == "FAULT":
+            level, message = DiagnosticStatus.ERROR, f"FAULT: {status.fault} (~/reset clears it)"
+        elif status.state == "ESTOP":
+            level, message = DiagnosticStatus.WARN, "ESTOP (latched; ~/reset clears it)"
+        elif not all(status.motors_online):
+            offline = [w for w, up in zip(WHEELS, status.motors_online) if not up]
+            level, message = DiagnosticStatus.WARN, f"{status.state}, motors offline: {' '.join(offline)}"
+        elif status.fault != "NONE":
+            level, message = DiagnosticStatus.WARN, f"{status.state} after fault {status.fault}"
+        else:
+            level, message = DiagnosticStatus.OK, status.state
+        with self._lock:
+            age = None if self._last_cmd is None else time.monotonic() - self._last_cmd
+            bridge = {
+                "cmd_vel_received": self.cmd_vel_received,
+                "cmd_vel_clamped": self.cmd_vel_clamped,
+                "cmd_vel_rejected": self.cmd_vel_rejected,
+                "cmd_vel_timeouts": self.cmd_vel_timeouts,
+            }
+        values: dict[str, object] = {
+            "state": status.state if status else "",
+            "fault": status.fault if status else "",
+            "motors_online": " ".join(w for w, up in zip(WHEELS, status.motors_online) if up) if status else "",
+            "responding": robot.responding,
+            "rx_errors": status.rx_errors if status else "",
+            "unknown_ids": status.unknown_ids if status else "",
+            "repeated_seq": counters.repeated_seq if counters else "",
+            "wrong_dlc": counters.wrong_dlc if counters else "",
+            "out_of_range": counters.out_of_range if counters else "",
+            "non_finite": counters.non_finite if counters else "",
+            "protocol_version": heartbeat.protocol_version if heartbeat else "",
+            "uptime_s": f"{heartbeat.uptime_ms / 1000:.1f}" if heartbeat else "",
+            "twists_sent": robot.twists_sent,
+            "setpoint": " ".join(f"{v:.3f}" for v in robot.setpoint),
+            **bridge,
+            "cmd_vel_age_s": "" if age is None else f"{age:.3f}",
+        }
+        return DiagnosticStatus(
+            level=level, name=f"{self.get_name()}: robot", message=message,
+            hardware_id=f"{s.interface}:{s.channel}",
+            values=[KeyValue(key=k, value=str(v)) for k, v in values.items()],
+        )
+
+    def _publish_diagnostics(self) -> None:
+        msg = DiagnosticArray()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.status = [self.diagnostic_status()]
+        self._diag_pub.publish(msg)
+
+    # --- the end -----------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Stops the timeout thread and closes the robot: the stream stops, a zero twist and
+        MODE_CMD disable go out."""
+        with self._command_lock, self._lock:
+            self._closing = True
+            self._lock.notify_all()
+        self.robot.close()
+        self._watchdog.join(timeout=1.0)
+
+
+def make_executor(context: Context | None = None) -> MultiThreadedExecutor:
+    """The executor the bridge spins in: one thread per callback group (/cmd_vel and the
+    timers, the mode services, the e-stop)."""
+    return MultiThreadedExecutor(num_threads=3, context=context)
+
+
+def main(ros_args: list[str], *, overrides: Mapping[str, object] | None = None, prog: str = "mecanum-drive ros2") -> int:
+    """Runs the node until Ctrl-C or SIGTERM (rclpy's handlers end the spin); the robot is
+    left disabled however it ends. Returns the exit status: 0, 2 for a bad parameter, 1 when
+    the CAN channel cannot be opened."""
+    rclpy.init(args=[prog, *ros_args])
+    bridge: Bridge | None = None
+    executor = make_executor()
+    try:
+        bridge = Bridge(overrides)
+        executor.add_node(bridge)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ParameterError as err:
+        print(f"{prog}: {err}", file=sys.stderr)
+        return 2
+    except BusError as err:
+        print(f"{prog}: {err}", file=sys.stderr)
+        return 1
+    finally:
+        if bridge is not None:
+            bridge.close()
+        executor.shutdown(timeout_sec=1.0)
+        if bridge is not None:
+            bridge.destroy_node()  # type: ignore[no-untyped-call]
+        rclpy.utilities.try_shutdown()
+    return 0
