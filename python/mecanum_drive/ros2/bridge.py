@@ -200,6 +200,23 @@ def limit_twist(vx: float, vy: float, wz: float, max_linear: float, max_angular:
     return (vx * scale, vy * scale, wz * scale), over
 
 
+class Decimator:
+    """Lets samples through at most `rate_hz` times a second, on a fixed schedule: a sample up
+    to 30 % of a period early still counts (the robot's 10 ms samples arrive with jitter, and
+    a rate that divides theirs is then kept exactly); after a gap the schedule restarts."""
+
+    def __init__(self, rate_hz: float) -> None:
+        self.period = 1.0 / rate_hz
+        self._due = -math.inf
+
+    def take(self, t: float) -> bool:
+        """Whether the sample at time `t` (s, increasing) goes through."""
+        if t < self._due - 0.3 * self.period:
+            return False
+        self._due = self._due + self.period if t < self._due + self.period else t + self.period
+        return True
+
+
 def _covariance_matrix(diagonal: Sequence[float]) -> list[float]:
     matrix = [0.0] * 36
     for i, value in enumerate(diagonal):
@@ -235,8 +252,7 @@ class Bridge(Node):
         self.cmd_vel_clamped = 0
         self.cmd_vel_rejected = 0
         self.cmd_vel_timeouts = 0
-        self._odom_due = 0.0
-        self._odom_period = 1.0 / s.publish_rate
+        self._odom_rate = Decimator(s.publish_rate)
         self._pose_cov = _covariance_matrix(s.pose_covariance_diagonal)
         self._twist_cov = _covariance_matrix(s.twist_covariance_diagonal)
 
@@ -361,12 +377,8 @@ class Bridge(Node):
         publish_rate times a second."""
         if self._closing or not (math.isfinite(odom.x) and math.isfinite(odom.y)):
             return
-        period = self._odom_period
-        # A sample a little early still counts (the robot's 10 ms arrive with jitter), so a
-        # rate that divides 100 Hz is kept; the schedule restarts when samples were missed.
-        if odom.received < self._odom_due - 0.3 * period:
+        if not self._odom_rate.take(odom.received):
             return
-        self._odom_due = self._odom_due + period if odom.received < self._odom_due + period else odom.received + period
         s = self.settings
         now = self.get_clock().now()
         stamp = Time(nanoseconds=now.nanoseconds - int((time.monotonic() - odom.received) * 1e9),

@@ -1,0 +1,367 @@
+"""The ROS 2 bridge's logic (python/mecanum_drive/ros2/bridge.py) in one process, fast: the real
+node and a real ROS 2 peer (rclpy, DDS over loopback) against the scripted robot on python-can's
+virtual bus (tests/scripted_robot.py): the services' answers in every state, /cmd_vel clamping,
+rejection and timeout, /odom and /diagnostics, the parameters, and what the command line says
+about bad ones. Against the real firmware on vcan0, as processes: tests/test_vcan_ros2.py.
+
+Every DDS participant here lives in a network namespace of this module's own (ros2_peer.py);
+without root the module is skipped with the reason (a failure in CI).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import pathlib
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+from ros2_peer import NoNamespace, RosPeer, in_ci, private_network
+from scripted_robot import ScriptedRobot
+
+_channels = itertools.count()
+
+
+@pytest.fixture(scope="module")
+def ros() -> Iterator[Any]:
+    """rclpy, with this module's thread in a network namespace of its own."""
+    try:
+        import rclpy
+    except ImportError as err:
+        why = f"ROS 2's Python client is not importable ({err}): pip install './python[ros2]'"
+        if in_ci():
+            pytest.fail(why)
+        pytest.skip(why)
+    try:
+        with private_network():
+            yield rclpy
+    except NoNamespace as err:
+        if in_ci():
+            pytest.fail(str(err))
+        pytest.skip(str(err))
+
+
+class Rig:
+    """The scripted robot, the bridge node (its own rclpy context and executor thread) and a
+    peer node, on a virtual channel of their own."""
+
+    def __init__(self, rclpy: Any, params: dict[str, str]) -> None:
+        from rclpy.signals import SignalHandlerOptions
+
+        from mecanum_drive.ros2.bridge import Bridge, make_executor
+
+        self.rclpy = rclpy
+        channel = f"ros2-bridge-test-{next(_channels)}"
+        # A command timeout that this one process (robot, bridge and peer share its GIL) keeps
+        # on a loaded machine: the watchdog is the firmware's business, tested on vcan0.
+        self.fake = ScriptedRobot(channel, command_timeout_s=0.5).__enter__()
+        args = ["bridge", "--ros-args"] + [a for k, v in params.items() for a in ("-p", f"{k}:={v}")]
+        self.context = rclpy.Context()
+        rclpy.init(args=args, context=self.context, signal_handler_options=SignalHandlerOptions.NO)
+        self.bridge = Bridge({"interface": "virtual", "channel": channel}, context=self.context)
+        self.executor = make_executor(self.context)
+        self.executor.add_node(self.bridge)
+        self._spin = threading.Thread(target=self.executor.spin, daemon=True)
+        self._spin.start()
+        self.peer = RosPeer(cmd_vel_period_s=0.05, answer_slack_s=5.0)
+
+    def close(self) -> None:
+        self.peer.close()
+        self.bridge.close()
+        self.executor.shutdown(timeout_sec=2)
+        self.bridge.destroy_node()
+        self.rclpy.try_shutdown(context=self.context)
+        self._spin.join(timeout=2)
+        self.fake.__exit__(None, None, None)
+
+    def twists(self, since: float = 0.0) -> list[tuple[float, float, float, float]]:
+        """TWIST_CMD frames the robot received after `since` (time.monotonic()): (t, vx, vy, wz)."""
+        return [(r.t, r.signals["vx"], r.signals["vy"], r.signals["wz"]) for r in self.fake.frames("TWIST_CMD")
+                if r.t >= since]
+
+
+@pytest.fixture
+def make_rig(ros: Any) -> Iterator[Any]:
+    """make_rig(**params): a Rig whose bridge has these parameters (on top of a short
+    service_timeout and quick rates); closed after the test."""
+    rigs: list[Rig] = []
+
+    def make(**params: str) -> Rig:
+        rigs.append(Rig(ros, {"service_timeout": "0.5", "publish_rate": "25.0", "diagnostics_rate": "10.0", **params}))
+        return rigs[-1]
+
+    try:
+        yield make
+    finally:
+        for r in rigs:
+            r.close()
+
+
+def wait_for(predicate: Any, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, f"{what}: not within {timeout} s"
+        time.sleep(0.01)
+
+
+def test_the_services_answer_with_the_state_the_robot_reports(make_rig: Any) -> None:
+    """Each Trigger succeeds when the robot reports the state asked for, and says its state and
+    fault; else fails saying why: the e-stop latch, a fault, a silent robot."""
+    rig = make_rig()
+    call = rig.peer.call
+    wait_for(lambda: rig.bridge.robot.status is not None, 5, "first STATUS")
+    answers = {}
+    answers["enable"] = call("/mecanum_drive/enable", 5)
+    answers["disable"] = call("/mecanum_drive/disable", 5)
+    answers["estop"] = call("/mecanum_drive/estop", 5)
+    answers["enable in e-stop"] = call("/mecanum_drive/enable", 5)
+    answers["reset"] = call("/mecanum_drive/reset", 5)
+    rig.fake.set_fault("MOTOR_STALE")
+    wait_for(lambda: rig.bridge.robot.status.state == "FAULT", 5, "FAULT reported")
+    answers["enable in fault"] = call("/mecanum_drive/enable", 5)
+    answers["reset from fault"] = call("/mecanum_drive/reset", 5)
+    rig.fake.heartbeats = False
+    time.sleep(0.5)
+    answers["enable, robot silent"] = call("/mecanum_drive/enable", 5)
+    for what, a in answers.items():
+        print(f"{what}: {a.success} {a.message!r} ({(a.answered - a.sent) * 1e3:.0f} ms)")
+    ok = {k: (v.success, v.message) for k, v in answers.items()}
+    assert ok["enable"] == (True, "state ENABLED, fault NONE")
+    assert ok["disable"] == (True, "state DISABLED, fault NONE")
+    assert ok["estop"] == (True, "state ESTOP, fault NONE")
+    assert ok["enable in e-stop"] == (
+        False, "the robot did not reach ENABLED within 0.5 s (last: ESTOP); state ESTOP, fault NONE")
+    assert ok["reset"] == (True, "state DISABLED, fault NONE")
+    assert ok["enable in fault"] == (
+        False, "the robot is in FAULT: MOTOR_STALE (~/reset clears it); state FAULT, fault MOTOR_STALE")
+    assert ok["reset from fault"] == (True, "state DISABLED, fault NONE")
+    assert not answers["enable, robot silent"].success
+    assert answers["enable, robot silent"].message.startswith("no HEARTBEAT from the robot for ")
+    # The failed calls waited their service_timeout at most.
+    assert all(a.answered - a.sent < 0.5 + 1.0 for a in answers.values())
+    # What went out: MODE_CMD enable, disable, reset as asked, and one ESTOP.
+    assert len(rig.fake.frames("ESTOP")) == 1
+    requests = [r.signals["request"] for r in rig.fake.frames("MODE_CMD")]
+    assert requests == [1, 0, 1, 2, 2], requests  # no enable sent in FAULT or to a silent robot
+
+
+def test_estop_never_waits_behind_another_service(make_rig: Any) -> None:
+    """~/enable in e-stop waits its service_timeout (2 s here) for a state that cannot come; an
+    ~/estop meanwhile is answered at once."""
+    rig = make_rig(service_timeout="2.0")
+    wait_for(lambda: rig.bridge.robot.status is not None, 5, "first STATUS")
+    assert rig.peer.call("/mecanum_drive/estop", 5).success
+    pending: list[Any] = []
+    waiting = threading.Thread(target=lambda: pending.append(rig.peer.call("/mecanum_drive/enable", 5)))
+    waiting.start()
+    wait_for(lambda: len(rig.fake.frames("MODE_CMD")) == 1, 5, "the enable sent")
+    estop = rig.peer.call("/mecanum_drive/estop", 5)
+    waiting.join()
+    enable = pending[0]
+    print(f"~/estop answered in {(estop.answered - estop.sent) * 1e3:.0f} ms while ~/enable waited "
+          f"{(enable.answered - enable.sent) * 1e3:.0f} ms")
+    assert estop.success and estop.answered - estop.sent < 0.5
+    assert not enable.success and enable.answered - enable.sent >= 2.0
+    assert estop.answered < enable.answered - 1.0
+
+
+def test_cmd_vel_is_streamed_clamped_rejected_and_timed_out(make_rig: Any) -> None:
+    """A twist within the limits goes out as it is; beyond them it is scaled by one factor into
+    them (direction and curvature kept); not finite, it is replaced by a zero twist; silence
+    for cmd_vel_timeout gives a zero twist (and the robot stays enabled)."""
+    rig = make_rig(max_linear_speed="1.5", max_angular_speed="2.0", cmd_vel_timeout="0.3")
+    assert rig.peer.call("/mecanum_drive/enable", 5).success
+    rig.peer.use_cmd_vel(stamped=False)
+    cases = [
+        ((0.2, -0.1, 0.3), (0.2, -0.1, 0.3)),
+        ((3.0, 0.0, 1.0), (1.498, 0.0, 0.499)),   # |v| 3 -> 1.5 (less 2 mm/s)
+        ((0.5, 0.0, 8.0), (0.125, 0.0, 1.998)),    # wz 8 -> 2
+        ((1.2, 1.6, 0.0), (0.899, 1.198, 0.0)),    # |v| 2 -> 1.5, direction kept
+        ((math.nan, 0.0, 0.0), (0.0, 0.0, 0.0)),
+        ((0.0, math.inf, 0.0), (0.0, 0.0, 0.0)),
+    ]
+    for sent, want in cases:
+        t = time.monotonic()
+        rig.peer.publish_once(*sent)
+        time.sleep(0.15)
+        got = rig.twists(t + 0.05)[-1][1:]
+        print(f"/cmd_vel {sent} -> TWIST_CMD {got}")
+        assert got == pytest.approx(want, abs=1.5e-3), (sent, got)
+    diag = rig.bridge.diagnostic_status()
+    values = {kv.key: kv.value for kv in diag.values}
+    assert (values["cmd_vel_clamped"], values["cmd_vel_rejected"]) == ("3", "2"), values
+    # Silence: the last twist until cmd_vel_timeout, then zero.
+    rig.peer.publish_once(0.3, 0.0, 0.0)
+    sent_at = time.monotonic()
+    time.sleep(0.6)
+    twists = rig.twists(sent_at)
+    first_zero = next(t for t, vx, vy, wz in twists if (vx, vy, wz) == (0, 0, 0))
+    print(f"/cmd_vel silent: zero twist {(first_zero - sent_at) * 1e3:.1f} ms after the last (timeout 300 ms)")
+    assert [vx for t, vx, vy, wz in twists if t < first_zero].count(0.3) >= 10
+    assert 0.3 <= first_zero - sent_at <= 0.3 + 0.02 + 0.05
+    assert all((vx, vy, wz) == (0, 0, 0) for t, vx, vy, wz in twists if t >= first_zero)
+    assert rig.fake.state == "ENABLED"
+
+
+def test_odom_reports_the_robots_odometry_in_the_frames_and_at_the_rate_asked(make_rig: Any) -> None:
+    rig = make_rig(pose_covariance_diagonal="[0.1, 0.2, 0.3, 0.4, 0.5, 0.6]", odom_frame_id="odom_test",
+                   base_frame_id="base_test", publish_rate="20.0")
+    assert rig.peer.call("/mecanum_drive/enable", 5).success
+    rig.peer.use_cmd_vel(stamped=False)
+    rig.peer.twist(0.3, 0.1, 0.4)
+    time.sleep(1.0)
+    t0 = time.time()
+    time.sleep(1.0)
+    rig.peer.stop_stream()
+    time.sleep(0.8)  # cmd_vel_timeout 0.5 s: the robot stands
+    odom = [o for o in rig.peer.odom if o.t >= t0]
+    last, pose = rig.peer.odom[-1], list(rig.fake.pose)
+    rate = (len(odom) - 1) / (odom[-1].stamp - odom[0].stamp)
+    print(f"/odom: last x {last.x:.4f} y {last.y:.4f} heading {last.heading:.4f}; robot {pose}; {rate:.1f} Hz")
+    assert (last.x, last.y) == pytest.approx(pose[:2], abs=2e-4)
+    assert last.heading == pytest.approx(pose[2], abs=2e-4)
+    assert (last.frame_id, last.child_frame_id) == ("odom_test", "base_test")
+    assert last.pose_covariance == pytest.approx((0.1, 0.2, 0.3, 0.4, 0.5, 0.6))
+    # Never faster than asked; slower only where the robot's samples stalled (this process
+    # runs robot, bridge and peer together; the schedule itself: test_decimator_...).
+    assert 12.0 <= rate <= 21.0, rate
+    moving = [o for o in odom if o.stamp < odom[-1].stamp - 0.6]
+    assert mean_of(o.vx for o in moving) == pytest.approx(0.3, abs=1e-3)
+    assert mean_of(o.wz for o in moving) == pytest.approx(0.4, abs=1e-3)
+
+
+def mean_of(values: Any) -> float:
+    values = list(values)
+    return sum(values) / len(values)
+
+
+def test_enable_on_start_and_twist_stamped(make_rig: Any) -> None:
+    rig = make_rig(enable_on_start="true", use_stamped_vel="true")
+    wait_for(lambda: rig.fake.state == "ENABLED", 5, "enabled at start-up")
+    rig.peer.use_cmd_vel(stamped=True)
+    t = time.monotonic()
+    rig.peer.twist(0.25, 0.0, 0.0)
+    time.sleep(0.3)
+    rig.peer.stop_stream()
+    assert [vx for _, vx, _, _ in rig.twists(t)].count(0.25) >= 3
+
+
+def test_diagnostics_levels_follow_the_robot(make_rig: Any) -> None:
+    """OK while all is well; WARN in e-stop; ERROR in FAULT and when the robot is silent; the
+    values carry state, fault, motors and counters."""
+    rig = make_rig()
+    levels = {}
+    rig.peer.wait_diag(lambda d: d.values["state"] == "DISABLED", 5, "first diagnostics")
+    assert rig.peer.call("/mecanum_drive/enable", 5).success
+    d = rig.peer.wait_diag(lambda d: d.values["state"] == "ENABLED", 5, "ENABLED", since=time.time())
+    levels["enabled"] = d
+    rig.peer.call("/mecanum_drive/estop", 5)
+    levels["estop"] = rig.peer.wait_diag(lambda d: d.values["state"] == "ESTOP", 5, "ESTOP", since=time.time())
+    rig.fake.set_fault("ENCODER_STUCK")
+    levels["fault"] = rig.peer.wait_diag(lambda d: d.values["state"] == "FAULT", 5, "FAULT", since=time.time())
+    rig.fake.heartbeats = False
+    levels["silent"] = rig.peer.wait_diag(lambda d: d.values["responding"] == "False", 5, "silent",
+                                          since=time.time())
+    for k, d in levels.items():
+        print(f"/diagnostics {k}: level {d.level} {d.message!r}")
+    assert (levels["enabled"].level, levels["enabled"].message) == (0, "ENABLED")
+    v = levels["enabled"].values
+    assert (v["fault"], v["motors_online"], v["protocol_version"], v["rx_errors"], v["repeated_seq"]) == (
+        "NONE", "FL FR RL RR", "3", "0", "0"), v
+    assert levels["enabled"].hardware_id.startswith("virtual:ros2-bridge-test-")
+    assert (levels["estop"].level, levels["estop"].message) == (1, "ESTOP (latched; ~/reset clears it)")
+    assert (levels["fault"].level, levels["fault"].values["fault"]) == (2, "ENCODER_STUCK")
+    assert levels["fault"].message == "FAULT: ENCODER_STUCK (~/reset clears it)"
+    assert levels["silent"].level == 2 and levels["silent"].message.startswith("no HEARTBEAT from the robot for ")
+
+
+def test_decimator_keeps_a_rate_that_divides_the_samples_and_never_exceeds_it() -> None:
+    """/odom's schedule: 100 Hz samples, regular, with 3 ms of jitter or in bursts of up to 5
+    (a late receiving thread), give exactly 20 or 25 Hz (100 Hz: each sample, or each burst);
+    stalls give fewer, never more."""
+    pytest.importorskip("rclpy")
+    import random
+
+    from mecanum_drive.ros2.bridge import Decimator
+
+    rnd = random.Random(7)
+    streams = {
+        "regular": [i * 0.01 for i in range(2000)],
+        "jitter 3 ms": sorted(i * 0.01 + rnd.uniform(0, 0.003) for i in range(2000)),
+        "bursts of 3": [(i // 3) * 0.03 + (i % 3) * 1e-4 for i in range(2000)],
+        "bursts of 5": [(i // 5) * 0.05 + (i % 5) * 1e-4 for i in range(2000)],
+        "stalls of 120 ms": [(i // 12) * 0.12 + (i % 12) * 1e-4 for i in range(2000)],
+    }
+    for name, times in streams.items():
+        for rate in (20.0, 25.0, 100.0):
+            d = Decimator(rate)
+            out = [t for t in times if d.take(t)][1:]  # from the schedule's second sample on
+            got = (len(out) - 1) / (out[-1] - out[0])
+            gaps = [b - a for a, b in zip(out, out[1:])]
+            print(f"{name}: {rate} Hz asked, {got:.2f} Hz out, smallest gap {min(gaps) * 1e3:.1f} ms")
+            assert got <= rate * 1.003, (name, rate, got)  # one sample in the 20 s at most
+            if name.startswith("stalls"):
+                assert got >= 1 / 0.12, (name, rate, got)
+            elif name.startswith("bursts") and rate == 100.0:
+                # Samples 0.1 ms apart within a burst: 100 Hz would mean sending them all.
+                assert got == pytest.approx(1 / (int(name.split()[-1]) * 0.01), rel=3e-3), (name, got)
+            else:
+                assert got == pytest.approx(rate, rel=3e-3), (name, rate, got)
+
+
+def test_limit_twist_scales_by_one_factor() -> None:
+    pytest.importorskip("rclpy")
+    from mecanum_drive.ros2.bridge import LIMIT_MARGIN, limit_twist
+
+    for given, want_scale, over in [
+        ((1.0, 0.0, 0.0), 1.0, False),
+        ((3.0, 4.0, 0.0), (3.0 - LIMIT_MARGIN) / 5.0, True),
+        ((0.0, 0.0, -12.0), (6.0 - LIMIT_MARGIN) / 12.0, True),
+        ((3.0, 0.0, 9.0), (6.0 - LIMIT_MARGIN) / 9.0, True),  # the smaller factor of the two
+        ((3.0, 0.0, 0.0), (3.0 - LIMIT_MARGIN) / 3.0, False),  # at the limit: inside the margin
+    ]:
+        twist, exceeded = limit_twist(*given, 3.0, 6.0)
+        assert twist == pytest.approx(tuple(v * want_scale for v in given)), (given, twist)
+        assert exceeded == over, given
+        assert math.hypot(twist[0], twist[1]) <= 3.0 - LIMIT_MARGIN + 1e-12 and abs(twist[2]) <= 6.0
+
+
+# --- the command line --------------------------------------------------------------------------
+
+
+def run_bridge_cli(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    drive = pathlib.Path(sys.executable).with_name("mecanum-drive")
+    return subprocess.run([str(drive), *args], capture_output=True, text=True, timeout=timeout, check=False)
+
+
+@pytest.mark.parametrize("param,value,message", [
+    ("cmd_vel_timeout", "-1", "parameter cmd_vel_timeout = -1: must be a positive number"),
+    ("cmd_vel_timeout", "abc", "parameter cmd_vel_timeout = 'abc': must be a number"),
+    ("max_linear_speed", "40.0", "parameter max_linear_speed = 40.0: must be a positive number at most 32.767 m/s"),
+    ("publish_rate", "0", "parameter publish_rate = 0: must be a positive number"),
+    ("use_stamped_vel", "maybe", "parameter use_stamped_vel = 'maybe': must be true or false"),
+    ("pose_covariance_diagonal", "[1.0, 2.0]",
+     "parameter pose_covariance_diagonal = [1.0, 2.0]: must be 6 finite numbers >= 0"),
+    ("bitrate", "-5", "parameter bitrate = -5: must be an integer >= 0"),
+    ("odom_frame_id", "''", "parameter odom_frame_id = '': must be a non-empty string"),
+])
+def test_a_bad_parameter_is_refused_naming_it(ros: Any, param: str, value: str, message: str) -> None:
+    proc = run_bridge_cli("ros2", "--interface", "virtual", "--channel", "cli-test", "--ros-args",
+                          "-p", f"{param}:={value}")
+    print(proc.stderr.strip())
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert f"mecanum-drive ros2: {message}" in proc.stderr
+
+
+def test_a_channel_that_cannot_be_opened_is_named(ros: Any, tmp_path: pathlib.Path) -> None:
+    params = tmp_path / "p.yaml"
+    params.write_text("mecanum_drive:\n  ros__parameters:\n    interface: nosuchinterface\n")
+    proc = run_bridge_cli("--channel", "can7", "ros2", "--ros-args", "--params-file", str(params))
+    print(proc.stderr.strip())
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "mecanum-drive ros2: cannot open nosuchinterface channel can7:" in proc.stderr
