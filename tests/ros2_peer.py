@@ -125,8 +125,13 @@ class RosPeer:
         from rclpy.signals import SignalHandlerOptions
 
         self.rclpy = rclpy
+        self._no_signals = SignalHandlerOptions.NO
         self.context = rclpy.Context()
         rclpy.init(context=self.context, signal_handler_options=SignalHandlerOptions.NO)
+        self._cmd_vel_type: Any = None
+        self._side_context: Any = None
+        self._side_node: Any = None
+        self._publisher_node: Any = None
         self.node = rclpy.create_node(name, context=self.context)
         self.odom: list[OdomSample] = []
         self.diag: list[DiagSample] = []
@@ -150,6 +155,9 @@ class RosPeer:
         self.executor.shutdown(timeout_sec=5)
         self.node.destroy_node()
         self.rclpy.try_shutdown(context=self.context)
+        if self._side_context is not None:
+            self._side_node.destroy_node()
+            self.rclpy.try_shutdown(context=self._side_context)
         self._spin.join(timeout=5)
 
     def _on_odom(self, msg: Any) -> None:
@@ -179,11 +187,24 @@ class RosPeer:
         raise AssertionError(f"{what}: no such /diagnostics within {timeout} s (last: {last})")
 
     def use_cmd_vel(self, stamped: bool) -> None:
-        """The /cmd_vel publisher: geometry_msgs Twist, or TwistStamped."""
+        """The /cmd_vel publisher: geometry_msgs Twist, or TwistStamped. (DDS keeps one type per
+        topic in a participant, a publisher destroyed or not: the other type gets a node in
+        an rclpy context of its own.)"""
         from geometry_msgs.msg import Twist, TwistStamped
 
         if self._publisher is not None:
-            self.node.destroy_publisher(self._publisher)
+            self._publisher_node.destroy_publisher(self._publisher)
+        kind = TwistStamped if stamped else Twist
+        if self._cmd_vel_type is None:
+            self._cmd_vel_type = kind
+        if kind is self._cmd_vel_type:
+            self._publisher_node = self.node
+        else:
+            if self._side_context is None:
+                self._side_context = self.rclpy.Context()
+                self.rclpy.init(context=self._side_context, signal_handler_options=self._no_signals)
+                self._side_node = self.rclpy.create_node(self.node.get_name() + "_other", context=self._side_context)
+            self._publisher_node = self._side_node
 
         def make(v: tuple[float, float, float]) -> Any:
             twist = Twist()
@@ -197,7 +218,7 @@ class RosPeer:
             return msg
 
         self._make = make
-        self._publisher = self.node.create_publisher(TwistStamped if stamped else Twist, "/cmd_vel", 10)
+        self._publisher = self._publisher_node.create_publisher(kind, "/cmd_vel", 10)
 
     def publish_once(self, vx: float, vy: float, wz: float) -> float:
         """Publishes one /cmd_vel message (the stream must be stopped); returns the time."""

@@ -380,9 +380,11 @@ class Bridge(Node):
         if not self._odom_rate.take(odom.received):
             return
         s = self.settings
+        # The stamp is when the sample came in: the age read first, so that a thread switch
+        # between the two reads makes the stamp later, never earlier, than the sample.
+        age = time.monotonic() - odom.received
         now = self.get_clock().now()
-        stamp = Time(nanoseconds=now.nanoseconds - int((time.monotonic() - odom.received) * 1e9),
-                     clock_type=now.clock_type).to_msg()
+        stamp = Time(nanoseconds=now.nanoseconds - int(age * 1e9), clock_type=now.clock_type).to_msg()
         qz, qw = math.sin(odom.heading / 2), math.cos(odom.heading / 2)
         msg = OdometryMsg()
         msg.header.stamp = stamp
@@ -565,6 +567,11 @@ def main(ros_args: list[str], *, overrides: Mapping[str, object] | None = None, 
     except BusError as err:
         print(f"{prog}: {err}", file=sys.stderr)
         return 1
+    except Exception:
+        # A signal shuts ROS down under the executor's feet: rclpy may then fail to build its
+        # next wait set (RCLError) instead of ending the spin. That is the way out too.
+        if rclpy.utilities.ok():
+            raise
     finally:
         if bridge is not None:
             bridge.close()
