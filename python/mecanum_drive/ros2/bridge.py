@@ -8,7 +8,7 @@ needs rclpy and the message packages geometry_msgs, nav_msgs, diagnostic_msgs an
 | name | type | what |
 |---|---|---|
 | `cmd_vel` (sub) | `geometry_msgs/msg/Twist` (`TwistStamped` with `use_stamped_vel`) | body-frame setpoint: linear.x, linear.y, angular.z; streamed to the robot at 50 Hz. None for `cmd_vel_timeout` s: zero twist (the robot stays enabled and holds still) |
-| `odom` (pub) | `nav_msgs/msg/Odometry` | the robot's odometry: pose in `odom_frame_id`, measured twist in `base_frame_id`, at most `publish_rate` Hz (the robot sends 100 Hz) |
+| `odom` (pub) | `nav_msgs/msg/Odometry` | the robot's odometry: pose in `odom_frame_id`, measured twist in `base_frame_id`, at most `publish_rate` Hz (the robot sends its `timing.odometry_hz`, 100 by default) |
 | `/tf` (pub) | `tf2_msgs/msg/TFMessage` | `odom_frame_id` -> `base_frame_id`, with each `odom`, when `enable_odom_tf` and `tf2_msgs` is importable (a ROS 2 installation has it; the PyPI wheels do not: the node says so once at start-up) |
 | `/diagnostics` (pub) | `diagnostic_msgs/msg/DiagnosticArray` | state, fault, motors online, the robot's counters and the bridge's, at `diagnostics_rate` Hz |
 | `~/enable`, `~/disable`, `~/reset`, `~/estop` | `std_srvs/srv/Trigger` | MODE_CMD enable / disable / reset, ESTOP; `success` when the robot reports the state reached (ENABLED, DISABLED, DISABLED, ESTOP) within `service_timeout` s; `message`: its state and fault, or why not |
@@ -22,6 +22,10 @@ Twists beyond the robot's limits are **clamped**: the whole twist is scaled by o
 `max_angular_speed`, with a warning at most every 5 s. The firmware would otherwise reject
 such a twist, and a robot fed only rejected twists stops on its command watchdog. A twist
 with a component that is not a finite number is rejected (zero twist sent, warning).
+
+The parameters (PARAMETERS below; `ros2 param describe /mecanum_drive NAME`) are read once at
+start-up and read-only after. The robot stays disabled until `~/enable`, or enables once it
+answers with `enable_on_start`.
 
 On Ctrl-C or SIGTERM the bridge stops the stream and sends a zero twist and MODE_CMD disable
 (`Robot.close`); killed outright, it stops sending and the robot's own command watchdog
