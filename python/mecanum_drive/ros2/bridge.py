@@ -44,11 +44,12 @@ from typing import Any
 
 import can
 import rclpy.utilities
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.context import Context
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.task import Future
 from rclpy.time import Time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue  # type: ignore[import-untyped]
@@ -285,19 +286,21 @@ class Bridge(Node):
                 self._tf_pub = self.create_publisher(TFMessage, "/tf", 100)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
 
-        # The mode services wait for the robot's answer (up to service_timeout), one at a time,
-        # in a callback group of their own: /cmd_vel and /diagnostics go on meanwhile. The
-        # e-stop has a group (and an executor thread) of its own: it never waits behind them.
-        services = MutuallyExclusiveCallbackGroup()  # type: ignore[no-untyped-call]
-        estop_group = MutuallyExclusiveCallbackGroup()  # type: ignore[no-untyped-call]
-        modes: dict[str, tuple[Callable[[], None], str, Any]] = {
-            "enable": (self.robot.enable, "ENABLED", services),
-            "disable": (self.robot.disable, "DISABLED", services),
-            "reset": (self.robot.reset, "DISABLED", services),
-            "estop": (self.robot.estop, "ESTOP", estop_group),
+        # The services wait for the robot's answer (up to service_timeout) in a thread each,
+        # and their callbacks await it, in a reentrant group (a coroutine holds its group until
+        # it returns): the executor, one thread, goes on with /cmd_vel, /diagnostics and any
+        # other call meanwhile, so an e-stop never waits behind an enable. (rclpy's
+        # multi-threaded executor spins hot while a callback group is busy: seen at 36-90 % of
+        # a core with /cmd_vel at 20 Hz.)
+        services = ReentrantCallbackGroup()
+        modes: dict[str, tuple[Callable[[], None], str]] = {
+            "enable": (self.robot.enable, "ENABLED"),
+            "disable": (self.robot.disable, "DISABLED"),
+            "reset": (self.robot.reset, "DISABLED"),
+            "estop": (self.robot.estop, "ESTOP"),
         }
-        for name, (action, state, group) in modes.items():
-            self.create_service(Trigger, f"~/{name}", self._service(name, action, state), callback_group=group)
+        for name, (action, state) in modes.items():
+            self.create_service(Trigger, f"~/{name}", self._service(name, action, state), callback_group=services)
 
         self._cmd_type = TwistStamped if s.use_stamped_vel else Twist
         self.create_subscription(self._cmd_type, "cmd_vel", self._on_cmd_vel, 10)
@@ -307,7 +310,7 @@ class Bridge(Node):
         self._watchdog = threading.Thread(target=self._cmd_vel_watchdog, name="cmd_vel timeout", daemon=True)
         self._watchdog.start()
         if s.enable_on_start:
-            self._start_timer = self.create_timer(0.0, self._enable_on_start, callback_group=services)
+            threading.Thread(target=self._enable_on_start, name="enable on start", daemon=True).start()
         log.info(
             f"robot on {s.interface} channel {s.channel} (protocol version {protocol.protocol_version()}); "
             f"/cmd_vel ({'TwistStamped' if s.use_stamped_vel else 'Twist'}) timeout {s.cmd_vel_timeout} s, "
@@ -443,8 +446,19 @@ class Bridge(Node):
         return True, f"state {status.state}, fault {status.fault}"
 
     def _service(self, name: str, action: Callable[[], None], want: str) -> Callable[[Any, Any], Any]:
-        def handle(request: Any, response: Any) -> Any:
-            response.success, response.message = self.set_mode(action, want)
+        async def handle(request: Any, response: Any) -> Any:
+            answer: Any = Future(executor=self.executor)  # type: ignore[no-untyped-call]  # rclpy.task is untyped
+            # Its completion (from the thread below) wakes the executor, which resumes this.
+            answer.add_done_callback(lambda _: None)
+
+            def work() -> None:
+                try:
+                    answer.set_result(self.set_mode(action, want))
+                except BaseException as err:  # noqa: BLE001 - handed to the awaiting callback
+                    answer.set_exception(err)
+
+            threading.Thread(target=work, name=f"~/{name}", daemon=True).start()
+            response.success, response.message = await answer
             # (rclpy ties a logging call site to one severity: one call per severity.)
             if response.success:
                 self.log.info(f"~/{name}: {response.message}")
@@ -455,7 +469,8 @@ class Bridge(Node):
         return handle
 
     def _enable_on_start(self) -> None:
-        self._start_timer.cancel()  # type: ignore[no-untyped-call]
+        """enable_on_start, in a thread of its own: waits for the robot's first HEARTBEAT (up
+        to service_timeout), then enables it as ~/enable does."""
         deadline = time.monotonic() + self.settings.service_timeout
         while self.robot.heartbeat is None and time.monotonic() < deadline and not self._closing:
             time.sleep(0.02)
@@ -546,10 +561,9 @@ class Bridge(Node):
         self._watchdog.join(timeout=1.0)
 
 
-def make_executor(context: Context | None = None) -> MultiThreadedExecutor:
-    """The executor the bridge spins in: one thread per callback group (/cmd_vel and the
-    timers, the mode services, the e-stop)."""
-    return MultiThreadedExecutor(num_threads=3, context=context)
+def make_executor(context: Context | None = None) -> SingleThreadedExecutor:
+    """The executor the bridge spins in: one thread (the services wait in threads of their own)."""
+    return SingleThreadedExecutor(context=context)
 
 
 def main(ros_args: list[str], *, overrides: Mapping[str, object] | None = None, prog: str = "mecanum-drive ros2") -> int:
