@@ -258,14 +258,18 @@ def test_enable_on_start_and_twist_stamped(make_rig: Any) -> None:
 
 
 def test_diagnostics_levels_follow_the_robot(make_rig: Any) -> None:
-    """OK while all is well; WARN in e-stop; ERROR in FAULT and when the robot is silent; the
-    values carry state, fault, motors and counters."""
+    """OK while all is well; WARN with a silent gyro and in e-stop; ERROR in FAULT and when the
+    robot is silent; the values carry state, fault, motors, heading source and counters."""
     rig = make_rig()
     levels = {}
     rig.peer.wait_diag(lambda d: d.values["state"] == "DISABLED", 5, "first diagnostics")
     assert rig.peer.call("/mecanum_drive/enable", 5).success
     d = rig.peer.wait_diag(lambda d: d.values["state"] == "ENABLED", 5, "ENABLED", since=time.time())
     levels["enabled"] = d
+    rig.fake.heading_source = 2  # WHEELS_GYRO_SILENT
+    levels["gyro silent"] = rig.peer.wait_diag(lambda d: d.values["heading_source"] == "WHEELS_GYRO_SILENT", 5,
+                                               "gyro silent", since=time.time())
+    rig.fake.heading_source = 0
     rig.peer.call("/mecanum_drive/estop", 5)
     levels["estop"] = rig.peer.wait_diag(lambda d: d.values["state"] == "ESTOP", 5, "ESTOP", since=time.time())
     rig.fake.set_fault("ENCODER_STUCK")
@@ -277,10 +281,12 @@ def test_diagnostics_levels_follow_the_robot(make_rig: Any) -> None:
         print(f"/diagnostics {k}: level {d.level} {d.message!r}")
     assert (levels["enabled"].level, levels["enabled"].message) == (0, "ENABLED")
     v = levels["enabled"].values
-    assert (v["fault"], v["motors_online"], v["protocol_version"], v["rx_errors"], v["repeated_seq"]) == (
-        "NONE", "FL FR RL RR", "3", "0", "0"), v
+    assert (v["fault"], v["motors_online"], v["heading_source"], v["protocol_version"], v["rx_errors"],
+            v["repeated_seq"]) == ("NONE", "FL FR RL RR", "WHEELS", "3", "0", "0"), v
     assert levels["enabled"].hardware_id.startswith("virtual:ros2-bridge-test-")
     assert (levels["estop"].level, levels["estop"].message) == (1, "ESTOP (latched; ~/reset clears it)")
+    assert (levels["gyro silent"].level, levels["gyro silent"].message) == (
+        1, "ENABLED, gyro silent: heading from the wheels")
     assert (levels["fault"].level, levels["fault"].values["fault"]) == (2, "ENCODER_STUCK")
     assert levels["fault"].message == "FAULT: ENCODER_STUCK (~/reset clears it)"
     assert levels["silent"].level == 2 and levels["silent"].message.startswith("no HEARTBEAT from the robot for ")
@@ -354,6 +360,7 @@ def run_bridge_cli(*args: str, timeout: float = 60) -> subprocess.CompletedProce
     ("pose_covariance_diagonal", "[1.0, 2.0]",
      "parameter pose_covariance_diagonal = [1.0, 2.0]: must be 6 finite numbers >= 0"),
     ("bitrate", "-5", "parameter bitrate = -5: must be an integer >= 0"),
+    ("missed_heartbeats", "0", "parameter missed_heartbeats = 0: must be a whole number >= 1"),
     ("odom_frame_id", "''", "parameter odom_frame_id = '': must be a non-empty string"),
 ])
 def test_a_bad_parameter_is_refused_naming_it(ros: Any, param: str, value: str, message: str) -> None:

@@ -10,7 +10,7 @@ needs rclpy and the message packages geometry_msgs, nav_msgs, diagnostic_msgs an
 | `cmd_vel` (sub) | `geometry_msgs/msg/Twist` (`TwistStamped` with `use_stamped_vel`) | body-frame setpoint: linear.x, linear.y, angular.z; streamed to the robot at 50 Hz. None for `cmd_vel_timeout` s: zero twist (the robot stays enabled and holds still) |
 | `odom` (pub) | `nav_msgs/msg/Odometry` | the robot's odometry: pose in `odom_frame_id`, measured twist in `base_frame_id`, at most `publish_rate` Hz (the robot sends its `timing.odometry_hz`, 100 by default) |
 | `/tf` (pub) | `tf2_msgs/msg/TFMessage` | `odom_frame_id` -> `base_frame_id`, with each `odom`, when `enable_odom_tf` and `tf2_msgs` is importable (a ROS 2 installation has it; the PyPI wheels do not: the node says so once at start-up) |
-| `/diagnostics` (pub) | `diagnostic_msgs/msg/DiagnosticArray` | state, fault, motors online, the robot's counters and the bridge's, at `diagnostics_rate` Hz |
+| `/diagnostics` (pub) | `diagnostic_msgs/msg/DiagnosticArray` | state, fault, motors online, heading source (wheels or gyro), the robot's counters and the bridge's, at `diagnostics_rate` Hz |
 | `~/enable`, `~/disable`, `~/reset`, `~/estop` | `std_srvs/srv/Trigger` | MODE_CMD enable / disable / reset, ESTOP; `success` when the robot reports the state reached (ENABLED, DISABLED, DISABLED, ESTOP) within `service_timeout` s; `message`: its state and fault, or why not |
 
 `/joint_states` is not published: the robot protocol (dbc/mecanum_robot.dbc, version 3) carries
@@ -81,7 +81,8 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     "channel": ("can0", "CAN channel (python-can), e.g. can0"),
     "interface": ("socketcan", "python-can interface: socketcan, slcan, pcan, gs_usb, kvaser, ..."),
     "bitrate": (0, "bitrate for adapters that set it (slcan, pcan), bit/s; 0: leave it"),
-    "status_rate": (10.0, "Hz, the robot's STATUS and HEARTBEAT rate (its timing.status_hz): no HEARTBEAT for three periods is not responding"),
+    "status_rate": (10.0, "Hz, the robot's STATUS and HEARTBEAT rate (its timing.status_hz)"),
+    "missed_heartbeats": (3, "HEARTBEAT periods without one after which the robot is not responding"),
     "cmd_vel_timeout": (0.5, "s without /cmd_vel after which the twist becomes zero"),
     "use_stamped_vel": (False, "subscribe geometry_msgs/msg/TwistStamped instead of Twist"),
     "max_linear_speed": (3.0, "m/s, |(vx, vy)| limit (the firmware's limits.max_linear_speed); faster twists are scaled down"),
@@ -119,6 +120,7 @@ class Settings:
     interface: str
     bitrate: int
     status_rate: float
+    missed_heartbeats: int
     cmd_vel_timeout: float
     use_stamped_vel: bool
     max_linear_speed: float
@@ -167,6 +169,9 @@ class Settings:
                 raise ParameterError(name, value, "must be 6 finite numbers >= 0 (x, y, z, roll, pitch, yaw)")
             return tuple(float(v) for v in items)
 
+        missed = values["missed_heartbeats"]
+        if isinstance(missed, bool) or not isinstance(missed, int) or missed < 1:
+            raise ParameterError("missed_heartbeats", missed, "must be a whole number >= 1")
         bitrate = values["bitrate"]
         if isinstance(bitrate, bool) or not isinstance(bitrate, int) or bitrate < 0:
             raise ParameterError("bitrate", bitrate, "must be an integer >= 0 (0: leave the adapter's)")
@@ -176,6 +181,7 @@ class Settings:
             interface=text("interface"),
             bitrate=bitrate,
             status_rate=positive("status_rate"),
+            missed_heartbeats=missed,
             cmd_vel_timeout=positive("cmd_vel_timeout"),
             use_stamped_vel=flag("use_stamped_vel"),
             max_linear_speed=positive("max_linear_speed", top, " m/s (the protocol's range)"),
@@ -261,7 +267,7 @@ class Bridge(Node):
         self._pose_cov = _covariance_matrix(s.pose_covariance_diagonal)
         self._twist_cov = _covariance_matrix(s.twist_covariance_diagonal)
 
-        kwargs: dict[str, Any] = {"heartbeat_period_s": 1.0 / s.status_rate}
+        kwargs: dict[str, Any] = {"heartbeat_period_s": 1.0 / s.status_rate, "missed_heartbeats": s.missed_heartbeats}
         if s.bitrate:
             kwargs["bitrate"] = s.bitrate
         try:
@@ -509,6 +515,8 @@ class Bridge(Node):
             level, message = DiagnosticStatus.WARN, f"{status.state}, motors offline: {' '.join(offline)}"
         elif status.fault != "NONE":
             level, message = DiagnosticStatus.WARN, f"{status.state} after fault {status.fault}"
+        elif status.heading_source == "WHEELS_GYRO_SILENT":
+            level, message = DiagnosticStatus.WARN, f"{status.state}, gyro silent: heading from the wheels"
         else:
             level, message = DiagnosticStatus.OK, status.state
         with self._lock:
@@ -523,6 +531,7 @@ class Bridge(Node):
             "state": status.state if status else "",
             "fault": status.fault if status else "",
             "motors_online": " ".join(w for w, up in zip(WHEELS, status.motors_online) if up) if status else "",
+            "heading_source": status.heading_source if status else "",
             "responding": robot.responding,
             "rx_errors": status.rx_errors if status else "",
             "unknown_ids": status.unknown_ids if status else "",
