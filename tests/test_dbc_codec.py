@@ -39,8 +39,10 @@ RESERVED = {"reserved"}
 ENUM_VALUES = {
     "magic": [0xE5],
     "request": [0, 1, 2],
-    "state": [0, 1, 2, 3],
-    "fault": [0, 1, 2, 3, 4, 5, 6],
+    "state": [0, 1, 2, 3, 4],
+    "fault": [0, 1, 2, 3, 4, 5, 6, 7],
+    "wheel": [0, 1, 2, 3],
+    "outcome": [0, 1, 2, 3],
     "heading_source": [0, 1, 2],
     "Axis_State": list(range(15)),
     "Axis_Requested_State": list(range(15)),
@@ -131,8 +133,8 @@ def check_decoded(db_msg, rust: dict, expected: dict, tol_of, where: str) -> Non
 
 def test_dbc_files_load_strictly(dbs):
     assert {m.name for m in dbs["robot"].messages} == {
-        "ESTOP", "TWIST_CMD", "MODE_CMD", "STATUS_REQ", "IMU_YAW_RATE",
-        "ODOM_POSITION", "ODOM_VELOCITY", "STATUS", "STATUS_COUNTERS", "HEARTBEAT",
+        "ESTOP", "TWIST_CMD", "MODE_CMD", "STATUS_REQ", "IMU_YAW_RATE", "WHEEL_TEST",
+        "WHEEL_TEST_RESULT", "ODOM_POSITION", "ODOM_VELOCITY", "STATUS", "STATUS_COUNTERS", "HEARTBEAT",
     }
     assert all(0x300 <= m.frame_id <= 0x31F for m in dbs["robot"].messages)
     assert sorted(m.frame_id for m in dbs["dji"].messages) == [0x1FF, *range(0x200, 0x209)]
@@ -173,7 +175,7 @@ def test_dbc_version_line_is_the_firmwares_protocol_version(golden):
     m = re.fullmatch(r"Mecanum robot CAN protocol, version (\d+) \(.+?\)\. .*", comments[0])
     assert m, comments[0][:120]
     version = int(m.group(1))
-    assert version == 3
+    assert version == 4
     beats = [g for g in golden if g.get("message") == "HEARTBEAT"]
     assert beats and all(g["fields"]["protocol_version"] == version for g in beats), beats
     assert f'protocol_version "Protocol version: {version} for this file.' in text
@@ -368,7 +370,7 @@ def test_cantools_encoded_frames_decode_in_rust(run_codec, dbs):
         # ... and = the values cantools encoded, within half an LSB.
         check_decoded(msg, rust, values, lambda s, v: half_lsb(s) + f32_slack(v), where)
         messages.add(msg.name)
-    assert len(messages) == 10 + 10 + 4 * len(ODRIVE_MESSAGES)
+    assert len(messages) == 12 + 10 + 4 * len(ODRIVE_MESSAGES)
     assert len(cases) >= len(messages) * RANDOM_SETS_PER_MESSAGE
 
 
@@ -378,7 +380,7 @@ def test_dbc_value_tables_match_rust_enums_and_rust_rejects_others(run_codec, db
     status = robot.get_message_by_name("STATUS")
     table = {int(k): str(v) for k, v in status.get_signal_by_name("fault").choices.items()}
     assert table == {0: "NONE", 1: "MOTOR_STALE", 2: "MOTOR_MISSING", 3: "DRIVE_ERROR",
-                     4: "WATCHDOG", 5: "CONFIG", 6: "ENCODER_STUCK"}
+                     4: "WATCHDOG", 5: "CONFIG", 6: "ENCODER_STUCK", 7: "WHEEL_RUNAWAY"}
     request = robot.get_message_by_name("MODE_CMD").get_signal_by_name("request")
     assert set(request.choices) == set(ENUM_VALUES["request"])
     odrive = dbs["odrive"]
@@ -392,7 +394,7 @@ def test_dbc_value_tables_match_rust_enums_and_rust_rejects_others(run_codec, db
     for message in ("STATUS", "HEARTBEAT"):
         robot_state = robot.get_message_by_name(message).get_signal_by_name("state")
         assert set(robot_state.choices) == set(ENUM_VALUES["state"]), message
-    out = run_codec("decode", lines=[candump(0x312, bytes([0, 7, 0, 0, 0, 0, 0, 0]))])
+    out = run_codec("decode", lines=[candump(0x312, bytes([0, 8, 0, 0, 0, 0, 0, 0]))])
     assert out[0]["error"]["kind"] == "out_of_range"
 
 
@@ -421,9 +423,9 @@ MALFORMED = [
     ("038#0000", "wrong_dlc", {"expected": 1, "got": 2}),
     # unknown ids
     ("123#00", "unknown_id", {}),
-    ("305#", "unknown_id", {}),
+    ("306#", "unknown_id", {}),
     ("30F#0000000000000000", "unknown_id", {}),
-    ("314#0000000000000000", "unknown_id", {}),
+    ("315#0000000000000000", "unknown_id", {}),
     ("31E#0000000000000000", "unknown_id", {}),
     ("320#00", "unknown_id", {}),
     ("209#0000000000000000", "unknown_id", {}),
@@ -462,8 +464,12 @@ MALFORMED = [
     ("1FF#000000000000BFFF", "out_of_range", {"field": "current_8", "value": -16385}),
     ("300#E4", "out_of_range", {"field": "magic", "value": 0xE4}),
     ("302#03", "out_of_range", {"field": "request", "value": 3}),
-    ("312#0400000000000000", "out_of_range", {"field": "state", "value": 4}),
-    ("312#0007000000000000", "out_of_range", {"field": "fault", "value": 7}),
+    ("312#0500000000000000", "out_of_range", {"field": "state", "value": 5}),
+    ("312#0008000000000000", "out_of_range", {"field": "fault", "value": 8}),
+    ("305#0400000100000000", "out_of_range", {"field": "wheel", "value": 4}),
+    ("305#0011270100000000", "out_of_range", {"field": "speed", "value": 10001}),
+    ("305#0010270000000000", "out_of_range", {"field": "duration_ms", "value": 0}),
+    ("314#0004000000000000", "out_of_range", {"field": "outcome", "value": 4}),
     ("312#0000000000003F00", "out_of_range", {"field": "heading_source", "value": 3}),
     ("312#000000000000F000", "out_of_range", {"field": "heading_source", "value": 15}),
     # beyond +-35 rad/s (the raw value of a float field is its bits)
@@ -471,7 +477,7 @@ MALFORMED = [
      {"field": "yaw_rate", "value": struct.unpack("<I", struct.pack("<f", 35.5))[0]}),
     ("304#" + struct.pack("<f", -1e30).hex() + "00000000", "out_of_range",
      {"field": "yaw_rate", "value": struct.unpack("<I", struct.pack("<f", -1e30))[0]}),
-    ("31F#0000000004010000", "out_of_range", {"field": "state", "value": 4}),
+    ("31F#0000000005010000", "out_of_range", {"field": "state", "value": 5}),
     ("001#000000000F000000", "out_of_range", {"field": "Axis_State", "value": 15}),
     ("027#0F00000000000000", "out_of_range", {"field": "Axis_Requested_State", "value": 15}),
     ("04B#0400000001000000", "out_of_range", {"field": "Control_Mode", "value": 4}),

@@ -282,7 +282,7 @@ def test_diagnostics_levels_follow_the_robot(make_rig: Any) -> None:
     assert (levels["enabled"].level, levels["enabled"].message) == (0, "ENABLED")
     v = levels["enabled"].values
     assert (v["fault"], v["motors_online"], v["heading_source"], v["protocol_version"], v["rx_errors"],
-            v["repeated_seq"]) == ("NONE", "FL FR RL RR", "WHEELS", "3", "0", "0"), v
+            v["repeated_seq"]) == ("NONE", "FL FR RL RR", "WHEELS", "4", "0", "0"), v
     assert levels["enabled"].hardware_id.startswith("virtual:ros2-bridge-test-")
     assert (levels["estop"].level, levels["estop"].message) == (1, "ESTOP (latched; ~/reset clears it)")
     assert (levels["gyro silent"].level, levels["gyro silent"].message) == (

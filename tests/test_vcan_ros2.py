@@ -565,7 +565,7 @@ def test_diagnostics_report_state_fault_motors_and_counters(session: Session) ->
     assert (0.5 if VM else 0.8) * DIAGNOSTICS_RATE_HZ <= rate <= 1.2 * DIAGNOSTICS_RATE_HZ, rate
     for d in diag:
         assert (d.level, d.message, d.values["state"], d.values["fault"]) == (0, "ENABLED", "ENABLED", "NONE"), d
-        assert d.values["motors_online"] == "FL FR RL RR" and d.values["protocol_version"] == "3", d
+        assert d.values["motors_online"] == "FL FR RL RR" and d.values["protocol_version"] == "4", d
         assert d.values["heading_source"] == "WHEELS", d  # config/dji_m3508.toml has no gyro
         assert d.values["rx_errors"] == "0" and d.values["out_of_range"] == "0", d
     assert (d.name, d.hardware_id) == ("mecanum_drive: robot", f"socketcan:{VCAN_CHANNEL}")

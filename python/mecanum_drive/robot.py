@@ -106,7 +106,7 @@ class Status:
 
 @dataclasses.dataclass(frozen=True)
 class Counters:
-    """The robot's last STATUS_COUNTERS (protocol version 3): twists it refused as repeats of
+    """The robot's last STATUS_COUNTERS (protocol version 3 and later): twists it refused as repeats of
     the last accepted `seq` (a sender stuck on one frame), and frames of its own protocols it
     rejected by kind. Saturating counts since the robot started."""
 

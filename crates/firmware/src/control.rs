@@ -27,7 +27,7 @@
 //! # Faults
 //!
 //! Checked at every step, in this order (the first that applies is reported); each one moves
-//! `Disabled` or `Enabled` to `Fault` with no torque, latched until `MODE_CMD reset` (which
+//! `Disabled`, `Enabled` or `WheelTest` to `Fault` with no torque, latched until `MODE_CMD reset` (which
 //! faults again at the next step if the cause is still there).
 //!
 //! | fault | condition | latency |
@@ -36,6 +36,7 @@
 //! | `MotorStale` | a motor's last feedback is older than `timing.stale_periods` feedback periods (DJI 1 ms, ODrive estimates 10 ms) | ≤ that + one control period after its last frame |
 //! | `DriveError` | an ODrive heartbeat or `Get_Error` reports a nonzero axis error, or (while enabled) an axis state other than closed loop | the next step |
 //! | `EncoderStuck` | see below (DJI only) | [`ENCODER_STUCK_SPINNING_US`] / [`ENCODER_STUCK_DRAGGED_US`] after the signature appears |
+//! | `WheelRunaway` | see below (current drives: DJI) | [`RUNAWAY_WINDOW_US`] after the current saturates |
 //!
 //! An ODrive keeps reporting an axis error until it is told to clear it, so for ODrive
 //! drives `MODE_CMD reset` also sends `Clear_Errors` to every node at the next step; error
@@ -78,6 +79,46 @@
 //! `now`: no clock, no heap. ODrive axes are not watched here: the ODrive runs its own
 //! velocity loop on the same encoder and reports encoder and spin-out failures in its axis
 //! error, which becomes `DriveError`.
+//!
+//! ## Wheel runaway (current drives)
+//!
+//! While the core runs a wheel's velocity loop (`Enabled`, or that wheel in `WheelTest`), a
+//! wheel is *saturated* when the current commanded at the previous step is at least
+//! [`RUNAWAY_SATURATION`] of the limit in force (`limits.max_current`; a quarter of it in a
+//! wheel test) and pushes towards the setpoint. A wheel saturated at every step for
+//! [`RUNAWAY_WINDOW_US`] is a *runaway* when, at the end of that window or any later step of
+//! the same interval,
+//!
+//! 1. it turns against its setpoint, at least [`RUNAWAY_MIN_SPEED`] the other way, or
+//! 2. its speed has moved at least [`RUNAWAY_GROWTH`] the other way than its current pushes
+//!    since the interval began (dragged away from its setpoint).
+//!
+//! That is a drive that cannot follow its setpoint with everything the loop can give: a motor
+//! mounted the other way than `drive.inverted` says, or drives wired to other wheels than
+//! `drive.esc_ids` says, fight the wheels that are right (the chassis cannot move as the
+//! kinematics ask, so the wrong wheel is dragged against its own torque). A sign error
+//! between a drive's current and its own encoder (positive feedback) runs the wheel away
+//! at full current too, and is caught the same way. Normal driving stays far from
+//! saturation: the acceleration limits ask for a few amperes. A wheel held still at full
+//! current (blocked against a wall) does not move away and is not a runaway. Two miswirings are
+//! beyond any wheel encoder: drives swapped diagonally with the right side mirrored (FL with
+//! RR, FR with RL) move the robot rigidly in another direction than asked (forward becomes a
+//! strafe) with every wheel following its setpoint; the bring-up check (`WHEEL_TEST`, with
+//! someone watching the wheels) finds those. Velocity-mode drives (ODrive) run their own
+//! loop and report a spin-out in their axis error (`DriveError`).
+//!
+//! # Wheel test
+//!
+//! A `WHEEL_TEST` received while `Disabled` drives that one wheel at its speed for its
+//! duration (state `WheelTest`): current drives run the velocity loop of that wheel alone,
+//! limited to [`WHEEL_TEST_CURRENT_FRACTION`] of `limits.max_current`, the other wheels get
+//! no current; an ODrive gets closed loop and the setpoint on that axis only. The motor
+//! health checks and the runaway watch run as when enabled; the command watchdog does not
+//! (the duration bounds the test). It ends at the first step at or after its duration
+//! (`DONE`), on `MODE_CMD disable` or `ESTOP` (`STOPPED`), or by a fault (`FAULT`), back to
+//! `Disabled` (or `Estop`, `Fault`); `MODE_CMD enable` is ignored meanwhile. In any other
+//! state it is refused (`REFUSED`). The next step sends one `WHEEL_TEST_RESULT` with how far
+//! the wheel's encoder turned and the peak current.
 //!
 //! # Command watchdog
 //!
@@ -151,7 +192,10 @@ use crate::config::{Config, ConfigError, Drive, Gains, HeadingMode, Limits};
 use crate::frame::CanFrame;
 use crate::protocol::dji::{self, CurrentCommand, EscGroup, EscId, EscModel};
 use crate::protocol::odrive::{self, AxisState, ControlMode, InputMode, NodeId};
-use crate::protocol::robot::{self, Command, ImuYawRate, ModeRequest, RobotState, TwistCmd};
+use crate::protocol::robot::{
+    self, Command, ImuYawRate, ModeRequest, RobotState, TestOutcome, TwistCmd, WheelTest,
+    WheelTestResult,
+};
 use crate::protocol::{DecodeError, RxErrorCounters};
 
 pub use crate::protocol::robot::{Fault, HeadingSource};
@@ -184,6 +228,20 @@ pub const ODRIVE_STATE_GRACE_US: u64 = 150_000;
 /// One and a half heartbeat periods, as [`ODRIVE_STATE_GRACE_US`]; a cause that persists
 /// shows in the first heartbeat after it.
 pub const ODRIVE_CLEAR_GRACE_US: u64 = 150_000;
+
+/// Wheel runaway: a current at least this fraction of the limit in force is saturated.
+pub const RUNAWAY_SATURATION: f32 = 0.95;
+/// Wheel runaway: how long a wheel's current must stay saturated towards its setpoint before
+/// its speed is judged, µs.
+pub const RUNAWAY_WINDOW_US: u64 = 60_000;
+/// Wheel runaway: a wheel turning against its setpoint at least this fast (rad/s at the
+/// wheel) is turning the other way.
+pub const RUNAWAY_MIN_SPEED: f32 = 1.0;
+/// Wheel runaway: a wheel whose speed moved at least this much (rad/s) the other way than
+/// its current pushes, since its current saturated, moves away from its setpoint.
+pub const RUNAWAY_GROWTH: f32 = 2.0;
+/// Wheel test: the current limit is this fraction of `limits.max_current` (current drives).
+pub const WHEEL_TEST_CURRENT_FRACTION: f32 = 0.25;
 
 /// A wheel turning slower than this (either way) is at rest for the gyro's bias estimate,
 /// rad/s: 3.8 mm/s at the rim of a 76 mm wheel.
@@ -226,8 +284,9 @@ impl Instant {
 
 /// Most frames one [`Controller::step`] can emit: two DJI command frames, or for four ODrive
 /// axes `Clear_Errors` (after a reset), three state commands (after an enable) and a velocity
-/// setpoint each; plus odometry (2), status, status counters and heartbeat (3).
-pub const OUTBOX_CAPACITY: usize = 25;
+/// setpoint each; plus odometry (2), status, status counters and heartbeat (3), and a wheel
+/// test's result (1).
+pub const OUTBOX_CAPACITY: usize = 26;
 
 /// The frames one step emits, in the order they should be sent.
 pub type Outbox = heapless::Vec<CanFrame, OUTBOX_CAPACITY>;
@@ -258,8 +317,60 @@ struct Motor {
     integral: f32,
     /// DJI: stuck-encoder watch.
     watch: StuckWatch,
+    /// Current drives: runaway watch.
+    runaway: RunawayWatch,
 }
 
+/// Runaway watch of one current-driven wheel (see the [module documentation](self)).
+#[derive(Debug, Clone, Copy, Default)]
+struct RunawayWatch {
+    /// First step of the running interval of saturated current towards the setpoint.
+    since: Option<Instant>,
+    /// The wheel's speed at that step, rad/s.
+    speed0: f32,
+}
+
+impl RunawayWatch {
+    /// Updates the interval for this step (`push`: the sign of the saturated current, 0 when
+    /// it is not saturated towards the setpoint); `true` once it has lasted
+    /// [`RUNAWAY_WINDOW_US`] and the wheel turns against its setpoint or has moved away from
+    /// it since the interval began.
+    #[inline]
+    fn judge(&mut self, now: Instant, push: f32, setpoint: f32, speed: f32) -> bool {
+        if push == 0.0 {
+            self.since = None;
+            return false;
+        }
+        let since = match self.since {
+            Some(t) => t,
+            None => {
+                self.since = Some(now);
+                self.speed0 = speed;
+                now
+            }
+        };
+        if now.micros_since(since) < RUNAWAY_WINDOW_US {
+            return false;
+        }
+        let against = setpoint * speed < 0.0 && speed.abs() >= RUNAWAY_MIN_SPEED;
+        let away = (speed - self.speed0) * push <= -RUNAWAY_GROWTH;
+        against || away
+    }
+}
+
+/// A running wheel test (`WHEEL_TEST`).
+#[derive(Debug, Clone, Copy)]
+struct TestRun {
+    wheel: u8,
+    /// Wheel speed setpoint, rad/s.
+    speed: f32,
+    /// It ends at the first step at or after this.
+    until: Instant,
+    /// The wheel's angle when it began, rad.
+    start_angle: f32,
+    /// The current of largest magnitude commanded so far, A (signed).
+    peak_current: f32,
+}
 /// Stuck-encoder watch of one DJI motor (see the [module documentation](self)).
 #[derive(Debug, Clone, Copy, Default)]
 struct StuckWatch {
@@ -450,6 +561,12 @@ pub struct Controller {
     max_turns_per_us: f32,
     /// Bit i set when wheel i's motor reported within its staleness window at the last step.
     online: u8,
+    /// The wheel test running (state `WheelTest`).
+    test: Option<TestRun>,
+    /// A wheel test's result, sent at the next step.
+    test_result: Option<WheelTestResult>,
+    /// ODrive: the one node an axis state request goes to (a wheel test); `None`: every node.
+    axis_only: Option<u8>,
 
     motors: [Motor; 4],
     odometry: Odometry<f32>,
@@ -532,6 +649,7 @@ impl Controller {
             axis_state: None,
             integral: 0.0,
             watch: StuckWatch::default(),
+            runaway: RunawayWatch::default(),
         };
         Ok(Self {
             config: *config,
@@ -566,6 +684,9 @@ impl Controller {
                 Drive::Dji { .. } => 0.0,
             },
             online: 0,
+            test: None,
+            test_result: None,
+            axis_only: None,
             motors: [motor; 4],
             odometry: Odometry::new(Pose2::default()),
             measured: ChassisVelocity::default(),
@@ -680,6 +801,7 @@ impl Controller {
     fn on_command(&mut self, now: Instant, cmd: Command) -> Result<(), DecodeError> {
         match cmd {
             Command::Estop => {
+                self.end_test(TestOutcome::Stopped);
                 self.state = RobotState::Estop;
                 self.halt();
             }
@@ -708,6 +830,7 @@ impl Controller {
                     self.state = RobotState::Enabled;
                     self.fault = Fault::None;
                     self.halt();
+                    self.axis_only = None;
                     // A new session: its first twist is accepted whatever its seq.
                     self.last_seq = None;
                     self.axis_request = self.odrive_axis(AxisState::ClosedLoopControl);
@@ -719,7 +842,8 @@ impl Controller {
                 }
             }
             Command::Mode(ModeRequest::Disable) => {
-                if self.state == RobotState::Enabled {
+                if matches!(self.state, RobotState::Enabled | RobotState::WheelTest) {
+                    self.end_test(TestOutcome::Stopped);
                     self.state = RobotState::Disabled;
                     self.halt();
                 }
@@ -743,8 +867,59 @@ impl Controller {
             }
             Command::StatusRequest => self.status_requested = true,
             Command::ImuYawRate(g) => self.on_gyro(now, g),
+            Command::WheelTest(t) => self.start_test(now, t),
         }
         Ok(())
+    }
+
+    /// Starts a wheel test if the robot is disabled; otherwise refuses it (a
+    /// `WHEEL_TEST_RESULT` `REFUSED` at the next step).
+    fn start_test(&mut self, now: Instant, t: WheelTest) {
+        let wheel = usize::from(t.wheel.min(3));
+        if self.state != RobotState::Disabled {
+            self.test_result = Some(WheelTestResult {
+                wheel: t.wheel,
+                outcome: TestOutcome::Refused,
+                angle: 0.0,
+                peak_current: 0.0,
+            });
+            return;
+        }
+        self.state = RobotState::WheelTest;
+        self.fault = Fault::None;
+        self.halt();
+        let max = self.config.limits.max_wheel_speed;
+        self.test = Some(TestRun {
+            wheel: t.wheel.min(3),
+            speed: symmetric_limit(t.speed, max),
+            until: Instant::from_micros(
+                now.as_micros()
+                    .saturating_add(u64::from(t.duration_ms) * 1000),
+            ),
+            start_angle: self.motors[wheel].angle,
+            peak_current: 0.0,
+        });
+        // ODrive: closed loop on the tested axis only; the others stay idle.
+        self.axis_request = self.odrive_axis(AxisState::ClosedLoopControl);
+        self.axis_only = Some(t.wheel.min(3));
+        self.closed_loop_at = Some(now);
+        for m in &mut self.motors {
+            m.axis_state = None;
+        }
+    }
+
+    /// Ends the running wheel test, if any, with `outcome` (its result goes out at the next
+    /// step). The caller sets the state.
+    fn end_test(&mut self, outcome: TestOutcome) {
+        if let Some(t) = self.test.take() {
+            let wheel = usize::from(t.wheel);
+            self.test_result = Some(WheelTestResult {
+                wheel: t.wheel,
+                outcome,
+                angle: self.motors[wheel].angle + self.motors[wheel].pending - t.start_angle,
+                peak_current: t.peak_current,
+            });
+        }
     }
 
     /// Takes a valid `IMU_YAW_RATE`: the gyro's latest rate, and a bias sample while the
@@ -813,6 +988,7 @@ impl Controller {
         }
         if self.state != RobotState::Enabled {
             self.axis_request = self.odrive_axis(AxisState::Idle);
+            self.axis_only = None;
         }
     }
 
@@ -933,6 +1109,13 @@ impl Controller {
         }
         self.check_motors(now, boot);
         self.run_watchdog(now);
+        if let Some(t) = self.test
+            && now >= t.until
+        {
+            self.end_test(TestOutcome::Done);
+            self.state = RobotState::Disabled;
+            self.halt();
+        }
         self.ramp();
         self.update_gyro(now);
         self.integrate_odometry();
@@ -942,21 +1125,44 @@ impl Controller {
         let setpoint_due = self.setpoint_clock.tick();
 
         let enabled = self.state == RobotState::Enabled;
-        self.setpoints = if enabled {
-            self.kin
+        let test = self.test.filter(|_| self.state == RobotState::WheelTest);
+        let max_current = self.config.limits.max_current;
+        // The wheels driven (bit i: wheel i) and their current limit.
+        let (mask, limit) = if enabled {
+            self.setpoints = self
+                .kin
                 .inverse(self.commanded)
-                .desaturate(self.config.limits.max_wheel_speed)
+                .desaturate(self.config.limits.max_wheel_speed);
+            (0b1111, max_current)
+        } else if let Some(t) = test {
+            let mut sp = [0.0; 4];
+            sp[usize::from(t.wheel)] = t.speed;
+            self.setpoints = WheelSpeeds(sp);
+            (1 << t.wheel, WHEEL_TEST_CURRENT_FRACTION * max_current)
         } else {
-            WheelSpeeds::zero()
+            self.setpoints = WheelSpeeds::zero();
+            (0, max_current)
         };
         match self.config.drive {
-            Drive::Dji { model, .. } => self.emit_dji(out, model, enabled),
+            Drive::Dji { model, .. } => self.emit_dji(out, model, mask, limit),
             Drive::Odrive {
                 node_ids,
                 gear_ratio,
                 vel_ramp,
                 ..
-            } => self.emit_odrive(out, node_ids, gear_ratio, vel_ramp, enabled && setpoint_due),
+            } => self.emit_odrive(
+                out,
+                node_ids,
+                gear_ratio,
+                vel_ramp,
+                mask != 0 && setpoint_due,
+            ),
+        }
+        if let Some(t) = &mut self.test {
+            let i = self.currents[usize::from(t.wheel)];
+            if i.abs() > t.peak_current.abs() {
+                t.peak_current = i;
+            }
         }
         self.emit_telemetry(out, now, boot, odom_due, status_due);
         self.steps += 1;
@@ -966,7 +1172,8 @@ impl Controller {
     /// DJI ESCs; zero velocity and the idle state for ODrive axes. For a runner that is about
     /// to exit (SIGINT/SIGTERM): send these, then stop.
     pub fn shutdown(&mut self) -> Outbox {
-        if self.state == RobotState::Enabled {
+        if matches!(self.state, RobotState::Enabled | RobotState::WheelTest) {
+            self.end_test(TestOutcome::Stopped);
             self.state = RobotState::Disabled;
         }
         self.halt();
@@ -974,7 +1181,7 @@ impl Controller {
         self.setpoints = WheelSpeeds::zero();
         let mut out = Outbox::new();
         match self.config.drive {
-            Drive::Dji { model, .. } => self.emit_dji(&mut out, model, false),
+            Drive::Dji { model, .. } => self.emit_dji(&mut out, model, 0, 0.0),
             Drive::Odrive {
                 node_ids,
                 gear_ratio,
@@ -1015,12 +1222,44 @@ impl Controller {
         if self.watch_encoders(now) && fault == Fault::None {
             fault = Fault::EncoderStuck;
         }
-        if fault != Fault::None && matches!(self.state, RobotState::Disabled | RobotState::Enabled)
+        if self.watch_runaway(now) && fault == Fault::None {
+            fault = Fault::WheelRunaway;
+        }
+        if fault != Fault::None
+            && matches!(
+                self.state,
+                RobotState::Disabled | RobotState::Enabled | RobotState::WheelTest
+            )
         {
+            self.end_test(TestOutcome::Fault);
             self.state = RobotState::Fault;
             self.fault = fault;
             self.halt();
         }
+    }
+
+    /// Runs every current-driven wheel's runaway watch for this step; `true` if one has
+    /// fired. The currents and setpoints are those of the previous step (the ones the motors
+    /// are acting on), the speeds the latest measured.
+    fn watch_runaway(&mut self, now: Instant) -> bool {
+        let limit = match (self.config.drive, self.state) {
+            (Drive::Dji { .. }, RobotState::Enabled) => self.config.limits.max_current,
+            (Drive::Dji { .. }, RobotState::WheelTest) => {
+                WHEEL_TEST_CURRENT_FRACTION * self.config.limits.max_current
+            }
+            _ => 0.0,
+        };
+        let threshold = RUNAWAY_SATURATION * limit;
+        let mut runaway = false;
+        for (i, m) in self.motors.iter_mut().enumerate() {
+            let (current, setpoint) = (self.currents[i], self.setpoints.0[i]);
+            // Saturated, and pushing towards the setpoint.
+            let saturated =
+                limit > 0.0 && current.abs() >= threshold && current * (setpoint - m.speed) > 0.0;
+            let push = if saturated { current.signum() } else { 0.0 };
+            runaway |= m.runaway.judge(now, push, setpoint, m.speed);
+        }
+        runaway
     }
 
     /// Runs every DJI motor's stuck-encoder watch for this step; `true` if one has fired.
@@ -1178,12 +1417,23 @@ impl Controller {
         }
     }
 
-    fn emit_dji(&mut self, out: &mut Outbox, model: EscModel, enabled: bool) {
+    /// DJI: the velocity PI of the wheels in `mask` (bit i: wheel i; the others get no
+    /// current) with the current limit `max`, and the command frames.
+    fn emit_dji(&mut self, out: &mut Outbox, model: EscModel, mask: u8, max: f32) {
         let mut integral = self.motors.map(|m| m.integral);
-        self.currents = if enabled {
+        self.currents = if mask != 0 {
             let speed = self.motors.map(|m| m.speed);
-            let (g, max) = (&self.config.gains, self.config.limits.max_current);
-            pi_step(&mut integral, self.setpoints.0, speed, g, max, self.dt)
+            let g = &self.config.gains;
+            let mut c = pi_step(&mut integral, self.setpoints.0, speed, g, max, self.dt);
+            if mask != 0b1111 {
+                for i in 0..4 {
+                    if mask & (1 << i) == 0 {
+                        c[i] = 0.0;
+                        integral[i] = 0.0;
+                    }
+                }
+            }
+            c
         } else {
             integral = [0.0; 4];
             [0.0; 4]
@@ -1231,7 +1481,13 @@ impl Controller {
             }
         }
         if let Some(state) = self.axis_request.take() {
-            for node in nodes.iter().flatten() {
+            let only = self.axis_only.map(usize::from);
+            let addressed = nodes
+                .iter()
+                .enumerate()
+                .filter(|(wheel, _)| only.is_none_or(|w| w == *wheel))
+                .filter_map(|(_, node)| node.as_ref());
+            for node in addressed {
                 if state == AxisState::ClosedLoopControl {
                     let mode = odrive::Command::SetControllerMode {
                         control_mode: ControlMode::VelocityControl,
@@ -1327,6 +1583,9 @@ impl Controller {
                 })
                 .to_can_frame(),
             );
+        }
+        if let Some(r) = self.test_result.take() {
+            push(out, robot::Telemetry::WheelTestResult(r).to_can_frame());
         }
         if status_due {
             let uptime_ms = now.micros_since(boot) / 1000;

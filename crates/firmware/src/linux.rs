@@ -803,6 +803,7 @@ fn state_name(s: &Snapshot) -> (&'static str, &'static str) {
         RobotState::Enabled => "Enabled",
         RobotState::Fault => "Fault",
         RobotState::Estop => "Estop",
+        RobotState::WheelTest => "WheelTest",
     };
     let fault = match s.fault {
         Fault::None => "None",
@@ -812,6 +813,7 @@ fn state_name(s: &Snapshot) -> (&'static str, &'static str) {
         Fault::Watchdog => "Watchdog",
         Fault::Config => "Config",
         Fault::EncoderStuck => "EncoderStuck",
+        Fault::WheelRunaway => "WheelRunaway",
     };
     (state, fault)
 }

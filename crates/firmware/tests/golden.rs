@@ -309,6 +309,7 @@ fn robot_status() {
         Fault::Watchdog,
         Fault::Config,
         Fault::EncoderStuck,
+        Fault::WheelRunaway,
     ];
     for (raw, fault) in faults.into_iter().enumerate() {
         let f = frame(0x312, &[2, raw as u8, 0, 0, 0, 0, 0, 0]);
@@ -318,8 +319,8 @@ fn robot_status() {
         assert_eq!((s.state, s.fault), (RobotState::Fault, fault));
     }
     for (data, field, value) in [
-        ([4u8, 0, 0, 0, 0, 0, 0, 0], "state", 4),
-        ([0, 7, 0, 0, 0, 0, 0, 0], "fault", 7),
+        ([5u8, 0, 0, 0, 0, 0, 0, 0], "state", 5),
+        ([0, 8, 0, 0, 0, 0, 0, 0], "fault", 8),
         ([0, 0, 0, 0, 0, 0, 0x3F, 0], "heading_source", 3),
         ([0, 0, 0, 0, 0, 0, 0xF0, 0], "heading_source", 15),
     ] {
@@ -370,9 +371,9 @@ fn robot_status_counters() {
 
 #[test]
 fn robot_heartbeat() {
-    // uptime 0x12345678 ms, state 3 (e-stop), protocol version 3.
-    let f = frame(0x31F, &[0x78, 0x56, 0x34, 0x12, 0x03, 0x03, 0x00, 0x00]);
-    assert_eq!(robot::PROTOCOL_VERSION, 3);
+    // uptime 0x12345678 ms, state 3 (e-stop), protocol version 4.
+    let f = frame(0x31F, &[0x78, 0x56, 0x34, 0x12, 0x03, 0x04, 0x00, 0x00]);
+    assert_eq!(robot::PROTOCOL_VERSION, 4);
     let h = Heartbeat {
         uptime_ms: 0x1234_5678,
         state: RobotState::Estop,
@@ -383,6 +384,53 @@ fn robot_heartbeat() {
         Ok(robot::Telemetry::Heartbeat(h))
     );
     assert_eq!(robot::Telemetry::Heartbeat(h).to_can_frame(), f);
+}
+
+#[test]
+fn robot_wheel_test() {
+    use robot::{TestOutcome, WheelTest, WheelTestResult};
+    // Wheel 2 (RL), speed -3.5 rad/s = raw -3500 = 0xF254, 1500 ms = 0x05DC.
+    let f = frame(0x305, &[0x02, 0x54, 0xF2, 0xDC, 0x05, 0x00, 0x00, 0x00]);
+    let t = WheelTest {
+        wheel: 2,
+        speed: -3.5,
+        duration_ms: 1500,
+    };
+    assert_eq!(robot::Command::decode(&f), Ok(robot::Command::WheelTest(t)));
+    assert_eq!(robot::Command::WheelTest(t).to_can_frame(), f);
+    for (data, field, value) in [
+        ([4u8, 0x54, 0xF2, 0xDC, 0x05, 0, 0, 0], "wheel", 4),
+        // 10.001 rad/s.
+        ([0, 0x11, 0x27, 0xDC, 0x05, 0, 0, 0], "speed", 10_001),
+        ([0, 0x54, 0xF2, 0x00, 0x00, 0, 0, 0], "duration_ms", 0),
+        ([0, 0x54, 0xF2, 0xB9, 0x0B, 0, 0, 0], "duration_ms", 3001),
+    ] {
+        assert_eq!(
+            robot::Command::decode(&frame(0x305, &data)),
+            Err(DecodeError::OutOfRange { field, value }),
+            "{field}"
+        );
+    }
+    // Wheel 1, FAULT, angle -1.234 rad = raw -1234 = 0xFB2E, peak 3.99 A = raw 399 = 0x018F.
+    let f = frame(0x314, &[0x01, 0x02, 0x2E, 0xFB, 0x8F, 0x01, 0x00, 0x00]);
+    let r = WheelTestResult {
+        wheel: 1,
+        outcome: TestOutcome::Fault,
+        angle: -1.234,
+        peak_current: 3.99,
+    };
+    assert_eq!(
+        robot::Telemetry::decode(&f),
+        Ok(robot::Telemetry::WheelTestResult(r))
+    );
+    assert_eq!(robot::Telemetry::WheelTestResult(r).to_can_frame(), f);
+    assert_eq!(
+        robot::Telemetry::decode(&frame(0x314, &[0, 4, 0, 0, 0, 0, 0, 0])),
+        Err(DecodeError::OutOfRange {
+            field: "outcome",
+            value: 4
+        })
+    );
 }
 
 #[test]
@@ -405,7 +453,7 @@ fn robot_rejections() {
         robot::decode(&ext),
         Err(DecodeError::ExtendedId { id: 0x301 })
     );
-    for id in [0x305, 0x31E, 0x123] {
+    for id in [0x306, 0x31E, 0x123] {
         assert_eq!(
             robot::decode(&frame(id, &[0; 8])),
             Err(DecodeError::UnknownId {

@@ -13,7 +13,7 @@ needs rclpy and the message packages geometry_msgs, nav_msgs, diagnostic_msgs an
 | `/diagnostics` (pub) | `diagnostic_msgs/msg/DiagnosticArray` | state, fault, motors online, heading source (wheels or gyro), the robot's counters and the bridge's, at `diagnostics_rate` Hz |
 | `~/enable`, `~/disable`, `~/reset`, `~/estop` | `std_srvs/srv/Trigger` | MODE_CMD enable / disable / reset, ESTOP; `success` when the robot reports the state reached (ENABLED, DISABLED, DISABLED, ESTOP) within `service_timeout` s; `message`: its state and fault, or why not |
 
-`/joint_states` is not published: the robot protocol (dbc/mecanum_robot.dbc, version 3) carries
+`/joint_states` is not published: the robot protocol (dbc/mecanum_robot.dbc, version 4) carries
 no wheel states, only odometry, status, counters and the heartbeat. (The drives' own frames
 are on the bus, but decoding them is the firmware's job, at 4 kHz.)
 

@@ -302,6 +302,10 @@ fn robot_fields(msg: &robot::Message) -> Decoded {
         robot::Message::Command(C::ImuYawRate(g)) => d
             .f(&l::IMU_YAW_RATE_VALUE, g.yaw_rate)
             .i(&l::IMU_SEQ, g.seq),
+        robot::Message::Command(C::WheelTest(t)) => d
+            .i(&l::TEST_WHEEL, t.wheel)
+            .f(&l::TEST_SPEED, t.speed)
+            .i(&l::TEST_DURATION, t.duration_ms),
         robot::Message::Telemetry(T::OdomPosition(o)) => d.f(&l::ODOM_X, o.x).f(&l::ODOM_Y, o.y),
         robot::Message::Telemetry(T::OdomVelocity(o)) => d
             .f(&l::ODOM_HEADING, o.heading)
@@ -325,6 +329,11 @@ fn robot_fields(msg: &robot::Message) -> Decoded {
             .i(&l::HEARTBEAT_UPTIME, h.uptime_ms)
             .i(&l::HEARTBEAT_STATE, h.state.raw())
             .i(&l::HEARTBEAT_VERSION, h.protocol_version),
+        robot::Message::Telemetry(T::WheelTestResult(r)) => d
+            .i(&l::RESULT_WHEEL, r.wheel)
+            .i(&l::RESULT_OUTCOME, r.outcome.raw())
+            .f(&l::RESULT_ANGLE, r.angle)
+            .f(&l::RESULT_PEAK_CURRENT, r.peak_current),
     }
 }
 
@@ -574,6 +583,30 @@ fn golden_set() -> Vec<(AnyMessage, Decoded)> {
             protocol_version: robot::PROTOCOL_VERSION,
         }))),
     ];
+    for (wheel, speed, duration_ms) in [(0, 3.0, 1000), (3, -10.0, 3000), (1, 0.001, 1)] {
+        v.push(AnyMessage::Robot(robot::Message::Command(RC::WheelTest(
+            robot::WheelTest {
+                wheel,
+                speed,
+                duration_ms,
+            },
+        ))));
+    }
+    for (wheel, outcome, angle, peak_current) in [
+        (0, robot::TestOutcome::Done, 2.5, 3.99),
+        (1, robot::TestOutcome::Stopped, -0.5, -4.0),
+        (2, robot::TestOutcome::Fault, 32.767, 300.0),
+        (3, robot::TestOutcome::Refused, 0.0, 0.0),
+    ] {
+        v.push(AnyMessage::Robot(robot::Message::Telemetry(
+            RT::WheelTestResult(robot::WheelTestResult {
+                wheel,
+                outcome,
+                angle,
+                peak_current,
+            }),
+        )));
+    }
     for request in [
         ModeRequest::Disable,
         ModeRequest::Enable,
@@ -596,6 +629,12 @@ fn golden_set() -> Vec<(AnyMessage, Decoded)> {
             HeadingSource::Wheels,
         ),
         (RobotState::Estop, Fault::None, HeadingSource::Wheels),
+        (
+            RobotState::Fault,
+            Fault::WheelRunaway,
+            HeadingSource::Wheels,
+        ),
+        (RobotState::WheelTest, Fault::None, HeadingSource::Wheels),
         (
             RobotState::Enabled,
             Fault::None,

@@ -16,11 +16,13 @@
 //! | `0x302` | `MODE_CMD` | host → robot | 1 | `request` u8: 0 disable, 1 enable, 2 reset |
 //! | `0x303` | `STATUS_REQ` | host → robot | 0 | asks for an immediate `STATUS` |
 //! | `0x304` | `IMU_YAW_RATE` | IMU node → robot | 8 | `yaw_rate` f32 rad/s (±35); `seq` u8 (alive counter); reserved 3 bytes |
+//! | `0x305` | `WHEEL_TEST` | host → robot | 8 | `wheel` u8 (0-3); `speed` i16 0.001 rad/s (±10); `duration_ms` u16 (1-3000); reserved 3 bytes |
 //! | `0x310` | `ODOM_POSITION` | robot → host | 8 | `x`, `y` i32 0.0001 m (odometry frame) |
 //! | `0x311` | `ODOM_VELOCITY` | robot → host | 8 | `heading` i16 0.0001 rad; `vx`, `vy` i16 0.001 m/s; `wz` i16 0.001 rad/s |
 //! | `0x312` | `STATUS` | robot → host | 8 | `state` u8, `fault` u8, `rx_errors` u16, `unknown_ids` u16, `motors_online` 4 bits, `heading_source` 4 bits, `seq` u8 |
 //! | `0x313` | `STATUS_COUNTERS` | robot → host | 8 | `repeated_seq`, `wrong_dlc`, `out_of_range`, `non_finite` u16 |
-//! | `0x31F` | `HEARTBEAT` | robot → host | 8 | `uptime_ms` u32, `state` u8, `protocol_version` u8 (= 3), reserved u16 |
+//! | `0x314` | `WHEEL_TEST_RESULT` | robot → host | 8 | `wheel` u8; `outcome` u8; `angle` i16 0.001 rad; `peak_current` i16 0.01 A; reserved u16 |
+//! | `0x31F` | `HEARTBEAT` | robot → host | 8 | `uptime_ms` u32, `state` u8, `protocol_version` u8 (= 4), reserved u16 |
 //!
 //! Velocities are in the body frame (x forward, y left, yaw counter-clockwise positive).
 //! The raw value `-32768` of the i16 velocity fields is reserved as "invalid" and rejected,
@@ -49,6 +51,18 @@
 //! these additions did not change the protocol version. (The codec only carries the
 //! numbers; [`crate::control`] applies the rules.)
 //!
+//! `WHEEL_TEST` is the bring-up check's test mode (a robot on blocks, its wheels off the
+//! ground): a *disabled* robot drives the one wheel at `speed` (wheel rad/s, robot-forward
+//! positive) for `duration_ms`, with a quarter of its current limit, the other wheels without
+//! torque; `STATUS.state` says `WHEEL_TEST` meanwhile. It ends with one `WHEEL_TEST_RESULT`:
+//! `DONE` after the duration, `STOPPED` by `MODE_CMD` disable or `ESTOP`, `FAULT` by a fault
+//! (the robot is then in `FAULT`), or `REFUSED` at once when the robot was not disabled.
+//! `angle` is how far that wheel's encoder says it turned, in the configured sense
+//! (robot-forward positive), and `peak_current` the largest current commanded (0 for
+//! velocity-mode drives). No wheel encoder can tell *which* wheel turned, or which way it
+//! really did: someone watching the robot (or the simulator) says that (see the
+//! `mecanum-drive check` command).
+//!
 //! `STATUS_COUNTERS` follows every `STATUS` (periodic or requested). `STATUS` has no room
 //! left, and the counters a host needs to tell a stuck sender from a noisy bus belong
 //! together: the repeats, and the three kinds of malformed frames of this stack's own
@@ -70,11 +84,13 @@ use crate::frame::CanFrame;
 
 /// The protocol version this module implements, sent in [`Heartbeat::protocol_version`].
 ///
+/// Version 4 added `STATUS.state` 4 (`WHEEL_TEST`) with `WHEEL_TEST` and `WHEEL_TEST_RESULT`,
+/// and `STATUS.fault` 7 (`WHEEL_RUNAWAY`); a version 3 receiver rejects both values.
 /// Version 3 made `TWIST_CMD.seq` an alive counter (a repeated `seq` is not applied) and
 /// added `STATUS_COUNTERS`; a version 2 host that sends one `seq` forever stops the robot
 /// after one command timeout. Version 2 added `STATUS.fault` 6 (`ENCODER_STUCK`); a version
 /// 1 receiver rejects it.
-pub const PROTOCOL_VERSION: u8 = 3;
+pub const PROTOCOL_VERSION: u8 = 4;
 
 /// The frame layout: the Rust mirror of `dbc/mecanum_robot.dbc`. Every id, DLC, offset,
 /// scale and range the codec uses is here.
@@ -116,6 +132,12 @@ pub mod layout {
         id: 0x304,
         dlc: 8,
     };
+    /// `WHEEL_TEST`, host → robot.
+    pub const WHEEL_TEST: MessageDef = MessageDef {
+        name: "WHEEL_TEST",
+        id: 0x305,
+        dlc: 8,
+    };
     /// `ODOM_POSITION`, robot → host.
     pub const ODOM_POSITION: MessageDef = MessageDef {
         name: "ODOM_POSITION",
@@ -138,6 +160,12 @@ pub mod layout {
     pub const STATUS_COUNTERS: MessageDef = MessageDef {
         name: "STATUS_COUNTERS",
         id: 0x313,
+        dlc: 8,
+    };
+    /// `WHEEL_TEST_RESULT`, robot → host.
+    pub const WHEEL_TEST_RESULT: MessageDef = MessageDef {
+        name: "WHEEL_TEST_RESULT",
+        id: 0x314,
         dlc: 8,
     };
     /// `HEARTBEAT`, robot → host.
@@ -184,6 +212,37 @@ pub mod layout {
     /// `IMU_YAW_RATE.seq`, alive counter.
     pub const IMU_SEQ: Field = Field::int("seq", 4, U8, Little);
 
+    /// `WHEEL_TEST.wheel`: 0 FL, 1 FR, 2 RL, 3 RR.
+    pub const TEST_WHEEL: Field = Field::int("wheel", 0, U8, Little).range(0, 3);
+    /// Largest `|WHEEL_TEST.speed|`, raw (10 rad/s at the wheel: 0.76 m/s at the rim of a
+    /// 76 mm wheel, gentle for a wheel in the air).
+    pub const TEST_SPEED_RAW_MAX: i64 = 10_000;
+    /// `WHEEL_TEST.speed`, wheel rad/s, robot-forward positive.
+    pub const TEST_SPEED: Field = Field::int("speed", 1, I16, Little)
+        .scaled(ANGULAR_SCALE)
+        .range(-TEST_SPEED_RAW_MAX, TEST_SPEED_RAW_MAX);
+    /// Longest `WHEEL_TEST.duration_ms`.
+    pub const TEST_DURATION_MAX_MS: i64 = 3000;
+    /// `WHEEL_TEST.duration_ms`.
+    pub const TEST_DURATION: Field =
+        Field::int("duration_ms", 3, U16, Little).range(1, TEST_DURATION_MAX_MS);
+    /// `WHEEL_TEST_RESULT.wheel`.
+    pub const RESULT_WHEEL: Field = Field::int("wheel", 0, U8, Little).range(0, 3);
+    /// `WHEEL_TEST_RESULT.outcome`: 0 done, 1 stopped, 2 fault, 3 refused.
+    pub const RESULT_OUTCOME: Field = Field::int("outcome", 1, U8, Little).range(0, 3);
+    /// Wheel angle LSB, rad.
+    pub const TEST_ANGLE_SCALE: f64 = 0.001;
+    /// `WHEEL_TEST_RESULT.angle`, rad, robot-forward positive.
+    pub const RESULT_ANGLE: Field = Field::int("angle", 2, I16, Little)
+        .scaled(TEST_ANGLE_SCALE)
+        .range(-VEL_RAW_MAX, VEL_RAW_MAX);
+    /// Current LSB, A.
+    pub const TEST_CURRENT_SCALE: f64 = 0.01;
+    /// `WHEEL_TEST_RESULT.peak_current`, A, the motor's sense as configured (signed).
+    pub const RESULT_PEAK_CURRENT: Field = Field::int("peak_current", 4, I16, Little)
+        .scaled(TEST_CURRENT_SCALE)
+        .range(-VEL_RAW_MAX, VEL_RAW_MAX);
+
     /// `MODE_CMD.request`: 0 disable, 1 enable, 2 reset.
     pub const MODE_REQUEST: Field = Field::int("request", 0, U8, Little).range(0, 2);
 
@@ -215,10 +274,10 @@ pub mod layout {
         .scaled(ANGULAR_SCALE)
         .range(-VEL_RAW_MAX, VEL_RAW_MAX);
 
-    /// `STATUS.state`: 0 disabled, 1 enabled, 2 fault, 3 estop.
-    pub const STATUS_STATE: Field = Field::int("state", 0, U8, Little).range(0, 3);
-    /// `STATUS.fault`: 0 none .. 6 encoder stuck.
-    pub const STATUS_FAULT: Field = Field::int("fault", 1, U8, Little).range(0, 6);
+    /// `STATUS.state`: 0 disabled, 1 enabled, 2 fault, 3 estop, 4 wheel test.
+    pub const STATUS_STATE: Field = Field::int("state", 0, U8, Little).range(0, 4);
+    /// `STATUS.fault`: 0 none .. 6 encoder stuck, 7 wheel runaway.
+    pub const STATUS_FAULT: Field = Field::int("fault", 1, U8, Little).range(0, 7);
     /// `STATUS.rx_errors`: rejected frames, saturating.
     pub const STATUS_RX_ERRORS: Field = Field::int("rx_errors", 2, U16, Little);
     /// `STATUS.unknown_ids`: frames with unknown ids, saturating.
@@ -249,7 +308,7 @@ pub mod layout {
     /// `HEARTBEAT.uptime_ms`.
     pub const HEARTBEAT_UPTIME: Field = Field::int("uptime_ms", 0, U32, Little);
     /// `HEARTBEAT.state`, same values as `STATUS.state`.
-    pub const HEARTBEAT_STATE: Field = Field::int("state", 4, U8, Little).range(0, 3);
+    pub const HEARTBEAT_STATE: Field = Field::int("state", 4, U8, Little).range(0, 4);
     /// `HEARTBEAT.protocol_version`.
     pub const HEARTBEAT_VERSION: Field = Field::int("protocol_version", 5, U8, Little);
 }
@@ -278,9 +337,12 @@ pub enum RobotState {
     Fault = 2,
     /// Stopped by an e-stop; needs a reset.
     Estop = 3,
+    /// Driving one wheel for the bring-up check (`WHEEL_TEST`); back to `Disabled` when it
+    /// ends.
+    WheelTest = 4,
 }
 
-/// The latest fault (`STATUS.fault`). Raw values 7..=255 are reserved for later versions.
+/// The latest fault (`STATUS.fault`). Raw values 8..=255 are reserved for later versions.
 ///
 /// How each is detected, and how fast: [`crate::control`].
 #[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
@@ -301,6 +363,10 @@ pub enum Fault {
     /// A motor's feedback keeps arriving but its rotor angle does not move while the motor
     /// reports speed, or while it is driven hard and the other wheels say it turns.
     EncoderStuck = 6,
+    /// A wheel driven at its current limit towards its setpoint turned the other way, or
+    /// further from it, for a window: a motor mounted the other way than configured, or
+    /// drives wired to the wrong wheels.
+    WheelRunaway = 7,
 }
 
 macro_rules! u8_enum {
@@ -339,7 +405,19 @@ pub enum HeadingSource {
 }
 
 u8_enum!(ModeRequest { Disable = 0, Enable = 1, Reset = 2 });
-u8_enum!(RobotState { Disabled = 0, Enabled = 1, Fault = 2, Estop = 3 });
+u8_enum!(RobotState {
+    Disabled = 0,
+    Enabled = 1,
+    Fault = 2,
+    Estop = 3,
+    WheelTest = 4,
+});
+u8_enum!(TestOutcome {
+    Done = 0,
+    Stopped = 1,
+    Fault = 2,
+    Refused = 3,
+});
 u8_enum!(HeadingSource {
     Wheels = 0,
     Gyro = 1,
@@ -353,6 +431,7 @@ u8_enum!(Fault {
     Watchdog = 4,
     Config = 5,
     EncoderStuck = 6,
+    WheelRunaway = 7,
 });
 
 /// A twist setpoint (`TWIST_CMD`), body frame.
@@ -381,6 +460,45 @@ pub struct ImuYawRate {
     pub seq: u8,
 }
 
+/// Drive one wheel for the bring-up check (`WHEEL_TEST`): only a disabled robot does.
+#[derive(Clone, Copy, PartialEq, Debug)]
+pub struct WheelTest {
+    /// The wheel, 0-3 (FL, FR, RL, RR).
+    pub wheel: u8,
+    /// Wheel speed setpoint, rad/s, robot-forward positive; `|speed| <= 10` (LSB 0.001).
+    pub speed: f32,
+    /// How long, ms (1-3000).
+    pub duration_ms: u16,
+}
+
+/// How a wheel test ended (`WHEEL_TEST_RESULT.outcome`).
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+#[repr(u8)]
+pub enum TestOutcome {
+    /// It ran for its duration.
+    Done = 0,
+    /// `MODE_CMD` disable or `ESTOP` ended it early.
+    Stopped = 1,
+    /// A fault ended it (`STATUS.fault` says which).
+    Fault = 2,
+    /// Not run: the robot was not disabled.
+    Refused = 3,
+}
+
+/// The end of a wheel test (`WHEEL_TEST_RESULT`).
+#[derive(Clone, Copy, PartialEq, Debug)]
+pub struct WheelTestResult {
+    /// The wheel tested, 0-3.
+    pub wheel: u8,
+    /// How it ended.
+    pub outcome: TestOutcome,
+    /// How far the wheel's encoder says it turned, rad, robot-forward positive as configured
+    /// (LSB 0.001, saturating at ±32.767).
+    pub angle: f32,
+    /// The largest current commanded, A, signed (LSB 0.01; 0 for velocity-mode drives).
+    pub peak_current: f32,
+}
+
 /// A message from the host (or another node, such as an IMU) to the robot.
 #[derive(Clone, Copy, PartialEq, Debug)]
 pub enum Command {
@@ -394,6 +512,8 @@ pub enum Command {
     StatusRequest,
     /// `IMU_YAW_RATE`: the gyro's yaw rate. Not a motion command.
     ImuYawRate(ImuYawRate),
+    /// `WHEEL_TEST`: drive one wheel for the bring-up check.
+    WheelTest(WheelTest),
 }
 
 /// Odometry pose position (`ODOM_POSITION`), odometry frame.
@@ -477,6 +597,8 @@ pub enum Telemetry {
     StatusCounters(StatusCounters),
     /// `HEARTBEAT`.
     Heartbeat(Heartbeat),
+    /// `WHEEL_TEST_RESULT`.
+    WheelTestResult(WheelTestResult),
 }
 
 /// Any message of the protocol.
@@ -536,6 +658,7 @@ impl Command {
             Self::Mode(_) => layout::MODE_CMD,
             Self::StatusRequest => layout::STATUS_REQ,
             Self::ImuYawRate(_) => layout::IMU_YAW_RATE,
+            Self::WheelTest(_) => layout::WHEEL_TEST,
         }
     }
 
@@ -552,6 +675,7 @@ impl Command {
             x if x == layout::MODE_CMD.id => layout::MODE_CMD,
             x if x == layout::STATUS_REQ.id => layout::STATUS_REQ,
             x if x == layout::IMU_YAW_RATE.id => layout::IMU_YAW_RATE,
+            x if x == layout::WHEEL_TEST.id => layout::WHEEL_TEST,
             _ => return Err(wire::unknown(frame)),
         };
         let p = wire::data_payload(frame, id, &[def.dlc])?;
@@ -592,6 +716,11 @@ impl Command {
                     seq: layout::IMU_SEQ.raw(&p) as u8,
                 })
             }
+            x if x == layout::WHEEL_TEST.id => Self::WheelTest(WheelTest {
+                wheel: layout::TEST_WHEEL.checked(&p)? as u8,
+                speed: layout::TEST_SPEED.physical(&p)?,
+                duration_ms: layout::TEST_DURATION.checked(&p)? as u16,
+            }),
             _ => Self::StatusRequest,
         })
     }
@@ -618,6 +747,14 @@ impl Command {
                 layout::IMU_YAW_RATE_VALUE.put_f32(&mut p, rate);
                 layout::IMU_SEQ.put_raw(&mut p, g.seq.into());
             }
+            Self::WheelTest(t) => {
+                layout::TEST_WHEEL.put_raw(&mut p, t.wheel.min(3).into());
+                layout::TEST_SPEED.put_physical(&mut p, t.speed);
+                layout::TEST_DURATION.put_raw(
+                    &mut p,
+                    i64::from(t.duration_ms).clamp(1, layout::TEST_DURATION_MAX_MS),
+                );
+            }
         }
         CanFrame::from_buffer(sid(def.id), p.0, def.dlc)
     }
@@ -639,6 +776,7 @@ impl Telemetry {
             Self::Status(_) => layout::STATUS,
             Self::StatusCounters(_) => layout::STATUS_COUNTERS,
             Self::Heartbeat(_) => layout::HEARTBEAT,
+            Self::WheelTestResult(_) => layout::WHEEL_TEST_RESULT,
         }
     }
 
@@ -654,6 +792,7 @@ impl Telemetry {
             x if x == layout::STATUS.id => layout::STATUS,
             x if x == layout::STATUS_COUNTERS.id => layout::STATUS_COUNTERS,
             x if x == layout::HEARTBEAT.id => layout::HEARTBEAT,
+            x if x == layout::WHEEL_TEST_RESULT.id => layout::WHEEL_TEST_RESULT,
             _ => return Err(wire::unknown(frame)),
         };
         let p = wire::data_payload(frame, id, &[def.dlc])?;
@@ -694,6 +833,18 @@ impl Telemetry {
                 out_of_range: layout::COUNTERS_OUT_OF_RANGE.raw(&p) as u16,
                 non_finite: layout::COUNTERS_NON_FINITE.raw(&p) as u16,
             }),
+            x if x == layout::WHEEL_TEST_RESULT.id => {
+                let raw = layout::RESULT_OUTCOME.checked(&p)?;
+                Self::WheelTestResult(WheelTestResult {
+                    wheel: layout::RESULT_WHEEL.checked(&p)? as u8,
+                    outcome: u8::try_from(raw)
+                        .ok()
+                        .and_then(TestOutcome::from_raw)
+                        .unwrap_or(TestOutcome::Done),
+                    angle: layout::RESULT_ANGLE.physical(&p)?,
+                    peak_current: layout::RESULT_PEAK_CURRENT.physical(&p)?,
+                })
+            }
             _ => Self::Heartbeat(Heartbeat {
                 uptime_ms: layout::HEARTBEAT_UPTIME.raw(&p) as u32,
                 state: state_of(layout::HEARTBEAT_STATE.checked(&p)?),
@@ -740,6 +891,12 @@ impl Telemetry {
                 layout::HEARTBEAT_UPTIME.put_raw(&mut p, h.uptime_ms.into());
                 layout::HEARTBEAT_STATE.put_raw(&mut p, h.state.raw().into());
                 layout::HEARTBEAT_VERSION.put_raw(&mut p, h.protocol_version.into());
+            }
+            Self::WheelTestResult(r) => {
+                layout::RESULT_WHEEL.put_raw(&mut p, r.wheel.min(3).into());
+                layout::RESULT_OUTCOME.put_raw(&mut p, r.outcome.raw().into());
+                layout::RESULT_ANGLE.put_physical(&mut p, r.angle);
+                layout::RESULT_PEAK_CURRENT.put_physical(&mut p, r.peak_current);
             }
         }
         CanFrame::from_buffer(sid(def.id), p.0, def.dlc)
