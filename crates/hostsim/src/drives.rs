@@ -69,29 +69,71 @@ impl SimDrives {
 }
 
 impl SimDrives {
-    /// The plant of a scenario: [`Self::new`] for its configuration, with the robot's true
-    /// geometry and roller drag of its `[plant]` table where it has one
-    /// ([`PlantSpec`](crate::scenario::PlantSpec)).
+    /// The plant of a scenario: [`Self::with_spec`] of its configuration and `[plant]` table.
     ///
     /// # Errors
-    /// [`ParamError`] as [`Self::new`], or naming the `plant.*` value the chassis refuses.
+    /// As [`Self::with_spec`].
     pub fn for_scenario(scenario: &crate::scenario::Scenario) -> Result<Self, ParamError> {
-        let drives = Self::new(&scenario.config)?;
-        if scenario.plant.is_empty() {
+        Self::with_spec(&scenario.config, &scenario.plant)
+    }
+
+    /// The plant of a configuration where the robot differs from it
+    /// ([`PlantSpec`](crate::scenario::PlantSpec)): [`Self::new`], then the robot's true
+    /// geometry and roller drag, its wiring (motors mounted the other way, drives on each
+    /// other's ids) and whether it stands on blocks.
+    ///
+    /// # Errors
+    /// [`ParamError`] as [`Self::new`], or naming the `plant.*` value the plant refuses.
+    pub fn with_spec(
+        config: &Config,
+        spec: &crate::scenario::PlantSpec,
+    ) -> Result<Self, ParamError> {
+        let drives = Self::new(config)?;
+        if spec.is_empty() {
             return Ok(drives);
         }
-        let adjust = |c: &mut ChassisParams| scenario.plant.apply(c);
-        Ok(match drives {
-            Self::Dji { plant, esc, model } => Self::Dji {
-                plant: Box::new((*plant).with_chassis(adjust)?),
-                esc,
-                model,
-            },
-            Self::Odrive { plant, node } => Self::Odrive {
-                plant: Box::new((*plant).with_chassis(adjust)?),
-                node,
-            },
-        })
+        if let Some((field, value, expected)) = spec.first_invalid() {
+            return Err(ParamError::new(field, value, expected));
+        }
+        let adjust = |c: &mut ChassisParams| spec.apply(c);
+        let rewire = |inverted: [bool; 4]| spec.wired_inverted(inverted);
+        // Friction so low that no wheel moves the body: a robot on blocks.
+        const LIFTED_FRICTION: f64 = 1e-9;
+        let mut drives = match drives {
+            Self::Dji { plant, esc, model } => {
+                let plant = (*plant).with_chassis(adjust)?;
+                let inverted = rewire(plant.inverted());
+                Self::Dji {
+                    plant: Box::new(plant.with_inverted(inverted)),
+                    esc: spec.wired_ids(esc),
+                    model,
+                }
+            }
+            Self::Odrive { plant, node } => {
+                let plant = (*plant).with_chassis(adjust)?;
+                let inverted = rewire(plant.inverted());
+                Self::Odrive {
+                    plant: Box::new(plant.with_inverted(inverted)),
+                    node: spec.wired_ids(node),
+                }
+            }
+        };
+        if spec.lifted {
+            match &mut drives {
+                Self::Dji { plant, .. } => plant.set_friction(LIFTED_FRICTION)?,
+                Self::Odrive { plant, .. } => plant.set_friction(LIFTED_FRICTION)?,
+            }
+        }
+        Ok(drives)
+    }
+
+    /// The true state of the chassis and its wheels (ground truth).
+    #[must_use]
+    pub fn chassis_state(&self) -> &crate::plant::ChassisState {
+        match self {
+            Self::Dji { plant, .. } => plant.chassis().state(),
+            Self::Odrive { plant, .. } => plant.chassis().state(),
+        }
     }
 }
 

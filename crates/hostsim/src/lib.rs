@@ -5,6 +5,7 @@
 //! over a simulated CAN bus, in simulated time. Every frame and state is logged to MCAP as ROS 2
 //! messages ([`log`]); a log can be replayed to check that the core still produces the same frames, bit for bit.
 
+pub mod bringup;
 pub mod bus;
 pub mod calibrate;
 pub mod candump;

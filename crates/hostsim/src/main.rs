@@ -48,11 +48,13 @@ enum Cmd {
     /// `scenario` module docs) sets duration_s, and optionally name (default: the file's
     /// stem), seed (default 0), command_hz (default 50), config (a drive configuration, relative
     /// to the file; default the DJI example), [[actions]] (at_s and one or more of enable,
-    /// disable, reset, estop, status_request, twist = [vx, vy, wz], silence, resume) and
+    /// disable, reset, estop, status_request, twist = [vx, vy, wz], silence, resume,
+    /// wheel_test = { wheel, speed, duration_ms }) and
     /// [[faults]] (kind = drop | burst | delay | corrupt | stuck_encoder | motor_offline |
     /// non_finite_twist, from_s, until_s, and the kind's fields: rate, delay_ms, sender,
     /// wheel), [plant] (the simulated robot where it differs from the configuration:
-    /// wheel_radius, lx, ly, roller_drag; kept when --config replaces the configuration) and
+    /// wheel_radius, lx, ly, roller_drag, and a miswiring: flip = [wheel indices], swap =
+    /// [[a, b], ...], lifted = true; kept when --config replaces the configuration) and
     /// [imu] (an IMU node sending IMU_YAW_RATE for gyro heading: rate_hz, bias_deg_s,
     /// noise_density in °/s/√Hz, enabled). Every error names the file, the field and the
     /// value.
@@ -184,6 +186,19 @@ enum Cmd {
     /// written, 2 for a startup error (bad arguments, configuration, interface).
     #[command(verbatim_doc_comment)]
     Plant(PlantArgs),
+    /// The bring-up check on a simulated robot on blocks: which wheel turns, which way.
+    ///
+    /// Each configured wheel in turn is driven by the firmware's WHEEL_TEST (only a disabled
+    /// robot runs it: a quarter of the current limit, --duration-ms long, then disabled
+    /// again), on a fresh simulated robot with its wheels off the ground; the plant's ground
+    /// truth says which wheel turned and which way, as the person watching a real robot
+    /// does for `mecanum-drive check`. Prints per wheel what turned and the firmware's own
+    /// result, and the [drive] lines (esc_ids or node_ids, inverted) that fix the
+    /// configuration. --flip and --swap build the robot miswired on purpose.
+    ///
+    /// Exit status: 0 if the robot is wired as configured, 1 if the check found a
+    /// miswiring (the fix is printed), 2 for an error.
+    Check(CheckArgs),
     /// Summarise a log: odometry drift against ground truth, bus load, state changes and
     /// faults, messages per topic.
     ///
@@ -324,6 +339,78 @@ struct PlantArgs {
     /// With --imu: the gyro's bias, °/s. Default 0.1.
     #[arg(long, value_name = "DEG_S", requires = "imu")]
     imu_bias_deg_s: Option<f64>,
+    #[command(flatten)]
+    wiring: WiringArgs,
+    /// The robot on blocks: no wheel touches the ground (for `mecanum-drive check`). The
+    /// plant prints on stderr which wheel turned, and which way, after each time one has.
+    #[arg(long)]
+    lifted: bool,
+}
+
+/// A simulated robot wired otherwise than its configuration says (`check`, `plant`).
+#[derive(Debug, Clone, clap::Args)]
+struct WiringArgs {
+    /// Mount this wheel's motor the other way than the configuration's `inverted` says
+    /// (FL, FR, RL, RR or 0-3; repeatable).
+    #[arg(long, value_name = "WHEEL", value_parser = parse_wheel)]
+    flip: Vec<usize>,
+    /// Wire these two wheels' drives to each other's ids (`esc_ids`/`node_ids`), e.g.
+    /// `--swap FL,RL` (repeatable, applied in order).
+    #[arg(long, value_name = "WHEEL,WHEEL", value_parser = parse_wheel_pair)]
+    swap: Vec<[usize; 2]>,
+}
+
+impl WiringArgs {
+    /// The plant's wiring as a scenario's `[plant]` table would give it.
+    fn spec(&self) -> hostsim::scenario::PlantSpec {
+        hostsim::scenario::PlantSpec {
+            flip: self.flip.clone(),
+            swap: self.swap.clone(),
+            ..hostsim::scenario::PlantSpec::default()
+        }
+    }
+}
+
+/// A wheel by name (FL, FR, RL, RR, any case) or index 0-3.
+fn parse_wheel(s: &str) -> Result<usize, String> {
+    let t = s.trim();
+    hostsim::bringup::WHEEL_NAMES
+        .iter()
+        .position(|n| n.eq_ignore_ascii_case(t))
+        .or_else(|| t.parse::<usize>().ok().filter(|&i| i < 4))
+        .ok_or_else(|| format!("{s:?} is not a wheel: FL, FR, RL, RR or 0-3"))
+}
+
+/// Two different wheels, `A,B`.
+fn parse_wheel_pair(s: &str) -> Result<[usize; 2], String> {
+    let (a, b) = s
+        .split_once(',')
+        .ok_or_else(|| format!("{s:?}: expected two wheels, e.g. FL,RL"))?;
+    let (a, b) = (parse_wheel(a)?, parse_wheel(b)?);
+    if a == b {
+        return Err(format!("{s:?}: a wheel cannot swap with itself"));
+    }
+    Ok([a, b])
+}
+
+/// The arguments of `hostsim check`.
+#[derive(Debug, clap::Args)]
+struct CheckArgs {
+    /// Drive configuration TOML (as config/dji_m3508.toml or config/odrive.toml).
+    /// Default: the built-in DJI example.
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    #[command(flatten)]
+    wiring: WiringArgs,
+    /// Wheel speed of each test, rad/s at the wheel (robot-forward; |speed| <= 10).
+    #[arg(long, value_name = "RAD_S", default_value_t = 3.0)]
+    speed: f32,
+    /// Length of each test, ms (1-3000).
+    #[arg(long, value_name = "MS", default_value_t = 1000)]
+    duration_ms: u16,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    json: bool,
 }
 
 /// The exit status of a process killed by SIGPIPE, as a shell reports it.
@@ -408,6 +495,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             }
         }
         Cmd::Plant(args) => plant(&args),
+        Cmd::Check(args) => check(&args),
         Cmd::Summary { log } => summary(&log),
         Cmd::Plot { logs, out } => plot_logs(&logs, out),
         Cmd::Calibrate {
@@ -1072,12 +1160,78 @@ fn play(
     })
 }
 
+/// `check`: the bring-up check on a simulated robot on blocks.
+fn check(args: &CheckArgs) -> Result<ExitCode> {
+    use hostsim::bringup::{Wiring, diagnose, outcome_name, report, run_check};
+    if !(args.speed.is_finite() && args.speed.abs() <= 10.0 && args.speed != 0.0) {
+        bail!(
+            "--speed {}: expected a wheel speed in [-10, 10] rad/s, not 0",
+            args.speed
+        );
+    }
+    if !(1..=3000).contains(&args.duration_ms) {
+        bail!("--duration-ms {}: expected 1-3000 ms", args.duration_ms);
+    }
+    let (config, source) = load_config(args.config.as_deref())?;
+    let spec = args.wiring.spec();
+    let runs = run_check(&config, &spec, args.speed, args.duration_ms)
+        .with_context(|| format!("configuration {source}"))?;
+    let configured = Wiring::of(&config);
+    let d = diagnose(&configured, runs.map(|r| r.seen));
+    if args.json {
+        let wheels: Vec<serde_json::Value> = runs
+            .iter()
+            .zip(d.verdicts)
+            .map(|(r, v)| {
+                serde_json::json!({
+                    "wheel": hostsim::bringup::WHEEL_NAMES[r.wheel],
+                    "id": configured.ids[r.wheel],
+                    "turned": r.seen.map(|s| hostsim::bringup::WHEEL_NAMES[s.wheel]),
+                    "forward": r.seen.map(|s| s.forward),
+                    "angles_rad": r.turned,
+                    "verdict": hostsim::bringup::verdict_text(r.wheel, v),
+                    "firmware": r.result.map(|t| serde_json::json!({
+                        "outcome": outcome_name(t.outcome),
+                        "angle_rad": t.angle,
+                        "peak_current_a": t.peak_current,
+                    })),
+                    "fault": format!("{:?}", r.fault),
+                })
+            })
+            .collect();
+        let out = serde_json::json!({
+            "configuration": source,
+            "right": d.is_right(),
+            "wheels": wheels,
+            "fix": d.fix_lines(&configured),
+            "unresolved": d.unresolved,
+        });
+        println!("{out}");
+    } else {
+        println!(
+            "bring-up check of {source} on a simulated robot on blocks, each wheel at {} rad/s \
+             for {} ms:",
+            args.speed, args.duration_ms
+        );
+        print!("{}", report(&configured, &runs, &d));
+    }
+    Ok(if d.is_right() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
+}
+
 /// `plant --iface IFACE`: the simulated drives on the interface in real time.
 fn plant(args: &PlantArgs) -> Result<ExitCode> {
     let (iface, quiet) = (args.iface.as_str(), args.quiet);
     let (stats_json, log) = (args.stats_json.as_deref(), args.log.as_deref());
     let (config, source) = load_config(args.config.as_deref())?;
-    let mut drives = hostsim::drives::SimDrives::new(&config)
+    let spec = hostsim::scenario::PlantSpec {
+        lifted: args.lifted,
+        ..args.wiring.spec()
+    };
+    let mut drives = hostsim::drives::SimDrives::with_spec(&config, &spec)
         .with_context(|| format!("configuration {source}: the plant cannot model it"))?;
     let imu = args.imu.then(|| hostsim::imu::ImuParams {
         bias_deg_s: args.imu_bias_deg_s.unwrap_or(0.1),

@@ -51,7 +51,14 @@
 //! lx = 0.194                # m, true centre-to-wheel distances (standard layout only)
 //! ly = 0.1746
 //! roller_drag = 0.17647     # ε in [0, 1): a pure strafe makes (1 − ε)/(1 + ε) of the command
+//! flip = [1]                # wheels (0 FL, 1 FR, 2 RL, 3 RR) whose motor is mounted the other way
+//! swap = [[0, 2]]           # pairs of wheels whose drives answer to each other's ids
+//! lifted = false            # true: on blocks, no wheel touches the ground
 //! ```
+//!
+//! `flip` and `swap` build a miswired robot (the firmware still believes its configuration);
+//! an action `wheel_test = { wheel = 0, speed = 3.0, duration_ms = 1000 }` sends the
+//! bring-up check's `WHEEL_TEST` ([`crate::bringup`]).
 //!
 //! An optional `[imu]` table puts an IMU node on the bus that sends the robot protocol's
 //! `IMU_YAW_RATE` from the plant's true yaw rate (see [`crate::imu`]; a configuration with
@@ -105,6 +112,22 @@ pub struct Action {
     /// Resume streaming.
     #[serde(default)]
     pub resume: bool,
+    /// Send a `WHEEL_TEST` (the bring-up check; a disabled robot runs it).
+    #[serde(default)]
+    pub wheel_test: Option<WheelTestSpec>,
+}
+
+/// A `WHEEL_TEST` as a scenario writes it: `wheel_test = { wheel = 0, speed = 3.0,
+/// duration_ms = 1000 }`.
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WheelTestSpec {
+    /// The wheel, 0..=3 (FL, FR, RL, RR).
+    pub wheel: u8,
+    /// Wheel speed setpoint, rad/s, robot-forward positive, `|speed| <= 10`.
+    pub speed: f32,
+    /// How long, ms, 1..=3000.
+    pub duration_ms: u16,
 }
 
 impl Action {
@@ -121,6 +144,7 @@ impl Action {
             twist: None,
             silence: false,
             resume: false,
+            wheel_test: None,
         }
     }
 
@@ -268,7 +292,7 @@ impl HostFault {
 /// The simulated robot where it differs from the drive configuration (a scenario's `[plant]`
 /// table): its true wheel radius, wheel positions and roller drag. `None` keeps the value the
 /// configuration (geometry) or the plant's defaults (roller drag, [`ChassisParams`]) give.
-#[derive(Debug, Clone, Copy, PartialEq, Default, Deserialize, serde::Serialize)]
+#[derive(Debug, Clone, PartialEq, Default, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct PlantSpec {
     /// True wheel radius, m, in `(0, 1]`.
@@ -284,6 +308,18 @@ pub struct PlantSpec {
     /// `(1 − ε)/(1 + ε)` of the command (default 1/7: 75 %).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub roller_drag: Option<f64>,
+    /// Wheels (indices 0..=3: FL, FR, RL, RR) whose motor is mounted the other way than the
+    /// configuration's `drive.inverted` says: a miswired robot.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub flip: Vec<usize>,
+    /// Pairs of wheels whose drives answer to each other's ids (`drive.esc_ids` or
+    /// `drive.node_ids`): drives wired to the wrong wheels. Applied in order.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub swap: Vec<[usize; 2]>,
+    /// The robot on blocks, wheels off the ground (the bring-up check): no wheel touches the
+    /// ground, the body stays where it is.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub lifted: bool,
 }
 
 impl PlantSpec {
@@ -306,6 +342,7 @@ impl PlantSpec {
             lx: Some(w.x),
             ly: Some(w.y),
             roller_drag: Some(c.roller_drag),
+            ..Self::default()
         }
     }
 
@@ -342,6 +379,56 @@ impl PlantSpec {
         ]
         .into_iter()
         .find_map(|(field, value, ok, expected)| Some((field, value?, expected)).filter(|_| !ok))
+        .or_else(|| self.invalid_wiring())
+    }
+
+    /// The first wiring entry that is not acceptable, as [`Self::first_invalid`] names it.
+    #[allow(clippy::cast_precision_loss)] // wheel indices
+    fn invalid_wiring(&self) -> Option<(&'static str, f64, &'static str)> {
+        const WHEEL: &str = "a wheel index 0..=3 (FL, FR, RL, RR)";
+        for (k, &w) in self.flip.iter().enumerate() {
+            if w > 3 {
+                return Some(("plant.flip", w as f64, WHEEL));
+            }
+            if self.flip[..k].contains(&w) {
+                return Some(("plant.flip", w as f64, "each wheel at most once"));
+            }
+        }
+        for &[a, b] in &self.swap {
+            if let Some(w) = [a, b].into_iter().find(|&w| w > 3) {
+                return Some(("plant.swap", w as f64, WHEEL));
+            }
+            if a == b {
+                return Some(("plant.swap", a as f64, "two different wheels"));
+            }
+        }
+        None
+    }
+
+    /// The drive ids of the plant's wheels (its ESC or node id per wheel), given the
+    /// configured ones: `configured` with [`Self::swap`] applied.
+    #[must_use]
+    pub fn wired_ids<T: Copy>(&self, configured: [T; 4]) -> [T; 4] {
+        let mut ids = configured;
+        for &[a, b] in &self.swap {
+            if a < 4 && b < 4 {
+                ids.swap(a, b);
+            }
+        }
+        ids
+    }
+
+    /// How the plant's motors are mounted, given the configured `drive.inverted`: with
+    /// [`Self::flip`] applied.
+    #[must_use]
+    pub fn wired_inverted(&self, configured: [bool; 4]) -> [bool; 4] {
+        let mut inverted = configured;
+        for &w in &self.flip {
+            if let Some(i) = inverted.get_mut(w) {
+                *i = !*i;
+            }
+        }
+        inverted
     }
 
     /// Applies the values to a chassis built from a configuration.
@@ -1050,6 +1137,31 @@ mod tests {
     }
 
     #[test]
+    fn plant_wiring_parses_and_a_bad_wheel_is_named() {
+        let text = "duration_s = 1.0\n[plant]\nflip = [1]\nswap = [[0, 2], [2, 3]]\nlifted = true";
+        let s = Scenario::from_toml(text, Path::new("w.toml")).unwrap();
+        assert_eq!((s.plant.flip.as_slice(), s.plant.lifted), (&[1][..], true));
+        // FL <-> RL, then RL <-> RR: RL is on FL's id... applied in order.
+        assert_eq!(s.plant.wired_ids([1u8, 2, 3, 4]), [3, 2, 4, 1]);
+        assert_eq!(
+            s.plant.wired_inverted([false, true, false, true]),
+            [false, false, false, true]
+        );
+        for (table, needle) in [
+            ("flip = [4]", "plant.flip = 4: a wheel index 0..=3"),
+            ("flip = [1, 1]", "plant.flip = 1: each wheel at most once"),
+            ("swap = [[2, 2]]", "plant.swap = 2: two different wheels"),
+            ("swap = [[0, 7]]", "plant.swap = 7: a wheel index 0..=3"),
+        ] {
+            let text = format!("duration_s = 1.0\n[plant]\n{table}");
+            let e = Scenario::from_toml(&text, Path::new("w.toml"))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(needle), "{table}: {e}");
+        }
+    }
+
+    #[test]
     fn plant_table_parses_validates_and_changes_only_the_robot() {
         let text =
             "duration_s = 1.0\n[plant]\nwheel_radius = 0.0775\nlx = 0.194\nroller_drag = 0.2";
@@ -1061,6 +1173,7 @@ mod tests {
                 lx: Some(0.194),
                 ly: None,
                 roller_drag: Some(0.2),
+                ..PlantSpec::default()
             }
         );
         let mut chassis = ChassisParams::from_config(&s.config);

@@ -697,6 +697,13 @@ fn expand_actions(s: &Scenario) -> Vec<(u64, HostAction)> {
                 push(HostAction::Send(cmd));
             }
         }
+        if let Some(t) = a.wheel_test {
+            push(HostAction::Send(Command::WheelTest(robot::WheelTest {
+                wheel: t.wheel,
+                speed: t.speed,
+                duration_ms: t.duration_ms,
+            })));
+        }
         if let Some(tw) = a.twist {
             push(HostAction::Twist(tw));
         }

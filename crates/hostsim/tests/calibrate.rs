@@ -234,6 +234,7 @@ fn the_fit_recovers_a_robot_built_unlike_its_configuration() {
         lx: Some(lx),
         ly: Some(ly),
         roller_drag: Some(eps),
+        ..PlantSpec::default()
     };
     let mut s = Scenario::builtin("calibration").unwrap();
     s.name = "calibration-unlike".into();

@@ -381,6 +381,14 @@ impl<D: Drive> Plant<D> {
         &mut self.drives[wheel.index()]
     }
 
+    /// The same plant with its motors mounted as `inverted` says (`true`: mirrored), e.g.
+    /// the other way than its configuration says (a miswired robot).
+    #[must_use]
+    pub fn with_inverted(mut self, inverted: [bool; WHEELS]) -> Self {
+        self.sign = inverted.map(|i| if i { -1.0 } else { 1.0 });
+        self
+    }
+
     /// `true` where the drive is mounted mirrored.
     #[must_use]
     pub fn inverted(&self) -> [bool; WHEELS] {
