@@ -341,8 +341,7 @@ struct PlantArgs {
     imu_bias_deg_s: Option<f64>,
     #[command(flatten)]
     wiring: WiringArgs,
-    /// The robot on blocks: no wheel touches the ground (for `mecanum-drive check`). The
-    /// plant prints on stderr which wheel turned, and which way, after each time one has.
+    /// The robot on blocks: no wheel touches the ground (for `mecanum-drive check`).
     #[arg(long)]
     lifted: bool,
 }
