@@ -26,6 +26,7 @@ from .robot import (
     RobotError,
     RobotFault,
     Status,
+    WheelTestResult,
 )
 
 __all__ = [
@@ -38,6 +39,7 @@ __all__ = [
     "RobotError",
     "RobotFault",
     "Status",
+    "WheelTestResult",
     "database",
     "protocol_version",
 ]

@@ -230,6 +230,73 @@ def cmd_teleop(args: argparse.Namespace) -> int:
     return 0
 
 
+CHECK_INTRO = """mecanum-drive check: which wheel turns, and which way
+Put the robot on blocks so that no wheel touches the ground, and keep hands clear of the
+wheels. Each wheel in turn is driven gently forward (the firmware limits it to a quarter of
+its current limit and the time given); watch which wheel turns and which way."""
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    from .check import WHEELS, Seen, Wiring, diagnose, parse_seen
+
+    configured = Wiring.from_config(args.config)
+    answers: list[str] | None = None
+    if args.observed is not None:
+        answers = [a for a in args.observed.split(",") if a.strip()]
+        if len(answers) != 4:
+            raise SystemExit(f"mecanum-drive check: --observed {args.observed!r}: expected four answers, FL's first")
+        for a in answers:
+            parse_seen(a)  # a bad answer fails before any wheel turns
+    print(CHECK_INTRO)
+    if answers is None and not args.yes:
+        input("Press Enter when the robot is on blocks (Ctrl-C to stop) ")
+    seen: list[Seen | None] = []
+    with _robot(args) as robot:
+        _wait_first_status(robot, args.timeout)
+        for i, name in enumerate(WHEELS):
+            print(f"\n{name} ({configured.ids_key[:-1]} {configured.ids[i]}): driving it at {args.speed} rad/s "
+                  f"for {args.duration} s ...", flush=True)
+            result = robot.wheel_test(i, args.speed, args.duration, timeout=args.timeout)
+            print(f"  firmware: {result.outcome}, its encoder turned {result.angle:+.2f} rad, "
+                  f"peak current {result.peak_current:+.2f} A")
+            if result.outcome == "REFUSED":
+                raise SystemExit("mecanum-drive check: the robot refused the test: it runs only when DISABLED "
+                                 "(`mecanum-drive reset` clears a fault)")
+            if result.outcome == "FAULT":
+                status = robot.status
+                print(f"  the robot faulted ({status.fault if status else 'unknown'}); reset it after the check")
+            if answers is not None:
+                answer = answers[i]
+                print(f"  seen: {answer}")
+            else:
+                answer = input("  Which wheel turned, and which way? (e.g. 'FL f', 'RR b', 'none') ")
+            while True:
+                try:
+                    seen.append(parse_seen(answer))
+                    break
+                except ValueError as err:
+                    if answers is not None:
+                        raise
+                    answer = input(f"  {err}: ")
+            if result.outcome == "FAULT":
+                robot.reset()
+                robot.wait_state("DISABLED", timeout=args.timeout)
+    d = diagnose(configured, seen)
+    print()
+    for name, verdict in zip(WHEELS, d.verdicts):
+        print(f"{name}: {verdict}")
+    if d.right:
+        print("wiring: as configured")
+        return 0
+    if d.fixed is None:
+        print(f"wiring: cannot be fixed from these answers: {d.unresolved}")
+        return 3
+    print(f"wiring: wrong; in {args.config}, [drive] section:")
+    for line in d.fix_lines(configured):
+        print(f"    {line}")
+    return 3
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="mecanum-drive",
@@ -271,6 +338,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--speed", type=float, default=0.3, help="linear speed of a key, m/s (default 0.3)")
     p.add_argument("--turn", type=float, default=0.8, help="yaw rate of a key, rad/s (default 0.8)")
     p.set_defaults(func=cmd_teleop)
+
+    p = sub.add_parser(
+        "check", help="bring-up check, robot on blocks: which wheel turns, which way; prints the config fix",
+        description=CHECK_INTRO + "\n\nAfter each wheel you say what you saw: a wheel and a direction "
+        "(FL/FR/RL/RR, f or b), or none. The check then prints, per wheel, what is wrong and the [drive] "
+        "lines (esc_ids or node_ids, inverted) that fix the configuration. Exit status: 0 wired as "
+        "configured, 3 miswired (the fix is printed), 1 an error.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--config", required=True, help="the robot's firmware configuration (TOML, as config/dji_m3508.toml)")
+    p.add_argument("--speed", type=float, default=3.0, help="wheel speed of each test, rad/s (default 3, at most 10)")
+    p.add_argument("--duration", type=float, default=1.0, help="length of each test, s (default 1, at most 3)")
+    p.add_argument("--observed", default=None, metavar="FL,FR,RL,RR",
+                   help="the four answers instead of asking, FL's test first, e.g. 'FL f,FR b,RL f,RR f'")
+    p.add_argument("--yes", action="store_true", help="do not wait for Enter: the robot is on blocks")
+    p.set_defaults(func=cmd_check)
 
     p = sub.add_parser(
         "ros2", help="the ROS 2 bridge: /cmd_vel in; /odom, /tf, /diagnostics out; enable/disable/reset/estop services",

@@ -118,6 +118,21 @@ class Counters:
 
 
 @dataclasses.dataclass(frozen=True)
+class WheelTestResult:
+    """The end of a wheel test (WHEEL_TEST_RESULT, protocol version 4): the wheel (0-3, FL, FR,
+    RL, RR), how it ended ("DONE", "STOPPED", "FAULT", "REFUSED"), how far that wheel's own
+    encoder says it turned (rad, robot-forward positive as configured: no encoder can tell
+    which wheel really turned, or which way) and the largest current commanded (A, signed;
+    0 for velocity-mode drives)."""
+
+    wheel: int
+    outcome: str
+    angle: float
+    peak_current: float
+    received: float  # time.monotonic()
+
+
+@dataclasses.dataclass(frozen=True)
 class Heartbeat:
     """The robot's last HEARTBEAT."""
 
@@ -179,12 +194,14 @@ class Robot:
         self._msg = {name: self._db.get_message_by_name(name) for name in (
             "ESTOP", "TWIST_CMD", "MODE_CMD", "STATUS_REQ",
             "ODOM_POSITION", "ODOM_VELOCITY", "STATUS", "STATUS_COUNTERS", "HEARTBEAT",
+            "WHEEL_TEST", "WHEEL_TEST_RESULT",
         )}
         self._by_id = {m.frame_id: m for m in self._msg.values()}
         self._version = protocol.protocol_version()
         self._states = protocol.choices("STATUS", "state")
         self._faults = protocol.choices("STATUS", "fault")
         self._heading_sources = protocol.choices("STATUS", "heading_source")
+        self._outcomes = protocol.choices("WHEEL_TEST_RESULT", "outcome")
 
         self._send_lock = threading.Lock()
         self._lock = threading.Condition()
@@ -196,6 +213,7 @@ class Robot:
         self._status: Status | None = None
         self._counters: Counters | None = None
         self._heartbeat: Heartbeat | None = None
+        self._wheel_test: WheelTestResult | None = None
         self._mismatch: ProtocolMismatch | None = None
         self._started = time.monotonic()
         self._callbacks: list[Callable[[Odometry], None]] = []
@@ -328,6 +346,39 @@ class Robot:
             self._setpoint = (0.0, 0.0, 0.0)
         self._send("ESTOP", magic=protocol.ESTOP_MAGIC)
 
+    def wheel_test(self, wheel: int, speed: float, duration_s: float, timeout: float = 1.0) -> WheelTestResult:
+        """The bring-up check's WHEEL_TEST: with the robot on blocks, drives wheel `wheel` (0-3:
+        FL, FR, RL, RR) at `speed` rad/s (robot-forward positive, |speed| <= 10) for
+        `duration_s` (0.001-3 s) and returns the robot's WHEEL_TEST_RESULT. Only a DISABLED
+        robot runs it (a quarter of its current limit, the other wheels without torque); in
+        any other state the result is "REFUSED". It ends early on `disable()` or `estop()`.
+
+        Raises ValueError naming the argument out of range, TimeoutError when no result
+        comes within `duration_s + timeout`.
+        """
+        self._check_open()
+        if wheel not in range(4):
+            raise ValueError(f"wheel = {wheel!r}: expected 0-3 (FL, FR, RL, RR)")
+        if not (math.isfinite(speed) and 0 < abs(speed) <= 10):
+            raise ValueError(f"speed = {speed!r}: expected a wheel speed in [-10, 10] rad/s, not 0")
+        if not (math.isfinite(duration_s) and 0.001 <= duration_s <= 3.0):
+            raise ValueError(f"duration_s = {duration_s!r}: expected 0.001-3 s")
+        self.check()
+        with self._lock:
+            self._wheel_test = None
+        self._send("WHEEL_TEST", wheel=wheel, speed=speed, duration_ms=round(duration_s * 1000), reserved=0)
+        deadline = time.monotonic() + duration_s + timeout
+        with self._lock:
+            while self._wheel_test is None or self._wheel_test.wheel != wheel:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError(
+                        f"no WHEEL_TEST_RESULT for wheel {wheel} within {duration_s + timeout:.2f} s: "
+                        "does the robot speak protocol version 4?"
+                    )
+                self._lock.wait(min(left, 0.05))
+            return self._wheel_test
+
     def request_status(self) -> None:
         """STATUS_REQ: the robot answers with a STATUS at once."""
         self._check_open()
@@ -427,6 +478,14 @@ class Robot:
                     wrong_dlc=int(values["wrong_dlc"]),
                     out_of_range=int(values["out_of_range"]),
                     non_finite=int(values["non_finite"]),
+                    received=now,
+                )
+            elif message.name == "WHEEL_TEST_RESULT":
+                self._wheel_test = WheelTestResult(
+                    wheel=int(values["wheel"]),
+                    outcome=self._outcomes.get(int(values["outcome"]), str(values["outcome"])),
+                    angle=float(values["angle"]),
+                    peak_current=float(values["peak_current"]),
                     received=now,
                 )
             elif message.name == "HEARTBEAT":

@@ -196,8 +196,8 @@ enum Cmd {
     /// result, and the [drive] lines (esc_ids or node_ids, inverted) that fix the
     /// configuration. --flip and --swap build the robot miswired on purpose.
     ///
-    /// Exit status: 0 if the robot is wired as configured, 1 if the check found a
-    /// miswiring (the fix is printed), 2 for an error.
+    /// Exit status: 0 if the robot is wired as configured, 3 if the check found a
+    /// miswiring (the fix is printed; as `mecanum-drive check`), 2 for an error.
     Check(CheckArgs),
     /// Summarise a log: odometry drift against ground truth, bus load, state changes and
     /// faults, messages per topic.
@@ -1217,7 +1217,7 @@ fn check(args: &CheckArgs) -> Result<ExitCode> {
     Ok(if d.is_right() {
         ExitCode::SUCCESS
     } else {
-        ExitCode::from(1)
+        ExitCode::from(3)
     })
 }
 
