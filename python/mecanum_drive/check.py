@@ -56,7 +56,7 @@ class Wiring:
             raise ValueError(f"{path}: drive.{key} = {ids!r}: expected four ids")
         if not (isinstance(inverted, list) and len(inverted) == 4 and all(isinstance(i, bool) for i in inverted)):
             raise ValueError(f"{path}: drive.inverted = {inverted!r}: expected four booleans")
-        return cls(tuple(ids), tuple(inverted), key)  # type: ignore[arg-type]
+        return cls(tuple(ids), tuple(inverted), key)
 
 
 @dataclasses.dataclass(frozen=True)
