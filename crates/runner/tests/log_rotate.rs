@@ -122,7 +122,10 @@ fn a_rotated_log_keeps_the_newest_k_complete_files() {
     for name in &expected {
         let path = dir.join(name);
         let messages = complete_messages(&path);
-        assert!(messages > 100, "{name}: {messages} messages");
+        // The last file holds whatever the run had left after its last rotation: complete,
+        // but as short as a hand-over (a run ended one with 99 messages).
+        let least = if *name == expected[2] { 1 } else { 100 };
+        assert!(messages >= least, "{name}: {messages} messages");
         let content = hostsim::replay::read_log(&path).unwrap();
         assert!(!content.steps.is_empty(), "{name}: no steps");
         // Every file but the last ended past the limit (it rotated there), not far past it.
