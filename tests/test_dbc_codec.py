@@ -40,7 +40,7 @@ ENUM_VALUES = {
     "magic": [0xE5],
     "request": [0, 1, 2],
     "state": [0, 1, 2, 3, 4],
-    "fault": [0, 1, 2, 3, 4, 5, 6, 7],
+    "fault": [0, 1, 2, 3, 4, 5, 6, 7, 8],
     "wheel": [0, 1, 2, 3],
     "outcome": [0, 1, 2, 3],
     "heading_source": [0, 1, 2],

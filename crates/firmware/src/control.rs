@@ -37,6 +37,7 @@
 //! | `DriveError` | an ODrive heartbeat or `Get_Error` reports a nonzero axis error, or (while enabled) an axis state other than closed loop | the next step |
 //! | `EncoderStuck` | see below (DJI only) | [`ENCODER_STUCK_SPINNING_US`] / [`ENCODER_STUCK_DRAGGED_US`] after the signature appears |
 //! | `WheelRunaway` | see below (current drives: DJI) | [`RUNAWAY_WINDOW_US`] after the current saturates |
+//! | `WheelFight` | see below (current drives: DJI) | [`FIGHT_WINDOW_US`] after the wheels start pushing against each other |
 //!
 //! An ODrive keeps reporting an axis error until it is told to clear it, so for ODrive
 //! drives `MODE_CMD reset` also sends `Clear_Errors` to every node at the next step; error
@@ -86,26 +87,46 @@
 //! wheel is *saturated* when the current commanded at the previous step is at least
 //! [`RUNAWAY_SATURATION`] of the limit in force (`limits.max_current`; a quarter of it in a
 //! wheel test) and pushes towards the setpoint. A wheel saturated at every step for
-//! [`RUNAWAY_WINDOW_US`] is a *runaway* when, at the end of that window or any later step of
-//! the same interval,
+//! [`RUNAWAY_WINDOW_US`] (and for as many steps as the window spans, so that a loop that
+//! stalls does not judge on one late look) is a *runaway* when, at the end of that window
+//! or any later step of the same interval,
 //!
 //! 1. it turns against its setpoint, at least [`RUNAWAY_MIN_SPEED`] the other way, or
 //! 2. its speed has moved at least [`RUNAWAY_GROWTH`] the other way than its current pushes
 //!    since the interval began (dragged away from its setpoint).
 //!
-//! That is a drive that cannot follow its setpoint with everything the loop can give: a motor
-//! mounted the other way than `drive.inverted` says, or drives wired to other wheels than
-//! `drive.esc_ids` says, fight the wheels that are right (the chassis cannot move as the
-//! kinematics ask, so the wrong wheel is dragged against its own torque). A sign error
-//! between a drive's current and its own encoder (positive feedback) runs the wheel away
-//! at full current too, and is caught the same way. Normal driving stays far from
-//! saturation: the acceleration limits ask for a few amperes. A wheel held still at full
-//! current (blocked against a wall) does not move away and is not a runaway. Two miswirings are
-//! beyond any wheel encoder: drives swapped diagonally with the right side mirrored (FL with
-//! RR, FR with RL) move the robot rigidly in another direction than asked (forward becomes a
-//! strafe) with every wheel following its setpoint; the bring-up check (`WHEEL_TEST`, with
-//! someone watching the wheels) finds those. Velocity-mode drives (ODrive) run their own
-//! loop and report a spin-out in their axis error (`DriveError`).
+//! That is a drive that cannot follow its setpoint with everything the loop can give: a
+//! sign error between a drive's current and its own encoder (positive feedback) runs the
+//! wheel away at full current. Normal driving stays far from saturation: the acceleration
+//! limits ask for a few amperes. A wheel held still at full current (blocked against a
+//! wall) does not move away and is not a runaway.
+//!
+//! ## Wheels that fight (current drives)
+//!
+//! A motor mounted the other way than `drive.inverted` says does not run away: the sign is
+//! applied to its current and to its encoder alike, so its loop stays stable and its
+//! encoder follows the setpoint while the wheel really turns backwards, scrubbing on the
+//! ground against the three others (measured in the simulator: no current near saturation,
+//! the robot still making 80 % of a commanded forward leg). What shows is the currents:
+//! every torque pattern that moves or holds the body lies in the range of the kinematics
+//! (`J`), and a wheel pushing against the others adds a part outside it, the part the
+//! forward kinematics cannot explain (their residual, the same one that measures slip in
+//! wheel speeds). While `Enabled`, when the residual of the currents commanded at the
+//! previous step has an RMS of at least [`FIGHT_CURRENT_FRACTION`] of `limits.max_current`
+//! at every step for [`FIGHT_WINDOW_US`] (and as many steps as it spans), the core faults
+//! `WheelFight`. On the simulated
+//! robot a right wiring gives a residual of 0.00 A in every built-in scenario (its loads
+//! are symmetric); a single flip grows to 1.7-4.4 A in steady driving, and crosses the
+//! threshold 60-170 ms after a twist from rest, before the robot has moved 3.3 cm (the
+//! hostsim crate's `tests/miswiring.rs`). A real robot's uneven loads leave some residual
+//! of their own: if it faults `WheelFight` with a right wiring (the bring-up check says
+//! so), that is the figure to measure. Drives swapped between wheels are not
+//! seen this way: every encoder and every current stays consistent with some body motion
+//! (a swap of FL and RR, with the right side mirrored, turns forward into a rigid strafe; a
+//! swap of FL and FR fights in a pattern that the currents see as a forward push), so the
+//! bring-up check (`WHEEL_TEST`, someone watching the wheels) is what finds those.
+//! Velocity-mode drives (ODrive) run their own loop and report a spin-out in their axis
+//! error (`DriveError`).
 //!
 //! # Wheel test
 //!
@@ -240,6 +261,11 @@ pub const RUNAWAY_MIN_SPEED: f32 = 1.0;
 /// Wheel runaway: a wheel whose speed moved at least this much (rad/s) the other way than
 /// its current pushes, since its current saturated, moves away from its setpoint.
 pub const RUNAWAY_GROWTH: f32 = 2.0;
+/// Wheels that fight: a residual of the currents (the part no body motion explains) with
+/// an RMS at least this fraction of `limits.max_current` is a fight (0.48 A of 16 A).
+pub const FIGHT_CURRENT_FRACTION: f32 = 0.03;
+/// Wheels that fight: how long the residual must stay above its threshold, µs.
+pub const FIGHT_WINDOW_US: u64 = 60_000;
 /// Wheel test: the current limit is this fraction of `limits.max_current` (current drives).
 pub const WHEEL_TEST_CURRENT_FRACTION: f32 = 0.25;
 
@@ -328,6 +354,8 @@ struct RunawayWatch {
     since: Option<Instant>,
     /// The wheel's speed at that step, rad/s.
     speed0: f32,
+    /// Steps in the interval so far.
+    steps: u32,
 }
 
 impl RunawayWatch {
@@ -336,7 +364,7 @@ impl RunawayWatch {
     /// [`RUNAWAY_WINDOW_US`] and the wheel turns against its setpoint or has moved away from
     /// it since the interval began.
     #[inline]
-    fn judge(&mut self, now: Instant, push: f32, setpoint: f32, speed: f32) -> bool {
+    fn judge(&mut self, now: Instant, push: f32, setpoint: f32, speed: f32, steps: u32) -> bool {
         if push == 0.0 {
             self.since = None;
             return false;
@@ -346,10 +374,12 @@ impl RunawayWatch {
             None => {
                 self.since = Some(now);
                 self.speed0 = speed;
+                self.steps = 0;
                 now
             }
         };
-        if now.micros_since(since) < RUNAWAY_WINDOW_US {
+        self.steps = self.steps.saturating_add(1);
+        if now.micros_since(since) < RUNAWAY_WINDOW_US || self.steps <= steps {
             return false;
         }
         let against = setpoint * speed < 0.0 && speed.abs() >= RUNAWAY_MIN_SPEED;
@@ -561,6 +591,9 @@ pub struct Controller {
     max_turns_per_us: f32,
     /// Bit i set when wheel i's motor reported within its staleness window at the last step.
     online: u8,
+    /// Current drives: since when the currents' residual has been above its threshold, and
+    /// for how many steps.
+    fight_since: Option<(Instant, u32)>,
     /// The wheel test running (state `WheelTest`).
     test: Option<TestRun>,
     /// A wheel test's result, sent at the next step.
@@ -684,6 +717,7 @@ impl Controller {
                 Drive::Dji { .. } => 0.0,
             },
             online: 0,
+            fight_since: None,
             test: None,
             test_result: None,
             axis_only: None,
@@ -1225,6 +1259,9 @@ impl Controller {
         if self.watch_runaway(now) && fault == Fault::None {
             fault = Fault::WheelRunaway;
         }
+        if self.watch_fight(now) && fault == Fault::None {
+            fault = Fault::WheelFight;
+        }
         if fault != Fault::None
             && matches!(
                 self.state,
@@ -1236,6 +1273,34 @@ impl Controller {
             self.fault = fault;
             self.halt();
         }
+    }
+
+    /// The wheel-fight watch for this step (see the [module documentation](self)); `true`
+    /// once the currents of the previous step and those before it have had a residual above
+    /// the threshold for [`FIGHT_WINDOW_US`].
+    fn watch_fight(&mut self, now: Instant) -> bool {
+        let watching =
+            matches!(self.config.drive, Drive::Dji { .. }) && self.state == RobotState::Enabled;
+        let threshold = FIGHT_CURRENT_FRACTION * self.config.limits.max_current;
+        let fighting = watching && {
+            let (_, residual) = self.kin.forward_with_residual(&WheelSpeeds(self.currents));
+            residual.rms() >= threshold
+        };
+        if !fighting {
+            self.fight_since = None;
+            return false;
+        }
+        let steps = self.window_steps(FIGHT_WINDOW_US);
+        let (since, n) = self.fight_since.get_or_insert((now, 0));
+        *n = n.saturating_add(1);
+        now.micros_since(*since) >= FIGHT_WINDOW_US && *n > steps
+    }
+
+    /// How many control steps a watch window of `window_us` spans: a watch fires only after
+    /// its window has passed *and* the core has seen that many steps of it, so a loop that
+    /// stalls (a late runner, an overrun) does not judge a wheel on one late look.
+    fn window_steps(&self, window_us: u64) -> u32 {
+        u32::try_from(window_us / self.period_micros().max(1)).unwrap_or(u32::MAX)
     }
 
     /// Runs every current-driven wheel's runaway watch for this step; `true` if one has
@@ -1250,6 +1315,7 @@ impl Controller {
             _ => 0.0,
         };
         let threshold = RUNAWAY_SATURATION * limit;
+        let steps = self.window_steps(RUNAWAY_WINDOW_US);
         let mut runaway = false;
         for (i, m) in self.motors.iter_mut().enumerate() {
             let (current, setpoint) = (self.currents[i], self.setpoints.0[i]);
@@ -1257,7 +1323,7 @@ impl Controller {
             let saturated =
                 limit > 0.0 && current.abs() >= threshold && current * (setpoint - m.speed) > 0.0;
             let push = if saturated { current.signum() } else { 0.0 };
-            runaway |= m.runaway.judge(now, push, setpoint, m.speed);
+            runaway |= m.runaway.judge(now, push, setpoint, m.speed, steps);
         }
         runaway
     }

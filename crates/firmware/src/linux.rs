@@ -814,6 +814,7 @@ fn state_name(s: &Snapshot) -> (&'static str, &'static str) {
         Fault::Config => "Config",
         Fault::EncoderStuck => "EncoderStuck",
         Fault::WheelRunaway => "WheelRunaway",
+        Fault::WheelFight => "WheelFight",
     };
     (state, fault)
 }

@@ -1953,57 +1953,74 @@ fn an_odrive_wheel_test_puts_only_that_axis_in_closed_loop() {
 
 /// Enables, drives forward at `vx`, and from `from_ms` on makes wheel `wheel`'s motor report
 /// `motor_speed` (its own sign) while the others follow their setpoints exactly. Returns the
-/// time of the step that faulted, µs after the first saturated step of that wheel, if any.
-fn runaway_run(wheel: usize, motor_speed: f32, vx: f32, from_ms: u64) -> (Rig, Option<u64>) {
+/// rig and, if it faulted, the time of the faulting step µs after the onset of the fight:
+/// the first step of the interval running at the fault in which the residual of the
+/// currents the motors acted on (the oracle: the rig's current frames, in the wheels' sense,
+/// through the configuration's kinematics) was at or above the fight threshold.
+fn fight_run(wheel: usize, motor_speed: f32, vx: f32, from_ms: u64) -> (Rig, Option<u64>) {
+    use firmware::control::FIGHT_CURRENT_FRACTION;
     let mut rig = Rig::dji();
     rig.run_ms(5);
     rig.enable();
-    let max = rig.config.limits.max_current;
-    let mut saturated_at = None;
+    let kin = rig.config.kinematics().unwrap();
+    let threshold = FIGHT_CURRENT_FRACTION * rig.config.limits.max_current;
+    let mirrored = |i: usize| if i % 2 == 1 { -1.0 } else { 1.0 };
+    let mut onset = None;
     for k in 0..1000u64 {
         if k % 10 == 0 {
             rig.twist(vx, 0.0, 0.0);
         }
         let snap = rig.ctl.snapshot();
         for i in 0..4 {
-            let sign = if i % 2 == 1 { -1.0 } else { 1.0 };
-            rig.speed[i] = sign * snap.wheel_setpoints.0[i];
+            rig.speed[i] = mirrored(i) * snap.wheel_setpoints.0[i];
         }
         if k >= from_ms {
             rig.speed[wheel] = motor_speed;
         }
+        // The currents the motors act on at this step: the last step's, wheel sense.
+        let acting = kinematics::WheelSpeeds(snap.currents);
+        let (_, residual) = kin.forward_with_residual(&acting);
+        if residual.rms() >= threshold {
+            onset.get_or_insert(rig.now_us);
+        } else {
+            onset = None;
+        }
         let out = rig.tick();
         let amps = dji_currents(&out).unwrap();
-        if saturated_at.is_none() && amps[wheel].abs() >= 0.95 * max {
-            saturated_at = Some(rig.now_us - TICK_US);
-        }
         if rig.ctl.state() == RobotState::Fault {
             assert!(all_zero(amps), "zero torque at once: {amps:?}");
             let at = rig.now_us - TICK_US;
-            return (rig, saturated_at.map(|s| at - s));
+            return (rig, onset.map(|s| at - s));
         }
     }
     (rig, None)
 }
 
 #[test]
-fn a_wheel_turning_against_its_saturated_current_is_a_runaway_within_the_window() {
-    use firmware::control::RUNAWAY_WINDOW_US;
-    // FL commanded forward at 0.5 m/s, its motor turning backwards at 5 rad/s.
-    let (rig, latency) = runaway_run(0, -5.0, 0.5, 100);
-    assert_eq!(
-        (rig.ctl.state(), rig.ctl.fault()),
-        (RobotState::Fault, Fault::WheelRunaway)
-    );
-    let latency = latency.expect("saturated before the fault");
-    assert!(
-        (RUNAWAY_WINDOW_US..=RUNAWAY_WINDOW_US + 2_000).contains(&latency),
-        "{latency} µs after saturation"
-    );
-    let mut rig = rig;
+fn a_wheel_that_does_not_follow_while_the_others_do_is_a_fight_within_the_window() {
+    use firmware::control::FIGHT_WINDOW_US;
+    // FL commanded forward at 0.5 m/s, its motor turning backwards at 5 rad/s; then RR
+    // (mirrored) at 1 m/s = 13.2 rad/s but held at 2 rad/s (blocked); then RR turning
+    // backwards. Each time the three others follow: the currents fight.
+    for (wheel, motor_speed, vx, from_ms) in
+        [(0, -5.0, 0.5, 100), (3, -2.0, 1.0, 0), (3, 1.5, 1.0, 0)]
+    {
+        let (rig, latency) = fight_run(wheel, motor_speed, vx, from_ms);
+        assert_eq!(
+            (rig.ctl.state(), rig.ctl.fault()),
+            (RobotState::Fault, Fault::WheelFight),
+            "wheel {wheel} at {motor_speed}"
+        );
+        let latency = latency.expect("a fight before the fault");
+        assert!(
+            (FIGHT_WINDOW_US..=FIGHT_WINDOW_US + 2_000).contains(&latency),
+            "wheel {wheel}: {latency} µs after the onset"
+        );
+    }
+    let (mut rig, _) = fight_run(0, -5.0, 0.5, 100);
     rig.send(Command::StatusRequest);
     rig.tick();
-    assert_eq!(rig.status().fault, Fault::WheelRunaway);
+    assert_eq!(rig.status().fault, Fault::WheelFight);
     // Latched: a twist does not move it, a reset clears it.
     rig.speed = [0.0; 4];
     rig.twist(0.5, 0.0, 0.0);
@@ -2015,17 +2032,55 @@ fn a_wheel_turning_against_its_saturated_current_is_a_runaway_within_the_window(
 }
 
 #[test]
-fn a_wheel_dragged_away_from_its_setpoint_is_a_runaway_but_a_blocked_one_is_not() {
-    // RR (mirrored) commanded forward at 1 m/s = 13.2 rad/s, but it only turns at 2 rad/s and
-    // slowing: dragged. First a wheel that stays at 2 rad/s: blocked, not a runaway.
-    let (rig, latency) = runaway_run(3, -2.0, 1.0, 0);
+fn a_stalled_loop_does_not_judge_a_fight_on_one_late_look() {
+    use firmware::control::FIGHT_WINDOW_US;
+    // FL lags from 100 ms on; 20 ms later the loop stalls for 100 ms (a late runner): the
+    // window has passed in time but the core saw one step of it. It faults only once it has
+    // seen the window's 60 steps.
+    let mut rig = Rig::dji();
+    rig.run_ms(5);
+    rig.enable();
+    let mut faulted_at_step = None;
+    for k in 0..400u64 {
+        if k % 10 == 0 {
+            rig.twist(0.5, 0.0, 0.0);
+        }
+        let snap = rig.ctl.snapshot();
+        for i in 0..4 {
+            let sign = if i % 2 == 1 { -1.0 } else { 1.0 };
+            rig.speed[i] = sign * snap.wheel_setpoints.0[i];
+        }
+        if k >= 100 {
+            rig.speed[0] = -5.0;
+        }
+        if k == 120 {
+            rig.now_us += FIGHT_WINDOW_US + 40_000;
+        }
+        rig.tick();
+        if rig.ctl.state() == RobotState::Fault {
+            faulted_at_step = Some(k);
+            break;
+        }
+    }
+    let k = faulted_at_step.expect("a fight");
+    assert_eq!(rig.ctl.fault(), Fault::WheelFight);
+    // Not at the late step (120), but the window's 60 steps after the fight began (~101).
+    let window_steps = FIGHT_WINDOW_US / 1000;
+    assert!(
+        (100 + window_steps..=110 + window_steps).contains(&k),
+        "faulted at step {k}"
+    );
+}
+
+#[test]
+fn wheels_that_follow_do_not_fight_however_hard_they_accelerate() {
+    // Full speed forward from rest and back, every wheel following its setpoint: large
+    // currents, no residual.
+    let (rig, latency) = fight_run(0, 0.0, 2.5, u64::MAX);
     assert_eq!(
         (rig.ctl.state(), rig.ctl.fault(), latency),
         (RobotState::Enabled, Fault::None, None)
     );
-    // Then one that turns backwards: against its setpoint.
-    let (rig, _) = runaway_run(3, 1.5, 1.0, 0);
-    assert_eq!(rig.ctl.fault(), Fault::WheelRunaway);
 }
 
 #[test]
@@ -2033,18 +2088,41 @@ fn a_wheel_test_whose_wheel_runs_the_other_way_faults() {
     let mut rig = Rig::dji();
     rig.run_ms(5);
     rig.send(wheel_test(0, 3.0, 2000));
-    // The motor's current and its encoder disagree: positive feedback.
-    let mut faulted = None;
+    // The motor's current and its encoder disagree: positive feedback. (One wheel driven:
+    // no fight to see, the runaway watch is what catches it.)
+    use firmware::control::{RUNAWAY_SATURATION, RUNAWAY_WINDOW_US, WHEEL_TEST_CURRENT_FRACTION};
+    let limit = WHEEL_TEST_CURRENT_FRACTION * rig.config.limits.max_current;
+    let (mut saturated, mut faulted) = (None, None);
+    let t0 = rig.now_us;
     for k in 0..2000u64 {
         rig.speed[0] = -0.01 * k as f32;
-        rig.tick();
+        let amps = dji_currents(&rig.tick()).unwrap();
         if rig.ctl.state() == RobotState::Fault {
-            faulted = Some(k);
+            faulted = Some(rig.now_us - TICK_US);
             break;
         }
+        if saturated.is_none() && amps[0].abs() >= RUNAWAY_SATURATION * limit {
+            saturated = Some(rig.now_us - TICK_US);
+        }
     }
-    let k = faulted.expect("a runaway in the test");
-    assert!(k < 300, "faulted after {k} ms");
+    // Saturated within a few ms; the window over, the fault comes at the first step whose
+    // feedback turns at least RUNAWAY_MIN_SPEED (1 rad/s) the other way: 100 ms in.
+    let (saturated, faulted) = (saturated.expect("saturated"), faulted.expect("a runaway"));
+    assert!(
+        faulted - saturated >= RUNAWAY_WINDOW_US,
+        "{} µs after saturation",
+        faulted - saturated
+    );
+    assert!(
+        saturated - t0 < 10_000,
+        "saturated {} µs in",
+        saturated - t0
+    );
+    assert!(
+        (99_000..=102_000).contains(&(faulted - t0)),
+        "faulted {} µs in",
+        faulted - t0
+    );
     assert_eq!(rig.ctl.fault(), Fault::WheelRunaway);
     rig.tick();
     let r = test_results(&rig);

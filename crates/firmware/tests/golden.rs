@@ -310,6 +310,7 @@ fn robot_status() {
         Fault::Config,
         Fault::EncoderStuck,
         Fault::WheelRunaway,
+        Fault::WheelFight,
     ];
     for (raw, fault) in faults.into_iter().enumerate() {
         let f = frame(0x312, &[2, raw as u8, 0, 0, 0, 0, 0, 0]);
@@ -320,7 +321,7 @@ fn robot_status() {
     }
     for (data, field, value) in [
         ([5u8, 0, 0, 0, 0, 0, 0, 0], "state", 5),
-        ([0, 8, 0, 0, 0, 0, 0, 0], "fault", 8),
+        ([0, 9, 0, 0, 0, 0, 0, 0], "fault", 9),
         ([0, 0, 0, 0, 0, 0, 0x3F, 0], "heading_source", 3),
         ([0, 0, 0, 0, 0, 0, 0xF0, 0], "heading_source", 15),
     ] {

@@ -62,44 +62,116 @@ fn true_wiring(config: &Config, spec: &PlantSpec) -> Wiring {
 #[derive(Debug, Clone, Copy)]
 struct Drove {
     fault: Option<(Fault, u64)>,
-    /// The first step some wheel's current was at least 95 % of the limit, µs.
-    saturated_us: Option<u64>,
+    /// Start of the interval, running at the fault, in which the currents' residual was at
+    /// or above the fight threshold at every step (the oracle, from the firmware's own
+    /// currents and the configuration's kinematics), µs.
+    fight_onset_us: Option<u64>,
     moved_at_fault_m: f64,
     moved_max_m: f64,
     steps: u64,
 }
 
 fn drive(s: &Scenario) -> Drove {
+    use firmware::control::FIGHT_CURRENT_FRACTION;
     let mut plant = SimDrives::for_scenario(s).unwrap();
-    let limit = s.config.limits.max_current;
+    let kin = s.config.kinematics().unwrap();
+    let threshold = FIGHT_CURRENT_FRACTION * s.config.limits.max_current;
     let mut d = Drove {
         fault: None,
-        saturated_us: None,
+        fight_onset_us: None,
         moved_at_fault_m: 0.0,
         moved_max_m: 0.0,
         steps: 0,
     };
+    // The currents the motors act on at a step are those of the step before.
+    let mut acting = [0.0f32; 4];
     run_observed(s, &mut plant, None, LogOptions::default(), |v| {
         d.steps += 1;
         let moved = v.truth[0].hypot(v.truth[1]);
         d.moved_max_m = d.moved_max_m.max(moved);
-        if d.saturated_us.is_none()
-            && v.controller.state() == RobotState::Enabled
-            && v.controller
-                .snapshot()
-                .currents
-                .iter()
-                .any(|a| a.abs() >= 0.95 * limit)
-        {
-            d.saturated_us = Some(v.t_us);
+        let snap = v.controller.snapshot();
+        if d.fault.is_none() {
+            let (_, residual) = kin.forward_with_residual(&kinematics::WheelSpeeds(acting));
+            if residual.rms() >= threshold {
+                d.fight_onset_us.get_or_insert(v.t_us);
+            } else {
+                d.fight_onset_us = None;
+            }
         }
-        if d.fault.is_none() && v.controller.state() == RobotState::Fault {
-            d.fault = Some((v.controller.fault(), v.t_us));
+        if d.fault.is_none() && snap.state == RobotState::Fault {
+            d.fault = Some((snap.fault, v.t_us));
             d.moved_at_fault_m = moved;
         }
+        acting = snap.currents;
     })
     .unwrap();
     d
+}
+
+/// Enable, then drive `twist` from 0.1 s for 1.5 s, then stand.
+fn leg(config: Config, spec: &PlantSpec, twist: [f32; 3]) -> Scenario {
+    let mut s = Scenario::from_toml("duration_s = 2.0\nseed = 5", Path::new("leg.toml")).unwrap();
+    s.config = config;
+    s.plant = spec.clone();
+    s.actions = vec![
+        hostsim::scenario::Action {
+            enable: true,
+            ..hostsim::scenario::Action::at(0.05)
+        },
+        hostsim::scenario::Action::twist(0.1, twist[0], twist[1], twist[2]),
+        hostsim::scenario::Action::twist(1.6, 0.0, 0.0, 0.0),
+    ];
+    s
+}
+
+/// Driving a robot with one motor mounted the other way: forward, strafe and spin from
+/// rest. Each faults `WheelFight` exactly its window after the wheels' currents began to
+/// fight (the oracle: their residual above the threshold), before the robot has moved
+/// 5 cm. With no torque it then coasts on (the figures are printed).
+#[test]
+fn driving_with_a_flipped_motor_faults_before_the_robot_moves_5_cm() {
+    use firmware::control::FIGHT_WINDOW_US;
+    let config = Config::dji_m3508_example();
+    let (mut worst_moved, mut worst_after_twist, mut worst_coast) = (0.0f64, 0u64, 0.0f64);
+    for (name, spec) in miswirings().into_iter().filter(|(_, s)| !s.flip.is_empty()) {
+        for twist in [[0.5, 0.0, 0.0], [0.0, 0.5, 0.0], [0.0, 0.0, 1.5]] {
+            let d = drive(&leg(config, &spec, twist));
+            let (fault, at_us) = d
+                .fault
+                .unwrap_or_else(|| panic!("{name} {twist:?}: no fault"));
+            assert_eq!(fault, Fault::WheelFight, "{name} {twist:?}");
+            let onset = d.fight_onset_us.expect("the currents fought");
+            assert!(
+                (FIGHT_WINDOW_US..=FIGHT_WINDOW_US + 2_000).contains(&(at_us - onset)),
+                "{name} {twist:?}: {} µs after the onset",
+                at_us - onset
+            );
+            // The twist starts at 0.1 s.
+            let after_twist = at_us - 100_000;
+            println!(
+                "{name} {twist:?}: WheelFight {:.0} ms after the twist, the body {:.1} mm from \
+                 rest then, {:.1} mm at most (coasting)",
+                after_twist as f64 / 1e3,
+                d.moved_at_fault_m * 1e3,
+                d.moved_max_m * 1e3
+            );
+            assert!(
+                d.moved_at_fault_m < 0.05,
+                "{name} {twist:?}: {} m",
+                d.moved_at_fault_m
+            );
+            worst_moved = worst_moved.max(d.moved_at_fault_m);
+            worst_after_twist = worst_after_twist.max(after_twist);
+            worst_coast = worst_coast.max(d.moved_max_m);
+        }
+    }
+    println!(
+        "flipped motors: at most {:.1} mm moved and {:.0} ms from the twist at the fault; \
+         {:.1} mm at most after coasting",
+        worst_moved * 1e3,
+        worst_after_twist as f64 / 1e3,
+        worst_coast * 1e3
+    );
 }
 
 /// The bring-up check of `config` on a robot wired as `spec`: its diagnosis must be the
@@ -204,7 +276,7 @@ fn the_bring_up_check_names_every_odrive_miswiring_and_its_fix() {
 /// (their own faults included: stuck encoders, offline motors, bus faults) and the square
 /// with 5 % and 20 % of all frames dropped at random (10 seeds each). No `WheelRunaway`.
 #[test]
-fn no_false_runaway_over_the_scenarios_and_random_drops() {
+fn no_false_runaway_or_fight_over_the_scenarios_and_random_drops() {
     let mut runs: Vec<(String, Scenario)> = Scenario::BUILTINS
         .iter()
         .map(|n| ((*n).to_string(), Scenario::builtin(n).unwrap()))
@@ -235,10 +307,14 @@ fn no_false_runaway_over_the_scenarios_and_random_drops() {
     for (name, s) in &runs {
         let d = drive(s);
         steps += d.steps;
-        assert_ne!(d.fault.map(|f| f.0), Some(Fault::WheelRunaway), "{name}");
+        let fault = d.fault.map(|f| f.0);
+        assert!(
+            !matches!(fault, Some(Fault::WheelRunaway | Fault::WheelFight)),
+            "{name}: {fault:?}"
+        );
     }
     println!(
-        "runaway watch: {} runs, {steps} firmware steps, no WheelRunaway",
+        "runaway and fight watches: {} runs, {steps} firmware steps, no WheelRunaway or WheelFight",
         runs.len()
     );
     assert!(steps > 200_000, "{steps}");

@@ -634,6 +634,7 @@ fn golden_set() -> Vec<(AnyMessage, Decoded)> {
             Fault::WheelRunaway,
             HeadingSource::Wheels,
         ),
+        (RobotState::Fault, Fault::WheelFight, HeadingSource::Wheels),
         (RobotState::WheelTest, Fault::None, HeadingSource::Wheels),
         (
             RobotState::Enabled,

@@ -85,7 +85,8 @@ use crate::frame::CanFrame;
 /// The protocol version this module implements, sent in [`Heartbeat::protocol_version`].
 ///
 /// Version 4 added `STATUS.state` 4 (`WHEEL_TEST`) with `WHEEL_TEST` and `WHEEL_TEST_RESULT`,
-/// and `STATUS.fault` 7 (`WHEEL_RUNAWAY`); a version 3 receiver rejects both values.
+/// and `STATUS.fault` 7 (`WHEEL_RUNAWAY`) and 8 (`WHEEL_FIGHT`); a version 3 receiver
+/// rejects those values.
 /// Version 3 made `TWIST_CMD.seq` an alive counter (a repeated `seq` is not applied) and
 /// added `STATUS_COUNTERS`; a version 2 host that sends one `seq` forever stops the robot
 /// after one command timeout. Version 2 added `STATUS.fault` 6 (`ENCODER_STUCK`); a version
@@ -277,7 +278,7 @@ pub mod layout {
     /// `STATUS.state`: 0 disabled, 1 enabled, 2 fault, 3 estop, 4 wheel test.
     pub const STATUS_STATE: Field = Field::int("state", 0, U8, Little).range(0, 4);
     /// `STATUS.fault`: 0 none .. 6 encoder stuck, 7 wheel runaway.
-    pub const STATUS_FAULT: Field = Field::int("fault", 1, U8, Little).range(0, 7);
+    pub const STATUS_FAULT: Field = Field::int("fault", 1, U8, Little).range(0, 8);
     /// `STATUS.rx_errors`: rejected frames, saturating.
     pub const STATUS_RX_ERRORS: Field = Field::int("rx_errors", 2, U16, Little);
     /// `STATUS.unknown_ids`: frames with unknown ids, saturating.
@@ -342,7 +343,7 @@ pub enum RobotState {
     WheelTest = 4,
 }
 
-/// The latest fault (`STATUS.fault`). Raw values 8..=255 are reserved for later versions.
+/// The latest fault (`STATUS.fault`). Raw values 9..=255 are reserved for later versions.
 ///
 /// How each is detected, and how fast: [`crate::control`].
 #[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
@@ -367,6 +368,9 @@ pub enum Fault {
     /// further from it, for a window: a motor mounted the other way than configured, or
     /// drives wired to the wrong wheels.
     WheelRunaway = 7,
+    /// The wheels pushed against each other for a window: the currents had a part that no
+    /// body motion explains, as when a motor is mounted the other way than configured.
+    WheelFight = 8,
 }
 
 macro_rules! u8_enum {
@@ -432,6 +436,7 @@ u8_enum!(Fault {
     Config = 5,
     EncoderStuck = 6,
     WheelRunaway = 7,
+    WheelFight = 8,
 });
 
 /// A twist setpoint (`TWIST_CMD`), body frame.
