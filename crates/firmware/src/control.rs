@@ -114,13 +114,18 @@
 //! wheel speeds). While `Enabled`, when the residual of the currents commanded at the
 //! previous step has an RMS of at least [`FIGHT_CURRENT_FRACTION`] of `limits.max_current`
 //! at every step for [`FIGHT_WINDOW_US`] (and as many steps as it spans), the core faults
-//! `WheelFight`. On the simulated
-//! robot a right wiring gives a residual of 0.00 A in every built-in scenario (its loads
-//! are symmetric); a single flip grows to 1.7-4.4 A in steady driving, and crosses the
-//! threshold 60-170 ms after a twist from rest, before the robot has moved 3.3 cm (the
-//! hostsim crate's `tests/miswiring.rs`). A real robot's uneven loads leave some residual
-//! of their own: if it faults `WheelFight` with a right wiring (the bring-up check says
-//! so), that is the figure to measure. Drives swapped between wheels are not
+//! `WheelFight`. The watch rests while the commanded twist strafes and turns at once
+//! (both at least [`FIGHT_COMBINED_MIN`]), and after that until the residual has dropped
+//! below the threshold (the loops' integrators hold the pushing for a while): there the
+//! rollers' drag makes a right robot's wheels push against each other as well, so a
+//! flipped motor on a robot that only ever strafes and turns at once is caught at its
+//! first other motion after a stop. Measured on the simulated robot (sustained over
+//! 60 steps): a right wiring gives 0.00 A in any translation, 0.16 A in a spin on the spot,
+//! but 0.6-0.7 A in a moderate strafe-and-turn and 2.2 A in 1 m/s strafe with 2 rad/s
+//! turn; a single flipped motor gives 1.9-4.9 A in every motion, and crosses the threshold
+//! within about 0.3 s of a twist from rest (the hostsim crate's `tests/miswiring.rs`). A
+//! real robot's uneven loads leave some residual of their own: if it faults `WheelFight`
+//! with a right wiring (the bring-up check says so), that is the figure to measure. Drives swapped between wheels are not
 //! seen this way: every encoder and every current stays consistent with some body motion
 //! (a swap of FL and RR, with the right side mirrored, turns forward into a rigid strafe; a
 //! swap of FL and FR fights in a pattern that the currents see as a forward push), so the
@@ -262,8 +267,12 @@ pub const RUNAWAY_MIN_SPEED: f32 = 1.0;
 /// its current pushes, since its current saturated, moves away from its setpoint.
 pub const RUNAWAY_GROWTH: f32 = 2.0;
 /// Wheels that fight: a residual of the currents (the part no body motion explains) with
-/// an RMS at least this fraction of `limits.max_current` is a fight (0.48 A of 16 A).
-pub const FIGHT_CURRENT_FRACTION: f32 = 0.03;
+/// an RMS at least this fraction of `limits.max_current` is a fight (0.8 A of 16 A).
+pub const FIGHT_CURRENT_FRACTION: f32 = 0.05;
+/// Wheels that fight: the watch rests while the commanded twist strafes and turns at once,
+/// at least this fast each (m/s and rad/s), where the rollers' drag makes a right robot's
+/// wheels push against each other too.
+pub const FIGHT_COMBINED_MIN: f32 = 0.02;
 /// Wheels that fight: how long the residual must stay above its threshold, µs.
 pub const FIGHT_WINDOW_US: u64 = 60_000;
 /// Wheel test: the current limit is this fraction of `limits.max_current` (current drives).
@@ -594,6 +603,9 @@ pub struct Controller {
     /// Current drives: since when the currents' residual has been above its threshold, and
     /// for how many steps.
     fight_since: Option<(Instant, u32)>,
+    /// Current drives: the fight watch rests (a strafe-and-turn, until the residual is below
+    /// its threshold again).
+    fight_rest: bool,
     /// The wheel test running (state `WheelTest`).
     test: Option<TestRun>,
     /// A wheel test's result, sent at the next step.
@@ -718,6 +730,7 @@ impl Controller {
             },
             online: 0,
             fight_since: None,
+            fight_rest: false,
             test: None,
             test_result: None,
             axis_only: None,
@@ -1279,13 +1292,20 @@ impl Controller {
     /// once the currents of the previous step and those before it have had a residual above
     /// the threshold for [`FIGHT_WINDOW_US`].
     fn watch_fight(&mut self, now: Instant) -> bool {
+        let c = self.commanded;
+        let combined = c.vy.abs() >= FIGHT_COMBINED_MIN && c.wz.abs() >= FIGHT_COMBINED_MIN;
         let watching =
             matches!(self.config.drive, Drive::Dji { .. }) && self.state == RobotState::Enabled;
         let threshold = FIGHT_CURRENT_FRACTION * self.config.limits.max_current;
-        let fighting = watching && {
+        let above = watching && {
             let (_, residual) = self.kin.forward_with_residual(&WheelSpeeds(self.currents));
             residual.rms() >= threshold
         };
+        // A strafe-and-turn rests the watch; the loops' integrators hold its pushing for a
+        // while after it, so the watch wakes only once the residual has been below the
+        // threshold again.
+        self.fight_rest = combined || (self.fight_rest && above);
+        let fighting = above && !self.fight_rest;
         if !fighting {
             self.fight_since = None;
             return false;

@@ -272,9 +272,12 @@ fn the_bring_up_check_names_every_odrive_miswiring_and_its_fix() {
     }
 }
 
-/// The runaway watch over drives of a right robot: every built-in and checked-in scenario
-/// (their own faults included: stuck encoders, offline motors, bus faults) and the square
-/// with 5 % and 20 % of all frames dropped at random (10 seeds each). No `WheelRunaway`.
+/// The runaway and fight watches over drives of a right robot: every built-in and
+/// checked-in scenario (their own faults included: stuck encoders, offline motors, bus
+/// faults), the square with 5 % and 20 % of all frames dropped at random (10 seeds each),
+/// and legs into translations, spins and strafe-and-turn combinations. No `WheelRunaway`,
+/// no `WheelFight`. (The fault matrix, `tests/fault_matrix.rs`, with its 1,000 random
+/// dropouts, checks that every run ends in its specified state, which neither is.)
 #[test]
 fn no_false_runaway_or_fight_over_the_scenarios_and_random_drops() {
     let mut runs: Vec<(String, Scenario)> = Scenario::BUILTINS
@@ -303,6 +306,28 @@ fn no_false_runaway_or_fight_over_the_scenarios_and_random_drops() {
             runs.push((format!("square, {rate} dropped, seed {seed}"), s));
         }
     }
+    // Legs of a right robot from 0.6 m/s forward into translations, spins and strafe-and-
+    // turn combinations (up to 1 m/s with 2 rad/s), the matrix of the fight watch's figures.
+    let config = Config::dji_m3508_example();
+    for t in [
+        [0.5, 0.0, 0.0],
+        [0.0, 0.5, 0.0],
+        [0.0, 0.0, 1.5],
+        [0.4, 0.2, 1.0],
+        [0.3, -0.2, 0.6],
+        [0.5, 0.5, 0.0],
+        [0.4, 0.0, 0.6],
+        [1.5, 0.0, 0.0],
+        [0.0, 1.0, 2.0],
+        [-1.0, -1.0, 0.0],
+        [0.0, 0.0, -4.0],
+    ] {
+        let mut s = leg(config, &PlantSpec::default(), [0.6, 0.0, 0.0]);
+        s.duration_s = 2.5;
+        s.actions
+            .insert(2, hostsim::scenario::Action::twist(0.6, t[0], t[1], t[2]));
+        runs.push((format!("leg {t:?}"), s));
+    }
     let mut steps = 0;
     for (name, s) in &runs {
         let d = drive(s);
@@ -310,7 +335,8 @@ fn no_false_runaway_or_fight_over_the_scenarios_and_random_drops() {
         let fault = d.fault.map(|f| f.0);
         assert!(
             !matches!(fault, Some(Fault::WheelRunaway | Fault::WheelFight)),
-            "{name}: {fault:?}"
+            "{name}: {:?}",
+            d.fault
         );
     }
     println!(
