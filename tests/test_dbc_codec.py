@@ -380,7 +380,7 @@ def test_dbc_value_tables_match_rust_enums_and_rust_rejects_others(run_codec, db
     status = robot.get_message_by_name("STATUS")
     table = {int(k): str(v) for k, v in status.get_signal_by_name("fault").choices.items()}
     assert table == {0: "NONE", 1: "MOTOR_STALE", 2: "MOTOR_MISSING", 3: "DRIVE_ERROR",
-                     4: "WATCHDOG", 5: "CONFIG", 6: "ENCODER_STUCK", 7: "WHEEL_RUNAWAY"}
+                     4: "WATCHDOG", 5: "CONFIG", 6: "ENCODER_STUCK", 7: "WHEEL_RUNAWAY", 8: "WHEEL_FIGHT"}
     request = robot.get_message_by_name("MODE_CMD").get_signal_by_name("request")
     assert set(request.choices) == set(ENUM_VALUES["request"])
     odrive = dbs["odrive"]
@@ -394,7 +394,7 @@ def test_dbc_value_tables_match_rust_enums_and_rust_rejects_others(run_codec, db
     for message in ("STATUS", "HEARTBEAT"):
         robot_state = robot.get_message_by_name(message).get_signal_by_name("state")
         assert set(robot_state.choices) == set(ENUM_VALUES["state"]), message
-    out = run_codec("decode", lines=[candump(0x312, bytes([0, 8, 0, 0, 0, 0, 0, 0]))])
+    out = run_codec("decode", lines=[candump(0x312, bytes([0, 9, 0, 0, 0, 0, 0, 0]))])
     assert out[0]["error"]["kind"] == "out_of_range"
 
 
@@ -465,7 +465,7 @@ MALFORMED = [
     ("300#E4", "out_of_range", {"field": "magic", "value": 0xE4}),
     ("302#03", "out_of_range", {"field": "request", "value": 3}),
     ("312#0500000000000000", "out_of_range", {"field": "state", "value": 5}),
-    ("312#0008000000000000", "out_of_range", {"field": "fault", "value": 8}),
+    ("312#0009000000000000", "out_of_range", {"field": "fault", "value": 9}),
     ("305#0400000100000000", "out_of_range", {"field": "wheel", "value": 4}),
     ("305#0011270100000000", "out_of_range", {"field": "speed", "value": 10001}),
     ("305#0010270000000000", "out_of_range", {"field": "duration_ms", "value": 0}),
