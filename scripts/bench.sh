@@ -6,6 +6,7 @@
 #   flash and static RAM of the STM32F407 board build,
 #   simulator real-time factor of the 60 s square with and without MCAP logging, the cost
 #   of logging (with / without, interleaved runs) and the log's size,
+#   the sweep's throughput, 200 runs of the 60 s square on 1 and on 2 threads,
 #   MCAP write throughput against the Python mcap writer on the same frames (ratio),
 #   what --log costs the runner's loop per step and the log's size per hour (in process,
 #   crates/runner/benches/recorder.rs),
@@ -79,6 +80,24 @@ row "simulator, 60 s square at 1 kHz, 4 x C620, MCAP logging" "$(grep '^| MCAP' 
 row "simulator, same, no logging" "$(grep '^| none' <<<"$sim" | awk -F'|' '{gsub(/ /,"",$4); print $4}')" "real-time factor"
 row "simulator, cost of MCAP logging (wall time with / without, interleaved)" "$(grep '^| cost' <<<"$sim" | awk -F'|' '{gsub(/ /,"",$3); print $3}')" "ratio"
 row "60 s square's MCAP log (ROS 2 messages, every frame once, zstd)" "$(sed -n 's/^| MCAP (ROS 2 messages, zstd), \([0-9.]*\) MB.*/\1/p' <<<"$sim") MB" "MB"
+
+log "sweep throughput: 200 runs of the 60 s square without logs, 1 thread against 2"
+cargo build --release --locked -q -p hostsim --bin hostsim
+sweep_dir=$(mktemp -d)
+sweep_s() {
+    local t0 t1
+    t0=$(date +%s.%N)
+    target/release/hostsim sweep scenarios/square_60s.toml --seeds 1..200 --jobs "$1" \
+        --no-plot --worst 0 --out "$sweep_dir/j$1" >/dev/null 2>&1
+    t1=$(date +%s.%N)
+    "$PY" -c "print(f'{$t1 - $t0:.2f}')"
+}
+one=$(sweep_s 1) two=$(sweep_s 2)
+cmp -s "$sweep_dir/j1/sweep.csv" "$sweep_dir/j2/sweep.csv" || { echo "bench.sh: the sweep's tables differ between 1 and 2 threads" >&2; exit 1; }
+rm -rf "$sweep_dir"
+row "sweep, 200 runs of the 60 s square, 1 thread" "$one s" "wall time"
+row "sweep, same, 2 threads (the same table)" "$two s" "wall time"
+row "sweep speed-up, 2 threads / 1" "$("$PY" -c "print(f'{$one / $two:.2f}x')")" "ratio"
 
 log "MCAP write throughput: Rust (McapLog) against the Python mcap writer, $mcap_frames frames"
 cargo build --release --locked -q -p hostsim --example mcap_throughput

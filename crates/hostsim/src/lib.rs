@@ -21,4 +21,5 @@ pub mod replay;
 pub mod scenario;
 pub mod sim;
 pub mod summary;
+pub mod sweep;
 pub mod whatif;

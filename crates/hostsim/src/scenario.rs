@@ -51,6 +51,7 @@
 //! lx = 0.194                # m, true centre-to-wheel distances (standard layout only)
 //! ly = 0.1746
 //! roller_drag = 0.17647     # ε in [0, 1): a pure strafe makes (1 − ε)/(1 + ε) of the command
+//! mass_kg = 22.0            # true mass
 //! flip = [1]                # wheels (0 FL, 1 FR, 2 RL, 3 RR) whose motor is mounted the other way
 //! swap = [[0, 2]]           # pairs of wheels whose drives answer to each other's ids
 //! lifted = false            # true: on blocks, no wheel touches the ground
@@ -308,6 +309,9 @@ pub struct PlantSpec {
     /// `(1 − ε)/(1 + ε)` of the command (default 1/7: 75 %).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub roller_drag: Option<f64>,
+    /// True mass of the robot, kg, in `(0, 1000]`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mass_kg: Option<f64>,
     /// Wheels (indices 0..=3: FL, FR, RL, RR) whose motor is mounted the other way than the
     /// configuration's `drive.inverted` says: a miswired robot.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
@@ -375,6 +379,12 @@ impl PlantSpec {
                 self.roller_drag,
                 (0.0..1.0).contains(&self.roller_drag.unwrap_or(0.0)),
                 "a roller drag in [0, 1)",
+            ),
+            (
+                "plant.mass_kg",
+                self.mass_kg,
+                length(self.mass_kg.unwrap_or(1.0), 1000.0),
+                "a mass in (0, 1000] kg",
             ),
         ]
         .into_iter()
@@ -467,6 +477,9 @@ impl PlantSpec {
         }
         if let Some(eps) = self.roller_drag {
             chassis.roller_drag = eps;
+        }
+        if let Some(m) = self.mass_kg {
+            chassis.mass = m;
         }
         Ok(())
     }
