@@ -1958,6 +1958,18 @@ fn an_odrive_wheel_test_puts_only_that_axis_in_closed_loop() {
 /// currents the motors acted on (the oracle: the rig's current frames, in the wheels' sense,
 /// through the configuration's kinematics) was at or above the fight threshold.
 fn fight_run(wheel: usize, motor_speed: f32, vx: f32, from_ms: u64) -> (Rig, Option<u64>) {
+    fight_run_stalling(wheel, motor_speed, vx, from_ms, None)
+}
+
+/// [`fight_run`], with the loop stalled once, if `stall` says so: before step `k` the clock
+/// jumps `us` (a late runner), so that step is the only one the core sees of that time.
+fn fight_run_stalling(
+    wheel: usize,
+    motor_speed: f32,
+    vx: f32,
+    from_ms: u64,
+    stall: Option<(u64, u64)>,
+) -> (Rig, Option<u64>) {
     use firmware::control::FIGHT_CURRENT_FRACTION;
     let mut rig = Rig::dji();
     rig.run_ms(5);
@@ -1984,6 +1996,11 @@ fn fight_run(wheel: usize, motor_speed: f32, vx: f32, from_ms: u64) -> (Rig, Opt
             onset.get_or_insert(rig.now_us);
         } else {
             onset = None;
+        }
+        if let Some((at_k, us)) = stall
+            && at_k == k
+        {
+            rig.now_us += us;
         }
         let out = rig.tick();
         let amps = dji_currents(&out).unwrap();
@@ -2036,39 +2053,14 @@ fn a_stalled_loop_does_not_judge_a_fight_on_one_late_look() {
     use firmware::control::FIGHT_WINDOW_US;
     // FL lags from 100 ms on; 20 ms later the loop stalls for 100 ms (a late runner): the
     // window has passed in time but the core saw one step of it. It faults only once it has
-    // seen the window's 60 steps.
-    let mut rig = Rig::dji();
-    rig.run_ms(5);
-    rig.enable();
-    let mut faulted_at_step = None;
-    for k in 0..400u64 {
-        if k % 10 == 0 {
-            rig.twist(0.5, 0.0, 0.0);
-        }
-        let snap = rig.ctl.snapshot();
-        for i in 0..4 {
-            let sign = if i % 2 == 1 { -1.0 } else { 1.0 };
-            rig.speed[i] = sign * snap.wheel_setpoints.0[i];
-        }
-        if k >= 100 {
-            rig.speed[0] = -5.0;
-        }
-        if k == 120 {
-            rig.now_us += FIGHT_WINDOW_US + 40_000;
-        }
-        rig.tick();
-        if rig.ctl.state() == RobotState::Fault {
-            faulted_at_step = Some(k);
-            break;
-        }
-    }
-    let k = faulted_at_step.expect("a fight");
+    // seen the window's 60 steps: the window and the stall after the onset.
+    let stall_us = FIGHT_WINDOW_US + 40_000;
+    let (rig, latency) = fight_run_stalling(0, -5.0, 0.5, 100, Some((120, stall_us)));
     assert_eq!(rig.ctl.fault(), Fault::WheelFight);
-    // Not at the late step (120), but the window's 60 steps after the fight began (~101).
-    let window_steps = FIGHT_WINDOW_US / 1000;
+    let latency = latency.expect("a fight before the fault");
     assert!(
-        (100 + window_steps..=110 + window_steps).contains(&k),
-        "faulted at step {k}"
+        (FIGHT_WINDOW_US + stall_us..=FIGHT_WINDOW_US + stall_us + 2_000).contains(&latency),
+        "{latency} µs after the onset"
     );
 }
 
