@@ -93,3 +93,16 @@ def test_bad_answers_and_configurations_are_named(tmp_path: pathlib.Path, capsys
     assert "'FL sideways': expected a wheel and a direction" in capsys.readouterr().err
     assert main(["--channel", "nonexistent", "check", "--config", str(bad), "--yes"]) == 1
     assert "drive.protocol = 'canopen'" in capsys.readouterr().err
+
+
+def test_the_check_stops_cleanly_when_the_person_does(monkeypatch: pytest.MonkeyPatch,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """End of input (or Ctrl-C) at the first prompt: status 130 and a line, no traceback, and
+    no bus was opened (the prompt comes before)."""
+    import io
+
+    monkeypatch.setattr("sys.stdin", io.StringIO(""))
+    assert main(["--channel", "nonexistent", "check", "--config", str(ROOT / "config" / "dji_m3508.toml")]) == 130
+    captured = capsys.readouterr()
+    assert "Put the robot on blocks" in captured.out
+    assert "check: stopped" in captured.err

@@ -237,6 +237,15 @@ its current limit and the time given); watch which wheel turns and which way."""
 
 
 def cmd_check(args: argparse.Namespace) -> int:
+    try:
+        return _check(args)
+    except (KeyboardInterrupt, EOFError):
+        # The robot's context has disabled it already (a wheel test also ends on disable).
+        print("\ncheck: stopped; the robot is disabled", file=sys.stderr)
+        return 130
+
+
+def _check(args: argparse.Namespace) -> int:
     from .check import WHEELS, Seen, Wiring, diagnose, parse_seen
 
     configured = Wiring.from_config(args.config)
