@@ -877,15 +877,9 @@ impl Controller {
                     self.state = RobotState::Enabled;
                     self.fault = Fault::None;
                     self.halt();
-                    self.axis_only = None;
                     // A new session: its first twist is accepted whatever its seq.
                     self.last_seq = None;
-                    self.axis_request = self.odrive_axis(AxisState::ClosedLoopControl);
-                    // States reported from now until the request goes out predate it.
-                    self.closed_loop_at = Some(now);
-                    for m in &mut self.motors {
-                        m.axis_state = None;
-                    }
+                    self.request_closed_loop(now, None);
                 }
             }
             Command::Mode(ModeRequest::Disable) => {
@@ -922,7 +916,8 @@ impl Controller {
     /// Starts a wheel test if the robot is disabled; otherwise refuses it (a
     /// `WHEEL_TEST_RESULT` `REFUSED` at the next step).
     fn start_test(&mut self, now: Instant, t: WheelTest) {
-        let wheel = usize::from(t.wheel.min(3));
+        // The codec refuses wheels above 3; the core does not index past them either way.
+        let wheel = t.wheel.min(3);
         if self.state != RobotState::Disabled {
             self.test_result = Some(WheelTestResult {
                 wheel: t.wheel,
@@ -937,21 +932,39 @@ impl Controller {
         self.halt();
         let max = self.config.limits.max_wheel_speed;
         self.test = Some(TestRun {
-            wheel: t.wheel.min(3),
+            wheel,
             speed: symmetric_limit(t.speed, max),
             until: Instant::from_micros(
                 now.as_micros()
                     .saturating_add(u64::from(t.duration_ms) * 1000),
             ),
-            start_angle: self.motors[wheel].angle,
+            start_angle: self.motors[usize::from(wheel)].angle,
             peak_current: 0.0,
         });
         // ODrive: closed loop on the tested axis only; the others stay idle.
+        self.request_closed_loop(now, Some(wheel));
+    }
+
+    /// ODrive: asks for closed loop (with velocity mode) at the next step, on every axis
+    /// (`only` `None`: an enable) or on wheel `only`'s alone (a wheel test). Axis states
+    /// reported from now until the request goes out predate it. Nothing for current drives.
+    fn request_closed_loop(&mut self, now: Instant, only: Option<u8>) {
         self.axis_request = self.odrive_axis(AxisState::ClosedLoopControl);
-        self.axis_only = Some(t.wheel.min(3));
+        self.axis_only = only;
         self.closed_loop_at = Some(now);
         for m in &mut self.motors {
             m.axis_state = None;
+        }
+    }
+
+    /// The current limit in force, A: `limits.max_current` while enabled, a quarter of it in
+    /// a wheel test, none otherwise (no wheel is driven).
+    fn current_limit(&self) -> f32 {
+        let max = self.config.limits.max_current;
+        match self.state {
+            RobotState::Enabled => max,
+            RobotState::WheelTest => WHEEL_TEST_CURRENT_FRACTION * max,
+            _ => 0.0,
         }
     }
 
@@ -1173,25 +1186,24 @@ impl Controller {
 
         let enabled = self.state == RobotState::Enabled;
         let test = self.test.filter(|_| self.state == RobotState::WheelTest);
-        let max_current = self.config.limits.max_current;
-        // The wheels driven (bit i: wheel i) and their current limit.
-        let (mask, limit) = if enabled {
+        // The wheels driven (bit i: wheel i).
+        let mask = if enabled {
             self.setpoints = self
                 .kin
                 .inverse(self.commanded)
                 .desaturate(self.config.limits.max_wheel_speed);
-            (0b1111, max_current)
+            0b1111
         } else if let Some(t) = test {
             let mut sp = [0.0; 4];
             sp[usize::from(t.wheel)] = t.speed;
             self.setpoints = WheelSpeeds(sp);
-            (1 << t.wheel, WHEEL_TEST_CURRENT_FRACTION * max_current)
+            1 << t.wheel
         } else {
             self.setpoints = WheelSpeeds::zero();
-            (0, max_current)
+            0
         };
         match self.config.drive {
-            Drive::Dji { model, .. } => self.emit_dji(out, model, mask, limit),
+            Drive::Dji { model, .. } => self.emit_dji(out, model, mask, self.current_limit()),
             Drive::Odrive {
                 node_ids,
                 gear_ratio,
@@ -1327,12 +1339,9 @@ impl Controller {
     /// fired. The currents and setpoints are those of the previous step (the ones the motors
     /// are acting on), the speeds the latest measured.
     fn watch_runaway(&mut self, now: Instant) -> bool {
-        let limit = match (self.config.drive, self.state) {
-            (Drive::Dji { .. }, RobotState::Enabled) => self.config.limits.max_current,
-            (Drive::Dji { .. }, RobotState::WheelTest) => {
-                WHEEL_TEST_CURRENT_FRACTION * self.config.limits.max_current
-            }
-            _ => 0.0,
+        let limit = match self.config.drive {
+            Drive::Dji { .. } => self.current_limit(),
+            Drive::Odrive { .. } => 0.0,
         };
         let threshold = RUNAWAY_SATURATION * limit;
         let steps = self.window_steps(RUNAWAY_WINDOW_US);

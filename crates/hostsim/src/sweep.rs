@@ -402,7 +402,7 @@ const STANDING_M_S: f64 = 0.01;
 /// # Errors
 /// [`SweepError::Invalid`] if the configuration is refused when the run starts.
 pub fn run_one(scenario: &Scenario, spec: &RunSpec) -> Result<Row, SweepError> {
-    use firmware::protocol::robot::RobotState;
+    use firmware::protocol::robot::{Fault, RobotState};
     let refused = |why: String| SweepError::Invalid {
         key: "configuration".into(),
         value: f64::NAN,
@@ -417,7 +417,8 @@ pub fn run_one(scenario: &Scenario, spec: &RunSpec) -> Result<Row, SweepError> {
     let summary = run_observed(scenario, &mut plant, None, LogOptions::default(), |v| {
         let t = v.t_us as f64 * 1e-6;
         let snap = v.controller.snapshot();
-        if fault.is_none() && (snap.state == RobotState::Fault || snap.fault.raw() != 0) {
+        // A fault, or a watchdog stop (its reason shows while the robot is still enabled).
+        if fault.is_none() && snap.fault != Fault::None {
             fault = Some((format!("{:?}", snap.fault), t));
         }
         let pos = [v.truth[0], v.truth[1]];
