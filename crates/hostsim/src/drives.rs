@@ -92,9 +92,7 @@ impl SimDrives {
         if spec.is_empty() {
             return Ok(drives);
         }
-        if let Some((field, value, expected)) = spec.first_invalid() {
-            return Err(ParamError::new(field, value, expected));
-        }
+        // `apply` validates the whole spec, wiring included, before it changes anything.
         let adjust = |c: &mut ChassisParams| spec.apply(c);
         let rewire = |inverted: [bool; 4]| spec.wired_inverted(inverted);
         // Friction so low that no wheel moves the body: a robot on blocks.

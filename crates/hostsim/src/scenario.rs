@@ -720,6 +720,7 @@ impl Scenario {
                 does(a.twist.is_some(), "twist"),
                 does(a.silence, "silence"),
                 does(a.resume, "resume"),
+                does(a.wheel_test.is_some(), "wheel_test"),
             ]
             .into_iter()
             .flatten()
@@ -733,7 +734,8 @@ impl Scenario {
                     &format!("actions[{i}]"),
                     format!("{{{}}}", commands.join(", ")),
                     "at least one of enable, disable, reset, estop, status_request, twist, \
-                     silence, resume, and not both enable and disable or silence and resume",
+                     silence, resume, wheel_test, and not both enable and disable or silence \
+                     and resume",
                 ));
             }
             if let Some(t) = a.twist
@@ -744,6 +746,37 @@ impl Scenario {
                     format!("{t:?}"),
                     "finite numbers",
                 ));
+            }
+            if let Some(t) = a.wheel_test {
+                // The protocol's ranges (WHEEL_TEST in the robot DBC): the codec would clamp.
+                for (field, value, ok, expected) in [
+                    (
+                        "wheel",
+                        f64::from(t.wheel),
+                        t.wheel <= 3,
+                        "a wheel index 0..=3",
+                    ),
+                    (
+                        "speed",
+                        f64::from(t.speed),
+                        t.speed.is_finite() && t.speed.abs() <= 10.0,
+                        "a wheel speed in [-10, 10] rad/s",
+                    ),
+                    (
+                        "duration_ms",
+                        f64::from(t.duration_ms),
+                        (1..=3000).contains(&t.duration_ms),
+                        "1 to 3000 ms",
+                    ),
+                ] {
+                    if !ok {
+                        return Err(invalid(
+                            &format!("actions[{i}].wheel_test.{field}"),
+                            value.to_string(),
+                            expected,
+                        ));
+                    }
+                }
             }
         }
         if let Some((key, value, expected)) = file.imu.as_ref().and_then(|i| i.invalid()) {
@@ -1147,6 +1180,36 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("warp"), "{e}");
+    }
+
+    #[test]
+    fn a_wheel_test_action_parses_and_its_ranges_are_checked() {
+        let text = "duration_s = 2.0\n[[actions]]\nat_s = 0.1\n\
+                    wheel_test = { wheel = 2, speed = -3.0, duration_ms = 500 }";
+        let s = Scenario::from_toml(text, Path::new("t.toml")).unwrap();
+        let t = s.actions[0].wheel_test.unwrap();
+        assert_eq!((t.wheel, t.speed, t.duration_ms), (2, -3.0, 500));
+        for (table, needle) in [
+            (
+                "wheel = 4, speed = 3.0, duration_ms = 500",
+                "actions[0].wheel_test.wheel = 4",
+            ),
+            (
+                "wheel = 0, speed = 11.0, duration_ms = 500",
+                "actions[0].wheel_test.speed = 11",
+            ),
+            (
+                "wheel = 0, speed = 3.0, duration_ms = 0",
+                "actions[0].wheel_test.duration_ms = 0",
+            ),
+        ] {
+            let text =
+                format!("duration_s = 2.0\n[[actions]]\nat_s = 0.1\nwheel_test = {{ {table} }}");
+            let e = Scenario::from_toml(&text, Path::new("t.toml"))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(needle), "{table}: {e}");
+        }
     }
 
     #[test]
