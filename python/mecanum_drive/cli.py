@@ -279,13 +279,12 @@ def _check(args: argparse.Namespace) -> int:
                 print(f"  seen: {answer}")
             else:
                 answer = input("  Which wheel turned, and which way? (e.g. 'FL f', 'RR b', 'none') ")
+            # --observed answers parsed above; a typed one is asked again until it parses.
             while True:
                 try:
                     seen.append(parse_seen(answer))
                     break
                 except ValueError as err:
-                    if answers is not None:
-                        raise
                     answer = input(f"  {err}: ")
             if result.outcome == "FAULT":
                 robot.reset()
