@@ -367,19 +367,26 @@ impl Bus {
 /// Length of `frame` on the wire in bits, stuff bits and the 13 fixed trailing bits (CRC
 /// delimiter, ACK slot and delimiter, EOF, intermission) included.
 ///
-/// Works on whole bytes with two tables built at compile time. The header bits are padded
+/// Works on whole bytes with tables built at compile time. The header bits are padded
 /// in front to whole bytes, with zeros for the CRC (leading zeros leave a zero CRC register
 /// zero) and, for the stuff count, with bits that end like the idle bus so that the SOF
 /// starts a fresh run: `10101` before the 19 bits of a standard header (SOF, id, RTR, IDE,
 /// r0, DLC; alternating bits never stuff), `1` before the 39 of an extended one (SOF, base
 /// id, SRR, IDE, extended id, RTR, r1, r0, DLC).
+///
+/// Hand-written rather than a CRC crate's CRC-15/CAN because the bit stream is not whole
+/// bytes and the stuff count rides on the same pass. It was a sixth of a lockstep run's
+/// cycles, bound by the latency of two chains of table lookups (CRC and stuffing state), so
+/// the CRC is a sum of independent per-position lookups and the stuffing state indexes its
+/// table without arithmetic (docs/benchmarks.md).
 #[must_use]
 pub fn frame_bits(frame: &CanFrame) -> u32 {
-    let data: &[u8] = if frame.is_remote_frame() {
-        &[]
+    let len = if frame.is_remote_frame() {
+        0
     } else {
-        frame.data()
+        frame.dlc().min(8)
     };
+    let data = frame.buffer();
     // The arbitration field, then IDE / r1 and r0 (dominant) and the DLC; SOF (dominant) is
     // the zero in front.
     let arbitration = arbitration_field(frame);
@@ -388,29 +395,36 @@ pub fn frame_bits(frame: &CanFrame) -> u32 {
         // SOF base id(11) SRR IDE extended id(18) RTR r1 r0 DLC(4): 39 bits.
         let header = (u64::from(arbitration) << 6) | u64::from(dlc);
         let [_, _, _, a, b, c, d, e] = header.to_be_bytes();
-        39 + stuffed_crc_bits([a, b, c, d, e], 0b1000_0000, data)
+        39 + stuffed_crc_bits([a, b, c, d, e], 0b1000_0000, &data, len)
     } else {
         // SOF id(11) RTR IDE r0 DLC(4): 19 bits.
         let header = ((arbitration >> 20) << 6) | dlc;
         let [_, a, b, c] = header.to_be_bytes();
-        19 + stuffed_crc_bits([a, b, c], 0b1010_1000, data)
+        19 + stuffed_crc_bits([a, b, c], 0b1010_1000, &data, len)
     }
 }
 
-/// The bits after the header: data, the 15-bit CRC, the stuff bits from SOF to the CRC's
-/// end, and the 13 fixed ones. `head` is the header padded in front to whole bytes with
-/// zeros; `pad` holds the stuff-count pad bits (see [`frame_bits`]).
+/// The bits after the header: `len` data bytes, the 15-bit CRC, the stuff bits from SOF to
+/// the CRC's end, and the 13 fixed ones. `head` is the header padded in front to whole
+/// bytes with zeros; `pad` holds the stuff-count pad bits (see [`frame_bits`]).
 #[inline(always)]
-fn stuffed_crc_bits<const N: usize>(head: [u8; N], pad: u8, data: &[u8]) -> u32 {
-    let crc_byte = |crc: u16, b: u8| {
-        ((crc << 8) ^ CRC15_TABLE[usize::from(((crc >> 7) ^ u16::from(b)) & 0xFF)]) & 0x7FFF
-    };
-    let mut crc = head.iter().fold(0, |c, &b| crc_byte(c, b));
-    crc = data.iter().fold(crc, |c, &b| crc_byte(c, b));
+fn stuffed_crc_bits<const N: usize>(head: [u8; N], pad: u8, data: &[u8; 8], len: usize) -> u32 {
+    let data = &data[..len];
+    // CRC-15 as the XOR of each byte's share, `b·x^(15 + 8q) mod g` for the byte q places
+    // before the end (the CRC is linear): independent lookups instead of a chain.
+    let mut crc = 0u16;
+    let mut shares = CRC15_SHARE.iter();
+    // The data first in the zip, so that its end does not use up a share.
+    for (&b, share) in data.iter().rev().zip(shares.by_ref()) {
+        crc ^= share[usize::from(b)];
+    }
+    for (&b, share) in head.iter().rev().zip(shares) {
+        crc ^= share[usize::from(b)];
+    }
 
     // Stuff bits: table entries hold the next state (low nibble) and the count (high).
     let eat = |(state, n): (u8, u32), byte: u8| {
-        let entry = STUFF_TABLE[usize::from(state % 10)][usize::from(byte)];
+        let entry = STUFF_TABLE[usize::from(state & 0x0F)][usize::from(byte)];
         (entry & 0x0F, n + u32::from(entry >> 4))
     };
     let mut acc = eat((IDLE, 0), head[0] | pad);
@@ -418,9 +432,9 @@ fn stuffed_crc_bits<const N: usize>(head: [u8; N], pad: u8, data: &[u8]) -> u32 
     acc = data.iter().fold(acc, |a, &b| eat(a, b));
     // The 15 CRC bits: eight, then the last seven through the 7-bit table.
     let (state, n) = eat(acc, (crc >> 7) as u8);
-    let last = STUFF_TABLE_7[usize::from(state % 10)][usize::from(crc & 0x7F)];
+    let last = STUFF_TABLE_7[usize::from(state & 0x0F)][usize::from(crc & 0x7F)];
     let stuffed = n + u32::from(last >> 4);
-    8 * data.len() as u32 + 15 + stuffed + 13
+    8 * len as u32 + 15 + stuffed + 13
 }
 
 /// The idle bus before SOF: recessive, no run counted (`last 1, run 0`).
@@ -447,16 +461,36 @@ const CRC15_TABLE: [u16; 256] = {
     table
 };
 
-/// For each stuffing state ([`StuffState::index`]) and byte: the state after the byte in the
-/// low four bits, the stuff bits it causes in the high four.
-const STUFF_TABLE: [[u8; 256]; 10] = stuff_table::<256>(8);
+/// Each byte value's share of the CRC, `b·x^(15 + 8q) mod g`, for the byte `q` places
+/// before the end of the CRC's input (at most 13 bytes: an extended header, 8 data bytes).
+const CRC15_SHARE: [[u16; 256]; 13] = {
+    let mut table = [[0u16; 256]; 13];
+    table[0] = CRC15_TABLE;
+    let mut q = 1;
+    while q < 13 {
+        let mut byte = 0;
+        while byte < 256 {
+            // One more zero byte after it: the byte-at-a-time update with b = 0.
+            let c = table[q - 1][byte];
+            table[q][byte] = ((c << 8) ^ CRC15_TABLE[((c >> 7) & 0xFF) as usize]) & 0x7FFF;
+            byte += 1;
+        }
+        q += 1;
+    }
+    table
+};
+
+/// For each stuffing state ([`StuffState::index`], 0..10; the rows above are padding, so a
+/// state masked to four bits indexes without a bounds check) and byte: the state after the
+/// byte in the low four bits, the stuff bits it causes in the high four.
+const STUFF_TABLE: [[u8; 256]; 16] = stuff_table::<256>(8);
 
 /// [`STUFF_TABLE`] for the last seven bits of the CRC.
-const STUFF_TABLE_7: [[u8; 128]; 10] = stuff_table::<128>(7);
+const STUFF_TABLE_7: [[u8; 128]; 16] = stuff_table::<128>(7);
 
 /// The stuffing table for `bits`-bit chunks (`N = 2^bits` entries per state).
-const fn stuff_table<const N: usize>(bits: u32) -> [[u8; N]; 10] {
-    let mut table = [[0u8; N]; 10];
+const fn stuff_table<const N: usize>(bits: u32) -> [[u8; N]; 16] {
+    let mut table = [[0u8; N]; 16];
     let mut index = 0;
     while index < 10 {
         let mut chunk = 0;
