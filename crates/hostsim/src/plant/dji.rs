@@ -144,8 +144,51 @@ pub struct DjiDrive {
     current: f64,
     temperature: f64,
     next_feedback_ns: u64,
-    /// The current loop's step and its factor `1 − e^(−h/τ_i)`, cached.
-    lag: (f64, f64),
+    /// The current loop's factor `1 − e^(−h/τ_i)` per step length.
+    lag: LagCache,
+}
+
+/// The current loop's factor `1 − e^(−h/τ_i)` for the step lengths seen so far.
+///
+/// The lockstep loop splits each period at the delivery of the current command, so a run
+/// steps the drives with a few hundred lengths, whole microseconds, over and over (284 in the
+/// 60 s square), and the `exp` behind each new step was a tenth of a run's time. Direct-mapped
+/// on the length in µs. A cache, not state: an entry is the same `exp` of the same `h`, so it
+/// never changes a result, and drives compare equal whatever it holds. `τ_i` is fixed when
+/// the drive is built.
+#[derive(Clone)]
+struct LagCache([(f64, f64); LAG_SLOTS]);
+
+const LAG_SLOTS: usize = 64;
+
+impl LagCache {
+    /// Every slot holds `h = 0`, whose factor is 0.
+    const fn new() -> Self {
+        Self([(0.0, 0.0); LAG_SLOTS])
+    }
+
+    /// `1 − e^(−h/τ)`, `tau` being the drive's fixed `τ_i`.
+    fn factor(&mut self, h: f64, tau: f64) -> f64 {
+        // Only picks the slot: saturating, and any value will do for a NaN or a huge step.
+        #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+        let slot = &mut self.0[(h * 1e6) as usize % LAG_SLOTS];
+        if slot.0 != h {
+            *slot = (h, 1.0 - libm::exp(-h / tau));
+        }
+        slot.1
+    }
+}
+
+impl PartialEq for LagCache {
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
+}
+
+impl core::fmt::Debug for LagCache {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.write_str("LagCache")
+    }
 }
 
 impl Default for DjiDrive {
@@ -198,7 +241,7 @@ impl DjiDrive {
             current: 0.0,
             temperature: motor.ambient_c,
             next_feedback_ns: esc.feedback_period_ns,
-            lag: (0.0, 0.0),
+            lag: LagCache::new(),
         }
     }
 
@@ -302,11 +345,7 @@ impl Drive for DjiDrive {
         let target = self
             .command
             .clamp(-self.esc.max_current, self.esc.max_current);
-        // The step is the same every time: compute its factor once.
-        if h != self.lag.0 {
-            self.lag = (h, 1.0 - libm::exp(-h / self.esc.current_time_constant));
-        }
-        let alpha = self.lag.1;
+        let alpha = self.lag.factor(h, self.esc.current_time_constant);
         let mut i = self.current + (target - self.current) * alpha;
         let emf = self.ke * omega;
         let lo = (-self.esc.bus_voltage - emf) / self.motor.resistance;
