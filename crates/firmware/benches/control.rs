@@ -12,7 +12,7 @@ use core::hint::black_box;
 use criterion::{Criterion, criterion_group, criterion_main};
 use firmware::CanFrame;
 use firmware::config::Config;
-use firmware::control::{Controller, Instant};
+use firmware::control::{Controller, Instant, Outbox};
 use firmware::protocol::dji::{EscId, EscModel, Feedback};
 use firmware::protocol::odrive::{self, AxisState, NodeId};
 use firmware::protocol::robot::{Command, ModeRequest, TwistCmd};
@@ -58,6 +58,7 @@ fn bench(c: &mut Criterion) {
     let mut t = 0u64;
     let mut angle = [0u16; 4];
     let rpm = [2400i16, -2600, 2100, -2300];
+    let mut out = Outbox::new();
     c.bench_function("control_step_4_wheels_dji", |b| {
         b.iter(|| {
             t += 1000;
@@ -68,7 +69,8 @@ fn bench(c: &mut Criterion) {
                 angle[w] = (angle[w] + (rpm[w].unsigned_abs() / 8)) % 8192;
                 ctl.on_frame(now, &feedback(w as u8 + 1, angle[w], rpm[w]));
             }
-            black_box(ctl.step(now))
+            ctl.step_into(now, &mut out);
+            black_box(&out);
         })
     });
 }
@@ -96,6 +98,7 @@ fn bench_odrive(c: &mut Criterion) {
     let mut step = 0u64;
     let mut pos = [0f32; 4];
     let vel = [2.5f32, -2.7, 2.2, -2.4];
+    let mut out = Outbox::new();
     c.bench_function("control_step_4_wheels_odrive", |b| {
         b.iter(|| {
             t += 1000;
@@ -113,7 +116,8 @@ fn bench_odrive(c: &mut Criterion) {
                     ctl.on_frame(now, &heartbeat(w as u8));
                 }
             }
-            black_box(ctl.step(now))
+            ctl.step_into(now, &mut out);
+            black_box(&out);
         })
     });
 }

@@ -1148,6 +1148,8 @@ impl Controller {
     ///
     /// Call it once per period (`1 / timing.control_hz`) with a monotonic `now`; frames
     /// received since the previous call must have been passed to [`on_frame`](Self::on_frame).
+    /// A loop that keeps its outbox calls [`step_into`](Self::step_into) instead: the outbox
+    /// is 26 frames, and moving it out of a call that is not inlined copies all of it.
     #[inline]
     pub fn step(&mut self, now: Instant) -> Outbox {
         // Inlined into the caller, so the frames are written straight into the caller's
@@ -1157,8 +1159,10 @@ impl Controller {
         out
     }
 
-    /// [`step`](Self::step), writing into an empty outbox.
-    fn step_into(&mut self, now: Instant, out: &mut Outbox) {
+    /// [`step`](Self::step), writing the frames to send into `out` (emptied first): for a
+    /// loop that keeps one outbox from period to period.
+    pub fn step_into(&mut self, now: Instant, out: &mut Outbox) {
+        out.clear();
         let boot = *self.boot.get_or_insert(now);
         // Sent by this step (emit_odrive).
         if self.clear_errors {

@@ -47,7 +47,7 @@
 use std::collections::BTreeMap;
 
 use firmware::CanFrame;
-use firmware::control::{Controller, Instant, Snapshot};
+use firmware::control::{Controller, Instant, Outbox, Snapshot};
 use firmware::protocol::robot::{self, Command, ModeRequest, RobotState, TwistCmd};
 
 use crate::bus::{Bus, BusStats, Fate, Node, Transmission};
@@ -368,6 +368,7 @@ pub fn run_observed<P: SimPlant>(
 
     set_wheel_faults(scenario, plant, 0);
     let mut twists_to_log = Vec::new();
+    let mut out = Outbox::new();
     while t_us <= duration_us {
         let t_ns = t_us * 1000;
         twists_to_log.clear();
@@ -466,7 +467,7 @@ pub fn run_observed<P: SimPlant>(
         }
 
         // 5. Firmware step.
-        let out = ctl.step(Instant::from_micros(t_us));
+        ctl.step_into(Instant::from_micros(t_us), &mut out);
         for f in &out {
             bus.send(t_ns, Node::Controller, *f);
             hash.add(t_us, f);
