@@ -531,3 +531,53 @@ fn the_scenario_module_example_does_what_its_comments_say() {
     }
     assert_eq!(r.last.fault, Fault::Watchdog);
 }
+
+/// The frames and the ground truth of three runs, pinned: a change meant to make the
+/// simulator faster (docs/benchmarks.md) must keep them bit for bit, and a change to the
+/// plant's physics, the bus's timing or the core shows here and is made on purpose (then
+/// these values are measured again). The three cover the C620 and the ODrive plants and the
+/// seeded bus faults (drops, a burst, delays, corruption).
+#[test]
+fn frames_and_ground_truth_are_pinned() {
+    let faults = Scenario::from_file(std::path::Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../scenarios/faults.toml"
+    )))
+    .unwrap();
+    let odrive = {
+        let mut s = Scenario::builtin("square").unwrap();
+        s.config = firmware::Config::odrive_example();
+        s
+    };
+    for (scenario, hash, frames, truth) in [
+        (
+            Scenario::builtin("square").unwrap(),
+            0x8d60_cbd2_6cce_854c,
+            48_049,
+            [0.019_337_952_602_069_7, 0.008_806_777_808_176_664],
+        ),
+        (
+            odrive,
+            0x7c58_fb71_94f6_5ba4,
+            13_797,
+            [0.019_949_502_614_611_717, 0.017_449_452_091_811_764],
+        ),
+        (
+            faults,
+            0x3339_b40b_d2f5_d1c4,
+            31_682,
+            [0.543_448_976_795_523_8, 2.008_559_241_563_957_3],
+        ),
+    ] {
+        let s = simulate(&scenario);
+        assert_eq!(s.tx_hash, hash, "{}: outbound frames", scenario.name);
+        assert_eq!(s.bus.frames, frames, "{}: frames on the bus", scenario.name);
+        assert_eq!(
+            [s.truth[0].to_bits(), s.truth[1].to_bits()],
+            truth.map(f64::to_bits),
+            "{}: ground truth {:?}",
+            scenario.name,
+            s.truth
+        );
+    }
+}
