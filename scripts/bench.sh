@@ -2,6 +2,8 @@
 # The project's performance figures in one run, printed as a Markdown table for
 # docs/benchmarks.md (with the machine and the date):
 #   kinematics full step (f32, f64) and the control step on the host (criterion medians),
+#   the parts of one lockstep period (a frame's length on the wire, a chassis step, a
+#   simulated ms of the C620 plant) and the built-in square in process (criterion),
 #   instructions per control step on the emulated Cortex-M4 (QEMU, scripts/xtarget.sh),
 #   flash and static RAM of the STM32F407 board build,
 #   simulator real-time factor of the 60 s square with and without MCAP logging, the cost
@@ -29,7 +31,7 @@ for arg in "$@"; do
     case $arg in
     --quick) quick=1 ;;
     --no-vcan) vcan=0 ;;
-    -h | --help) sed -n '2,19p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    -h | --help) sed -n '2,23p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
     *) echo "bench.sh: unknown argument $arg (see --help)" >&2; exit 2 ;;
     esac
 done
@@ -60,6 +62,13 @@ log "control step (criterion)"
 cargo bench --locked -q -p firmware --bench control -- "${crit[@]}" >&2
 step_ns=$(median_ns control_step_4_wheels_dji)
 row "control step, 4 x C620, enabled and driving (host)" "$step_ns ns" "criterion median"
+
+log "the lockstep period's parts (criterion): the floor of one run's speed"
+cargo bench --locked -q -p hostsim --bench lockstep -- "${crit[@]}" >&2
+row "one frame's stuffed length on the wire (frame_bits; about 5.3 a simulated ms)" "$(median_ns frame_bits) ns" "criterion median"
+row "one implicit chassis step (at least 2 a simulated ms)" "$(median_ns chassis_step) ns" "criterion median"
+row "one simulated ms of the C620 plant (2 chassis steps, 8 drive steps, 4 feedback frames)" "$(median_ns dji_plant_period) ns" "criterion median"
+row "built-in square (9 s) in process, no log" "$("$PY" -c "import sys; print(f'{9.0e9 / float(sys.argv[1]):,.0f}x')" "$(median_ns run/square_9s)")" "real-time factor"
 
 log "instructions per control step on the emulated Cortex-M4"
 xt=$(scripts/xtarget.sh 2>&1 | tee /dev/stderr)
