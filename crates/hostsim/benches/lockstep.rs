@@ -9,7 +9,7 @@
 //! - `dji_plant_period`: one period of the DJI plant as the loop drives it: to the command's
 //!   delivery 130 µs in, the four new currents, to the period's end (two chassis steps,
 //!   eight drive steps), the four feedback frames encoded.
-//! - `square_9s`: the built-in `square` scenario end to end without a log (9 s, 9,001
+//! - `run/square`: the built-in `square` scenario end to end without a log (9.1 s, 9,101
 //!   periods, firmware included).
 
 use core::hint::black_box;
@@ -110,7 +110,7 @@ fn bench(c: &mut Criterion) {
     let square = hostsim::scenario::Scenario::builtin("square").unwrap();
     let mut group = c.benchmark_group("run");
     group.sample_size(10);
-    group.bench_function("square_9s", |b| {
+    group.bench_function("square", |b| {
         b.iter(|| {
             let mut plant = hostsim::drives::SimDrives::for_scenario(&square).unwrap();
             let options = hostsim::sim::LogOptions::default();
