@@ -539,11 +539,7 @@ fn the_scenario_module_example_does_what_its_comments_say() {
 /// seeded bus faults (drops, a burst, delays, corruption).
 #[test]
 fn frames_and_ground_truth_are_pinned() {
-    let faults = Scenario::from_file(std::path::Path::new(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../../scenarios/faults.toml"
-    )))
-    .unwrap();
+    let faults = Scenario::from_file(std::path::Path::new("../../scenarios/faults.toml")).unwrap();
     let odrive = {
         let mut s = Scenario::builtin("square").unwrap();
         s.config = firmware::Config::odrive_example();
