@@ -15,6 +15,7 @@ import statistics
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 
 import can
@@ -216,8 +217,93 @@ def test_a_silent_robot_is_not_responding(channel: str) -> None:
         time.sleep(0.8)
         assert robot.responding
         time.sleep(0.3)
-        with pytest.raises(NotResponding, match="no HEARTBEAT from the robot in the 1.1. s since"):
+        with pytest.raises(NotResponding, match=r"no HEARTBEAT from the robot in the 1\.\d\d s since"):
             robot.enable()
+
+
+def test_a_process_that_reads_late_is_not_taken_for_a_silent_robot(channel: str) -> None:
+    """The receiving thread stalls for 0.6 s (a busy computer, a long garbage collection) while
+    the robot's HEARTBEATs wait on the bus: the robot responded all along, and `check` says
+    so during the stall and after; a silence read on the bus is still one (the test above)."""
+    with ScriptedRobot(channel), Robot(host_bus(channel), owns_bus=True) as robot:
+        robot.wait_state("DISABLED", timeout=1.0)
+        stalled = threading.Event()
+        on_message = robot._on_message
+
+        def slow(msg: can.Message) -> None:
+            if not stalled.is_set():
+                stalled.set()
+                time.sleep(0.6)
+            on_message(msg)
+
+        robot._on_message = slow  # type: ignore[method-assign]
+        assert stalled.wait(1.0)
+        time.sleep(0.45)  # 0.45 s into the stall: the last HEARTBEAT read is that old
+        assert robot.responding
+        robot.check()
+        time.sleep(0.3)  # the stall is over and the waiting frames are read
+        assert robot.responding
+
+
+def test_wait_state_sees_a_state_reported_and_left_before_it_looked(channel: str) -> None:
+    """The robot reports ENABLED and, before the waiting caller looks again, DISABLED (its
+    watchdog stopped it): `wait_state("ENABLED")` returns that ENABLED STATUS, as the robot
+    did reach it, instead of timing out with "last: DISABLED"."""
+    db = protocol.database()
+
+    def status(state: int, fault: int, seq: int) -> can.Message:
+        data = db.get_message_by_name("STATUS").encode(
+            {"state": state, "fault": fault, "rx_errors": 0, "unknown_ids": 0, "motors_online": 15,
+             "heading_source": 0, "seq": seq})
+        return can.Message(arbitration_id=0x312, data=data, is_extended_id=False, timestamp=time.time())
+
+    with Robot(host_bus(channel), owns_bus=True) as robot:
+        looking = threading.Event()
+        check = robot.check
+
+        def checking() -> None:  # wait_state has taken note of where it began
+            looking.set()
+            check()
+
+        robot.check = checking  # type: ignore[method-assign]
+        result: list[object] = []
+        waiter = threading.Thread(target=lambda: result.append(robot.wait_state("ENABLED", timeout=1.0)))
+        waiter.start()
+        assert looking.wait(1.0)
+        with robot._lock:  # both arrive before the waiter can look again
+            robot._on_message(status(1, 0, 1))
+            robot._on_message(status(0, 4, 2))
+        waiter.join(2.0)
+        assert len(result) == 1 and getattr(result[0], "state", None) == "ENABLED", result
+        assert robot.status is not None and (robot.status.state, robot.status.fault) == ("DISABLED", "WATCHDOG")
+
+
+def test_liveness_counts_only_a_silence_read_on_the_bus() -> None:
+    """`_Liveness` by numbers: a silence is proven by frames read after the last HEARTBEAT
+    (their stamps) or by the bus found empty, never by the reader's own lateness."""
+    from mecanum_drive.robot import _Liveness
+
+    live = _Liveness(start=100.0)
+    assert live.silence() == 0.0
+    live.empty(100.5)  # nothing on the bus for half a second since listening began
+    assert live.silence() == pytest.approx(0.5)
+    live.frame(1000.0)
+    live.heartbeat(1000.0, 100.6)
+    assert live.silence() == 0.0
+    # Read late (no newer frame, the bus not found empty): nothing proven, however late.
+    assert live.silence() == 0.0
+    # Frames that arrived 0.35 s after the HEARTBEAT (their own stamps), read whenever.
+    live.frame(1000.35)
+    assert live.silence() == pytest.approx(0.35)
+    # The bus found empty 0.5 s after the HEARTBEAT was read.
+    live.empty(101.1)
+    assert live.silence() == pytest.approx(0.5)
+    # Frames without stamps prove nothing by stamps.
+    other = _Liveness(start=0.0)
+    other.frame(math.nan)
+    other.heartbeat(math.nan, 1.0)
+    other.frame(math.nan)
+    assert other.silence() == 0.0
 
 
 def test_missed_heartbeats_sets_how_long_a_silent_robot_is_tolerated(channel: str) -> None:

@@ -7,9 +7,10 @@ A `Robot` owns three things on any python-can bus:
   with the alive counter (`seq`) that the protocol asks for incremented on every frame: the
   robot refuses a twist that repeats the last accepted `seq`, so a stuck sender (this process
   frozen, an adapter repeating its last frame) lets its watchdog stop it;
-- a **receiver**: python-can's `Notifier` thread decodes ODOM_POSITION, ODOM_VELOCITY, STATUS,
+- a **receiver**: a thread that reads the bus and decodes ODOM_POSITION, ODOM_VELOCITY, STATUS,
   STATUS_COUNTERS and HEARTBEAT into the latest `Odometry`, `Status`, `Counters` and
-  `Heartbeat`, and watches the heartbeat;
+  `Heartbeat`, and watches the heartbeat (`_Liveness`: a silence is one this process has read
+  on the bus, so a slow process is not mistaken for a silent robot);
 - **the way out**: leaving the `with` block, an exception through it, `close()` and the
   interpreter's exit all stop the stream, send a zero twist and MODE_CMD disable.
 
@@ -26,6 +27,7 @@ sends only zero twists), `RobotFault` when STATUS or HEARTBEAT says FAULT, namin
 from __future__ import annotations
 
 import atexit
+import collections
 import dataclasses
 import math
 import queue
@@ -84,7 +86,16 @@ class Odometry:
     vx: float
     vy: float
     wz: float
-    received: float  # time.monotonic() of the ODOM_VELOCITY frame
+    received: float  # time.monotonic() when this process decoded the ODOM_VELOCITY frame
+    #: When the frame arrived: python-can's `Message.timestamp` (on SocketCAN the kernel's
+    #: receive time, seconds since the epoch: the clock candump prints), NaN if not known.
+    stamp: float = math.nan
+
+    def age(self) -> float:
+        """Seconds since the frame arrived: from `stamp` where it is this computer's wall
+        clock (SocketCAN), so that a process that decoded it late does not make it look
+        younger; else since it was decoded."""
+        return _age(self.stamp, self.received)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -102,6 +113,7 @@ class Status:
     motors_online: tuple[bool, bool, bool, bool]
     heading_source: str
     received: float  # time.monotonic()
+    stamp: float = math.nan  # the frame's receive time (see `Odometry.stamp`)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,6 +127,7 @@ class Counters:
     out_of_range: int
     non_finite: int
     received: float  # time.monotonic()
+    stamp: float = math.nan  # the frame's receive time (see `Odometry.stamp`)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -130,6 +143,7 @@ class WheelTestResult:
     angle: float
     peak_current: float
     received: float  # time.monotonic()
+    stamp: float = math.nan  # the frame's receive time (see `Odometry.stamp`)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,6 +154,67 @@ class Heartbeat:
     state: str
     protocol_version: int
     received: float  # time.monotonic()
+    stamp: float = math.nan  # the frame's receive time (see `Odometry.stamp`)
+
+
+#: A receive stamp further than this from `time.time()` is on some other clock (an adapter's
+#: own), not the wall clock: `_age` then counts from when the frame was decoded.
+_STAMP_CLOCK_TOLERANCE_S = 60.0
+
+
+def _age(stamp: float, received: float) -> float:
+    """Seconds since a frame arrived, from its receive `stamp` (wall clock) if usable, else
+    from `received` (time.monotonic() when it was decoded)."""
+    decoded_age = time.monotonic() - received
+    if math.isfinite(stamp):
+        age = time.time() - stamp
+        if -_STAMP_CLOCK_TOLERANCE_S < age < _STAMP_CLOCK_TOLERANCE_S:
+            return max(age, decoded_age)
+    return decoded_age
+
+
+class _Liveness:
+    """How long the robot has been silent, from what the receiving thread has read.
+
+    Only two things prove a silence: frames read after the last HEARTBEAT (their receive
+    stamps, on the bus's own clock, say how much later they arrived), and the bus found empty
+    (nothing left to read at that moment, so every HEARTBEAT that arrived before it has been
+    read). A process that is merely slow, its receiving thread behind with HEARTBEATs waiting
+    in the socket, has neither, and its robot is not called silent; a silent robot is found
+    within the limit plus one poll of an empty bus. Times: `mono` is time.monotonic() when a
+    frame was read (or the bus found empty), `stamp` the frame's receive stamp (NaN if none).
+    """
+
+    def __init__(self, start: float) -> None:
+        self.start = start
+        self.heartbeat_stamp = math.nan
+        self.heartbeat_mono: float | None = None
+        self.first_stamp = math.nan  # of the first frame read (for the first heartbeat)
+        self.latest_stamp = math.nan  # of the latest frame read
+        self.empty_mono = -math.inf  # when the bus was last found empty
+
+    def frame(self, stamp: float) -> None:
+        if math.isnan(self.first_stamp):
+            self.first_stamp = stamp
+        if not stamp <= self.latest_stamp:  # NaN-safe max
+            self.latest_stamp = stamp
+
+    def heartbeat(self, stamp: float, mono: float) -> None:
+        self.heartbeat_stamp, self.heartbeat_mono = stamp, mono
+
+    def empty(self, mono: float) -> None:
+        self.empty_mono = mono
+
+    def silence(self) -> float:
+        """The longest silence proven so far: since the last HEARTBEAT (or, before one, since
+        listening began), s; 0 where nothing proves one."""
+        if self.heartbeat_mono is None:
+            by_stamps = self.latest_stamp - self.first_stamp
+            by_empty = self.empty_mono - self.start
+        else:
+            by_stamps = self.latest_stamp - self.heartbeat_stamp
+            by_empty = self.empty_mono - self.heartbeat_mono
+        return max(0.0, by_empty, by_stamps if math.isfinite(by_stamps) else 0.0)
 
 
 def _check_speed(name: str, value: float, unit: str) -> float:
@@ -211,18 +286,29 @@ class Robot:
         self._position: tuple[float, float] | None = None
         self._odometry: Odometry | None = None
         self._status: Status | None = None
+        # The recent STATUS frames, numbered: `wait_state` looks at every one since it began,
+        # not only the latest (ENABLED then, 20 ms later, DISABLED by the watchdog: it was
+        # reached).
+        self._statuses_seen = 0
+        self._recent_statuses: collections.deque[tuple[int, Status]] = collections.deque(maxlen=64)
         self._counters: Counters | None = None
         self._heartbeat: Heartbeat | None = None
         self._wheel_test: WheelTestResult | None = None
         self._mismatch: ProtocolMismatch | None = None
         self._started = time.monotonic()
+        self._liveness = _Liveness(self._started)
+        self._receive_error: BaseException | None = None
         self._callbacks: list[Callable[[Odometry], None]] = []
         self._queues: list[queue.Queue[Odometry]] = []
 
         self._closed = False
         self._stop_stream = threading.Event()
         self._stream: threading.Thread | None = None
-        self._notifier = can.Notifier(bus, [self._on_message], timeout=0.05)
+        self._stop_receiving = threading.Event()
+        # An empty bus is noticed after this long without a frame: a quarter heartbeat period.
+        self._poll_s = min(0.05, heartbeat_period_s / 4)
+        self._receiver = threading.Thread(target=self._receive_loop, name="mecanum-drive receiver", daemon=True)
+        self._receiver.start()
         # At interpreter exit: stop the robot even if nobody called close().
         ref = weakref.ref(self)
 
@@ -286,7 +372,9 @@ class Robot:
         except can.CanError:
             pass  # the bus is gone: nothing more can be said to the robot
         finally:
-            self._notifier.stop(timeout=1.0)
+            self._stop_receiving.set()
+            if self._receiver is not threading.current_thread():
+                self._receiver.join(timeout=1.0)
             if self._owns_bus:
                 self.bus.shutdown()
 
@@ -439,7 +527,27 @@ class Robot:
 
     # --- what the robot says ---------------------------------------------------------------
 
+    def _receive_loop(self) -> None:
+        """The receiving thread: every frame to `_on_message`; an empty bus noted (`_Liveness`)."""
+        while not self._stop_receiving.is_set():
+            try:
+                msg = self.bus.recv(timeout=self._poll_s)
+            except Exception as err:  # noqa: BLE001 - raised from check() as NotResponding
+                if not self._stop_receiving.is_set():
+                    with self._lock:
+                        self._receive_error = err
+                        self._lock.notify_all()
+                return
+            if msg is None:
+                with self._lock:
+                    self._liveness.empty(time.monotonic())
+                continue
+            self._on_message(msg)
+
     def _on_message(self, msg: can.Message) -> None:
+        stamp = float(msg.timestamp) if msg.timestamp else math.nan
+        with self._lock:
+            self._liveness.frame(stamp)
         if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame:
             return
         message = self._by_id.get(msg.arbitration_id)
@@ -458,7 +566,7 @@ class Robot:
             elif message.name == "ODOM_VELOCITY":
                 x, y = self._position if self._position is not None else (math.nan, math.nan)
                 odometry = Odometry(x, y, float(values["heading"]), float(values["vx"]), float(values["vy"]),
-                                    float(values["wz"]), now)
+                                    float(values["wz"]), now, stamp)
                 self._odometry = odometry
             elif message.name == "STATUS":
                 mask = int(values["motors_online"])
@@ -471,7 +579,10 @@ class Robot:
                     heading_source=self._heading_sources.get(int(values["heading_source"]),
                                                              str(values["heading_source"])),
                     received=now,
+                    stamp=stamp,
                 )
+                self._statuses_seen += 1
+                self._recent_statuses.append((self._statuses_seen, self._status))
             elif message.name == "STATUS_COUNTERS":
                 self._counters = Counters(
                     repeated_seq=int(values["repeated_seq"]),
@@ -479,6 +590,7 @@ class Robot:
                     out_of_range=int(values["out_of_range"]),
                     non_finite=int(values["non_finite"]),
                     received=now,
+                    stamp=stamp,
                 )
             elif message.name == "WHEEL_TEST_RESULT":
                 self._wheel_test = WheelTestResult(
@@ -487,6 +599,7 @@ class Robot:
                     angle=float(values["angle"]),
                     peak_current=float(values["peak_current"]),
                     received=now,
+                    stamp=stamp,
                 )
             elif message.name == "HEARTBEAT":
                 version = int(values["protocol_version"])
@@ -495,7 +608,9 @@ class Robot:
                     state=self._states.get(int(values["state"]), str(values["state"])),
                     protocol_version=version,
                     received=now,
+                    stamp=stamp,
                 )
+                self._liveness.heartbeat(stamp, now)
                 if version != self._version and self._mismatch is None:
                     self._mismatch = ProtocolMismatch(
                         f"the robot speaks protocol version {version}; this package speaks version "
@@ -536,33 +651,44 @@ class Robot:
 
     @property
     def responding(self) -> bool:
-        """False when no HEARTBEAT arrived for `missed_heartbeats` heartbeat periods, or none at all within
-        FIRST_HEARTBEAT_S of this robot's creation."""
+        """False when no HEARTBEAT came for `missed_heartbeats` heartbeat periods, or none at all
+        within FIRST_HEARTBEAT_S of this robot's creation, as far as this process has read the
+        bus (a process too busy to read is not taken for a silent robot; see `_Liveness`)."""
+        return self._silence() is None
+
+    def _silence(self) -> tuple[float, float, bool] | None:
+        """None while the robot responds, else (the silence, its limit, whether any HEARTBEAT
+        came), in s."""
         with self._lock:
-            heartbeat = self._heartbeat
-        if heartbeat is None:
-            return time.monotonic() - self._started <= max(FIRST_HEARTBEAT_S, self.missed_heartbeats * self.heartbeat_period_s)
-        return time.monotonic() - heartbeat.received <= self.missed_heartbeats * self.heartbeat_period_s
+            silence = self._liveness.silence()
+            heard = self._heartbeat is not None
+        limit = self.missed_heartbeats * self.heartbeat_period_s
+        if not heard:
+            limit = max(FIRST_HEARTBEAT_S, limit)
+        return None if silence <= limit else (silence, limit, heard)
 
     def _check_link(self) -> None:
         """Raises ProtocolMismatch or NotResponding if the robot cannot be talked to."""
         with self._lock:
-            mismatch, heartbeat = self._mismatch, self._heartbeat
+            mismatch, receive_error = self._mismatch, self._receive_error
         if mismatch is not None:
             raise mismatch
-        if not self.responding:
-            if heartbeat is None:
-                raise NotResponding(
-                    f"no HEARTBEAT from the robot in the {time.monotonic() - self._started:.2f} s since this "
-                    f"program started listening: is it powered, on this bus ({self.bus.channel_info}), at "
-                    "the same bitrate?"
-                )
-            silent = time.monotonic() - heartbeat.received
+        if receive_error is not None:
+            raise NotResponding(f"cannot read the bus ({self.bus.channel_info}): {receive_error}")
+        silent = self._silence()
+        if silent is None:
+            return
+        silence, _, heard = silent
+        if not heard:
             raise NotResponding(
-                f"no HEARTBEAT from the robot for {silent:.2f} s (more than {self.missed_heartbeats} periods of "
-                f"{self.heartbeat_period_s:.2f} s): is it powered, on this bus ({self.bus.channel_info}), "
-                "at the same bitrate?"
+                f"no HEARTBEAT from the robot in the {silence:.2f} s since this program started "
+                f"listening: is it powered, on this bus ({self.bus.channel_info}), at the same bitrate?"
             )
+        raise NotResponding(
+            f"no HEARTBEAT from the robot for {silence:.2f} s (more than {self.missed_heartbeats} periods of "
+            f"{self.heartbeat_period_s:.2f} s): is it powered, on this bus ({self.bus.channel_info}), "
+            "at the same bitrate?"
+        )
 
     def check(self) -> None:
         """Raises what the robot reported: ProtocolMismatch, NotResponding, or RobotFault with
@@ -574,15 +700,21 @@ class Robot:
             raise RobotFault(status.fault, f"the robot is in FAULT: {status.fault} (reset() clears it)")
 
     def wait_state(self, state: str, timeout: float = 1.0) -> Status:
-        """Waits until STATUS reports `state` (DISABLED, ENABLED, FAULT, ESTOP) and returns that
-        STATUS. Raises ValueError for another name, TimeoutError after `timeout` s, and what
+        """Waits until STATUS reports `state` (DISABLED, ENABLED, FAULT, ESTOP), the latest one
+        or any that arrives meanwhile (a state reached and left at once counts), and returns
+        that STATUS. Raises ValueError for another name, TimeoutError after `timeout` s, and what
         `check` raises meanwhile (a FAULT only when waiting for another state)."""
         if state not in self._states.values():
             raise ValueError(f"state = {state!r}: not one of {sorted(self._states.values())}")
         deadline = time.monotonic() + timeout
+        with self._lock:
+            since = self._statuses_seen
         while True:
             with self._lock:
-                status = self._status
+                status, seen = self._status, self._statuses_seen
+                reached = [st for n, st in self._recent_statuses if n > since and st.state == state]
+            if reached:
+                return reached[0]
             if status is not None and status.state == state:
                 return status
             if state == "FAULT":
@@ -591,10 +723,10 @@ class Robot:
                 self.check()
             left = deadline - time.monotonic()
             if left <= 0:
-                seen = status.state if status is not None else "no STATUS yet"
-                raise TimeoutError(f"the robot did not reach {state} within {timeout} s (last: {seen})")
+                last = status.state if status is not None else "no STATUS yet"
+                raise TimeoutError(f"the robot did not reach {state} within {timeout} s (last: {last})")
             with self._lock:
-                if self._status is status:
+                if self._statuses_seen == seen:
                     self._lock.wait(min(left, 0.05))
 
     def on_odometry(self, callback: Callable[[Odometry], None]) -> None:

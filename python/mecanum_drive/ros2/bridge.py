@@ -390,12 +390,14 @@ class Bridge(Node):
         publish_rate times a second."""
         if self._closing or not (math.isfinite(odom.x) and math.isfinite(odom.y)):
             return
-        if not self._odom_rate.take(odom.received):
+        # The stamp is when the frame arrived on the bus (its kernel receive time on SocketCAN,
+        # `Odometry.age`), not when this process got to it: a busy receiving thread delays the
+        # messages, not their stamps. The age is read first, so that a thread switch between
+        # the two reads makes the stamp later, never earlier, than the sample.
+        age = odom.age()
+        if not self._odom_rate.take(time.monotonic() - age):
             return
         s = self.settings
-        # The stamp is when the sample came in: the age read first, so that a thread switch
-        # between the two reads makes the stamp later, never earlier, than the sample.
-        age = time.monotonic() - odom.received
         now = self.get_clock().now()
         stamp = Time(nanoseconds=now.nanoseconds - int(age * 1e9), clock_type=now.clock_type).to_msg()
         qz, qw = math.sin(odom.heading / 2), math.cos(odom.heading / 2)
