@@ -15,7 +15,8 @@ VENV=${VCAN_VENV:-$ROOT/.venv}
 MODE=${VCAN_MODE:-auto}
 VM_TIMEOUT=${VCAN_VM_TIMEOUT:-1800}
 VM_MEMORY=${VCAN_VM_MEMORY:-2G}
-VM_CPUS=${VCAN_VM_CPUS:-$(n=$(nproc 2>/dev/null || echo 2); echo $((n > 4 ? 4 : n)))}
+VM_CLOCK=${VCAN_VM_CLOCK:-icount}
+VM_CPUS=${VCAN_VM_CPUS:-}
 # Modules the emulated machine's devices would make udev load at boot (KVM, CPU crypto, SATA and
 # CD-ROM, PS/2, watchdogs, cpufreq). None is needed for vcan; under software emulation loading
 # them costs some 15 s of boot.
@@ -43,6 +44,17 @@ How $IFACE comes up, first that works:
      Debian ${DEB_PACKAGES[*]}
      (installed with apt-get when run as root and missing) and PyPI $VNG_REQUIREMENT
      (pip-installed into $VENV when missing). Allow ~1 min of boot.
+     The guest's clock (VCAN_VM_CLOCK=icount, the default) is QEMU's -icount shift=0,sleep=off:
+     guest time is the count of instructions the guest executed (1 ns each), and when every
+     guest process waits it jumps to the next timer at once. A host that is busy, or that
+     deschedules QEMU for 100 ms, slows the whole guest down in wall time but cannot stall
+     its timeline: the guest's 1 kHz loops and their latencies, as the guest's clocks measure
+     them, are the same on an idle and a busy host. One vCPU (QEMU runs icount guests on one
+     host thread in any case, and this QEMU hangs bringing up a second vCPU under icount), so
+     the lane takes one host core and leaves the rest free. Guest time also runs on while
+     the guest waits on the host (a first read of a file through 9p). VCAN_VM_CLOCK=host:
+     the guest's clock follows the host's wall clock (a vCPU per host CPU, up to 4), as the
+     lane ran before; for comparisons.
      The environment variables the tools need are passed on (paths, locale, toolchains,
      Python, CI, MECANUM_*; none whose name says token, secret, password or key), no
      others. Output is also kept in target/vcan-lane/output.log, the VM's exit code in
@@ -59,8 +71,8 @@ Options:
   -h, --help   this text
 
 Environment: VCAN_VM_TIMEOUT (seconds, default 1800; bounds a native COMMAND too),
-VCAN_VM_MEMORY (default 2G),
-VCAN_VM_CPUS (default: host CPUs, at most 4), VCAN_KERNEL (a vmlinuz to boot instead of the
+VCAN_VM_MEMORY (default 2G), VCAN_VM_CLOCK (icount or host; see above),
+VCAN_VM_CPUS (default 1 with icount, else host CPUs up to 4), VCAN_KERNEL (a vmlinuz to boot instead of the
 one linux-image-amd64 installed), VCAN_VENV (where virtme-ng is, default .venv),
 VCAN_NO_INSTALL=1 (install nothing: what is missing makes the lane unavailable),
 VCAN_VM_APPEND (more kernel command-line arguments for the VM).
@@ -130,6 +142,11 @@ if [ $# -eq 0 ]; then
     exit 2
 fi
 case $MODE in auto | native | vm) ;; *) log "VCAN_MODE must be auto, native or vm, not '$MODE'"; exit 2 ;; esac
+case $VM_CLOCK in
+icount) VM_CPUS=${VM_CPUS:-1} ;;
+host) VM_CPUS=${VM_CPUS:-$(n=$(nproc 2>/dev/null || echo 2); echo $((n > 4 ? 4 : n)))} ;;
+*) log "VCAN_VM_CLOCK must be icount or host, not '$VM_CLOCK'"; exit 2 ;;
+esac
 
 # One lane at a time per repository: they share vcan0 and target/vcan-lane.
 mkdir -p "$LANE"
@@ -345,7 +362,7 @@ write_guest_env() {
             printf 'export %s=%q\n' "$name" "${!name}" ;;
         esac
     done
-    printf 'export MECANUM_VCAN_REQUIRED=1 MECANUM_VCAN_MODE=vm\n'
+    printf 'export MECANUM_VCAN_REQUIRED=1 MECANUM_VCAN_MODE=vm MECANUM_VCAN_CLOCK=%s\n' "$VM_CLOCK"
 }
 
 if ! vm_prepare; then
@@ -368,7 +385,11 @@ fast_shares="-fsdev local,id=vcanroot,path=/,security_model=none,readonly=on,mul
 fast_shares+=" -device virtio-9p-pci,fsdev=vcanroot,mount_tag=vcanroot"
 fast_shares+=" -fsdev local,id=vcanrepo,path=$(qemu_path "$ROOT"),security_model=none,multidevs=remap"
 fast_shares+=" -device virtio-9p-pci,fsdev=vcanrepo,mount_tag=vcanrepo"
-log "vm: booting $KERNEL (software emulation, $VM_CPUS CPUs, $VM_MEMORY; timeout ${VM_TIMEOUT}s)"
+qemu_opts=$fast_shares
+if [ "$VM_CLOCK" = icount ]; then
+    qemu_opts+=" -icount shift=0,sleep=off"
+fi
+log "vm: booting $KERNEL (software emulation, $VM_CPUS CPU(s), $VM_MEMORY, guest clock: $VM_CLOCK; timeout ${VM_TIMEOUT}s)"
 T_BOOT=$(now)
 # KVM stays off: in nested virtualization it may be there and still fail (QEMU aborts on an
 # MSR, or the guest hangs). stdin is /dev/null: QEMU would otherwise take over a terminal.
@@ -384,7 +405,7 @@ vng_rc=0
 PATH="$VENV/bin:$PATH" run_bounded 30 "$VENV/bin/vng" \
     --disable-kvm --run "$KERNEL" --user root --cpus "$VM_CPUS" --memory "$VM_MEMORY" \
     --rwdir="$ROOT" --append "modprobe.blacklist=$VM_MODULE_BLACKLIST clocksource=tsc tsc=reliable ${VCAN_VM_APPEND:-}" \
-    --exec "$guest_cmd" --qemu-opts="$fast_shares" </dev/null >"$LANE/output.fifo" 2>&1 || vng_rc=$?
+    --exec "$guest_cmd" --qemu-opts="$qemu_opts" </dev/null >"$LANE/output.fifo" 2>&1 || vng_rc=$?
 wait "$tee_pid" || true
 rm -f "$LANE/output.fifo"
 exit_if_interrupted

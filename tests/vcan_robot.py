@@ -44,6 +44,29 @@ FAULT_NONE, FAULT_WATCHDOG = 0, 4
 DJI_CMD_1_4 = 0x200
 ALL_MOTORS = 0x0F
 
+#: Where the lane runs (scripts/vcan.sh): natively, or in the QEMU micro-VM ("vm").
+SLOW_CPU = os.environ.get("MECANUM_VCAN_MODE") == "vm"
+"""The micro-VM emulates its CPU: processes start and Python runs several times slower than
+natively, so the tests wait longer there for things to come up and answer, and ask less of
+the processes that must keep up with a rate. Never a budget the firmware's timing is held to."""
+HOST_STALLS = SLOW_CPU and os.environ.get("MECANUM_VCAN_CLOCK") != "icount"
+"""The micro-VM's clock follows the host's wall clock (VCAN_VM_CLOCK=host): a busy host, or
+one that deschedules QEMU, stalls the guest's timeline for up to hundreds of milliseconds, and
+the timing checks get the emulation's slack. False natively and with the lane's default
+clock (icount: the guest's time is its executed instructions, its timeline its own): there
+every budget holds as written."""
+
+#: The plant and the runner run with real-time priority in the micro-VM (SCHED_FIFO 50, as a
+#: robot's computer runs its control loop): its one emulated CPU is shared with ROS 2 and
+#: Python processes that hold it for many milliseconds while they start, and a 1 kHz loop of
+#: normal priority waits behind them (a MOTOR_STALE fault: feedback more than 3 periods old).
+#: Natively they run as started: a developer's desktop is not handed to real-time loops.
+REALTIME = ["chrt", "--fifo", "50"] if SLOW_CPU else []
+
+# Sent (empty) until candump has recorded one, before the plant and the runner start: a
+# standard id that no node of the robot uses or answers.
+READY_MARKER = 0x7FF
+
 # How long the processes get to come up: under software emulation (the micro-VM) a process
 # start alone takes ~0.3 s and the first steps are slow.
 READY_TIMEOUT_S = 60.0
@@ -132,11 +155,11 @@ class Robot:
             runner_args = [*runner_args, "--log", str(self.runner_mcap)]
         self._cmds = {
             "plant": [
-                str(hostsim), "plant", "--iface", iface, "--config", str(config),
+                *REALTIME, str(hostsim), "plant", "--iface", iface, "--config", str(config),
                 "--stats-json", str(self.plant_json), *plant_args,
             ],
             "runner": [
-                str(runner), "--iface", iface, "--config", str(config),
+                *REALTIME, str(runner), "--iface", iface, "--config", str(config),
                 "--stats-json", str(self.runner_json), *runner_args,
             ],
         }
@@ -198,6 +221,9 @@ class Robot:
         # Its stderr to a file too: a pipe nobody reads would fill and block it.
         with open(self.candump_log, "w") as log, open(self.workdir / "candump.err", "w") as err:
             self._procs["candump"] = subprocess.Popen(self._candump_cmd, stdout=log, stderr=err)
+        # The plant once candump records: it logs from its first frame on, and a frame sent
+        # before candump's socket is bound would be in the plant's log and not in candump's.
+        self._wait_for_candump()
         self._spawn("plant", self._cmds["plant"])
         # The runner once the plant is on the bus (the drives report without being asked).
         with can.Bus(interface="socketcan", channel=self.iface) as probe:
@@ -208,6 +234,20 @@ class Robot:
         self._spawn("runner", self._cmds["runner"])
         # Ready: a STATUS frame that reports every motor online.
         self.wait_status(lambda s: s["motors_online"] == ALL_MOTORS, READY_TIMEOUT_S, "ready")
+
+    def _wait_for_candump(self) -> None:
+        """Sends READY_MARKER frames until one is in candump's log: from then on candump
+        records every frame on the interface. (`_stop_all` leaves the markers out of `frames`.)"""
+        assert self._tx is not None
+        deadline = time.monotonic() + READY_TIMEOUT_S
+        marker = f" {self.iface} {READY_MARKER:03X}#".encode()
+        while True:
+            self._tx.send(can.Message(arbitration_id=READY_MARKER, data=b"", is_extended_id=False))
+            time.sleep(0.02)
+            if marker in self.candump_log.read_bytes():
+                return
+            self._check_alive()
+            assert time.monotonic() < deadline, f"candump recorded nothing within {READY_TIMEOUT_S} s"
 
     def _stop_all(self) -> None:
         self.stop_stream()
@@ -244,7 +284,7 @@ class Robot:
         self._tx = self._status_rx = None
         assert not failures, "\n".join(failures)
         if self.candump_log.exists():
-            self.frames = parse_candump(self.candump_log)
+            self.frames = [f for f in parse_candump(self.candump_log) if f.id != READY_MARKER]
             drops = [line for line in self.candump_log.read_text().splitlines() if "DROPCOUNT" in line]
             assert not drops, f"candump lost frames, the recording is incomplete: {drops[:3]}"
         for path, attr in ((self.runner_json, "runner_stats"), (self.plant_json, "plant_stats")):
