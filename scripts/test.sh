@@ -1,8 +1,6 @@
 #!/usr/bin/env bash
 # The project's whole test suite: what CI runs and what a user runs (README, "Two commands").
-# Each stage is a separate check that fails on its own; the script stops at the first failure
-# and names it. It installs what it needs: the thumbv7em target (rustup) and a Python virtual
-# environment for the Python tests (pip), into .venv beside this repository.
+# `scripts/test.sh --help` lists the stages and the options.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # The stages find build outputs under ./target and each board's own target/: a target
@@ -12,72 +10,137 @@ unset CARGO_TARGET_DIR CARGO_BUILD_TARGET
 THUMB=thumbv7em-none-eabihf
 # no_std crates that must build for the MCU target.
 NO_STD_CRATES=(kinematics firmware)
-
-STAGE=
-stage() {
-    STAGE=$*
-    printf '\n==> %s\n' "$*"
-}
-trap 'printf "\n==> FAILED (exit %s): %s\n" "$?" "$STAGE" >&2' ERR
-
-stage "toolchain: $(rustc --version); installing target $THUMB"
-rustup component add rustfmt clippy >/dev/null
-rustup target add "$THUMB"
-
-stage "fmt"
-cargo fmt --all -- --check
-
-stage "clippy (all targets, -D warnings)"
-cargo clippy --workspace --all-targets --all-features --locked -- -D warnings
-
-stage "tests"
-cargo test --workspace --all-features --locked
-
-stage "rustdoc (-D warnings)"
-RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --locked
-RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --all-features --locked
-
-for crate in "${NO_STD_CRATES[@]}"; do
-    stage "no_std build: $crate for $THUMB"
-    cargo build -p "$crate" --target "$THUMB" --locked
-done
-# The firmware's `serde` feature is no_std too (with `alloc`): a configuration can be
-# deserialized on an MCU that has an allocator.
-stage "no_std build: firmware --features serde for $THUMB"
-cargo build -p firmware --features serde --target "$THUMB" --locked
-
-# The board crate is its own package (not a workspace member, its own Cargo.lock): its
-# commands run from its directory so that its .cargo/config.toml (target, linker script) applies.
 BOARD=boards/stm32f407
-stage "board $BOARD: fmt"
-cargo fmt --check --manifest-path "$BOARD/Cargo.toml"
-stage "board $BOARD: clippy (-D warnings)"
-(cd "$BOARD" && cargo clippy --release --locked -- -D warnings)
-stage "board $BOARD: release build for $THUMB"
-(cd "$BOARD" && cargo build --release --locked)
-stage "board $BOARD: flash and RAM (budgets 256 KiB flash, 32 KiB static RAM)"
-python3 "$BOARD/size.py" "$BOARD/target/$THUMB/release/board-stm32f407" \
-    --max-flash 262144 --max-ram 32768
-
-# The emulated Cortex-M4 (QEMU mps2-an386) board: its own workspace, like the STM32F407 one.
-# The firmware core and a fixed scenario run there and on the host; the outbound frame streams
-# must be bit-identical (scripts/xtarget.sh installs qemu-system-arm when root and missing).
 QEMU_BOARD=boards/qemu-m4
-stage "board $QEMU_BOARD: fmt"
-cargo fmt --check --all --manifest-path "$QEMU_BOARD/Cargo.toml"
-stage "board $QEMU_BOARD: clippy (-D warnings; M4, M4 icount, host)"
-(cd "$QEMU_BOARD" && cargo clippy --release --locked -- -D warnings &&
-    cargo clippy --release --locked --features icount -- -D warnings &&
-    cargo clippy --release --locked -p xtarget-scenario \
-        --target "$(rustc -vV | sed -n 's/^host: //p')" -- -D warnings)
-stage "cross-target determinism: Cortex-M4 (QEMU) against the host, instructions per step"
-scripts/xtarget.sh
+LOGS=target/test-stages
 
-stage "benchmarks compile"
-cargo bench -p kinematics -p firmware --no-run --locked
+# name|what (the order they run in; `vcan` starts right after `prepare`, in the background)
+STAGES=(
+    "prepare|the Rust target and components (rustup), the Python virtual environment .venv (pip), and the binaries the Python stages run, built once: hostsim and mecanum-runner (release), mecanum-codec"
+    "vcan|the tests marked vcan on a real vcan0: natively where the kernel has vcan, else in a QEMU micro-VM (scripts/vcan.sh); runs in the background beside the stages below"
+    "fmt|cargo fmt --check"
+    "clippy|cargo clippy, all targets and features, -D warnings"
+    "rust-tests|cargo test: unit, integration, property and doc tests"
+    "rustdoc|cargo doc, -D warnings, default and all features"
+    "no-std|the no_std crates (${NO_STD_CRATES[*]}, firmware with serde) for $THUMB"
+    "stm32f407|$BOARD: fmt, clippy, the release image, its flash and RAM budgets"
+    "qemu-m4|$QEMU_BOARD: fmt, clippy; the core on an emulated Cortex-M4 bit-identical to the host (scripts/xtarget.sh)"
+    "bench-build|the criterion benchmarks of every crate compile and link"
+    "python|the Python tests that need no CAN bus (cantools, mcap, rosbags, the package)"
+)
 
-if [ -d tests ] && compgen -G "tests/test_*.py" >/dev/null; then
-    stage "python tests"
+usage() {
+    cat <<EOF
+Usage: scripts/test.sh [--only STAGE[,STAGE...]] [--list] [-h | --help]
+
+Runs the project's tests, stage by stage; stops at the first stage that fails and names it.
+At the end it prints each stage's wall time (also in $LOGS/times.txt).
+
+Stages, in order:
+EOF
+    local entry
+    for entry in "${STAGES[@]}"; do
+        printf '  %-12s %s\n' "${entry%%|*}" "${entry#*|}" | fold -s -w 96 | sed '2,$s/^/               /'
+    done
+    cat <<EOF
+
+The vcan lane takes one host core (the micro-VM's clock counts the guest's instructions, so a
+busy host slows it down but cannot make its timing tests fail) and runs while the other
+stages use the rest of the machine; its output is printed when it ends (and kept in
+$LOGS/vcan.log). Without vcan0 and without the VM's packages it is skipped, or fails when CI
+is set (.ci/run sets it).
+
+Options:
+  --only STAGES  run only these stages (comma-separated names from the list), e.g.
+                 --only vcan or --only fmt,clippy; \`prepare\` runs first when a stage needs it
+  --list         print the stage names, one a line, and exit
+  -h, --help     this text
+
+Installs what it needs: the $THUMB target (rustup), Python packages into .venv (pip), and,
+as root, Debian's QEMU, kernel and can-utils packages for the emulated Cortex-M4 and the
+vcan lane (apt-get). Environment: VCAN_* (scripts/vcan.sh --help), CI.
+EOF
+}
+
+ONLY=
+while [ $# -gt 0 ]; do
+    case $1 in
+    -h | --help) usage; exit 0 ;;
+    --list) for entry in "${STAGES[@]}"; do echo "${entry%%|*}"; done; exit 0 ;;
+    --only) [ $# -ge 2 ] || { echo "test.sh: --only needs stage names (--list shows them)" >&2; exit 2; }
+        ONLY=$2; shift 2 ;;
+    --only=*) ONLY=${1#--only=}; shift ;;
+    *) echo "test.sh: unknown argument '$1' (--help)" >&2; exit 2 ;;
+    esac
+done
+
+declare -A WANT=()
+if [ -n "$ONLY" ]; then
+    IFS=, read -r -a only_names <<<"$ONLY"
+    for name in "${only_names[@]}"; do
+        known=0
+        for entry in "${STAGES[@]}"; do [ "${entry%%|*}" = "$name" ] && known=1; done
+        if [ "$known" = 0 ]; then
+            echo "test.sh: --only: no stage '$name' (stages: $(for e in "${STAGES[@]}"; do printf '%s ' "${e%%|*}"; done))" >&2
+            exit 2
+        fi
+        WANT[$name]=1
+    done
+    # The Python stages run what `prepare` installs and builds.
+    if [ -n "${WANT[vcan]:-}${WANT[python]:-}" ]; then WANT[prepare]=1; fi
+else
+    for entry in "${STAGES[@]}"; do WANT[${entry%%|*}]=1; done
+fi
+wanted() { [ -n "${WANT[$1]:-}" ]; }
+
+mkdir -p "$LOGS"
+T0=$(date +%s)
+TIMES=()
+STAGE=
+STAGE_T=
+now() { date +%s; }
+finish_stage() {
+    if [ -n "$STAGE" ]; then
+        TIMES+=("$(printf '%6d s  %s' "$(($(now) - STAGE_T))" "$STAGE")")
+    fi
+    STAGE=
+}
+stage() {
+    finish_stage
+    STAGE=$1
+    STAGE_T=$(now)
+    printf '\n==> %s: %s\n' "$1" "$2"
+}
+print_times() {
+    {
+        printf '\nstage times (wall):\n'
+        printf '  %s\n' "${TIMES[@]}"
+        printf '  %6d s  total\n' "$(($(now) - T0))"
+    } | tee "$LOGS/times.txt"
+}
+
+VCAN_PID=
+stop_vcan() {
+    if [ -n "$VCAN_PID" ] && kill -0 "$VCAN_PID" 2>/dev/null; then
+        kill -TERM "$VCAN_PID" 2>/dev/null || true
+        wait "$VCAN_PID" 2>/dev/null || true
+    fi
+    VCAN_PID=
+}
+on_error() {
+    local rc=$?
+    printf '\n==> FAILED (exit %s): %s\n' "$rc" "$STAGE" >&2
+    stop_vcan
+    finish_stage
+    print_times >&2
+}
+trap on_error ERR
+trap 'stop_vcan; exit 130' INT TERM HUP
+
+if wanted prepare; then
+    stage prepare "toolchain $(rustc --version); target $THUMB; .venv; the binaries the Python stages run"
+    rustup component add rustfmt clippy >/dev/null
+    rustup target add "$THUMB"
     # A venv left broken (python3 without ensurepip makes one with no pip) is made anew;
     # as root, Debian's python3-venv is installed first when ensurepip is missing.
     if ! .venv/bin/python -m pip --version >/dev/null 2>&1; then
@@ -97,19 +160,109 @@ if [ -d tests ] && compgen -G "tests/test_*.py" >/dev/null; then
     # The project's own Python package (python/), as a user installs it: its wheel carries the
     # robot DBC from dbc/. Reinstalled every run, so the tests see this checkout's code.
     .venv/bin/python -m pip install --quiet --disable-pip-version-check --force-reinstall --no-deps ./python
-    cargo build -p firmware --features std --bin mecanum-codec --locked
-    .venv/bin/python -m pytest tests -q -m "not vcan"
+    # Built once, for both Python stages: the vcan lane runs the runner and the plant in real
+    # time (release: the micro-VM emulates its CPU, many times slower than the host).
+    cargo build --release --locked -p hostsim --bin hostsim -p mecanum-runner --bin mecanum-runner
+    cargo build --locked -p firmware --features std --bin mecanum-codec
+fi
+export HOSTSIM="$PWD/target/release/hostsim" MECANUM_RUNNER="$PWD/target/release/mecanum-runner" \
+    MECANUM_CODEC="$PWD/target/debug/mecanum-codec"
 
+if wanted vcan; then
+    stage vcan "starting the vcan lane in the background (output when it ends; $LOGS/vcan.log)"
     # Tests on a real SocketCAN interface: natively where the kernel has vcan, else in a QEMU
     # micro-VM (scripts/vcan.sh says how). With CI=true a lane that cannot run fails.
-    # The runner and the plant run in real time there: release builds (the micro-VM emulates
-    # its CPU, some 20x slower than the host). -s: the tests print their measured figures.
-    stage "vcan lane: tests marked vcan on a real vcan0 (native, else a micro-VM)"
-    cargo build --release --locked -p hostsim --bin hostsim -p mecanum-runner --bin mecanum-runner
-    HOSTSIM="$PWD/target/release/hostsim" MECANUM_RUNNER="$PWD/target/release/mecanum-runner" \
-        MECANUM_CODEC="$PWD/target/debug/mecanum-codec" \
-        VCAN_VM_TIMEOUT=${VCAN_VM_TIMEOUT:-900} \
-        scripts/vcan.sh -- .venv/bin/python -m pytest tests -m vcan -q -s -p no:cacheprovider
+    # -s: the tests print their measured figures. Its own stage time is taken when it ends.
+    VCAN_T=$(now)
+    VCAN_VM_TIMEOUT=${VCAN_VM_TIMEOUT:-1800} \
+        scripts/vcan.sh -- .venv/bin/python -m pytest tests -m vcan -q -s -p no:cacheprovider -rs \
+        >"$LOGS/vcan.log" 2>&1 &
+    VCAN_PID=$!
+    STAGE=
 fi
 
-stage "all checks passed"
+if wanted fmt; then
+    stage fmt "cargo fmt --check (workspace and both boards)"
+    cargo fmt --all -- --check
+    cargo fmt --check --manifest-path "$BOARD/Cargo.toml"
+    cargo fmt --check --all --manifest-path "$QEMU_BOARD/Cargo.toml"
+fi
+
+if wanted clippy; then
+    stage clippy "all targets, all features, -D warnings"
+    cargo clippy --workspace --all-targets --all-features --locked -- -D warnings
+fi
+
+if wanted rust-tests; then
+    stage rust-tests "cargo test --workspace --all-features"
+    cargo test --workspace --all-features --locked
+fi
+
+if wanted rustdoc; then
+    stage rustdoc "-D warnings, default and all features"
+    RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --locked
+    RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --all-features --locked
+fi
+
+if wanted no-std; then
+    stage no-std "${NO_STD_CRATES[*]} and firmware --features serde for $THUMB"
+    for crate in "${NO_STD_CRATES[@]}"; do
+        cargo build -p "$crate" --target "$THUMB" --locked
+    done
+    # The firmware's `serde` feature is no_std too (with `alloc`): a configuration can be
+    # deserialized on an MCU that has an allocator.
+    cargo build -p firmware --features serde --target "$THUMB" --locked
+fi
+
+# The board crate is its own package (not a workspace member, its own Cargo.lock): its
+# commands run from its directory so that its .cargo/config.toml (target, linker script) applies.
+if wanted stm32f407; then
+    stage stm32f407 "$BOARD: clippy (-D warnings), release build, flash and RAM (256 KiB, 32 KiB)"
+    (cd "$BOARD" && cargo clippy --release --locked -- -D warnings)
+    (cd "$BOARD" && cargo build --release --locked)
+    python3 "$BOARD/size.py" "$BOARD/target/$THUMB/release/board-stm32f407" \
+        --max-flash 262144 --max-ram 32768
+fi
+
+# The emulated Cortex-M4 (QEMU mps2-an386) board: its own workspace, like the STM32F407 one.
+# The firmware core and a fixed scenario run there and on the host; the outbound frame streams
+# must be bit-identical (scripts/xtarget.sh installs qemu-system-arm when root and missing).
+if wanted qemu-m4; then
+    stage qemu-m4 "$QEMU_BOARD: clippy (M4, M4 icount, host); Cortex-M4 against the host, instructions per step"
+    (cd "$QEMU_BOARD" && cargo clippy --release --locked -- -D warnings &&
+        cargo clippy --release --locked --features icount -- -D warnings &&
+        cargo clippy --release --locked -p xtarget-scenario \
+            --target "$(rustc -vV | sed -n 's/^host: //p')" -- -D warnings)
+    scripts/xtarget.sh
+fi
+
+# Every criterion benchmark compiles and links, built like the tests above (dev profile, the
+# same features: it reuses their dependencies). `cargo bench` builds them with the release
+# profile's fat LTO, minutes of compiling for the same check.
+if wanted bench-build; then
+    stage bench-build "the benchmarks of every crate compile and link (cargo test --benches --no-run)"
+    cargo test --workspace --all-features --benches --no-run --locked
+fi
+
+if wanted python; then
+    stage python "pytest -m 'not vcan' (the binaries built in prepare)"
+    .venv/bin/python -m pytest tests -q -m "not vcan"
+fi
+
+if [ -n "$VCAN_PID" ]; then
+    finish_stage
+    STAGE=vcan
+    STAGE_T=$VCAN_T
+    printf '\n==> vcan: waiting for the lane (started %d s ago)\n' "$(($(now) - VCAN_T))"
+    vcan_rc=0
+    wait "$VCAN_PID" || vcan_rc=$?
+    VCAN_PID=
+    cat "$LOGS/vcan.log"
+    if [ "$vcan_rc" != 0 ]; then
+        (exit "$vcan_rc")
+    fi
+fi
+
+finish_stage
+print_times
+printf '\n==> all checks passed\n'
