@@ -278,6 +278,21 @@ def test_wait_state_sees_a_state_reported_and_left_before_it_looked(channel: str
         assert robot.status is not None and (robot.status.state, robot.status.fault) == ("DISABLED", "WATCHDOG")
 
 
+def test_a_receiving_thread_that_stopped_is_reported_not_taken_for_a_live_robot(channel: str) -> None:
+    """An `on_odometry` callback raises: the receiving thread stops, and from then on `check`
+    raises NotResponding naming the error (nothing read, so no silence could be proven)."""
+    with ScriptedRobot(channel), Robot(host_bus(channel), owns_bus=True) as robot:
+        robot.wait_state("DISABLED", timeout=1.0)
+
+        def broken(odometry: object) -> None:
+            raise ZeroDivisionError("a callback's bug")
+
+        robot.on_odometry(broken)
+        time.sleep(0.2)
+        with pytest.raises(NotResponding, match=r"stopped reading the bus .*ZeroDivisionError"):
+            robot.check()
+
+
 def test_liveness_counts_only_a_silence_read_on_the_bus() -> None:
     """`_Liveness` by numbers: a silence is proven by frames read after the last HEARTBEAT
     (their stamps) or by the bus found empty, never by the reader's own lateness."""

@@ -529,20 +529,21 @@ class Robot:
 
     def _receive_loop(self) -> None:
         """The receiving thread: every frame to `_on_message`; an empty bus noted (`_Liveness`)."""
-        while not self._stop_receiving.is_set():
-            try:
+        try:
+            while not self._stop_receiving.is_set():
                 msg = self.bus.recv(timeout=self._poll_s)
-            except Exception as err:  # noqa: BLE001 - raised from check() as NotResponding
-                if not self._stop_receiving.is_set():
+                if msg is None:
                     with self._lock:
-                        self._receive_error = err
-                        self._lock.notify_all()
-                return
-            if msg is None:
+                        self._liveness.empty(time.monotonic())
+                else:
+                    self._on_message(msg)
+        except Exception as err:  # noqa: BLE001 - raised from check() as NotResponding
+            # A bus that failed, or an `on_odometry` callback that raised: nothing is read any
+            # more, so no silence could be proven; `check` says so instead.
+            if not self._stop_receiving.is_set():
                 with self._lock:
-                    self._liveness.empty(time.monotonic())
-                continue
-            self._on_message(msg)
+                    self._receive_error = err
+                    self._lock.notify_all()
 
     def _on_message(self, msg: can.Message) -> None:
         stamp = float(msg.timestamp) if msg.timestamp else math.nan
@@ -674,7 +675,7 @@ class Robot:
         if mismatch is not None:
             raise mismatch
         if receive_error is not None:
-            raise NotResponding(f"cannot read the bus ({self.bus.channel_info}): {receive_error}")
+            raise NotResponding(f"this program stopped reading the bus ({self.bus.channel_info}): {receive_error!r}")
         silent = self._silence()
         if silent is None:
             return
