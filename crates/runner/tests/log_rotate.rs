@@ -39,8 +39,10 @@ struct Run {
 fn run(dir: &Path, max_bytes: u64, keep: usize) -> Run {
     let _ = std::fs::remove_dir_all(dir);
     let config = Config::dji_m3508_example();
-    // At a tenth of real time: the log's hand-overs are due to log time, as in a real run.
-    let clock = FakeClock::new((0..RUN_MS).map(|k| (k * 53) % 300), 10);
+    // In real time, as in a real run: the log's hand-overs are due to log time, and its writer
+    // and the rotation's threads have a hand-over's 250 ms for their work. (At a tenth of real
+    // time they had 25 ms, and with a core kept busy the run made 2 or 3 files instead of 5+.)
+    let clock = FakeClock::new((0..RUN_MS).map(|k| (k * 53) % 300), 1);
     let mut bus = MemoryBus::new(&clock, session());
     let mut controller = Controller::new(&config).unwrap();
     let mut recorder =
