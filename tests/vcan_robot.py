@@ -47,8 +47,8 @@ ALL_MOTORS = 0x0F
 #: Where the lane runs (scripts/vcan.sh): natively, or in the QEMU micro-VM ("vm").
 SLOW_CPU = os.environ.get("MECANUM_VCAN_MODE") == "vm"
 """The micro-VM emulates its CPU: processes start and Python runs several times slower than
-natively, so the tests wait longer there for things to come up and answer, and ask less of
-the processes that must keep up with a rate. Never a budget the firmware's timing is held to."""
+natively, so the tests wait longer there for things to come up and answer, and give ROS 2's
+Python longer to pass a message on. Never a budget the firmware's timing is held to."""
 HOST_STALLS = SLOW_CPU and os.environ.get("MECANUM_VCAN_CLOCK") != "icount"
 """The micro-VM's clock follows the host's wall clock (VCAN_VM_CLOCK=host): a busy host, or
 one that deschedules QEMU, stalls the guest's timeline for up to hundreds of milliseconds, and
