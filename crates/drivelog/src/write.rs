@@ -702,6 +702,26 @@ impl McapLog {
         Ok(())
     }
 
+    /// Waits until every batch handed over so far is in the file (the open batch stays
+    /// open): [`bytes_written`](Self::bytes_written) then follows the log time alone, not the
+    /// writing thread's speed. For tests of what a size limit does; a control loop never calls
+    /// it.
+    ///
+    /// # Errors
+    /// [`LogError`] if writing the log failed.
+    pub fn wait_written(&mut self) -> Result<(), LogError> {
+        let Some(writer) = self.writer.as_mut() else {
+            return Ok(());
+        };
+        match writer.wait() {
+            Ok(_) => Ok(()),
+            Err(e) => {
+                self.failed = Some((e.kind(), e.to_string()));
+                Err(self.io_err(e))
+            }
+        }
+    }
+
     /// Messages logged so far.
     #[must_use]
     pub const fn messages(&self) -> u64 {
@@ -1339,6 +1359,24 @@ mod tests {
         log.finish().unwrap();
         let len = std::fs::metadata(&tmp.0).unwrap().len();
         assert!(written < len, "{written} written, file {len}");
+    }
+
+    #[test]
+    fn wait_written_leaves_every_handed_batch_in_the_file() {
+        let tmp = TempFile::new("wait-written");
+        let mut log = McapLog::create(&tmp.0, &BTreeMap::new()).unwrap();
+        log.drop_when_behind(1 << 15);
+        // Hand-overs at 250 and 500 ms, neither waited for; the last 100 ms stay open.
+        log_steps(&mut log, 0..600).unwrap();
+        log.wait_written().unwrap();
+        let written = log.bytes_written();
+        // Each batch ends with a flush: what was written is on disk, whatever the thread's speed.
+        assert_eq!(written, std::fs::metadata(&tmp.0).unwrap().len());
+        assert!(written > 10_000, "{written} bytes");
+        log.wait_written().unwrap();
+        assert_eq!(log.bytes_written(), written, "the open batch stays open");
+        assert_eq!(log.dropped(), 0);
+        log.finish().unwrap();
     }
 
     #[test]
