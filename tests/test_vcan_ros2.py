@@ -290,12 +290,6 @@ def _zero_currents_from(robot: Robot, t0: float, t1: float) -> float:
     return zero_at
 
 
-def _status_after(robot: Robot, t: float) -> dict:
-    after = robot.decoded(STATUS, t)
-    assert after, f"no STATUS after {t}"
-    return after[0][1]
-
-
 def _on_bus(session: Session, twist: tuple[float, float, float], since: float) -> float:
     """Time of the first TWIST_CMD from `since` on that carries `twist` (to the protocol's mm/s)."""
     for t, v in session.robot.decoded(TWIST_CMD, since):
@@ -326,7 +320,8 @@ def test_enable_service_enables_the_robot(session: Session) -> None:
     assert call.success and call.message == "state ENABLED, fault NONE", call
     enable = [f for f in session.robot.of(MODE_CMD, call.sent, call.answered) if f.data == bytes([MODE_ENABLE])]
     assert len(enable) == 1, "one MODE_CMD enable on the bus during the call"
-    assert _status_after(session.robot, enable[0].t + 0.05)["state"] == STATE_ENABLED
+    # Bounded by the next command: a later STATUS may report the e-stop.
+    assert session.robot.status_in(enable[0].t + 0.05, session.calls["estop"].sent)["state"] == STATE_ENABLED
 
 
 @pytest.mark.parametrize("name,vx,vy,wz", MOTIONS, ids=[m[0] for m in MOTIONS])
@@ -428,7 +423,7 @@ def test_silent_cmd_vel_stops_the_robot_after_the_timeout(session: Session) -> N
           f"holding currents then at most {max(currents)} raw")
     assert CMD_VEL_TIMEOUT_S - 0.002 <= zero - silence <= CMD_VEL_TIMEOUT_S + KEEPALIVE_PERIOD_S + ROS_SLACK_S
     assert still - zero <= RAMP_S + STOP_BUDGET_S + TIMING_SLACK_S + ODOM_SLACK_S, still - zero
-    status = _status_after(robot, still + 0.2)
+    status = robot.status_in(still + 0.2, session.calls["estop"].sent)
     assert (status["state"], status["fault"]) == (STATE_ENABLED, FAULT_NONE), status
     # Holding still: the stream goes on with zero twists, and the wheel loops hold (near) zero.
     held = robot.decoded(TWIST_CMD, still, session.marks["standing"])
@@ -485,7 +480,7 @@ def test_sigterm_leaves_the_robot_disabled(session: Session) -> None:
           f"{(zero - off) * 1e3:.1f} ms after it (budget {2 * CONTROL_PERIOD_S * 1e3:.0f} ms + "
           f"{TIMING_SLACK_S * 1e3:.0f} ms)")
     assert zero - off <= 2 * CONTROL_PERIOD_S + TIMING_SLACK_S
-    status = _status_after(robot, off + 0.05)
+    status = robot.status_in(off + 0.05, session.marks["bridge2"])
     assert (status["state"], status["fault"]) == (STATE_DISABLED, FAULT_NONE), status
 
 
@@ -530,7 +525,7 @@ def test_sigkill_stops_the_robot_within_the_watchdog_budget(session: Session) ->
     print(f"SIGKILL: zero currents {latency * 1e3:.1f} ms after the bridge's last TWIST_CMD (budget "
           f"{budget * 1e3:.0f} ms + {TIMING_SLACK_S * 1e3:.0f} ms)")
     assert SESSION_COMMAND_TIMEOUT_S - 0.002 <= latency <= budget + TIMING_SLACK_S
-    status = _status_after(robot, zero + 0.05)
+    status = robot.status_in(zero + 0.05, kill + SESSION_COMMAND_TIMEOUT_S + 0.4)
     assert (status["state"], status["fault"]) == (STATE_DISABLED, FAULT_WATCHDOG), status
 
 

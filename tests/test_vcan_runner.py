@@ -307,14 +307,6 @@ def _statuses(robot: Robot, t0: float, t1: float) -> list[tuple[float, dict]]:
     return statuses
 
 
-def _status_at(robot: Robot, t: float, until: float) -> dict:
-    """The first STATUS the robot sent in [t, until): what it said after an event and before
-    the next one (a later frame may report what the next command did)."""
-    within = robot.decoded(STATUS, t, until)
-    assert within, f"no STATUS in [{t}, {until})"
-    return within[0][1]
-
-
 def test_silence_stops_within_the_timeout_plus_two_periods(stops: Robot) -> None:
     last = _last_before(stops, TWIST_CMD, stops.marks["silence"] + 0.01)
     enable2 = _next_mode(stops, last)
@@ -323,7 +315,7 @@ def test_silence_stops_within_the_timeout_plus_two_periods(stops: Robot) -> None
     print(f"silence: zero currents {latency * 1e3:.1f} ms after the last TWIST_CMD "
           f"(budget {STOP_BUDGET_S * 1e3:.0f} ms{timing_note()})")
     assert COMMAND_TIMEOUT_S - 0.002 <= latency <= STOP_BUDGET_S + TIMING_SLACK_S
-    status = _status_at(stops, zero, enable2)
+    status = stops.status_in(zero, enable2)
     assert (status["state"], status["fault"]) == (STATE_DISABLED, FAULT_WATCHDOG), status
 
 
@@ -359,7 +351,7 @@ def test_estop_stops_at_once_and_latches(stops: Robot) -> None:
     enable = _next_mode(stops, reset, MODE_ENABLE)
     driven = [c for c in stops.of(DJI_CMD_1_4, enable) if dji_currents(c) != (0,) * 4]
     assert len(driven) > 100, "no motion after reset and enable"
-    assert _status_at(stops, enable + 0.2, stops.marks["end"])["state"] == STATE_ENABLED
+    assert stops.status_in(enable + 0.2, stops.marks["end"])["state"] == STATE_ENABLED
 
 
 # --- a sender stuck on one TWIST_CMD frame -------------------------------------------------
@@ -415,7 +407,7 @@ def test_a_repeated_twist_frame_stops_the_robot_and_is_counted(repeated: Robot) 
           f"{during} repeats before (budget {STOP_BUDGET_S * 1e3:.0f} ms{timing_note()})")
     assert COMMAND_TIMEOUT_S - 0.002 <= latency <= STOP_BUDGET_S + TIMING_SLACK_S
     assert during >= (1 if HOST_STALLS else 3), "the stop came before the repeats could have kept it going"
-    status = _status_at(repeated, zero, math.inf)
+    status = repeated.status_in(zero, math.inf)
     assert (status["state"], status["fault"]) == (STATE_DISABLED, FAULT_WATCHDOG), status
 
     # Every repeat counted, those after the stop too; none is a rejected frame.
@@ -857,7 +849,7 @@ def test_the_runner_survives_the_link_going_down_and_keeps_the_robot_stopped(lin
     assert all(s["state"] != STATE_ENABLED for _, s in statuses), statuses[:3]
     # A reset and an enable drive it again.
     enable2 = _next_mode(robot, robot.marks["enable2"] - 0.05, MODE_ENABLE)
-    assert _status_at(robot, enable2 + 0.3, robot.marks["end"])["state"] == STATE_ENABLED
+    assert robot.status_in(enable2 + 0.3, robot.marks["end"])["state"] == STATE_ENABLED
     again = robot.of(DJI_CMD_1_4, enable2 + 0.3, robot.marks["end"])
     assert any(dji_currents(c) != (0, 0, 0, 0) for c in again)
     # The link is in the plant's statistics too (it survived: its sends failed meanwhile).

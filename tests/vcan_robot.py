@@ -432,6 +432,13 @@ class Robot:
             for f in self.of(ident, t0, t1)
         ]
 
+    def status_in(self, t0: float, t1: float) -> dict:
+        """The first STATUS the robot sent in [t0, t1): what it said after an event and before
+        the next one (a later frame may report what the next command did)."""
+        within = self.decoded(STATUS, t0, t1)
+        assert within, f"no STATUS in [{t0}, {t1})"
+        return within[0][1]
+
 
 def run_cangen(cangen: str, iface: str, arg_sets: Iterable[Sequence[str]], timeout: float = 300.0) -> None:
     """Runs one `cangen IFACE ARGS...` per argument set, all at once, and waits for them all;
