@@ -16,14 +16,14 @@ LOGS=target/test-stages
 
 # name|what (the order they run in; `vcan` starts right after `prepare`, in the background)
 STAGES=(
-    "prepare|the Rust target and components (rustup), the Python virtual environment .venv (pip), and the binaries the Python stages run, built once: hostsim and mecanum-runner (release), mecanum-codec"
+    "prepare|the Rust target and components (rustup), cmake and libclang for boardsim (apt-get, as root), the Python virtual environment .venv (pip), and the binaries the Python stages run, built once: hostsim and mecanum-runner (release), mecanum-codec"
     "vcan|the tests marked vcan on a real vcan0: natively where the kernel has vcan, else in a QEMU micro-VM (scripts/vcan.sh); runs in the background beside the stages below"
     "fmt|cargo fmt --check"
+    "stm32f407|$BOARD: clippy, the release image (boardsim's tests run it), its flash and RAM budgets"
     "clippy|cargo clippy, all targets and features, -D warnings"
-    "rust-tests|cargo test: unit, integration, property and doc tests"
+    "rust-tests|cargo test: unit, integration, property and doc tests; boardsim runs the $BOARD image"
     "rustdoc|cargo doc, -D warnings, default and all features"
     "no-std|the no_std crates (${NO_STD_CRATES[*]}, firmware with serde) for $THUMB"
-    "stm32f407|$BOARD: fmt, clippy, the release image, its flash and RAM budgets"
     "qemu-m4|$QEMU_BOARD: fmt, clippy; the core on an emulated Cortex-M4 bit-identical to the host (scripts/xtarget.sh)"
     "bench-build|the criterion benchmarks of every crate compile and link"
     "python|the Python tests that need no CAN bus (cantools, mcap, rosbags, the package)"
@@ -57,8 +57,8 @@ Options:
   -h, --help     this text
 
 Installs what it needs: the $THUMB target (rustup), Python packages into .venv (pip), and,
-as root, Debian's QEMU, kernel and can-utils packages for the emulated Cortex-M4 and the
-vcan lane (apt-get). Environment: VCAN_* (scripts/vcan.sh --help), CI.
+as root, Debian's cmake and libclang-dev (boardsim's CPU emulator), QEMU, kernel and
+can-utils packages for the emulated Cortex-M4 and the vcan lane (apt-get). Environment: VCAN_* (scripts/vcan.sh --help), CI.
 EOF
 }
 
@@ -86,8 +86,10 @@ if [ -n "$ONLY" ]; then
         fi
         WANT[$name]=1
     done
-    # The Python stages run what `prepare` installs and builds.
+    # The Python stages run what `prepare` installs and builds; boardsim's tests (rust-tests)
+    # run the board image the stm32f407 stage builds.
     if [ -n "${WANT[vcan]:-}${WANT[python]:-}" ]; then WANT[prepare]=1; fi
+    if [ -n "${WANT[rust-tests]:-}" ]; then WANT[stm32f407]=1; fi
 else
     for entry in "${STAGES[@]}"; do WANT[${entry%%|*}]=1; done
 fi
@@ -141,6 +143,13 @@ if wanted prepare; then
     stage prepare "toolchain $(rustc --version); target $THUMB; .venv; the binaries the Python stages run"
     rustup component add rustfmt clippy >/dev/null
     rustup target add "$THUMB"
+    # boardsim links the Unicorn CPU emulator, whose C cmake builds and whose bindings bindgen
+    # generates with libclang: as root, Debian's cmake and libclang-dev when missing.
+    if ! { command -v cmake >/dev/null && compgen -G '/usr/lib/llvm-*/lib/libclang.so*' >/dev/null; } &&
+        [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+        apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends cmake libclang-dev
+    fi
     # A venv left broken (python3 without ensurepip makes one with no pip) is made anew;
     # as root, Debian's python3-venv is installed first when ensurepip is missing.
     if ! .venv/bin/python -m pip --version >/dev/null 2>&1; then
@@ -188,6 +197,16 @@ if wanted fmt; then
     cargo fmt --check --all --manifest-path "$QEMU_BOARD/Cargo.toml"
 fi
 
+# The board crate is its own package (not a workspace member, its own Cargo.lock): its
+# commands run from its directory so that its .cargo/config.toml (target, linker script) applies.
+if wanted stm32f407; then
+    stage stm32f407 "$BOARD: clippy (-D warnings), release build, flash and RAM (256 KiB, 32 KiB)"
+    (cd "$BOARD" && cargo clippy --release --locked -- -D warnings)
+    (cd "$BOARD" && cargo build --release --locked)
+    python3 "$BOARD/size.py" "$BOARD/target/$THUMB/release/board-stm32f407" \
+        --max-flash 262144 --max-ram 32768
+fi
+
 if wanted clippy; then
     stage clippy "all targets, all features, -D warnings"
     cargo clippy --workspace --all-targets --all-features --locked -- -D warnings
@@ -212,16 +231,6 @@ if wanted no-std; then
     # The firmware's `serde` feature is no_std too (with `alloc`): a configuration can be
     # deserialized on an MCU that has an allocator.
     cargo build -p firmware --features serde --target "$THUMB" --locked
-fi
-
-# The board crate is its own package (not a workspace member, its own Cargo.lock): its
-# commands run from its directory so that its .cargo/config.toml (target, linker script) applies.
-if wanted stm32f407; then
-    stage stm32f407 "$BOARD: clippy (-D warnings), release build, flash and RAM (256 KiB, 32 KiB)"
-    (cd "$BOARD" && cargo clippy --release --locked -- -D warnings)
-    (cd "$BOARD" && cargo build --release --locked)
-    python3 "$BOARD/size.py" "$BOARD/target/$THUMB/release/board-stm32f407" \
-        --max-flash 262144 --max-ram 32768
 fi
 
 # The emulated Cortex-M4 (QEMU mps2-an386) board: its own workspace, like the STM32F407 one.

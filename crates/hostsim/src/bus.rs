@@ -247,6 +247,15 @@ impl Bus {
         self.frames.len()
     }
 
+    /// When the next transmission starts if nothing else is queued: the earliest time a
+    /// waiting frame is ready, not before the bus is idle. `None` with nothing waiting. (A
+    /// node that offers one frame at a time, as a CAN controller's mailbox does, runs to
+    /// this time before it offers the next.)
+    #[must_use]
+    pub fn next_start_ns(&self) -> Option<u64> {
+        self.ready_ns.iter().min().map(|&r| r.max(self.idle_at_ns))
+    }
+
     /// Statistics so far.
     #[must_use]
     pub const fn stats(&self) -> BusStats {
@@ -606,6 +615,20 @@ mod tests {
             Id::Standard(id) => id.as_raw(),
             Id::Extended(_) => u16::MAX,
         }
+    }
+
+    #[test]
+    fn the_next_start_waits_for_the_ready_time_and_the_idle_bus() {
+        let mut bus = Bus::new(1_000_000, vec![], 1);
+        assert_eq!(bus.next_start_ns(), None);
+        bus.send(5_000, Node::Drives, frame(0x201, &[0; 8]));
+        bus.send(7_000, Node::Drives, frame(0x202, &[0; 8]));
+        assert_eq!(bus.next_start_ns(), Some(5_000));
+        let first = bus.advance(5_001);
+        assert_eq!(first.len(), 1, "only the frame ready by then starts");
+        // The second is ready at 7 µs but the bus is busy with the first until its end.
+        assert!(first[0].end_ns > 7_000);
+        assert_eq!(bus.next_start_ns(), Some(first[0].end_ns));
     }
 
     #[test]

@@ -1,0 +1,189 @@
+//! The board as the firmware node on hostsim's bit-timed bus, in one virtual time.
+//!
+//! The bus ([`hostsim::bus::Bus`]) times every frame bit for bit and arbitrates by id. The
+//! board's CAN1 offers one frame at a time (its next mailbox, as the controller does): it is
+//! queued on the bus when the board requests it, started when it wins arbitration, and
+//! completes (TXOK) at its end of frame. Frames of the other nodes, queued by the caller at
+//! their times, reach the board's FIFOs at their delivery time. The board runs between those
+//! events, and stops early when its controller has something new to send.
+//!
+//! Time: the bus counts ns, the board cycles at 168 MHz; conversions round so that a wake-up
+//! is never before the event.
+
+use hostsim::bus::{Bus, Fate, Node, Transmission};
+
+use crate::board::{Board, BoardError, CPU_HZ};
+
+/// ns of virtual time at board cycle `c` (rounded down).
+#[must_use]
+pub const fn cycles_to_ns(c: u64) -> u64 {
+    c * 1_000_000_000 / CPU_HZ
+}
+
+/// The first board cycle at or after `ns`.
+#[must_use]
+pub const fn ns_to_cycles(ns: u64) -> u64 {
+    (ns * CPU_HZ).div_ceil(1_000_000_000)
+}
+
+/// The board on a bus. See the [module documentation](self).
+#[derive(Debug)]
+pub struct Lockstep {
+    /// The board.
+    pub board: Board,
+    /// The bus.
+    pub bus: Bus,
+    /// Transmissions started and not yet completed (at most a few: one on the wire, the
+    /// ones delivered late by a delay fault).
+    in_flight: Vec<Transmission>,
+    /// A frame of the board is on the bus (queued or on the wire).
+    board_queued: bool,
+    /// Every transmission completed, in order, for the caller to log and take.
+    pub completed: Vec<Transmission>,
+    scratch: Vec<Transmission>,
+}
+
+impl Lockstep {
+    /// `board` on `bus`.
+    #[must_use]
+    pub const fn new(board: Board, bus: Bus) -> Self {
+        Self {
+            board,
+            bus,
+            in_flight: Vec::new(),
+            board_queued: false,
+            completed: Vec::new(),
+            scratch: Vec::new(),
+        }
+    }
+
+    /// Virtual time, ns.
+    #[must_use]
+    pub fn now_ns(&self) -> u64 {
+        cycles_to_ns(self.board.now())
+    }
+
+    /// Queues `frame` from `node` (not the board's) to be sent at `at_ns`.
+    pub fn send(&mut self, at_ns: u64, node: Node, frame: firmware::CanFrame) {
+        self.bus.send(at_ns, node, frame);
+    }
+
+    /// Runs board and bus to `until_ns`.
+    ///
+    /// # Errors
+    /// The board stopped ([`BoardError`]).
+    pub fn run_until(&mut self, until_ns: u64) -> Result<(), BoardError> {
+        loop {
+            let now_ns = self.now_ns();
+            // The board's next frame, once its previous one is off the bus.
+            if !self.board_queued
+                && let Some(frame) = self.board.can_offer()
+            {
+                self.bus.send(now_ns, Node::Controller, frame);
+                self.board_queued = true;
+            }
+            // Transmissions that start by now.
+            self.scratch.clear();
+            self.bus.advance_into(now_ns + 1, &mut self.scratch);
+            for tx in self.scratch.drain(..) {
+                if tx.from == Node::Controller {
+                    self.board.can_started(ns_to_cycles(tx.start_ns));
+                }
+                self.in_flight.push(tx);
+            }
+            // Completions due by now, in time order.
+            self.in_flight.sort_by_key(|t| (t.delivered_ns, t.end_ns));
+            while let Some(tx) = self.in_flight.first() {
+                let due = if tx.from == Node::Controller {
+                    tx.end_ns
+                } else {
+                    tx.delivered_ns
+                };
+                if due > now_ns {
+                    break;
+                }
+                let tx = self.in_flight.remove(0);
+                if tx.from == Node::Controller {
+                    // A fault on the wire (drop, corruption) is the receivers' loss: the
+                    // frame was acknowledged by the bus's other nodes in this model.
+                    self.board.can_transmitted();
+                    self.board_queued = false;
+                } else if tx.fate != Fate::Dropped {
+                    self.board.can_receive(&tx.frame, ns_to_cycles(tx.start_ns));
+                }
+                self.completed.push(tx);
+            }
+            if now_ns >= until_ns {
+                return Ok(());
+            }
+            let next = self
+                .in_flight
+                .iter()
+                .map(|t| {
+                    if t.from == Node::Controller {
+                        t.end_ns
+                    } else {
+                        t.delivered_ns
+                    }
+                })
+                .chain(self.bus.next_start_ns())
+                .filter(|&t| t > now_ns)
+                .min()
+                .map_or(until_ns, |t| t.min(until_ns));
+            self.board.run_until(ns_to_cycles(next))?;
+        }
+    }
+}
+
+/// Runs `ls` to `until_ns` with `drives` (hostsim's simulated drives and plant) answering on
+/// the bus: every `tick_ns` the plant's feedback up to the tick's end is queued at its send
+/// times, board and bus run to the tick's end, the board's frames reach the drives, and the
+/// physics advances a tick.
+///
+/// # Errors
+/// The board stopped ([`BoardError`]).
+pub fn run_with_drives(
+    ls: &mut Lockstep,
+    drives: &mut impl hostsim::sim::SimPlant,
+    until_ns: u64,
+    tick_ns: u64,
+) -> Result<(), BoardError> {
+    let mut feedback = Vec::new();
+    let mut seen = ls.completed.len();
+    while ls.now_ns() < until_ns {
+        let end = (ls.now_ns() / tick_ns + 1) * tick_ns;
+        feedback.clear();
+        drives.feedback(end, &mut feedback);
+        for &(t, frame) in &feedback {
+            ls.send(t, Node::Drives, frame);
+        }
+        ls.run_until(end)?;
+        for tx in &ls.completed[seen..] {
+            if tx.from == Node::Controller && tx.fate != Fate::Dropped {
+                drives.on_frame(tx.delivered_ns / 1000, &tx.frame);
+            }
+        }
+        seen = ls.completed.len();
+        drives.advance_ns(tick_ns);
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn conversions_never_wake_before_the_event() {
+        for ns in [0, 1, 5, 6, 999, 1000, 1_000_001, 123_456_789] {
+            let c = ns_to_cycles(ns);
+            assert!(cycles_to_ns(c) >= ns, "{ns} ns -> {c} cycles");
+            assert!(
+                c == 0 || cycles_to_ns(c - 1) < ns,
+                "{ns} ns: {c} is the first"
+            );
+        }
+        assert_eq!(ns_to_cycles(1000), 168);
+        assert_eq!(cycles_to_ns(168), 1000);
+    }
+}

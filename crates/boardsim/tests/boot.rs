@@ -1,0 +1,173 @@
+//! The flashed image boots: clocks, CAN1, the 1 kHz loop, its log lines and its frames, with
+//! hostsim's simulated C620 ESCs answering on the bus; twice the same, bit for bit.
+
+use std::path::PathBuf;
+
+use boardsim::lockstep::{Lockstep, run_with_drives};
+use boardsim::rtt::LogLine;
+use boardsim::{Board, CPU_HZ, Image};
+use embedded_can::Frame;
+use hostsim::bus::{Bus, Node, Transmission};
+use hostsim::drives::SimDrives;
+
+/// The board ELF: `BOARDSIM_ELF`, else the release build of `boards/stm32f407` (which
+/// `scripts/test.sh` makes before the Rust tests).
+fn elf() -> PathBuf {
+    let path = std::env::var_os("BOARDSIM_ELF").map_or_else(
+        || {
+            PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+                .join("../../boards/stm32f407/target/thumbv7em-none-eabihf/release/board-stm32f407")
+        },
+        PathBuf::from,
+    );
+    assert!(
+        path.exists(),
+        "{}: no board image; build it with `cd boards/stm32f407 && cargo build --release` \
+         (scripts/test.sh does) or set BOARDSIM_ELF",
+        path.display()
+    );
+    path
+}
+
+struct Run {
+    lines: Vec<LogLine>,
+    frames: Vec<Transmission>,
+    board: Board,
+}
+
+fn boot(seconds: f64) -> Run {
+    let board = Board::new(Image::read(&elf()).unwrap()).unwrap();
+    let config = firmware::Config::dji_m3508_example();
+    let mut drives = SimDrives::new(&config).unwrap();
+    let mut ls = Lockstep::new(board, Bus::new(1_000_000, Vec::new(), 0));
+    run_with_drives(&mut ls, &mut drives, (seconds * 1e9) as u64, 100_000).unwrap();
+    let mut board = ls.board;
+    Run {
+        lines: board.take_lines(),
+        frames: ls.completed,
+        board,
+    }
+}
+
+fn seconds(cycles: u64) -> f64 {
+    cycles as f64 / CPU_HZ as f64
+}
+
+#[test]
+fn the_flashed_image_boots_to_its_1_khz_loop() {
+    let run = boot(2.05);
+    for l in &run.lines {
+        eprintln!("{:.6} {} {}", seconds(l.at), l.level, l.text);
+    }
+    let find = |text: &str| {
+        run.lines
+            .iter()
+            .find(|l| l.text.contains(text))
+            .unwrap_or_else(|| panic!("no log line with {text:?}"))
+    };
+    find("board-stm32f407: SYSCLK 168 MHz, APB1 42 MHz, CAN1 1 Mbit/s on PD0/PD1");
+    find("CAN1 enabled (bus idle seen)");
+    let looping = find("control loop: 1000 us period");
+    assert!(
+        seconds(looping.at) < 0.01,
+        "boot took {} s",
+        seconds(looping.at)
+    );
+    assert!(
+        run.lines
+            .iter()
+            .all(|l| l.level != "error" && l.level != "warn")
+    );
+
+    // The clock tree the image programmed, and CAN1's bit time.
+    let c = run.board.rcc().clocks();
+    assert_eq!(
+        (c.sysclk, c.pclk1, c.tim_apb1),
+        (168_000_000, 42_000_000, 84_000_000)
+    );
+    assert_eq!(run.board.can1().cycles_per_bit(), 168, "1 Mbit/s");
+    let unknown: Vec<String> = run
+        .board
+        .unknown_registers()
+        .iter()
+        .map(|u| u.to_string())
+        .collect();
+    assert!(unknown.is_empty(), "{unknown:#?}");
+
+    // The once-a-second counters: 1000 and 2000 steps, a second apart, motors all online.
+    let reports: Vec<&LogLine> = run
+        .lines
+        .iter()
+        .filter(|l| l.text.starts_with("steps "))
+        .collect();
+    assert_eq!(reports.len(), 2, "{reports:#?}");
+    assert!(
+        reports[0].text.starts_with("steps 1000 state 0 "),
+        "{}",
+        reports[0].text
+    );
+    assert!(reports[0].text.contains("fault 0 "), "{}", reports[0].text);
+    assert!(
+        reports[0].text.contains("motors 1111"),
+        "{}",
+        reports[0].text
+    );
+    assert!(
+        reports[1].text.starts_with("steps 2000 "),
+        "{}",
+        reports[1].text
+    );
+    assert!(reports[1].text.contains("overruns 0 ") && reports[1].text.ends_with("dropped 0"));
+    let apart = seconds(reports[1].at - reports[0].at);
+    assert!((apart - 1.0).abs() < 1e-3, "{apart} s between the reports");
+
+    // On the bus: the motor command 0x200 at 1 kHz, odometry 0x310/0x311 at 100 Hz, STATUS
+    // 0x312 and HEARTBEAT 0x31F at 10 Hz, in the second after the first report.
+    let (t0, t1) = (seconds(reports[0].at), seconds(reports[0].at) + 1.0);
+    let count = |id: u16| {
+        run.frames
+            .iter()
+            .filter(|t| {
+                t.from == Node::Controller
+                    && t.frame.id()
+                        == embedded_can::Id::Standard(embedded_can::StandardId::new(id).unwrap())
+                    && (t0..t1).contains(&(t.end_ns as f64 * 1e-9))
+            })
+            .count()
+    };
+    assert!(
+        (999..=1001).contains(&count(0x200)),
+        "0x200: {}",
+        count(0x200)
+    );
+    assert!(
+        (99..=101).contains(&count(0x310)),
+        "0x310: {}",
+        count(0x310)
+    );
+    assert!(
+        (99..=101).contains(&count(0x311)),
+        "0x311: {}",
+        count(0x311)
+    );
+    assert!((9..=11).contains(&count(0x312)), "0x312: {}", count(0x312));
+    assert!((9..=11).contains(&count(0x31F)), "0x31f: {}", count(0x31F));
+    let s = run.board.stats();
+    eprintln!(
+        "{} instructions, {} slices, {} exceptions, {} MMIO, asleep {:.1} %",
+        s.instructions,
+        s.slices,
+        s.exceptions,
+        s.mmio,
+        100.0 * s.sleep_cycles as f64 / run.board.now() as f64
+    );
+}
+
+#[test]
+fn the_same_run_twice_is_the_same_bit_for_bit() {
+    let (a, b) = (boot(0.3), boot(0.3));
+    assert_eq!(a.lines, b.lines);
+    assert_eq!(a.frames, b.frames);
+    assert_eq!(a.board.stats(), b.board.stats());
+    assert!(a.frames.len() > 1000, "{} frames", a.frames.len());
+}
