@@ -10,6 +10,7 @@ pub mod bus;
 pub mod calibrate;
 pub mod candump;
 pub mod drives;
+pub mod host;
 pub mod imu;
 pub mod kin;
 /// The logs: ROS 2 messages in MCAP (the `drivelog` crate, shared with the firmware's runner).

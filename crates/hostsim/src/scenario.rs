@@ -200,7 +200,7 @@ pub enum FaultName {
     /// A drive is off: it sends nothing and drives nothing (the wheel coasts).
     MotorOffline,
     /// Besides its own stream, the host sends `TWIST_CMD` frames whose values are not finite
-    /// numbers (see [`crate::sim::non_finite_twist_frames`]), once per command period.
+    /// numbers (see [`crate::host::non_finite_twist_frames`]), once per command period.
     NonFiniteTwist,
     /// The host's stream stops incrementing `TWIST_CMD.seq`: each frame it sends is its last
     /// one before the fault, unchanged (a stuck host, USB adapter or gateway repeating one

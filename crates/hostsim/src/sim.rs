@@ -3,7 +3,7 @@
 //!
 //! # One tick (one control period, 1 ms by default) at time `t`
 //!
-//! 1. The host acts: scenario actions due by `t`, a `TWIST_CMD` when the stream is due (each
+//! 1. The host ([`crate::host`]) acts: scenario actions due by `t`, a `TWIST_CMD` when the stream is due (each
 //!    with the next `seq`, the alive counter; during a `repeated_twist` fault its last frame
 //!    again, unchanged), and the non-finite twists of a `non_finite_twist` fault when they
 //!    are due.
@@ -48,11 +48,12 @@ use std::collections::BTreeMap;
 
 use firmware::CanFrame;
 use firmware::control::{Controller, Instant, Outbox, Snapshot};
-use firmware::protocol::robot::{self, Command, ModeRequest, RobotState, TwistCmd};
+use firmware::protocol::robot::{self, RobotState};
 
 use crate::bus::{Bus, BusStats, Fate, Node, Transmission};
+use crate::host::HostNode;
 use crate::log::{Direction, LogError, McapLog, OdometrySource};
-use crate::scenario::{FaultName, Scenario};
+use crate::scenario::Scenario;
 
 /// The plant as the runner sees it: drives that take command frames and produce feedback
 /// frames, and a body with a true pose.
@@ -202,21 +203,6 @@ pub enum SimError {
     Log(#[from] LogError),
 }
 
-/// The host side: streams twist commands and performs the scenario's actions.
-struct Host {
-    twist: [f32; 3],
-    streaming: bool,
-    /// The next twist's `seq`: one more in every fresh frame.
-    seq: u8,
-    /// The last fresh twist frame, which a `repeated_twist` fault sends again.
-    last_twist: Option<CanFrame>,
-    next_action: usize,
-    command_period_us: u64,
-    next_command_us: u64,
-    /// Per host fault: when its next injection is due, µs.
-    next_injection_us: Vec<u64>,
-}
-
 /// What the runner shows an observer after each firmware step (see [`run_observed`]).
 #[derive(Debug)]
 pub struct StepView<'a> {
@@ -231,32 +217,6 @@ pub struct StepView<'a> {
     pub sent: &'a [CanFrame],
     /// Ground-truth pose `[x, y, heading]` at the step.
     pub truth: [f64; 3],
-}
-
-/// The three `TWIST_CMD` frames a `non_finite_twist` fault injects, around the setpoint
-/// `twist`: `vx` NaN, `vy` +∞, `wz` −∞, as they reach the wire.
-///
-/// The i16 fields cannot carry a non-finite number. NaN goes out as the raw value `-32768`,
-/// which the DBC reserves as "invalid" (the project's own encoder writes a NaN as 0, a valid
-/// stop; a host that marks NaN as invalid sends this). An infinity saturates to the field's
-/// extreme, ±32.767, far beyond any speed limit. The firmware must reject all three.
-#[must_use]
-pub fn non_finite_twist_frames(twist: [f32; 3], seq: u8) -> [CanFrame; 3] {
-    let [vx, vy, wz] = twist;
-    let frame = |vx, vy, wz| Command::Twist(TwistCmd { vx, vy, wz, seq }).to_can_frame();
-    let mut nan = frame(0.0, vy, wz);
-    let offset = robot::layout::TWIST_VX.offset;
-    let mut data = [0u8; 8];
-    data.copy_from_slice(embedded_can::Frame::data(&nan));
-    data[offset..offset + 2].copy_from_slice(&i16::MIN.to_le_bytes());
-    if let embedded_can::Id::Standard(id) = embedded_can::Frame::id(&nan) {
-        nan = CanFrame::from_buffer(id, data, 8);
-    }
-    [
-        nan,
-        frame(vx, f32::INFINITY, wz),
-        frame(vx, vy, f32::NEG_INFINITY),
-    ]
 }
 
 /// How long after a run's last step the bus runs on, so that the frames the firmware sent at
@@ -337,17 +297,8 @@ pub fn run_observed<P: SimPlant>(
     let period_us = ctl.period_micros();
     let period_ns = period_us * 1000;
     let mut bus = Bus::new(1_000_000, scenario.bus_faults.clone(), scenario.seed);
-    let mut host = Host {
-        twist: [0.0; 3],
-        streaming: false,
-        seq: 0,
-        last_twist: None,
-        next_action: 0,
-        command_period_us: (1e6 / scenario.command_hz).round().max(1.0) as u64,
-        next_command_us: 0,
-        next_injection_us: scenario.host_faults.iter().map(|f| f.from_us).collect(),
-    };
-    let actions = expand_actions(scenario);
+    let mut host = HostNode::new(scenario);
+    let mut host_frames = Vec::new();
     let duration_us = scenario.duration_us();
     let mut in_flight: Vec<Transmission> = Vec::new();
     let mut delivered: Vec<Transmission> = Vec::new();
@@ -373,63 +324,10 @@ pub fn run_observed<P: SimPlant>(
         let t_ns = t_us * 1000;
         twists_to_log.clear();
         // 1. Host.
-        while let Some(&(at_us, action)) = actions.get(host.next_action)
-            && at_us <= t_us
-        {
-            match action {
-                HostAction::Send(cmd) => bus.send(at_us * 1000, Node::Host, cmd.to_can_frame()),
-                HostAction::Twist(tw) => {
-                    host.twist = tw;
-                    host.streaming = true;
-                    host.next_command_us = at_us;
-                }
-                HostAction::Stream(on) => {
-                    host.streaming = on;
-                    host.next_command_us = at_us;
-                }
-            }
-            if matches!(action, HostAction::Twist(_)) {
-                // Logged among the step's deliveries, in time order (below).
-                twists_to_log.push((at_us * 1000, host.twist));
-            }
-            host.next_action += 1;
-        }
-        // Every command due by now (more than one a step when command_hz > control_hz).
-        while host.streaming && host.next_command_us <= t_us {
-            let at_us = host.next_command_us;
-            let repeating = scenario
-                .host_faults
-                .iter()
-                .any(|f| f.kind == FaultName::RepeatedTwist && f.active(at_us));
-            let frame = match host.last_twist {
-                Some(last) if repeating => last,
-                _ => {
-                    let [vx, vy, wz] = host.twist;
-                    let frame = Command::Twist(TwistCmd {
-                        vx,
-                        vy,
-                        wz,
-                        seq: host.seq,
-                    })
-                    .to_can_frame();
-                    host.seq = host.seq.wrapping_add(1);
-                    host.last_twist = Some(frame);
-                    frame
-                }
-            };
-            bus.send(at_us * 1000, Node::Host, frame);
-            host.next_command_us += host.command_period_us;
-        }
-        for (fault, next_us) in scenario.host_faults.iter().zip(&mut host.next_injection_us) {
-            if fault.kind != FaultName::NonFiniteTwist {
-                continue;
-            }
-            while *next_us <= t_us && *next_us < fault.until_us {
-                for frame in non_finite_twist_frames(host.twist, host.seq) {
-                    bus.send(*next_us * 1000, Node::Host, frame);
-                }
-                *next_us += host.command_period_us;
-            }
+        host_frames.clear();
+        host.frames_until(t_us, &mut host_frames, &mut twists_to_log);
+        for &(at_ns, frame) in &host_frames {
+            bus.send(at_ns, Node::Host, frame);
         }
 
         // 2. Drives (their faults of t were set before the plant reached t, below).
@@ -669,53 +567,6 @@ fn wheel_flags(s: &Scenario, t_us: u64, kind: crate::scenario::FaultName) -> [bo
         }
     }
     flags
-}
-
-/// What the host does at one moment.
-#[derive(Debug, Clone, Copy, PartialEq)]
-enum HostAction {
-    /// Send this command once.
-    Send(Command),
-    /// Stream this twist from now on.
-    Twist([f32; 3]),
-    /// Stop (`false`) or resume (`true`) streaming.
-    Stream(bool),
-}
-
-/// The scenario's actions in time order, one host action each.
-fn expand_actions(s: &Scenario) -> Vec<(u64, HostAction)> {
-    let mut out = Vec::new();
-    for (t, a) in s.timed_actions() {
-        let mut push = |action| out.push((t, action));
-        for (flag, cmd) in [
-            (a.estop, Command::Estop),
-            (a.reset, Command::Mode(ModeRequest::Reset)),
-            (a.disable, Command::Mode(ModeRequest::Disable)),
-            (a.enable, Command::Mode(ModeRequest::Enable)),
-            (a.status_request, Command::StatusRequest),
-        ] {
-            if flag {
-                push(HostAction::Send(cmd));
-            }
-        }
-        if let Some(t) = a.wheel_test {
-            push(HostAction::Send(Command::WheelTest(robot::WheelTest {
-                wheel: t.wheel,
-                speed: t.speed,
-                duration_ms: t.duration_ms,
-            })));
-        }
-        if let Some(tw) = a.twist {
-            push(HostAction::Twist(tw));
-        }
-        if a.silence {
-            push(HostAction::Stream(false));
-        }
-        if a.resume {
-            push(HostAction::Stream(true));
-        }
-    }
-    out
 }
 
 /// The run's metadata for the log: configuration TOML, scenario name, seed, tool version.
