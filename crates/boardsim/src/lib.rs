@@ -7,7 +7,7 @@
 //!   exception entry and return, sleep; [`nvic`] (NVIC, SCB, SysTick), [`regs`] (RCC and
 //!   the register files), [`tim`] (TIM2), [`bxcan`] (CAN1);
 //! - [`rtt`]: the board's defmt log over RTT;
-//! - [`lockstep`]: the board on hostsim's bit-timed bus.
+//! - [`lockstep`]: the board on hostsim's bit-timed bus; [`run`]: a scenario with it.
 //!
 //! GPL-2.0-or-later because it links Unicorn (GPL-2.0); a test tool, nothing the project
 //! ships depends on it (see the crate's README).
@@ -19,6 +19,7 @@ pub mod lockstep;
 pub mod nvic;
 pub mod regs;
 pub mod rtt;
+pub mod run;
 pub mod tim;
 
 pub use board::{Board, BoardError, CPU_HZ};

@@ -1,8 +1,6 @@
 //! The flashed image boots: clocks, CAN1, the 1 kHz loop, its log lines and its frames, with
 //! hostsim's simulated C620 ESCs answering on the bus; twice the same, bit for bit.
 
-use std::path::PathBuf;
-
 use boardsim::lockstep::{Lockstep, run_with_drives};
 use boardsim::rtt::LogLine;
 use boardsim::{Board, CPU_HZ, Image};
@@ -10,24 +8,8 @@ use embedded_can::Frame;
 use hostsim::bus::{Bus, Node, Transmission};
 use hostsim::drives::SimDrives;
 
-/// The board ELF: `BOARDSIM_ELF`, else the release build of `boards/stm32f407` (which
-/// `scripts/test.sh` makes before the Rust tests).
-fn elf() -> PathBuf {
-    let path = std::env::var_os("BOARDSIM_ELF").map_or_else(
-        || {
-            PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-                .join("../../boards/stm32f407/target/thumbv7em-none-eabihf/release/board-stm32f407")
-        },
-        PathBuf::from,
-    );
-    assert!(
-        path.exists(),
-        "{}: no board image; build it with `cd boards/stm32f407 && cargo build --release` \
-         (scripts/test.sh does) or set BOARDSIM_ELF",
-        path.display()
-    );
-    path
-}
+mod common;
+use common::elf;
 
 struct Run {
     lines: Vec<LogLine>,

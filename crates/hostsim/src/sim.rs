@@ -225,7 +225,10 @@ const DRAIN_NS: u64 = 100_000_000;
 
 /// Logs one transmission: on `/can/rx` if the firmware received it, on `/can/tx` if it sent
 /// it (dropped or not), and on `/can/faults` if the fault injector dropped or corrupted it.
-fn log_transmission(
+///
+/// # Errors
+/// The log could not be written.
+pub fn log_transmission(
     l: &mut McapLog,
     tx: &Transmission,
     options: LogOptions,
@@ -553,7 +556,7 @@ fn send_feedback<P: SimPlant>(
 }
 
 /// Sets the scenario's wheel faults in force at `t_us` on the plant, from `t_us` on.
-fn set_wheel_faults<P: SimPlant>(s: &Scenario, plant: &mut P, t_us: u64) {
+pub fn set_wheel_faults<P: SimPlant>(s: &Scenario, plant: &mut P, t_us: u64) {
     let stuck = wheel_flags(s, t_us, crate::scenario::FaultName::StuckEncoder);
     let offline = wheel_flags(s, t_us, crate::scenario::FaultName::MotorOffline);
     plant.set_faults(t_us * 1000, stuck, offline);

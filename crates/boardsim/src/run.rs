@@ -1,0 +1,262 @@
+//! A scenario with the board image as the firmware node: hostsim's host node, simulated
+//! drives and plant (with the scenario's IMU, bus and wheel faults) and bit-timed bus, and the
+//! board in their virtual time ([`Lockstep`]).
+//!
+//! The loop follows hostsim's runner where it can: the host's frames are queued at their
+//! times; the bus and the board run ahead of the plant only up to the drives' next feedback
+//! (whose frames may win arbitration over those waiting); each frame for the drives acts from
+//! its delivery time. What differs is the firmware: the board steps on its own timer and
+//! sends through its mailboxes, so the runner sees it as a host would, through its frames:
+//! the state changes are the STATUS frames' (and so logged up to 100 ms after the core made
+//! them, at STATUS's 10 Hz), the odometry is ODOM_POSITION and ODOM_VELOCITY's (0.1 mm,
+//! 0.0001 rad). The log has the same channels as hostsim's but `/joint_states` and
+//! `/diagnostics` (the core's internals are inside the board), plus the board's defmt lines
+//! on `/rosout`.
+
+use firmware::protocol::robot::{Fault, RobotState, Telemetry};
+use hostsim::bus::{Bus, Fate, Node, Transmission};
+use hostsim::drives::SimDrives;
+use hostsim::host::HostNode;
+use hostsim::log::{McapLog, OdometrySource, msg};
+use hostsim::scenario::Scenario;
+use hostsim::sim::{LogOptions, SimPlant, log_transmission, set_wheel_faults};
+
+use crate::board::{Board, BoardError, CPU_HZ};
+use crate::lockstep::{Lockstep, cycles_to_ns};
+use crate::rtt::LogLine;
+
+/// Why a run stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    /// The board stopped.
+    #[error("the board stopped at {t:.6} s: {error}")]
+    Board {
+        /// Simulated time, s.
+        t: f64,
+        /// Why.
+        error: BoardError,
+    },
+    /// The scenario's plant could not be built.
+    #[error("the scenario's plant: {0}")]
+    Plant(String),
+    /// The log could not be written.
+    #[error(transparent)]
+    Log(#[from] hostsim::log::LogError),
+}
+
+/// What a run saw.
+#[derive(Debug, Clone)]
+pub struct BoardRun {
+    /// (s, state, fault) at each STATUS that reported a new pair.
+    pub transitions: Vec<(f64, RobotState, Fault)>,
+    /// The last odometry the board sent: `[x, y, heading]` (m, m, rad) and its time (s).
+    pub odometry: Option<([f64; 3], f64)>,
+    /// Ground truth at the end.
+    pub truth: [f64; 3],
+    /// The board's log.
+    pub lines: Vec<LogLine>,
+    /// Frames the board sent and received (delivered to it).
+    pub frames_sent: u64,
+    /// Frames delivered to the board.
+    pub frames_received: u64,
+    /// What the emulator did.
+    pub stats: crate::board::Stats,
+    /// Simulated seconds.
+    pub simulated_s: f64,
+}
+
+/// The board's telemetry as a host reads it.
+#[derive(Debug, Default)]
+struct Observer {
+    transitions: Vec<(f64, RobotState, Fault)>,
+    position: Option<[f64; 2]>,
+    odometry: Option<([f64; 3], f64)>,
+    /// The last ODOM_VELOCITY's twist, for the log.
+    twist: [f64; 3],
+}
+
+impl Observer {
+    /// A frame the board sent; returns a pose to log (position and heading complete).
+    fn on_frame(&mut self, t: f64, frame: &firmware::CanFrame) -> Option<([f64; 3], [f64; 3])> {
+        match Telemetry::decode(frame).ok()? {
+            Telemetry::Status(s) => {
+                if self
+                    .transitions
+                    .last()
+                    .is_none_or(|&(_, st, f)| (st, f) != (s.state, s.fault))
+                {
+                    self.transitions.push((t, s.state, s.fault));
+                }
+                None
+            }
+            Telemetry::OdomPosition(p) => {
+                self.position = Some([f64::from(p.x), f64::from(p.y)]);
+                None
+            }
+            Telemetry::OdomVelocity(v) => {
+                let [x, y] = self.position.take()?;
+                let pose = [x, y, f64::from(v.heading)];
+                self.twist = [v.vx, v.vy, v.wz].map(f64::from);
+                self.odometry = Some((pose, t));
+                Some((pose, self.twist))
+            }
+            _ => None,
+        }
+    }
+}
+
+/// Runs `scenario` with `board` as the firmware node, logging to `log` if given; `progress`
+/// gets the simulated time (µs) every simulated 100 ms.
+///
+/// # Errors
+/// [`RunError`]: the board stopped, the plant could not be built, the log failed.
+pub fn run_scenario(
+    scenario: &Scenario,
+    board: Board,
+    mut log: Option<&mut McapLog>,
+    options: LogOptions,
+    mut progress: impl FnMut(u64),
+) -> Result<BoardRun, RunError> {
+    let mut drives =
+        SimDrives::for_scenario(scenario).map_err(|e| RunError::Plant(e.to_string()))?;
+    let plant = &mut hostsim::imu::WithImu::new(&mut drives, scenario.imu.as_ref(), scenario.seed);
+    let bus = Bus::new(1_000_000, scenario.bus_faults.clone(), scenario.seed);
+    let mut ls = Lockstep::new(board, bus);
+    let mut host = HostNode::new(scenario);
+    let mut observer = Observer::default();
+    let (mut host_frames, mut twists, mut feedback) = (Vec::new(), Vec::new(), Vec::new());
+    let duration_ns = scenario.duration_us() * 1000;
+    // The plant's time, ns; the bus and the board run ahead of it up to `horizon`.
+    let mut plant_ns = 0u64;
+    let mut seen = 0usize;
+    let (mut sent, mut received) = (0u64, 0u64);
+    let mut next_progress = 0u64;
+    let mut lines = Vec::new();
+    set_wheel_faults(scenario, plant, 0);
+    queue_feedback(plant, &mut ls, &mut feedback, 0);
+    while plant_ns < duration_ns {
+        let horizon = duration_ns.min(plant.next_feedback_ns().max(plant_ns + 1));
+        host_frames.clear();
+        twists.clear();
+        host.frames_until(horizon / 1000, &mut host_frames, &mut twists);
+        for &(at_ns, frame) in &host_frames {
+            ls.send(at_ns, Node::Host, frame);
+        }
+        if let Some(l) = log.as_deref_mut() {
+            for &(at_ns, twist) in &twists {
+                l.twist(at_ns, twist)?;
+            }
+        }
+        ls.run_until(horizon).map_err(|error| RunError::Board {
+            t: ls.board.now() as f64 / CPU_HZ as f64,
+            error,
+        })?;
+        // The transmissions completed by now: to the drives at their delivery time, to the
+        // log, and the board's to the observer.
+        let done: Vec<Transmission> = ls.completed[seen..].to_vec();
+        seen = ls.completed.len();
+        for tx in &done {
+            if let Some(l) = log.as_deref_mut() {
+                log_transmission(l, tx, options)?;
+            }
+            if tx.fate == Fate::Dropped {
+                continue;
+            }
+            match tx.from {
+                Node::Controller => {
+                    sent += 1;
+                    if let Some((pose, twist)) =
+                        observer.on_frame(tx.delivered_ns as f64 * 1e-9, &tx.frame)
+                        && let Some(l) = log.as_deref_mut()
+                    {
+                        l.odometry(tx.delivered_ns, OdometrySource::Firmware, pose, twist)?;
+                        l.odometry(
+                            tx.delivered_ns,
+                            OdometrySource::GroundTruth,
+                            plant.truth(),
+                            plant.truth_velocity(),
+                        )?;
+                    }
+                    if let Some(&(t, state, fault)) = observer.transitions.last()
+                        && (t - tx.delivered_ns as f64 * 1e-9).abs() < 1e-12
+                        && let Some(l) = log.as_deref_mut()
+                    {
+                        let level = match state {
+                            RobotState::Fault => msg::Log::ERROR,
+                            RobotState::Estop => msg::Log::WARN,
+                            _ => msg::Log::INFO,
+                        };
+                        l.text(
+                            tx.delivered_ns,
+                            level,
+                            &format!("state {state:?}, fault {fault:?}"),
+                        )?;
+                    }
+                }
+                Node::Drives | Node::Imu => received += 1,
+                Node::Host => received += 1,
+            }
+            if tx.from != Node::Drives && tx.delivered_ns > plant_ns && tx.delivered_ns <= horizon {
+                plant.advance_ns(tx.delivered_ns - plant_ns);
+                plant_ns = tx.delivered_ns;
+                plant.on_frame(tx.delivered_ns / 1000, &tx.frame);
+            }
+        }
+        plant.advance_ns(horizon - plant_ns);
+        plant_ns = horizon;
+        set_wheel_faults(scenario, plant, plant_ns / 1000 + 1);
+        queue_feedback(plant, &mut ls, &mut feedback, plant_ns);
+        for line in ls.board.take_lines() {
+            if let Some(l) = log.as_deref_mut() {
+                let level = match line.level.as_str() {
+                    "error" => msg::Log::ERROR,
+                    "warn" => msg::Log::WARN,
+                    _ => msg::Log::INFO,
+                };
+                l.text(
+                    cycles_to_ns(line.at),
+                    level,
+                    &format!("board: {}", line.text),
+                )?;
+            }
+            lines.push(line);
+        }
+        if let Some(l) = log.as_deref_mut() {
+            l.maybe_flush()?;
+        }
+        while plant_ns / 1000 >= next_progress {
+            progress(next_progress);
+            next_progress += 100_000;
+        }
+    }
+    Ok(BoardRun {
+        transitions: observer.transitions,
+        odometry: observer.odometry,
+        truth: plant.truth(),
+        lines,
+        frames_sent: sent,
+        frames_received: received,
+        stats: ls.board.stats(),
+        simulated_s: plant_ns as f64 * 1e-9,
+    })
+}
+
+/// Queues on the bus the drives' feedback and the IMU's frames sent up to `until_ns`.
+fn queue_feedback<P: SimPlant>(
+    plant: &mut P,
+    ls: &mut Lockstep,
+    feedback: &mut Vec<(u64, firmware::CanFrame)>,
+    until_ns: u64,
+) {
+    for (node, imu) in [(Node::Drives, false), (Node::Imu, true)] {
+        feedback.clear();
+        if imu {
+            plant.imu_frames(until_ns, feedback);
+        } else {
+            plant.feedback(until_ns, feedback);
+        }
+        for &(at_ns, f) in feedback.iter() {
+            ls.send(at_ns, node, f);
+        }
+    }
+}
