@@ -72,6 +72,8 @@ const MMIO: [(u32, u32); 5] = [
 const SCS: u32 = 0xE000_E000;
 const SRAM: (u32, usize) = (0x2000_0000, 0x2_0000);
 const CCM: (u32, usize) = (0x1000_0000, 0x1_0000);
+/// The flash's size (a power of two).
+const FLASH_SIZE: u32 = 0x10_0000;
 /// The factory flash-size register (KiB) in system memory.
 const FLASH_SIZE_REG: u32 = 0x1FFF_7A22;
 
@@ -215,8 +217,12 @@ struct Hw {
     can_attention: bool,
     unknown: Vec<UnknownRegister>,
     reported: std::collections::BTreeSet<u32>,
-    /// Instructions of each translated block, by start address and size.
-    blocks: HashMap<(u64, u32), u64>,
+    /// Instructions of each translated block, by start address: (size, count) per halfword
+    /// of the flash (code runs from the flash or its alias at 0), else in `other_blocks`.
+    /// A table, not a hash map: the block hook runs for every block, and hashing was a sixth
+    /// of a run's time (perf, the built-in square).
+    blocks: Vec<(u32, u32)>,
+    other_blocks: HashMap<(u64, u32), u64>,
     stats: Stats,
 }
 
@@ -242,7 +248,8 @@ impl Hw {
             can_attention: false,
             unknown: Vec::new(),
             reported: std::collections::BTreeSet::new(),
-            blocks: HashMap::new(),
+            blocks: vec![(0, 0); FLASH_SIZE as usize / 2],
+            other_blocks: HashMap::new(),
             stats: Stats::default(),
         }
     }
@@ -538,16 +545,28 @@ impl Board {
                 let _ = uc.emu_stop();
                 return;
             }
-            let key = (addr, size);
-            let n = if let Some(&n) = uc.get_data().blocks.get(&key) {
-                n
+            // The flash and its boot alias share one table.
+            let slot = (addr & u64::from(FLASH_SIZE - 1)) as usize / 2;
+            let in_flash = addr < u64::from(FLASH_SIZE)
+                || (0x0800_0000..0x0800_0000 + u64::from(FLASH_SIZE)).contains(&addr);
+            let cached = if in_flash {
+                let (sz, n) = uc.get_data().blocks[slot];
+                (sz == size && n > 0).then_some(u64::from(n))
             } else {
+                uc.get_data().other_blocks.get(&(addr, size)).copied()
+            };
+            let n = cached.unwrap_or_else(|| {
                 let mut code = vec![0u8; size as usize];
                 let _ = uc.mem_read(addr, &mut code);
                 let n = thumb_instructions(&code);
-                uc.get_data_mut().blocks.insert(key, n);
+                let hw = uc.get_data_mut();
+                if in_flash {
+                    hw.blocks[slot] = (size, n as u32);
+                } else {
+                    hw.other_blocks.insert((addr, size), n);
+                }
                 n
-            };
+            });
             let hw = uc.get_data_mut();
             hw.now += n;
             hw.stats.instructions += n;
@@ -848,6 +867,10 @@ impl Board {
     /// Takes every exception that preempts now (nesting: a higher one can follow at once).
     fn take_exceptions(&mut self) -> Result<(), BoardError> {
         loop {
+            // Nothing pending (most slices): no register reads.
+            if self.uc.get_data().scs.highest_pending().is_none() {
+                return Ok(());
+            }
             let primask = self.reg(RegisterARM::PRIMASK) & 1 != 0;
             let basepri = self.reg(RegisterARM::BASEPRI) as u8;
             let faultmask = self.reg(RegisterARM::FAULTMASK) & 1 != 0;

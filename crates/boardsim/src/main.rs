@@ -20,6 +20,37 @@ struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
+    /// Runs a scenario with the image as the firmware node: hostsim's host, drives, plant and
+    /// bus faults, the board in their virtual time. Writes `<out>/<name>.mcap` (hostsim's
+    /// channels, the board's odometry and state as its frames report them, its log lines on
+    /// /rosout) and `<out>/<name>.png`, and prints a summary.
+    ///
+    /// SCENARIO is a scenario TOML file or a built-in (square, circle, strafe, spin,
+    /// figure-eight, compass, watchdog, calibration), as for `hostsim run`.
+    Run {
+        /// A scenario TOML file, or the name of a built-in.
+        #[arg(default_value = "square")]
+        scenario: String,
+        /// The board ELF, as `cargo build --release` in boards/stm32f407 makes it.
+        #[arg(long)]
+        elf: PathBuf,
+        /// The drive configuration the image was built with (the simulated drives follow it;
+        /// default: the scenario's).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Output folder for `<name>.mcap` and `<name>.png`.
+        #[arg(long, default_value = "out")]
+        out: PathBuf,
+        /// Do not write the MCAP log.
+        #[arg(long)]
+        no_log: bool,
+        /// Do not draw the plot.
+        #[arg(long)]
+        no_plot: bool,
+        /// Print the summary as JSON on stdout.
+        #[arg(long)]
+        json: bool,
+    },
     /// Boots the image with the example robot's four C620 ESCs on the bus, prints the
     /// board's log and what the board and the bus did.
     Boot {
@@ -35,6 +66,23 @@ enum Command {
 fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Boot { elf, seconds } => boot(&elf, seconds),
+        Command::Run {
+            scenario,
+            elf,
+            config,
+            out,
+            no_log,
+            no_plot,
+            json,
+        } => run(
+            &scenario,
+            &elf,
+            config.as_deref(),
+            &out,
+            !no_log,
+            !no_plot,
+            json,
+        ),
     }
 }
 
@@ -81,4 +129,132 @@ fn boot(elf: &std::path::Path, seconds: f64) -> anyhow::Result<()> {
         ls.completed.len(),
     );
     result.map_err(|e| anyhow::anyhow!("the board stopped: {e}"))
+}
+
+fn run(
+    scenario: &str,
+    elf: &std::path::Path,
+    config: Option<&std::path::Path>,
+    out: &std::path::Path,
+    log: bool,
+    plot: bool,
+    json: bool,
+) -> anyhow::Result<()> {
+    let config = config
+        .map(firmware::Config::from_toml_file)
+        .transpose()
+        .context("--config")?;
+    let scenario = hostsim::scenario::Scenario::load(scenario, config)?;
+    let image = Image::read(elf)?;
+    std::fs::create_dir_all(out).with_context(|| format!("--out {}", out.display()))?;
+    let log_path = out.join(format!("{}.mcap", scenario.name));
+    let mut mcap = if log {
+        Some(hostsim::log::McapLog::create(
+            &log_path,
+            &boardsim::run::run_metadata(&scenario, &image),
+        )?)
+    } else {
+        None
+    };
+    let board = Board::new(image).context("setting up the board")?;
+    let wall = std::time::Instant::now();
+    let duration = scenario.duration_us() as f64 * 1e-6;
+    let result = boardsim::run::run_scenario(
+        &scenario,
+        board,
+        mcap.as_mut(),
+        hostsim::sim::LogOptions::default(),
+        |t_us| {
+            if !json && t_us % 1_000_000 == 0 && t_us > 0 {
+                eprint!(
+                    "\rboardsim: {:.0} of {duration:.0} s simulated",
+                    t_us as f64 * 1e-6
+                );
+            }
+        },
+    );
+    if !json {
+        eprintln!();
+    }
+    if let Some(l) = mcap {
+        l.finish()?;
+    }
+    let run = result?;
+    let wall = wall.elapsed().as_secs_f64();
+    if plot && !run.track.is_empty() {
+        let png = out.join(format!("{}.png", scenario.name));
+        hostsim::plot::plot_run(
+            &png,
+            &format!("{} (board image)", scenario.name),
+            &run.track,
+        )
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    }
+    let s = run.stats;
+    let odometry = run.odometry.map(|(p, _)| p);
+    let error = odometry.map(|p| {
+        (
+            (p[0] - run.truth[0]).hypot(p[1] - run.truth[1]),
+            p[2] - run.truth[2],
+        )
+    });
+    if json {
+        let summary = serde_json::json!({
+            "scenario": scenario.name,
+            "elf": elf.display().to_string(),
+            "simulated_s": run.simulated_s,
+            "wall_s": wall,
+            "real_time_factor": run.simulated_s / wall,
+            "transitions": run.transitions.iter().map(|(t, st, f)| serde_json::json!({"t": t, "state": format!("{st:?}"), "fault": format!("{f:?}")})).collect::<Vec<_>>(),
+            "odometry": odometry,
+            "truth": run.truth,
+            "final_position_error": error.map(|e| e.0),
+            "frames_sent": run.frames_sent,
+            "frames_received": run.frames_received,
+            "instructions": s.instructions,
+            "instructions_per_ms": s.instructions as f64 / (run.simulated_s * 1e3),
+            "exceptions": s.exceptions,
+            "board_log": run.lines.iter().map(|l| format!("{:.6} {} {}", l.at as f64 / CPU_HZ as f64, l.level, l.text)).collect::<Vec<_>>(),
+        });
+        println!("{summary:#}");
+        return Ok(());
+    }
+    println!(
+        "scenario {} on the board image {}",
+        scenario.name,
+        elf.display()
+    );
+    for (t, st, f) in &run.transitions {
+        println!("  {t:8.3} s  state {st:?}, fault {f:?}");
+    }
+    if let (Some(p), Some((dxy, dh))) = (odometry, error) {
+        println!(
+            "odometry ({:.4}, {:.4}, {:.4}), truth ({:.4}, {:.4}, {:.4}): {:.1} mm, {:.3} deg off",
+            p[0],
+            p[1],
+            p[2],
+            run.truth[0],
+            run.truth[1],
+            run.truth[2],
+            dxy * 1e3,
+            dh.to_degrees()
+        );
+    }
+    println!(
+        "frames: {} from the board, {} to it; {} instructions ({:.0} per ms), {} exceptions",
+        run.frames_sent,
+        run.frames_received,
+        s.instructions,
+        s.instructions as f64 / (run.simulated_s * 1e3),
+        s.exceptions
+    );
+    println!(
+        "{:.3} s simulated in {wall:.3} s ({:.2}x real time)",
+        run.simulated_s,
+        run.simulated_s / wall
+    );
+    if log {
+        println!("log {}", log_path.display());
+    }
+    Ok(())
 }

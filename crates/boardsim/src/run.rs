@@ -63,6 +63,8 @@ pub struct BoardRun {
     pub stats: crate::board::Stats,
     /// Simulated seconds.
     pub simulated_s: f64,
+    /// The board's odometry and the ground truth at each of its odometry frames (100 Hz).
+    pub track: Vec<hostsim::plot::TrackPoint>,
 }
 
 /// The board's telemetry as a host reads it.
@@ -105,6 +107,19 @@ impl Observer {
     }
 }
 
+/// The metadata of a board run's log: hostsim's (configuration, scenario, seed, versions)
+/// with `program` = `boardsim run` and the image's file.
+#[must_use]
+pub fn run_metadata(
+    scenario: &Scenario,
+    image: &crate::Image,
+) -> std::collections::BTreeMap<String, String> {
+    let mut m = hostsim::sim::run_metadata(scenario);
+    m.insert("program".into(), "boardsim run".into());
+    m.insert("board_image".into(), image.path.display().to_string());
+    m
+}
+
 /// Runs `scenario` with `board` as the firmware node, logging to `log` if given; `progress`
 /// gets the simulated time (µs) every simulated 100 ms.
 ///
@@ -132,6 +147,7 @@ pub fn run_scenario(
     let (mut sent, mut received) = (0u64, 0u64);
     let mut next_progress = 0u64;
     let mut lines = Vec::new();
+    let mut track = Vec::new();
     set_wheel_faults(scenario, plant, 0);
     queue_feedback(plant, &mut ls, &mut feedback, 0);
     while plant_ns < duration_ns {
@@ -167,15 +183,22 @@ pub fn run_scenario(
                     sent += 1;
                     if let Some((pose, twist)) =
                         observer.on_frame(tx.delivered_ns as f64 * 1e-9, &tx.frame)
-                        && let Some(l) = log.as_deref_mut()
                     {
-                        l.odometry(tx.delivered_ns, OdometrySource::Firmware, pose, twist)?;
-                        l.odometry(
-                            tx.delivered_ns,
-                            OdometrySource::GroundTruth,
-                            plant.truth(),
-                            plant.truth_velocity(),
-                        )?;
+                        let truth = plant.truth();
+                        track.push(hostsim::plot::TrackPoint {
+                            t: tx.delivered_ns as f64 * 1e-9,
+                            truth: [truth[0], truth[1]],
+                            odom: [pose[0], pose[1]],
+                        });
+                        if let Some(l) = log.as_deref_mut() {
+                            l.odometry(tx.delivered_ns, OdometrySource::Firmware, pose, twist)?;
+                            l.odometry(
+                                tx.delivered_ns,
+                                OdometrySource::GroundTruth,
+                                truth,
+                                plant.truth_velocity(),
+                            )?;
+                        }
                     }
                     if let Some(&(t, state, fault)) = observer.transitions.last()
                         && (t - tx.delivered_ns as f64 * 1e-9).abs() < 1e-12
@@ -238,6 +261,7 @@ pub fn run_scenario(
         frames_received: received,
         stats: ls.board.stats(),
         simulated_s: plant_ns as f64 * 1e-9,
+        track,
     })
 }
 

@@ -576,19 +576,10 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
     }
 }
 
-/// A scenario file, or else a built-in of that name; `config` replaces its configuration.
+/// A scenario file, or else a built-in of that name (`square` if none); `config` replaces
+/// its configuration.
 fn load_scenario(arg: Option<&str>, config: Option<firmware::Config>) -> Result<Scenario> {
-    let arg = arg.unwrap_or("square");
-    let path = Path::new(arg);
-    // A folder of the same name (an earlier `--out square`) does not hide the built-in.
-    if path.extension().is_some_and(|e| e == "toml") || path.is_file() {
-        return Ok(Scenario::from_file_with_config(path, config)?);
-    }
-    let mut scenario = Scenario::builtin(arg)?;
-    if let Some(config) = config {
-        scenario.config = config;
-    }
-    Ok(scenario)
+    Ok(Scenario::load(arg.unwrap_or("square"), config)?)
 }
 
 /// What `run` writes besides the simulation itself.

@@ -618,6 +618,24 @@ impl Scenario {
         Self::from_file_with_config(path, None)
     }
 
+    /// A scenario file (a `.toml` path, or any existing file), else the built-in of that name
+    /// ([`Self::builtin`]); `config`, if given, replaces its configuration (`run --config`).
+    /// A folder of a built-in's name (an earlier `--out square`) does not hide the built-in.
+    ///
+    /// # Errors
+    /// [`ScenarioError`]: the file's, or no built-in of that name.
+    pub fn load(arg: &str, config: Option<Config>) -> Result<Self, ScenarioError> {
+        let path = Path::new(arg);
+        if path.extension().is_some_and(|e| e == "toml") || path.is_file() {
+            return Self::from_file_with_config(path, config);
+        }
+        let mut scenario = Self::builtin(arg)?;
+        if let Some(config) = config {
+            scenario.config = config;
+        }
+        Ok(scenario)
+    }
+
     /// [`Self::from_file`], with `config` (if given) in place of the file's `config`, which
     /// is then not read at all (`hostsim run --config`).
     ///
