@@ -473,7 +473,27 @@ def mean(values: Iterable[float]) -> float:
 
 
 def binary(env: str, default: pathlib.Path) -> pathlib.Path:
-    """$env if set (a prebuilt binary), else `default`; it must exist."""
+    """$env if set (a prebuilt binary), else `default`; it must exist. In the micro-VM its
+    file and its shared libraries are read once first (`warm_page_cache`)."""
     path = pathlib.Path(os.environ.get(env) or default)
     assert path.is_file(), f"{env}: {path} does not exist"
+    if SLOW_CPU:
+        warm_page_cache(path)
     return path
+
+
+def warm_page_cache(path: pathlib.Path) -> None:
+    """Reads `path` and the shared libraries it loads, whole, into the guest's page cache.
+
+    The micro-VM reads the host's files through 9p, and its clock runs on while a guest
+    process waits on the host (scripts/vcan.sh, VCAN_VM_CLOCK). A page of the plant's or the
+    runner's code executed for the first time mid-run (the motion code at the first enable)
+    was such a wait: the process stalled while the other one's 1 kHz timeline went on, and
+    the runner saw the drives' feedback stop (MOTOR_STALE, once on a busy host). Read ahead,
+    every later page fault is served from the guest's own memory."""
+    libs = subprocess.run(["ldd", str(path)], capture_output=True, text=True, check=False).stdout
+    files = [path] + [pathlib.Path(w) for w in libs.split() if w.startswith("/") and pathlib.Path(w).is_file()]
+    for f in files:
+        with open(f, "rb") as data:
+            while data.read(1 << 20):
+                pass
