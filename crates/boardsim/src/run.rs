@@ -65,6 +65,8 @@ pub struct BoardRun {
     pub simulated_s: f64,
     /// The board's odometry and the ground truth at each of its odometry frames (100 Hz).
     pub track: Vec<hostsim::plot::TrackPoint>,
+    /// Every frame the board sent, with the end of its transmission (ns).
+    pub sent: Vec<(u64, firmware::CanFrame)>,
 }
 
 /// The board's telemetry as a host reads it.
@@ -148,6 +150,7 @@ pub fn run_scenario(
     let mut next_progress = 0u64;
     let mut lines = Vec::new();
     let mut track = Vec::new();
+    let mut board_frames = Vec::new();
     set_wheel_faults(scenario, plant, 0);
     queue_feedback(plant, &mut ls, &mut feedback, 0);
     while plant_ns < duration_ns {
@@ -181,6 +184,7 @@ pub fn run_scenario(
             match tx.from {
                 Node::Controller => {
                     sent += 1;
+                    board_frames.push((tx.end_ns, tx.frame));
                     if let Some((pose, twist)) =
                         observer.on_frame(tx.delivered_ns as f64 * 1e-9, &tx.frame)
                     {
@@ -262,6 +266,7 @@ pub fn run_scenario(
         stats: ls.board.stats(),
         simulated_s: plant_ns as f64 * 1e-9,
         track,
+        sent: board_frames,
     })
 }
 
