@@ -31,6 +31,7 @@ use embassy_stm32::can::{
     TxBuf, TxInterruptHandler,
 };
 use embassy_stm32::peripherals::CAN1;
+use embassy_stm32::wdg::IndependentWatchdog;
 use embassy_time::{Duration, Ticker};
 use firmware::{Config, Controller, Instant};
 use panic_probe as _;
@@ -55,6 +56,10 @@ static TX_QUEUE: StaticCell<TxBuf<TX_QUEUE_LEN>> = StaticCell::new();
 
 /// Log the counters once per this many steps (1 s at 1 kHz).
 const REPORT_EVERY_STEPS: u64 = 1000;
+
+/// The independent watchdog's period: a control loop that has not stepped for this long
+/// (50 periods) resets the board, which then starts disabled (the core's initial state).
+const WATCHDOG_TIMEOUT_US: u32 = 50_000;
 
 /// CAN bit timing for 1 Mbit/s from the 42 MHz APB1 clock: 42 MHz / 3 = 14 MHz time quanta,
 /// 1 + 10 + 3 = 14 quanta per bit, sample point at 11/14 = 78.6 %, SJW 1. The same values as
@@ -95,6 +100,12 @@ fn drive_config() -> Config {
 async fn main(_spawner: Spawner) {
     let p = embassy_stm32::init(clocks::config());
     info!("board-stm32f407: SYSCLK 168 MHz, APB1 42 MHz, CAN1 1 Mbit/s on PD0/PD1");
+    // RCC_CSR keeps the cause of the last reset until RMVF clears it.
+    let csr = embassy_stm32::pac::RCC.csr().read();
+    if csr.wdgrstf() {
+        warn!("reset by the independent watchdog: the control loop had stalled");
+    }
+    embassy_stm32::pac::RCC.csr().modify(|w| w.set_rmvf(true));
 
     let config = drive_config();
     let mut ctl = match Controller::new(&config) {
@@ -142,7 +153,13 @@ async fn main(_spawner: Spawner) {
 
     let mut counters = Counters::default();
     let mut ticker = Ticker::every(Duration::from_micros(period));
-    info!("control loop: {} us period", period);
+    // Started once the loop starts: only a step feeds it (frames arriving do not).
+    let mut watchdog = IndependentWatchdog::new(p.IWDG, WATCHDOG_TIMEOUT_US);
+    watchdog.unleash();
+    info!(
+        "control loop: {} us period; independent watchdog {} us",
+        period, WATCHDOG_TIMEOUT_US
+    );
 
     loop {
         // Before any read: reading a frame releases it with a read-modify-write of RF0R, which
@@ -161,6 +178,7 @@ async fn main(_spawner: Spawner) {
                     counters.tx(queued);
                 }
                 counters.steps += 1;
+                watchdog.pet();
                 if counters.steps.is_multiple_of(REPORT_EVERY_STEPS) {
                     report(&ctl, &counters);
                 }

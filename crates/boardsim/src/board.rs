@@ -22,6 +22,7 @@ use unicorn_engine::{RegisterARM, Unicorn};
 
 use crate::bxcan::{BxCan, Lec, Received};
 use crate::elf::{CPSIE_I, Image, SEV, WFE, WFI};
+use crate::iwdg::Iwdg;
 use crate::nvic::{Effect, Scs, exc};
 use crate::regs::{Rcc, RegFile, base, register_files};
 use crate::rtt::{LogLine, Rtt};
@@ -179,6 +180,8 @@ pub struct Stats {
     pub mmio: u64,
     /// Cycles spent asleep (WFE/WFI).
     pub sleep_cycles: u64,
+    /// Resets by the independent watchdog.
+    pub watchdog_resets: u64,
 }
 
 /// Why the CPU is not running.
@@ -203,6 +206,11 @@ struct Hw {
     scs: Scs,
     tim2: Timer,
     can1: BxCan,
+    iwdg: Iwdg,
+    /// The harness withholds the TIM2 interrupt until the next reset (a stalled loop).
+    stall_timer: bool,
+    /// AIRCR.SYSRESETREQ was written.
+    reset_requested: bool,
     /// The event register (WFE).
     event: bool,
     sleep: Sleep,
@@ -239,6 +247,9 @@ impl Hw {
             scs: Scs::new(),
             tim2: Timer::new(tim_div),
             can1: BxCan::new(pclk_div),
+            iwdg: Iwdg::new(CPU_HZ),
+            stall_timer: false,
+            reset_requested: false,
             event: false,
             sleep: Sleep::Awake,
             exc_return: None,
@@ -273,6 +284,10 @@ impl Hw {
         match block {
             base::TIM2 => self.tim2.read(off, size, now),
             base::CAN1 => self.can1.read(off, size),
+            base::IWDG => self
+                .iwdg
+                .read(off)
+                .map(|v| crate::regs::sub_word(v, off, size)),
             base::RCC => Some(self.rcc.read(off, size)).filter(|_| self.rcc.regs.knows(off)),
             _ if (SCS..SCS + 0x1000).contains(&addr) => self.scs.read(addr - SCS, size, now),
             _ => {
@@ -303,6 +318,13 @@ impl Hw {
                     *stop = true;
                 }
             }
+            base::IWDG => {
+                let word = crate::regs::merge(0, off, size, value);
+                let was = self.iwdg.running();
+                self.iwdg.write(off, word, now)?;
+                // Started: its expiry is the board's next event.
+                *stop |= !was && self.iwdg.running();
+            }
             base::RCC => {
                 if !self.rcc.regs.knows(off) {
                     return None;
@@ -315,7 +337,11 @@ impl Hw {
             _ if (SCS..SCS + 0x1000).contains(&addr) => {
                 match self.scs.write(addr - SCS, size, value, now)? {
                     Effect::None => {}
-                    Effect::Pended | Effect::SystemReset => *stop = true,
+                    Effect::Pended => *stop = true,
+                    Effect::SystemReset => {
+                        self.reset_requested = true;
+                        *stop = true;
+                    }
                 }
             }
             _ => {
@@ -351,6 +377,7 @@ impl Hw {
             self.tim2.next_event(self.now),
             self.can1.next_event(),
             self.scs.next_event(),
+            self.iwdg.expiry(),
         ]
         .into_iter()
         .flatten()
@@ -369,7 +396,7 @@ impl Hw {
             (irq::CAN1_RX0, rx0),
             (irq::CAN1_RX1, rx1),
             (irq::CAN1_SCE, sce),
-            (irq::TIM2, self.tim2.irq()),
+            (irq::TIM2, self.tim2.irq() && !self.stall_timer),
         ];
         for (line, asserted) in lines {
             if self.scs.level(line, asserted) && self.scs.sev_on_pend() {
@@ -675,14 +702,39 @@ impl Board {
             ram.push((at, bytes));
         }
         let old = self.uc.get_data();
-        let (now, stats, unknown) = (old.now, old.stats, old.unknown.clone());
+        let (now, stats) = (old.now, old.stats);
+        let (unknown, reported) = (old.unknown.clone(), old.reported.clone());
         self.uc = Self::cpu(&self.image, &ram)?;
         let hw = self.uc.get_data_mut();
         hw.now = now;
         hw.stats = stats;
         hw.unknown = unknown;
+        hw.reported = reported;
         self.on_bus = None;
+        if let Some(rtt) = self.rtt.as_mut() {
+            rtt.reset();
+        }
         self.reset_cpu()
+    }
+
+    /// The independent watchdog expired: a system reset, with RCC_CSR's reset flags saying
+    /// so (IWDGRSTF and PINRSTF, RM0090 §7.3.21).
+    fn watchdog_reset(&mut self) -> Result<(), BoardError> {
+        let pc = self.pc;
+        self.reset().map_err(|e| BoardError::Emulation {
+            error: format!("reset: {e}"),
+            pc,
+        })?;
+        let hw = self.uc.get_data_mut();
+        hw.rcc.regs.set_word(crate::regs::rcc::CSR, 0x2400_0000);
+        hw.stats.watchdog_resets += 1;
+        Ok(())
+    }
+
+    /// Withholds the TIM2 interrupt from now until the next reset: the control loop, which
+    /// waits on its timer, stalls (a test of the watchdog).
+    pub fn stall_timer(&mut self) {
+        self.uc.get_data_mut().stall_timer = true;
     }
 
     /// Virtual time, cycles since reset.
@@ -899,6 +951,22 @@ impl Board {
             if hw.now >= until {
                 return Ok(hw.now);
             }
+            if hw.iwdg.expiry().is_some_and(|at| hw.now >= at) {
+                self.watchdog_reset()?;
+                continue;
+            }
+            if std::mem::take(&mut hw.reset_requested) {
+                // AIRCR.SYSRESETREQ: RCC_CSR says SFTRSTF and PINRSTF.
+                let pc = self.pc;
+                self.reset().map_err(|e| BoardError::Emulation {
+                    error: format!("reset: {e}"),
+                    pc,
+                })?;
+                let hw = self.uc.get_data_mut();
+                hw.rcc.regs.set_word(crate::regs::rcc::CSR, 0x1400_0000);
+                continue;
+            }
+            let hw = self.uc.get_data_mut();
             hw.sync_lines();
             if std::mem::take(&mut hw.can_attention) {
                 return Ok(hw.now);

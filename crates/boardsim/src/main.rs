@@ -164,6 +164,7 @@ fn run(
         board,
         mcap.as_mut(),
         hostsim::sim::LogOptions::default(),
+        boardsim::run::Harness::default(),
         |t_us| {
             if !json && t_us % 1_000_000 == 0 && t_us > 0 {
                 eprint!(

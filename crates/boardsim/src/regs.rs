@@ -194,7 +194,11 @@ impl Rcc {
                 self.regs.set_word(rcc::BDCR, w);
             }
             rcc::CSR => {
-                let w = follow(self.regs.word(rcc::CSR), &[(0, 1)]);
+                let mut w = follow(self.regs.word(rcc::CSR), &[(0, 1)]);
+                if w & 1 << 24 != 0 {
+                    // RMVF: clears the reset flags (bits 25..31); it reads 0.
+                    w &= 0x00FF_FFFF & !(1 << 24);
+                }
                 self.regs.set_word(rcc::CSR, w);
             }
             _ => {}
@@ -372,8 +376,11 @@ mod tests {
         assert_eq!(rcc.read(rcc::CR, 4) >> 25 & 1, 0, "PLLRDY drops with PLLON");
         rcc.write(rcc::CFGR, 4, 2);
         assert_eq!(rcc.read(rcc::CFGR, 4) >> 2 & 3, 2, "SWS follows SW");
-        rcc.write(rcc::CSR, 4, 1);
+        assert_eq!(rcc.read(rcc::CSR, 4) >> 25, 0b111, "power-on reset flags");
+        rcc.write(rcc::CSR, 4, 0x0E00_0001);
         assert_eq!(rcc.read(rcc::CSR, 4) & 2, 2, "LSIRDY");
+        rcc.write(rcc::CSR, 4, 1 << 24 | 1);
+        assert_eq!(rcc.read(rcc::CSR, 4), 0b11, "RMVF cleared the flags");
     }
 
     #[test]

@@ -62,6 +62,12 @@ impl Rtt {
         })
     }
 
+    /// After a reset: the bytes of a frame the firmware had not finished are dropped (it
+    /// starts its log anew).
+    pub fn reset(&mut self) {
+        self.partial.clear();
+    }
+
     /// Moves what the firmware wrote since the last call out of its buffer: `read(addr, buf)`
     /// and `write(addr, bytes)` access guest memory. Returns the complete lines, stamped `at`.
     pub fn drain(

@@ -69,6 +69,14 @@ pub struct BoardRun {
     pub sent: Vec<(u64, firmware::CanFrame)>,
 }
 
+/// What the harness does to the board itself during a run.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Harness {
+    /// From this time (ns) the TIM2 interrupt is withheld until the board resets: the
+    /// control loop stalls ([`Board::stall_timer`]).
+    pub stall_timer_at_ns: Option<u64>,
+}
+
 /// The board's telemetry as a host reads it.
 #[derive(Debug, Default)]
 struct Observer {
@@ -132,6 +140,7 @@ pub fn run_scenario(
     board: Board,
     mut log: Option<&mut McapLog>,
     options: LogOptions,
+    harness: Harness,
     mut progress: impl FnMut(u64),
 ) -> Result<BoardRun, RunError> {
     let mut drives =
@@ -151,6 +160,7 @@ pub fn run_scenario(
     let mut lines = Vec::new();
     let mut track = Vec::new();
     let mut board_frames = Vec::new();
+    let mut stall_at = harness.stall_timer_at_ns;
     set_wheel_faults(scenario, plant, 0);
     queue_feedback(plant, &mut ls, &mut feedback, 0);
     while plant_ns < duration_ns {
@@ -166,10 +176,16 @@ pub fn run_scenario(
                 l.twist(at_ns, twist)?;
             }
         }
-        ls.run_until(horizon).map_err(|error| RunError::Board {
+        let board_error = |ls: &Lockstep, error| RunError::Board {
             t: ls.board.now() as f64 / CPU_HZ as f64,
             error,
-        })?;
+        };
+        if let Some(at) = stall_at.filter(|&at| at <= horizon) {
+            ls.run_until(at).map_err(|e| board_error(&ls, e))?;
+            ls.board.stall_timer();
+            stall_at = None;
+        }
+        ls.run_until(horizon).map_err(|e| board_error(&ls, e))?;
         // The transmissions completed by now: to the drives at their delivery time, to the
         // log, and the board's to the observer.
         let done: Vec<Transmission> = ls.completed[seen..].to_vec();

@@ -8,7 +8,7 @@
 
 use std::path::Path;
 
-use boardsim::run::run_scenario;
+use boardsim::run::{Harness, run_scenario};
 use boardsim::{Board, Image};
 use embedded_can::{Frame, Id, StandardId};
 use hostsim::drives::SimDrives;
@@ -55,7 +55,15 @@ fn both(s: &Scenario, onset_s: f64) -> [Seen; 2] {
         .expect("the core reacts");
     let core_zero = zeros.into_iter().find(|&t| t >= reaction - 1e-9);
     let board = Board::new(Image::read(&elf()).unwrap()).unwrap();
-    let run = run_scenario(s, board, None, LogOptions::default(), |_| {}).unwrap();
+    let run = run_scenario(
+        s,
+        board,
+        None,
+        LogOptions::default(),
+        Harness::default(),
+        |_| {},
+    )
+    .unwrap();
     let board_zero = run
         .sent
         .iter()
@@ -130,4 +138,82 @@ fn an_estop_latches_on_the_board() {
 fn a_host_stuck_on_one_twist_frame_is_stopped_by_the_board() {
     let s = scenario("[[faults]]\nkind = \"repeated_twist\"\nfrom_s = 0.5\nuntil_s = 1.2\n");
     check("stuck sender", &s, 0.5, ("Disabled", "Watchdog"));
+}
+
+#[test]
+fn a_stalled_loop_is_reset_by_the_watchdog_and_the_robot_stays_disabled() {
+    // Driving at 0.5 m/s; from 0.5 s the harness withholds the TIM2 interrupt: the loop
+    // waits on its timer for ever, nothing feeds the independent watchdog (50 ms).
+    let s = scenario("");
+    let board = Board::new(Image::read(&elf()).unwrap()).unwrap();
+    let harness = Harness {
+        stall_timer_at_ns: Some(500_000_000),
+    };
+    let run = run_scenario(&s, board, None, LogOptions::default(), harness, |_| {}).unwrap();
+    for l in &run.lines {
+        eprintln!(
+            "{:.6} {} {}",
+            l.at as f64 / boardsim::CPU_HZ as f64,
+            l.level,
+            l.text
+        );
+    }
+    assert_eq!(run.stats.watchdog_resets, 1);
+    let reset = run
+        .lines
+        .iter()
+        .find(|l| l.text.contains("reset by the independent watchdog"))
+        .map(|l| l.at as f64 / boardsim::CPU_HZ as f64)
+        .expect("the rebooted image logs the watchdog reset");
+    // The loop limps on for a while: frames arriving still wake it, and embassy's clock
+    // reads TIM2's counter directly, so its ticker fires until the count of half-overflows,
+    // which only the interrupt advances, makes time stand still (at most 65.5 ms). The
+    // watchdog then resets the board 50 ms after the last step fed it (each step sends a
+    // motor command), the reboot logging within 1 ms.
+    let dji = |f: &firmware::CanFrame| f.id() == Id::Standard(StandardId::new(0x200).unwrap());
+    let last_step = run
+        .sent
+        .iter()
+        .rev()
+        .find(|(t, f)| dji(f) && (*t as f64 * 1e-9) < reset)
+        .map(|(t, _)| *t as f64 * 1e-9)
+        .unwrap();
+    eprintln!("last step's command at {last_step:.6} s, reset logged at {reset:.6} s");
+    assert!(
+        (0.049..0.0515).contains(&(reset - last_step)),
+        "reset {:.3} ms after the last step",
+        (reset - last_step) * 1e3
+    );
+    assert!(
+        (0.5..0.5 + 0.066 + 0.0515).contains(&reset),
+        "reset logged at {reset} s"
+    );
+    let after: Vec<&(u64, firmware::CanFrame)> = run
+        .sent
+        .iter()
+        .filter(|(t, f)| dji(f) && *t as f64 * 1e-9 > reset)
+        .collect();
+    // The loop runs again at 1 kHz from the reboot to the end (1.2 s).
+    let due = ((1.2 - reset) * 1e3) as usize;
+    assert!(
+        after.len() + 2 >= due,
+        "{} motor commands after the reset, {due} due",
+        after.len()
+    );
+    assert!(
+        after.iter().all(|(_, f)| is_zero_current(f)),
+        "a motor driven after the reset"
+    );
+    let states: Vec<String> = run
+        .transitions
+        .iter()
+        .map(|(t, s, f)| format!("{t:.3} {s:?} {f:?}"))
+        .collect();
+    eprintln!("{states:?}");
+    let (t, state, fault) = *run.transitions.last().unwrap();
+    assert!(t > reset, "{states:?}");
+    assert_eq!(
+        (format!("{state:?}"), format!("{fault:?}")),
+        ("Disabled".into(), "None".into())
+    );
 }

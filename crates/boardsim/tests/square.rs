@@ -1,7 +1,7 @@
 //! The built-in square with the flashed image in place of the in-process core: the same state
 //! changes, and the final odometry within 1 mm and 0.05° of the core's.
 
-use boardsim::run::run_scenario;
+use boardsim::run::{Harness, run_scenario};
 use boardsim::{Board, Image};
 use hostsim::drives::SimDrives;
 use hostsim::scenario::Scenario;
@@ -18,7 +18,15 @@ fn the_square_on_the_board_matches_the_in_process_core() {
         hostsim::sim::run(&scenario, &mut plant, None, LogOptions::default(), |_| {}).unwrap();
 
     let board = Board::new(Image::read(&elf()).unwrap()).unwrap();
-    let run = run_scenario(&scenario, board, None, LogOptions::default(), |_| {}).unwrap();
+    let run = run_scenario(
+        &scenario,
+        board,
+        None,
+        LogOptions::default(),
+        Harness::default(),
+        |_| {},
+    )
+    .unwrap();
     for l in &run.lines {
         eprintln!(
             "board {:.6} {} {}",
