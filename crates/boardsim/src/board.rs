@@ -717,17 +717,16 @@ impl Board {
         self.reset_cpu()
     }
 
-    /// The independent watchdog expired: a system reset, with RCC_CSR's reset flags saying
-    /// so (IWDGRSTF and PINRSTF, RM0090 §7.3.21).
-    fn watchdog_reset(&mut self) -> Result<(), BoardError> {
+    /// A system reset whose cause RCC_CSR then reports with `csr_flags` (RM0090 §7.3.21):
+    /// the watchdog (IWDGRSTF and PINRSTF) or AIRCR.SYSRESETREQ (SFTRSTF and PINRSTF).
+    fn system_reset(&mut self, csr_flags: u32) -> Result<(), BoardError> {
         let pc = self.pc;
         self.reset().map_err(|e| BoardError::Emulation {
             error: format!("reset: {e}"),
             pc,
         })?;
         let hw = self.uc.get_data_mut();
-        hw.rcc.regs.set_word(crate::regs::rcc::CSR, 0x2400_0000);
-        hw.stats.watchdog_resets += 1;
+        hw.rcc.regs.set_word(crate::regs::rcc::CSR, csr_flags);
         Ok(())
     }
 
@@ -952,18 +951,12 @@ impl Board {
                 return Ok(hw.now);
             }
             if hw.iwdg.expiry().is_some_and(|at| hw.now >= at) {
-                self.watchdog_reset()?;
+                self.system_reset(0x2400_0000)?;
+                self.uc.get_data_mut().stats.watchdog_resets += 1;
                 continue;
             }
             if std::mem::take(&mut hw.reset_requested) {
-                // AIRCR.SYSRESETREQ: RCC_CSR says SFTRSTF and PINRSTF.
-                let pc = self.pc;
-                self.reset().map_err(|e| BoardError::Emulation {
-                    error: format!("reset: {e}"),
-                    pc,
-                })?;
-                let hw = self.uc.get_data_mut();
-                hw.rcc.regs.set_word(crate::regs::rcc::CSR, 0x1400_0000);
+                self.system_reset(0x1400_0000)?;
                 continue;
             }
             let hw = self.uc.get_data_mut();

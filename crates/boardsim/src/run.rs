@@ -19,7 +19,7 @@ use hostsim::drives::SimDrives;
 use hostsim::host::HostNode;
 use hostsim::log::{McapLog, OdometrySource, msg};
 use hostsim::scenario::Scenario;
-use hostsim::sim::{LogOptions, SimPlant, log_transmission, set_wheel_faults};
+use hostsim::sim::{LogOptions, SimPlant, log_transmission, queue_feedback, set_wheel_faults};
 
 use crate::board::{Board, BoardError, CPU_HZ};
 use crate::lockstep::{Lockstep, cycles_to_ns};
@@ -162,7 +162,7 @@ pub fn run_scenario(
     let mut board_frames = Vec::new();
     let mut stall_at = harness.stall_timer_at_ns;
     set_wheel_faults(scenario, plant, 0);
-    queue_feedback(plant, &mut ls, &mut feedback, 0);
+    queue_feedback(plant, &mut feedback, 0, |t, n, f| ls.send(t, n, f));
     while plant_ns < duration_ns {
         let horizon = duration_ns.min(plant.next_feedback_ns().max(plant_ns + 1));
         host_frames.clear();
@@ -248,7 +248,7 @@ pub fn run_scenario(
         plant.advance_ns(horizon - plant_ns);
         plant_ns = horizon;
         set_wheel_faults(scenario, plant, plant_ns / 1000 + 1);
-        queue_feedback(plant, &mut ls, &mut feedback, plant_ns);
+        queue_feedback(plant, &mut feedback, plant_ns, |t, n, f| ls.send(t, n, f));
         for line in ls.board.take_lines() {
             if let Some(l) = log.as_deref_mut() {
                 let level = match line.level.as_str() {
@@ -284,24 +284,4 @@ pub fn run_scenario(
         track,
         sent: board_frames,
     })
-}
-
-/// Queues on the bus the drives' feedback and the IMU's frames sent up to `until_ns`.
-fn queue_feedback<P: SimPlant>(
-    plant: &mut P,
-    ls: &mut Lockstep,
-    feedback: &mut Vec<(u64, firmware::CanFrame)>,
-    until_ns: u64,
-) {
-    for (node, imu) in [(Node::Drives, false), (Node::Imu, true)] {
-        feedback.clear();
-        if imu {
-            plant.imu_frames(until_ns, feedback);
-        } else {
-            plant.feedback(until_ns, feedback);
-        }
-        for &(at_ns, f) in feedback.iter() {
-            ls.send(at_ns, node, f);
-        }
-    }
 }

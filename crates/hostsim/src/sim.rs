@@ -334,7 +334,7 @@ pub fn run_observed<P: SimPlant>(
         }
 
         // 2. Drives (their faults of t were set before the plant reached t, below).
-        send_feedback(plant, &mut bus, &mut feedback, t_ns);
+        queue_feedback(plant, &mut feedback, t_ns, |t, n, f| bus.send(t, n, f));
 
         // 3. Bus up to t.
         bus.advance_into(t_ns + 1, &mut in_flight);
@@ -531,16 +531,18 @@ fn advance_period<P: SimPlant>(
         }
         plant.advance_ns(horizon - now_ns);
         now_ns = horizon;
-        send_feedback(plant, bus, feedback, now_ns);
+        queue_feedback(plant, feedback, now_ns, |t, n, f| bus.send(t, n, f));
     }
 }
 
-/// Queues on the bus the drives' feedback and the IMU's frames sent up to `until_ns`.
-fn send_feedback<P: SimPlant>(
+/// Hands `send` the drives' feedback frames and the IMU's frames sent up to `until_ns`, each
+/// with its send time and its node (the drives', then the IMU's, each in time order);
+/// `feedback` is scratch space.
+pub fn queue_feedback<P: SimPlant>(
     plant: &mut P,
-    bus: &mut Bus,
     feedback: &mut Vec<(u64, CanFrame)>,
     until_ns: u64,
+    mut send: impl FnMut(u64, Node, CanFrame),
 ) {
     for (node, imu) in [(Node::Drives, false), (Node::Imu, true)] {
         feedback.clear();
@@ -550,7 +552,7 @@ fn send_feedback<P: SimPlant>(
             plant.feedback(until_ns, feedback);
         }
         for &(at_ns, f) in feedback.iter() {
-            bus.send(at_ns, node, f);
+            send(at_ns, node, f);
         }
     }
 }
