@@ -1102,6 +1102,60 @@ fn s_reg(i: usize) -> RegisterARM {
 mod tests {
     use super::*;
 
+    /// An image of `code` (Thumb halfwords) at 0x0800_0008, after a vector table whose reset
+    /// vector points at it; the stack at the top of 4 KiB of SRAM.
+    fn image(code: &[u16], literals: &[u32]) -> Image {
+        let mut flash: Vec<u8> = [0x2000_1000u32, 0x0800_0009]
+            .iter()
+            .flat_map(|w| w.to_le_bytes())
+            .collect();
+        flash.extend(code.iter().flat_map(|h| h.to_le_bytes()));
+        flash.extend(literals.iter().flat_map(|w| w.to_le_bytes()));
+        Image {
+            path: "test.elf".into(),
+            bytes: Vec::new(),
+            segments: vec![(0x0800_0000, flash)],
+            symbols: HashMap::new(),
+            hints: HashMap::new(),
+        }
+    }
+
+    #[test]
+    fn an_unmapped_access_stops_the_run_naming_the_address_and_the_pc() {
+        // movs r1, #3; lsls r1, r1, #28 (0x3000_0000: nothing there); ldr r0, [r1]; b .
+        let mut board = Board::new(image(&[0x2103, 0x0709, 0x6808, 0xE7FE], &[])).unwrap();
+        let e = board.run_until(10_000).unwrap_err();
+        assert_eq!(
+            e,
+            BoardError::Unmapped {
+                access: "read",
+                addr: 0x3000_0000,
+                pc: 0x0800_000C
+            }
+        );
+        assert!(
+            e.to_string().contains("0x30000000") && e.to_string().contains("0x0800000c"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn a_register_no_model_knows_is_reported_once() {
+        // ldr r1, [pc, #4] (USART2's SR); ldr r0, [r1]; ldr r0, [r1]; b .
+        let mut board =
+            Board::new(image(&[0x4901, 0x6808, 0x6808, 0xE7FE], &[0x4000_4400])).unwrap();
+        board.run_until(10_000).unwrap();
+        let unknown = board.unknown_registers();
+        assert_eq!(unknown.len(), 1, "{unknown:?}");
+        assert_eq!(
+            (unknown[0].addr, unknown[0].peripheral, unknown[0].write),
+            (0x4000_4400, "USART2", false)
+        );
+        // Unicorn's PC in an MMIO callback is the start of the translated block (0x0800_0008),
+        // not the load's own address (0x0800_000A): the report names the block.
+        assert_eq!(unknown[0].pc, 0x0800_0008);
+    }
+
     #[test]
     fn thumb_blocks_count_16_and_32_bit_instructions() {
         // movs r0, #1 (16); ldr.w r1, [r2] (32: 0xF8D2 0x1000); bx lr (16).
