@@ -135,40 +135,6 @@ impl Lockstep {
     }
 }
 
-/// Runs `ls` to `until_ns` with `drives` (hostsim's simulated drives and plant) answering on
-/// the bus: every `tick_ns` the plant's feedback up to the tick's end is queued at its send
-/// times, board and bus run to the tick's end, the board's frames reach the drives, and the
-/// physics advances a tick.
-///
-/// # Errors
-/// The board stopped ([`BoardError`]).
-pub fn run_with_drives(
-    ls: &mut Lockstep,
-    drives: &mut impl hostsim::sim::SimPlant,
-    until_ns: u64,
-    tick_ns: u64,
-) -> Result<(), BoardError> {
-    let mut feedback = Vec::new();
-    let mut seen = ls.completed.len();
-    while ls.now_ns() < until_ns {
-        let end = (ls.now_ns() / tick_ns + 1) * tick_ns;
-        feedback.clear();
-        drives.feedback(end, &mut feedback);
-        for &(t, frame) in &feedback {
-            ls.send(t, Node::Drives, frame);
-        }
-        ls.run_until(end)?;
-        for tx in &ls.completed[seen..] {
-            if tx.from == Node::Controller && tx.fate != Fate::Dropped {
-                drives.on_frame(tx.delivered_ns / 1000, &tx.frame);
-            }
-        }
-        seen = ls.completed.len();
-        drives.advance_ns(tick_ns);
-    }
-    Ok(())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -5,10 +5,11 @@ use std::path::PathBuf;
 use anyhow::Context as _;
 use clap::{Parser, Subcommand};
 
-use boardsim::lockstep::{Lockstep, run_with_drives};
+use boardsim::rtt::LogLine;
+use boardsim::run::{Harness, run_scenario};
 use boardsim::{Board, CPU_HZ, Image};
-use hostsim::bus::{Bus, Node};
-use hostsim::drives::SimDrives;
+use hostsim::scenario::Scenario;
+use hostsim::sim::LogOptions;
 
 /// The STM32F407 board image, exactly as flashed, on the simulated robot's CAN bus.
 #[derive(Parser, Debug)]
@@ -90,15 +91,52 @@ fn boot(elf: &std::path::Path, seconds: f64) -> anyhow::Result<()> {
     if !(seconds.is_finite() && seconds > 0.0) {
         anyhow::bail!("--seconds {seconds}: must be a positive number of seconds");
     }
-    let image = Image::read(elf)?;
-    let board = Board::new(image).context("setting up the board")?;
-    let config = firmware::Config::dji_m3508_example();
-    let mut drives = SimDrives::new(&config).map_err(|e| anyhow::anyhow!("{e}"))?;
-    let mut ls = Lockstep::new(board, Bus::new(1_000_000, Vec::new(), 0));
+    // A scenario of nothing but time: the example robot's drives answer, no host acts.
+    let scenario = Scenario::from_toml(
+        &format!("duration_s = {seconds}"),
+        std::path::Path::new("boot.toml"),
+    )?;
+    let board = Board::new(Image::read(elf)?).context("setting up the board")?;
     let wall = std::time::Instant::now();
-    let until_ns = (seconds * 1e9) as u64;
-    let result = run_with_drives(&mut ls, &mut drives, until_ns, 100_000);
-    for line in ls.board.take_lines() {
+    let result = run_scenario(
+        &scenario,
+        board,
+        None,
+        LogOptions::default(),
+        Harness::default(),
+        |_| {},
+    );
+    let wall = wall.elapsed().as_secs_f64();
+    let run = match result {
+        Ok(run) => run,
+        Err(e) => {
+            print_lines(e.lines());
+            return Err(e.into());
+        }
+    };
+    print_lines(&run.lines);
+    for u in run.board.unknown_registers() {
+        eprintln!("boardsim: {u}");
+    }
+    let s = run.board.stats();
+    eprintln!(
+        "boardsim: {:.3} s simulated in {wall:.3} s ({:.2}x real time); {} instructions, {} slices, {} exceptions, {} MMIO accesses, asleep {:.1} %; {} frames from the board, {} to it",
+        run.simulated_s,
+        run.simulated_s / wall,
+        s.instructions,
+        s.slices,
+        s.exceptions,
+        s.mmio,
+        100.0 * s.sleep_cycles as f64 / (run.simulated_s * CPU_HZ as f64),
+        run.sent.len(),
+        run.frames_received,
+    );
+    Ok(())
+}
+
+/// The board's log lines on stdout, stamped with their simulated time.
+fn print_lines(lines: &[LogLine]) {
+    for line in lines {
         println!(
             "{:10.6} {:5} {}",
             line.at as f64 / CPU_HZ as f64,
@@ -106,29 +144,6 @@ fn boot(elf: &std::path::Path, seconds: f64) -> anyhow::Result<()> {
             line.text
         );
     }
-    for u in ls.board.unknown_registers() {
-        eprintln!("boardsim: {u}");
-    }
-    let s = ls.board.stats();
-    let wall = wall.elapsed().as_secs_f64();
-    let from_board = ls
-        .completed
-        .iter()
-        .filter(|t| t.from == Node::Controller)
-        .count();
-    eprintln!(
-        "boardsim: {:.3} s simulated in {wall:.3} s ({:.2}x real time); {} instructions, {} slices, {} exceptions, {} MMIO accesses, asleep {:.1} %; {} frames from the board, {} in all",
-        ls.board.now() as f64 / CPU_HZ as f64,
-        ls.board.now() as f64 / CPU_HZ as f64 / wall,
-        s.instructions,
-        s.slices,
-        s.exceptions,
-        s.mmio,
-        100.0 * s.sleep_cycles as f64 / ls.board.now().max(1) as f64,
-        from_board,
-        ls.completed.len(),
-    );
-    result.map_err(|e| anyhow::anyhow!("the board stopped: {e}"))
 }
 
 fn run(
@@ -144,7 +159,7 @@ fn run(
         .map(firmware::Config::from_toml_file)
         .transpose()
         .context("--config")?;
-    let scenario = hostsim::scenario::Scenario::load(scenario, config)?;
+    let scenario = Scenario::load(scenario, config)?;
     let image = Image::read(elf)?;
     std::fs::create_dir_all(out).with_context(|| format!("--out {}", out.display()))?;
     let log_path = out.join(format!("{}.mcap", scenario.name));
@@ -159,12 +174,12 @@ fn run(
     let board = Board::new(image).context("setting up the board")?;
     let wall = std::time::Instant::now();
     let duration = scenario.duration_us() as f64 * 1e-6;
-    let result = boardsim::run::run_scenario(
+    let result = run_scenario(
         &scenario,
         board,
         mcap.as_mut(),
-        hostsim::sim::LogOptions::default(),
-        boardsim::run::Harness::default(),
+        LogOptions::default(),
+        Harness::default(),
         |t_us| {
             if !json && t_us % 1_000_000 == 0 && t_us > 0 {
                 eprint!(
@@ -180,7 +195,15 @@ fn run(
     if let Some(l) = mcap {
         l.finish()?;
     }
-    let run = result?;
+    let run = match result {
+        Ok(run) => run,
+        Err(e) => {
+            if !json {
+                print_lines(e.lines());
+            }
+            return Err(e.into());
+        }
+    };
     let wall = wall.elapsed().as_secs_f64();
     if plot && !run.track.is_empty() {
         let png = out.join(format!("{}.png", scenario.name));
@@ -191,7 +214,7 @@ fn run(
         )
         .map_err(|e| anyhow::anyhow!("{e}"))?;
     }
-    let s = run.stats;
+    let s = run.board.stats();
     let odometry = run.odometry.map(|(p, _)| p);
     let error = odometry.map(|p| {
         (
@@ -210,7 +233,7 @@ fn run(
             "odometry": odometry,
             "truth": run.truth,
             "final_position_error": error.map(|e| e.0),
-            "frames_sent": run.frames_sent,
+            "frames_sent": run.sent.len(),
             "frames_received": run.frames_received,
             "instructions": s.instructions,
             "instructions_per_ms": s.instructions as f64 / (run.simulated_s * 1e3),
@@ -243,7 +266,7 @@ fn run(
     }
     println!(
         "frames: {} from the board, {} to it; {} instructions ({:.0} per ms), {} exceptions",
-        run.frames_sent,
+        run.sent.len(),
         run.frames_received,
         s.instructions,
         s.instructions as f64 / (run.simulated_s * 1e3),

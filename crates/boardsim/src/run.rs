@@ -14,7 +14,7 @@
 //! on `/rosout`.
 
 use firmware::protocol::robot::{Fault, RobotState, Telemetry};
-use hostsim::bus::{Bus, Fate, Node, Transmission};
+use hostsim::bus::{Bus, Fate, Node};
 use hostsim::drives::SimDrives;
 use hostsim::host::HostNode;
 use hostsim::log::{McapLog, OdometrySource, msg};
@@ -35,6 +35,8 @@ pub enum RunError {
         t: f64,
         /// Why.
         error: BoardError,
+        /// The board's log up to then (its last lines tell what it was doing).
+        lines: Vec<LogLine>,
     },
     /// The scenario's plant could not be built.
     #[error("the scenario's plant: {0}")]
@@ -44,8 +46,19 @@ pub enum RunError {
     Log(#[from] hostsim::log::LogError),
 }
 
+impl RunError {
+    /// The board's log lines up to the error (none if the board did not stop).
+    #[must_use]
+    pub fn lines(&self) -> &[LogLine] {
+        match self {
+            Self::Board { lines, .. } => lines,
+            _ => &[],
+        }
+    }
+}
+
 /// What a run saw.
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 pub struct BoardRun {
     /// (s, state, fault) at each STATUS that reported a new pair.
     pub transitions: Vec<(f64, RobotState, Fault)>,
@@ -55,18 +68,19 @@ pub struct BoardRun {
     pub truth: [f64; 3],
     /// The board's log.
     pub lines: Vec<LogLine>,
-    /// Frames the board sent and received (delivered to it).
-    pub frames_sent: u64,
     /// Frames delivered to the board.
     pub frames_received: u64,
-    /// What the emulator did.
-    pub stats: crate::board::Stats,
     /// Simulated seconds.
     pub simulated_s: f64,
     /// The board's odometry and the ground truth at each of its odometry frames (100 Hz).
     pub track: Vec<hostsim::plot::TrackPoint>,
     /// Every frame the board sent, with the end of its transmission (ns).
     pub sent: Vec<(u64, firmware::CanFrame)>,
+    /// Hash of every transmission on the bus, all senders, with its end time (ns): two runs
+    /// with the same hash put the same frames on the wire at the same times.
+    pub bus_hash: u64,
+    /// The board at the end (its models: clocks, CAN controller, unknown registers).
+    pub board: Board,
 }
 
 /// What the harness does to the board itself during a run.
@@ -83,23 +97,31 @@ struct Observer {
     transitions: Vec<(f64, RobotState, Fault)>,
     position: Option<[f64; 2]>,
     odometry: Option<([f64; 3], f64)>,
-    /// The last ODOM_VELOCITY's twist, for the log.
-    twist: [f64; 3],
+}
+
+/// What a frame of the board told the observer that is new.
+enum Seen {
+    /// A complete odometry (ODOM_POSITION then ODOM_VELOCITY): pose and twist.
+    Odometry([f64; 3], [f64; 3]),
+    /// A STATUS with a new state or fault.
+    Transition(RobotState, Fault),
 }
 
 impl Observer {
-    /// A frame the board sent; returns a pose to log (position and heading complete).
-    fn on_frame(&mut self, t: f64, frame: &firmware::CanFrame) -> Option<([f64; 3], [f64; 3])> {
+    /// A frame the board sent at `t` (s).
+    fn on_frame(&mut self, t: f64, frame: &firmware::CanFrame) -> Option<Seen> {
         match Telemetry::decode(frame).ok()? {
             Telemetry::Status(s) => {
+                let new = (s.state, s.fault);
                 if self
                     .transitions
                     .last()
-                    .is_none_or(|&(_, st, f)| (st, f) != (s.state, s.fault))
+                    .is_some_and(|&(_, st, f)| (st, f) == new)
                 {
-                    self.transitions.push((t, s.state, s.fault));
+                    return None;
                 }
-                None
+                self.transitions.push((t, s.state, s.fault));
+                Some(Seen::Transition(s.state, s.fault))
             }
             Telemetry::OdomPosition(p) => {
                 self.position = Some([f64::from(p.x), f64::from(p.y)]);
@@ -108,9 +130,8 @@ impl Observer {
             Telemetry::OdomVelocity(v) => {
                 let [x, y] = self.position.take()?;
                 let pose = [x, y, f64::from(v.heading)];
-                self.twist = [v.vx, v.vy, v.wz].map(f64::from);
                 self.odometry = Some((pose, t));
-                Some((pose, self.twist))
+                Some(Seen::Odometry(pose, [v.vx, v.vy, v.wz].map(f64::from)))
             }
             _ => None,
         }
@@ -154,8 +175,8 @@ pub fn run_scenario(
     let duration_ns = scenario.duration_us() * 1000;
     // The plant's time, ns; the bus and the board run ahead of it up to `horizon`.
     let mut plant_ns = 0u64;
-    let mut seen = 0usize;
-    let (mut sent, mut received) = (0u64, 0u64);
+    let mut received = 0u64;
+    let mut bus_hash = hostsim::sim::StreamHash::default();
     let mut next_progress = 0u64;
     let mut lines = Vec::new();
     let mut track = Vec::new();
@@ -176,37 +197,43 @@ pub fn run_scenario(
                 l.twist(at_ns, twist)?;
             }
         }
-        let board_error = |ls: &Lockstep, error| RunError::Board {
-            t: ls.board.now() as f64 / CPU_HZ as f64,
-            error,
+        let stopped = |ls: &mut Lockstep, lines: &mut Vec<LogLine>, error| {
+            lines.extend(ls.board.take_lines());
+            RunError::Board {
+                t: ls.board.now() as f64 / CPU_HZ as f64,
+                error,
+                lines: std::mem::take(lines),
+            }
         };
         if let Some(at) = stall_at.filter(|&at| at <= horizon) {
-            ls.run_until(at).map_err(|e| board_error(&ls, e))?;
+            ls.run_until(at)
+                .map_err(|e| stopped(&mut ls, &mut lines, e))?;
             ls.board.stall_timer();
             stall_at = None;
         }
-        ls.run_until(horizon).map_err(|e| board_error(&ls, e))?;
+        ls.run_until(horizon)
+            .map_err(|e| stopped(&mut ls, &mut lines, e))?;
         // The transmissions completed by now: to the drives at their delivery time, to the
         // log, and the board's to the observer.
-        let done: Vec<Transmission> = ls.completed[seen..].to_vec();
-        seen = ls.completed.len();
+        let done = std::mem::take(&mut ls.completed);
         for tx in &done {
+            bus_hash.add(tx.end_ns, &tx.frame);
             if let Some(l) = log.as_deref_mut() {
                 log_transmission(l, tx, options)?;
             }
             if tx.fate == Fate::Dropped {
                 continue;
             }
-            match tx.from {
-                Node::Controller => {
-                    sent += 1;
-                    board_frames.push((tx.end_ns, tx.frame));
-                    if let Some((pose, twist)) =
-                        observer.on_frame(tx.delivered_ns as f64 * 1e-9, &tx.frame)
-                    {
+            if tx.from != Node::Controller {
+                received += 1;
+            } else {
+                board_frames.push((tx.end_ns, tx.frame));
+                let t = tx.delivered_ns as f64 * 1e-9;
+                match observer.on_frame(t, &tx.frame) {
+                    Some(Seen::Odometry(pose, twist)) => {
                         let truth = plant.truth();
                         track.push(hostsim::plot::TrackPoint {
-                            t: tx.delivered_ns as f64 * 1e-9,
+                            t,
                             truth: [truth[0], truth[1]],
                             odom: [pose[0], pose[1]],
                         });
@@ -220,24 +247,19 @@ pub fn run_scenario(
                             )?;
                         }
                     }
-                    if let Some(&(t, state, fault)) = observer.transitions.last()
-                        && (t - tx.delivered_ns as f64 * 1e-9).abs() < 1e-12
-                        && let Some(l) = log.as_deref_mut()
-                    {
-                        let level = match state {
-                            RobotState::Fault => msg::Log::ERROR,
-                            RobotState::Estop => msg::Log::WARN,
-                            _ => msg::Log::INFO,
-                        };
-                        l.text(
-                            tx.delivered_ns,
-                            level,
-                            &format!("state {state:?}, fault {fault:?}"),
-                        )?;
+                    Some(Seen::Transition(state, fault)) => {
+                        if let Some(l) = log.as_deref_mut() {
+                            let level = match state {
+                                RobotState::Fault => msg::Log::ERROR,
+                                RobotState::Estop => msg::Log::WARN,
+                                _ => msg::Log::INFO,
+                            };
+                            let text = format!("state {state:?}, fault {fault:?}");
+                            l.text(tx.delivered_ns, level, &text)?;
+                        }
                     }
+                    None => {}
                 }
-                Node::Drives | Node::Imu => received += 1,
-                Node::Host => received += 1,
             }
             if tx.from != Node::Drives && tx.delivered_ns > plant_ns && tx.delivered_ns <= horizon {
                 plant.advance_ns(tx.delivered_ns - plant_ns);
@@ -277,11 +299,11 @@ pub fn run_scenario(
         odometry: observer.odometry,
         truth: plant.truth(),
         lines,
-        frames_sent: sent,
         frames_received: received,
-        stats: ls.board.stats(),
         simulated_s: plant_ns as f64 * 1e-9,
         track,
         sent: board_frames,
+        bus_hash: bus_hash.value(),
+        board: ls.board,
     })
 }

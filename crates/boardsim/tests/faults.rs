@@ -8,15 +8,14 @@
 
 use std::path::Path;
 
-use boardsim::run::{Harness, run_scenario};
-use boardsim::{Board, Image};
+use boardsim::run::Harness;
 use embedded_can::{Frame, Id, StandardId};
 use hostsim::drives::SimDrives;
 use hostsim::scenario::Scenario;
 use hostsim::sim::{LogOptions, run_observed};
 
 mod common;
-use common::elf;
+use common::board_run;
 
 /// The DJI current command of motors 1-4.
 fn is_zero_current(frame: &firmware::CanFrame) -> bool {
@@ -54,16 +53,7 @@ fn both(s: &Scenario, onset_s: f64) -> [Seen; 2] {
         .find(|&t| t >= onset_s)
         .expect("the core reacts");
     let core_zero = zeros.into_iter().find(|&t| t >= reaction - 1e-9);
-    let board = Board::new(Image::read(&elf()).unwrap()).unwrap();
-    let run = run_scenario(
-        s,
-        board,
-        None,
-        LogOptions::default(),
-        Harness::default(),
-        |_| {},
-    )
-    .unwrap();
+    let run = board_run(s, Harness::default());
     let board_zero = run
         .sent
         .iter()
@@ -145,11 +135,10 @@ fn a_stalled_loop_is_reset_by_the_watchdog_and_the_robot_stays_disabled() {
     // Driving at 0.5 m/s; from 0.5 s the harness withholds the TIM2 interrupt: the loop
     // waits on its timer for ever, nothing feeds the independent watchdog (50 ms).
     let s = scenario("");
-    let board = Board::new(Image::read(&elf()).unwrap()).unwrap();
     let harness = Harness {
         stall_timer_at_ns: Some(500_000_000),
     };
-    let run = run_scenario(&s, board, None, LogOptions::default(), harness, |_| {}).unwrap();
+    let run = board_run(&s, harness);
     for l in &run.lines {
         eprintln!(
             "{:.6} {} {}",
@@ -158,7 +147,7 @@ fn a_stalled_loop_is_reset_by_the_watchdog_and_the_robot_stays_disabled() {
             l.text
         );
     }
-    assert_eq!(run.stats.watchdog_resets, 1);
+    assert_eq!(run.board.stats().watchdog_resets, 1);
     let reset = run
         .lines
         .iter()

@@ -1,14 +1,13 @@
 //! The built-in square with the flashed image in place of the in-process core: the same state
 //! changes, and the final odometry within 1 mm and 0.05° of the core's.
 
-use boardsim::run::{Harness, run_scenario};
-use boardsim::{Board, Image};
+use boardsim::run::Harness;
 use hostsim::drives::SimDrives;
 use hostsim::scenario::Scenario;
 use hostsim::sim::LogOptions;
 
 mod common;
-use common::elf;
+use common::board_run;
 
 #[test]
 fn the_square_on_the_board_matches_the_in_process_core() {
@@ -17,16 +16,7 @@ fn the_square_on_the_board_matches_the_in_process_core() {
     let core =
         hostsim::sim::run(&scenario, &mut plant, None, LogOptions::default(), |_| {}).unwrap();
 
-    let board = Board::new(Image::read(&elf()).unwrap()).unwrap();
-    let run = run_scenario(
-        &scenario,
-        board,
-        None,
-        LogOptions::default(),
-        Harness::default(),
-        |_| {},
-    )
-    .unwrap();
+    let run = board_run(&scenario, Harness::default());
     for l in &run.lines {
         eprintln!(
             "board {:.6} {} {}",
@@ -70,7 +60,7 @@ fn the_square_on_the_board_matches_the_in_process_core() {
     );
     assert!(dx < 1e-3, "{} mm", dx * 1e3);
     assert!(dh < 0.05, "{dh}°");
-    let s = run.stats;
+    let s = run.board.stats();
     eprintln!(
         "{:.1} s simulated: {} instructions ({} per ms), {} exceptions, asleep {:.1} %",
         run.simulated_s,

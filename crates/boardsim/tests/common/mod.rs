@@ -1,6 +1,11 @@
-//! What the tests share: where the board image is.
+//! What the tests share: where the board image is, and a run of a scenario on it.
 
 use std::path::PathBuf;
+
+use boardsim::run::{BoardRun, Harness, run_scenario};
+use boardsim::{Board, Image};
+use hostsim::scenario::Scenario;
+use hostsim::sim::LogOptions;
 
 /// The board ELF: `BOARDSIM_ELF`, else the release build of `boards/stm32f407` (which
 /// `scripts/test.sh` makes before the Rust tests).
@@ -19,4 +24,18 @@ pub fn elf() -> PathBuf {
         path.display()
     );
     path
+}
+
+/// `scenario` with the board image as the firmware node, no log.
+pub fn board_run(scenario: &Scenario, harness: Harness) -> BoardRun {
+    let board = Board::new(Image::read(&elf()).unwrap()).unwrap();
+    run_scenario(
+        scenario,
+        board,
+        None,
+        LogOptions::default(),
+        harness,
+        |_| {},
+    )
+    .unwrap()
 }
