@@ -48,6 +48,19 @@ def codec_bin() -> pathlib.Path:
 
 
 @pytest.fixture(scope="session")
+def config_id(codec_bin: pathlib.Path) -> Callable[[pathlib.Path], str]:
+    """The id of a configuration file as `mecanum-codec config-id` prints it (`0x1a2b`)."""
+
+    def run(path: pathlib.Path) -> str:
+        proc = subprocess.run([str(codec_bin), "config-id", str(path)], capture_output=True, text=True,
+                              timeout=60, check=False)
+        assert proc.returncode == 0, f"mecanum-codec config-id {path} failed: {proc.stderr}"
+        return proc.stdout.split()[0]
+
+    return run
+
+
+@pytest.fixture(scope="session")
 def run_codec(codec_bin: pathlib.Path) -> Callable[..., list[dict]]:
     """Runs `mecanum-codec <args>` with the given stdin lines; returns the JSON output lines."""
 

@@ -48,12 +48,14 @@ class ScriptedRobot:
         odom_period_s: float = 0.01,
         command_timeout_s: float = 0.1,
         protocol_version: int | None = None,
+        config_id: int = 0,
     ) -> None:
         self.bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
         self.period_s = period_s
         self.odom_period_s = odom_period_s
         self.command_timeout_s = command_timeout_s
         self.protocol_version = protocol_version if protocol_version is not None else _dbc_version()
+        self.config_id = config_id
         self.state = "DISABLED"
         self.fault = "NONE"
         self.twist = (0.0, 0.0, 0.0)
@@ -153,7 +155,7 @@ class ScriptedRobot:
                     if self.heartbeats:
                         self._status()
                         self._send("HEARTBEAT", uptime_ms=int((now - start) * 1000), state=STATES[self.state],
-                                   protocol_version=self.protocol_version, reserved=0)
+                                   protocol_version=self.protocol_version, config_id=self.config_id)
                     next_status += self.period_s
             time.sleep(0.002)
 

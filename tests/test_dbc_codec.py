@@ -175,7 +175,7 @@ def test_dbc_version_line_is_the_firmwares_protocol_version(golden):
     m = re.fullmatch(r"Mecanum robot CAN protocol, version (\d+) \(.+?\)\. .*", comments[0])
     assert m, comments[0][:120]
     version = int(m.group(1))
-    assert version == 4
+    assert version == 5
     beats = [g for g in golden if g.get("message") == "HEARTBEAT"]
     assert beats and all(g["fields"]["protocol_version"] == version for g in beats), beats
     assert f'protocol_version "Protocol version: {version} for this file.' in text

@@ -387,7 +387,9 @@ def test_the_heading_source_is_decoded_by_name(channel: str, capsys: pytest.Capt
         assert status is not None and status.heading_source == "WHEELS_GYRO_SILENT"
         assert status.motors_online == (True,) * 4
         assert cli.main([*common, "status", "--once"]) == 0
-        assert "heading   from WHEELS_GYRO_SILENT" in capsys.readouterr().out
+        out = capsys.readouterr().out
+        assert "heading   from WHEELS_GYRO_SILENT" in out
+        assert f"protocol version {mecanum_drive.protocol_version()}, configuration id 0x0000" in out, out
         fake.heading_source = 1
         assert cli.main([*common, "status", "--json"]) == 0
         assert json.loads(capsys.readouterr().out)["heading_source"] == "GYRO"
@@ -396,11 +398,12 @@ def test_the_heading_source_is_decoded_by_name(channel: str, capsys: pytest.Capt
 def test_the_command_line_on_a_virtual_bus(channel: str, capsys: pytest.CaptureFixture[str]) -> None:
     """`mecanum-drive` commands in this process, against the scripted robot."""
     common = ["--interface", "virtual", "--channel", channel]
-    with ScriptedRobot(channel) as fake:
+    with ScriptedRobot(channel, config_id=0xC0DE) as fake:
         assert cli.main([*common, "status", "--json"]) == 0
         status = json.loads(capsys.readouterr().out)
         assert status["state"] == "DISABLED" and status["responding"] and status["motors_online"] == [True] * 4
         assert status["protocol_version"] == mecanum_drive.protocol_version()
+        assert status["config_id"] == "0xc0de"
         assert status["counters"] == {"repeated_seq": 0, "wrong_dlc": 0, "out_of_range": 0, "non_finite": 0}
 
         assert cli.main([*common, "drive", "--vx", "0.5", "--duration", "0.4"]) == 0

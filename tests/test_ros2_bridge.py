@@ -20,6 +20,7 @@ import time
 from collections.abc import Iterator
 from typing import Any
 
+import mecanum_drive
 import pytest
 from ros2_peer import NoNamespace, RosPeer, in_ci, private_network
 from scripted_robot import ScriptedRobot
@@ -59,7 +60,7 @@ class Rig:
         channel = f"ros2-bridge-test-{next(_channels)}"
         # A command timeout that this one process (robot, bridge and peer share its GIL) keeps
         # on a loaded machine: the watchdog is the firmware's business, tested on vcan0.
-        self.fake = ScriptedRobot(channel, command_timeout_s=0.5).__enter__()
+        self.fake = ScriptedRobot(channel, command_timeout_s=0.5, config_id=0x1A2B).__enter__()
         args = ["bridge", "--ros-args"] + [a for k, v in params.items() for a in ("-p", f"{k}:={v}")]
         self.context = rclpy.Context()
         rclpy.init(args=args, context=self.context, signal_handler_options=SignalHandlerOptions.NO)
@@ -281,8 +282,9 @@ def test_diagnostics_levels_follow_the_robot(make_rig: Any) -> None:
         print(f"/diagnostics {k}: level {d.level} {d.message!r}")
     assert (levels["enabled"].level, levels["enabled"].message) == (0, "ENABLED")
     v = levels["enabled"].values
-    assert (v["fault"], v["motors_online"], v["heading_source"], v["protocol_version"], v["rx_errors"],
-            v["repeated_seq"]) == ("NONE", "FL FR RL RR", "WHEELS", "4", "0", "0"), v
+    assert (v["fault"], v["motors_online"], v["heading_source"], v["protocol_version"], v["config_id"], v["rx_errors"],
+            v["repeated_seq"]) == ("NONE", "FL FR RL RR", "WHEELS", str(mecanum_drive.protocol_version()), "0x1a2b",
+                                   "0", "0"), v
     assert levels["enabled"].hardware_id.startswith("virtual:ros2-bridge-test-")
     assert (levels["estop"].level, levels["estop"].message) == (1, "ESTOP (latched; ~/reset clears it)")
     assert (levels["gyro silent"].level, levels["gyro silent"].message) == (

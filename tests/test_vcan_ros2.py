@@ -30,6 +30,7 @@ import time
 from collections.abc import Iterator
 from typing import Any
 
+import mecanum_drive
 import pytest
 from conftest import VCAN_CHANNEL, vcan_unavailable
 from ros2_peer import Call, NoNamespace, RosPeer, in_ci, private_network
@@ -170,6 +171,7 @@ class Session:
     marks: dict[str, float]
     calls: dict[str, Call]
     bridges: dict[str, dict[str, Any]]  # name -> {"rc", "output", "exit_s"}
+    config_id: str  # the robot configuration's id, as `mecanum-codec config-id` computes it
 
 
 def _bridge(workdir: pathlib.Path, name: str, channel: str, *ros_params: str) -> tuple[subprocess.Popen, pathlib.Path]:
@@ -194,7 +196,8 @@ def _bridge(workdir: pathlib.Path, name: str, channel: str, *ros_params: str) ->
 
 
 @pytest.fixture(scope="module")
-def session(robot_factory, private_net: str, tester: RosPeer, tmp_path_factory: pytest.TempPathFactory) -> Session:
+def session(robot_factory, private_net: str, tester: RosPeer, tmp_path_factory: pytest.TempPathFactory,
+            config_id) -> Session:
     started = time.monotonic()
     workdir = tmp_path_factory.mktemp("ros2")
     robot_config = write_config(
@@ -269,7 +272,7 @@ def session(robot_factory, private_net: str, tester: RosPeer, tmp_path_factory: 
                 proc.wait()
     print(f"ROS 2 session: {time.monotonic() - started:.1f} s (bridge 1 ready "
           f"{marks['ready1'] - marks['bridge1']:.1f} s after its start)")
-    return Session(robot, tester, marks, calls, bridges)
+    return Session(robot, tester, marks, calls, bridges, config_id(robot_config))
 
 
 # --- helpers on the record -------------------------------------------------------------------
@@ -549,7 +552,7 @@ def test_the_keep_alive_kept_its_cadence_beside_ros(session: Session) -> None:
 
 
 def test_diagnostics_report_state_fault_motors_and_counters(session: Session) -> None:
-    """While driving: level OK, ENABLED, fault NONE, all four motors, protocol version 3, no
+    """While driving: level OK, ENABLED, fault NONE, all four motors, protocol version and configuration id, no
     rejected frames, the bridge's /cmd_vel counted; at diagnostics_rate."""
     t0, t1 = session.marks[MOTIONS[0][0]] + 0.5, session.marks["silence"]
     diag = [d for d in session.tester.diag if t0 <= d.t < t1]
@@ -560,7 +563,9 @@ def test_diagnostics_report_state_fault_motors_and_counters(session: Session) ->
     assert (0.5 if HOST_STALLS else 0.8) * DIAGNOSTICS_RATE_HZ <= rate <= 1.2 * DIAGNOSTICS_RATE_HZ, rate
     for d in diag:
         assert (d.level, d.message, d.values["state"], d.values["fault"]) == (0, "ENABLED", "ENABLED", "NONE"), d
-        assert d.values["motors_online"] == "FL FR RL RR" and d.values["protocol_version"] == "4", d
+        assert d.values["motors_online"] == "FL FR RL RR", d
+        assert (d.values["protocol_version"], d.values["config_id"]) == (
+            str(mecanum_drive.protocol_version()), session.config_id), d
         assert d.values["heading_source"] == "WHEELS", d  # config/dji_m3508.toml has no gyro
         assert d.values["rx_errors"] == "0" and d.values["out_of_range"] == "0", d
     assert (d.name, d.hardware_id) == ("mecanum_drive: robot", f"socketcan:{VCAN_CHANNEL}")

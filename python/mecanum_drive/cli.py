@@ -81,6 +81,7 @@ def _status_dict(robot: Robot) -> dict[str, Any]:
         "odometry": None if o is None else {"x": o.x, "y": o.y, "heading": o.heading, "vx": o.vx, "vy": o.vy, "wz": o.wz},
         "uptime_s": h.uptime_ms / 1000 if h else None,
         "protocol_version": h.protocol_version if h else None,
+        "config_id": f"0x{h.config_id:04x}" if h else None,
         "responding": robot.responding,
     }
 
@@ -98,7 +99,8 @@ def _status_text(robot: Robot) -> str:
         f"counters  rejected frames {d['rx_errors']}   unknown ids {d['unknown_ids']}",
         "" if d["counters"] is None else "          repeated twists {repeated_seq}   wrong DLC {wrong_dlc}   "
         "out of range {out_of_range}   not finite {non_finite}".format(**d["counters"]),
-        f"robot     up {d['uptime_s']:.1f} s, protocol version {d['protocol_version']}" if d["uptime_s"] is not None else "",
+        f"robot     up {d['uptime_s']:.1f} s, protocol version {d['protocol_version']}, "
+        f"configuration id {d['config_id']}" if d["uptime_s"] is not None else "",
     ]
     return "\n".join(line for line in lines if line)
 

@@ -153,6 +153,7 @@ class Heartbeat:
     uptime_ms: int
     state: str
     protocol_version: int
+    config_id: int  # the id of the robot's drive configuration (protocol version 5)
     received: float  # time.monotonic()
     stamp: float = math.nan  # the frame's receive time (see `Odometry.stamp`)
 
@@ -608,6 +609,7 @@ class Robot:
                     uptime_ms=int(values["uptime_ms"]),
                     state=self._states.get(int(values["state"]), str(values["state"])),
                     protocol_version=version,
+                    config_id=int(values["config_id"]),
                     received=now,
                     stamp=stamp,
                 )

@@ -61,6 +61,9 @@ use crate::protocol::dji::{EscId, EscModel};
 use crate::protocol::odrive::NodeId;
 use crate::protocol::robot;
 
+mod encoding;
+pub use encoding::ENCODED_LEN;
+
 /// The whole drive configuration.
 #[derive(Debug, Clone, Copy, PartialEq)]
 #[cfg_attr(feature = "serde", derive(serde::Deserialize, serde::Serialize))]

@@ -550,6 +550,8 @@ pub struct Snapshot {
 #[derive(Debug, Clone)]
 pub struct Controller {
     config: Config,
+    /// [`Config::id`], sent in every `HEARTBEAT`.
+    config_id: u16,
     kin: MecanumKinematics<f32, 4>,
     /// Per-wheel sign: -1 where the motor is mirrored.
     sign: [f32; 4],
@@ -745,6 +747,7 @@ impl Controller {
             steps: 0,
             status_requested: false,
             status_seq: 0,
+            config_id: config.id(),
         })
     }
 
@@ -752,6 +755,12 @@ impl Controller {
     #[must_use]
     pub const fn config(&self) -> &Config {
         &self.config
+    }
+
+    /// The configuration's id ([`Config::id`]), as `HEARTBEAT.config_id` sends it.
+    #[must_use]
+    pub const fn config_id(&self) -> u16 {
+        self.config_id
     }
 
     /// The control period, s.
@@ -1695,6 +1704,7 @@ impl Controller {
                     uptime_ms: uptime_ms as u32,
                     state: self.state,
                     protocol_version: robot::PROTOCOL_VERSION,
+                    config_id: self.config_id,
                 })
                 .to_can_frame(),
             );

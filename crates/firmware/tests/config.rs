@@ -374,3 +374,59 @@ fn odometry_values_out_of_range_name_the_key_and_value() {
         assert!(msg.contains(want) && msg.contains("line"), "{to}: {msg}");
     }
 }
+
+/// Every example file and a configuration that sets what they leave at defaults (general
+/// layout, C610, a velocity ramp, an infinite stop, gyro heading) reads back from its
+/// encoding exactly, and no two of them share an id.
+#[test]
+fn encoding_reads_back_every_field_and_ids_tell_configurations_apart() {
+    use firmware::config::{Drive, Geometry, HeadingMode, WheelConfig};
+    use firmware::protocol::dji::EscModel;
+    let mut configs: Vec<Config> = ["dji_m3508", "dji_m3508_gyro", "odrive"]
+        .iter()
+        .map(|name| Config::from_toml_file(&repo_file(&format!("config/{name}.toml"))).unwrap())
+        .collect();
+    let mut general = Config::dji_m3508_example();
+    let wheel = |x: f32, y: f32, roller: f32| WheelConfig {
+        x,
+        y,
+        axle_angle: core::f32::consts::FRAC_PI_2,
+        roller_angle: roller,
+        radius: 0.076,
+    };
+    let q = core::f32::consts::FRAC_PI_4;
+    general.geometry = Geometry::General {
+        wheels: [
+            wheel(0.2, 0.18, -q),
+            wheel(0.2, -0.18, q),
+            wheel(-0.2, 0.18, q),
+            wheel(-0.2, -0.18, -q),
+        ],
+        forward_effectiveness: 0.97,
+        lateral_effectiveness: 0.75,
+        yaw_effectiveness: 0.9,
+    };
+    general.drive = Drive::Dji {
+        model: EscModel::C610,
+        esc_ids: [5, 6, 7, 8],
+        gear_ratio: 36.0,
+        inverted: [true, false, true, false],
+    };
+    general.limits.stop_linear_decel = f32::INFINITY;
+    general.limits.max_current = 9.0;
+    general.odometry.heading_source = HeadingMode::Gyro;
+    general.odometry.gyro_bias_estimation = false;
+    general.validate().unwrap();
+    let mut ramp = Config::odrive_example();
+    if let Drive::Odrive { vel_ramp, .. } = &mut ramp.drive {
+        *vel_ramp = true;
+    }
+    configs.extend([general, ramp]);
+    for c in &configs {
+        assert_eq!(Config::decode(&c.encode()).as_ref(), Ok(c));
+    }
+    let mut ids: Vec<u16> = configs.iter().map(Config::id).collect();
+    ids.sort_unstable();
+    ids.dedup();
+    assert_eq!(ids.len(), configs.len());
+}

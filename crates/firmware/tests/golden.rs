@@ -372,13 +372,14 @@ fn robot_status_counters() {
 
 #[test]
 fn robot_heartbeat() {
-    // uptime 0x12345678 ms, state 3 (e-stop), protocol version 4.
-    let f = frame(0x31F, &[0x78, 0x56, 0x34, 0x12, 0x03, 0x04, 0x00, 0x00]);
-    assert_eq!(robot::PROTOCOL_VERSION, 4);
+    // uptime 0x12345678 ms, state 3 (e-stop), protocol version 5, configuration 0xC0DE.
+    let f = frame(0x31F, &[0x78, 0x56, 0x34, 0x12, 0x03, 0x05, 0xDE, 0xC0]);
+    assert_eq!(robot::PROTOCOL_VERSION, 5);
     let h = Heartbeat {
         uptime_ms: 0x1234_5678,
         state: RobotState::Estop,
         protocol_version: robot::PROTOCOL_VERSION,
+        config_id: 0xC0DE,
     };
     assert_eq!(
         robot::Telemetry::decode(&f),

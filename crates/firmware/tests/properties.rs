@@ -146,7 +146,9 @@ proptest! {
             non_finite: u16::from(seq) << 8 | u16::from(motors),
         });
         prop_assert_eq!(robot::Telemetry::decode(&c.to_can_frame()), Ok(c));
-        let h = robot::Telemetry::Heartbeat(Heartbeat { uptime_ms, state, protocol_version: version });
+        let h = robot::Telemetry::Heartbeat(Heartbeat {
+            uptime_ms, state, protocol_version: version, config_id: rx_errors ^ unknown_ids,
+        });
         prop_assert_eq!(robot::Telemetry::decode(&h.to_can_frame()), Ok(h));
         let m = robot::Command::Mode(ModeRequest::from_raw(mode).unwrap());
         prop_assert_eq!(robot::Command::decode(&m.to_can_frame()), Ok(m));

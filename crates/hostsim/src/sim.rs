@@ -580,6 +580,10 @@ fn wheel_flags(s: &Scenario, t_us: u64, kind: crate::scenario::FaultName) -> [bo
 pub fn run_metadata(scenario: &Scenario) -> BTreeMap<String, String> {
     let mut metadata = BTreeMap::from([
         ("config".to_string(), scenario.config.to_toml_string()),
+        (
+            "config_id".to_string(),
+            format!("0x{:04x}", scenario.config.id()),
+        ),
         ("scenario".to_string(), scenario.name.clone()),
         ("seed".to_string(), scenario.seed.to_string()),
         ("program".to_string(), "hostsim run".to_string()),

@@ -14,7 +14,9 @@
 //!
 //! # What is compared
 //!
-//! The what-if core's outbound frames against the logged ones (`/can/tx`):
+//! The what-if core's outbound frames against the logged ones (`/can/tx`), its `HEARTBEAT`s
+//! carrying the logged configuration's id (`config_id` names the configuration, so it differs
+//! by construction):
 //!
 //! - the first difference: frames in step order, each step's frames in [`wire_order`],
 //!   compared with their step times, as [`crate::replay::replay_mcap`] compares them;
@@ -550,10 +552,11 @@ pub fn what_if_frames(
     let mut sent: Vec<TimedFrame> = Vec::with_capacity(tx.len());
     let mut steps_run = 0u64;
     let mut core = vec![StateChange::new(0, ctl.state(), ctl.fault())];
+    let logged_id = logged.id();
     let fed = run_schedule(&mut ctl, rx, schedule, |step, frames, ctl| {
         sent.extend(frames.iter().map(|&frame| TimedFrame {
             t_ns: step.t_ns,
-            frame,
+            frame: with_config_id(frame, logged_id),
         }));
         steps_run += 1;
         if core.last().map(|c| (c.key.1, c.key.2)) != Some((ctl.state(), ctl.fault())) {
@@ -593,6 +596,18 @@ pub fn what_if_frames(
         },
         read: None,
     })
+}
+
+/// A `HEARTBEAT` with the logged configuration's id in place of the what-if's, which differs
+/// by construction (the id names the configuration); any other frame as it is.
+fn with_config_id(frame: CanFrame, id: u16) -> CanFrame {
+    match Telemetry::decode(&frame) {
+        Ok(Telemetry::Heartbeat(h)) => {
+            Telemetry::Heartbeat(firmware::protocol::robot::Heartbeat { config_id: id, ..h })
+                .to_can_frame()
+        }
+        _ => frame,
+    }
 }
 
 fn first_difference(logged: &[TimedFrame], what_if: &[TimedFrame]) -> Option<FirstDifference> {

@@ -55,10 +55,10 @@ use std::path::{Path, PathBuf};
 use std::thread::JoinHandle;
 
 use drivelog::{Direction, LogError, McapLog, OdometrySource, heading_source_line, msg};
-use firmware::CanFrame;
 use firmware::control::{Controller, Fault};
 use firmware::linux::{LinkEvent, Recorder};
 use firmware::protocol::robot::{HeadingSource, RobotState};
+use firmware::{CanFrame, Config};
 
 /// The odometry, wheels and diagnostics are logged every this many steps (10 ms at 1 kHz).
 pub const SNAPSHOT_EVERY: u64 = 10;
@@ -69,11 +69,12 @@ pub const MAX_PENDING_EVENTS: usize = 1 << 15;
 /// The `program` metadata of the runner's logs.
 pub const PROGRAM: &str = "mecanum-runner";
 
-/// The metadata record of a runner's log, for the configuration `config_toml`.
+/// The metadata record of a runner's log, for the configuration `config`.
 #[must_use]
-pub fn metadata(config_toml: &str) -> BTreeMap<String, String> {
+pub fn metadata(config: &Config) -> BTreeMap<String, String> {
     BTreeMap::from([
-        ("config".to_string(), config_toml.to_string()),
+        ("config".to_string(), config.to_toml_string()),
+        ("config_id".to_string(), format!("0x{:04x}", config.id())),
         ("program".to_string(), PROGRAM.to_string()),
         (
             "firmware_version".to_string(),
@@ -100,12 +101,12 @@ pub struct McapRecorder {
 }
 
 impl McapRecorder {
-    /// Creates the log at `path` with `config_toml` in its metadata.
+    /// Creates the log at `path` with `config` in its metadata.
     ///
     /// # Errors
     /// [`LogError`] naming the file.
-    pub fn create(path: &Path, config_toml: &str) -> Result<Self, LogError> {
-        Ok(Self::on_log(McapLog::create(path, &metadata(config_toml))?))
+    pub fn create(path: &Path, config: &Config) -> Result<Self, LogError> {
+        Ok(Self::on_log(McapLog::create(path, &metadata(config))?))
     }
 
     /// A recorder on an open log (its metadata already written), switched to the
@@ -135,7 +136,7 @@ impl McapRecorder {
     /// error naming `--log-max-mb` / `--log-keep` and the value.
     pub fn rotating(
         dir: &Path,
-        config_toml: &str,
+        config: &Config,
         max_bytes: u64,
         keep: usize,
     ) -> Result<Self, LogError> {
@@ -153,10 +154,10 @@ impl McapRecorder {
             path: dir.to_path_buf(),
             source,
         })?;
-        let mut recorder = Self::create(&rotated_path(dir, 1), config_toml)?;
+        let mut recorder = Self::create(&rotated_path(dir, 1), config)?;
         let mut rotation = Rotation {
             dir: dir.to_path_buf(),
-            metadata: metadata(config_toml),
+            metadata: metadata(config),
             max_bytes,
             keep,
             index: 1,

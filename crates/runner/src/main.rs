@@ -272,11 +272,11 @@ fn startup(args: &Args) -> Result<Setup> {
     let log = match (&args.log, args.log_max_mb) {
         (Some(dir), Some(mb)) => Some(McapRecorder::rotating(
             dir,
-            &config.to_toml_string(),
+            &config,
             ((mb * 1e6).round() as u64).max(1),
             args.log_keep,
         )?),
-        (Some(path), None) => Some(McapRecorder::create(path, &config.to_toml_string())?),
+        (Some(path), None) => Some(McapRecorder::create(path, &config)?),
         (None, _) => None,
     };
 
@@ -295,10 +295,11 @@ fn startup(args: &Args) -> Result<Setup> {
         Drive::Odrive { node_ids, .. } => format!("ODrive nodes {node_ids:?}"),
     };
     let summary = format!(
-        "{} at {} Hz ({} µs period), {drive}, configuration: {source}",
+        "{} at {} Hz ({} µs period), {drive}, configuration: {source} (id 0x{:04x})",
         args.iface,
         config.timing.control_hz,
-        controller.period_micros()
+        controller.period_micros(),
+        controller.config_id()
     );
     Ok(Setup {
         controller,

@@ -94,7 +94,7 @@ fn a_stalled_disk_costs_dropped_messages_never_a_late_step() {
     let log = McapLog::on_writer(
         Path::new("stalled.mcap"),
         Box::new(out),
-        &metadata(&config.to_toml_string()),
+        &metadata(&config),
         CHUNK_SIZE,
     )
     .unwrap();

@@ -36,7 +36,7 @@ fn a_runner_log_replays_bit_for_bit_at_its_recorded_steps() {
     );
     let mut bus = MemoryBus::new(&clock, session());
     let mut controller = Controller::new(&config).unwrap();
-    let mut recorder = McapRecorder::create(&path, &config.to_toml_string()).unwrap();
+    let mut recorder = McapRecorder::create(&path, &config).unwrap();
     let options = RunOptions {
         duration_us: Some(600_000),
         ..RunOptions::default()

@@ -92,8 +92,7 @@ fn run(dir: &Path, max_bytes: u64, keep: usize) -> Run {
     let clock = FakeClock::new((0..RUN_MS).map(|k| (k * 53) % 300), 0);
     let mut bus = MemoryBus::new(&clock, session());
     let mut controller = Controller::new(&config).unwrap();
-    let mut recorder =
-        McapRecorder::rotating(dir, &config.to_toml_string(), max_bytes, keep).unwrap();
+    let mut recorder = McapRecorder::rotating(dir, &config, max_bytes, keep).unwrap();
     let options = RunOptions {
         duration_us: Some(RUN_MS * 1000),
         ..RunOptions::default()
@@ -249,10 +248,12 @@ fn every_file_of_a_rotated_log_is_whole_and_the_first_replays_bit_for_bit() {
 
 #[test]
 fn rotation_rejects_a_zero_size_or_keep_naming_the_option() {
-    let toml = Config::dji_m3508_example().to_toml_string();
+    let config = Config::dji_m3508_example();
     let dir = tmp("rotated_bad");
-    let e = McapRecorder::rotating(&dir, &toml, 1000, 0).err().unwrap();
+    let e = McapRecorder::rotating(&dir, &config, 1000, 0)
+        .err()
+        .unwrap();
     assert!(e.to_string().contains("--log-keep 0"), "{e}");
-    let e = McapRecorder::rotating(&dir, &toml, 0, 3).err().unwrap();
+    let e = McapRecorder::rotating(&dir, &config, 0, 3).err().unwrap();
     assert!(e.to_string().contains("--log-max-mb 0"), "{e}");
 }

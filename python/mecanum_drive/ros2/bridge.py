@@ -542,6 +542,7 @@ class Bridge(Node):
             "out_of_range": counters.out_of_range if counters else "",
             "non_finite": counters.non_finite if counters else "",
             "protocol_version": heartbeat.protocol_version if heartbeat else "",
+            "config_id": f"0x{heartbeat.config_id:04x}" if heartbeat else "",
             "uptime_s": f"{heartbeat.uptime_ms / 1000:.1f}" if heartbeat else "",
             "twists_sent": robot.twists_sent,
             "setpoint": " ".join(f"{v:.3f}" for v in robot.setpoint),

@@ -19,6 +19,7 @@ mecanum-codec: decode CAN frames with the mecanum firmware's codecs, or print go
 USAGE:
     mecanum-codec decode [--dji-model c620|c610]
     mecanum-codec golden
+    mecanum-codec config-id FILE...
     mecanum-codec --help
 
 decode
@@ -42,13 +43,20 @@ golden
     Rust decoder reads back (\"fields\"). The Python tests decode the candump text with
     cantools and the DBC files and compare.
 
-Exit status: 0, or 2 for bad arguments.
+config-id FILE...
+    Reads each drive configuration (TOML, validated as mecanum-runner reads it) and prints
+    its id and path, `0x1a2b  robot.toml`: the id a robot running that configuration sends
+    in HEARTBEAT.config_id (and a board image logs at boot), so you can tell what is flashed.
+
+Exit status: 0; 1 for a configuration that does not load (the error names the file and the
+line or field); 2 for bad arguments.
 ";
 
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let mut model = EscModel::C620;
     let mut command = None;
+    let mut files = Vec::new();
     let mut it = args.iter();
     while let Some(arg) = it.next() {
         match arg.as_str() {
@@ -64,13 +72,16 @@ fn main() -> ExitCode {
                 }
                 None => return usage("--dji-model takes c620 or c610, got nothing"),
             },
-            "decode" | "golden" if command.is_none() => command = Some(arg.clone()),
+            "decode" | "golden" | "config-id" if command.is_none() => command = Some(arg.clone()),
+            file if command.as_deref() == Some("config-id") => files.push(file.to_owned()),
             other => return usage(&format!("unexpected argument {other:?}")),
         }
     }
     let result = match command.as_deref() {
         Some("decode") => decode_stdin(model),
         Some("golden") => golden(),
+        Some("config-id") if files.is_empty() => return usage("config-id takes FILE..."),
+        Some("config-id") => return config_ids(&files),
         _ => return usage("missing command"),
     };
     match result {
@@ -82,6 +93,20 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// `config-id`: the id of each configuration file.
+fn config_ids(files: &[String]) -> ExitCode {
+    for file in files {
+        match firmware::Config::from_toml_file(std::path::Path::new(file)) {
+            Ok(config) => println!("0x{:04x}  {file}", config.id()),
+            Err(e) => {
+                eprintln!("mecanum-codec: {e}");
+                return ExitCode::FAILURE;
+            }
+        }
+    }
+    ExitCode::SUCCESS
 }
 
 fn usage(msg: &str) -> ExitCode {
@@ -328,7 +353,8 @@ fn robot_fields(msg: &robot::Message) -> Decoded {
         robot::Message::Telemetry(T::Heartbeat(h)) => d
             .i(&l::HEARTBEAT_UPTIME, h.uptime_ms)
             .i(&l::HEARTBEAT_STATE, h.state.raw())
-            .i(&l::HEARTBEAT_VERSION, h.protocol_version),
+            .i(&l::HEARTBEAT_VERSION, h.protocol_version)
+            .i(&l::HEARTBEAT_CONFIG_ID, h.config_id),
         robot::Message::Telemetry(T::WheelTestResult(r)) => d
             .i(&l::RESULT_WHEEL, r.wheel)
             .i(&l::RESULT_OUTCOME, r.outcome.raw())
@@ -581,6 +607,7 @@ fn golden_set() -> Vec<(AnyMessage, Decoded)> {
             uptime_ms: 4_000_000_000,
             state: RobotState::Enabled,
             protocol_version: robot::PROTOCOL_VERSION,
+            config_id: 0xBEEF,
         }))),
     ];
     for (wheel, speed, duration_ms) in [(0, 3.0, 1000), (3, -10.0, 3000), (1, 0.001, 1)] {

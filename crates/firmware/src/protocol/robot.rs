@@ -22,7 +22,7 @@
 //! | `0x312` | `STATUS` | robot → host | 8 | `state` u8, `fault` u8, `rx_errors` u16, `unknown_ids` u16, `motors_online` 4 bits, `heading_source` 4 bits, `seq` u8 |
 //! | `0x313` | `STATUS_COUNTERS` | robot → host | 8 | `repeated_seq`, `wrong_dlc`, `out_of_range`, `non_finite` u16 |
 //! | `0x314` | `WHEEL_TEST_RESULT` | robot → host | 8 | `wheel` u8; `outcome` u8; `angle` i16 0.001 rad; `peak_current` i16 0.01 A; reserved u16 |
-//! | `0x31F` | `HEARTBEAT` | robot → host | 8 | `uptime_ms` u32, `state` u8, `protocol_version` u8 (= 4), reserved u16 |
+//! | `0x31F` | `HEARTBEAT` | robot → host | 8 | `uptime_ms` u32, `state` u8, `protocol_version` u8 (= 5), `config_id` u16 |
 //!
 //! Velocities are in the body frame (x forward, y left, yaw counter-clockwise positive).
 //! The raw value `-32768` of the i16 velocity fields is reserved as "invalid" and rejected,
@@ -84,6 +84,8 @@ use crate::frame::CanFrame;
 
 /// The protocol version this module implements, sent in [`Heartbeat::protocol_version`].
 ///
+/// Version 5 sends the id of the robot's configuration ([`Config::id`](crate::Config::id))
+/// in `HEARTBEAT.config_id`, reserved (0) before.
 /// Version 4 added `STATUS.state` 4 (`WHEEL_TEST`) with `WHEEL_TEST` and `WHEEL_TEST_RESULT`,
 /// and `STATUS.fault` 7 (`WHEEL_RUNAWAY`) and 8 (`WHEEL_FIGHT`); a version 3 receiver
 /// rejects those values.
@@ -91,7 +93,7 @@ use crate::frame::CanFrame;
 /// added `STATUS_COUNTERS`; a version 2 host that sends one `seq` forever stops the robot
 /// after one command timeout. Version 2 added `STATUS.fault` 6 (`ENCODER_STUCK`); a version
 /// 1 receiver rejects it.
-pub const PROTOCOL_VERSION: u8 = 4;
+pub const PROTOCOL_VERSION: u8 = 5;
 
 /// The frame layout: the Rust mirror of `dbc/mecanum_robot.dbc`. Every id, DLC, offset,
 /// scale and range the codec uses is here.
@@ -312,6 +314,8 @@ pub mod layout {
     pub const HEARTBEAT_STATE: Field = Field::int("state", 4, U8, Little).range(0, 4);
     /// `HEARTBEAT.protocol_version`.
     pub const HEARTBEAT_VERSION: Field = Field::int("protocol_version", 5, U8, Little);
+    /// `HEARTBEAT.config_id` (version 5).
+    pub const HEARTBEAT_CONFIG_ID: Field = Field::int("config_id", 6, U16, Little);
 }
 
 /// What the host asks the robot to do with its enable latch (`MODE_CMD.request`).
@@ -587,6 +591,9 @@ pub struct Heartbeat {
     pub state: RobotState,
     /// Protocol version ([`PROTOCOL_VERSION`] when sent by this crate; decoded as is).
     pub protocol_version: u8,
+    /// The id of the configuration the robot runs ([`Config::id`](crate::Config::id)), so a
+    /// user can tell what a board was built with.
+    pub config_id: u16,
 }
 
 /// A message from the robot to the host.
@@ -854,6 +861,7 @@ impl Telemetry {
                 uptime_ms: layout::HEARTBEAT_UPTIME.raw(&p) as u32,
                 state: state_of(layout::HEARTBEAT_STATE.checked(&p)?),
                 protocol_version: layout::HEARTBEAT_VERSION.raw(&p) as u8,
+                config_id: layout::HEARTBEAT_CONFIG_ID.raw(&p) as u16,
             }),
         })
     }
@@ -896,6 +904,7 @@ impl Telemetry {
                 layout::HEARTBEAT_UPTIME.put_raw(&mut p, h.uptime_ms.into());
                 layout::HEARTBEAT_STATE.put_raw(&mut p, h.state.raw().into());
                 layout::HEARTBEAT_VERSION.put_raw(&mut p, h.protocol_version.into());
+                layout::HEARTBEAT_CONFIG_ID.put_raw(&mut p, h.config_id.into());
             }
             Self::WheelTestResult(r) => {
                 layout::RESULT_WHEEL.put_raw(&mut p, r.wheel.min(3).into());
