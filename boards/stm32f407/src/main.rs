@@ -90,11 +90,8 @@ fn instant_of(ts: embassy_time::Instant) -> Instant {
     Instant::from_micros(ts.as_micros())
 }
 
-/// The drive configuration, built in code (no file system on the MCU): the 4 x M3508/C620
-/// example chassis. Edit here for another robot; `Controller::new` validates it.
-fn drive_config() -> Config {
-    Config::dji_m3508_example()
-}
+/// The drive configuration the build read from `MECANUM_CONFIG` (see `build.rs`), encoded.
+static CONFIG: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/config.bin"));
 
 #[embassy_executor::main]
 async fn main(_spawner: Spawner) {
@@ -107,8 +104,10 @@ async fn main(_spawner: Spawner) {
     }
     embassy_stm32::pac::RCC.csr().modify(|w| w.set_rmvf(true));
 
-    let config = drive_config();
-    let mut ctl = match Controller::new(&config) {
+    // Validated when the image was built; decoded and validated again here, so that an image
+    // whose firmware crate disagrees with its build script stops with the reason.
+    let config = Config::decode(CONFIG);
+    let mut ctl = match config.and_then(|c| Controller::new(&c)) {
         Ok(ctl) => ctl,
         // Fields logged one by one: defmt formats the f64 on the host, so no float formatting
         // code goes into flash.
@@ -120,6 +119,11 @@ async fn main(_spawner: Spawner) {
         ),
     };
     let period = ctl.period_micros();
+    info!(
+        "drive configuration {=str}, id {=u16:#06x}",
+        env!("MECANUM_CONFIG_NAME"),
+        ctl.config_id()
+    );
 
     // CAN1: RX on PD0, TX on PD1 (AF9), as wired on the type C board's CAN1 connector.
     let mut can = Can::new(p.CAN1, p.PD0, p.PD1, Irqs);

@@ -8,7 +8,10 @@
 //! events, and stops early when its controller has something new to send.
 //!
 //! Time: the bus counts ns, the board cycles at 168 MHz; conversions round so that a wake-up
-//! is never before the event.
+//! is never before the event. The bus's time 0, where a scenario starts, is the board's first
+//! frame ([`Lockstep::power_on`]): the board boots on a quiet bus, and its control steps then
+//! fall where the in-process core's do, one period apart from time 0 (a step's frames leave
+//! after its computation, some µs later), so that its runs compare with the core's.
 
 use hostsim::bus::{Bus, Fate, Node, Transmission};
 
@@ -33,6 +36,8 @@ pub struct Lockstep {
     pub board: Board,
     /// The bus.
     pub bus: Bus,
+    /// The board's cycle at the bus's time 0 ([`power_on`](Self::power_on)).
+    epoch: u64,
     /// Transmissions started and not yet completed (at most a few: one on the wire, the
     /// ones delivered late by a delay fault).
     in_flight: Vec<Transmission>,
@@ -50,6 +55,7 @@ impl Lockstep {
         Self {
             board,
             bus,
+            epoch: 0,
             in_flight: Vec::new(),
             board_queued: false,
             completed: Vec::new(),
@@ -57,10 +63,38 @@ impl Lockstep {
         }
     }
 
-    /// Virtual time, ns.
+    /// Boots the board alone until it offers its first frame (its first control step), or
+    /// for `limit_ns` if it offers none, and starts the bus's time there. Returns the boot
+    /// time, ns from power-on.
+    ///
+    /// # Errors
+    /// The board stopped ([`BoardError`]).
+    pub fn power_on(&mut self, limit_ns: u64) -> Result<u64, BoardError> {
+        let limit = ns_to_cycles(limit_ns);
+        // A request to transmit stops the board's run (every MMIO write does), so this
+        // stops at the first frame's request.
+        while self.board.can_offer().is_none() && self.board.now() < limit {
+            self.board.run_until(limit)?;
+        }
+        self.epoch = self.board.now();
+        Ok(cycles_to_ns(self.epoch))
+    }
+
+    /// Virtual time, ns from the bus's time 0.
     #[must_use]
     pub fn now_ns(&self) -> u64 {
-        cycles_to_ns(self.board.now())
+        self.board_ns(self.board.now())
+    }
+
+    /// The bus time of board cycle `c`, ns (0 for a cycle before it: the board's boot).
+    #[must_use]
+    pub const fn board_ns(&self, c: u64) -> u64 {
+        cycles_to_ns(c.saturating_sub(self.epoch))
+    }
+
+    /// The first board cycle at or after bus time `ns`.
+    const fn cycles_at(&self, ns: u64) -> u64 {
+        self.epoch + ns_to_cycles(ns)
     }
 
     /// Queues `frame` from `node` (not the board's) to be sent at `at_ns`.
@@ -87,7 +121,8 @@ impl Lockstep {
             self.bus.advance_into(now_ns + 1, &mut self.scratch);
             for tx in self.scratch.drain(..) {
                 if tx.from == Node::Controller {
-                    self.board.can_started(ns_to_cycles(tx.start_ns));
+                    self.board
+                        .can_started(self.epoch + ns_to_cycles(tx.start_ns));
                 }
                 self.in_flight.push(tx);
             }
@@ -109,7 +144,8 @@ impl Lockstep {
                     self.board.can_transmitted();
                     self.board_queued = false;
                 } else if tx.fate != Fate::Dropped {
-                    self.board.can_receive(&tx.frame, ns_to_cycles(tx.start_ns));
+                    self.board
+                        .can_receive(&tx.frame, self.cycles_at(tx.start_ns));
                 }
                 self.completed.push(tx);
             }
@@ -130,7 +166,7 @@ impl Lockstep {
                 .filter(|&t| t > now_ns)
                 .min()
                 .map_or(until_ns, |t| t.min(until_ns));
-            self.board.run_until(ns_to_cycles(next))?;
+            self.board.run_until(self.cycles_at(next))?;
         }
     }
 }

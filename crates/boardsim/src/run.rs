@@ -22,21 +22,38 @@ use hostsim::scenario::Scenario;
 use hostsim::sim::{LogOptions, SimPlant, log_transmission, queue_feedback, set_wheel_faults};
 
 use crate::board::{Board, BoardError, CPU_HZ};
-use crate::lockstep::{Lockstep, cycles_to_ns};
+use crate::lockstep::Lockstep;
 use crate::rtt::LogLine;
+
+/// How long the board may boot before the scenario starts without its first frame, ns.
+const BOOT_LIMIT_NS: u64 = 100_000_000;
 
 /// Why a run stopped.
 #[derive(Debug, thiserror::Error)]
 pub enum RunError {
     /// The board stopped.
-    #[error("the board stopped at {t:.6} s: {error}")]
+    #[error("the board stopped {t:.6} s after power-on: {error}")]
     Board {
-        /// Simulated time, s.
+        /// The board's time since power-on, s.
         t: f64,
         /// Why.
         error: BoardError,
         /// The board's log up to then (its last lines tell what it was doing).
         lines: Vec<LogLine>,
+    },
+    /// The image carries another configuration than the scenario's: the simulated drives
+    /// would be another robot's.
+    #[error(
+        "the board image carries configuration id {image:#06x} (its HEARTBEAT), the scenario's \
+         configuration has id {scenario:#06x}: build the image with MECANUM_CONFIG=<that file> \
+         (boards/stm32f407/README.md) or run with --config <the image's file> \
+         (`mecanum-codec config-id FILE` prints a file's id)"
+    )]
+    ConfigMismatch {
+        /// The id in the board's HEARTBEAT.
+        image: u16,
+        /// The scenario configuration's id.
+        scenario: u16,
     },
     /// The scenario's plant could not be built.
     #[error("the scenario's plant: {0}")]
@@ -66,8 +83,10 @@ pub struct BoardRun {
     pub odometry: Option<([f64; 3], f64)>,
     /// Ground truth at the end.
     pub truth: [f64; 3],
-    /// The board's log.
+    /// The board's log (its times in board cycles since power-on: [`Self::line_time_s`]).
     pub lines: Vec<LogLine>,
+    /// Power-on to the board's first frame, where the scenario's time starts, ns.
+    pub boot_ns: u64,
     /// Frames delivered to the board.
     pub frames_received: u64,
     /// Simulated seconds.
@@ -81,6 +100,14 @@ pub struct BoardRun {
     pub bus_hash: u64,
     /// The board at the end (its models: clocks, CAN controller, unknown registers).
     pub board: Board,
+}
+
+impl BoardRun {
+    /// The scenario time of a log line, s (negative during the boot).
+    #[must_use]
+    pub fn line_time_s(&self, line: &LogLine) -> f64 {
+        (line.at as f64 / CPU_HZ as f64) - self.boot_ns as f64 * 1e-9
+    }
 }
 
 /// What the harness does to the board itself during a run.
@@ -105,6 +132,8 @@ enum Seen {
     Odometry([f64; 3], [f64; 3]),
     /// A STATUS with a new state or fault.
     Transition(RobotState, Fault),
+    /// A HEARTBEAT: the id of the configuration the image carries.
+    ConfigId(u16),
 }
 
 impl Observer {
@@ -133,6 +162,7 @@ impl Observer {
                 self.odometry = Some((pose, t));
                 Some(Seen::Odometry(pose, [v.vx, v.vy, v.wz].map(f64::from)))
             }
+            Telemetry::Heartbeat(h) => Some(Seen::ConfigId(h.config_id)),
             _ => None,
         }
     }
@@ -182,6 +212,18 @@ pub fn run_scenario(
     let mut track = Vec::new();
     let mut board_frames = Vec::new();
     let mut stall_at = harness.stall_timer_at_ns;
+    let stopped = |ls: &mut Lockstep, lines: &mut Vec<LogLine>, error| {
+        lines.extend(ls.board.take_lines());
+        RunError::Board {
+            t: ls.board.now() as f64 / CPU_HZ as f64,
+            error,
+            lines: std::mem::take(lines),
+        }
+    };
+    // The scenario starts at the board's first frame (see `Lockstep::power_on`).
+    let boot_ns = ls
+        .power_on(BOOT_LIMIT_NS)
+        .map_err(|e| stopped(&mut ls, &mut lines, e))?;
     set_wheel_faults(scenario, plant, 0);
     queue_feedback(plant, &mut feedback, 0, |t, n, f| ls.send(t, n, f));
     while plant_ns < duration_ns {
@@ -197,14 +239,6 @@ pub fn run_scenario(
                 l.twist(at_ns, twist)?;
             }
         }
-        let stopped = |ls: &mut Lockstep, lines: &mut Vec<LogLine>, error| {
-            lines.extend(ls.board.take_lines());
-            RunError::Board {
-                t: ls.board.now() as f64 / CPU_HZ as f64,
-                error,
-                lines: std::mem::take(lines),
-            }
-        };
         if let Some(at) = stall_at.filter(|&at| at <= horizon) {
             ls.run_until(at)
                 .map_err(|e| stopped(&mut ls, &mut lines, e))?;
@@ -258,7 +292,13 @@ pub fn run_scenario(
                             l.text(tx.delivered_ns, level, &text)?;
                         }
                     }
-                    None => {}
+                    Some(Seen::ConfigId(image)) if image != scenario.config.id() => {
+                        return Err(RunError::ConfigMismatch {
+                            image,
+                            scenario: scenario.config.id(),
+                        });
+                    }
+                    Some(Seen::ConfigId(_)) | None => {}
                 }
             }
             if tx.from != Node::Drives && tx.delivered_ns > plant_ns && tx.delivered_ns <= horizon {
@@ -279,7 +319,7 @@ pub fn run_scenario(
                     _ => msg::Log::INFO,
                 };
                 l.text(
-                    cycles_to_ns(line.at),
+                    ls.board_ns(line.at),
                     level,
                     &format!("board: {}", line.text),
                 )?;
@@ -299,6 +339,7 @@ pub fn run_scenario(
         odometry: observer.odometry,
         truth: plant.truth(),
         lines,
+        boot_ns,
         frames_received: received,
         simulated_s: plant_ns as f64 * 1e-9,
         track,

@@ -36,6 +36,11 @@ fn the_flashed_image_boots_to_its_1_khz_loop() {
             .unwrap_or_else(|| panic!("no log line with {text:?}"))
     };
     find("board-stm32f407: SYSCLK 168 MHz, APB1 42 MHz, CAN1 1 Mbit/s on PD0/PD1");
+    // The configuration the image was built with (the default: config/dji_m3508.toml).
+    find(&format!(
+        "drive configuration dji_m3508.toml, id {:#06x}",
+        firmware::Config::dji_m3508_example().id()
+    ));
     find("CAN1 enabled (bus idle seen)");
     let looping = find("control loop: 1000 us period");
     assert!(

@@ -152,7 +152,7 @@ fn a_stalled_loop_is_reset_by_the_watchdog_and_the_robot_stays_disabled() {
         .lines
         .iter()
         .find(|l| l.text.contains("reset by the independent watchdog"))
-        .map(|l| l.at as f64 / boardsim::CPU_HZ as f64)
+        .map(|l| run.line_time_s(l))
         .expect("the rebooted image logs the watchdog reset");
     // The loop limps on for a while: frames arriving still wake it, and embassy's clock
     // reads TIM2's counter directly, so its ticker fires until the count of half-overflows,

@@ -1,5 +1,7 @@
-//! The built-in square with the flashed image in place of the in-process core: the same state
-//! changes, and the final odometry within 1 mm and 0.05° of the core's.
+//! The built-in square with the flashed image in place of the in-process core, once with the
+//! image built for `config/dji_m3508.toml` and once for `config/odrive.toml`: the image carries
+//! that configuration (its id in the boot log and every `HEARTBEAT`), makes the same state
+//! changes as the core with it, and ends with odometry within 1 mm and 0.05° of the core's.
 
 use boardsim::run::Harness;
 use hostsim::drives::SimDrives;
@@ -7,16 +9,29 @@ use hostsim::scenario::Scenario;
 use hostsim::sim::LogOptions;
 
 mod common;
-use common::board_run;
+use common::{board_run_on, elf_for, heartbeat_config_ids};
 
 #[test]
-fn the_square_on_the_board_matches_the_in_process_core() {
-    let scenario = Scenario::builtin("square").unwrap();
+fn the_square_on_the_dji_image_matches_the_in_process_core() {
+    square_on("dji_m3508");
+}
+
+#[test]
+fn the_square_on_the_odrive_image_matches_the_in_process_core() {
+    square_on("odrive");
+}
+
+fn square_on(config: &str) {
+    let mut scenario = Scenario::builtin("square").unwrap();
+    let file = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join(format!("../../config/{config}.toml"));
+    scenario.config = firmware::Config::from_toml_file(&file).unwrap();
+    let id = scenario.config.id();
     let mut plant = SimDrives::for_scenario(&scenario).unwrap();
     let core =
         hostsim::sim::run(&scenario, &mut plant, None, LogOptions::default(), |_| {}).unwrap();
 
-    let run = board_run(&scenario, Harness::default());
+    let run = board_run_on(&elf_for(config), &scenario, Harness::default());
     for l in &run.lines {
         eprintln!(
             "board {:.6} {} {}",
@@ -25,6 +40,23 @@ fn the_square_on_the_board_matches_the_in_process_core() {
             l.text
         );
     }
+    let line = format!("drive configuration {config}.toml, id {id:#06x}");
+    assert!(
+        run.lines.iter().any(|l| l.text == line),
+        "no boot line {line:?}: is the image built for config/{config}.toml?"
+    );
+    let ids = heartbeat_config_ids(&run);
+    // One HEARTBEAT per STATUS period (10 Hz) from the first step on.
+    assert!(
+        ids.len() as f64 >= run.simulated_s * 10.0 - 1.0,
+        "{} heartbeats in {} s",
+        ids.len(),
+        run.simulated_s
+    );
+    assert!(
+        ids.iter().all(|&i| i == id),
+        "HEARTBEAT.config_id {ids:?}, config {id:#06x}"
+    );
     let core_states: Vec<(String, String)> = core
         .transitions
         .iter()
@@ -47,6 +79,7 @@ fn the_square_on_the_board_matches_the_in_process_core() {
             "core {tc} s, board {tb} s"
         );
     }
+    eprintln!("truth: board {:?}, core {:?}", run.truth, core.truth);
     let (pose, t) = run.odometry.expect("odometry from the board");
     let [x, y, h] = core.odometry;
     let dx = ((pose[0] - x).powi(2) + (pose[1] - y).powi(2)).sqrt();
@@ -69,4 +102,32 @@ fn the_square_on_the_board_matches_the_in_process_core() {
         s.exceptions,
         100.0 * s.sleep_cycles as f64 / (run.simulated_s * boardsim::CPU_HZ as f64)
     );
+}
+
+/// The ODrive image with the DJI scenario: refused at its first HEARTBEAT, both ids named.
+#[test]
+fn an_image_built_for_another_configuration_is_refused() {
+    use boardsim::run::{RunError, run_scenario};
+    use boardsim::{Board, Image};
+    let scenario = Scenario::builtin("square").unwrap();
+    let board = Board::new(Image::read(&elf_for("odrive")).unwrap()).unwrap();
+    let e = run_scenario(
+        &scenario,
+        board,
+        None,
+        LogOptions::default(),
+        Harness::default(),
+        |_| {},
+    )
+    .err()
+    .expect("refused");
+    let (image, wanted) = (
+        firmware::Config::odrive_example().id(),
+        scenario.config.id(),
+    );
+    assert!(
+        matches!(e, RunError::ConfigMismatch { image: i, scenario: s } if (i, s) == (image, wanted)),
+        "{e}"
+    );
+    assert!(e.to_string().contains("MECANUM_CONFIG"), "{e}");
 }
