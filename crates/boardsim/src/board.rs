@@ -209,6 +209,8 @@ struct Hw {
     iwdg: Iwdg,
     /// The harness withholds the TIM2 interrupt until the next reset (a stalled loop).
     stall_timer: bool,
+    /// The harness withholds the CAN1 RX0 interrupt until this cycle (a busy CPU).
+    hold_rx0_until: u64,
     /// AIRCR.SYSRESETREQ was written.
     reset_requested: bool,
     /// The event register (WFE).
@@ -249,6 +251,7 @@ impl Hw {
             can1: BxCan::new(pclk_div),
             iwdg: Iwdg::new(CPU_HZ),
             stall_timer: false,
+            hold_rx0_until: 0,
             reset_requested: false,
             event: false,
             sleep: Sleep::Awake,
@@ -393,7 +396,7 @@ impl Hw {
         let [tx, rx0, rx1, sce] = self.can1.irq_lines();
         let lines = [
             (irq::CAN1_TX, tx),
-            (irq::CAN1_RX0, rx0),
+            (irq::CAN1_RX0, rx0 && now >= self.hold_rx0_until),
             (irq::CAN1_RX1, rx1),
             (irq::CAN1_SCE, sce),
             (irq::TIM2, self.tim2.irq() && !self.stall_timer),
@@ -734,6 +737,13 @@ impl Board {
     /// waits on its timer, stalls (a test of the watchdog).
     pub fn stall_timer(&mut self) {
         self.uc.get_data_mut().stall_timer = true;
+    }
+
+    /// Withholds CAN1's RX0 interrupt until cycle `until`, as a CPU busy elsewhere with the
+    /// interrupt masked would: the frames that arrive meanwhile wait in FIFO 0 (3 deep) for
+    /// the loop's next drain, and the FIFO overruns.
+    pub fn hold_can_rx(&mut self, until: u64) {
+        self.uc.get_data_mut().hold_rx0_until = until;
     }
 
     /// Virtual time, cycles since reset.

@@ -92,6 +92,13 @@ impl Lockstep {
         cycles_to_ns(c.saturating_sub(self.epoch))
     }
 
+    /// Withholds the board's CAN RX0 interrupt until bus time `until_ns`
+    /// ([`Board::hold_can_rx`]).
+    pub fn hold_can_rx(&mut self, until_ns: u64) {
+        let until = self.cycles_at(until_ns);
+        self.board.hold_can_rx(until);
+    }
+
     /// The first board cycle at or after bus time `ns`.
     const fn cycles_at(&self, ns: u64) -> u64 {
         self.epoch + ns_to_cycles(ns)

@@ -110,13 +110,23 @@ impl BoardRun {
     }
 }
 
-/// What the harness does to the board itself during a run.
+/// What the harness does to the board itself during a run. Times are the scenario's, ns.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct Harness {
-    /// From this time (ns) the TIM2 interrupt is withheld until the board resets: the
-    /// control loop stalls ([`Board::stall_timer`]).
+    /// From this time the TIM2 interrupt is withheld until the board resets: the control
+    /// loop stalls ([`Board::stall_timer`]).
     pub stall_timer_at_ns: Option<u64>,
+    /// `(from, until)`: a node on the host's side floods the bus with frames of
+    /// [`FLOOD_ID`] (unknown to every protocol, the lowest priority; 8 zero bytes), back to
+    /// back: each queued when the one before it ends, so the bus carries nothing else but
+    /// higher-priority frames.
+    pub flood_ns: Option<(u64, u64)>,
+    /// `(from, until)`: the board's CAN RX0 interrupt is withheld ([`Board::hold_can_rx`]).
+    pub hold_can_rx_ns: Option<(u64, u64)>,
 }
+
+/// The id of [`Harness::flood_ns`]'s frames.
+pub const FLOOD_ID: u16 = 0x7FF;
 
 /// The board's telemetry as a host reads it.
 #[derive(Debug, Default)]
@@ -212,6 +222,7 @@ pub fn run_scenario(
     let mut track = Vec::new();
     let mut board_frames = Vec::new();
     let mut stall_at = harness.stall_timer_at_ns;
+    let mut hold_rx = harness.hold_can_rx_ns;
     let stopped = |ls: &mut Lockstep, lines: &mut Vec<LogLine>, error| {
         lines.extend(ls.board.take_lines());
         RunError::Board {
@@ -226,6 +237,21 @@ pub fn run_scenario(
         .map_err(|e| stopped(&mut ls, &mut lines, e))?;
     set_wheel_faults(scenario, plant, 0);
     queue_feedback(plant, &mut feedback, 0, |t, n, f| ls.send(t, n, f));
+    if let Some((from, until)) = harness.flood_ns {
+        let frame = firmware::CanFrame::standard(
+            embedded_can::StandardId::new(FLOOD_ID).expect("an 11-bit id"),
+            &[0; 8],
+        )
+        .expect("8 bytes");
+        // Back to back when nothing of higher priority is queued; otherwise the bus holds
+        // them (each node offers its lowest id first) and sends them as it can.
+        let frame_ns = u64::from(hostsim::bus::frame_bits(&frame)) * 1000;
+        let mut at = from;
+        while at < until.min(duration_ns) {
+            ls.send(at, Node::Host, frame);
+            at += frame_ns;
+        }
+    }
     while plant_ns < duration_ns {
         let horizon = duration_ns.min(plant.next_feedback_ns().max(plant_ns + 1));
         host_frames.clear();
@@ -238,6 +264,12 @@ pub fn run_scenario(
             for &(at_ns, twist) in &twists {
                 l.twist(at_ns, twist)?;
             }
+        }
+        if let Some((from, until)) = hold_rx.filter(|&(from, _)| from <= horizon) {
+            ls.run_until(from)
+                .map_err(|e| stopped(&mut ls, &mut lines, e))?;
+            ls.hold_can_rx(until);
+            hold_rx = None;
         }
         if let Some(at) = stall_at.filter(|&at| at <= horizon) {
             ls.run_until(at)

@@ -1,10 +1,13 @@
 //! Faults on the board: the flashed image against the in-process core in the same scenarios,
-//! the drives silent, the host silent, an e-stop, a host stuck on one twist frame. The board
-//! must make the core's state changes and, from the core's reaction on (its first state
-//! change after the onset), stop the motors (an all-zero current command) within 2 ms of when
-//! the core does: its loop runs on its own timer, started 0.95 ms after reset, and its frames
-//! leave through its mailboxes. (Before the reaction the two may differ in a single step: a
-//! command that rounds to zero in one loop's phase and not in the other's.)
+//! the drives silent, the host silent, an e-stop, a host stuck on one twist frame, a motor
+//! mounted the other way round. The board must make the core's state changes and, from the
+//! core's reaction on (its first state change after the onset), stop the motors (an all-zero
+//! current command) within 2 ms of when the core does: its loop runs on its own timer and its
+//! frames leave through its mailboxes. (Before the reaction the two may differ in a single
+//! step: a command that rounds to zero in one loop's phase and not in the other's.)
+//!
+//! Then what only a board has: a stalled loop and its watchdog, a flood on the bus and an
+//! overrun of its receive FIFO.
 
 use std::path::Path;
 
@@ -137,6 +140,7 @@ fn a_stalled_loop_is_reset_by_the_watchdog_and_the_robot_stays_disabled() {
     let s = scenario("");
     let harness = Harness {
         stall_timer_at_ns: Some(500_000_000),
+        ..Harness::default()
     };
     let run = board_run(&s, harness);
     for l in &run.lines {
@@ -205,4 +209,110 @@ fn a_stalled_loop_is_reset_by_the_watchdog_and_the_robot_stays_disabled() {
         (format!("{state:?}"), format!("{fault:?}")),
         ("Disabled".into(), "None".into())
     );
+}
+
+#[test]
+fn a_flipped_motor_faults_the_board_as_the_core() {
+    // The front-right motor mounted the other way round: it fights the other three as soon
+    // as the robot drives.
+    let s = scenario("[plant]\nflip = [1]\n");
+    check("flipped motor", &s, 0.1, ("Fault", "WheelFight"));
+}
+
+/// The board's last once-a-second report: its counter `name` (`rx`, `overruns`, ...).
+fn reported(run: &boardsim::run::BoardRun, name: &str) -> u64 {
+    let line = run
+        .lines
+        .iter()
+        .rev()
+        .find(|l| l.text.starts_with("steps "))
+        .expect("a report line");
+    let key = format!(" {name} ");
+    let at = line.text.find(&key).expect("the counter") + key.len();
+    line.text[at..]
+        .split(|c: char| !c.is_ascii_digit())
+        .next()
+        .and_then(|n| n.parse().ok())
+        .expect("a number")
+}
+
+/// The board's odometry at the end, and how far it is from `other`'s, mm.
+fn odometry_apart_mm(a: &boardsim::run::BoardRun, b: &boardsim::run::BoardRun) -> f64 {
+    let ((p, _), (q, _)) = (a.odometry.unwrap(), b.odometry.unwrap());
+    (p[0] - q[0]).hypot(p[1] - q[1]) * 1e3
+}
+
+/// A flood at the bus's full rate (8-byte frames of an unknown id, 0x7FF, filling every bit
+/// the other nodes leave idle, from 0.3 s to 1.1 s): the board reads every frame (FIFO 0
+/// never overruns), counts them as unknown, and drives on as without the flood.
+#[test]
+fn a_flood_at_the_full_bus_rate_is_read_and_the_robot_drives_on() {
+    let s = scenario("");
+    let quiet = board_run(&s, Harness::default());
+    let flood = Harness {
+        flood_ns: Some((300_000_000, 1_100_000_000)),
+        ..Harness::default()
+    };
+    let run = board_run(&s, flood);
+    let flooded = run.frames_received - quiet.frames_received;
+    let apart = odometry_apart_mm(&run, &quiet);
+    eprintln!(
+        "flood: {flooded} more frames to the board; overruns {:?} (model), {} (board's report); rx {} (report); odometry {apart:.3} mm from the quiet run's",
+        run.board.can1().overruns,
+        reported(&run, "overruns"),
+        reported(&run, "rx"),
+    );
+    // The drives and the board take some 65 % of the bus (five 8-byte frames a
+    // millisecond); the flood fills the rest: 0.8 s x 35 % / 126 µs, some 2,200 frames, and
+    // its backlog after 1.1 s (measured: 2,671).
+    assert!(flooded > 2_000, "{flooded} frames");
+    assert_eq!(run.board.can1().overruns, [0, 0]);
+    assert_eq!(reported(&run, "overruns"), 0);
+    let states = |r: &boardsim::run::BoardRun| {
+        r.transitions
+            .iter()
+            .map(|&(_, s, f)| (s, f))
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(states(&run), states(&quiet));
+    assert!(apart < 1.0, "{apart} mm");
+}
+
+/// The same flood with the board's RX interrupt withheld for 2 ms (a CPU busy elsewhere):
+/// FIFO 0 overruns, the board counts it, and it is not fatal: no fault, the robot drives on.
+#[test]
+fn a_fifo_overrun_is_counted_and_not_fatal() {
+    let s = scenario("");
+    let quiet = board_run(&s, Harness::default());
+    let run = board_run(
+        &s,
+        Harness {
+            flood_ns: Some((300_000_000, 1_100_000_000)),
+            hold_can_rx_ns: Some((600_000_000, 602_000_000)),
+            ..Harness::default()
+        },
+    );
+    let apart = odometry_apart_mm(&run, &quiet);
+    eprintln!(
+        "RX held 2 ms in the flood: overruns {:?} (model), {} (board's report); states {:?}; odometry {apart:.3} mm from the quiet run's",
+        run.board.can1().overruns,
+        reported(&run, "overruns"),
+        run.transitions
+    );
+    assert!(run.board.can1().overruns[0] >= 1);
+    // The hardware keeps one flag: the board counts at least one overrun for each time it
+    // found the flag set (each of its reads clears it).
+    assert!((1..=run.board.can1().overruns[0]).contains(&reported(&run, "overruns")));
+    assert!(
+        run.transitions
+            .iter()
+            .all(|&(_, _, f)| f == firmware::control::Fault::None),
+        "{:?}",
+        run.transitions
+    );
+    assert_eq!(
+        run.transitions.last().map(|&(_, s, _)| s),
+        Some(firmware::protocol::robot::RobotState::Enabled)
+    );
+    assert!(apart < 1.0, "{apart} mm");
 }
