@@ -119,8 +119,7 @@ fn an_image_built_for_another_configuration_is_refused() {
         Harness::default(),
         |_| {},
     )
-    .err()
-    .expect("refused");
+    .expect_err("refused");
     let (image, wanted) = (
         firmware::Config::odrive_example().id(),
         scenario.config.id(),
