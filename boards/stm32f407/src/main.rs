@@ -5,7 +5,8 @@
 //! ```text
 //! CAN1 RX FIFO 0 ──(RX0 interrupt wakes the task)──► on_frame(arrival time, frame)
 //! TIM2 (embassy-time, 1 MHz) ──(1 kHz Ticker)──► drain FIFO 0 ─► step(now) ─► outbox
-//! outbox ─► TX queue (28 frames) ──(TX interrupt)──► 3 TX mailboxes (FIFO order) ─► CAN1
+//! outbox ─► TX queue (29 frames, stamped) ─► TX task ─(a mailbox free; stale dropped)─►
+//!           3 TX mailboxes (FIFO order) ─► CAN1
 //! ```
 //!
 //! See the README for the pins, clocks, bounds and how to flash it.
@@ -17,6 +18,7 @@ mod clocks;
 mod counters;
 
 use core::num::{NonZeroU8, NonZeroU16};
+use core::sync::atomic::{AtomicU32, Ordering};
 
 use defmt::{info, warn};
 use defmt_rtt as _;
@@ -27,15 +29,16 @@ use embassy_stm32::can::enums::TryReadError;
 use embassy_stm32::can::filter::Mask32;
 use embassy_stm32::can::util::NominalBitTiming;
 use embassy_stm32::can::{
-    Can, CanRx, Fifo, Rx0InterruptHandler, Rx1InterruptHandler, SceInterruptHandler, StandardId,
-    TxBuf, TxInterruptHandler,
+    Can, CanRx, CanTx, Fifo, Mailbox, Rx0InterruptHandler, Rx1InterruptHandler,
+    SceInterruptHandler, StandardId, TxInterruptHandler,
 };
 use embassy_stm32::peripherals::CAN1;
 use embassy_stm32::wdg::IndependentWatchdog;
-use embassy_time::{Duration, Ticker};
+use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
+use embassy_sync::channel::Channel;
+use embassy_time::{Duration, Ticker, Timer};
 use firmware::{Config, Controller, Instant};
 use panic_probe as _;
-use static_cell::StaticCell;
 
 use crate::counters::Counters;
 
@@ -51,8 +54,21 @@ bind_interrupts!(struct Irqs {
 /// three mailboxes are still busy with the previous step's frames, with room for a few more.
 const TX_QUEUE_LEN: usize = firmware::control::OUTBOX_CAPACITY + 4;
 
-/// The TX queue the driver's TX interrupt drains into the mailboxes.
-static TX_QUEUE: StaticCell<TxBuf<TX_QUEUE_LEN>> = StaticCell::new();
+/// The outbox frames waiting for a mailbox, each with the time its step queued it.
+static TX_QUEUE: Channel<
+    CriticalSectionRawMutex,
+    (Instant, embassy_stm32::can::Frame),
+    TX_QUEUE_LEN,
+> = Channel::new();
+
+/// Frames the TX task dropped as stale (see [`transmit`]), for the report.
+static TX_STALE: AtomicU32 = AtomicU32::new(0);
+
+/// A frame still waiting for a mailbox this many control periods after its step is stale:
+/// the bus was unavailable (unplugged, bus-off), and a motor command from before that must
+/// not reach the drives when it is back. A healthy bus at its busiest (a STATUS step's
+/// burst on a bus 65 % loaded by 1 kHz DJI traffic) sends a step's frames within 1.3 ms.
+const TX_MAX_AGE_PERIODS: u64 = 3;
 
 /// Log the counters once per this many steps (1 s at 1 kHz).
 const REPORT_EVERY_STEPS: u64 = 1000;
@@ -94,7 +110,7 @@ fn instant_of(ts: embassy_time::Instant) -> Instant {
 static CONFIG: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/config.bin"));
 
 #[embassy_executor::main]
-async fn main(_spawner: Spawner) {
+async fn main(spawner: Spawner) {
     let p = embassy_stm32::init(clocks::config());
     info!("board-stm32f407: SYSCLK 168 MHz, APB1 42 MHz, CAN1 1 Mbit/s on PD0/PD1");
     // RCC_CSR keeps the cause of the last reset until RMVF clears it.
@@ -152,8 +168,11 @@ async fn main(_spawner: Spawner) {
     info!("CAN1 enabled (bus idle seen)");
 
     let (tx, mut rx) = can.split();
-    let tx = tx.buffered(TX_QUEUE.init(TxBuf::new()));
-    let mut sender = tx.writer();
+    match transmit(tx, TX_MAX_AGE_PERIODS * period) {
+        Ok(task) => spawner.spawn(task),
+        // One task, spawned once: its pool of one has room.
+        Err(_) => defmt::panic!("the TX task could not be spawned"),
+    }
 
     let mut counters = Counters::default();
     let mut ticker = Ticker::every(Duration::from_micros(period));
@@ -178,7 +197,7 @@ async fn main(_spawner: Spawner) {
                 for frame in &outbox {
                     let queued = frame
                         .convert::<embassy_stm32::can::Frame>()
-                        .is_some_and(|f| sender.try_write(f).is_ok());
+                        .is_some_and(|f| TX_QUEUE.try_send((now, f)).is_ok());
                     counters.tx(queued);
                 }
                 counters.steps += 1;
@@ -206,6 +225,29 @@ async fn main(_spawner: Spawner) {
     }
 }
 
+/// Moves the queued frames into the mailboxes, oldest first, as each mailbox frees. A frame
+/// that has no mailbox `max_age_us` after its step is stale: it is dropped, and so are the
+/// frames in the mailboxes, which are older still (a bus outage: unplugged, bus-off). So when
+/// the bus is back the drives get the loop's current commands, not the ones it made before.
+#[embassy_executor::task]
+async fn transmit(mut tx: CanTx<'static>, max_age_us: u64) {
+    loop {
+        let (queued, frame) = TX_QUEUE.receive().await;
+        let deadline = embassy_time::Instant::from_micros(queued.as_micros() + max_age_us);
+        let free = select(tx.flush_any(), Timer::at(deadline)).await;
+        if matches!(free, Either::Second(())) || embassy_time::Instant::now() > deadline {
+            let mut stale = 1;
+            for mailbox in [Mailbox::Mailbox0, Mailbox::Mailbox1, Mailbox::Mailbox2] {
+                stale += u32::from(tx.abort(mailbox));
+            }
+            TX_STALE.fetch_add(stale, Ordering::Relaxed);
+            continue;
+        }
+        // A mailbox is free (and nothing else writes them): this cannot fail.
+        let _ = tx.try_write(&frame);
+    }
+}
+
 /// Hands every frame still in RX FIFO 0 to the core, in arrival order, checking the overrun
 /// flag before each read (a read clears it).
 fn drain_fifo(rx: &mut CanRx<'_>, ctl: &mut Controller, counters: &mut Counters) {
@@ -229,7 +271,7 @@ fn report(ctl: &Controller, c: &Counters) {
     info!(
         // State and fault as their protocol codes (dbc/, STATUS frame); the legend costs no
         // flash, defmt keeps format strings on the host.
-        "steps {} state {=u8} (0 disabled 1 enabled 2 fault 3 e-stop) fault {=u8} (0 none 1 motor stale 2 motor missing 3 drive error 4 watchdog 5 config 6 encoder stuck) motors {=u8:04b} | rx {} rejected {} overruns {} bus errors {} | tx {} dropped {}",
+        "steps {} state {=u8} (0 disabled 1 enabled 2 fault 3 e-stop) fault {=u8} (0 none 1 motor stale 2 motor missing 3 drive error 4 watchdog 5 config 6 encoder stuck) motors {=u8:04b} | rx {} rejected {} overruns {} bus errors {} | tx {} dropped {} stale {}",
         s.steps,
         s.state as u8,
         s.fault as u8,
@@ -240,5 +282,6 @@ fn report(ctl: &Controller, c: &Counters) {
         c.bus_errors,
         c.tx_queued,
         c.tx_dropped,
+        TX_STALE.load(Ordering::Relaxed),
     );
 }

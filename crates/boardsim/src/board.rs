@@ -770,6 +770,12 @@ impl Board {
         &self.uc.get_data().rcc
     }
 
+    /// The TIM2 model.
+    #[must_use]
+    pub fn tim2(&self) -> &Timer {
+        &self.uc.get_data().tim2
+    }
+
     /// The CAN1 model.
     #[must_use]
     pub fn can1(&self) -> &BxCan {

@@ -202,6 +202,10 @@ pub struct BxCan {
     pub unsupported: Vec<(u32, u32)>,
     /// Frames lost to a full FIFO, per FIFO.
     pub overruns: [u64; 2],
+    /// Times the controller went bus-off.
+    pub bus_offs: u64,
+    /// The highest transmit error count reached (255 at bus-off).
+    pub max_tec: u8,
 }
 
 impl Default for BxCan {
@@ -251,6 +255,8 @@ impl BxCan {
             pclk_div: pclk_div.max(1),
             unsupported: Vec::new(),
             overruns: [0; 2],
+            bus_offs: 0,
+            max_tec: 0,
         }
     }
 
@@ -359,6 +365,8 @@ impl BxCan {
 
     fn enter_bus_off(&mut self, now: u64) {
         self.esr |= 4 | (255 << 16);
+        self.bus_offs += 1;
+        self.max_tec = 255;
         self.on_bus = None;
         if self.ier & ier::BOFIE != 0 {
             self.msr |= msr::ERRI;
@@ -384,6 +392,7 @@ impl BxCan {
     }
 
     fn set_counters(&mut self, tec: u8, rec: u8) {
+        self.max_tec = self.max_tec.max(tec);
         let before = self.esr & 3;
         let mut esr = (self.esr & 0xFF7C) | u32::from(tec) << 16 | u32::from(rec) << 24;
         if tec >= 96 || rec >= 96 {
@@ -659,14 +668,16 @@ impl BxCan {
     fn write_mcr(&mut self, v: u32, now: u64) {
         if v & mcr::RESET != 0 {
             // Software master reset: back to the reset state (sleep mode).
-            let (pclk_div, unsupported, overruns) = (
+            let (pclk_div, unsupported, overruns, bus_offs, max_tec) = (
                 self.pclk_div,
                 std::mem::take(&mut self.unsupported),
                 self.overruns,
+                self.bus_offs,
+                self.max_tec,
             );
             *self = Self::new(pclk_div);
             self.unsupported = unsupported;
-            self.overruns = overruns;
+            (self.overruns, self.bus_offs, self.max_tec) = (overruns, bus_offs, max_tec);
             return;
         }
         self.mcr = v & 0x0001_80FF;

@@ -8,14 +8,29 @@
 //! events, and stops early when its controller has something new to send.
 //!
 //! Time: the bus counts ns, the board cycles at 168 MHz; conversions round so that a wake-up
-//! is never before the event. The bus's time 0, where a scenario starts, is the board's first
-//! frame ([`Lockstep::power_on`]): the board boots on a quiet bus, and its control steps then
-//! fall where the in-process core's do, one period apart from time 0 (a step's frames leave
-//! after its computation, some µs later), so that its runs compare with the core's.
+//! is never before the event. The bus's time 0, where a scenario starts, is the timer tick of
+//! the board's first control step ([`Lockstep::power_on`]): the board boots on a quiet bus,
+//! and its steps then fall where the in-process core's do, one period apart from time 0 (a
+//! step's frames leave after its computation, some µs later), so that its runs compare with
+//! the core's.
 
 use hostsim::bus::{Bus, Fate, Node, Transmission};
 
 use crate::board::{Board, BoardError, CPU_HZ};
+use crate::bxcan::Lec;
+
+/// A fault of the board's connection to the bus, over a window of bus time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum WireFault {
+    /// The board's connector unplugged: its frames meet no acknowledgment (an ACK error each;
+    /// retransmitted, and, for simplicity, still timed on the shared bus), nobody receives
+    /// them, and it receives nothing.
+    NoAck,
+    /// The bus corrupted (a CANH/CANL short, a broken terminator): every frame fails with a
+    /// bit error; nobody receives any. The board's transmit error counter climbs by 8 a
+    /// frame to bus-off.
+    BitErrors,
+}
 
 /// ns of virtual time at board cycle `c` (rounded down).
 #[must_use]
@@ -38,6 +53,8 @@ pub struct Lockstep {
     pub bus: Bus,
     /// The board's cycle at the bus's time 0 ([`power_on`](Self::power_on)).
     epoch: u64,
+    /// A fault on the wire and its window `[from, until)` of bus time, ns.
+    wire_fault: Option<(WireFault, u64, u64)>,
     /// Transmissions started and not yet completed (at most a few: one on the wire, the
     /// ones delivered late by a delay fault).
     in_flight: Vec<Transmission>,
@@ -56,6 +73,7 @@ impl Lockstep {
             board,
             bus,
             epoch: 0,
+            wire_fault: None,
             in_flight: Vec::new(),
             board_queued: false,
             completed: Vec::new(),
@@ -64,8 +82,9 @@ impl Lockstep {
     }
 
     /// Boots the board alone until it offers its first frame (its first control step), or
-    /// for `limit_ns` if it offers none, and starts the bus's time there. Returns the boot
-    /// time, ns from power-on.
+    /// for `limit_ns` if it offers none, and starts the bus's time at the timer compare that
+    /// woke that step (at the frame's request if no compare came within 1 ms before it).
+    /// Returns the boot time, ns from power-on.
     ///
     /// # Errors
     /// The board stopped ([`BoardError`]).
@@ -76,7 +95,13 @@ impl Lockstep {
         while self.board.can_offer().is_none() && self.board.now() < limit {
             self.board.run_until(limit)?;
         }
-        self.epoch = self.board.now();
+        let request = self.board.now();
+        self.epoch = self
+            .board
+            .tim2()
+            .last_compare_at
+            .filter(|&tick| tick <= request && request - tick < CPU_HZ / 1000)
+            .unwrap_or(request);
         Ok(cycles_to_ns(self.epoch))
     }
 
@@ -90,6 +115,18 @@ impl Lockstep {
     #[must_use]
     pub const fn board_ns(&self, c: u64) -> u64 {
         cycles_to_ns(c.saturating_sub(self.epoch))
+    }
+
+    /// `fault` on the wire for the frames that start in `[from_ns, until_ns)`.
+    pub const fn set_wire_fault(&mut self, fault: WireFault, from_ns: u64, until_ns: u64) {
+        self.wire_fault = Some((fault, from_ns, until_ns));
+    }
+
+    /// The wire fault, if any, for a frame that started at `start_ns`.
+    fn wire_fault_at(&self, start_ns: u64) -> Option<WireFault> {
+        self.wire_fault
+            .filter(|&(_, from, until)| (from..until).contains(&start_ns))
+            .map(|(fault, ..)| fault)
     }
 
     /// Withholds the board's CAN RX0 interrupt until bus time `until_ns`
@@ -144,13 +181,23 @@ impl Lockstep {
                 if due > now_ns {
                     break;
                 }
-                let tx = self.in_flight.remove(0);
+                let mut tx = self.in_flight.remove(0);
+                let wire = self.wire_fault_at(tx.start_ns);
                 if tx.from == Node::Controller {
-                    // A fault on the wire (drop, corruption) is the receivers' loss: the
-                    // frame was acknowledged by the bus's other nodes in this model.
-                    self.board.can_transmitted();
+                    match wire {
+                        // A bus fault (drop, corruption) is the receivers' loss: the frame was
+                        // acknowledged by the bus's other nodes in this model.
+                        None => self.board.can_transmitted(),
+                        Some(WireFault::NoAck) => self.board.can_tx_error(Lec::Ack),
+                        Some(WireFault::BitErrors) => self.board.can_tx_error(Lec::BitDominant),
+                    }
+                    if wire.is_some() {
+                        tx.fate = Fate::Dropped;
+                    }
                     self.board_queued = false;
-                } else if tx.fate != Fate::Dropped {
+                } else if wire == Some(WireFault::BitErrors) {
+                    tx.fate = Fate::Dropped;
+                } else if wire.is_none() && tx.fate != Fate::Dropped {
                     self.board
                         .can_receive(&tx.frame, self.cycles_at(tx.start_ns));
                 }

@@ -22,7 +22,7 @@ use hostsim::scenario::Scenario;
 use hostsim::sim::{LogOptions, SimPlant, log_transmission, queue_feedback, set_wheel_faults};
 
 use crate::board::{Board, BoardError, CPU_HZ};
-use crate::lockstep::Lockstep;
+use crate::lockstep::{Lockstep, WireFault};
 use crate::rtt::LogLine;
 
 /// How long the board may boot before the scenario starts without its first frame, ns.
@@ -123,6 +123,9 @@ pub struct Harness {
     pub flood_ns: Option<(u64, u64)>,
     /// `(from, until)`: the board's CAN RX0 interrupt is withheld ([`Board::hold_can_rx`]).
     pub hold_can_rx_ns: Option<(u64, u64)>,
+    /// `(fault, from, until)`: a fault of the board's connection to the bus
+    /// ([`Lockstep::set_wire_fault`]).
+    pub wire_fault_ns: Option<(WireFault, u64, u64)>,
 }
 
 /// The id of [`Harness::flood_ns`]'s frames.
@@ -235,6 +238,9 @@ pub fn run_scenario(
     let boot_ns = ls
         .power_on(BOOT_LIMIT_NS)
         .map_err(|e| stopped(&mut ls, &mut lines, e))?;
+    if let Some((fault, from, until)) = harness.wire_fault_ns {
+        ls.set_wire_fault(fault, from, until);
+    }
     set_wheel_faults(scenario, plant, 0);
     queue_feedback(plant, &mut feedback, 0, |t, n, f| ls.send(t, n, f));
     if let Some((from, until)) = harness.flood_ns {

@@ -81,6 +81,8 @@ pub struct Timer {
     seen: u64,
     /// Writes that select something the model does not do: (register offset, value).
     pub unsupported: Vec<(u32, u32)>,
+    /// The cycle of the latest compare match flagged (any channel).
+    pub last_compare_at: Option<u64>,
 }
 
 impl Timer {
@@ -107,6 +109,7 @@ impl Timer {
             cnt0: 0,
             seen: 0,
             unsupported: Vec::new(),
+            last_compare_at: None,
         }
     }
 
@@ -172,11 +175,13 @@ impl Timer {
             // Compares up to the update (after it, the new PSC and ARR count).
             let end = update.unwrap_or(k);
             for i in 0..4 {
-                if self
+                if let Some(at) = self
                     .first_count_at(self.ccr[i], self.seen)
-                    .is_some_and(|at| at <= end)
+                    .filter(|&at| at <= end)
                 {
                     self.sr |= 1 << (i + 1);
+                    let at_cycle = self.base + at * self.cycles_per_count();
+                    self.last_compare_at = self.last_compare_at.max(Some(at_cycle));
                 }
             }
             match update {

@@ -92,7 +92,11 @@ fn the_flashed_image_boots_to_its_1_khz_loop() {
         "{}",
         reports[1].text
     );
-    assert!(reports[1].text.contains("overruns 0 ") && reports[1].text.ends_with("dropped 0"));
+    assert!(
+        reports[1].text.contains("overruns 0 ") && reports[1].text.ends_with("dropped 0 stale 0"),
+        "{}",
+        reports[1].text
+    );
     let apart = seconds(reports[1].at - reports[0].at);
     assert!((apart - 1.0).abs() < 1e-3, "{apart} s between the reports");
 

@@ -11,8 +11,11 @@
 
 use std::path::Path;
 
+use boardsim::lockstep::WireFault;
 use boardsim::run::Harness;
 use embedded_can::{Frame, Id, StandardId};
+use firmware::control::Fault;
+use firmware::protocol::robot::RobotState;
 use hostsim::drives::SimDrives;
 use hostsim::scenario::Scenario;
 use hostsim::sim::{LogOptions, run_observed};
@@ -228,7 +231,8 @@ fn reported(run: &boardsim::run::BoardRun, name: &str) -> u64 {
         .find(|l| l.text.starts_with("steps "))
         .expect("a report line");
     let key = format!(" {name} ");
-    let at = line.text.find(&key).expect("the counter") + key.len();
+    // The last occurrence: the legend before the counters names "motor stale" too.
+    let at = line.text.rfind(&key).expect("the counter") + key.len();
     line.text[at..]
         .split(|c: char| !c.is_ascii_digit())
         .next()
@@ -315,4 +319,106 @@ fn a_fifo_overrun_is_counted_and_not_fatal() {
         Some(firmware::protocol::robot::RobotState::Enabled)
     );
     assert!(apart < 1.0, "{apart} mm");
+}
+
+/// A fault on the board's wire from 0.5 s to 0.7 s while driving; the host goes on sending
+/// its twist, then resets at 0.9 s and enables at 0.95 s. The board must: fault (its drives
+/// silent to it) and send no motor command from before the outage once the bus is back,
+/// recover on its own (ABOM after a bus-off), report the fault at its first STATUS after the
+/// outage, hold the motors at zero current until the host's reset and enable, and drive again
+/// after them. Returns the run and the bus time of the first non-zero current after 0.7 s.
+fn wire_fault(fault: WireFault) -> (boardsim::run::BoardRun, f64) {
+    let s = scenario(
+        "[[actions]]\nat_s = 0.9\nreset = true\n[[actions]]\nat_s = 0.95\nenable = true\n\
+         [[actions]]\nat_s = 0.96\ntwist = [0.5, 0.0, 0.0]\n",
+    );
+    let run = board_run(
+        &s,
+        Harness {
+            wire_fault_ns: Some((fault, 500_000_000, 700_000_000)),
+            ..Harness::default()
+        },
+    );
+    for l in run.lines.iter().filter(|l| l.level != "info") {
+        eprintln!("{:.6} {} {}", run.line_time_s(l), l.level, l.text);
+    }
+    let commands: Vec<(f64, bool)> = run
+        .sent
+        .iter()
+        .filter(|(_, f)| is_dji(f))
+        .map(|&(t, f)| (t as f64 * 1e-9, is_zero_current(&f)))
+        .collect();
+    let back = commands
+        .iter()
+        .find(|(t, _)| *t >= 0.7)
+        .expect("commands after");
+    let driven = commands
+        .iter()
+        .find(|(t, zero)| *t >= 0.7 && !zero)
+        .map(|(t, _)| *t)
+        .expect("driven again");
+    let can = run.board.can1();
+    eprintln!(
+        "{fault:?}: states {:?}; first motor command after the outage at {:.6} s (zero: {}), first non-zero at {driven:.6} s; highest TEC {}, bus-offs {}, TEC/REC at the end {:?}; stale frames dropped {}",
+        run.transitions,
+        back.0,
+        back.1,
+        can.max_tec,
+        can.bus_offs,
+        can.error_counters(),
+        reported(&run, "stale")
+    );
+    let states: Vec<_> = run.transitions.iter().map(|&(_, s, f)| (s, f)).collect();
+    assert_eq!(
+        states,
+        [
+            (RobotState::Disabled, Fault::None),
+            (RobotState::Enabled, Fault::None),
+            (RobotState::Fault, Fault::MotorStale),
+            (RobotState::Enabled, Fault::None),
+        ],
+        "{fault:?}"
+    );
+    // The fault is on the bus with the board's first STATUS after the outage.
+    let faulted = run.transitions[2].0;
+    assert!(
+        (0.7..0.71).contains(&faulted),
+        "{fault:?}: FAULT seen at {faulted} s"
+    );
+    // Zero current from the first command after the outage until the enable (0.95 s, its
+    // command delivered some 0.13 ms later and applied at the next step).
+    assert!(
+        back.1,
+        "{fault:?}: a motor command from before the outage at {} s",
+        back.0
+    );
+    assert!(
+        (0.95..0.953).contains(&driven),
+        "{fault:?}: driven at {driven} s"
+    );
+    assert_eq!(can.error_counters().0, 0, "{fault:?}: TEC after recovery");
+    assert!(reported(&run, "stale") > 0);
+    (run, driven)
+}
+
+fn is_dji(frame: &firmware::CanFrame) -> bool {
+    frame.id() == Id::Standard(StandardId::new(0x200).unwrap())
+}
+
+#[test]
+fn unplugged_the_board_is_error_passive_faults_and_stays_stopped_until_reset_and_enable() {
+    let (run, _) = wire_fault(WireFault::NoAck);
+    // ACK errors take an error-passive sender no further (ISO 11898-1): never bus-off.
+    let can = run.board.can1();
+    assert_eq!((can.max_tec, can.bus_offs), (128, 0));
+}
+
+#[test]
+fn a_corrupted_bus_puts_the_board_bus_off_it_recovers_and_stays_stopped_until_reset_and_enable() {
+    let (run, _) = wire_fault(WireFault::BitErrors);
+    // Bit errors: 8 a frame, bus-off at the 32nd; ABOM recovers after 128 x 11 recessive bits
+    // (1.4 ms) and the errors go on: bus-off again and again through the outage.
+    let can = run.board.can1();
+    assert_eq!(can.max_tec, 255);
+    assert!(can.bus_offs >= 2, "{} bus-offs", can.bus_offs);
 }
