@@ -49,8 +49,6 @@ extern crate std;
 pub mod config;
 pub mod control;
 pub mod frame;
-#[cfg(feature = "linux")]
-pub mod linux;
 pub mod protocol;
 
 pub use config::Config;

@@ -7,7 +7,6 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand};
-use firmware::linux::{MonotonicClock, SocketCanBus};
 use hostsim::log::McapLog;
 use hostsim::plot::plot_run;
 use hostsim::realtime::{
@@ -22,6 +21,7 @@ use hostsim::scenario::Scenario;
 use hostsim::sim::{LogOptions, RunSummary, run_metadata};
 use hostsim::whatif::{OPEN_LOOP_NOTE, what_if_mcap};
 use indicatif::{ProgressBar, ProgressStyle};
+use mecanum_linux::{MonotonicClock, SocketCanBus};
 
 /// Host simulator of the mecanum drive stack.
 ///
@@ -495,7 +495,7 @@ fn main() -> ExitCode {
         Ok(code) => code,
         Err(e) => {
             // Each cause once: most errors here already include their source's text.
-            eprintln!("error: {}", firmware::linux::error_line(e.as_ref()));
+            eprintln!("error: {}", mecanum_linux::error_line(e.as_ref()));
             ExitCode::from(2)
         }
     }
@@ -1193,7 +1193,7 @@ fn play(
     // A corrupt timestamp would make the playback sleep for years.
     hostsim::replay::check_time_gaps(&frames)
         .with_context(|| format!("{}: cannot play", path.display()))?;
-    let stop = firmware::linux::stop_on_signals()?;
+    let stop = mecanum_linux::stop_on_signals()?;
     let mut bus = SocketCanBus::open(iface)?;
     let clock = MonotonicClock::new(0);
     if !json {
@@ -1264,7 +1264,7 @@ fn sweep(args: &SweepArgs) -> Result<ExitCode> {
         seeds.len(),
         runs.len() / seeds.len().max(1)
     );
-    let signal = firmware::linux::stop_on_signals()?;
+    let signal = mecanum_linux::stop_on_signals()?;
     let bar = ProgressBar::new(runs.len() as u64);
     bar.set_style(
         ProgressStyle::with_template("[{bar:40}] {pos}/{len} runs, {elapsed} elapsed, ETA {eta}")
@@ -1459,7 +1459,7 @@ fn plant(args: &PlantArgs) -> Result<ExitCode> {
         );
     }
     let mut drives = hostsim::imu::WithImu::new(&mut drives, imu.as_ref(), 0);
-    let stop = firmware::linux::stop_on_signals()?;
+    let stop = mecanum_linux::stop_on_signals()?;
     let mut bus = SocketCanBus::open(iface)?;
     // Created before the loop starts, so a bad path fails now and not after a long run.
     let stats = match stats_json {

@@ -2,14 +2,14 @@
 //! by a clock.
 //!
 //! Everything here is written against the firmware runner's two small traits,
-//! [`firmware::linux::Bus`] (non-blocking receive, send) and [`firmware::linux::Clock`]
+//! [`mecanum_linux::Bus`] (non-blocking receive, send) and [`mecanum_linux::Clock`]
 //! (microseconds, sleep until), so the same code runs
 //!
-//! - on a SocketCAN interface with [`SocketCanBus`](firmware::linux::SocketCanBus) and
-//!   [`MonotonicClock`](firmware::linux::MonotonicClock) (the `hostsim plant` and
+//! - on a SocketCAN interface with [`SocketCanBus`](mecanum_linux::SocketCanBus) and
+//!   [`MonotonicClock`](mecanum_linux::MonotonicClock) (the `hostsim plant` and
 //!   `hostsim replay --iface` commands), and
 //! - in tests, on a [`MemoryBus`] in [`VirtualClock`] time, with no CAN interface, no real
-//!   time and no flakiness: several loops (the firmware runner's [`firmware::linux::run`],
+//!   time and no flakiness: several loops (the firmware runner's [`mecanum_linux::run`],
 //!   [`run_plant`], a scripted host) each on its own thread, advancing together in virtual
 //!   time.
 //!
@@ -47,7 +47,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 
 use firmware::CanFrame;
-use firmware::linux::{
+use mecanum_linux::{
     Bus, Clock, ErrorLog, LatencyHistogram, LatencySummary, StopReason, id_text, send_with_retry,
 };
 use serde::Serialize;
@@ -327,7 +327,7 @@ pub struct PlantReport {
     /// Receive errors: reads that failed (the drain stops for the tick).
     pub rx_errors: u64,
     /// Error frames of the CAN controller on a real interface (bus errors, error-passive,
-    /// bus-off, missing ACKs; [`firmware::linux::BusErrorFrame`]); the drain goes on after
+    /// bus-off, missing ACKs; [`mecanum_linux::BusErrorFrame`]); the drain goes on after
     /// each. Counted as `mecanum-runner` counts them.
     pub bus_error_frames: u64,
     /// Ticks that left frames waiting because [`PlantOptions::max_rx_per_tick`] was reached.
@@ -489,7 +489,7 @@ pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
                 Err(e) => {
                     errors.record(format_args!("receive"), &e);
                     // A controller's error frame is a bus event; the frames behind it are due.
-                    if !firmware::linux::is_bus_error_frame(&e) {
+                    if !mecanum_linux::is_bus_error_frame(&e) {
                         rx_errors += 1;
                         break;
                     }

@@ -1,5 +1,5 @@
 //! The real-time loops without a CAN interface: the firmware runner's loop
-//! (`firmware::linux::run`), the plant loop (`hostsim::realtime::run_plant`) and a scripted
+//! (`mecanum_linux::run`), the plant loop (`hostsim::realtime::run_plant`) and a scripted
 //! host, each on its own thread, on one in-memory bus, in virtual time. Deterministic: the
 //! loops run at phases offset within the period, so no two run at the same virtual instant.
 
@@ -8,7 +8,6 @@ use std::io;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::thread;
 
-use firmware::linux::{self, Bus, Clock, RunOptions, StopReason};
 use firmware::protocol::robot::{Command, ModeRequest, RobotState, Telemetry, TwistCmd};
 use firmware::{CanFrame, Config, Controller};
 use hostsim::drives::SimDrives;
@@ -17,6 +16,7 @@ use hostsim::realtime::{
 };
 use hostsim::replay::TimedFrame;
 use hostsim::sim::SimPlant;
+use mecanum_linux::{self as linux, Bus, Clock, RunOptions, StopReason};
 
 const T0: u64 = 5_000_000;
 

@@ -20,9 +20,9 @@ use std::time::{Duration, Instant as WallInstant};
 use firmware::CanFrame;
 use firmware::config::Config;
 use firmware::control::{Controller, Instant};
-use firmware::linux::Recorder;
 use firmware::protocol::dji::{EscId, EscModel, Feedback};
 use firmware::protocol::robot::{Command, ModeRequest, TwistCmd};
+use mecanum_linux::Recorder;
 use mecanum_runner::McapRecorder;
 
 fn feedback(esc: u8, angle: u16, rpm: i16) -> CanFrame {

@@ -3,7 +3,7 @@
 //! # The runner's log (`--log FILE.mcap`)
 //!
 //! The same format as the simulator's logs (drivelog's [`McapLog`]: a ROS 2 bag in MCAP), fed
-//! from the control loop through [`firmware::linux::Recorder`]. Log time 0 is the runner's
+//! from the control loop through [`mecanum_linux::Recorder`]. Log time 0 is the runner's
 //! first step; every time is the one the core was given, in ns (µs · 1000):
 //!
 //! - `/can/rx`: every frame passed to `on_frame`, at its time (log time, publish time and
@@ -56,9 +56,9 @@ use std::thread::JoinHandle;
 
 use drivelog::{Direction, LogError, McapLog, OdometrySource, heading_source_line, msg};
 use firmware::control::{Controller, Fault};
-use firmware::linux::{LinkEvent, Recorder};
 use firmware::protocol::robot::{HeadingSource, RobotState};
 use firmware::{CanFrame, Config};
+use mecanum_linux::{LinkEvent, Recorder};
 
 /// The odometry, wheels and diagnostics are logged every this many steps (10 ms at 1 kHz).
 pub const SNAPSHOT_EVERY: u64 = 10;

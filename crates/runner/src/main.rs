@@ -1,5 +1,5 @@
 //! `mecanum-runner`: the firmware's control core on a Linux SocketCAN interface, at a fixed
-//! rate (see `--help`). The loop itself is `firmware::linux::run`; this crate is the command
+//! rate (see `--help`). The loop itself is `mecanum_linux::run`; this crate is the command
 //! line, signal handling and reporting around it. It is a package of its own, not a binary
 //! of `firmware`, so that it can write its log through `drivelog` (which depends on
 //! `firmware`).
@@ -14,8 +14,8 @@ use std::sync::atomic::AtomicUsize;
 use anyhow::{Context as _, Result};
 use clap::Parser;
 use firmware::config::Drive;
-use firmware::linux::{self, MonotonicClock, Report, RunOptions, SocketCanBus, StopReason};
 use firmware::{Config, Controller};
+use mecanum_linux::{self as linux, MonotonicClock, Report, RunOptions, SocketCanBus, StopReason};
 use mecanum_runner::{Console, McapRecorder};
 
 /// Exit status for a startup error (bad arguments, configuration or interface).

@@ -11,8 +11,8 @@ use std::time::{Duration, Instant as WallInstant};
 
 use drivelog::read::for_each_message;
 use drivelog::{CHUNK_SIZE, McapLog, msg};
-use firmware::linux::{LinkEvent, Recorder, RunOptions, run_recorded};
 use firmware::{CanFrame, Config, Controller};
+use mecanum_linux::{LinkEvent, Recorder, RunOptions, run_recorded};
 
 mod common;
 use common::{FakeClock, MemoryBus, enable_at, esc_feedback};

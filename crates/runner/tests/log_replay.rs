@@ -4,9 +4,9 @@
 use std::collections::VecDeque;
 use std::sync::atomic::AtomicUsize;
 
-use firmware::linux::{RunOptions, run_recorded};
 use firmware::protocol::robot::Command;
 use firmware::{CanFrame, Config, Controller};
+use mecanum_linux::{RunOptions, run_recorded};
 
 mod common;
 use common::{FakeClock, MemoryBus, T0, enable_at, esc_feedback, std_frame, twists};

@@ -6,8 +6,8 @@ use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicUsize;
 
-use firmware::linux::{LinkEvent, Recorder, RunOptions, run_recorded};
 use firmware::{CanFrame, Config, Controller};
+use mecanum_linux::{LinkEvent, Recorder, RunOptions, run_recorded};
 
 mod common;
 use common::{FakeClock, MemoryBus, enable_at, esc_feedback, twists};

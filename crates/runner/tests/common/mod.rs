@@ -10,8 +10,8 @@ use std::rc::Rc;
 
 use embedded_can::StandardId;
 use firmware::CanFrame;
-use firmware::linux::{Bus, Clock};
 use firmware::protocol::robot::{Command, ModeRequest, TwistCmd};
+use mecanum_linux::{Bus, Clock};
 
 /// Where simulated time starts, µs.
 pub const T0: u64 = 5_000_000;

@@ -1,5 +1,5 @@
-//! The Linux runner: the control core at a fixed rate on a SocketCAN interface (feature
-//! `linux`).
+//! The Linux edge of the mecanum drive: the control core at a fixed rate on a SocketCAN
+//! interface.
 //!
 //! # What a runner does
 //!
@@ -83,9 +83,6 @@
 //! time from wake-up to the last frame sent is recorded the same way
 //! ([`Report::step_time`]).
 
-use std::prelude::rust_2024::*;
-use std::{format, vec};
-
 use core::fmt;
 use core::sync::atomic::{AtomicUsize, Ordering};
 use std::io;
@@ -95,9 +92,9 @@ use std::time::Duration;
 use embedded_can::Frame as _;
 use serde::Serialize;
 
-use crate::control::{Controller, Instant, Snapshot};
-use crate::frame::CanFrame;
-use crate::protocol::RxErrorCounters;
+use firmware::CanFrame;
+use firmware::control::{Controller, Instant, Snapshot};
+use firmware::protocol::RxErrorCounters;
 
 /// A CAN bus as the runner needs it: a non-blocking receive and a send.
 pub trait Bus {
@@ -522,7 +519,7 @@ pub struct ControllerReport {
     /// Frames the controller rejected, by kind.
     pub rx_errors: RxErrorCounters,
     /// `TWIST_CMD`s not applied because their `seq` repeated the last accepted one's
-    /// ([`Snapshot::repeated_seq`](crate::control::Snapshot::repeated_seq)).
+    /// ([`Snapshot::repeated_seq`](firmware::control::Snapshot::repeated_seq)).
     pub repeated_seq: u32,
 }
 
@@ -796,8 +793,8 @@ pub fn send_with_retry<B: Bus, C: Clock>(
 }
 
 fn state_name(s: &Snapshot) -> (&'static str, &'static str) {
-    use crate::control::Fault;
-    use crate::protocol::robot::RobotState;
+    use firmware::control::Fault;
+    use firmware::protocol::robot::RobotState;
     let state = match s.state {
         RobotState::Disabled => "Disabled",
         RobotState::Enabled => "Enabled",
@@ -1371,9 +1368,9 @@ impl Bus for SocketCanBus {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::config::Config;
-    use crate::protocol::robot::{Command, ModeRequest, TwistCmd};
     use core::cell::{Cell, RefCell};
+    use firmware::config::Config;
+    use firmware::protocol::robot::{Command, ModeRequest, TwistCmd};
     use std::collections::VecDeque;
     use std::rc::Rc;
 
