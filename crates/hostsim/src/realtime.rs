@@ -16,8 +16,8 @@
 //! # The plant loop ([`run_plant`])
 //!
 //! Ticks are due at absolute deadlines `start + k · period` (1 ms by default), re-anchored at
-//! the wake-up time after an overrun (a tick more than one period late), exactly as the
-//! firmware runner schedules its steps. Each tick, at wake-up time `now`:
+//! the wake-up time after an overrun (a tick more than one period late): the firmware
+//! runner's [`Schedule`]. Each tick, at wake-up time `now`:
 //!
 //! 1. every frame waiting on the bus (at most [`PlantOptions::max_rx_per_tick`]) goes to
 //!    [`SimPlant::on_frame`], stamped with the plant's simulated time (the drives pick out
@@ -48,7 +48,8 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 
 use firmware::CanFrame;
 use mecanum_linux::{
-    Bus, Clock, ErrorLog, LatencyHistogram, LatencySummary, StopReason, id_text, send_with_retry,
+    Bus, Clock, ErrorLog, LatencyHistogram, LatencySummary, Schedule, StopReason, id_text,
+    send_with_retry,
 };
 use serde::Serialize;
 
@@ -441,7 +442,7 @@ pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
     let dt = period as f64 * 1e-6;
     let mut errors = ErrorLog::default();
     let mut jitter = LatencyHistogram::new();
-    let (mut ticks, mut overruns, mut received, mut rx_errors, mut capped) = (0, 0, 0, 0, 0);
+    let (mut ticks, mut received, mut rx_errors, mut capped) = (0, 0, 0, 0);
     let mut bus_error_frames = 0;
     let (mut sent, mut retries, mut send_errors) = (0, 0, 0);
     // Simulated time of the plant, and wall time that was not simulated (catch-up cap).
@@ -450,10 +451,9 @@ pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
     let mut feedback = Vec::with_capacity(16);
 
     let start = clock.now_micros();
-    let mut anchor = start;
-    let mut k: u64 = 0;
+    let mut schedule = Schedule::new(start, period);
     let stop_reason = loop {
-        let deadline = anchor.saturating_add(k.saturating_mul(period));
+        let deadline = schedule.deadline();
         if let Some(n) = stop_requested(stop) {
             break StopReason::Signal(n);
         }
@@ -467,13 +467,7 @@ pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
             break StopReason::Signal(n);
         }
         let woke = clock.now_micros();
-        let late = woke.saturating_sub(deadline);
-        jitter.record(late);
-        if late > period {
-            overruns += 1;
-            anchor = woke;
-            k = 0;
-        }
+        jitter.record(schedule.woke(woke));
 
         // 1. Commands.
         let mut drained = 0;
@@ -542,7 +536,7 @@ pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
         }
         observer.tick(sim_us, plant);
         ticks += 1;
-        k += 1;
+        schedule.advance();
     };
 
     let [x, y, heading] = plant.truth();
@@ -552,7 +546,7 @@ pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
         period_us: period,
         elapsed_us: clock.now_micros().saturating_sub(start),
         ticks,
-        overruns,
+        overruns: schedule.overruns(),
         simulated_s: sim_us as f64 * 1e-6,
         skipped_us,
         frames_received: received,

@@ -19,6 +19,7 @@ mod bus;
 mod clock;
 mod report;
 mod run;
+mod schedule;
 mod signals;
 mod socketcan;
 #[cfg(test)]
@@ -33,5 +34,6 @@ pub use report::{
 pub use run::{
     ErrorLog, LinkEvent, Recorder, RunOptions, id_text, run, run_recorded, send_with_retry,
 };
+pub use schedule::Schedule;
 pub use signals::stop_on_signals;
 pub use socketcan::{OpenError, SocketCanBus};

@@ -14,6 +14,7 @@ use crate::clock::Clock;
 use crate::report::{
     ControllerReport, ErrorCounts, LatencyHistogram, LinkReport, Report, ShutdownReport, StopReason,
 };
+use crate::schedule::Schedule;
 
 /// A change of the link, as [`run_recorded`] tells its [`Recorder`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -234,7 +235,7 @@ pub fn run<B: Bus, C: Clock>(
 /// # Scheduling
 ///
 /// Steps are due at absolute deadlines `start + k · period` (`period` from
-/// [`Controller::period_micros`]). A deadline is never computed from the previous wake-up,
+/// [`Controller::period_micros`]; the [`Schedule`]). A deadline is never computed from the previous wake-up,
 /// so lateness does not accumulate (no drift). For each step the loop:
 ///
 /// 1. sleeps until the deadline, then reads the clock once: `now`;
@@ -302,16 +303,14 @@ pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
     let mut counters = Counters::default();
     let mut jitter = LatencyHistogram::new();
     let mut step_time = LatencyHistogram::new();
-    let mut overruns = 0;
     let mut steps = 0;
 
     let start = clock.now_micros();
     let mut last_step_us = None;
-    let mut anchor = start;
-    let mut k: u64 = 0;
+    let mut schedule = Schedule::new(start, period);
     let mut link = Link::new(options);
     let stop_reason = loop {
-        let deadline = anchor.saturating_add(k.saturating_mul(period));
+        let deadline = schedule.deadline();
         if link.stop {
             break StopReason::LinkLost;
         }
@@ -329,13 +328,7 @@ pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
             break reason;
         }
         let woke = clock.now_micros();
-        let late = woke.saturating_sub(deadline);
-        jitter.record(late);
-        if late > period {
-            overruns += 1;
-            anchor = woke;
-            k = 0;
-        }
+        jitter.record(schedule.woke(woke));
         let now_us = woke - start;
         let now = Instant::from_micros(now_us);
         link.maybe_reopen(bus, woke, now_us, recorder);
@@ -408,7 +401,7 @@ pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
         }
         step_time.record(clock.now_micros().saturating_sub(woke));
         recorder.step_done();
-        k += 1;
+        schedule.advance();
     };
 
     let at_stop = controller.snapshot();
@@ -456,7 +449,7 @@ pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
         period_us: period,
         elapsed_us: clock.now_micros().saturating_sub(start),
         steps,
-        overruns,
+        overruns: schedule.overruns(),
         frames_received: counters.frames_received,
         rx_errors: counters.rx_errors,
         bus_error_frames: counters.bus_error_frames,
