@@ -11,11 +11,10 @@ use std::thread;
 use firmware::protocol::robot::{Command, ModeRequest, RobotState, Telemetry, TwistCmd};
 use firmware::{CanFrame, Config, Controller};
 use hostsim::drives::SimDrives;
-use hostsim::realtime::{
-    MemoryBus, PlantOptions, PlayOptions, VirtualClock, VirtualClockHandle, play_frames, run_plant,
-};
+use hostsim::realtime::{PlantOptions, PlayOptions, play_frames, run_plant};
 use hostsim::replay::TimedFrame;
 use hostsim::sim::SimPlant;
+use mecanum_linux::testing::{MemoryBus, MemoryPort, VirtualClock, VirtualClockHandle};
 use mecanum_linux::{self as linux, Bus, Clock, RunOptions, StopReason};
 
 const T0: u64 = 5_000_000;
@@ -30,12 +29,7 @@ struct HostView {
 
 /// The host: enable at 50 ms, then a forward twist every 20 ms from 100 ms until `until_us`;
 /// drains its port every millisecond and keeps the last odometry and state.
-fn run_host(
-    mut port: hostsim::realtime::MemoryPort,
-    clock: &VirtualClockHandle,
-    vx: f32,
-    until_us: u64,
-) -> HostView {
+fn run_host(mut port: MemoryPort, clock: &VirtualClockHandle, vx: f32, until_us: u64) -> HostView {
     let mut view = HostView::default();
     let start = clock.now_micros();
     let mut seq = 0u8;

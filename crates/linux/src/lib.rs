@@ -22,6 +22,7 @@ mod run;
 mod schedule;
 mod signals;
 mod socketcan;
+pub mod testing;
 #[cfg(test)]
 mod tests;
 
