@@ -1,16 +1,185 @@
-//! Test doubles of the [`Bus`] and the [`Clock`]: a CAN bus in memory ([`MemoryBus`]) and
-//! virtual time for several loops on several threads ([`VirtualClock`]). With them the
-//! runner's loop, the simulated drives and a scripted host run together in tests with no CAN
-//! interface, no real time and no flakiness.
+//! Test doubles of the [`Bus`] and the [`Clock`], for one loop or several:
+//!
+//! - [`ScriptedClock`] and [`ScriptedBus`]: one loop on one thread, frames arriving at
+//!   scripted times, wake-ups late by scripted amounts, sends busy or the link down when the
+//!   script says (the loop's own tests and the runner's log tests);
+//! - [`MemoryBus`] and [`VirtualClock`]: several loops on several threads (the runner's loop,
+//!   the simulated drives, a scripted host) on one bus in memory, advancing together in
+//!   virtual time.
+//!
+//! No CAN interface, no real time, no flakiness.
 
+use std::cell::{Cell, RefCell};
 use std::collections::VecDeque;
 use std::io;
+use std::rc::Rc;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 
 use firmware::CanFrame;
 
 use crate::bus::Bus;
 use crate::clock::Clock;
+
+// ---------------------------------------------------------------------------------------------
+// One loop: scripted time and frames
+
+/// Scripted time for one loop: [`Clock::sleep_until`] jumps to the deadline plus the next
+/// scripted lateness (0 when the script is used up). With `pace` n > 0 it also really
+/// sleeps 1/n of each wait (for a log writer on another thread that must keep up).
+#[derive(Debug)]
+pub struct ScriptedClock {
+    now: Cell<u64>,
+    lateness: RefCell<VecDeque<u64>>,
+    pace: u64,
+}
+
+impl ScriptedClock {
+    /// A clock at `start_us` whose wake-ups are late by `lateness`, one value per sleep.
+    #[must_use]
+    pub fn new(start_us: u64, lateness: impl IntoIterator<Item = u64>, pace: u64) -> Rc<Self> {
+        Rc::new(Self {
+            now: Cell::new(start_us),
+            lateness: RefCell::new(lateness.into_iter().collect()),
+            pace,
+        })
+    }
+
+    /// Moves the time on by `us` (work that takes time).
+    pub fn advance(&self, us: u64) {
+        self.now.set(self.now.get() + us);
+    }
+
+    /// Appends wake-up latenesses to the script.
+    pub fn push_lateness(&self, lateness: impl IntoIterator<Item = u64>) {
+        self.lateness.borrow_mut().extend(lateness);
+    }
+}
+
+impl Clock for ScriptedClock {
+    fn now_micros(&self) -> u64 {
+        self.now.get()
+    }
+
+    fn sleep_until(&self, deadline_us: u64) {
+        let late = self.lateness.borrow_mut().pop_front().unwrap_or(0);
+        let ahead = deadline_us.saturating_sub(self.now.get());
+        if let Some(wait) = ahead.checked_div(self.pace) {
+            std::thread::sleep(std::time::Duration::from_micros(wait));
+        }
+        self.now.set(self.now.get().max(deadline_us) + late);
+    }
+}
+
+/// A bus for one loop on a [`ScriptedClock`]: `incoming` frames arrive at their times, sends
+/// are recorded with theirs. The script's faults:
+///
+/// - `busy`: the next that many sends fail with `ENOBUFS`;
+/// - `down`: in this interval of the clock the link is down: sends fail with `ENETDOWN`, the
+///   first receive in it too (as SocketCAN does), and [`Bus::reopen`] fails;
+/// - `stop_at`: the first send at or after that time stores 15 (SIGTERM) in the flag, a
+///   signal arriving while the loop runs;
+/// - `send_cost_us`: every send moves the clock on by that much.
+#[derive(Debug)]
+pub struct ScriptedBus {
+    /// The clock the times are read from.
+    pub clock: Rc<ScriptedClock>,
+    /// Frames to receive, each from its time on, in order.
+    pub incoming: VecDeque<(u64, CanFrame)>,
+    /// Frames sent, with the time of the send.
+    pub sent: Vec<(u64, CanFrame)>,
+    /// Sends still to fail with `ENOBUFS`.
+    pub busy: u64,
+    /// Send attempts, failed ones included.
+    pub attempts: u64,
+    /// When to set the stop flag, and the flag.
+    pub stop_at: Option<(u64, Rc<AtomicUsize>)>,
+    /// The link is down from the first to the second time, µs of the clock.
+    pub down: Option<(u64, u64)>,
+    /// The receive error of the current outage was reported.
+    pub down_reported: bool,
+    /// Each [`Bus::reopen`]: its time and whether it succeeded.
+    pub reopens: Vec<(u64, bool)>,
+    /// What a send costs, µs of the clock.
+    pub send_cost_us: u64,
+}
+
+impl ScriptedBus {
+    /// A bus on `clock` that delivers `incoming`, with no faults.
+    #[must_use]
+    pub fn new(
+        clock: &Rc<ScriptedClock>,
+        incoming: impl IntoIterator<Item = (u64, CanFrame)>,
+    ) -> Self {
+        Self {
+            clock: Rc::clone(clock),
+            incoming: incoming.into_iter().collect(),
+            sent: Vec::new(),
+            busy: 0,
+            attempts: 0,
+            stop_at: None,
+            down: None,
+            down_reported: false,
+            reopens: Vec::new(),
+            send_cost_us: 0,
+        }
+    }
+
+    fn is_down(&self) -> bool {
+        let now = self.clock.now_micros();
+        self.down
+            .is_some_and(|(from, to)| (from..to).contains(&now))
+    }
+}
+
+impl Bus for ScriptedBus {
+    fn try_recv(&mut self) -> io::Result<Option<CanFrame>> {
+        if self.is_down() {
+            if !self.down_reported {
+                self.down_reported = true;
+                return Err(io::Error::from_raw_os_error(libc::ENETDOWN));
+            }
+            return Ok(None);
+        }
+        match self.incoming.front() {
+            Some(&(t, f)) if t <= self.clock.now_micros() => {
+                self.incoming.pop_front();
+                Ok(Some(f))
+            }
+            _ => Ok(None),
+        }
+    }
+
+    fn send(&mut self, frame: &CanFrame) -> io::Result<()> {
+        self.attempts += 1;
+        let now = self.clock.now_micros();
+        if let Some((t, flag)) = &self.stop_at
+            && now >= *t
+        {
+            flag.store(15, Ordering::Relaxed);
+        }
+        if self.is_down() {
+            return Err(io::Error::from_raw_os_error(libc::ENETDOWN));
+        }
+        if self.busy > 0 {
+            self.busy -= 1;
+            return Err(io::Error::from_raw_os_error(libc::ENOBUFS));
+        }
+        self.clock.advance(self.send_cost_us);
+        self.sent.push((now, *frame));
+        Ok(())
+    }
+
+    fn reopen(&mut self) -> io::Result<()> {
+        let ok = !self.is_down();
+        self.reopens.push((self.clock.now_micros(), ok));
+        if ok {
+            Ok(())
+        } else {
+            Err(io::Error::from_raw_os_error(libc::ENETDOWN))
+        }
+    }
+}
 
 // ---------------------------------------------------------------------------------------------
 // In-memory bus

@@ -1,6 +1,7 @@
-//! The loop's tests: a scripted clock and an in-memory bus around a real core.
+//! The loop's tests: a real core on a [`ScriptedBus`] in [`ScriptedClock`] time.
 
 use super::*;
+use crate::testing::{ScriptedBus, ScriptedClock};
 use core::fmt;
 use core::sync::atomic::{AtomicUsize, Ordering};
 use std::io;
@@ -10,125 +11,14 @@ use embedded_can::Frame as _;
 use firmware::CanFrame;
 use firmware::control::Controller;
 
-use core::cell::{Cell, RefCell};
 use firmware::config::Config;
 use firmware::protocol::robot::{Command, ModeRequest, TwistCmd};
 use std::collections::VecDeque;
 use std::rc::Rc;
 
-/// Simulated time: `sleep_until` jumps to the deadline plus a scripted wake-up latency.
-#[derive(Default)]
-struct FakeClock {
-    now: Cell<u64>,
-    latencies: RefCell<VecDeque<u64>>,
-}
-
-impl FakeClock {
-    fn at(t: u64) -> Rc<Self> {
-        let c = Rc::new(Self::default());
-        c.now.set(t);
-        c
-    }
-    fn advance(&self, us: u64) {
-        self.now.set(self.now.get() + us);
-    }
-}
-
-impl Clock for FakeClock {
-    fn now_micros(&self) -> u64 {
-        self.now.get()
-    }
-    fn sleep_until(&self, deadline_us: u64) {
-        let late = self.latencies.borrow_mut().pop_front().unwrap_or(0);
-        self.now.set(self.now.get().max(deadline_us) + late);
-    }
-}
-
-/// A bus in memory: frames arrive at given times; sends are recorded with their time.
-/// `busy` makes the next sends fail with ENOBUFS; `stop_at` sets the stop flag on the
-/// first send at or after that time (a signal arriving while the loop runs).
-struct MemoryBus {
-    clock: Rc<FakeClock>,
-    incoming: VecDeque<(u64, CanFrame)>,
-    sent: Vec<(u64, CanFrame)>,
-    busy: u64,
-    attempts: u64,
-    stop_at: Option<(u64, Rc<AtomicUsize>)>,
-    /// The link is down in this clock interval: sends fail with ENETDOWN, the first
-    /// receive in it too (as SocketCAN does), and reopening fails.
-    down: Option<(u64, u64)>,
-    down_reported: bool,
-    reopens: Vec<(u64, bool)>,
-}
-
-impl MemoryBus {
-    fn new(clock: &Rc<FakeClock>) -> Self {
-        Self {
-            clock: Rc::clone(clock),
-            incoming: VecDeque::new(),
-            sent: Vec::new(),
-            busy: 0,
-            attempts: 0,
-            stop_at: None,
-            down: None,
-            down_reported: false,
-            reopens: Vec::new(),
-        }
-    }
-    fn is_down(&self) -> bool {
-        let now = self.clock.now_micros();
-        self.down
-            .is_some_and(|(from, to)| (from..to).contains(&now))
-    }
-    fn sent_ids(&self) -> Vec<(u64, u16)> {
-        self.sent.iter().map(|(t, f)| (*t, raw_id(f))).collect()
-    }
-}
-
-impl Bus for MemoryBus {
-    fn try_recv(&mut self) -> io::Result<Option<CanFrame>> {
-        if self.is_down() {
-            if !self.down_reported {
-                self.down_reported = true;
-                return Err(io::Error::from_raw_os_error(libc::ENETDOWN));
-            }
-            return Ok(None);
-        }
-        match self.incoming.front() {
-            Some(&(t, f)) if t <= self.clock.now_micros() => {
-                self.incoming.pop_front();
-                Ok(Some(f))
-            }
-            _ => Ok(None),
-        }
-    }
-    fn send(&mut self, frame: &CanFrame) -> io::Result<()> {
-        self.attempts += 1;
-        let now = self.clock.now_micros();
-        if let Some((t, flag)) = &self.stop_at
-            && now >= *t
-        {
-            flag.store(15, Ordering::Relaxed);
-        }
-        if self.is_down() {
-            return Err(io::Error::from_raw_os_error(libc::ENETDOWN));
-        }
-        if self.busy > 0 {
-            self.busy -= 1;
-            return Err(io::Error::from_raw_os_error(libc::ENOBUFS));
-        }
-        self.sent.push((now, *frame));
-        Ok(())
-    }
-    fn reopen(&mut self) -> io::Result<()> {
-        let ok = !self.is_down();
-        self.reopens.push((self.clock.now_micros(), ok));
-        if ok {
-            Ok(())
-        } else {
-            Err(io::Error::from_raw_os_error(libc::ENETDOWN))
-        }
-    }
+/// The frames `bus` sent: (time, standard id).
+fn sent_ids(bus: &ScriptedBus) -> Vec<(u64, u16)> {
+    bus.sent.iter().map(|(t, f)| (*t, raw_id(f))).collect()
 }
 
 fn raw_id(f: &CanFrame) -> u16 {
@@ -152,8 +42,8 @@ fn for_ms(ms: u64) -> RunOptions {
 const T0: u64 = 7_000_000;
 
 /// Times of the DJI command frames (0x200), one per step.
-fn motor_times(bus: &MemoryBus) -> Vec<u64> {
-    bus.sent_ids()
+fn motor_times(bus: &ScriptedBus) -> Vec<u64> {
+    sent_ids(bus)
         .into_iter()
         .filter(|&(_, id)| id == 0x200)
         .map(|(t, _)| t)
@@ -162,8 +52,8 @@ fn motor_times(bus: &MemoryBus) -> Vec<u64> {
 
 #[test]
 fn steps_at_absolute_deadlines() {
-    let clock = FakeClock::at(T0);
-    let mut bus = MemoryBus::new(&clock);
+    let clock = ScriptedClock::new(T0, [], 0);
+    let mut bus = ScriptedBus::new(&clock, []);
     let mut ctl = dji();
     let r = run(
         &mut ctl,
@@ -185,7 +75,7 @@ fn steps_at_absolute_deadlines() {
     // Step 0: motor command, odometry (2), status, status counters, heartbeat; steps 1-9:
     // motor command.
     assert_eq!(r.frames_sent, 6 + 9);
-    let first: Vec<u16> = bus.sent_ids().iter().take(6).map(|x| x.1).collect();
+    let first: Vec<u16> = sent_ids(&bus).iter().take(6).map(|x| x.1).collect();
     assert_eq!(first, [0x200, 0x310, 0x311, 0x312, 0x313, 0x31F]);
     assert_eq!(r.send_errors, 0);
     assert_eq!(r.shutdown.sent, 1);
@@ -193,9 +83,9 @@ fn steps_at_absolute_deadlines() {
 
 #[test]
 fn a_late_wake_up_does_not_shift_the_schedule() {
-    let clock = FakeClock::at(T0);
-    clock.latencies.borrow_mut().extend([0, 300, 0, 999, 0]);
-    let mut bus = MemoryBus::new(&clock);
+    let clock = ScriptedClock::new(T0, [], 0);
+    clock.push_lateness([0, 300, 0, 999, 0]);
+    let mut bus = ScriptedBus::new(&clock, []);
     let r = run(
         &mut dji(),
         &mut bus,
@@ -212,9 +102,9 @@ fn a_late_wake_up_does_not_shift_the_schedule() {
 
 #[test]
 fn an_overrun_is_counted_and_re_anchors() {
-    let clock = FakeClock::at(T0);
-    clock.latencies.borrow_mut().extend([0, 0, 2500, 0, 0]);
-    let mut bus = MemoryBus::new(&clock);
+    let clock = ScriptedClock::new(T0, [], 0);
+    clock.push_lateness([0, 0, 2500, 0, 0]);
+    let mut bus = ScriptedBus::new(&clock, []);
     let r = run(
         &mut dji(),
         &mut bus,
@@ -232,10 +122,10 @@ fn an_overrun_is_counted_and_re_anchors() {
 
 #[test]
 fn slow_steps_within_one_period_are_not_overruns() {
-    let clock = FakeClock::at(T0);
+    let clock = ScriptedClock::new(T0, [], 0);
     // Every step takes 1.2 periods in sends: each starts late, the lateness grows by
     // 200 µs a step until it passes one period (step 6, 1200 µs late), then re-anchors.
-    struct Slow(MemoryBus);
+    struct Slow(ScriptedBus);
     impl Bus for Slow {
         fn try_recv(&mut self) -> io::Result<Option<CanFrame>> {
             self.0.try_recv()
@@ -248,7 +138,7 @@ fn slow_steps_within_one_period_are_not_overruns() {
             sent
         }
     }
-    let mut slow = Slow(MemoryBus::new(&clock));
+    let mut slow = Slow(ScriptedBus::new(&clock, []));
     let r = run(
         &mut dji(),
         &mut slow,
@@ -267,8 +157,8 @@ fn slow_steps_within_one_period_are_not_overruns() {
 
 #[test]
 fn frames_received_before_a_step_are_fed_to_it() {
-    let clock = FakeClock::at(T0);
-    let mut bus = MemoryBus::new(&clock);
+    let clock = ScriptedClock::new(T0, [], 0);
+    let mut bus = ScriptedBus::new(&clock, []);
     let status_req = Command::StatusRequest.to_can_frame();
     bus.incoming.push_back((T0 + 2500, status_req));
     let r = run(
@@ -278,8 +168,7 @@ fn frames_received_before_a_step_are_fed_to_it() {
         &for_ms(5),
         &AtomicUsize::new(0),
     );
-    let status: Vec<u64> = bus
-        .sent_ids()
+    let status: Vec<u64> = sent_ids(&bus)
         .into_iter()
         .filter(|&(_, id)| id == 0x312)
         .map(|(t, _)| t)
@@ -292,8 +181,8 @@ fn frames_received_before_a_step_are_fed_to_it() {
 
 #[test]
 fn every_waiting_frame_is_drained_up_to_the_cap() {
-    let clock = FakeClock::at(T0);
-    let mut bus = MemoryBus::new(&clock);
+    let clock = ScriptedClock::new(T0, [], 0);
+    let mut bus = ScriptedBus::new(&clock, []);
     // Unknown ids: counted by the controller as rejected.
     let junk = CanFrame::standard(embedded_can::StandardId::new(0x123).unwrap(), &[1]).unwrap();
     for _ in 0..10 {
@@ -334,8 +223,8 @@ fn drive_frames(t: u64) -> [(u64, CanFrame); 2] {
 
 #[test]
 fn a_stop_sends_the_shutdown_frames() {
-    let clock = FakeClock::at(T0);
-    let mut bus = MemoryBus::new(&clock);
+    let clock = ScriptedClock::new(T0, [], 0);
+    let mut bus = ScriptedBus::new(&clock, []);
     bus.incoming.extend(drive_frames(T0 + 100));
     let stop = Rc::new(AtomicUsize::new(0));
     bus.stop_at = Some((T0 + 5000, Rc::clone(&stop)));
@@ -369,8 +258,8 @@ fn a_stop_sends_the_shutdown_frames() {
 
 #[test]
 fn odrive_shutdown_is_zero_velocity_then_idle_per_axis() {
-    let clock = FakeClock::at(T0);
-    let mut bus = MemoryBus::new(&clock);
+    let clock = ScriptedClock::new(T0, [], 0);
+    let mut bus = ScriptedBus::new(&clock, []);
     let mut ctl = Controller::new(&Config::odrive_example()).unwrap();
     let r = run(
         &mut ctl,
@@ -380,7 +269,7 @@ fn odrive_shutdown_is_zero_velocity_then_idle_per_axis() {
         &AtomicUsize::new(0),
     );
     assert_eq!(r.shutdown.frames, 8);
-    let tail: Vec<u16> = bus.sent_ids()[bus.sent.len() - 8..]
+    let tail: Vec<u16> = sent_ids(&bus)[bus.sent.len() - 8..]
         .iter()
         .map(|x| x.1)
         .collect();
@@ -390,8 +279,8 @@ fn odrive_shutdown_is_zero_velocity_then_idle_per_axis() {
 
 #[test]
 fn busy_sends_are_retried() {
-    let clock = FakeClock::at(T0);
-    let mut bus = MemoryBus::new(&clock);
+    let clock = ScriptedClock::new(T0, [], 0);
+    let mut bus = ScriptedBus::new(&clock, []);
     bus.busy = 3;
     let r = run(
         &mut dji(),
@@ -410,8 +299,8 @@ fn busy_sends_are_retried() {
 
 #[test]
 fn a_bus_that_stays_busy_drops_frames_and_keeps_the_schedule() {
-    let clock = FakeClock::at(T0);
-    let mut bus = MemoryBus::new(&clock);
+    let clock = ScriptedClock::new(T0, [], 0);
+    let mut bus = ScriptedBus::new(&clock, []);
     bus.busy = u64::MAX;
     let r = run(
         &mut dji(),
@@ -444,7 +333,7 @@ fn other_send_errors_are_counted_without_retry() {
             Err(io::Error::from_raw_os_error(libc::EIO))
         }
     }
-    let clock = FakeClock::at(T0);
+    let clock = ScriptedClock::new(T0, [], 0);
     let r = run(
         &mut dji(),
         &mut Down,
@@ -483,8 +372,8 @@ impl Recorder for LinkLog {
 
 #[test]
 fn a_lost_link_keeps_the_core_stepping_and_resumes_when_it_is_back() {
-    let clock = FakeClock::at(T0);
-    let mut bus = MemoryBus::new(&clock);
+    let clock = ScriptedClock::new(T0, [], 0);
+    let mut bus = ScriptedBus::new(&clock, []);
     // Down from 5 ms to 25 ms.
     bus.down = Some((T0 + 5_000, T0 + 25_000));
     let mut events = LinkLog::default();
@@ -544,8 +433,8 @@ fn a_lost_link_keeps_the_core_stepping_and_resumes_when_it_is_back() {
 
 #[test]
 fn a_link_lost_on_a_send_backs_off_up_to_the_limit() {
-    let clock = FakeClock::at(T0);
-    let mut bus = MemoryBus::new(&clock);
+    let clock = ScriptedClock::new(T0, [], 0);
+    let mut bus = ScriptedBus::new(&clock, []);
     // The receive of the first down step already happened: the send sees it first.
     bus.down = Some((T0 + 2_000, T0 + 1_000_000));
     bus.down_reported = true;
@@ -575,8 +464,8 @@ fn a_link_lost_on_a_send_backs_off_up_to_the_limit() {
 
 #[test]
 fn exit_on_link_loss_stops_the_loop_with_the_reason() {
-    let clock = FakeClock::at(T0);
-    let mut bus = MemoryBus::new(&clock);
+    let clock = ScriptedClock::new(T0, [], 0);
+    let mut bus = ScriptedBus::new(&clock, []);
     bus.down = Some((T0 + 3_000, u64::MAX));
     let options = RunOptions {
         exit_on_link_loss: true,
@@ -649,7 +538,7 @@ fn bus_error_frames_are_counted_and_the_frames_behind_them_still_read() {
         Err(error),
         Ok(Some(twist(1))),
     ]));
-    let clock = FakeClock::at(T0);
+    let clock = ScriptedClock::new(T0, [], 0);
     let r = run(
         &mut dji(),
         &mut bus,
@@ -670,8 +559,8 @@ fn bus_error_frames_are_counted_and_the_frames_behind_them_still_read() {
 
 #[test]
 fn a_stop_before_the_first_step_still_shuts_down() {
-    let clock = FakeClock::at(T0);
-    let mut bus = MemoryBus::new(&clock);
+    let clock = ScriptedClock::new(T0, [], 0);
+    let mut bus = ScriptedBus::new(&clock, []);
     let r = run(
         &mut dji(),
         &mut bus,
@@ -682,7 +571,7 @@ fn a_stop_before_the_first_step_still_shuts_down() {
     assert_eq!((r.stop, r.steps), (StopReason::Signal(2), 0));
     assert_eq!(r.stop.to_string(), "SIGINT");
     assert_eq!(r.jitter.p99_us, None);
-    assert_eq!(bus.sent_ids(), [(T0, 0x200)]);
+    assert_eq!(sent_ids(&bus), [(T0, 0x200)]);
     assert_eq!(r.controller.rx_errors.unknown_id, 0);
     let text = r.to_string();
     assert!(
@@ -694,8 +583,8 @@ fn a_stop_before_the_first_step_still_shuts_down() {
 
 #[test]
 fn the_report_serialises_to_json() {
-    let clock = FakeClock::at(T0);
-    let mut bus = MemoryBus::new(&clock);
+    let clock = ScriptedClock::new(T0, [], 0);
+    let mut bus = ScriptedBus::new(&clock, []);
     let r = run(
         &mut dji(),
         &mut bus,

@@ -15,7 +15,7 @@ use firmware::{CanFrame, Config, Controller};
 use mecanum_linux::{LinkEvent, Recorder, RunOptions, run_recorded};
 
 mod common;
-use common::{FakeClock, MemoryBus, enable_at, esc_feedback};
+use common::{bus, clock, enable_at, esc_feedback};
 use mecanum_runner::{MAX_PENDING_EVENTS, McapRecorder, metadata};
 
 /// A file whose writes wait while `stalled` is set (a disk that stops answering), in memory.
@@ -111,8 +111,8 @@ fn a_stalled_disk_costs_dropped_messages_never_a_late_step() {
         })
     };
 
-    let clock = FakeClock::new([], 0);
-    let mut bus = MemoryBus::new(&clock, session());
+    let clock = clock([], 0);
+    let mut bus = bus(&clock, session());
     let mut controller = Controller::new(&config).unwrap();
     let options = RunOptions {
         duration_us: Some(STEPS * 1000),

@@ -9,7 +9,7 @@ use firmware::{CanFrame, Config, Controller};
 use mecanum_linux::{RunOptions, run_recorded};
 
 mod common;
-use common::{FakeClock, MemoryBus, T0, enable_at, esc_feedback, std_frame, twists};
+use common::{T0, bus, clock, enable_at, esc_feedback, std_frame, twists};
 use mecanum_runner::McapRecorder;
 
 /// 600 ms: the four ESCs report every millisecond (wheels turning); the host enables at
@@ -30,11 +30,11 @@ fn a_runner_log_replays_bit_for_bit_at_its_recorded_steps() {
     let config = Config::dji_m3508_example();
     let path = std::path::PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("runner_log.mcap");
     // Wake-ups late by 0 to 290 µs, and one 2.5 ms overrun at step 200 (re-anchored).
-    let clock = FakeClock::new(
+    let clock = clock(
         (0..600u64).map(|k| if k == 200 { 2500 } else { (k * 53) % 300 }),
         0,
     );
-    let mut bus = MemoryBus::new(&clock, session());
+    let mut bus = bus(&clock, session());
     let mut controller = Controller::new(&config).unwrap();
     let mut recorder = McapRecorder::create(&path, &config).unwrap();
     let options = RunOptions {

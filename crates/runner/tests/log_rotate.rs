@@ -10,7 +10,7 @@ use firmware::{CanFrame, Config, Controller};
 use mecanum_linux::{LinkEvent, Recorder, RunOptions, run_recorded};
 
 mod common;
-use common::{FakeClock, MemoryBus, enable_at, esc_feedback, twists};
+use common::{bus, clock, enable_at, esc_feedback, twists};
 use mecanum_runner::{McapRecorder, rotated_path};
 
 /// Run length: 3 s, 3000 steps.
@@ -89,8 +89,8 @@ fn run(dir: &Path, max_bytes: u64, keep: usize) -> Run {
     // (`Settled`), so the hand-overs and rotations fall at the same log times on an idle or a
     // busy machine. (Without it, on a loaded core the writer fell behind and a run made 2-4
     // files instead of 5+.)
-    let clock = FakeClock::new((0..RUN_MS).map(|k| (k * 53) % 300), 0);
-    let mut bus = MemoryBus::new(&clock, session());
+    let clock = clock((0..RUN_MS).map(|k| (k * 53) % 300), 0);
+    let mut bus = bus(&clock, session());
     let mut controller = Controller::new(&config).unwrap();
     let mut recorder = McapRecorder::rotating(dir, &config, max_bytes, keep).unwrap();
     let options = RunOptions {

@@ -1,88 +1,31 @@
-//! The test doubles of the runner's loop tests: a clock and a bus in memory, and the frames
-//! of a session.
+//! What the runner's loop tests share: the scripted clock and bus (`mecanum_linux::testing`)
+//! set up as they use them, and the frames of a session.
 
 #![allow(dead_code)] // each test file uses its part
 
-use std::cell::{Cell, RefCell};
 use std::collections::VecDeque;
-use std::io;
 use std::rc::Rc;
 
 use embedded_can::StandardId;
 use firmware::CanFrame;
 use firmware::protocol::robot::{Command, ModeRequest, TwistCmd};
-use mecanum_linux::{Bus, Clock};
+use mecanum_linux::testing::{ScriptedBus, ScriptedClock};
 
 /// Where simulated time starts, µs.
 pub const T0: u64 = 5_000_000;
 
-/// Simulated time: `sleep_until` jumps to the deadline plus a scripted lateness. With
-/// `pace` n > 0 it also sleeps 1/n of the simulated wait (a log's hand-overs are due to log
-/// time, as in a real run, and its writer keeps up).
-pub struct FakeClock {
-    pub now: Cell<u64>,
-    pub lateness: RefCell<VecDeque<u64>>,
-    pub pace: u64,
+/// A clock at [`T0`] whose wake-ups are late by `lateness`, one value per sleep; with `pace`
+/// n > 0 it also sleeps 1/n of the simulated wait (a log's hand-overs are due to log time, as
+/// in a real run, and its writer keeps up).
+pub fn clock(lateness: impl IntoIterator<Item = u64>, pace: u64) -> Rc<ScriptedClock> {
+    ScriptedClock::new(T0, lateness, pace)
 }
 
-impl FakeClock {
-    /// A clock at [`T0`] whose wake-ups are late by `lateness`, one value per sleep.
-    pub fn new(lateness: impl IntoIterator<Item = u64>, pace: u64) -> Rc<Self> {
-        Rc::new(Self {
-            now: Cell::new(T0),
-            lateness: RefCell::new(lateness.into_iter().collect()),
-            pace,
-        })
-    }
-}
-
-impl Clock for FakeClock {
-    fn now_micros(&self) -> u64 {
-        self.now.get()
-    }
-    fn sleep_until(&self, deadline_us: u64) {
-        let late = self.lateness.borrow_mut().pop_front().unwrap_or(0);
-        let ahead = deadline_us.saturating_sub(self.now.get());
-        if let Some(wait) = ahead.checked_div(self.pace) {
-            std::thread::sleep(std::time::Duration::from_micros(wait));
-        }
-        self.now.set(self.now.get().max(deadline_us) + late);
-    }
-}
-
-/// Frames arrive at given times; every send takes 7 µs.
-pub struct MemoryBus {
-    pub clock: Rc<FakeClock>,
-    pub incoming: VecDeque<(u64, CanFrame)>,
-    pub sent: Vec<CanFrame>,
-}
-
-impl MemoryBus {
-    /// A bus on `clock` that delivers `incoming`.
-    pub fn new(clock: &Rc<FakeClock>, incoming: VecDeque<(u64, CanFrame)>) -> Self {
-        Self {
-            clock: Rc::clone(clock),
-            incoming,
-            sent: Vec::new(),
-        }
-    }
-}
-
-impl Bus for MemoryBus {
-    fn try_recv(&mut self) -> io::Result<Option<CanFrame>> {
-        match self.incoming.front() {
-            Some(&(t, f)) if t <= self.clock.now_micros() => {
-                self.incoming.pop_front();
-                Ok(Some(f))
-            }
-            _ => Ok(None),
-        }
-    }
-    fn send(&mut self, frame: &CanFrame) -> io::Result<()> {
-        self.clock.now.set(self.clock.now.get() + 7);
-        self.sent.push(*frame);
-        Ok(())
-    }
+/// A bus on `clock` that delivers `incoming`; every send takes 7 µs.
+pub fn bus(clock: &Rc<ScriptedClock>, incoming: VecDeque<(u64, CanFrame)>) -> ScriptedBus {
+    let mut bus = ScriptedBus::new(clock, incoming);
+    bus.send_cost_us = 7;
+    bus
 }
 
 /// A standard data frame.
