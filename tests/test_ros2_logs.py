@@ -374,21 +374,21 @@ def test_diagnostics_and_rosout_follow_the_runs_state_changes(log: Log) -> None:
         step = ns(message.header.stamp)
         assert step == log_ns
         current = [(state, fault) for t, state, fault in transitions if t <= step]
-        state, fault = current[-1] if current else ("Disabled", "None")
+        state, fault = current[-1] if current else ("DISABLED", "NONE")
         assert (values["state"], values["fault"]) == (state, fault), (step, values)
         assert int(values["steps"]) == step // 1_000_000 + 1, (step, values)
-        assert status.level == (2 if state == "Fault" else 0), (step, status)
+        assert status.level == (2 if state == "FAULT" else 0), (step, status)
         assert status.name == "mecanum_drive: firmware"
         states[state] += 1
     if log.name == "circle":
-        assert states["Enabled"] == log.counts["/diagnostics"] - 6, states  # 0 to 50 ms Disabled
+        assert states["ENABLED"] == log.counts["/diagnostics"] - 6, states  # 0 to 50 ms Disabled
         last = {kv.key: kv.value for kv in log.last("/diagnostics").status[0].values}
-        assert last["motors_online"] == "0b1111" and last["fault"] == "None", last
+        assert last["motors_online"] == "0b1111" and last["fault"] == "NONE", last
     else:
-        assert set(states) == {"Disabled", "Enabled", "Fault"}, states
+        assert set(states) == {"DISABLED", "ENABLED", "FAULT"}, states
     rosout = [(ns(m.stamp), m.level, m.msg) for _, m in log.messages["/rosout"]]
     assert rosout == [
-        (t, {"Fault": ERROR, "Estop": WARN}.get(state, INFO), f"state {state}, fault {fault}")
+        (t, {"FAULT": ERROR, "ESTOP": WARN}.get(state, INFO), f"state {state}, fault {fault}")
         for t, state, fault in transitions
     ]
 

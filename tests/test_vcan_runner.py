@@ -214,7 +214,7 @@ def test_motion_session_runner_kept_its_rate(motion: Robot) -> None:
     elapsed = stats["elapsed_us"] * 1e-6
     print(f"runner: {stats['steps']} steps in {elapsed:.2f} s, {stats['overruns']} overruns, "
           f"jitter {stats['jitter']}")
-    assert stats["controller"]["fault_at_stop"] in ("None", "Watchdog"), stats["controller"]
+    assert stats["controller"]["fault_at_stop"] in ("NONE", "WATCHDOG"), stats["controller"]
     assert stats["send_errors"] == 0 and stats["rx_errors"] == 0, stats
     assert stats["bus_error_frames"] == 0, stats  # vcan has no controller to report errors
     # 1 kHz: one step per millisecond (see MIN_STEP_RATIO).
@@ -230,7 +230,7 @@ HOLD_S = 1.0  # driving before each stop
 def stops(robot_factory) -> Robot:
     """Three stops in one run: the host falls silent; the host only polls STATUS; e-stop."""
     with robot_factory("stops", runner_log=True) as robot:
-        # 1. Silence: the watchdog stops the robot and latches (Disabled, fault Watchdog).
+        # 1. Silence: the watchdog stops the robot and latches (DISABLED, fault WATCHDOG).
         robot.mode(MODE_ENABLE, mark="enable1")
         robot.twist(0.5, 0.0, 0.0)
         robot.start_stream()
@@ -727,10 +727,10 @@ def test_runner_log_replays_bit_identical_and_reads_with_rosbags(request, sessio
     assert topics["/odom"] == topics["/joint_states"] == topics["/diagnostics"] > stats["steps"] // 10
     assert sum(topics.values()) == stats["log"]["messages"]
     print(f"{session}: rosbags read {dict(topics)}; /rosout {texts}")
-    assert "state Enabled" in texts
+    assert "state ENABLED" in texts
     if session == "stops":
-        assert "state Disabled, fault Watchdog" in texts
-        assert any(t.startswith("state Estop") for t in texts)
+        assert "state DISABLED, fault WATCHDOG" in texts
+        assert any(t.startswith("state ESTOP") for t in texts)
     elif session == "malformed":
         assert stats["controller"]["rx_errors"]["wrong_dlc"] > 0
     else:
@@ -831,7 +831,7 @@ def test_the_runner_survives_the_link_going_down_and_keeps_the_robot_stopped(lin
     assert lost and back, out
     assert "Network is down" in lost.group(1)
     assert abs(float(back.group(1)) - down_s) < 0.002, (back.group(1), down_s)
-    assert back.group(2) != "Enabled", back.group(0)
+    assert back.group(2) != "ENABLED", back.group(0)
     # The core kept stepping through the gap: its steps over the run are those of the elapsed
     # time, the gap included.
     assert stats["steps"] >= MIN_STEP_RATIO * stats["elapsed_us"] / 1e3, stats["steps"]

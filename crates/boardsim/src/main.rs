@@ -229,7 +229,7 @@ fn run(
             "simulated_s": run.simulated_s,
             "wall_s": wall,
             "real_time_factor": run.simulated_s / wall,
-            "transitions": run.transitions.iter().map(|(t, st, f)| serde_json::json!({"t": t, "state": format!("{st:?}"), "fault": format!("{f:?}")})).collect::<Vec<_>>(),
+            "transitions": run.transitions.iter().map(|(t, st, f)| serde_json::json!({"t": t, "state": st.as_str(), "fault": f.as_str()})).collect::<Vec<_>>(),
             "odometry": odometry,
             "truth": run.truth,
             "final_position_error": error.map(|e| e.0),
@@ -249,7 +249,7 @@ fn run(
         elf.display()
     );
     for (t, st, f) in &run.transitions {
-        println!("  {t:8.3} s  state {st:?}, fault {f:?}");
+        println!("  {t:8.3} s  state {st}, fault {f}");
     }
     if let (Some(p), Some((dxy, dh))) = (odometry, error) {
         println!(

@@ -326,7 +326,7 @@ pub fn run_scenario(
                                 RobotState::Estop => msg::Log::WARN,
                                 _ => msg::Log::INFO,
                             };
-                            let text = format!("state {state:?}, fault {fault:?}");
+                            let text = format!("state {state}, fault {fault}");
                             l.text(tx.delivered_ns, level, &text)?;
                         }
                     }

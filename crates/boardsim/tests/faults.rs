@@ -69,7 +69,7 @@ fn both(s: &Scenario, onset_s: f64) -> [Seen; 2] {
     // The board's first STATUS reports its initial state; the core lists changes only.
     let board_states = run.transitions[1..]
         .iter()
-        .map(|(t, st, f)| (*t, format!("{st:?}"), format!("{f:?}")))
+        .map(|(t, st, f)| (*t, st.to_string(), f.to_string()))
         .collect();
     [(core.transitions, core_zero), (board_states, board_zero)]
 }
@@ -114,26 +114,26 @@ fn drives_silent_fault_the_board_as_the_core() {
         "drives silent",
         &scenario(&offline),
         0.5,
-        ("Fault", "MotorStale"),
+        ("FAULT", "MOTOR_STALE"),
     );
 }
 
 #[test]
 fn a_silent_host_trips_the_boards_watchdog() {
     let s = scenario("[[actions]]\nat_s = 0.5\nsilence = true\n");
-    check("host silent", &s, 0.5, ("Disabled", "Watchdog"));
+    check("host silent", &s, 0.5, ("DISABLED", "WATCHDOG"));
 }
 
 #[test]
 fn an_estop_latches_on_the_board() {
     let s = scenario("[[actions]]\nat_s = 0.5\nestop = true\n");
-    check("e-stop", &s, 0.5, ("Estop", "None"));
+    check("e-stop", &s, 0.5, ("ESTOP", "NONE"));
 }
 
 #[test]
 fn a_host_stuck_on_one_twist_frame_is_stopped_by_the_board() {
     let s = scenario("[[faults]]\nkind = \"repeated_twist\"\nfrom_s = 0.5\nuntil_s = 1.2\n");
-    check("stuck sender", &s, 0.5, ("Disabled", "Watchdog"));
+    check("stuck sender", &s, 0.5, ("DISABLED", "WATCHDOG"));
 }
 
 #[test]
@@ -203,14 +203,14 @@ fn a_stalled_loop_is_reset_by_the_watchdog_and_the_robot_stays_disabled() {
     let states: Vec<String> = run
         .transitions
         .iter()
-        .map(|(t, s, f)| format!("{t:.3} {s:?} {f:?}"))
+        .map(|(t, s, f)| format!("{t:.3} {s} {f}"))
         .collect();
     eprintln!("{states:?}");
     let (t, state, fault) = *run.transitions.last().unwrap();
     assert!(t > reset, "{states:?}");
     assert_eq!(
-        (format!("{state:?}"), format!("{fault:?}")),
-        ("Disabled".into(), "None".into())
+        (state.to_string(), fault.to_string()),
+        ("DISABLED".into(), "NONE".into())
     );
 }
 
@@ -219,7 +219,7 @@ fn a_flipped_motor_faults_the_board_as_the_core() {
     // The front-right motor mounted the other way round: it fights the other three as soon
     // as the robot drives.
     let s = scenario("[plant]\nflip = [1]\n");
-    check("flipped motor", &s, 0.1, ("Fault", "WheelFight"));
+    check("flipped motor", &s, 0.1, ("FAULT", "WHEEL_FIGHT"));
 }
 
 /// The board's last once-a-second report: its counter `name` (`rx`, `overruns`, ...).

@@ -65,7 +65,7 @@ fn square_on(config: &str) {
     let board_states: Vec<(String, String)> = run
         .transitions
         .iter()
-        .map(|(_, s, f)| (format!("{s:?}"), format!("{f:?}")))
+        .map(|(_, s, f)| (s.to_string(), f.to_string()))
         .collect();
     eprintln!("core  {:?}", core.transitions);
     eprintln!("board {:?}", run.transitions);

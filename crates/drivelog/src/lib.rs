@@ -90,15 +90,15 @@ pub fn heading_source_line(source: HeadingSource, gyro_timeout_ms: u32) -> (u8, 
         HeadingSource::WheelsGyroSilent => (
             msg::Log::WARN,
             format!(
-                "heading source WheelsGyroSilent: no valid IMU_YAW_RATE for {gyro_timeout_ms} ms, \
+                "heading source WHEELS_GYRO_SILENT: no valid IMU_YAW_RATE for {gyro_timeout_ms} ms, \
                  the wheels give the heading"
             ),
         ),
         HeadingSource::Gyro => (
             msg::Log::INFO,
-            "heading source Gyro: IMU_YAW_RATE alive, the gyro gives the heading".to_string(),
+            "heading source GYRO: IMU_YAW_RATE alive, the gyro gives the heading".to_string(),
         ),
-        HeadingSource::Wheels => (msg::Log::INFO, "heading source Wheels".to_string()),
+        HeadingSource::Wheels => (msg::Log::INFO, "heading source WHEELS".to_string()),
     }
 }
 

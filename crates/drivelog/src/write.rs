@@ -933,9 +933,9 @@ fn diagnostics(t_ns: u64, s: &Snapshot) -> msg::DiagnosticArray {
         _ => msg::DiagnosticStatus::OK,
     };
     let mut message = if s.fault == firmware::protocol::robot::Fault::None {
-        format!("{:?}", s.state)
+        s.state.to_string()
     } else {
-        format!("{:?}, fault {:?}", s.state, s.fault)
+        format!("{}, fault {}", s.state, s.fault)
     };
     if gyro_silent {
         message.push_str(", heading from the wheels: gyro silent");
@@ -947,8 +947,8 @@ fn diagnostics(t_ns: u64, s: &Snapshot) -> msg::DiagnosticArray {
             value,
         });
     };
-    kv("state", format!("{:?}", s.state));
-    kv("fault", format!("{:?}", s.fault));
+    kv("state", s.state.to_string());
+    kv("fault", s.fault.to_string());
     kv("motors_online", format!("{:#06b}", s.motors_online));
     kv("steps", s.steps.to_string());
     for (prefix, v) in [("commanded", &s.commanded), ("measured", &s.measured)] {
@@ -972,7 +972,7 @@ fn diagnostics(t_ns: u64, s: &Snapshot) -> msg::DiagnosticArray {
         kv(key, n.to_string());
     }
     if s.heading_source != HeadingSource::Wheels {
-        kv("heading_source", format!("{:?}", s.heading_source));
+        kv("heading_source", s.heading_source.to_string());
         kv("gyro_bias", s.gyro_bias.to_string());
         kv("gyro_bias_samples", s.gyro_bias_samples.to_string());
     }
@@ -1215,7 +1215,7 @@ mod tests {
                 log.bus_fault(t, "drives", "dropped", &frame(i), &frame(i))?;
             }
             if i % 100 == 0 {
-                log.text(t, msg::Log::INFO, "state Enabled")?;
+                log.text(t, msg::Log::INFO, "state ENABLED")?;
             }
             log.maybe_flush()?;
         }
@@ -1331,7 +1331,7 @@ mod tests {
         let diag = read.iter().find(|r| r.0 == "/diagnostics").unwrap();
         let diag: msg::DiagnosticArray = msg::decode(&diag.3).unwrap();
         let status = &diag.status[0];
-        assert_eq!(status.value("state"), Some("Disabled"));
+        assert_eq!(status.value("state"), Some("DISABLED"));
         assert_eq!(status.value("rx_wrong_dlc"), Some("0"));
         assert_eq!(status.value("repeated_seq"), Some("0"));
         let tf = read.iter().rfind(|r| r.0 == "/tf").unwrap();

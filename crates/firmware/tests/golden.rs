@@ -853,3 +853,56 @@ fn generic_frame_conversion() {
     let g: Option<CanFrame> = odrive::Command::GetError.to_frame(node2());
     assert!(g.unwrap().is_remote_frame());
 }
+
+/// Every state, fault, heading source, outcome and mode request is named as the DBC's value
+/// table names it: logs and printouts use these names (`as_str`, `Display`).
+#[test]
+fn names_are_the_dbc_value_tables() {
+    use robot::{HeadingSource, ModeRequest, TestOutcome};
+    let dbc = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../dbc/mecanum_robot.dbc"
+    ))
+    .unwrap();
+    // `VAL_ <id> <signal> 0 "NAME" 1 "NAME" ... ;` as (raw, name) pairs.
+    let table = |id: u32, signal: &str| -> Vec<(u8, String)> {
+        let head = format!("VAL_ {id} {signal} ");
+        let line = dbc.lines().find(|l| l.starts_with(&head)).unwrap();
+        let parts: Vec<&str> = line[head.len()..]
+            .trim_end_matches(" ;")
+            .split('"')
+            .collect();
+        parts
+            .chunks(2)
+            .filter(|c| c.len() == 2)
+            .map(|c| (c[0].trim().parse().unwrap(), c[1].to_string()))
+            .collect()
+    };
+    let check = |id, signal, names: &dyn Fn(u8) -> Option<&'static str>| {
+        let t = table(id, signal);
+        assert!(!t.is_empty(), "{signal}");
+        for (raw, name) in t {
+            assert_eq!(names(raw), Some(name.as_str()), "{signal} {raw}");
+        }
+    };
+    check(786, "state", &|r| {
+        RobotState::from_raw(r).map(RobotState::as_str)
+    });
+    check(799, "state", &|r| {
+        RobotState::from_raw(r).map(RobotState::as_str)
+    });
+    check(786, "fault", &|r| Fault::from_raw(r).map(Fault::as_str));
+    check(786, "heading_source", &|r| {
+        HeadingSource::from_raw(r).map(HeadingSource::as_str)
+    });
+    check(788, "outcome", &|r| {
+        TestOutcome::from_raw(r).map(TestOutcome::as_str)
+    });
+    check(770, "request", &|r| {
+        ModeRequest::from_raw(r).map(ModeRequest::as_str)
+    });
+    assert_eq!(
+        format!("{} {}", RobotState::WheelTest, Fault::WheelFight),
+        "WHEEL_TEST WHEEL_FIGHT"
+    );
+}

@@ -20,7 +20,7 @@ use std::fmt::Write as _;
 
 use firmware::config::{Config, Drive};
 use firmware::control::Fault;
-use firmware::protocol::robot::{self, RobotState, TestOutcome, WheelTestResult};
+use firmware::protocol::robot::{self, RobotState, WheelTestResult};
 
 use crate::drives::SimDrives;
 use crate::plant::ParamError;
@@ -315,14 +315,14 @@ pub fn report(configured: &Wiring, runs: &[WheelRun; 4], d: &Diagnosis) -> Strin
                 name,
                 r.angle,
                 r.peak_current,
-                outcome_name(r.outcome)
+                r.outcome.as_str()
             ),
             None => "firmware: no result".to_string(),
         };
         let fault = if run.fault == Fault::None {
             String::new()
         } else {
-            format!(", fault {:?}", run.fault)
+            format!(", fault {}", run.fault)
         };
         let _ = writeln!(
             s,
@@ -360,17 +360,6 @@ pub fn verdict_text(wheel: usize, v: Verdict) -> String {
             if s.forward { "forward" } else { "backward" }
         ),
         Verdict::Nothing => "no wheel turned".to_string(),
-    }
-}
-
-/// `DONE`, `STOPPED`, ... as the DBC names a `WHEEL_TEST_RESULT` outcome.
-#[must_use]
-pub const fn outcome_name(o: TestOutcome) -> &'static str {
-    match o {
-        TestOutcome::Done => "DONE",
-        TestOutcome::Stopped => "STOPPED",
-        TestOutcome::Fault => "FAULT",
-        TestOutcome::Refused => "REFUSED",
     }
 }
 

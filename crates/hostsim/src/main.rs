@@ -731,7 +731,7 @@ fn print_summary(s: &RunSummary, wall_s: f64) {
     );
     let e = s.last.rx_errors;
     println!(
-        "firmware: final state {:?} (fault {:?}); rejected frames {}, unknown ids {}, repeated twists {}",
+        "firmware: final state {} (fault {}); rejected frames {}, unknown ids {}, repeated twists {}",
         s.last.state,
         s.last.fault,
         e.total() - e.unknown_id,
@@ -743,7 +743,7 @@ fn print_summary(s: &RunSummary, wall_s: f64) {
     }
     if s.last.heading_source != firmware::protocol::robot::HeadingSource::Wheels {
         println!(
-            "gyro heading: final source {:?}, bias estimate {:+.4} °/s from {} standstill \
+            "gyro heading: final source {}, bias estimate {:+.4} °/s from {} standstill \
              samples; heading source changes:",
             s.last.heading_source,
             f64::from(s.last.gyro_bias).to_degrees(),
@@ -773,8 +773,8 @@ fn summary_json(s: &RunSummary, wall_s: f64) -> String {
         "final_position_error": s.final_position_error,
         "max_position_error": s.max_position_error,
         "final_heading_error": s.final_heading_error,
-        "state": format!("{:?}", s.last.state),
-        "fault": format!("{:?}", s.last.fault),
+        "state": s.last.state.as_str(),
+        "fault": s.last.fault.as_str(),
         "transitions": s.transitions,
         "heading_changes": s.heading_changes,
         "tx_hash": format!("{:016x}", s.tx_hash),
@@ -1377,7 +1377,7 @@ fn sweep(args: &SweepArgs) -> Result<ExitCode> {
 
 /// `check`: the bring-up check on a simulated robot on blocks.
 fn check(args: &CheckArgs) -> Result<ExitCode> {
-    use hostsim::bringup::{Wiring, diagnose, outcome_name, report, run_check};
+    use hostsim::bringup::{Wiring, diagnose, report, run_check};
     if !(args.speed.is_finite() && args.speed.abs() <= 10.0 && args.speed != 0.0) {
         bail!(
             "--speed {}: expected a wheel speed in [-10, 10] rad/s, not 0",
@@ -1406,11 +1406,11 @@ fn check(args: &CheckArgs) -> Result<ExitCode> {
                     "angles_rad": r.turned,
                     "verdict": hostsim::bringup::verdict_text(r.wheel, v),
                     "firmware": r.result.map(|t| serde_json::json!({
-                        "outcome": outcome_name(t.outcome),
+                        "outcome": t.outcome.as_str(),
                         "angle_rad": t.angle,
                         "peak_current_a": t.peak_current,
                     })),
-                    "fault": format!("{:?}", r.fault),
+                    "fault": r.fault.as_str(),
                 })
             })
             .collect();

@@ -376,7 +376,7 @@ pub fn run_observed<P: SimPlant>(
         }
         let state = (ctl.state(), ctl.fault());
         if state != last_state {
-            let msg = format!("state {:?}, fault {:?}", state.0, state.1);
+            let msg = format!("state {}, fault {}", state.0, state.1);
             if let Some(l) = log.as_deref_mut() {
                 // As `/diagnostics` rates them: a fault is an error, an e-stop a warning.
                 let level = match state.0 {
@@ -386,11 +386,7 @@ pub fn run_observed<P: SimPlant>(
                 };
                 l.text(t_ns, level, &msg)?;
             }
-            transitions.push((
-                t_us as f64 * 1e-6,
-                format!("{:?}", state.0),
-                format!("{:?}", state.1),
-            ));
+            transitions.push((t_us as f64 * 1e-6, state.0.to_string(), state.1.to_string()));
             last_state = state;
         }
         if ctl.heading_source() != last_heading {
@@ -400,7 +396,7 @@ pub fn run_observed<P: SimPlant>(
                 let (level, text) = crate::log::heading_source_line(last_heading, timeout_ms);
                 l.text(t_ns, level, &text)?;
             }
-            heading_changes.push((t_us as f64 * 1e-6, format!("{last_heading:?}")));
+            heading_changes.push((t_us as f64 * 1e-6, last_heading.to_string()));
         }
         let odom = pose_array(ctl.pose());
         let truth = plant.truth();

@@ -419,7 +419,7 @@ pub fn run_one(scenario: &Scenario, spec: &RunSpec) -> Result<Row, SweepError> {
         let snap = v.controller.snapshot();
         // A fault, or a watchdog stop (its reason shows while the robot is still enabled).
         if fault.is_none() && snap.fault != Fault::None {
-            fault = Some((format!("{:?}", snap.fault), t));
+            fault = Some((snap.fault.to_string(), t));
         }
         let pos = [v.truth[0], v.truth[1]];
         let speed = last_pos.map_or(0.0, |p| (pos[0] - p[0]).hypot(pos[1] - p[1]) / period_s);
@@ -441,10 +441,10 @@ pub fn run_one(scenario: &Scenario, spec: &RunSpec) -> Result<Row, SweepError> {
         index: spec.index,
         seed: spec.seed,
         values: spec.values.clone(),
-        final_state: format!("{:?}", summary.last.state),
+        final_state: summary.last.state.to_string(),
         fault: fault
             .as_ref()
-            .map_or_else(|| "None".into(), |f| f.0.clone()),
+            .map_or_else(|| "NONE".into(), |f| f.0.clone()),
         fault_at_s: fault.as_ref().map_or(f64::NAN, |f| f.1),
         stop_after_fault_s: match (&fault, stood_at) {
             (Some((_, at)), Some(stood)) => stood - at,

@@ -426,8 +426,8 @@ impl StateChange {
     fn new(t_ns: u64, state: RobotState, fault: Fault) -> Self {
         Self {
             t_s: format!("{:.6}", t_ns as f64 * 1e-9),
-            state: format!("{state:?}"),
-            fault: format!("{fault:?}"),
+            state: state.to_string(),
+            fault: fault.to_string(),
             key: (t_ns, state, fault),
         }
     }

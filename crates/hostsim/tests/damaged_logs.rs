@@ -293,7 +293,7 @@ fn a_flipped_byte_is_found_and_no_damaged_chunk_is_used() {
         ]);
     }
     offsets.extend([fx.data_end - 2, len - 30, len - 10, len - 1]);
-    let mut checked_chunks = 0;
+    let (mut checked_chunks, mut harmless_flips) = (0, 0);
     for &at in &offsets {
         let mut bytes = fx.bytes.clone();
         bytes[at] ^= 1 + rng.below(255) as u8;
@@ -321,7 +321,20 @@ fn a_flipped_byte_is_found_and_no_damaged_chunk_is_used() {
             "flip at {at}: chunks before the flipped record were lost ({r})"
         );
         // Everything of a chunk from its size field on is covered by its checks (size, CRC,
-        // compression, decompression): that chunk is refused, and only it.
+        // compression, decompression): that chunk is refused, and only it. Except a flip that
+        // leaves the decompressed records as they were (a bit of a zstd frame's entropy tables
+        // that the decoding does not use: 36 of the 7,024 single-bit flips of one 878-byte
+        // frame of this fixture): harmless, and only the data section's CRC (in Data End) sees
+        // it. Every message is then read, unchanged.
+        let data_end_record = fx.records.iter().find(|r| r.1 == fx.data_end).map(|r| r.0);
+        if opcode == mcap::records::op::CHUNK
+            && at >= start + 9 + 16
+            && Some(damage.offset as usize) == data_end_record
+            && n == fx.messages.len()
+        {
+            harmless_flips += 1;
+            continue;
+        }
         if opcode == mcap::records::op::CHUNK && at >= start + 9 + 16 {
             assert_eq!(damage.offset, start as u64, "flip at {at}: {r}");
             assert_eq!(n, fx.messages_before(start), "flip at {at}: {r}");
@@ -332,8 +345,14 @@ fn a_flipped_byte_is_found_and_no_damaged_chunk_is_used() {
         checked_chunks > 50,
         "{checked_chunks} flips in chunks' checked fields"
     );
+    // Rare: a handful at most of the some 250 flips.
+    assert!(
+        harmless_flips <= 3,
+        "{harmless_flips} flips changed no record"
+    );
     eprintln!(
-        "flipped {} bytes, {checked_chunks} of them in a chunk's checked fields",
+        "flipped {} bytes, {checked_chunks} of them in a chunk's checked fields, \
+         {harmless_flips} changing no record",
         offsets.len()
     );
 }

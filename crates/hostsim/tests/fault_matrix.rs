@@ -290,7 +290,7 @@ fn check_watchdog_stop(
         .first(wd.t_us, Step::zero_current)
         .ok_or("the currents never reached zero")?;
     if (zero.state, zero.fault) != (RobotState::Disabled, Fault::Watchdog) {
-        return Err(format!("zero current in {:?}/{:?}", zero.state, zero.fault));
+        return Err(format!("zero current in {}/{}", zero.state, zero.fault));
     }
     if zero.t_us >= until_us {
         return Err(format!("not stopped by {until_us} us"));
@@ -329,7 +329,7 @@ fn watchdog_row(fault: &str, onset: (f64, &str), s: &Scenario, rec: &Record) -> 
     Row {
         fault: fault.into(),
         onset: moment(onset),
-        expected: "zero current, then Disabled (Watchdog), latched".into(),
+        expected: "zero current, then DISABLED (WATCHDOG), latched".into(),
         budget,
         measured,
         detail,
@@ -370,7 +370,7 @@ fn stale_rule_row(
             (
                 "Enabled, no fault".to_string(),
                 "-".to_string(),
-                format!("{:?}, {:?}", last.state, last.fault),
+                format!("{}, {}", last.state, last.fault),
                 format!(
                     "{gap}; odometry error within {:.1} mm of the run without it",
                     d_odom * 1e3
@@ -398,7 +398,7 @@ fn stale_rule_row(
                 ),
             };
             (
-                "Fault (MotorStale), zero current".to_string(),
+                "FAULT (MOTOR_STALE), zero current".to_string(),
                 budget,
                 latency.map_or("-".to_string(), ms),
                 detail,
@@ -434,7 +434,7 @@ fn state_row(
     Row {
         fault: fault.into(),
         onset: moment(onset),
-        expected: format!("{:?} ({:?}), zero current", want.0, want.1),
+        expected: format!("{} ({}), zero current", want.0, want.1),
         budget: if budget.0 > 0 {
             format!("{} to {}", ms(budget.0), ms(budget.1))
         } else {
@@ -754,12 +754,12 @@ fn host_tolerated_row(fault: &str, onset: (f64, &str), s: &Scenario) -> Row {
         fault: fault.into(),
         onset: moment(onset),
         expected: if corrupting {
-            "Enabled, no fault; frames out of range rejected and counted".into()
+            "ENABLED, no fault; frames out of range rejected and counted".into()
         } else {
-            "Enabled, no fault".into()
+            "ENABLED, no fault".into()
         },
         budget: format!("twist gaps < {}", ms(timeout_us)),
-        measured: format!("{:?}, {:?}", last.state, last.fault),
+        measured: format!("{}, {}", last.state, last.fault),
         detail: if rec.corrupted_host > 0 {
             let repeats = if repeated > 0 {
                 format!(", {repeated} a repeat of the last seq")
@@ -814,7 +814,7 @@ fn stuck_at_rest_row(config: &Config) -> Row {
     Row {
         fault: "stuck encoder (RL) at rest, then drive off".into(),
         onset: "0.02 s at rest".into(),
-        expected: "Fault (EncoderStuck), zero current".into(),
+        expected: "FAULT (ENCODER_STUCK), zero current".into(),
         budget: format!(
             "≤ {} after it is driven hard",
             ms(ENCODER_STUCK_DRAGGED_US + 2 * MS)
@@ -870,9 +870,9 @@ fn non_finite_row(m: (f64, &str), base: Option<&Record>) -> Row {
     Row {
         fault: "non-finite twists (NaN, +inf, -inf) injected, 0.2 s".into(),
         onset: moment(m),
-        expected: "Enabled; all rejected and counted; last valid command kept".into(),
+        expected: "ENABLED; all rejected and counted; last valid command kept".into(),
         budget: "-".into(),
-        measured: format!("{:?}, {:?}", last.state, last.fault),
+        measured: format!("{}, {}", last.state, last.fault),
         detail: format!(
             "{rejected} of 30 rejected; commanded twist {} the run without them",
             if same { "identical to" } else { "DIFFERS from" }

@@ -167,8 +167,8 @@ fn gyro_heading_after_the_60s_figure_eight_is_within_1_degree() {
     assert_eq!(
         g.heading_changes,
         [
-            (0.0, "WheelsGyroSilent".to_string()),
-            (at(6_000), "Gyro".to_string())
+            (0.0, "WHEELS_GYRO_SILENT".to_string()),
+            (at(6_000), "GYRO".to_string())
         ]
     );
     assert!(w.heading_changes.is_empty());
@@ -257,10 +257,10 @@ fn a_silent_gyro_falls_back_to_the_wheels_with_the_reason_reported_and_comes_bac
     assert_eq!(
         r.heading_changes,
         [
-            (0.0, "WheelsGyroSilent".to_string()),
-            (at(6_000), "Gyro".to_string()),
-            (at(fell_back_us), "WheelsGyroSilent".to_string()),
-            (at(returned_us), "Gyro".to_string()),
+            (0.0, "WHEELS_GYRO_SILENT".to_string()),
+            (at(6_000), "GYRO".to_string()),
+            (at(fell_back_us), "WHEELS_GYRO_SILENT".to_string()),
+            (at(returned_us), "GYRO".to_string()),
         ]
     );
     // A warning, not a fault: the robot drove on.
@@ -314,12 +314,12 @@ fn a_silent_gyro_falls_back_to_the_wheels_with_the_reason_reported_and_comes_bac
                         .map(|kv| kv.value.clone())
                 };
                 match value("heading_source").as_deref() {
-                    Some("WheelsGyroSilent") => silent_diagnostics.push((
+                    Some("WHEELS_GYRO_SILENT") => silent_diagnostics.push((
                         m.log_time / 1000,
                         status.level,
                         status.message.clone(),
                     )),
-                    Some("Gyro") => gyro_diagnostics += 1,
+                    Some("GYRO") => gyro_diagnostics += 1,
                     other => panic!("heading_source {other:?}"),
                 }
                 assert!(value("gyro_bias").is_some() && value("gyro_bias_samples").is_some());
@@ -333,11 +333,11 @@ fn a_silent_gyro_falls_back_to_the_wheels_with_the_reason_reported_and_comes_bac
     let (t, level, text) = &rosout[2];
     assert_eq!((*t, *level), (fell_back_us, msg::Log::WARN));
     assert!(
-        text.contains("WheelsGyroSilent") && text.contains("no valid IMU_YAW_RATE for 50 ms"),
+        text.contains("WHEELS_GYRO_SILENT") && text.contains("no valid IMU_YAW_RATE for 50 ms"),
         "{text}"
     );
     assert_eq!((rosout[3].0, rosout[3].1), (returned_us, msg::Log::INFO));
-    assert!(rosout[3].2.contains("Gyro"), "{}", rosout[3].2);
+    assert!(rosout[3].2.contains("GYRO"), "{}", rosout[3].2);
     // Every 10 ms from the fallback to the return (and the first step).
     let during: Vec<_> = silent_diagnostics.iter().filter(|d| d.0 > 0).collect();
     assert!(
@@ -350,7 +350,7 @@ fn a_silent_gyro_falls_back_to_the_wheels_with_the_reason_reported_and_comes_bac
         (returned_us.div_ceil(10_000) - fell_back_us.div_ceil(10_000))
     );
     assert!(during.iter().all(|d| d.1 == msg::DiagnosticStatus::WARN
-        && d.2 == "Enabled, heading from the wheels: gyro silent"));
+        && d.2 == "ENABLED, heading from the wheels: gyro silent"));
     assert!(gyro_diagnostics > 1000);
     // `hostsim summary` lists the changes among the events.
     let summary = hostsim::summary::summarize(&path).unwrap();
@@ -528,7 +528,7 @@ fn without_an_imu_table_a_scenario_runs_as_before_and_the_gyro_config_falls_back
             .iter()
             .all(|(_, st)| st.heading_source == HeadingSource::WheelsGyroSilent)
     );
-    assert_eq!(g.heading_changes, [(0.0, "WheelsGyroSilent".to_string())]);
+    assert_eq!(g.heading_changes, [(0.0, "WHEELS_GYRO_SILENT".to_string())]);
     assert!(
         (g_err.last - w_err.last).abs() < 1e-3,
         "{g_err:?} vs {w_err:?}"

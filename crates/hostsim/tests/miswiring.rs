@@ -229,7 +229,7 @@ fn square_is_clean(firmware: &Config, config: &Config, spec: &PlantSpec) -> f64 
         summary
             .transitions
             .iter()
-            .all(|(_, state, _)| state != "Fault"),
+            .all(|(_, state, _)| state != "FAULT"),
         "{:?}",
         summary.transitions
     );

@@ -117,7 +117,7 @@ fn the_firmware_runner_drives_the_real_time_plant_forward() {
     // The firmware ran 2000 steps, on time, enabled, with all four motors online.
     assert_eq!(fw_report.stop, StopReason::Duration);
     assert_eq!((fw_report.steps, fw_report.overruns), (2000, 0));
-    assert_eq!(fw_report.controller.state_at_stop, "Enabled");
+    assert_eq!(fw_report.controller.state_at_stop, "ENABLED");
     assert_eq!(fw_report.controller.motors_online, 0b1111);
     assert_eq!(fw_report.send_errors, 0);
     // The plant: 2000 ticks, no lateness in virtual time, 4 feedback frames a millisecond.
@@ -442,7 +442,7 @@ fn the_real_time_plant_can_carry_the_imu_for_a_gyro_runner() {
         "{}",
         plant_report.frames_sent
     );
-    assert_eq!(fw_report.controller.state_at_stop, "Enabled");
+    assert_eq!(fw_report.controller.state_at_stop, "ENABLED");
     assert_eq!(
         snapshot.heading_source,
         firmware::control::HeadingSource::Gyro

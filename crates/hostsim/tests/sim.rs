@@ -86,7 +86,7 @@ fn watchdog_stops_and_disables_the_robot_when_the_host_goes_silent() {
     // Last command at 1.08 s (50 Hz stream from 0.1 s, silence at 1.1 s); timeout 100 ms;
     // 0.8 m/s at the 8 m/s² stop deceleration takes 100 ms more.
     let (t, state, _) = s.transitions.last().unwrap();
-    assert_eq!(state, "Disabled");
+    assert_eq!(state, "DISABLED");
     assert!((1.275..1.29).contains(t), "disabled at {t} s");
 }
 
@@ -116,7 +116,7 @@ fn a_motor_going_offline_faults_the_firmware_within_a_few_ms() {
     let (t, _, _) = r
         .transitions
         .iter()
-        .find(|(_, state, _)| state == "Fault")
+        .find(|(_, state, _)| state == "FAULT")
         .unwrap();
     assert!((0.502..=0.506).contains(t), "fault at {t} s");
     assert_eq!(r.last.motors_online, 0b1101, "FR is stale: not online");
@@ -518,7 +518,7 @@ fn the_scenario_module_example_does_what_its_comments_say() {
     let stops: Vec<_> = r
         .transitions
         .iter()
-        .filter(|(_, _, fault)| fault != "None")
+        .filter(|(_, _, fault)| fault != "NONE")
         .collect();
     assert!(!stops.is_empty(), "{:?}", r.transitions);
     for (t, state, fault) in &stops {
@@ -527,7 +527,7 @@ fn the_scenario_module_example_does_what_its_comments_say() {
             "{t} s: {state} {fault}; {:?}",
             r.transitions
         );
-        assert_eq!(fault, "Watchdog", "{t} s: {state}");
+        assert_eq!(fault, "WATCHDOG", "{t} s: {state}");
     }
     assert_eq!(r.last.fault, Fault::Watchdog);
 }

@@ -195,7 +195,7 @@ fn a_fault_only_the_what_if_has_is_reported_with_its_time() {
     let watchdog = |changes: &[hostsim::whatif::StateChange]| {
         changes
             .iter()
-            .find(|c| c.fault == "Watchdog")
+            .find(|c| c.fault == "WATCHDOG")
             .map(|c| (seconds(&c.t_s), c.state.clone()))
     };
     assert_eq!(watchdog(&r.states.logged), None, "{:?}", r.states.logged);
@@ -204,13 +204,13 @@ fn a_fault_only_the_what_if_has_is_reported_with_its_time() {
     // every 100 ms, so the frames show it at 0.2 s.
     let (t_core, state) = watchdog(&r.states.what_if_core).unwrap();
     assert!((0.110..0.115).contains(&t_core), "{t_core}");
-    assert_eq!(state, "Enabled", "stopping, not yet disabled");
+    assert_eq!(state, "ENABLED", "stopping, not yet disabled");
     assert_eq!(t_status, 0.2);
     assert!(
         r.states
             .what_if_core
             .iter()
-            .any(|c| c.state == "Disabled" && c.fault == "Watchdog"),
+            .any(|c| c.state == "DISABLED" && c.fault == "WATCHDOG"),
         "{:?}",
         r.states.what_if_core
     );

@@ -147,27 +147,7 @@ pub fn send_with_retry<B: Bus, C: Clock>(
 }
 
 fn state_name(s: &Snapshot) -> (&'static str, &'static str) {
-    use firmware::control::Fault;
-    use firmware::protocol::robot::RobotState;
-    let state = match s.state {
-        RobotState::Disabled => "Disabled",
-        RobotState::Enabled => "Enabled",
-        RobotState::Fault => "Fault",
-        RobotState::Estop => "Estop",
-        RobotState::WheelTest => "WheelTest",
-    };
-    let fault = match s.fault {
-        Fault::None => "None",
-        Fault::MotorStale => "MotorStale",
-        Fault::MotorMissing => "MotorMissing",
-        Fault::DriveError => "DriveError",
-        Fault::Watchdog => "Watchdog",
-        Fault::Config => "Config",
-        Fault::EncoderStuck => "EncoderStuck",
-        Fault::WheelRunaway => "WheelRunaway",
-        Fault::WheelFight => "WheelFight",
-    };
-    (state, fault)
+    (s.state.as_str(), s.fault.as_str())
 }
 
 /// What the loop did, as [`run_recorded`] reports it (see [Recording](crate::run_recorded#recording)).

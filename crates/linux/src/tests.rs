@@ -233,8 +233,8 @@ fn a_stop_sends_the_shutdown_frames() {
     assert_eq!(r.stop, StopReason::Signal(15));
     assert_eq!(r.stop.to_string(), "SIGTERM");
     assert_eq!(r.steps, 6);
-    assert_eq!(r.controller.state_at_stop, "Enabled");
-    assert_eq!(r.controller.state_after_shutdown, "Disabled");
+    assert_eq!(r.controller.state_at_stop, "ENABLED");
+    assert_eq!(r.controller.state_after_shutdown, "DISABLED");
     let motor: Vec<&CanFrame> = bus
         .sent
         .iter()
@@ -596,7 +596,7 @@ fn the_report_serialises_to_json() {
     assert_eq!(v["stop"], "duration");
     assert_eq!(v["steps"], 2);
     assert_eq!(v["jitter"]["p99_us"], 0);
-    assert_eq!(v["controller"]["state_at_stop"], "Disabled");
+    assert_eq!(v["controller"]["state_at_stop"], "DISABLED");
     assert_eq!(v["controller"]["rx_errors"]["wrong_dlc"], 0);
     assert_eq!(v["controller"]["repeated_seq"], 0);
     assert_eq!(v["shutdown"]["sent"], 1);

@@ -340,9 +340,9 @@ impl McapRecorder {
                 _ => msg::Log::INFO,
             };
             let text = if s.fault == Fault::None {
-                format!("state {:?}", s.state)
+                format!("state {}", s.state)
             } else {
-                format!("state {:?}, fault {:?}", s.state, s.fault)
+                format!("state {}, fault {}", s.state, s.fault)
             };
             self.with(|log| log.text(t_ns, level, &text));
         }
@@ -460,7 +460,7 @@ impl Recorder for McapRecorder {
 ///
 /// ```text
 /// mecanum-runner: can0: link LOST at 12.345 s (receive: Network is down (os error 100)); the core keeps stepping, nothing is sent; reopening with back-off
-/// mecanum-runner: can0: link back at 14.367 s after 2.022 s down (5 reopen attempts); the core is Fault (MotorStale): reset and enable to drive again
+/// mecanum-runner: can0: link back at 14.367 s after 2.022 s down (5 reopen attempts); the core is FAULT (MOTOR_STALE): reset and enable to drive again
 /// ```
 pub struct Console<'a> {
     iface: &'a str,
@@ -493,9 +493,9 @@ impl Recorder for Console<'_> {
         }
         if let Some((at, down_us, attempts)) = self.restored.take() {
             let state = match (controller.state(), controller.fault()) {
-                (RobotState::Enabled, _) => "Enabled".to_string(),
-                (s, Fault::None) => format!("{s:?}: enable to drive again"),
-                (s, f) => format!("{s:?} ({f:?}): reset and enable to drive again"),
+                (RobotState::Enabled, _) => RobotState::Enabled.to_string(),
+                (s, Fault::None) => format!("{s}: enable to drive again"),
+                (s, f) => format!("{s} ({f}): reset and enable to drive again"),
             };
             eprintln!(
                 "mecanum-runner: {}: link back at {:.3} s after {:.3} s down ({attempts} reopen attempts); the core is {state}",

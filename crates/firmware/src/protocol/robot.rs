@@ -378,7 +378,7 @@ pub enum Fault {
 }
 
 macro_rules! u8_enum {
-    ($ty:ident { $($variant:ident = $raw:literal),+ $(,)? }) => {
+    ($ty:ident { $($variant:ident = $raw:literal => $name:literal),+ $(,)? }) => {
         impl $ty {
             /// The enum value for a raw byte; `None` for values not defined.
             #[must_use]
@@ -393,6 +393,21 @@ macro_rules! u8_enum {
             #[must_use]
             pub const fn raw(self) -> u8 {
                 self as u8
+            }
+
+            /// The name in the DBC's value table (`dbc/mecanum_robot.dbc`): the name every
+            /// log and printout uses, stable when the Rust variant is renamed.
+            #[must_use]
+            pub const fn as_str(self) -> &'static str {
+                match self {
+                    $(Self::$variant => $name,)+
+                }
+            }
+        }
+
+        impl core::fmt::Display for $ty {
+            fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+                f.write_str(self.as_str())
             }
         }
     };
@@ -412,35 +427,35 @@ pub enum HeadingSource {
     WheelsGyroSilent = 2,
 }
 
-u8_enum!(ModeRequest { Disable = 0, Enable = 1, Reset = 2 });
+u8_enum!(ModeRequest { Disable = 0 => "DISABLE", Enable = 1 => "ENABLE", Reset = 2 => "RESET" });
 u8_enum!(RobotState {
-    Disabled = 0,
-    Enabled = 1,
-    Fault = 2,
-    Estop = 3,
-    WheelTest = 4,
+    Disabled = 0 => "DISABLED",
+    Enabled = 1 => "ENABLED",
+    Fault = 2 => "FAULT",
+    Estop = 3 => "ESTOP",
+    WheelTest = 4 => "WHEEL_TEST",
 });
 u8_enum!(TestOutcome {
-    Done = 0,
-    Stopped = 1,
-    Fault = 2,
-    Refused = 3,
+    Done = 0 => "DONE",
+    Stopped = 1 => "STOPPED",
+    Fault = 2 => "FAULT",
+    Refused = 3 => "REFUSED",
 });
 u8_enum!(HeadingSource {
-    Wheels = 0,
-    Gyro = 1,
-    WheelsGyroSilent = 2,
+    Wheels = 0 => "WHEELS",
+    Gyro = 1 => "GYRO",
+    WheelsGyroSilent = 2 => "WHEELS_GYRO_SILENT",
 });
 u8_enum!(Fault {
-    None = 0,
-    MotorStale = 1,
-    MotorMissing = 2,
-    DriveError = 3,
-    Watchdog = 4,
-    Config = 5,
-    EncoderStuck = 6,
-    WheelRunaway = 7,
-    WheelFight = 8,
+    None = 0 => "NONE",
+    MotorStale = 1 => "MOTOR_STALE",
+    MotorMissing = 2 => "MOTOR_MISSING",
+    DriveError = 3 => "DRIVE_ERROR",
+    Watchdog = 4 => "WATCHDOG",
+    Config = 5 => "CONFIG",
+    EncoderStuck = 6 => "ENCODER_STUCK",
+    WheelRunaway = 7 => "WHEEL_RUNAWAY",
+    WheelFight = 8 => "WHEEL_FIGHT",
 });
 
 /// A twist setpoint (`TWIST_CMD`), body frame.
