@@ -220,6 +220,19 @@ class RosPeer:
         self._make = make
         self._publisher = self._publisher_node.create_publisher(kind, "/cmd_vel", 10)
 
+    def wait_cmd_vel_subscribers(self, count: int, timeout: float, what: str) -> None:
+        """Waits until `count` subscriptions (bridges) are matched to the /cmd_vel publisher. A
+        bridge's /diagnostics reaching this node does not mean its /cmd_vel subscription has met
+        the publisher: a TwistStamped publisher lives in a participant of its own, discovered on
+        its own, which on a loaded machine takes longer than the first twists would wait."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self._publisher.get_subscription_count() >= count:
+                return
+            time.sleep(0.05)
+        raise AssertionError(f"{what}: {self._publisher.get_subscription_count()} /cmd_vel subscribers "
+                             f"after {timeout} s, {count} expected")
+
     def publish_once(self, vx: float, vy: float, wz: float) -> float:
         """Publishes one /cmd_vel message (the stream must be stopped); returns the time."""
         assert self._make is not None and self._stream is None

@@ -216,6 +216,7 @@ def session(robot_factory, private_net: str, tester: RosPeer, tmp_path_factory: 
             b1, b1_out = _bridge(workdir, "bridge1", private_net)
             procs.append(b1)
             tester.wait_diag(lambda d: d.values.get("motors_online") == "FL FR RL RR", READY_S, "bridge 1 ready")
+            tester.wait_cmd_vel_subscribers(1, READY_S, "bridge 1 on /cmd_vel")
             marks["ready1"] = time.time()
             calls["enable"] = tester.call("/mecanum_drive/enable", READY_S)
             for name, vx, vy, wz in MOTIONS:
@@ -251,6 +252,7 @@ def session(robot_factory, private_net: str, tester: RosPeer, tmp_path_factory: 
             procs.append(b2)
             tester.wait_diag(lambda d: d.values.get("state") == "ENABLED", READY_S, "bridge 2 enabled",
                              since=marks["bridge2"])
+            tester.wait_cmd_vel_subscribers(1, READY_S, "bridge 2 on /cmd_vel (TwistStamped)")
             marks["too_fast"] = tester.twist(*TOO_FAST)
             time.sleep(1.0)
             marks["clamp_diag"] = time.time()
