@@ -85,7 +85,8 @@ pub struct BoardRun {
     pub truth: [f64; 3],
     /// The board's log (its times in board cycles since power-on: [`Self::line_time_s`]).
     pub lines: Vec<LogLine>,
-    /// Power-on to the board's first frame, where the scenario's time starts, ns.
+    /// Power-on to the tick of the board's first control step, where the scenario's time
+    /// starts, ns ([`Lockstep::power_on`]).
     pub boot_ns: u64,
     /// Frames delivered to the board.
     pub frames_received: u64,
@@ -234,7 +235,7 @@ pub fn run_scenario(
             lines: std::mem::take(lines),
         }
     };
-    // The scenario starts at the board's first frame (see `Lockstep::power_on`).
+    // The scenario starts at the tick of the board's first step (see `Lockstep::power_on`).
     let boot_ns = ls
         .power_on(BOOT_LIMIT_NS)
         .map_err(|e| stopped(&mut ls, &mut lines, e))?;
