@@ -105,8 +105,8 @@ pub fn heading_source_line(source: HeadingSource, gyro_timeout_ms: u32) -> (u8, 
 /// The MCAP profile of every log.
 pub const PROFILE: &str = "ros2";
 
-/// The name of the metadata record that holds the run's configuration (`config`, TOML) and
-/// origin (`program`: `hostsim run`, `hostsim plant`, `mecanum-runner`; `scenario`, `seed`,
+/// The name of the metadata record that holds the run's configuration (`config`, TOML; its
+/// id `config_id`, `0x1a2b`, as the robot's `HEARTBEAT` sends it) and origin (`program`: `hostsim run`, `hostsim plant`, `mecanum-runner`; `scenario`, `seed`,
 /// `hostsim_version`, `firmware_version`, `protocol_version` as the program knows them).
 pub const METADATA_NAME: &str = "mecanum_drive";
 
