@@ -227,6 +227,8 @@ pub fn run_scenario(
     let mut board_frames = Vec::new();
     let mut stall_at = harness.stall_timer_at_ns;
     let mut hold_rx = harness.hold_can_rx_ns;
+    // What the image's HEARTBEATs must carry.
+    let config_id = scenario.config.id();
     let stopped = |ls: &mut Lockstep, lines: &mut Vec<LogLine>, error| {
         lines.extend(ls.board.take_lines());
         RunError::Board {
@@ -331,10 +333,10 @@ pub fn run_scenario(
                             l.text(tx.delivered_ns, level, &text)?;
                         }
                     }
-                    Some(Seen::ConfigId(image)) if image != scenario.config.id() => {
+                    Some(Seen::ConfigId(image)) if image != config_id => {
                         return Err(RunError::ConfigMismatch {
                             image,
-                            scenario: scenario.config.id(),
+                            scenario: config_id,
                         });
                     }
                     Some(Seen::ConfigId(_)) | None => {}

@@ -107,19 +107,10 @@ fn square_on(config: &str) {
 /// The ODrive image with the DJI scenario: refused at its first HEARTBEAT, both ids named.
 #[test]
 fn an_image_built_for_another_configuration_is_refused() {
-    use boardsim::run::{RunError, run_scenario};
-    use boardsim::{Board, Image};
+    use boardsim::run::RunError;
     let scenario = Scenario::builtin("square").unwrap();
-    let board = Board::new(Image::read(&elf_for("odrive")).unwrap()).unwrap();
-    let e = run_scenario(
-        &scenario,
-        board,
-        None,
-        LogOptions::default(),
-        Harness::default(),
-        |_| {},
-    )
-    .expect_err("refused");
+    let e = common::try_board_run_on(&elf_for("odrive"), &scenario, Harness::default())
+        .expect_err("refused");
     let (image, wanted) = (
         firmware::Config::odrive_example().id(),
         scenario.config.id(),

@@ -7,7 +7,7 @@ use std::io;
 use embedded_can::Frame as _;
 
 use firmware::CanFrame;
-use firmware::control::{Controller, Instant, Snapshot};
+use firmware::control::{Controller, Instant};
 
 use crate::bus::{Bus, ErrorKind, classify, is_bus_error_frame, is_busy};
 use crate::clock::Clock;
@@ -144,10 +144,6 @@ pub fn send_with_retry<B: Bus, C: Clock>(
             Err(e) => return Err(e),
         }
     }
-}
-
-fn state_name(s: &Snapshot) -> (&'static str, &'static str) {
-    (s.state.as_str(), s.fault.as_str())
 }
 
 /// What the loop did, as [`run_recorded`] reports it (see [Recording](crate::run_recorded#recording)).
@@ -422,7 +418,7 @@ pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
     recorder.step_done();
     let (link, link_error) = link.finish(clock.now_micros());
     let after = controller.snapshot();
-    let (state_at_stop, fault_at_stop) = state_name(&at_stop);
+    let (state_at_stop, fault_at_stop) = (at_stop.state.as_str(), at_stop.fault.as_str());
 
     Report {
         stop: stop_reason,
@@ -453,7 +449,7 @@ pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
         controller: ControllerReport {
             state_at_stop,
             fault_at_stop,
-            state_after_shutdown: state_name(&after).0,
+            state_after_shutdown: after.state.as_str(),
             steps: after.steps,
             motors_online: at_stop.motors_online,
             rx_errors: at_stop.rx_errors,

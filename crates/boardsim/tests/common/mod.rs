@@ -4,7 +4,7 @@
 
 use std::path::PathBuf;
 
-use boardsim::run::{BoardRun, Harness, run_scenario};
+use boardsim::run::{BoardRun, Harness, RunError, run_scenario};
 use boardsim::{Board, Image};
 use firmware::protocol::robot::Telemetry;
 use hostsim::scenario::Scenario;
@@ -43,6 +43,15 @@ pub fn board_run(scenario: &Scenario, harness: Harness) -> BoardRun {
 
 /// `scenario` with the board image `elf` as the firmware node, no log.
 pub fn board_run_on(elf: &std::path::Path, scenario: &Scenario, harness: Harness) -> BoardRun {
+    try_board_run_on(elf, scenario, harness).unwrap()
+}
+
+/// [`board_run_on`], its error returned.
+pub fn try_board_run_on(
+    elf: &std::path::Path,
+    scenario: &Scenario,
+    harness: Harness,
+) -> Result<BoardRun, RunError> {
     let board = Board::new(Image::read(elf).unwrap()).unwrap();
     run_scenario(
         scenario,
@@ -52,7 +61,6 @@ pub fn board_run_on(elf: &std::path::Path, scenario: &Scenario, harness: Harness
         harness,
         |_| {},
     )
-    .unwrap()
 }
 
 /// The `config_id` of every `HEARTBEAT` the board sent.

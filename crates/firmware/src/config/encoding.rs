@@ -87,38 +87,35 @@ impl Config {
         // The factors at the end of the geometry's bytes, whichever the layout.
         w.at = start + GEOMETRY_LEN - 3 * 4;
         w.f32s(&geometry.effectiveness().as_array());
-        let start = w.at;
-        match drive {
+        // Both drives in one layout, as `decode` reads it: protocol, ESC model (0 for ODrive),
+        // ids, gear ratio, inversion bits, then the ODrive's ramp flag (0 for DJI).
+        let (protocol, model, ids, gear_ratio, inverted, vel_ramp) = match drive {
             Drive::Dji {
                 model,
                 esc_ids,
                 gear_ratio,
                 inverted,
             } => {
-                w.u8(0);
-                w.u8(match model {
+                let model = match model {
                     EscModel::C620 => 0,
                     EscModel::C610 => 1,
-                });
-                w.bytes(&esc_ids);
-                w.f32s(&[gear_ratio]);
-                w.u8(bits(inverted));
+                };
+                (0, model, esc_ids, gear_ratio, inverted, false)
             }
             Drive::Odrive {
                 node_ids,
                 gear_ratio,
                 inverted,
                 vel_ramp,
-            } => {
-                w.u8(1);
-                w.u8(0);
-                w.bytes(&node_ids);
-                w.f32s(&[gear_ratio]);
-                w.u8(bits(inverted));
-                w.u8(u8::from(vel_ramp));
-            }
-        }
-        w.at = start + DRIVE_LEN;
+            } => (1, 0, node_ids, gear_ratio, inverted, vel_ramp),
+        };
+        w.u8(protocol);
+        w.u8(model);
+        w.bytes(&ids);
+        w.f32s(&[gear_ratio]);
+        w.u8(bits(inverted));
+        w.u8(u8::from(vel_ramp));
+        debug_assert_eq!(w.at, 1 + GEOMETRY_LEN + DRIVE_LEN);
         let Limits {
             max_linear_speed,
             max_angular_speed,
