@@ -1,0 +1,153 @@
+//! What the core reports: the frames it sends at their rates (odometry, status and its
+//! counters, the heartbeat, a wheel test's result), and the [`Snapshot`] logs and tests read.
+
+use kinematics::{ChassisVelocity, Pose2, WheelSpeeds};
+
+use super::{Controller, Instant, Outbox, push};
+use crate::protocol::RxErrorCounters;
+use crate::protocol::robot::{self, Fault, HeadingSource, RobotState};
+
+/// Snapshot of the controller for logs and tests.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Snapshot {
+    /// State.
+    pub state: RobotState,
+    /// Current fault, or the reason of the last watchdog stop.
+    pub fault: Fault,
+    /// Odometry pose.
+    pub pose: Pose2<f32>,
+    /// Body velocity measured by the wheels (forward kinematics).
+    pub measured: ChassisVelocity<f32>,
+    /// Body velocity being commanded after acceleration limits.
+    pub commanded: ChassisVelocity<f32>,
+    /// Wheel speed setpoints, rad/s.
+    pub wheel_setpoints: WheelSpeeds<f32, 4>,
+    /// Measured wheel speeds, rad/s.
+    pub wheel_speeds: WheelSpeeds<f32, 4>,
+    /// Wheel angles since the start, rad (robot-forward positive), as the odometry
+    /// integrated them (f32: about 8 mrad resolution at 65,536 rad).
+    pub wheel_angles: [f32; 4],
+    /// Motor currents commanded, A (current-mode drives; zero otherwise).
+    pub currents: [f32; 4],
+    /// Bit i set when wheel i's motor is online: its last feedback was within the
+    /// staleness window at the last step.
+    pub motors_online: u8,
+    /// Rejected frames by kind.
+    pub rx_errors: RxErrorCounters,
+    /// `TWIST_CMD`s not applied because their `seq` repeated the last accepted one's
+    /// (saturating; `docs/control.md`, "Command watchdog"). Not rejected frames: they
+    /// decode, so `rx_errors` does not count them. Repeated `IMU_YAW_RATE` frames are
+    /// counted here too.
+    pub repeated_seq: u32,
+    /// Where the odometry's heading came from at the last step.
+    pub heading_source: HeadingSource,
+    /// The gyro's estimated bias, rad/s (0 until learned, and without a gyro).
+    pub gyro_bias: f32,
+    /// Standstill readings in the gyro's bias estimate (at most
+    /// [`GYRO_BIAS_MAX_SAMPLES`](super::GYRO_BIAS_MAX_SAMPLES)).
+    pub gyro_bias_samples: u32,
+    /// Steps run.
+    pub steps: u64,
+}
+
+impl Controller {
+    /// Everything a log or a test wants to see.
+    #[must_use]
+    pub fn snapshot(&self) -> Snapshot {
+        Snapshot {
+            state: self.state,
+            fault: self.fault,
+            pose: self.odometry.pose(),
+            measured: self.measured,
+            commanded: self.commanded,
+            wheel_setpoints: self.setpoints,
+            wheel_speeds: WheelSpeeds(self.wheels.map(|w| w.speed)),
+            wheel_angles: self.wheels.map(|w| w.angle),
+            currents: self.currents,
+            motors_online: self.online,
+            rx_errors: self.rx_errors,
+            repeated_seq: self.repeated_seq,
+            heading_source: self.gyro.source,
+            gyro_bias: self.gyro.bias,
+            gyro_bias_samples: self.gyro.samples,
+            steps: self.steps,
+        }
+    }
+
+    /// The robot's frames due at step `now`: odometry (`odom_due`), status and its counters
+    /// (`status_due`, or asked for), a wheel test's result, the heartbeat (`status_due`).
+    pub(super) fn emit_telemetry(
+        &mut self,
+        out: &mut Outbox,
+        now: Instant,
+        boot: Instant,
+        odom_due: bool,
+        status_due: bool,
+    ) {
+        if odom_due {
+            let p = self.odometry.pose();
+            push(
+                out,
+                robot::Telemetry::OdomPosition(robot::OdomPosition { x: p.x, y: p.y })
+                    .to_can_frame(),
+            );
+            push(
+                out,
+                robot::Telemetry::OdomVelocity(robot::OdomVelocity {
+                    heading: p.heading,
+                    vx: self.measured.vx,
+                    vy: self.measured.vy,
+                    wz: self.measured.wz,
+                })
+                .to_can_frame(),
+            );
+        }
+        if status_due || self.status_requested {
+            self.status_requested = false;
+            let e = &self.rx_errors;
+            let sat = |n: u32| u16::try_from(n).unwrap_or(u16::MAX);
+            push(
+                out,
+                robot::Telemetry::Status(robot::Status {
+                    state: self.state,
+                    fault: self.fault,
+                    rx_errors: sat(e.total().saturating_sub(e.unknown_id)),
+                    unknown_ids: sat(e.unknown_id),
+                    motors_online: self.online,
+                    heading_source: self.gyro.source,
+                    seq: self.status_seq,
+                })
+                .to_can_frame(),
+            );
+            self.status_seq = self.status_seq.wrapping_add(1);
+            // Right after STATUS, which has no room left for them.
+            push(
+                out,
+                robot::Telemetry::StatusCounters(robot::StatusCounters {
+                    repeated_seq: sat(self.repeated_seq),
+                    wrong_dlc: sat(e.wrong_dlc),
+                    out_of_range: sat(e.out_of_range),
+                    non_finite: sat(e.non_finite),
+                })
+                .to_can_frame(),
+            );
+        }
+        if let Some(r) = self.test_result.take() {
+            push(out, robot::Telemetry::WheelTestResult(r).to_can_frame());
+        }
+        if status_due {
+            let uptime_ms = now.micros_since(boot) / 1000;
+            push(
+                out,
+                robot::Telemetry::Heartbeat(robot::Heartbeat {
+                    // Wraps after 49.7 days, as the DBC says (a host checks that it advances).
+                    uptime_ms: uptime_ms as u32,
+                    state: self.state,
+                    protocol_version: robot::PROTOCOL_VERSION,
+                    config_id: self.config_id,
+                })
+                .to_can_frame(),
+            );
+        }
+    }
+}
