@@ -16,6 +16,7 @@
 //! [`run_recorded`]; what it reports, on [`Report`].
 
 mod bus;
+mod cli;
 mod clock;
 mod report;
 mod run;
@@ -27,10 +28,11 @@ pub mod testing;
 mod tests;
 
 pub use bus::{Bus, BusErrorFrame, ErrorKind, classify, is_bus_error_frame, is_busy};
+pub use cli::{error_line, parse_seconds};
 pub use clock::{Clock, MonotonicClock};
 pub use report::{
     ControllerReport, ErrorCounts, LatencyHistogram, LatencySummary, LinkReport, Report,
-    ShutdownReport, StopReason, error_line,
+    ShutdownReport, StopReason,
 };
 pub use run::{
     ErrorLog, LinkEvent, Recorder, RunOptions, id_text, run, run_recorded, send_with_retry,

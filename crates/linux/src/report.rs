@@ -410,23 +410,6 @@ impl fmt::Display for Report {
     }
 }
 
-/// An error and its causes on one line, each cause once (`a: b: c`): many errors already
-/// include their source in their own message, so a cause whose text is already there is
-/// skipped. For the binaries' error messages.
-pub fn error_line(error: &(dyn std::error::Error + 'static)) -> String {
-    let mut text = error.to_string();
-    let mut cause = error.source();
-    while let Some(c) = cause {
-        let next = c.to_string();
-        if !text.contains(&next) {
-            text.push_str(": ");
-            text.push_str(&next);
-        }
-        cause = c.source();
-    }
-    text
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

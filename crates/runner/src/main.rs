@@ -81,7 +81,7 @@ struct Args {
 
     /// Stop after this many seconds (then shut down as on SIGINT). Default: run until
     /// SIGINT/SIGTERM.
-    #[arg(long, value_name = "SECONDS", value_parser = parse_seconds, allow_hyphen_values = true)]
+    #[arg(long, value_name = "SECONDS", value_parser = mecanum_linux::parse_seconds, allow_hyphen_values = true)]
     duration: Option<f64>,
 
     /// Write the final statistics as JSON to FILE (created at startup, written on exit).
@@ -124,14 +124,6 @@ struct Args {
     /// Print only errors (no start line, no statistics on stderr).
     #[arg(long, short)]
     quiet: bool,
-}
-
-fn parse_seconds(s: &str) -> Result<f64, String> {
-    match s.parse::<f64>() {
-        Ok(v) if (0.0..1e9).contains(&v) => Ok(v),
-        Ok(v) => Err(format!("expected a number of seconds >= 0, got {v}")),
-        Err(e) => Err(format!("expected a number of seconds, got {s:?}: {e}")),
-    }
 }
 
 fn parse_megabytes(s: &str) -> Result<f64, String> {

@@ -1,0 +1,102 @@
+//! `hostsim calibrate`: the geometry that makes a log's odometry match its reference.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use anyhow::{Context, Result};
+
+use super::*;
+
+/// Fit the wheel radius, lx + ly and lateral effectiveness that make a log's odometry
+/// match a reference pose.
+///
+/// The odometry is recomputed from the logged wheel angles (/joint_states) with the
+/// logged configuration (else the firmware's /odom); the reference is the simulator's
+/// ground truth (/ground_truth/odom) or --reference TOPIC, e.g. an external tracker's
+/// geometry_msgs/msg/PoseStamped or nav_msgs/msg/Odometry recorded into the same MCAP
+/// (its body frame the robot's), interpolated at the odometry's log times. Body-frame
+/// increments over consecutive windows (SE(2) log of the relative pose) are regressed per
+/// axis. Convention: the radius is the effective one with forward_effectiveness = 1,
+/// lx + ly the effective one with yaw_effectiveness = 1 (lx and ly keep their ratio),
+/// lateral_effectiveness relative to that radius; they refine the logged values, so a log
+/// recorded with the calibrated configuration gives corrections of 1.
+///
+/// Prints each correction and value with its standard error, the RMS of the per-window
+/// residuals, and the [geometry] lines to paste; --write FILE writes the logged
+/// configuration with them. The loop: `hostsim run calibration`, `hostsim calibrate
+/// out/calibration.mcap --write cal.toml`, `hostsim run calibration --config cal.toml`.
+///
+/// Exit status: 0, 2 if the log is refused (its motion cannot determine a value: it
+/// needs 0.5 m of forward and of sideways travel and a full turn; no configuration or
+/// reference in it) or FILE cannot be written, 3 if the log is damaged (the fit used its
+/// complete part).
+#[derive(Debug, clap::Args)]
+#[command(verbatim_doc_comment)]
+pub struct Args {
+    /// A log (MCAP) of `hostsim run`, `mecanum-runner --log` or `hostsim plant --log`.
+    pub log: PathBuf,
+    /// The reference pose topic.
+    #[arg(long, value_name = "TOPIC", default_value = hostsim::calibrate::GROUND_TRUTH)]
+    pub reference: String,
+    /// Window length, s.
+    #[arg(long, value_name = "SECONDS", default_value_t = 0.1)]
+    pub window: f64,
+    /// Write the logged configuration with the fitted [geometry] to FILE.
+    #[arg(long, value_name = "FILE")]
+    pub write: Option<PathBuf>,
+    /// Print the report as JSON (one object on stdout).
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `hostsim calibrate`.
+pub fn execute(a: &Args) -> Result<ExitCode> {
+    calibrate(
+        &a.log,
+        a.reference.clone(),
+        a.window,
+        a.write.as_deref(),
+        a.json,
+    )
+}
+
+/// `calibrate LOG`: the fitted geometry, printed and optionally written.
+fn calibrate(
+    path: &Path,
+    reference: String,
+    window_s: f64,
+    write: Option<&Path>,
+    json: bool,
+) -> Result<ExitCode> {
+    let options = hostsim::calibrate::Options {
+        reference,
+        window_s,
+    };
+    let c = hostsim::calibrate::calibrate(path, &options)
+        .with_context(|| format!("cannot calibrate from {}", path.display()))?;
+    warn_if_damaged(path, &c.read, "the fit used its complete part");
+    if let Some(file) = write {
+        let text = format!(
+            "# The configuration of {}, [geometry] calibrated by hostsim calibrate (reference \
+             {}).\n{}",
+            path.display(),
+            c.reference,
+            c.config.to_toml_string()
+        );
+        std::fs::write(file, text).with_context(|| format!("cannot write {}", file.display()))?;
+    }
+    if json {
+        println!("{}", c.to_json());
+    } else {
+        println!("calibration from {}", path.display());
+        print!("{c}");
+        if let Some(file) = write {
+            println!("written: {}", file.display());
+        }
+    }
+    Ok(if c.read.is_complete() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(EXIT_DAMAGED)
+    })
+}

@@ -1,0 +1,189 @@
+//! `hostsim plant`: the simulated drives on a real SocketCAN interface, in real time.
+
+use std::fs::File;
+use std::io::Write as _;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::{Context, Result, bail};
+use hostsim::log::McapLog;
+use hostsim::realtime::{PlantLog, PlantOptions, run_plant, run_plant_observed};
+use hostsim::replay::PLANT_PROGRAM;
+use mecanum_linux::{MonotonicClock, SocketCanBus};
+
+use super::*;
+
+/// Run the simulated drives on a SocketCAN interface in real time, for a firmware runner.
+///
+/// The drives of --config (DJI C620/M3508 or ODrive, on a 20 kg chassis) answer the
+/// motor commands they see on --iface with their feedback, in real time: a 1 kHz loop
+/// with absolute deadlines reads the commands, advances the physics by the elapsed
+/// simulated period and sends the due feedback frames. Point `mecanum-runner --iface`
+/// at the same interface (with the same configuration) and send it MODE_CMD/TWIST_CMD
+/// (e.g. `hostsim replay LOG --iface`, or cansend) to drive the simulated robot.
+///
+/// On SIGINT/SIGTERM or after --duration: prints the ground-truth pose and velocity on
+/// stdout and the loop statistics (ticks, overruns, jitter, frames) on stderr, and writes
+/// both as JSON to --stats-json. A second SIGINT/SIGTERM exits at once with status 1.
+/// Exit status: 0 after a clean stop, 1 if the statistics or the log could not be
+/// written, 2 for a startup error (bad arguments, configuration, interface).
+#[derive(Debug, clap::Args)]
+#[command(verbatim_doc_comment)]
+pub struct Args {
+    /// SocketCAN interface, e.g. vcan0 or can0. It must exist and be up.
+    #[arg(long, value_name = "IFACE")]
+    pub iface: String,
+    /// Drive configuration TOML (as config/dji_m3508.toml or config/odrive.toml).
+    /// Default: the built-in DJI example. Use the runner's configuration.
+    #[arg(long, value_name = "FILE")]
+    pub config: Option<PathBuf>,
+    /// Stop after this many seconds. Default: run until SIGINT/SIGTERM.
+    #[arg(long, value_name = "SECONDS", value_parser = parse_seconds)]
+    pub duration: Option<f64>,
+    /// Write the final statistics and ground truth as JSON to FILE (created at startup).
+    #[arg(long, value_name = "FILE")]
+    pub stats_json: Option<PathBuf>,
+    /// Busy-wait the last MICROS before each deadline instead of sleeping: lower jitter,
+    /// more CPU. Default 0.
+    #[arg(long, value_name = "MICROS", default_value_t = 0)]
+    pub spin_us: u64,
+    /// Write an MCAP log (a ROS 2 bag) of the run to FILE: every frame on the interface
+    /// once, as the firmware sees it (/can/rx: the drives' feedback and the host's commands;
+    /// /can/tx: the rest), the host's twist commands (/cmd_vel), the firmware's odometry and
+    /// the plant's ground truth every 10 ms (/odom, /ground_truth/odom, /tf). A chunk ends at
+    /// least every half second. `hostsim summary FILE` reads it.
+    #[arg(long, value_name = "FILE")]
+    pub log: Option<PathBuf>,
+    /// Print only errors (no start line, no statistics on stderr).
+    #[arg(long, short)]
+    pub quiet: bool,
+    /// Put an IMU node on the interface too: it sends IMU_YAW_RATE (0x304) from the plant's
+    /// true yaw rate at 200 Hz with white noise (0.005 °/s/√Hz, seed 0) and a constant bias,
+    /// for a runner configured with [odometry] heading_source = "gyro".
+    #[arg(long)]
+    pub imu: bool,
+    /// With --imu: the gyro's bias, °/s. Default 0.1.
+    #[arg(long, value_name = "DEG_S", requires = "imu")]
+    pub imu_bias_deg_s: Option<f64>,
+    #[command(flatten)]
+    pub wiring: WiringArgs,
+    /// The robot on blocks: no wheel touches the ground (for `mecanum-drive check`).
+    #[arg(long)]
+    pub lifted: bool,
+}
+
+/// `plant --iface IFACE`: the simulated drives on the interface in real time.
+/// `hostsim plant`.
+pub fn execute(args: &Args) -> Result<ExitCode> {
+    let (iface, quiet) = (args.iface.as_str(), args.quiet);
+    let (stats_json, log) = (args.stats_json.as_deref(), args.log.as_deref());
+    let (config, source) = load_config(args.config.as_deref())?;
+    let spec = hostsim::scenario::PlantSpec {
+        lifted: args.lifted,
+        ..args.wiring.spec()
+    };
+    let mut drives = hostsim::drives::SimDrives::with_spec(&config, &spec)
+        .with_context(|| format!("configuration {source}: the plant cannot model it"))?;
+    let imu = args.imu.then(|| hostsim::imu::ImuParams {
+        bias_deg_s: args.imu_bias_deg_s.unwrap_or(0.1),
+        ..hostsim::imu::ImuParams::default()
+    });
+    if let Some((key, value, expected)) = imu.as_ref().and_then(|i| i.invalid()) {
+        bail!(
+            "--imu-{}: {value}: expected {expected}",
+            key.replace('_', "-")
+        );
+    }
+    let mut drives = hostsim::imu::WithImu::new(&mut drives, imu.as_ref(), 0);
+    let stop = mecanum_linux::stop_on_signals()?;
+    let mut bus = SocketCanBus::open(iface)?;
+    // Created before the loop starts, so a bad path fails now and not after a long run.
+    let stats = match stats_json {
+        Some(p) => Some((
+            p,
+            File::create(p)
+                .with_context(|| format!("cannot create --stats-json file {}", p.display()))?,
+        )),
+        None => None,
+    };
+    let mut plant_log = match log {
+        Some(path) => {
+            let start_unix_ns = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_nanos());
+            let metadata = std::collections::BTreeMap::from([
+                ("config".to_string(), config.to_toml_string()),
+                ("program".to_string(), PLANT_PROGRAM.to_string()),
+                (
+                    "source".to_string(),
+                    format!("hostsim plant --iface {iface}"),
+                ),
+                ("start_unix_ns".to_string(), start_unix_ns.to_string()),
+                (
+                    "hostsim_version".to_string(),
+                    env!("CARGO_PKG_VERSION").to_string(),
+                ),
+            ]);
+            Some(PlantLog::new(McapLog::create(path, &metadata)?))
+        }
+        None => None,
+    };
+    let options = PlantOptions {
+        duration_us: args.duration.map(|s| (s * 1e6).round() as u64),
+        ..PlantOptions::default()
+    };
+    if !quiet {
+        eprintln!(
+            "hostsim plant: simulated drives on {iface} at {} Hz, configuration: {source}; \
+             stop with Ctrl-C (SIGINT) or SIGTERM",
+            1_000_000 / options.period_us
+        );
+    }
+    let clock = MonotonicClock::new(args.spin_us);
+    let report = match plant_log.as_mut() {
+        Some(observer) => {
+            run_plant_observed(&mut drives, &mut bus, &clock, &options, &stop, observer)
+        }
+        None => run_plant(&mut drives, &mut bus, &clock, &options, &stop),
+    };
+    let mut status = ExitCode::SUCCESS;
+    if let (Some(observer), Some(path)) = (plant_log, log) {
+        match observer.finish() {
+            Ok(n) if !quiet => {
+                eprintln!("hostsim plant: {n} messages logged to {}", path.display())
+            }
+            Ok(_) => {}
+            Err(e) => {
+                eprintln!("error: log {}: {e}", path.display());
+                status = ExitCode::from(EXIT_FAILED);
+            }
+        }
+    }
+    // The ground truth always goes out, on stdout; the statistics on stderr.
+    println!(
+        "ground truth: x {:+.4} m  y {:+.4} m  heading {:+.2}°  (vx {:+.4} m/s  vy {:+.4} m/s  \
+         wz {:+.4} rad/s)",
+        report.truth.x,
+        report.truth.y,
+        report.truth.heading.to_degrees(),
+        report.velocity.vx,
+        report.velocity.vy,
+        report.velocity.wz
+    );
+    if !quiet {
+        eprintln!("hostsim plant: {report}");
+    }
+    if let Some((path, mut file)) = stats {
+        let written = serde_json::to_writer_pretty(&mut file, &report)
+            .map_err(anyhow::Error::from)
+            .and_then(|()| Ok(file.write_all(b"\n")?));
+        if let Err(e) = written {
+            eprintln!(
+                "error: cannot write --stats-json file {}: {e:#}",
+                path.display()
+            );
+            return Ok(ExitCode::from(EXIT_FAILED));
+        }
+    }
+    Ok(status)
+}

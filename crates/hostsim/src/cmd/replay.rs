@@ -1,0 +1,534 @@
+//! `hostsim replay`: a log through a fresh core (MCAP, candump), a what-if, or onto a bus.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use anyhow::{Context, Result, bail};
+use hostsim::realtime::{PlayOptions, play_frames};
+use hostsim::replay::{
+    CandumpReplayError, LogFormat, OdometryTolerance, detect_format, mcap_playback, replay_candump,
+    replay_mcap, split_candump,
+};
+use hostsim::whatif::{OPEN_LOOP_NOTE, what_if_mcap};
+use mecanum_linux::{MonotonicClock, SocketCanBus};
+
+use super::*;
+
+/// Replay a log through a fresh firmware core and compare, try another configuration on
+/// it (what-if, open loop), or play it onto a CAN bus.
+///
+/// Without --iface: the log's inbound frames go through a fresh firmware core and its
+/// outbound frames are compared with the logged ones. An MCAP log (hostsim's) carries its
+/// configuration and must match bit for bit, step for step. A candump log (`candump -L`,
+/// detected by a .log/.candump extension or its content) has every frame on the bus mixed:
+/// the firmware codecs of --config classify them. Sent by the firmware: the drive's
+/// command frames (DJI current commands 0x200/0x1FF; ODrive commands to the configured
+/// nodes) and the robot telemetry (ODOM_POSITION 0x310, ODOM_VELOCITY 0x311, STATUS 0x312,
+/// HEARTBEAT 0x31F). Everything else was received and is fed, at its time relative to the
+/// first frame, to a core stepping on the period grid anchored at the first frame. The
+/// report gives the frame-stream comparison (time ignored; the first difference if any)
+/// and the odometry: the last logged ODOM_POSITION/ODOM_VELOCITY against the replayed
+/// core's pose at that time. All interfaces in a candump log are taken as one bus.
+///
+/// What-if (an MCAP log with --config FILE): the same recorded inbound frames, at the
+/// same recorded times and steps, go through a core built from FILE instead of the logged
+/// configuration, to see what a gain or limit change would have sent. OPEN LOOP: the
+/// motors' feedback is what was recorded; the plant's reaction to the changed outputs is
+/// not simulated (for that, run the scenario again with `run --config`). The report
+/// (--json: one object) gives the changed fields, the first differing frame (time, logged
+/// and what-if frame), frames logged / sent / differing per arbitration id, the drive
+/// setpoints per wheel (FL FR RL RR) decoded with the firmware's codecs (DJI current, A;
+/// ODrive velocity, rev/s, and torque feed-forward, Nm): max |setpoint| of each side, max
+/// |what-if - logged| with its time and the RMS difference, and the state changes in the
+/// STATUS frames of each side (e.g. a fault only in the what-if). FILE must describe the
+/// same drives: the same protocol, ESC model and ESC ids (DJI) or node ids (ODrive), and
+/// for a runner's log (recorded step times) the same timing.control_hz; else it is refused
+/// naming the field and both values.
+///
+/// A damaged MCAP log (cut short by a killed run, or corrupt) is replayed up to shortly
+/// before the time of the last message in its last complete, intact chunk (less the
+/// longest a sent frame waited on the bus); a warning on stderr names the byte offset of
+/// the damage and what was read before it. A log in the JSON layout of earlier versions
+/// is refused.
+///
+/// Exit status: 0 if the frames match (candump: or the odometry agrees within the
+/// tolerances), 1 if not, 2 for a bad log (nothing readable, no configuration, no
+/// firmware frames to compare, as in a `plant` log or one cut before its first step, a
+/// time line with a gap over 60 s), configuration or argument, 3 if the frames of a
+/// damaged log's complete part match (the log is damaged: see the warning). What-if: 0
+/// when it ran, whether or not the frames differ (that is the answer, not a failure); 2
+/// if FILE does not load, is refused by the firmware or describes other drives; 3 if it
+/// ran on a damaged log's complete part.
+///
+/// With --iface: plays the log's frames onto a SocketCAN interface in real time (each at
+/// its logged time relative to the first, divided by --speed) and reports frames sent
+/// and ENOBUFS retries. By default only the frames the firmware received (what the host
+/// and the drives sent) are played, so a live mecanum-runner on the interface can be fed
+/// the logged session. Stops early on SIGINT/SIGTERM. Exit status 1 if a frame could not
+/// be sent (dropped after 100 ms of ENOBUFS retries, or another error), else 3 if the
+/// MCAP log is damaged (its complete part was played).
+#[derive(Debug, clap::Args)]
+#[command(verbatim_doc_comment)]
+pub struct Args {
+    /// A hostsim MCAP log, or a candump log (.log / .candump).
+    pub log: PathBuf,
+    /// Drive configuration TOML. candump log: used to classify and replay it (default:
+    /// the built-in DJI example, as config/dji_m3508.toml). MCAP log: a what-if, the
+    /// logged session replayed open loop through a core built from FILE instead of the
+    /// logged configuration (see above).
+    #[arg(long, value_name = "FILE")]
+    pub config: Option<PathBuf>,
+    /// Print the report as JSON (one object on stdout).
+    #[arg(long)]
+    pub json: bool,
+    /// candump replay: largest position difference for the odometry to agree, m.
+    #[arg(long, value_name = "M", default_value_t = 0.01)]
+    pub position_tolerance: f64,
+    /// candump replay: largest heading difference for the odometry to agree, rad.
+    #[arg(long, value_name = "RAD", default_value_t = 0.01)]
+    pub heading_tolerance: f64,
+    /// Play the frames onto this SocketCAN interface (e.g. vcan0) in real time instead
+    /// of replaying them through a core.
+    #[arg(long, value_name = "IFACE")]
+    pub iface: Option<String>,
+    /// With --iface: time scale (2 plays twice as fast). Default 1.
+    #[arg(long, value_name = "FACTOR")]
+    pub speed: Option<f64>,
+    /// With --iface: which frames to play. rx (default): the frames the firmware
+    /// received (host commands, motor feedback; MCAP /can/rx), to feed a live runner;
+    /// tx: the frames the firmware sent (MCAP /can/tx); all: both, merged by time.
+    #[arg(long, value_enum, value_name = "WHICH")]
+    pub only: Option<Only>,
+}
+
+/// Which logged frames `replay --iface` plays.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Only {
+    /// The frames the firmware received (from the host and the drives).
+    Rx,
+    /// The frames the firmware sent.
+    Tx,
+    /// Every frame.
+    All,
+}
+
+/// `hostsim replay`.
+pub fn execute(a: &Args) -> Result<ExitCode> {
+    let tolerance = OdometryTolerance {
+        position_m: a.position_tolerance,
+        heading_rad: a.heading_tolerance,
+    };
+    match &a.iface {
+        Some(iface) => play(&a.log, a.config.as_deref(), iface, a.speed, a.only, a.json),
+        None => {
+            if a.speed.is_some() || a.only.is_some() {
+                bail!("--speed and --only need --iface (they control the playback)");
+            }
+            replay(&a.log, a.config.as_deref(), tolerance, a.json)
+        }
+    }
+}
+
+fn replay(
+    path: &Path,
+    config: Option<&Path>,
+    tolerance: OdometryTolerance,
+    json: bool,
+) -> Result<ExitCode> {
+    for (name, value) in [
+        ("--position-tolerance", tolerance.position_m),
+        ("--heading-tolerance", tolerance.heading_rad),
+    ] {
+        if !(value.is_finite() && value >= 0.0) {
+            bail!("{name} must be a finite number >= 0, got {value}");
+        }
+    }
+    match detect_format(path)? {
+        LogFormat::Mcap => match config {
+            Some(config) => what_if_log(path, config, json),
+            None => replay_mcap_log(path, json),
+        },
+        LogFormat::Candump => replay_candump_log(path, config, tolerance, json),
+    }
+}
+
+fn replay_mcap_log(path: &Path, json: bool) -> Result<ExitCode> {
+    let report = replay_mcap(path)?;
+    let damaged = report.read.as_ref().filter(|r| !r.is_complete());
+    if let Some(read) = damaged {
+        warn_if_damaged(
+            path,
+            read,
+            "replaying its complete part, up to the last message read",
+        );
+    }
+    let show = |f: &Option<hostsim::replay::TimedFrame>| {
+        f.map_or_else(
+            || "nothing".to_string(),
+            |f| format!("{} at {:.6} s", f.frame, f.t_ns as f64 * 1e-9),
+        )
+    };
+    let code = if !report.identical() {
+        ExitCode::from(EXIT_FAILED)
+    } else if damaged.is_some() {
+        ExitCode::from(EXIT_DAMAGED)
+    } else {
+        ExitCode::SUCCESS
+    };
+    if json {
+        let frame = |f: &Option<hostsim::replay::TimedFrame>| {
+            f.map(|f| {
+                serde_json::json!({
+                    "t_s": format!("{:.6}", f.t_ns as f64 * 1e-9),
+                    "frame": f.frame.to_string(),
+                })
+            })
+        };
+        let difference = report.difference.as_ref().map(|d| {
+            serde_json::json!({
+                "index": d.index,
+                "t_s": format!("{:.6}", d.t_ns as f64 * 1e-9),
+                "logged": frame(&d.logged),
+                "replayed": frame(&d.replayed),
+            })
+        });
+        let v = serde_json::json!({
+            "log": path.display().to_string(),
+            "format": LogFormat::Mcap,
+            "steps": report.steps,
+            "fed": report.fed,
+            "compared": report.compared,
+            "identical": report.identical(),
+            "verdict": if report.identical() { "identical" } else { "differs" },
+            "first_difference": difference,
+            "complete": damaged.is_none(),
+            "damage": damaged.map(ToString::to_string),
+            "damage_offset": damaged.and_then(|r| r.damage.as_ref()).map(|d| d.offset),
+        });
+        println!("{v}");
+        return Ok(code);
+    }
+    println!(
+        "replayed {} steps, fed {} inbound frames, compared {} outbound frames",
+        report.steps, report.fed, report.compared
+    );
+    match &report.difference {
+        None => println!("outbound frames are bit-identical"),
+        Some(d) => println!(
+            "first difference at outbound frame {} ({:.6} s): log has {}, replay sent {}",
+            d.index,
+            d.t_ns as f64 * 1e-9,
+            show(&d.logged),
+            show(&d.replayed)
+        ),
+    }
+    Ok(code)
+}
+
+/// `replay LOG.mcap --config FILE`: the what-if of another configuration on a logged session.
+fn what_if_log(path: &Path, config: &Path, json: bool) -> Result<ExitCode> {
+    let r = what_if_mcap(path, config)?;
+    let damaged = r.read.as_ref().filter(|r| !r.is_complete());
+    if let Some(read) = damaged {
+        warn_if_damaged(
+            path,
+            read,
+            "replaying its complete part, up to the last message read",
+        );
+    }
+    // It ran: different or not is the answer, not a failure.
+    let code = if damaged.is_some() {
+        ExitCode::from(EXIT_DAMAGED)
+    } else {
+        ExitCode::SUCCESS
+    };
+    let verdict = if r.identical {
+        "no_difference"
+    } else {
+        "differs"
+    };
+    if json {
+        let mut v = serde_json::to_value(&r)?;
+        if let Some(o) = v.as_object_mut() {
+            o.insert("note".into(), OPEN_LOOP_NOTE.into());
+            o.insert("log".into(), path.display().to_string().into());
+            o.insert("format".into(), serde_json::to_value(LogFormat::Mcap)?);
+            o.insert("config".into(), config.display().to_string().into());
+            o.insert("verdict".into(), verdict.into());
+            o.insert("complete".into(), damaged.is_none().into());
+            o.insert("damage".into(), damaged.map(ToString::to_string).into());
+        }
+        println!("{v}");
+        return Ok(code);
+    }
+    println!("{OPEN_LOOP_NOTE}");
+    println!(
+        "log {}, what-if configuration {}",
+        path.display(),
+        config.display()
+    );
+    if r.changes.is_empty() {
+        println!("changes: none (the what-if configuration equals the logged one)");
+    } else {
+        let show = |v: &Option<String>| v.as_deref().unwrap_or("(absent)").to_string();
+        let changes: Vec<String> = r
+            .changes
+            .iter()
+            .map(|c| format!("{} {} -> {}", c.field, show(&c.logged), show(&c.what_if)))
+            .collect();
+        println!("changes: {}", changes.join(", "));
+    }
+    println!(
+        "replayed {} steps, fed {} inbound frames; the log has {} outbound frames, the what-if \
+         core sent {}",
+        r.steps, r.fed, r.logged_frames, r.what_if_frames
+    );
+    match &r.first_difference {
+        None => println!(
+            "outbound frames are bit-identical: the change makes no difference on this log"
+        ),
+        Some(d) => {
+            // A frame's own time only where it is not the step's.
+            let show = |f: &Option<hostsim::replay::ReportFrame>| match f {
+                None => "nothing".to_string(),
+                Some(f) if f.t_s == d.t_s => f.frame.clone(),
+                Some(f) => format!("{} at {} s", f.frame, f.t_s),
+            };
+            println!(
+                "first difference at {} s (outbound frame {}): log has {}, what-if sent {}",
+                d.t_s,
+                d.index,
+                show(&d.logged),
+                show(&d.what_if)
+            );
+        }
+    }
+    println!("outbound frames by arbitration id:");
+    println!(
+        "  {:<10} {:<28} {:>8} {:>8} {:>8}",
+        "id", "message", "logged", "what-if", "differ"
+    );
+    for c in &r.by_id {
+        println!(
+            "  {:<10} {:<28} {:>8} {:>8} {:>8}",
+            c.id,
+            c.message,
+            c.logged,
+            c.what_if,
+            c.differ()
+        );
+    }
+    for q in &r.setpoints {
+        println!(
+            "{} setpoints, {} (difference = what-if - logged, each held between its commands):",
+            q.quantity, q.unit
+        );
+        println!(
+            "  {:<5} {:>11} {:>12} {:>11} {:>10} {:>11}",
+            "wheel", "max|logged|", "max|what-if|", "max|diff|", "at (s)", "rms diff"
+        );
+        for w in &q.wheels {
+            let d = &w.difference;
+            println!(
+                "  {:<5} {:>11.4} {:>12.4} {:>11.4} {:>10} {:>11.4}",
+                w.wheel,
+                w.max_abs_logged,
+                w.max_abs_what_if,
+                d.max_abs_difference,
+                d.t_max_difference_s.as_deref().unwrap_or("-"),
+                d.rms_difference
+            );
+        }
+    }
+    let list = |changes: &[hostsim::whatif::StateChange]| {
+        if changes.is_empty() {
+            "none".to_string()
+        } else {
+            changes
+                .iter()
+                .map(ToString::to_string)
+                .collect::<Vec<_>>()
+                .join(", ")
+        }
+    };
+    let s = &r.states;
+    println!("state changes in the STATUS frames:");
+    println!("  logged:               {}", list(&s.logged));
+    println!("  what-if:              {}", list(&s.what_if));
+    println!("  only in the log:      {}", list(&s.only_logged));
+    println!("  only in the what-if:  {}", list(&s.only_what_if));
+    println!("  what-if core (exact): {}", list(&s.what_if_core));
+    println!("verdict: {verdict}");
+    Ok(code)
+}
+
+fn replay_candump_log(
+    path: &Path,
+    config: Option<&Path>,
+    tolerance: OdometryTolerance,
+    json: bool,
+) -> Result<ExitCode> {
+    let (config, source) = load_config(config)?;
+    let r = replay_candump(path, &config, tolerance).map_err(|e| match e {
+        CandumpReplayError::Refused(e) => anyhow::anyhow!("configuration {source}: {e}"),
+        other => other.into(),
+    })?;
+    let code = if r.agrees() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(EXIT_FAILED)
+    };
+    if json {
+        let mut v = serde_json::to_value(&r)?;
+        if let Some(o) = v.as_object_mut() {
+            o.insert("log".into(), path.display().to_string().into());
+            o.insert("format".into(), serde_json::to_value(LogFormat::Candump)?);
+            o.insert("config".into(), source.into());
+            o.insert("verdict".into(), r.verdict().into());
+        }
+        println!("{v}");
+        return Ok(code);
+    }
+    println!(
+        "candump log {}: {} frames on {} over {:.3} s; configuration: {source}",
+        path.display(),
+        r.frames,
+        r.interfaces.join(", "),
+        r.duration_s
+    );
+    println!(
+        "firmware received {} frames (fed), sent {} (compared); replay ran {} steps of {} µs \
+         and sent {}",
+        r.received, r.sent, r.steps, r.period_us, r.replayed
+    );
+    match &r.first_difference {
+        None => println!("outbound frames are identical (time ignored)"),
+        Some(d) => {
+            let show = |f: &Option<hostsim::replay::ReportFrame>| {
+                f.as_ref().map_or_else(
+                    || "nothing".to_string(),
+                    |f| format!("{} at {} s", f.frame, f.t_s),
+                )
+            };
+            println!(
+                "outbound frames differ (time ignored) at frame {} ({} matched): log has {}, \
+                 replay sent {}",
+                d.index,
+                r.matching_prefix,
+                show(&d.logged),
+                show(&d.replayed)
+            );
+        }
+    }
+    match &r.odometry {
+        None => println!("odometry: the log has no ODOM_POSITION frame to compare"),
+        Some(o) => {
+            let pose = |p: &hostsim::replay::OdometryReading| {
+                format!(
+                    "x {:+.4} m  y {:+.4} m  heading {:+.2}° at {:.3} s",
+                    p.x,
+                    p.y,
+                    p.heading.to_degrees(),
+                    p.t_s
+                )
+            };
+            println!("odometry logged   {}", pose(&o.logged));
+            println!("odometry replayed {}", pose(&o.replayed));
+            println!(
+                "odometry {}: position {:.1} mm (tolerance {:.1} mm), heading {:.4} rad \
+                 (tolerance {:.4} rad), velocity {:.4}",
+                if o.agrees { "agrees" } else { "DIFFERS" },
+                o.position_error_m * 1000.0,
+                o.tolerance.position_m * 1000.0,
+                o.heading_error_rad,
+                o.tolerance.heading_rad,
+                o.velocity_error
+            );
+        }
+    }
+    let e = &r.rejected;
+    let rejected = e.extended_id + e.remote + e.wrong_dlc + e.non_finite + e.out_of_range;
+    println!(
+        "replayed core rejected {rejected} received frames, ignored {} with unknown ids",
+        e.unknown_id
+    );
+    println!("verdict: {}", r.verdict());
+    Ok(code)
+}
+
+/// `replay LOG --iface IFACE`: plays the log's frames onto the interface in real time.
+fn play(
+    path: &Path,
+    config: Option<&Path>,
+    iface: &str,
+    speed: Option<f64>,
+    only: Option<Only>,
+    json: bool,
+) -> Result<ExitCode> {
+    let speed = speed.unwrap_or(1.0);
+    if !(speed.is_finite() && speed > 0.0) {
+        bail!("--speed must be a finite number > 0, got {speed}");
+    }
+    let only = only.unwrap_or(Only::Rx);
+    let (rx, tx) = match only {
+        Only::Rx => (true, false),
+        Only::Tx => (false, true),
+        Only::All => (true, true),
+    };
+    let mut damaged = false;
+    let frames = match detect_format(path)? {
+        LogFormat::Mcap => {
+            if config.is_some() {
+                bail!(
+                    "--config applies to candump logs; {} is an MCAP log, whose /can/rx and \
+                     /can/tx topics give the direction",
+                    path.display()
+                );
+            }
+            let content = hostsim::replay::read_log(path)?;
+            warn_if_damaged(path, &content.read, "playing its complete part");
+            damaged = !content.read.is_complete();
+            mcap_playback(&content, rx, tx)
+        }
+        LogFormat::Candump => {
+            let (config, _) = load_config(config)?;
+            let entries = hostsim::candump::read_file(path)?;
+            let split = split_candump(&config, &entries);
+            match only {
+                Only::Rx => split.rx,
+                Only::Tx => split.tx,
+                Only::All => split.all,
+            }
+        }
+    };
+    // A corrupt timestamp would make the playback sleep for years.
+    hostsim::replay::check_time_gaps(&frames)
+        .with_context(|| format!("{}: cannot play", path.display()))?;
+    let stop = mecanum_linux::stop_on_signals()?;
+    let mut bus = SocketCanBus::open(iface)?;
+    let clock = MonotonicClock::new(0);
+    if !json {
+        eprintln!(
+            "playing {} frames ({only:?}) of {} onto {iface} at {speed}x; stop with Ctrl-C",
+            frames.len(),
+            path.display()
+        );
+    }
+    let options = PlayOptions {
+        speed,
+        ..PlayOptions::default()
+    };
+    let report = play_frames(&frames, &mut bus, &clock, &options, &stop);
+    if json {
+        println!("{}", serde_json::to_string(&report)?);
+    } else {
+        println!("{report}");
+    }
+    Ok(if report.failed > 0 {
+        ExitCode::from(EXIT_FAILED)
+    } else if damaged {
+        ExitCode::from(EXIT_DAMAGED)
+    } else {
+        ExitCode::SUCCESS
+    })
+}

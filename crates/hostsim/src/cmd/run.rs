@@ -1,0 +1,284 @@
+//! `hostsim run`: a scenario in lockstep, its log, plot and summary.
+
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use anyhow::{Context, Result, bail};
+use hostsim::log::McapLog;
+use hostsim::plot::plot_run;
+use hostsim::sim::{LogOptions, RunSummary, run_metadata};
+use indicatif::{ProgressBar, ProgressStyle};
+
+use super::*;
+
+/// Run a scenario: writes an MCAP log and a PNG plot, prints a summary.
+///
+/// With no argument runs the built-in `square`. Built-ins: square, circle, strafe, spin,
+/// figure-eight, compass, watchdog, calibration (seed 1; DJI C620 + M3508 drives on a
+/// 20 kg chassis; see `calibrate`).
+///
+/// A scenario file (TOML; examples in scenarios/, the format in the hostsim crate's
+/// `scenario` module docs) sets duration_s, and optionally name (default: the file's
+/// stem), seed (default 0), command_hz (default 50), config (a drive configuration, relative
+/// to the file; default the DJI example), [[actions]] (at_s and one or more of enable,
+/// disable, reset, estop, status_request, twist = [vx, vy, wz], silence, resume,
+/// wheel_test = { wheel, speed, duration_ms }) and
+/// [[faults]] (kind = drop | burst | delay | corrupt | stuck_encoder | motor_offline |
+/// non_finite_twist, from_s, until_s, and the kind's fields: rate, delay_ms, sender,
+/// wheel), [plant] (the simulated robot where it differs from the configuration:
+/// wheel_radius, lx, ly, roller_drag, and a miswiring: flip = [wheel indices], swap =
+/// [[a, b], ...], lifted = true; kept when --config replaces the configuration) and
+/// [imu] (an IMU node sending IMU_YAW_RATE for gyro heading: rate_hz, bias_deg_s,
+/// noise_density in °/s/√Hz, enabled). Every error names the file, the field and the
+/// value.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// A scenario TOML file, or the name of a built-in.
+    pub scenario: Option<String>,
+    /// Output folder for `<name>.mcap` and `<name>.png`.
+    #[arg(long, default_value = "out")]
+    pub out: PathBuf,
+    /// Drive configuration TOML (overrides the scenario's).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Seed for the bus faults (overrides the scenario's).
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Set a field, KEY=VALUE: of the drive configuration as its TOML names it
+    /// (gains.kp, limits.max_current, ...) or of the plant (plant.mass_kg, ...), as a
+    /// `sweep` row prints it. Repeatable.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
+    /// Do not write the MCAP log.
+    #[arg(long)]
+    pub no_log: bool,
+    /// Do not draw the plot.
+    #[arg(long)]
+    pub no_plot: bool,
+    /// Print the summary as JSON instead of text.
+    #[arg(long)]
+    pub json: bool,
+    /// Print `progress <simulated seconds>` on stderr every 100 ms of simulated time, one
+    /// line each, after that time's messages went to the log: for scripts that watch a
+    /// run (the progress bar is drawn only on a terminal).
+    #[arg(long)]
+    pub progress_lines: bool,
+}
+
+/// `hostsim run`.
+pub fn execute(a: &Args) -> Result<ExitCode> {
+    run(
+        a.scenario.as_deref(),
+        &a.out,
+        a.config.clone(),
+        a.seed,
+        &a.set,
+        RunOutputs {
+            log: !a.no_log,
+            plot: !a.no_plot,
+            json: a.json,
+            progress_lines: a.progress_lines,
+        },
+    )
+}
+
+/// What `run` writes besides the simulation itself.
+#[derive(Debug, Clone, Copy)]
+struct RunOutputs {
+    log: bool,
+    plot: bool,
+    json: bool,
+    progress_lines: bool,
+}
+
+fn run(
+    scenario: Option<&str>,
+    out: &Path,
+    config: Option<PathBuf>,
+    seed: Option<u64>,
+    set: &[String],
+    outputs: RunOutputs,
+) -> Result<ExitCode> {
+    let RunOutputs {
+        log: write_log,
+        plot: draw_plot,
+        json,
+        progress_lines,
+    } = outputs;
+    let config = config
+        .map(|path| firmware::Config::from_toml_file(&path))
+        .transpose()?;
+    let mut scenario = load_scenario(scenario, config)?;
+    if let Some(seed) = seed {
+        scenario.seed = seed;
+    }
+    if !set.is_empty() {
+        let mut values = Vec::new();
+        for arg in set {
+            let p = hostsim::sweep::Param::parse(arg)?;
+            match p.values {
+                hostsim::sweep::Values::List(v) if v.len() == 1 => values.push((p.key, v[0])),
+                _ => bail!(
+                    "--set {arg}: expected one value, KEY=VALUE (grids and ranges are for sweep)"
+                ),
+            }
+        }
+        scenario = hostsim::sweep::apply(&scenario, scenario.seed, &values)?;
+    }
+    std::fs::create_dir_all(out)
+        .with_context(|| format!("cannot create the output folder {}", out.display()))?;
+    let stem: String = scenario
+        .name
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect();
+    let log_path = out.join(format!("{stem}.mcap"));
+    let png_path = out.join(format!("{stem}.png"));
+    if draw_plot {
+        // Now, not after a long run: a path that cannot be written fails before simulating.
+        std::fs::File::create(&png_path)
+            .with_context(|| format!("cannot create the plot {}", png_path.display()))?;
+    }
+    let mut log = if write_log {
+        Some(McapLog::create(&log_path, &run_metadata(&scenario))?)
+    } else {
+        None
+    };
+    let mut plant = hostsim::drives::SimDrives::for_scenario(&scenario)?;
+    let bar = ProgressBar::new(scenario.duration_us() / 1000);
+    bar.set_style(
+        ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} ms simulated ({per_sec})")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    bar.set_message(scenario.name.clone());
+    let wall = std::time::Instant::now();
+    let summary = hostsim::sim::run(
+        &scenario,
+        &mut plant,
+        log.as_mut(),
+        LogOptions::default(),
+        |t_us| {
+            bar.set_position(t_us / 1000);
+            if progress_lines {
+                // One write, so that a reader never sees half a line from a killed run.
+                let line = format!("progress {:.3}\n", t_us as f64 * 1e-6);
+                let _ = std::io::stderr().write_all(line.as_bytes());
+            }
+        },
+    )?;
+    bar.finish_and_clear();
+    let wall_s = wall.elapsed().as_secs_f64();
+    if let Some(log) = log {
+        log.finish()?;
+    }
+    if draw_plot {
+        plot_run(&png_path, &scenario.name, &summary.track)?;
+    }
+    if json {
+        println!("{}", summary_json(&summary, wall_s));
+    } else {
+        print_summary(&summary, wall_s);
+        if write_log {
+            println!("log:   {}", log_path.display());
+        }
+        if draw_plot {
+            println!("plot:  {}", png_path.display());
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn print_summary(s: &RunSummary, wall_s: f64) {
+    println!(
+        "scenario {:?}: {:.2} s simulated in {:.3} s ({:.0}x real time)",
+        s.scenario,
+        s.duration_s,
+        wall_s,
+        s.duration_s / wall_s.max(1e-9)
+    );
+    println!(
+        "ground truth  x {:+.4} m  y {:+.4} m  heading {:+.2}°",
+        s.truth[0],
+        s.truth[1],
+        s.truth[2].to_degrees()
+    );
+    println!(
+        "odometry      x {:+.4} m  y {:+.4} m  heading {:+.2}°",
+        s.odometry[0],
+        s.odometry[1],
+        s.odometry[2].to_degrees()
+    );
+    println!(
+        "odometry drift: final {:.1} mm, max {:.1} mm, heading {:.2}°",
+        s.final_position_error * 1000.0,
+        s.max_position_error * 1000.0,
+        s.final_heading_error.to_degrees()
+    );
+    println!(
+        "bus: {} frames, load {:.1} %, {} dropped, {} corrupted; firmware sent {}, received {}",
+        s.bus.frames,
+        s.bus_load * 100.0,
+        s.bus.dropped,
+        s.bus.corrupted,
+        s.tx_frames,
+        s.rx_frames
+    );
+    let e = s.last.rx_errors;
+    println!(
+        "firmware: final state {} (fault {}); rejected frames {}, unknown ids {}, repeated twists {}",
+        s.last.state,
+        s.last.fault,
+        e.total() - e.unknown_id,
+        e.unknown_id,
+        s.last.repeated_seq
+    );
+    for (t, state, fault) in &s.transitions {
+        println!("  {t:8.3} s  {state} ({fault})");
+    }
+    if s.last.heading_source != firmware::protocol::robot::HeadingSource::Wheels {
+        println!(
+            "gyro heading: final source {}, bias estimate {:+.4} °/s from {} standstill \
+             samples; heading source changes:",
+            s.last.heading_source,
+            f64::from(s.last.gyro_bias).to_degrees(),
+            s.last.gyro_bias_samples
+        );
+        for (t, source) in &s.heading_changes {
+            println!("  {t:8.3} s  {source}");
+        }
+    }
+    println!("outbound stream hash {:016x}", s.tx_hash);
+}
+
+fn summary_json(s: &RunSummary, wall_s: f64) -> String {
+    serde_json::json!({
+        "scenario": s.scenario,
+        "duration_s": s.duration_s,
+        "wall_s": wall_s,
+        "steps": s.steps,
+        "tx_frames": s.tx_frames,
+        "rx_frames": s.rx_frames,
+        "bus_frames": s.bus.frames,
+        "bus_load": s.bus_load,
+        "dropped": s.bus.dropped,
+        "corrupted": s.bus.corrupted,
+        "truth": s.truth,
+        "odometry": s.odometry,
+        "final_position_error": s.final_position_error,
+        "max_position_error": s.max_position_error,
+        "final_heading_error": s.final_heading_error,
+        "state": s.last.state.as_str(),
+        "fault": s.last.fault.as_str(),
+        "transitions": s.transitions,
+        "heading_changes": s.heading_changes,
+        "tx_hash": format!("{:016x}", s.tx_hash),
+    })
+    .to_string()
+}

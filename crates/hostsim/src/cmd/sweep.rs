@@ -1,0 +1,215 @@
+//! `hostsim sweep`: many runs of one scenario, on every core.
+
+use std::fs::File;
+use std::io::Write as _;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::{Context, Result};
+use hostsim::log::McapLog;
+use hostsim::sim::{LogOptions, run_metadata};
+use indicatif::{ProgressBar, ProgressStyle};
+
+use super::*;
+
+/// Many runs of one scenario at once, on every core: seeds and parameter values.
+///
+/// The runs are every seed of --seeds with every combination of the --set grids
+/// (`--set gains.kp=0.8,1.0,1.2`); a --set range (`--set plant.mass_kg=18..24`) is drawn
+/// at random for each run, from a generator seeded by the run's index. Names: a field of
+/// the drive configuration as its TOML names it (gains.kp, limits.max_current,
+/// timing.command_timeout_ms, ...) or plant.wheel_radius, plant.lx, plant.ly,
+/// plant.roller_drag, plant.mass_kg; every name and value is checked before the first
+/// run. No logs (--log-worst N writes the N worst runs' logs afterwards).
+///
+/// Writes OUT/sweep.csv and OUT/sweep.jsonl (one row per run: index, seed, the values,
+/// final state, first fault and when, time from it until the body stood, odometry drift
+/// at the end and at most, RMS of the commanded minus the measured speed, steps) and
+/// OUT/sweep.png (the largest drift of each run against the first swept parameter, or
+/// the seed), and prints percentiles and the worst runs, each with the command that runs
+/// it alone. The table is the same on any number of threads. Ctrl-C stops starting runs
+/// and writes the rows finished (exit status 130); a second Ctrl-C exits at once.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// A scenario TOML file, or the name of a built-in.
+    pub scenario: String,
+    /// Seeds: A..B (both included), or a list 1,5,9. Default: the scenario's own.
+    #[arg(long, value_name = "SEEDS")]
+    pub seeds: Option<String>,
+    /// A parameter: KEY=V1,V2,... (a grid axis) or KEY=LO..HI (a random draw per run).
+    /// Repeatable.
+    #[arg(long = "set", value_name = "KEY=VALUES")]
+    pub set: Vec<String>,
+    /// Drive configuration TOML (overrides the scenario's).
+    #[arg(long, value_name = "FILE")]
+    pub config: Option<PathBuf>,
+    /// Threads (default: one per core).
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub jobs: usize,
+    /// Output folder for sweep.csv, sweep.jsonl, sweep.png and the worst runs' logs.
+    #[arg(long, default_value = "out")]
+    pub out: PathBuf,
+    /// How many of the worst runs (largest drift) to print.
+    #[arg(long, value_name = "N", default_value_t = 5)]
+    pub worst: usize,
+    /// Run the N worst runs again with logs: OUT/sweep-<index>.mcap.
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub log_worst: usize,
+    /// Do not draw sweep.png.
+    #[arg(long)]
+    pub no_plot: bool,
+}
+
+/// `sweep SCENARIO`: many runs at once.
+/// `hostsim sweep`.
+pub fn execute(args: &Args) -> Result<ExitCode> {
+    use hostsim::sweep::{self as sw, Param};
+    let config = args
+        .config
+        .as_deref()
+        .map(firmware::Config::from_toml_file)
+        .transpose()?;
+    let base = load_scenario(Some(&args.scenario), config)?;
+    let seeds = match &args.seeds {
+        Some(s) => sw::parse_seeds(s)?,
+        None => vec![base.seed],
+    };
+    let params: Vec<Param> = args
+        .set
+        .iter()
+        .map(|a| Param::parse(a))
+        .collect::<Result<_, _>>()?;
+    let runs = sw::expand(&seeds, &params);
+    // Every name and value (and both ends of each range), before the first run.
+    sw::check(&base, &runs, &params)?;
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("cannot create the output folder {}", args.out.display()))?;
+    let csv_path = args.out.join("sweep.csv");
+    let jsonl_path = args.out.join("sweep.jsonl");
+    let png_path = args.out.join("sweep.png");
+    let mut csv =
+        File::create(&csv_path).with_context(|| format!("cannot create {}", csv_path.display()))?;
+    let mut jsonl = File::create(&jsonl_path)
+        .with_context(|| format!("cannot create {}", jsonl_path.display()))?;
+    let threads = if args.jobs == 0 {
+        std::thread::available_parallelism().map_or(1, std::num::NonZero::get)
+    } else {
+        args.jobs
+    };
+    eprintln!(
+        "sweep of {:?}: {} runs ({} seeds x {} values) on {threads} threads",
+        base.name,
+        runs.len(),
+        seeds.len(),
+        runs.len() / seeds.len().max(1)
+    );
+    let signal = mecanum_linux::stop_on_signals()?;
+    let bar = ProgressBar::new(runs.len() as u64);
+    bar.set_style(
+        ProgressStyle::with_template("[{bar:40}] {pos}/{len} runs, {elapsed} elapsed, ETA {eta}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let stop = || signal.load(std::sync::atomic::Ordering::Relaxed) != 0;
+    let wall = std::time::Instant::now();
+    let rows = sw::run_all(&base, &runs, threads, &stop, |_| bar.inc(1))?;
+    bar.finish_and_clear();
+    let interrupted = rows.len() < runs.len();
+    let keys: Vec<String> = params.iter().map(|p| p.key.clone()).collect();
+    writeln!(csv, "{}", sw::csv_header(&keys))?;
+    for r in &rows {
+        writeln!(csv, "{}", r.csv())?;
+        writeln!(jsonl, "{}", r.json())?;
+    }
+    let secs = wall.elapsed().as_secs_f64();
+    let simulated: f64 =
+        rows.iter().map(|r| r.steps as f64).sum::<f64>() / f64::from(base.config.timing.control_hz);
+    println!(
+        "{} of {} runs in {secs:.1} s on {threads} threads ({:.0}x real time in all){}",
+        rows.len(),
+        runs.len(),
+        simulated / secs.max(1e-9),
+        if interrupted {
+            "; INTERRUPTED: the rows finished are written"
+        } else {
+            ""
+        }
+    );
+    let column = |f: fn(&sw::Row) -> f64| rows.iter().map(f).collect::<Vec<f64>>();
+    for (name, unit, values) in [
+        ("drift, largest", "m", column(|r| r.drift_max_m)),
+        ("drift, final", "m", column(|r| r.drift_final_m)),
+        ("tracking error RMS", "m/s", column(|r| r.tracking_rms_m_s)),
+        ("stop after a fault", "s", column(|r| r.stop_after_fault_s)),
+    ] {
+        if values.iter().all(|v| !v.is_finite()) {
+            println!("{name:20} -");
+            continue;
+        }
+        println!(
+            "{name:20} p50 {:.4}  p90 {:.4}  p99 {:.4}  max {:.4} {unit}",
+            sw::percentile(&values, 50.0),
+            sw::percentile(&values, 90.0),
+            sw::percentile(&values, 99.0),
+            sw::percentile(&values, 100.0)
+        );
+    }
+    let mut faults: std::collections::BTreeMap<&str, usize> = std::collections::BTreeMap::new();
+    for r in &rows {
+        *faults.entry(r.fault.as_str()).or_default() += 1;
+    }
+    let faults: Vec<String> = faults.iter().map(|(k, n)| format!("{k} {n}")).collect();
+    println!("faults: {}", faults.join(", "));
+    let mut worst: Vec<&sw::Row> = rows.iter().collect();
+    worst.sort_by(|a, b| {
+        b.drift_max_m
+            .total_cmp(&a.drift_max_m)
+            .then(a.index.cmp(&b.index))
+    });
+    println!("worst runs (largest drift):");
+    for r in worst.iter().take(args.worst) {
+        println!(
+            "  #{} drift {:.4} m, fault {}: {}",
+            r.index,
+            r.drift_max_m,
+            r.fault,
+            r.reproduce(&args.scenario)
+        );
+    }
+    for r in worst.iter().take(args.log_worst) {
+        let s = sw::apply(&base, r.seed, &r.values)?;
+        let path = args.out.join(format!("sweep-{}.mcap", r.index));
+        let mut log = McapLog::create(&path, &run_metadata(&s))?;
+        let mut plant = hostsim::drives::SimDrives::for_scenario(&s)?;
+        hostsim::sim::run(
+            &s,
+            &mut plant,
+            Some(&mut log),
+            LogOptions::default(),
+            |_| {},
+        )?;
+        log.finish()?;
+        println!("  log of #{}: {}", r.index, path.display());
+    }
+    if !args.no_plot && !rows.is_empty() {
+        let (label, xs): (String, Vec<f64>) = match keys.first() {
+            Some(k) => (k.clone(), rows.iter().map(|r| r.values[0].1).collect()),
+            #[allow(clippy::cast_precision_loss)]
+            None => ("seed".into(), rows.iter().map(|r| r.seed as f64).collect()),
+        };
+        let ys = column(|r| r.drift_max_m);
+        hostsim::plot::scatter(
+            &png_path,
+            &format!("sweep of {}", base.name),
+            &label,
+            "largest drift, m",
+            &xs,
+            &ys,
+        )?;
+    }
+    println!("table: {} and {}", csv_path.display(), jsonl_path.display());
+    Ok(if interrupted {
+        ExitCode::from(EXIT_INTERRUPTED)
+    } else {
+        ExitCode::SUCCESS
+    })
+}
