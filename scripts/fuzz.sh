@@ -99,7 +99,7 @@ fi
 if wants candump_parse; then
     d=$(seed_dir candump_parse)
     # Every golden frame of the codecs, as a candump -L log 1 ms apart...
-    cargo run -q --release -p firmware --features std --bin mecanum-codec -- golden |
+    cargo run -q --release -p mecanum-codec -- golden |
         sed -n 's/.*"candump":"\([^"]*\)".*/\1/p' |
         awk '{ printf "(1700000000.%06d) vcan0 %s\n", NR * 1000, $0 }' >"$d/seed-golden.log"
     # ...and the notations the parser knows (remote, dots, direction, extended, FD, XL).

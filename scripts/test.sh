@@ -172,7 +172,7 @@ if wanted prepare; then
     # Built once, for both Python stages: the vcan lane runs the runner and the plant in real
     # time (release: the micro-VM emulates its CPU, many times slower than the host).
     cargo build --release --locked -p hostsim --bin hostsim -p mecanum-runner --bin mecanum-runner
-    cargo build --locked -p firmware --features std --bin mecanum-codec
+    cargo build --locked -p mecanum-codec
 fi
 export HOSTSIM="$PWD/target/release/hostsim" MECANUM_RUNNER="$PWD/target/release/mecanum-runner" \
     MECANUM_CODEC="$PWD/target/debug/mecanum-codec"

@@ -37,7 +37,7 @@ def codec_bin() -> pathlib.Path:
         assert path.is_file(), f"MECANUM_CODEC={prebuilt} does not exist"
         return path
     subprocess.run(
-        ["cargo", "build", "--quiet", "--locked", "-p", "firmware", "--features", "std", "--bin", "mecanum-codec"],
+        ["cargo", "build", "--quiet", "--locked", "-p", "mecanum-codec"],
         cwd=ROOT,
         check=True,
         timeout=900,

@@ -5,7 +5,7 @@
 #![no_main]
 
 use firmware::config::Config;
-use hostsim::candump::{self, Entry};
+use drivelog::candump::{self, Entry};
 use hostsim::replay::{OdometryTolerance, replay_split, split_candump};
 use libfuzzer_sys::fuzz_target;
 use mecanum_fuzz::check_frame;

@@ -4,7 +4,8 @@
 //! real interface, and the firmware's runner on a robot): MCAP profile `ros2`, every channel
 //! a ROS 2 message type (schema encoding `ros2msg` with the full `.msg` text, message
 //! encoding `cdr`), so Foxglove, PlotJuggler, `ros2 bag` (rosbag2's MCAP storage) and Python's
-//! `rosbags` read them without this project's code.
+//! `rosbags` read them without this project's code. The candump text logs (`candump -L`) have
+//! their one grammar here too: [`candump`].
 //!
 //! # Channels
 //!
@@ -72,6 +73,7 @@
 //!
 //! [`Writer`]: mcap::Writer
 
+pub mod candump;
 pub mod msg;
 pub mod read;
 pub mod write;

@@ -8,7 +8,6 @@
 pub mod bringup;
 pub mod bus;
 pub mod calibrate;
-pub mod candump;
 pub mod drives;
 pub mod host;
 pub mod imu;

@@ -24,7 +24,7 @@
 //! step that sends nothing and receives nothing leaves no frame, yet moves the core's
 //! timers. The simulator's logs have no step records and replay on the grid as before.
 //!
-//! A candump log (`candump -L`, see [`crate::candump`]) has every frame on the bus, both
+//! A candump log (`candump -L`, see [`drivelog::candump`]) has every frame on the bus, both
 //! directions mixed and no configuration: [`split_candump`] classifies the frames with the
 //! firmware's codecs ([`firmware_sends`]) and [`replay_split`] runs a fresh core on the
 //! received ones on a period grid anchored at the first frame. A real-time log is not on that
@@ -214,7 +214,7 @@ pub fn check_time_gaps<'a>(
             return Err(TimeGap {
                 from_ns: previous,
                 to_ns: f.t_ns,
-                frame: crate::candump::format_frame(&f.frame),
+                frame: drivelog::candump::format_frame(&f.frame),
             });
         }
         previous = f.t_ns;
@@ -682,7 +682,7 @@ pub fn detect_format(path: &Path) -> Result<LogFormat, ReplayError> {
     let by_extension = path
         .extension()
         .is_some_and(|e| e.eq_ignore_ascii_case("log") || e.eq_ignore_ascii_case("candump"));
-    if by_extension || crate::candump::looks_like_candump(&head) {
+    if by_extension || drivelog::candump::looks_like_candump(&head) {
         Ok(LogFormat::Candump)
     } else {
         Ok(LogFormat::Mcap)
@@ -739,8 +739,8 @@ pub struct SplitLog {
 /// Splits candump entries with [`firmware_sends`]. Entries are taken in time order (a
 /// stable sort, for logs merged from several captures); all interfaces are taken as one bus.
 #[must_use]
-pub fn split_candump(config: &Config, entries: &[crate::candump::Entry]) -> SplitLog {
-    let mut order: Vec<&crate::candump::Entry> = entries.iter().collect();
+pub fn split_candump(config: &Config, entries: &[drivelog::candump::Entry]) -> SplitLog {
+    let mut order: Vec<&drivelog::candump::Entry> = entries.iter().collect();
     order.sort_by_key(|e| e.t_ns);
     let t0_ns = order.first().map_or(0, |e| e.t_ns);
     let mut split = SplitLog {
@@ -835,7 +835,7 @@ impl ReportFrame {
     pub(crate) fn new(f: &TimedFrame) -> Self {
         Self {
             t_s: format!("{:.6}", f.t_ns as f64 * 1e-9),
-            frame: crate::candump::format_frame(&f.frame),
+            frame: drivelog::candump::format_frame(&f.frame),
         }
     }
 }
@@ -910,7 +910,7 @@ impl CandumpReplay {
 pub enum CandumpReplayError {
     /// The log could not be read or has a bad line.
     #[error(transparent)]
-    Read(#[from] crate::candump::ReadError),
+    Read(#[from] drivelog::candump::ReadError),
     /// The log has no frames.
     #[error("{}: no frames", path.display())]
     Empty {
@@ -939,7 +939,7 @@ pub fn replay_candump(
     config: &Config,
     tolerance: OdometryTolerance,
 ) -> Result<CandumpReplay, CandumpReplayError> {
-    let entries = crate::candump::read_file(path)?;
+    let entries = drivelog::candump::read_file(path)?;
     if entries.is_empty() {
         return Err(CandumpReplayError::Empty {
             path: path.to_path_buf(),

@@ -492,7 +492,7 @@ fn play(
         }
         LogFormat::Candump => {
             let (config, _) = load_config(config)?;
-            let entries = hostsim::candump::read_file(path)?;
+            let entries = drivelog::candump::read_file(path)?;
             let split = split_candump(&config, &entries);
             match only {
                 Only::Rx => split.rx,

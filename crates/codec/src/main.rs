@@ -5,13 +5,16 @@ use std::fmt::Write as _;
 use std::io::{self, BufRead, Write};
 use std::process::ExitCode;
 
-use embedded_can::{ExtendedId, Frame, Id, StandardId};
+use drivelog::candump;
+use embedded_can::{Frame, Id};
 use firmware::CanFrame;
 use firmware::protocol::dji::{self, EscGroup, EscId, EscModel};
 use firmware::protocol::odrive::{self, AxisState, ControlMode, InputMode, NodeId};
 use firmware::protocol::robot::{self, Fault, HeadingSource, ModeRequest, RobotState};
 use firmware::protocol::wire::Field;
 use firmware::protocol::{DecodeError, non_finite_name};
+use serde::Serialize;
+use serde_json::Value;
 
 const HELP: &str = "\
 mecanum-codec: decode CAN frames with the mecanum firmware's codecs, or print golden frames.
@@ -26,7 +29,9 @@ decode
     Reads candump lines on stdin, one frame per line, in the log format
         (1700000000.123456) vcan0 123#DEADBEEF
     or bare (123#DEADBEEF, 123#R, 123#R8 for remote frames; 3 hex digits = standard id,
-    8 = extended id; bytes may be separated by '.'). Prints one JSON line per input line:
+    8 = extended id; bytes may be separated by '.' between bytes): the line's <id>#<data>
+    token, read by the same candump grammar as `hostsim replay`. Prints one JSON line per
+    input line:
         {\"id\":769,\"protocol\":\"robot\",\"message\":\"TWIST_CMD\",\"fields\":{\"vx\":0.5,...}}
     or, for a frame the codecs reject or a line that does not parse,
         {\"id\":769,\"error\":{\"kind\":\"wrong_dlc\",\"message\":\"...\",\"expected\":8,\"got\":7}}
@@ -115,110 +120,44 @@ fn usage(msg: &str) -> ExitCode {
 }
 
 // ---------------------------------------------------------------------------------------------
-// candump text
+// candump text (the grammar is drivelog's) and JSON (serde_json, in the order written here)
 
+/// The frame of a line: its `<id>#<data>` token, parsed by the project's candump grammar.
 fn parse_candump(line: &str) -> Result<CanFrame, String> {
     let token = line
         .split_whitespace()
         .find(|t| t.contains('#'))
         .ok_or_else(|| "no <id>#<data> token".to_owned())?;
-    let (id_text, data_text) = token.split_once('#').unwrap_or((token, ""));
-    if data_text.starts_with('#') {
-        return Err("CAN FD frames (##) are not supported".to_owned());
-    }
-    if id_text.is_empty() || !id_text.chars().all(|c| c.is_ascii_hexdigit()) {
-        return Err(format!("bad id {id_text:?}"));
-    }
-    let raw = u32::from_str_radix(id_text, 16).map_err(|e| format!("bad id {id_text:?}: {e}"))?;
-    let id: Id = match id_text.len() {
-        1..=3 => StandardId::new(u16::try_from(raw).unwrap_or(u16::MAX))
-            .ok_or_else(|| format!("standard id {raw:#x} above 0x7FF"))?
-            .into(),
-        8 => ExtendedId::new(raw)
-            .ok_or_else(|| format!("extended id {raw:#x} above 0x1FFFFFFF"))?
-            .into(),
-        n => {
-            return Err(format!(
-                "id must have 3 (standard) or 8 (extended) hex digits, got {n}"
-            ));
-        }
-    };
-    if let Some(rest) = data_text.strip_prefix(['R', 'r']) {
-        let dlc = match rest {
-            "" => 0,
-            d => d
-                .parse::<usize>()
-                .ok()
-                .filter(|d| *d <= 8)
-                .ok_or_else(|| format!("bad remote DLC {d:?}"))?,
-        };
-        return CanFrame::new_remote(id, dlc).ok_or_else(|| "bad remote frame".to_owned());
-    }
-    let hex: String = data_text.chars().filter(|c| *c != '.').collect();
-    if !hex.len().is_multiple_of(2) || !hex.chars().all(|c| c.is_ascii_hexdigit()) {
-        return Err(format!("bad data {data_text:?}"));
-    }
-    let bytes: Vec<u8> = (0..hex.len())
-        .step_by(2)
-        .map(|i| u8::from_str_radix(&hex[i..i + 2], 16).unwrap_or(0))
-        .collect();
-    CanFrame::new(id, &bytes).ok_or_else(|| format!("{} data bytes, at most 8", bytes.len()))
+    candump::parse_frame(token).map_err(|e| e.to_string())
 }
 
 fn candump_text(frame: &CanFrame) -> String {
-    frame.to_string()
+    candump::format_frame(frame)
 }
 
-// ---------------------------------------------------------------------------------------------
-// JSON (flat objects of numbers and strings: no dependency needed)
-
-fn json_str(s: &str) -> String {
-    let mut out = String::with_capacity(s.len() + 2);
-    out.push('"');
-    for c in s.chars() {
-        match c {
-            '"' => out.push_str("\\\""),
-            '\\' => out.push_str("\\\\"),
-            c if (c as u32) < 0x20 => {
-                let _ = write!(out, "\\u{:04x}", c as u32);
-            }
-            c => out.push(c),
-        }
-    }
-    out.push('"');
-    out
-}
-
-/// A JSON number. Floats print in Rust's shortest round-trip form (never exponent notation);
-/// the codecs never produce non-finite values, but guard anyway.
-#[derive(Clone, Copy)]
+/// A JSON number: the codecs' integers and floats (a non-finite float is `null`, as
+/// serde_json writes it; the codecs never produce one).
+#[derive(Clone, Copy, Serialize)]
+#[serde(untagged)]
 enum Num {
     Int(i64),
     Float(f32),
 }
 
-impl Num {
-    fn json(self) -> String {
-        match self {
-            Self::Int(i) => i.to_string(),
-            Self::Float(f) if f.is_finite() => format!("{f:?}"),
-            Self::Float(_) => "null".to_owned(),
-        }
-    }
-}
+/// Named values as a JSON object, in their order.
+struct Fields<'a, V>(&'a [(&'a str, V)]);
 
-fn fields_json(fields: &[(&str, Num)]) -> String {
-    let body: Vec<String> = fields
-        .iter()
-        .map(|(k, v)| format!("{}:{}", json_str(k), v.json()))
-        .collect();
-    format!("{{{}}}", body.join(","))
+impl<V: Serialize> Serialize for Fields<'_, V> {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.collect_map(self.0.iter().map(|(k, v)| (k, v)))
+    }
 }
 
 /// One decoded message, protocol-independent.
 struct Decoded {
     protocol: &'static str,
     message: String,
+    /// The sender's address: an ODrive's `node`, a DJI ESC's `esc`.
     extra: Vec<(&'static str, Num)>,
     fields: Vec<(&'static str, Num)>,
 }
@@ -248,18 +187,37 @@ impl Decoded {
         self
     }
 
-    fn head_json(&self, id: Id) -> String {
-        let mut s = format!(
-            "{{\"id\":{},\"protocol\":{},\"message\":{}",
-            raw_id(id),
-            json_str(self.protocol),
-            json_str(&self.message)
-        );
-        for (k, v) in &self.extra {
-            let _ = write!(s, ",{}:{}", json_str(k), v.json());
+    /// The line of `decode`: `{"id", "protocol", "message", <extra>, "fields"}`; with
+    /// `golden`, the frame's candump text and the encoder's input before the fields.
+    fn json(&self, id: Id, golden: Option<(&str, &Decoded)>) -> String {
+        #[derive(Serialize)]
+        struct Line<'a> {
+            id: u32,
+            protocol: &'a str,
+            message: &'a str,
+            #[serde(flatten)]
+            extra: Fields<'a, Num>,
+            #[serde(skip_serializing_if = "Option::is_none")]
+            candump: Option<&'a str>,
+            #[serde(skip_serializing_if = "Option::is_none")]
+            input: Option<Fields<'a, Num>>,
+            fields: Fields<'a, Num>,
         }
-        s
+        to_line(&Line {
+            id: raw_id(id),
+            protocol: self.protocol,
+            message: &self.message,
+            extra: Fields(&self.extra),
+            candump: golden.map(|(text, _)| text),
+            input: golden.map(|(_, input)| Fields(&input.fields)),
+            fields: Fields(&self.fields),
+        })
     }
+}
+
+/// One JSON line; the values here always serialise.
+fn to_line(value: &impl Serialize) -> String {
+    serde_json::to_string(value).unwrap_or_else(|e| format!("{{\"error\":\"{e}\"}}"))
 }
 
 fn raw_id(id: Id) -> u32 {
@@ -269,42 +227,46 @@ fn raw_id(id: Id) -> u32 {
     }
 }
 
-fn error_json(id: Option<Id>, kind: &str, message: &str, extra: &[(&str, String)]) -> String {
-    let mut s = String::from("{");
-    if let Some(id) = id {
-        let _ = write!(s, "\"id\":{},", raw_id(id));
+/// `{"id", "error": {"kind", "message", <extra>}}` (no `id` for a line that does not parse).
+fn error_json(id: Option<Id>, kind: &str, message: &str, extra: &[(&str, Value)]) -> String {
+    #[derive(Serialize)]
+    struct Error<'a> {
+        kind: &'a str,
+        message: &'a str,
+        #[serde(flatten)]
+        extra: Fields<'a, Value>,
     }
-    let _ = write!(
-        s,
-        "\"error\":{{\"kind\":{},\"message\":{}",
-        json_str(kind),
-        json_str(message)
-    );
-    for (k, v) in extra {
-        let _ = write!(s, ",{}:{}", json_str(k), v);
+    #[derive(Serialize)]
+    struct Line<'a> {
+        #[serde(skip_serializing_if = "Option::is_none")]
+        id: Option<u32>,
+        error: Error<'a>,
     }
-    s.push_str("}}");
-    s
+    to_line(&Line {
+        id: id.map(raw_id),
+        error: Error {
+            kind,
+            message,
+            extra: Fields(extra),
+        },
+    })
 }
 
 fn decode_error_json(id: Id, e: &DecodeError) -> String {
-    let mut extra: Vec<(&str, String)> = Vec::new();
-    match *e {
+    let extra: Vec<(&str, Value)> = match *e {
         DecodeError::WrongDlc { expected, got, .. } => {
-            extra.push(("expected", expected.to_string()));
-            extra.push(("got", got.to_string()));
+            vec![("expected", expected.into()), ("got", got.into())]
         }
-        DecodeError::NonFinite { field, bits } => {
-            extra.push(("field", json_str(field)));
-            extra.push(("value", json_str(non_finite_name(bits))));
-            extra.push(("bits", json_str(&format!("{bits:#010x}"))));
-        }
+        DecodeError::NonFinite { field, bits } => vec![
+            ("field", field.into()),
+            ("value", non_finite_name(bits).into()),
+            ("bits", format!("{bits:#010x}").into()),
+        ],
         DecodeError::OutOfRange { field, value } => {
-            extra.push(("field", json_str(field)));
-            extra.push(("value", value.to_string()));
+            vec![("field", field.into()), ("value", value.into())]
         }
-        _ => {}
-    }
+        _ => Vec::new(),
+    };
     error_json(Some(id), e.kind().as_str(), &e.to_string(), &extra)
 }
 
@@ -470,17 +432,10 @@ fn route(frame: &CanFrame, model: EscModel) -> Result<AnyMessage, DecodeError> {
 fn decode_line(line: &str, model: EscModel) -> String {
     let frame = match parse_candump(line) {
         Ok(f) => f,
-        Err(msg) => return error_json(None, "parse", &msg, &[("line", json_str(line))]),
+        Err(msg) => return error_json(None, "parse", &msg, &[("line", line.into())]),
     };
     match route(&frame, model) {
-        Ok(msg) => {
-            let d = msg.fields();
-            format!(
-                "{},\"fields\":{}}}",
-                d.head_json(frame.id()),
-                fields_json(&d.fields)
-            )
-        }
+        Ok(msg) => msg.fields().json(frame.id(), None),
         Err(e) => decode_error_json(frame.id(), &e),
     }
 }
@@ -507,7 +462,7 @@ fn decode_stream(input: impl BufRead, output: impl Write, model: EscModel) -> io
                     None,
                     "parse",
                     &format!("line {} is not UTF-8: {e}", n + 1),
-                    &[("bytes", json_str(&hex))],
+                    &[("bytes", hex.into())],
                 )
             }
         };
@@ -772,16 +727,9 @@ fn golden() -> io::Result<()> {
     for (msg, input) in golden_set() {
         let frame = msg.to_can_frame();
         let line = match route(&frame, EscModel::C620) {
-            Ok(decoded) => {
-                let d = decoded.fields();
-                format!(
-                    "{},\"candump\":{},\"input\":{},\"fields\":{}}}",
-                    d.head_json(frame.id()),
-                    json_str(&candump_text(&frame)),
-                    fields_json(&input.fields),
-                    fields_json(&d.fields)
-                )
-            }
+            Ok(decoded) => decoded
+                .fields()
+                .json(frame.id(), Some((&candump_text(&frame), &input))),
             // A golden frame the decoder rejects is a bug; print it so the tests fail loudly.
             Err(e) => decode_error_json(frame.id(), &e),
         };

@@ -1,4 +1,5 @@
-//! candump log files (can-utils `candump -L`, python-can's `.log` format): parser and writer.
+//! candump log files (can-utils `candump -L`, python-can's `.log` format): the one parser
+//! and writer of the project (`hostsim replay`, `mecanum-codec decode`, the tests' logs).
 //!
 //! One frame per line:
 //!
@@ -6,21 +7,20 @@
 //! (1700000000.123456) vcan0 123#DEADBEEF
 //! (1700000000.124000) vcan0 301#F4010000E8030700
 //! (1700000000.125000) vcan0 023#R
+//! (1700000000.126000) vcan0 1ABCDEF0#00
 //! ```
 //!
 //! - a timestamp in parentheses: seconds, a dot and 1 to 9 fraction digits (candump writes 6);
 //! - the interface name;
-//! - the frame: a 3-digit hex standard id, `#`, then 0 to 8 data bytes as hex pairs (optionally
-//!   separated by dots, as `cansend` accepts); a remote frame is `#R` with an optional DLC
-//!   digit (`123#R`, `123#R4`);
-//! - optionally, a direction token `R` (received) or `T` (transmitted), which recent can-utils
-//!   append with `candump -L -x`.
+//! - the frame ([`parse_frame`]): a 3-digit hex standard id or an 8-digit extended id, `#`,
+//!   then 0 to 8 data bytes as hex pairs (optionally separated by dots between bytes, as
+//!   `cansend` accepts); a remote frame is `#R` with an optional DLC digit (`123#R4`);
+//! - optionally, a direction token `R` (received) or `T` (transmitted) (`candump -L -x`).
 //!
-//! Blank lines are skipped. The project's buses carry classic CAN 2.0A frames only, so a line
-//! with an extended (8-digit) id, a CAN FD frame (`##`), a CAN XL frame (`###`) or a DLC code
-//! above 8 (`_9`..`_F`) is rejected with a [`CandumpError`] naming the line number, the text
-//! and what is wrong; every other malformed line too. The parser never panics, whatever the
-//! input.
+//! Blank lines are skipped, and so are error frames (`candump -e`: an 8-digit id with
+//! `CAN_ERR_FLAG`). Classic CAN only: a CAN FD frame (`##`), a CAN XL frame (`###`) or a DLC
+//! code above 8 (`_9`..`_F`) is rejected with a [`CandumpError`] naming the line number, the
+//! text and what is wrong, as is every other malformed line. The parser never panics.
 //!
 //! The writer produces exactly the `candump -L` form (10-digit seconds, 6-digit microseconds,
 //! upper-case hex, no separators), which `canplayer` and python-can's `CanutilsLogReader` read.
@@ -29,7 +29,7 @@ use std::fmt;
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 
-use embedded_can::StandardId;
+use embedded_can::{ExtendedId, Frame as _, Id, StandardId};
 use firmware::CanFrame;
 
 /// One parsed line.
@@ -65,10 +65,9 @@ pub enum ErrorKind {
     MissingInterface,
     /// No `<id>#<data>` token after the interface.
     MissingFrame,
-    /// The id is not 1 to 3 hex digits, or above 0x7FF.
+    /// The id is not 1 to 3 hex digits (standard, at most 0x7FF) or 8 (extended, at most
+    /// 0x1FFFFFFF).
     BadId(&'static str),
-    /// An extended (29-bit, 8-digit) id: not supported.
-    Extended,
     /// A CAN FD frame (`##`): not supported.
     CanFd,
     /// A CAN XL frame (`###`): not supported.
@@ -93,9 +92,6 @@ impl fmt::Display for ErrorKind {
             Self::MissingInterface => f.write_str("no interface name after the timestamp"),
             Self::MissingFrame => f.write_str("no <id>#<data> frame after the interface"),
             Self::BadId(why) => write!(f, "bad CAN id ({why})"),
-            Self::Extended => {
-                f.write_str("extended (29-bit) id: only standard 11-bit ids are supported")
-            }
             Self::CanFd => f.write_str("CAN FD frame (##): only classic CAN is supported"),
             Self::CanXl => f.write_str("CAN XL frame (###): only classic CAN is supported"),
             Self::BadData(why) => write!(f, "bad data ({why})"),
@@ -249,23 +245,34 @@ pub fn parse_frame(token: &str) -> Result<CanFrame, ErrorKind> {
     if !id_text.bytes().all(|b| b.is_ascii_hexdigit()) {
         return Err(ErrorKind::BadId("not hex digits"));
     }
-    if id_text.len() == 8 {
-        return Err(ErrorKind::Extended);
-    }
-    if id_text.len() > 3 {
-        return Err(ErrorKind::BadId(
-            "a standard id has 3 hex digits (8 for extended ids)",
-        ));
-    }
-    let raw = u16::from_str_radix(id_text, 16).map_err(|_| ErrorKind::BadId("not hex digits"))?;
-    let id = StandardId::new(raw).ok_or(ErrorKind::BadId("above 0x7FF"))?;
+    let id: Id = match id_text.len() {
+        1..=3 => {
+            let raw =
+                u16::from_str_radix(id_text, 16).map_err(|_| ErrorKind::BadId("not hex digits"))?;
+            StandardId::new(raw)
+                .ok_or(ErrorKind::BadId("above 0x7FF"))?
+                .into()
+        }
+        8 => {
+            let raw =
+                u32::from_str_radix(id_text, 16).map_err(|_| ErrorKind::BadId("not hex digits"))?;
+            ExtendedId::new(raw)
+                .ok_or(ErrorKind::BadId("above 0x1FFFFFFF"))?
+                .into()
+        }
+        _ => {
+            return Err(ErrorKind::BadId(
+                "a standard id has 3 hex digits, an extended id 8",
+            ));
+        }
+    };
     if let Some(dlc) = rest.strip_prefix(['R', 'r']) {
         let dlc = match dlc.as_bytes() {
             [] => 0,
             [d @ b'0'..=b'8'] => d - b'0',
             _ => return Err(ErrorKind::BadRemoteDlc),
         };
-        return Ok(CanFrame::remote(id, dlc));
+        return CanFrame::new_remote(id, usize::from(dlc)).ok_or(ErrorKind::BadRemoteDlc);
     }
     if rest.contains('_') {
         return Err(ErrorKind::Len8Dlc);
@@ -299,7 +306,7 @@ pub fn parse_frame(token: &str) -> Result<CanFrame, ErrorKind> {
         return Err(ErrorKind::TooLong(len));
     }
     // len <= 8 checked above.
-    Ok(CanFrame::from_buffer(id, data, len as u8))
+    CanFrame::new(id, &data[..len]).ok_or(ErrorKind::TooLong(len))
 }
 
 const fn hex_value(b: u8) -> Option<u8> {
@@ -484,6 +491,16 @@ mod tests {
             Some(LoggedDirection::Transmitted)
         );
         assert_eq!(parse_line("   ", 1).unwrap(), None);
+        // An extended id (29 bits, 8 digits): a frame like any other.
+        let ext = p("(1.0) vcan0 1ABCDEF0#0102").frame;
+        assert_eq!(
+            ext.id(),
+            Id::Extended(ExtendedId::new(0x1ABC_DEF0).unwrap())
+        );
+        assert_eq!(
+            (ext.data(), ext.to_string().as_str()),
+            (&[1u8, 2][..], "1ABCDEF0#0102")
+        );
         // An error frame (candump -e: bus-off, CRC errors...) is skipped.
         assert_eq!(
             parse_line("(1.5) can0 20000080#0000000000000000", 1).unwrap(),
@@ -496,11 +513,18 @@ mod tests {
     #[test]
     fn rejects_with_the_line_number_and_text() {
         let e = |s| parse_line(s, 42).unwrap_err();
-        let ext = e("(1.0) vcan0 12345678#00");
-        assert_eq!((ext.line, ext.kind.clone()), (42, ErrorKind::Extended));
-        let text = ext.to_string();
-        assert!(text.starts_with("line 42: extended"), "{text}");
-        assert!(text.contains("12345678#00"), "{text}");
+        let fd = e("(1.0) vcan0 123##1AABB");
+        let text = fd.to_string();
+        assert!(text.starts_with("line 42: CAN FD frame"), "{text}");
+        assert!(text.contains("123##1AABB"), "{text}");
+        assert_eq!(
+            e("(1.0) vcan0 1234#00").kind,
+            ErrorKind::BadId("a standard id has 3 hex digits, an extended id 8")
+        );
+        assert_eq!(
+            e("(1.0) vcan0 40000000#00").kind,
+            ErrorKind::BadId("above 0x1FFFFFFF")
+        );
         assert_eq!(e("(1.0) vcan0 123##1AABB").kind, ErrorKind::CanFd);
         assert_eq!(e("(1.0) vcan0 123###x").kind, ErrorKind::CanXl);
         assert_eq!(
