@@ -727,7 +727,7 @@ def test_runner_log_replays_bit_identical_and_reads_with_rosbags(request, sessio
     assert topics["/odom"] == topics["/joint_states"] == topics["/diagnostics"] > stats["steps"] // 10
     assert sum(topics.values()) == stats["log"]["messages"]
     print(f"{session}: rosbags read {dict(topics)}; /rosout {texts}")
-    assert "state ENABLED" in texts
+    assert "state ENABLED, fault NONE" in texts
     if session == "stops":
         assert "state DISABLED, fault WATCHDOG" in texts
         assert any(t.startswith("state ESTOP") for t in texts)

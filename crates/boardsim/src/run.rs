@@ -324,12 +324,7 @@ pub fn run_scenario(
                     }
                     Some(Seen::Transition(state, fault)) => {
                         if let Some(l) = log.as_deref_mut() {
-                            let level = match state {
-                                RobotState::Fault => msg::Log::ERROR,
-                                RobotState::Estop => msg::Log::WARN,
-                                _ => msg::Log::INFO,
-                            };
-                            let text = format!("state {state}, fault {fault}");
+                            let (level, text) = hostsim::log::state_line(state, fault);
                             l.text(tx.delivered_ns, level, &text)?;
                         }
                     }

@@ -76,33 +76,12 @@
 pub mod candump;
 pub mod msg;
 pub mod read;
+pub mod status;
 pub mod write;
 
 pub use read::{Damage, Message, Problem, ReadReport, for_each_message};
+pub use status::{StatusLog, heading_source_line, state_line};
 pub use write::{CHUNK_SIZE, Direction, LogError, McapLog, OdometrySource, part_path};
-
-use firmware::protocol::robot::HeadingSource;
-
-/// The `/rosout` line for the firmware's heading source changing to `source`: its level and
-/// text. Losing the gyro is a warning (the robot keeps driving on wheel heading), getting it
-/// (back) is information. `gyro_timeout_ms` is the configuration's `odometry.gyro_timeout_ms`.
-#[must_use]
-pub fn heading_source_line(source: HeadingSource, gyro_timeout_ms: u32) -> (u8, String) {
-    match source {
-        HeadingSource::WheelsGyroSilent => (
-            msg::Log::WARN,
-            format!(
-                "heading source WHEELS_GYRO_SILENT: no valid IMU_YAW_RATE for {gyro_timeout_ms} ms, \
-                 the wheels give the heading"
-            ),
-        ),
-        HeadingSource::Gyro => (
-            msg::Log::INFO,
-            "heading source GYRO: IMU_YAW_RATE alive, the gyro gives the heading".to_string(),
-        ),
-        HeadingSource::Wheels => (msg::Log::INFO, "heading source WHEELS".to_string()),
-    }
-}
 
 /// The MCAP profile of every log.
 pub const PROFILE: &str = "ros2";

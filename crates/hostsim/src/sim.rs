@@ -314,8 +314,10 @@ pub fn run_observed<P: SimPlant>(
     // one more period, which the firmware never sees).
     let mut last_truth = plant.truth();
     let mut transitions = Vec::new();
-    let mut last_state = (RobotState::Disabled, firmware::control::Fault::None);
-    let (mut heading_changes, mut last_heading) = (Vec::new(), robot::HeadingSource::Wheels);
+    // The firmware boots DISABLED without a fault: the log says the changes from there.
+    let mut status = crate::log::StatusLog::new()
+        .starting_in(RobotState::Disabled, firmware::control::Fault::None);
+    let mut heading_changes = Vec::new();
     let mut t_us = 0u64;
     let mut step = 0u64;
     let mut track = Vec::with_capacity((duration_us / 10_000 + 2) as usize);
@@ -374,29 +376,19 @@ pub fn run_observed<P: SimPlant>(
             hash.add(t_us, f);
             summary_tx += 1;
         }
-        let state = (ctl.state(), ctl.fault());
-        if state != last_state {
-            let msg = format!("state {}, fault {}", state.0, state.1);
+        let (state, fault) = (ctl.state(), ctl.fault());
+        if let Some((level, text)) = status.state(state, fault) {
             if let Some(l) = log.as_deref_mut() {
-                // As `/diagnostics` rates them: a fault is an error, an e-stop a warning.
-                let level = match state.0 {
-                    RobotState::Fault => crate::log::msg::Log::ERROR,
-                    RobotState::Estop => crate::log::msg::Log::WARN,
-                    _ => crate::log::msg::Log::INFO,
-                };
-                l.text(t_ns, level, &msg)?;
-            }
-            transitions.push((t_us as f64 * 1e-6, state.0.to_string(), state.1.to_string()));
-            last_state = state;
-        }
-        if ctl.heading_source() != last_heading {
-            last_heading = ctl.heading_source();
-            if let Some(l) = log.as_deref_mut() {
-                let timeout_ms = scenario.config.odometry.gyro_timeout_ms;
-                let (level, text) = crate::log::heading_source_line(last_heading, timeout_ms);
                 l.text(t_ns, level, &text)?;
             }
-            heading_changes.push((t_us as f64 * 1e-6, last_heading.to_string()));
+            transitions.push((t_us as f64 * 1e-6, state.to_string(), fault.to_string()));
+        }
+        let timeout_ms = scenario.config.odometry.gyro_timeout_ms;
+        if let Some((level, text)) = status.heading(ctl.heading_source(), timeout_ms) {
+            if let Some(l) = log.as_deref_mut() {
+                l.text(t_ns, level, &text)?;
+            }
+            heading_changes.push((t_us as f64 * 1e-6, ctl.heading_source().to_string()));
         }
         let odom = pose_array(ctl.pose());
         let truth = plant.truth();

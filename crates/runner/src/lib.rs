@@ -54,9 +54,9 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::thread::JoinHandle;
 
-use drivelog::{Direction, LogError, McapLog, OdometrySource, heading_source_line, msg};
+use drivelog::{Direction, LogError, McapLog, OdometrySource, StatusLog, msg};
 use firmware::control::{Controller, Fault};
-use firmware::protocol::robot::{HeadingSource, RobotState};
+use firmware::protocol::robot::RobotState;
 use firmware::{CanFrame, Config};
 use mecanum_linux::{LinkEvent, Recorder};
 
@@ -93,9 +93,8 @@ pub struct McapRecorder {
     rotation: Option<Rotation>,
     error: Option<LogError>,
     steps: u64,
-    state: Option<(RobotState, Fault)>,
-    /// The heading source last logged (a change is a `/rosout` line).
-    heading: HeadingSource,
+    /// The state and heading source last logged (a change is a `/rosout` line).
+    status: StatusLog,
     dropped: u64,
     messages: u64,
 }
@@ -121,8 +120,7 @@ impl McapRecorder {
             rotation: None,
             error: None,
             steps: 0,
-            state: None,
-            heading: HeadingSource::Wheels,
+            status: StatusLog::new(),
             dropped: 0,
             messages: 0,
         }
@@ -249,8 +247,7 @@ impl McapRecorder {
         }
         rotation.prepare();
         // The new file opens with the state at its start.
-        self.state = None;
-        self.heading = HeadingSource::Wheels;
+        self.status = StatusLog::new();
     }
 
     /// Waits until the log's writer has written every batch handed over and the next
@@ -331,25 +328,11 @@ impl McapRecorder {
                 )
             });
         }
-        let now = (s.state, s.fault);
-        if self.state != Some(now) {
-            self.state = Some(now);
-            let level = match s.state {
-                RobotState::Fault => msg::Log::ERROR,
-                RobotState::Estop => msg::Log::WARN,
-                _ => msg::Log::INFO,
-            };
-            let text = if s.fault == Fault::None {
-                format!("state {}", s.state)
-            } else {
-                format!("state {}, fault {}", s.state, s.fault)
-            };
+        if let Some((level, text)) = self.status.state(s.state, s.fault) {
             self.with(|log| log.text(t_ns, level, &text));
         }
-        if s.heading_source != self.heading {
-            self.heading = s.heading_source;
-            let timeout_ms = controller.config().odometry.gyro_timeout_ms;
-            let (level, text) = heading_source_line(s.heading_source, timeout_ms);
+        let timeout_ms = controller.config().odometry.gyro_timeout_ms;
+        if let Some((level, text)) = self.status.heading(s.heading_source, timeout_ms) {
             self.with(|log| log.text(t_ns, level, &text));
         }
     }
