@@ -154,10 +154,9 @@ pub struct PlantReport {
     pub send_retries: u64,
     /// Feedback frames that could not be sent (dropped).
     pub send_errors: u64,
-    /// The first bus error.
-    pub first_error: Option<String>,
-    /// The last bus error.
-    pub last_error: Option<String>,
+    /// The first and the last bus error (`first_error`, `last_error`).
+    #[serde(flatten)]
+    pub errors: ErrorLog,
     /// Lateness of each tick after its deadline, µs.
     pub jitter: LatencySummary,
     /// Ground-truth pose at the end (world frame).
@@ -193,12 +192,7 @@ impl fmt::Display for PlantReport {
             self.bus_error_frames,
             self.rx_capped_ticks
         )?;
-        if let Some(e) = &self.first_error {
-            writeln!(f, "first bus error: {e}")?;
-        }
-        if let Some(e) = &self.last_error {
-            writeln!(f, "last bus error: {e}")?;
-        }
+        self.errors.write_lines(f)?;
         writeln!(
             f,
             "ground truth: x {:+.4} m  y {:+.4} m  heading {:+.2}°",
@@ -371,8 +365,7 @@ pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
         frames_sent: sent,
         send_retries: retries,
         send_errors,
-        first_error: errors.first,
-        last_error: errors.last,
+        errors,
         jitter: jitter.summary(),
         truth: Pose { x, y, heading },
         velocity: Velocity { vx, vy, wz },
@@ -534,10 +527,9 @@ pub struct PlayReport {
     pub elapsed_us: u64,
     /// Lateness of each send after its due time (before any retry), µs.
     pub lateness: LatencySummary,
-    /// The first bus error.
-    pub first_error: Option<String>,
-    /// The last bus error.
-    pub last_error: Option<String>,
+    /// The first and the last bus error (`first_error`, `last_error`).
+    #[serde(flatten)]
+    pub errors: ErrorLog,
 }
 
 impl fmt::Display for PlayReport {
@@ -556,11 +548,9 @@ impl fmt::Display for PlayReport {
             write!(f, "; stopped early by {}", StopReason::Signal(n))?;
         }
         write!(f, "\nlateness (send - due): {}", self.lateness)?;
-        if let Some(e) = &self.first_error {
-            write!(f, "\nfirst bus error: {e}")?;
-        }
-        if let Some(e) = &self.last_error {
-            write!(f, "\nlast bus error: {e}")?;
+        if self.errors != ErrorLog::default() {
+            writeln!(f)?;
+            self.errors.write_lines(f)?;
         }
         Ok(())
     }
@@ -640,8 +630,7 @@ pub fn play_frames<B: Bus, C: Clock>(
         log_span_us: t_last.saturating_sub(t_first) / 1000,
         elapsed_us: clock.now_micros().saturating_sub(start),
         lateness: lateness.summary(),
-        first_error: errors.first,
-        last_error: errors.last,
+        errors,
     }
 }
 

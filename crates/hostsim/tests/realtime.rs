@@ -380,7 +380,7 @@ fn the_plant_counts_bus_error_frames_apart_and_reads_the_frames_behind_them() {
         "{r:?}"
     );
     assert_eq!(
-        r.first_error.as_deref(),
+        r.errors.first.as_deref(),
         Some("receive: error frame: bus-off")
     );
     let text = r.to_string();

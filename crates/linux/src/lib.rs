@@ -31,12 +31,10 @@ pub use bus::{Bus, BusErrorFrame, ErrorKind, classify, is_bus_error_frame, is_bu
 pub use cli::{error_line, parse_seconds};
 pub use clock::{Clock, MonotonicClock};
 pub use report::{
-    ControllerReport, ErrorCounts, LatencyHistogram, LatencySummary, LinkReport, Report,
+    ControllerReport, ErrorCounts, ErrorLog, LatencyHistogram, LatencySummary, LinkReport, Report,
     ShutdownReport, StopReason,
 };
-pub use run::{
-    ErrorLog, LinkEvent, Recorder, RunOptions, id_text, run, run_recorded, send_with_retry,
-};
+pub use run::{LinkEvent, Recorder, RunOptions, id_text, run, run_recorded, send_with_retry};
 pub use schedule::Schedule;
 pub use signals::stop_on_signals;
 pub use socketcan::{OpenError, SocketCanBus};

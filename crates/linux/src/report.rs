@@ -2,6 +2,7 @@
 //! [`Report`] the runner prints and writes as JSON.
 
 use core::fmt;
+use std::io;
 
 use serde::Serialize;
 
@@ -313,10 +314,9 @@ pub struct Report {
     /// The error that caused the last link loss (`receive: Network is down (os error
     /// 100)`), if the link was lost.
     pub link_error: Option<String>,
-    /// The first bus error, with the frame id, for the log.
-    pub first_error: Option<String>,
-    /// The last bus error.
-    pub last_error: Option<String>,
+    /// The first and the last bus error, with the frame id (`first_error`, `last_error`).
+    #[serde(flatten)]
+    pub errors: ErrorLog,
     /// Lateness of each step start after its deadline, µs.
     pub jitter: LatencySummary,
     /// Time from a step's start to its last frame sent, µs.
@@ -377,12 +377,7 @@ impl fmt::Display for Report {
                 l.frames_not_sent
             )?;
         }
-        if let Some(first) = &self.first_error {
-            writeln!(f, "first bus error: {first}")?;
-        }
-        if let Some(last) = &self.last_error {
-            writeln!(f, "last bus error: {last}")?;
-        }
+        self.errors.write_lines(f)?;
         writeln!(
             f,
             "controller: {} (fault {}) at stop, {} after shutdown; {} steps; motors online {:04b} (bit 0 = FL)",
@@ -405,6 +400,44 @@ impl fmt::Display for Report {
         )?;
         if self.shutdown.failed > 0 {
             write!(f, " ({} NOT sent)", self.shutdown.failed)?;
+        }
+        Ok(())
+    }
+}
+
+/// The first and the last I/O error of a loop, as log lines (`send 0x200: No buffer space
+/// available`): what a report shows, in constant memory however many errors there were.
+/// In a report's JSON, `first_error` and `last_error`.
+#[derive(Debug, Default, Clone, PartialEq, Eq, serde::Serialize)]
+pub struct ErrorLog {
+    /// The first error.
+    #[serde(rename = "first_error")]
+    pub first: Option<String>,
+    /// The last error.
+    #[serde(rename = "last_error")]
+    pub last: Option<String>,
+}
+
+impl ErrorLog {
+    /// Records `what: error`.
+    pub fn record(&mut self, what: fmt::Arguments<'_>, error: &io::Error) {
+        let message = format!("{what}: {error}");
+        if self.first.is_none() {
+            self.first = Some(message.clone());
+        }
+        self.last = Some(message);
+    }
+
+    /// A report's lines of them, `first bus error: ...` and `last bus error: ...`, each ended
+    /// by a newline (nothing without errors).
+    ///
+    /// # Errors
+    /// The formatter's.
+    pub fn write_lines(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for (which, e) in [("first", &self.first), ("last", &self.last)] {
+            if let Some(e) = e {
+                writeln!(f, "{which} bus error: {e}")?;
+            }
         }
         Ok(())
     }

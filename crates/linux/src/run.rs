@@ -1,6 +1,5 @@
 //! The fixed-rate loop ([`run`], [`run_recorded`]) and what it tells a [`Recorder`].
 
-use core::fmt;
 use core::sync::atomic::{AtomicUsize, Ordering};
 use std::io;
 
@@ -12,7 +11,8 @@ use firmware::control::{Controller, Instant};
 use crate::bus::{Bus, ErrorKind, classify, is_bus_error_frame, is_busy};
 use crate::clock::Clock;
 use crate::report::{
-    ControllerReport, ErrorCounts, LatencyHistogram, LinkReport, Report, ShutdownReport, StopReason,
+    ControllerReport, ErrorCounts, ErrorLog, LatencyHistogram, LinkReport, Report, ShutdownReport,
+    StopReason,
 };
 use crate::schedule::Schedule;
 
@@ -86,27 +86,6 @@ struct Counters {
     send_kinds: ErrorCounts,
     rx_kinds: ErrorCounts,
     errors: ErrorLog,
-}
-
-/// The first and the last I/O error of a loop, as log lines (`send 0x200: No buffer space
-/// available`): what a report shows, in constant memory however many errors there were.
-#[derive(Debug, Default, Clone, PartialEq, Eq)]
-pub struct ErrorLog {
-    /// The first error.
-    pub first: Option<String>,
-    /// The last error.
-    pub last: Option<String>,
-}
-
-impl ErrorLog {
-    /// Records `what: error`.
-    pub fn record(&mut self, what: fmt::Arguments<'_>, error: &io::Error) {
-        let message = format!("{what}: {error}");
-        if self.first.is_none() {
-            self.first = Some(message.clone());
-        }
-        self.last = Some(message);
-    }
 }
 
 /// The id of a frame for a log line: `0x200` (standard), `0x12345678` (extended).
@@ -437,8 +416,7 @@ pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
         rx_errors_by_kind: counters.rx_kinds,
         link,
         link_error,
-        first_error: counters.errors.first,
-        last_error: counters.errors.last,
+        errors: counters.errors,
         jitter: jitter.summary(),
         step_time: step_time.summary(),
         shutdown: ShutdownReport {

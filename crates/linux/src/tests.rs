@@ -294,7 +294,7 @@ fn busy_sends_are_retried() {
     assert_eq!(r.frames_sent, 6 + 2);
     // The first frame went out after three 20 µs back-offs.
     assert_eq!(bus.sent[0], (T0 + 60, bus.sent[0].1));
-    assert!(r.first_error.is_none());
+    assert!(r.errors.first.is_none());
 }
 
 #[test]
@@ -316,7 +316,7 @@ fn a_bus_that_stays_busy_drops_frames_and_keeps_the_schedule() {
     // Retries end half a period after the deadline.
     assert!(r.jitter.max_us.unwrap() < 1000, "{r:?}");
     assert_eq!(r.shutdown.failed, 1);
-    let e = r.first_error.as_deref().unwrap();
+    let e = r.errors.first.as_deref().unwrap();
     assert!(e.starts_with("send 0x200: "), "{e}");
     // The shutdown was retried for its whole budget.
     assert!(r.elapsed_us >= 3000 + RunOptions::default().shutdown_budget_us - 20);
@@ -345,8 +345,8 @@ fn other_send_errors_are_counted_without_retry() {
     assert_eq!(r.send_retries, 0);
     assert_eq!(r.send_errors, 6 + 1);
     assert_eq!(r.rx_errors, 2);
-    assert!(r.first_error.unwrap().starts_with("receive: "));
-    assert!(r.last_error.unwrap().starts_with("shutdown send 0x200: "));
+    assert!(r.errors.first.unwrap().starts_with("receive: "));
+    assert!(r.errors.last.unwrap().starts_with("shutdown send 0x200: "));
     assert_eq!(r.shutdown.failed, 1);
     // The shutdown frame too.
     assert_eq!(r.send_errors_by_kind.other, 7 + 1);
@@ -551,7 +551,7 @@ fn bus_error_frames_are_counted_and_the_frames_behind_them_still_read() {
         (2, 1, 0)
     );
     assert_eq!(
-        r.first_error.as_deref(),
+        r.errors.first.as_deref(),
         Some("receive: error frame: bus-off")
     );
     assert!(r.to_string().contains("1 bus error frames"), "{r}");

@@ -233,7 +233,7 @@ fn main() -> ExitCode {
             "{} of {} shutdown frames NOT sent ({}): the motors may still be commanded",
             report.shutdown.failed,
             report.shutdown.frames,
-            report.last_error.as_deref().unwrap_or("no error recorded")
+            report.errors.last.as_deref().unwrap_or("no error recorded")
         ));
         status = ExitCode::FAILURE;
     }
