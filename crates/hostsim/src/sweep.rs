@@ -15,12 +15,11 @@
 //! `timing.command_timeout_ms`, ...). Every name and value is checked before any run starts,
 //! with the configuration's own validation.
 
-use firmware::Config;
 use rayon::prelude::*;
 
 use crate::bus::SplitMix64;
 use crate::drives::SimDrives;
-use crate::scenario::{PlantSpec, Scenario};
+use crate::scenario::{Scenario, SetError};
 use crate::sim::{LogOptions, run_observed};
 
 /// Why a sweep cannot be set up.
@@ -34,32 +33,9 @@ pub enum SweepError {
         /// What is wrong with it.
         why: String,
     },
-    /// A parameter name that names nothing.
-    #[error("{key}: no such field; {hint}")]
-    UnknownField {
-        /// The name as given.
-        key: String,
-        /// The names that exist there.
-        hint: String,
-    },
-    /// Values the drive configuration's validation refuses.
-    #[error("the configuration refuses {values}: {why}")]
-    Refused {
-        /// The values set, `k=v, ...`.
-        values: String,
-        /// The configuration's reason, naming the field and value.
-        why: String,
-    },
-    /// A value the plant refuses.
-    #[error("{key} = {value}: {why}")]
-    Invalid {
-        /// The name.
-        key: String,
-        /// The value.
-        value: f64,
-        /// The configuration's or the plant's reason.
-        why: String,
-    },
+    /// A value that cannot be set.
+    #[error(transparent)]
+    Set(#[from] SetError),
 }
 
 /// The values of one swept parameter.
@@ -216,56 +192,13 @@ pub fn expand(seeds: &[u64], params: &[Param]) -> Vec<RunSpec> {
     runs
 }
 
-/// `base` with `values` applied and its seed set: the scenario of one run.
+/// `base` with `values` applied and its seed set: the scenario of one run
+/// ([`Scenario::with_values`]).
 ///
 /// # Errors
-/// [`SweepError::UnknownField`] for a name that names nothing, [`SweepError::Invalid`] for a
-/// value the configuration's validation or the plant refuses.
+/// [`SweepError::Set`] naming the value.
 pub fn apply(base: &Scenario, seed: u64, values: &[(String, f64)]) -> Result<Scenario, SweepError> {
-    let mut s = base.clone();
-    s.seed = seed;
-    let mut config: toml::Table =
-        toml::from_str(&s.config.to_toml_string()).map_err(|e| SweepError::Syntax {
-            arg: "configuration".into(),
-            why: e.to_string(),
-        })?;
-    let mut config_changed = false;
-    for (key, value) in values {
-        if let Some(field) = key.strip_prefix("plant.") {
-            set_plant(&mut s.plant, key, field, *value)?;
-        } else {
-            set_config(&mut config, key, *value)?;
-            config_changed = true;
-        }
-    }
-    if config_changed {
-        let text = toml::to_string(&config).unwrap_or_default();
-        s.config = Config::from_toml_str(&text).map_err(|e| SweepError::Refused {
-            values: values
-                .iter()
-                .filter(|(k, _)| !k.starts_with("plant."))
-                .map(|(k, v)| format!("{k}={v}"))
-                .collect::<Vec<_>>()
-                .join(", "),
-            why: match e {
-                firmware::config::LoadError::Invalid { source, .. } => source.to_string(),
-                other => other.to_string(),
-            },
-        })?;
-    }
-    if let Some((field, value, expected)) = s.plant.first_invalid() {
-        return Err(SweepError::Invalid {
-            key: field.to_string(),
-            value,
-            why: format!("expected {expected}"),
-        });
-    }
-    SimDrives::for_scenario(&s).map_err(|e| SweepError::Invalid {
-        key: e.field.to_string(),
-        value: e.value,
-        why: format!("the plant refuses it: expected {}", e.expected),
-    })?;
-    Ok(s)
+    Ok(base.with_values(seed, values)?)
 }
 
 /// Checks a sweep before any run: every run's names and values, and both ends of every
@@ -289,79 +222,6 @@ pub fn check(base: &Scenario, runs: &[RunSpec], params: &[Param]) -> Result<(), 
             }
         }
     }
-    Ok(())
-}
-
-/// The `plant.*` names a sweep can set.
-pub const PLANT_FIELDS: [&str; 5] = ["wheel_radius", "lx", "ly", "roller_drag", "mass_kg"];
-
-fn set_plant(plant: &mut PlantSpec, key: &str, field: &str, value: f64) -> Result<(), SweepError> {
-    let slot = match field {
-        "wheel_radius" => &mut plant.wheel_radius,
-        "lx" => &mut plant.lx,
-        "ly" => &mut plant.ly,
-        "roller_drag" => &mut plant.roller_drag,
-        "mass_kg" => &mut plant.mass_kg,
-        _ => {
-            return Err(SweepError::UnknownField {
-                key: key.to_string(),
-                hint: format!("plant fields: {}", PLANT_FIELDS.join(", ")),
-            });
-        }
-    };
-    *slot = Some(value);
-    Ok(())
-}
-
-fn set_config(config: &mut toml::Table, key: &str, value: f64) -> Result<(), SweepError> {
-    let unknown = |table: &toml::Table, at: &str| SweepError::UnknownField {
-        key: key.to_string(),
-        hint: format!(
-            "{at} has: {}",
-            table.keys().cloned().collect::<Vec<_>>().join(", ")
-        ),
-    };
-    let mut parts: Vec<&str> = key.split('.').collect();
-    let last = parts.pop().unwrap_or_default();
-    let mut table = config;
-    let mut at = String::from("the configuration");
-    for part in parts {
-        if !table.get(part).is_some_and(toml::Value::is_table) {
-            return Err(unknown(table, &at));
-        }
-        at = format!(
-            "[{}]",
-            key.split('.')
-                .take_while(|p| *p != last)
-                .collect::<Vec<_>>()
-                .join(".")
-        );
-        table = match table.get_mut(part) {
-            Some(toml::Value::Table(t)) => t,
-            _ => unreachable!("checked above"),
-        };
-    }
-    let new = match table.get(last) {
-        Some(toml::Value::Float(_)) => toml::Value::Float(value),
-        #[allow(clippy::cast_possible_truncation)]
-        Some(toml::Value::Integer(_)) if value.fract() == 0.0 => toml::Value::Integer(value as i64),
-        Some(toml::Value::Integer(_)) => {
-            return Err(SweepError::Invalid {
-                key: key.to_string(),
-                value,
-                why: "expected a whole number".into(),
-            });
-        }
-        Some(_) => {
-            return Err(SweepError::Invalid {
-                key: key.to_string(),
-                value,
-                why: "not a number field: a sweep sets numbers".into(),
-            });
-        }
-        None => return Err(unknown(table, &at)),
-    };
-    table.insert(last.to_string(), new);
     Ok(())
 }
 
@@ -400,13 +260,15 @@ const STANDING_M_S: f64 = 0.01;
 /// Runs one scenario and measures its row.
 ///
 /// # Errors
-/// [`SweepError::Invalid`] if the configuration is refused when the run starts.
+/// [`SetError::Invalid`] if the configuration is refused when the run starts.
 pub fn run_one(scenario: &Scenario, spec: &RunSpec) -> Result<Row, SweepError> {
     use firmware::protocol::robot::{Fault, RobotState};
-    let refused = |why: String| SweepError::Invalid {
-        key: "configuration".into(),
-        value: f64::NAN,
-        why,
+    let refused = |why: String| {
+        SweepError::Set(SetError::Invalid {
+            key: "configuration".into(),
+            value: f64::NAN,
+            why,
+        })
     };
     let mut plant = SimDrives::for_scenario(scenario).map_err(|e| refused(e.to_string()))?;
     let period_s = 1.0 / f64::from(scenario.config.timing.control_hz);

@@ -497,15 +497,15 @@ fn a_command_acts_on_the_drives_when_it_arrives() {
 }
 
 #[test]
-fn the_scenario_module_example_does_what_its_comments_say() {
-    // The TOML block of `hostsim::scenario`'s documentation, as written there.
-    let source = include_str!("../src/scenario.rs");
+fn the_scenario_pages_example_does_what_its_comments_say() {
+    // The first TOML block of the scenario format's page, as written there.
+    let source = include_str!("../../../docs/scenarios.md");
     let text: String = source
         .lines()
-        .skip_while(|l| *l != "//! ```toml")
+        .skip_while(|l| *l != "```toml")
         .skip(1)
-        .take_while(|l| *l != "//! ```")
-        .map(|l| format!("{}\n", l.trim_start_matches("//!").trim_start()))
+        .take_while(|l| *l != "```")
+        .map(|l| format!("{l}\n"))
         .collect();
     assert!(text.contains("silence = true"), "{text}");
     // As a file in the repository's root, where its `config` path points.

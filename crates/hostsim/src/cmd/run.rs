@@ -18,20 +18,10 @@ use super::*;
 /// figure-eight, compass, watchdog, calibration (seed 1; DJI C620 + M3508 drives on a
 /// 20 kg chassis; see `calibrate`).
 ///
-/// A scenario file (TOML; examples in scenarios/, the format in the hostsim crate's
-/// `scenario` module docs) sets duration_s, and optionally name (default: the file's
-/// stem), seed (default 0), command_hz (default 50), config (a drive configuration, relative
-/// to the file; default the DJI example), [[actions]] (at_s and one or more of enable,
-/// disable, reset, estop, status_request, twist = [vx, vy, wz], silence, resume,
-/// wheel_test = { wheel, speed, duration_ms }) and
-/// [[faults]] (kind = drop | burst | delay | corrupt | stuck_encoder | motor_offline |
-/// non_finite_twist, from_s, until_s, and the kind's fields: rate, delay_ms, sender,
-/// wheel), [plant] (the simulated robot where it differs from the configuration:
-/// wheel_radius, lx, ly, roller_drag, and a miswiring: flip = [wheel indices], swap =
-/// [[a, b], ...], lifted = true; kept when --config replaces the configuration) and
-/// [imu] (an IMU node sending IMU_YAW_RATE for gyro heading: rate_hz, bias_deg_s,
-/// noise_density in °/s/√Hz, enabled). Every error names the file, the field and the
-/// value.
+/// A scenario file (TOML; examples in scenarios/) sets the run's length, the host's actions
+/// and the faults on a timeline, and optionally the drive configuration, the simulated robot
+/// where it differs from it (a miswiring too) and an IMU: the format is docs/scenarios.md
+/// in the repository. Every error names the file, the field and the value.
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// A scenario TOML file, or the name of a built-in.

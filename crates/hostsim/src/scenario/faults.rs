@@ -1,0 +1,266 @@
+//! `[[faults]]`: what goes wrong on the bus, in a motor or at the host, and when.
+
+use serde::Deserialize;
+
+use super::{Invalid, given, secs_to_us};
+use crate::bus::{Fault, FaultKind, Node};
+use crate::scenario::ScenarioError;
+
+/// A fault on the timeline, as written in a scenario.
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FaultSpec {
+    /// `drop`, `burst`, `delay`, `corrupt`, `stuck_encoder`, `motor_offline`,
+    /// `non_finite_twist` or `repeated_twist`.
+    pub kind: FaultName,
+    /// Start, s.
+    pub from_s: f64,
+    /// End, s (exclusive).
+    pub until_s: f64,
+    /// Probability for `drop` and `corrupt`.
+    #[serde(default)]
+    pub rate: Option<f64>,
+    /// Extra latency for `delay`, ms.
+    #[serde(default)]
+    pub delay_ms: Option<f64>,
+    /// Sender the bus fault applies to (all if absent).
+    #[serde(default)]
+    pub sender: Option<SenderName>,
+    /// Wheel (0 FL, 1 FR, 2 RL, 3 RR) for `stuck_encoder` and `motor_offline`.
+    #[serde(default)]
+    pub wheel: Option<usize>,
+}
+
+/// Fault kinds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FaultName {
+    /// Random frame loss.
+    Drop,
+    /// Total frame loss.
+    Burst,
+    /// Extra delivery latency.
+    Delay,
+    /// A flipped data byte.
+    Corrupt,
+    /// A wheel's encoder stops changing while the wheel turns.
+    StuckEncoder,
+    /// A drive is off: it sends nothing and drives nothing (the wheel coasts).
+    MotorOffline,
+    /// Besides its own stream, the host sends `TWIST_CMD` frames whose values are not finite
+    /// numbers (see [`crate::host::non_finite_twist_frames`]), once per command period.
+    NonFiniteTwist,
+    /// The host's stream stops incrementing `TWIST_CMD.seq`: each frame it sends is its last
+    /// one before the fault, unchanged (a stuck host, USB adapter or gateway repeating one
+    /// frame), whatever its setpoint; afterwards it sends fresh frames again.
+    RepeatedTwist,
+}
+
+impl FaultName {
+    /// The name a scenario file uses (`stuck_encoder`).
+    #[must_use]
+    pub const fn as_str(self) -> &'static str {
+        match self {
+            Self::Drop => "drop",
+            Self::Burst => "burst",
+            Self::Delay => "delay",
+            Self::Corrupt => "corrupt",
+            Self::StuckEncoder => "stuck_encoder",
+            Self::MotorOffline => "motor_offline",
+            Self::NonFiniteTwist => "non_finite_twist",
+            Self::RepeatedTwist => "repeated_twist",
+        }
+    }
+}
+
+/// Bus nodes as named in scenarios.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SenderName {
+    /// The firmware core.
+    Controller,
+    /// The motor drives.
+    Drives,
+    /// The commanding host.
+    Host,
+    /// The IMU node (`[imu]`).
+    Imu,
+}
+
+impl From<SenderName> for Node {
+    fn from(s: SenderName) -> Self {
+        match s {
+            SenderName::Controller => Self::Controller,
+            SenderName::Drives => Self::Drives,
+            SenderName::Host => Self::Host,
+            SenderName::Imu => Self::Imu,
+        }
+    }
+}
+
+/// A plant-side fault: which wheel, when.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WheelFault {
+    /// Stuck encoder or offline.
+    pub kind: FaultName,
+    /// Wheel index.
+    pub wheel: usize,
+    /// Start, µs.
+    pub from_us: u64,
+    /// End, µs.
+    pub until_us: u64,
+}
+
+impl WheelFault {
+    /// Whether the fault is active at `t_us`.
+    #[must_use]
+    pub const fn active(&self, t_us: u64) -> bool {
+        self.from_us <= t_us && t_us < self.until_us
+    }
+}
+
+/// A host-side fault: what the commanding node sends wrong, when.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HostFault {
+    /// What it sends (`NonFiniteTwist`, `RepeatedTwist`).
+    pub kind: FaultName,
+    /// Start, µs.
+    pub from_us: u64,
+    /// End, µs.
+    pub until_us: u64,
+}
+
+impl HostFault {
+    /// Whether the fault is active at `t_us`.
+    #[must_use]
+    pub const fn active(&self, t_us: u64) -> bool {
+        self.from_us <= t_us && t_us < self.until_us
+    }
+}
+
+/// A file's faults by where they act: on the bus, in a motor, at the host.
+pub(super) type Faults = (Vec<Fault>, Vec<WheelFault>, Vec<HostFault>);
+
+/// The faults of a file whose run lasts `duration_s`, checked and sorted by where they act.
+pub(super) fn build(
+    faults: &[FaultSpec],
+    duration_s: f64,
+    invalid: &Invalid<'_>,
+) -> Result<Faults, ScenarioError> {
+    let mut bus_faults = Vec::new();
+    let mut wheel_faults = Vec::new();
+    let mut host_faults = Vec::new();
+    for (i, f) in faults.iter().enumerate() {
+        if !(f.from_s.is_finite()
+            && f.until_s.is_finite()
+            && 0.0 <= f.from_s
+            && f.from_s < f.until_s)
+        {
+            return Err(invalid.at(
+                &format!("faults[{i}].from_s..until_s"),
+                format!("{}..{}", f.from_s, f.until_s),
+                "0 <= from_s < until_s",
+            ));
+        }
+        if f.from_s >= duration_s {
+            return Err(invalid.at(
+                &format!("faults[{i}].from_s"),
+                f.from_s.to_string(),
+                "a time before duration_s (a later fault would never happen)",
+            ));
+        }
+        // A field another kind uses is a mistake (a `wheel` on a `drop` fault would
+        // otherwise drop every frame, not one wheel's).
+        let (rate_used, delay_used, sender_used, wheel_used, uses) = match f.kind {
+            FaultName::Drop | FaultName::Corrupt => (true, false, true, false, "rate, sender"),
+            FaultName::Burst => (false, false, true, false, "sender"),
+            FaultName::Delay => (false, true, true, false, "delay_ms, sender"),
+            FaultName::StuckEncoder | FaultName::MotorOffline => {
+                (false, false, false, true, "wheel")
+            }
+            FaultName::NonFiniteTwist | FaultName::RepeatedTwist => {
+                (false, false, false, false, "no other field")
+            }
+        };
+        for (field, given, used) in [
+            ("rate", f.rate.map(|x| x.to_string()), rate_used),
+            ("delay_ms", f.delay_ms.map(|x| x.to_string()), delay_used),
+            ("sender", f.sender.map(|x| format!("{x:?}")), sender_used),
+            ("wheel", f.wheel.map(|x| x.to_string()), wheel_used),
+        ] {
+            if let (Some(value), false) = (given, used) {
+                return Err(ScenarioError::UnusedField {
+                    path: invalid.path.to_path_buf(),
+                    field: format!("faults[{i}].{field}"),
+                    value,
+                    kind: f.kind,
+                    uses,
+                });
+            }
+        }
+        let (from_us, until_us) = (secs_to_us(f.from_s), secs_to_us(f.until_s));
+        let rate = |f: &FaultSpec| match f.rate {
+            Some(r) if (0.0..=1.0).contains(&r) => Ok(r),
+            other => Err(invalid.at(
+                &format!("faults[{i}].rate"),
+                given(other),
+                "a probability in 0..=1",
+            )),
+        };
+        let kind = match f.kind {
+            FaultName::Drop => Some(FaultKind::Drop { rate: rate(f)? }),
+            FaultName::Corrupt => Some(FaultKind::Corrupt { rate: rate(f)? }),
+            FaultName::Burst => Some(FaultKind::Burst),
+            FaultName::Delay => match f.delay_ms {
+                Some(ms) if ms.is_finite() && (0.0..=10_000.0).contains(&ms) => {
+                    Some(FaultKind::Delay {
+                        micros: (ms * 1000.0).round() as u64,
+                    })
+                }
+                other => {
+                    return Err(invalid.at(
+                        &format!("faults[{i}].delay_ms"),
+                        given(other),
+                        "a delay in 0..=10000 ms",
+                    ));
+                }
+            },
+            FaultName::StuckEncoder
+            | FaultName::MotorOffline
+            | FaultName::NonFiniteTwist
+            | FaultName::RepeatedTwist => None,
+        };
+        if matches!(f.kind, FaultName::NonFiniteTwist | FaultName::RepeatedTwist) {
+            host_faults.push(HostFault {
+                kind: f.kind,
+                from_us,
+                until_us,
+            });
+            continue;
+        }
+        match kind {
+            Some(kind) => bus_faults.push(Fault {
+                kind,
+                from_us,
+                until_us,
+                sender: f.sender.map(Node::from),
+            }),
+            None => match f.wheel {
+                Some(wheel) if wheel < 4 => wheel_faults.push(WheelFault {
+                    kind: f.kind,
+                    wheel,
+                    from_us,
+                    until_us,
+                }),
+                other => {
+                    return Err(invalid.at(
+                        &format!("faults[{i}].wheel"),
+                        given(other),
+                        "a wheel index 0..=3 (FL, FR, RL, RR)",
+                    ));
+                }
+            },
+        }
+    }
+    Ok((bus_faults, wheel_faults, host_faults))
+}
