@@ -1,7 +1,7 @@
 """Crash-safe logs: `hostsim run` killed with SIGKILL at random moments, and damaged logs given
 to `hostsim summary` and `hostsim replay`.
 
-What the writer promises (crates/drivelog/src/write.rs, "Crash safety"): a run that dies
+What the writer promises (docs/logs.md, "Crash safety"): a run that dies
 leaves `NAME.mcap` cut short, every complete chunk readable, at most the last half second of
 log time lost; `NAME.mcap.part` only if it died before its header was on disk. What the reader
 promises (crates/drivelog/src/read.rs): every complete, intact chunk before the damage is

@@ -9,30 +9,9 @@
 //! CRC`); here the reader counts the bytes of every record it is handed, so a stop names the
 //! byte offset of the record that could not be used, and what is wrong with it ([`Damage`]).
 //!
-//! # Whole chunks or nothing
-//!
-//! Messages live in chunks. A chunk is used only whole: its record must be complete, it must
-//! decompress, its CRC must match, and every record inside it must parse; only then are its
-//! messages delivered. Reading stops at the first record that cannot be used, and
-//! [`ReadReport::damage`] says where (the byte offset of that record) and what is wrong, while
-//! the counts say what was read before it. So the messages delivered are always the file's
-//! first messages, in whole chunks, and never anything from a damaged chunk or after it: a log
-//! replayed from them has no hole in its time line.
-//!
-//! One limit: a chunk whose writer left its CRC out (0, "not computed", which the
-//! specification allows) cannot be checked by itself. Its flipped bytes show only at the Data
-//! End record, whose CRC covers the whole data section, and by then its messages have been
-//! delivered; the report names the damage, but the messages before it are not all
-//! trustworthy. This project's logs always carry chunk CRCs.
-//!
-//! A second, chosen one: private records (opcodes 0x80-0xFF, which the specification lets a
-//! reader skip) are reported as damage, not skipped. A flipped opcode byte turns a chunk into
-//! such a record, and skipping it would drop that chunk silently and deliver the ones after
-//! it: the file's messages would no longer be a prefix. This project writes no private
-//! records; the message says what the record may be.
-//!
-//! Work and memory are bounded by the file: no record may be longer than the file, and a chunk
-//! is decompressed only if its stated size is at most max(64 MiB, file length).
+//! A chunk is used whole or not at all, so the messages delivered are always the file's first
+//! messages; the rule, its two limits (chunks without a CRC, private records) and the bounds
+//! on work and memory are in `docs/logs.md`, section "Reading damaged logs".
 
 use std::collections::{BTreeMap, HashMap};
 use std::fmt;
@@ -548,8 +527,9 @@ fn truncation(bytes: &[u8], pos: usize) -> Problem {
 }
 
 /// Calls `f` for every message of an MCAP file in file order, and `meta(name, key-values)` for
-/// every metadata record, and says what it read. See the [module documentation](self): a
-/// damaged file is read up to the first damaged record.
+/// every metadata record, and says what it read. A damaged file is read up to the first
+/// damaged record (see the [module documentation](self) and `docs/logs.md`, section "Reading
+/// damaged logs").
 ///
 /// # Errors
 /// [`Damage`] if nothing is readable: the file does not start with the MCAP magic and a

@@ -1,61 +1,18 @@
 //! Writing logs: [`McapLog`], and the thread that encodes and writes them.
 //!
-//! The caller's thread (a simulation, a control loop) only records each message's values
-//! (an `Event`: a frame, a snapshot, a pose...) in a batch, and hands the batch over to a
-//! second thread at each flush (see [`McapLog::maybe_flush`]). That thread encodes the
-//! messages in CDR ([`crate::msg`]) and writes them, in the order logged, with the
-//! `mcap` crate's [`Writer`](mcap::Writer): zstd chunks of at most [`CHUNK_SIZE`]
-//! uncompressed bytes, each with its CRC and message indexes, and at the end of each batch
-//! [`Writer::flush`](mcap::Writer::flush), which ends the chunk and writes it to the file. The
-//! encoding and the compression are on that thread, so they overlap the caller's work. What
-//! the file holds depends only on the messages logged and on when the batches were handed
-//! over, never on the threads' timing: the same run gives the same messages, and the same
-//! bytes as long as every hand-over is due to log time (half a second of wall-clock time
-//! between two hand-overs, in a run slower than real time or on a stalled machine, moves a
-//! chunk boundary).
+//! The caller's thread (a simulation, a control loop) only records each message's values in
+//! a batch, and hands the batch over to a second thread at each flush
+//! ([`McapLog::maybe_flush`]). That thread encodes the messages in CDR ([`crate::msg`]) and
+//! writes them with the `mcap` crate's [`Writer`](mcap::Writer), in zstd chunks of at most
+//! [`CHUNK_SIZE`] uncompressed bytes. The file is written as [`part_path`] and renamed once
+//! its header, schemas, channels and metadata are on disk; an error of the writing thread
+//! comes back as a [`LogError`] from the next hand-over. After [`McapLog::drop_when_behind`] a hand-over never blocks: messages are
+//! dropped and counted instead.
 //!
-//! # Crash safety
-//!
-//! The writer runs without seeking (`disable_seeking`): each chunk is built in memory and
-//! appended whole, so the file on disk is always a prefix of the finished file (no chunk
-//! header is patched afterwards). A batch is handed over once a quarter of a second of log
-//! time, or half a second of wall-clock time, has passed since the last hand-over; each
-//! hand-over then waits until the batch before it is in the file. So at most two batches are
-//! not yet on disk: the one being written and the open one. A run that dies (SIGKILL, a
-//! panic, the OOM killer) therefore leaves a file cut short whose every complete chunk is
-//! readable, and loses at most the last half second of log time before it died (and, for a
-//! run slower than real time, at most about half a second of wall-clock time plus the few
-//! milliseconds of writing a batch): "at most the last second". The file is created as
-//! `NAME.mcap.part` and renamed to `NAME.mcap` once its header, schemas, channels and
-//! metadata are on disk, so a `.mcap` file always opens. There is no `fsync`: this protects
-//! against the process dying, not against the machine losing power.
-//!
-//! An error of the writing thread (a full disk, say) comes back as [`LogError::Io`], naming
-//! the file, from the next hand-over ([`McapLog::maybe_flush`], or a message that fills a
-//! batch) or from [`McapLog::finish`]; every later hand-over fails too. A panic of that
-//! thread comes back the same way, as an error. After an error nothing more is written to
-//! the file (not even a summary), so the file stays a prefix of what was logged.
-//!
-//! # A control loop that must not wait: dropping instead of blocking
-//!
-//! By default a hand-over waits until the batch before it is in the file: a run that logs
-//! faster than the disk writes slows down to the disk's pace, and loses nothing. A control
-//! loop in real time must not wait. After [`McapLog::drop_when_behind`] a hand-over never
-//! blocks: if the writing thread is still busy with the previous batch, the open batch stays
-//! open and the hand-over is tried again at the next [`McapLog::maybe_flush`]. A batch that
-//! reaches the given number of messages is handed over at once; if the writer is still busy
-//! then, further messages are dropped and counted ([`McapLog::dropped`]) until it has caught
-//! up. The count goes into the log too: a
-//! `/rosout` warning (`N messages dropped: the log writer fell behind`) at the next batch the
-//! writer takes, and at the end. The logging thread's work per message stays a push of a few
-//! dozen bytes; its memory, the open batch and the one being written.
-//!
-//! In that mode the writing thread also steps aside for the loop where the CPU is contended:
-//! on Linux it moves itself to `SCHED_BATCH` at the lowest niceness (19) before its next
-//! batch, so it runs on what the loop and its peers leave (a machine with a spare core does
-//! not notice; a loaded one drops messages rather than steps). Measured in the vcan lane's
-//! micro-VM, whose two emulated CPUs the plant, the runner and candump already saturate: see
-//! docs/benchmarks.md, "The runner's log".
+//! The rest is specified in `docs/logs.md`: section "The writer thread" (why the file does
+//! not depend on the threads' timing), "Crash safety" (what a killed run leaves: at most the
+//! last second lost, a `.mcap` file that always opens) and "A control loop that must not
+//! wait: dropping instead of blocking".
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -292,7 +249,7 @@ fn start_file(
     Ok(writer)
 }
 
-/// An MCAP log being written. See the [module documentation](self).
+/// An MCAP log being written. See the [module documentation](self) and `docs/logs.md`.
 pub struct McapLog {
     path: PathBuf,
     /// The messages logged since the last hand-over to the writing thread.
@@ -324,8 +281,8 @@ pub struct McapLog {
 impl McapLog {
     /// Creates the log file with the run's metadata ([`METADATA_NAME`]: `config` TOML,
     /// scenario, seed, ...). The file is written as [`part_path`] and renamed to `path` once
-    /// its header, channels and metadata are on disk (see the
-    /// [module documentation](self#crash-safety)).
+    /// its header, channels and metadata are on disk (see `docs/logs.md`, section "Crash
+    /// safety").
     ///
     /// # Errors
     /// [`LogError`] naming the file.
@@ -432,7 +389,9 @@ impl McapLog {
 
     /// Never wait for the writing thread from now on: drop (and count) messages instead once
     /// the open batch holds `max_pending_events` events while the writer is still busy with
-    /// the previous batch (a batch that reaches that size is handed over early otherwise) (see [the module documentation](self#a-control-loop-that-must-not-wait-dropping-instead-of-blocking)).
+    /// the previous batch (a batch that reaches that size is handed over early otherwise) (see
+    /// `docs/logs.md`, section "A control loop that must not wait: dropping instead of
+    /// blocking").
     /// [`finish`](Self::finish) still waits for the writer.
     pub fn drop_when_behind(&mut self, max_pending_events: usize) {
         self.max_pending = Some(max_pending_events.max(1));
@@ -687,8 +646,8 @@ impl McapLog {
 
     /// Hands the messages logged so far to the writing thread if a quarter of a second of log
     /// time, or half a second of wall-clock time, has passed since the last hand-over (see
-    /// [Crash safety](self#crash-safety)). Call it after each step's messages, at least every
-    /// few milliseconds of log time: it reads the wall clock only on every 64th call.
+    /// `docs/logs.md`, section "Crash safety"). Call it after each step's messages, at least
+    /// every few milliseconds of log time: it reads the wall clock only on every 64th call.
     ///
     /// # Errors
     /// [`LogError`] if writing the log failed (the previous batch, or an earlier one).
@@ -1015,8 +974,8 @@ struct BatchWriter {
     thread: Option<JoinHandle<Writer>>,
     /// A batch was sent and has not come back yet.
     in_flight: bool,
-    /// The thread lowers its own priority before its next batch (see [A control loop that
-    /// must not wait](self#a-control-loop-that-must-not-wait-dropping-instead-of-blocking)).
+    /// The thread lowers its own priority before its next batch (see `docs/logs.md`, section
+    /// "A control loop that must not wait: dropping instead of blocking").
     background: Arc<AtomicBool>,
 }
 

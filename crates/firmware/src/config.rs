@@ -5,53 +5,14 @@
 //! `serde` derives `Deserialize`; the `std` feature adds `Config::from_toml_str`); on the MCU
 //! it is built in code. Either way [`Config::validate`] checks it before a
 //! [`Controller`](crate::control::Controller) accepts it, and every error names the field and
-//! the value that is wrong.
+//! the value that is wrong ([`ConfigError`]).
 //!
 //! Wheel arrays are in the order FL, FR, RL, RR. Units are SI unless a name says otherwise
 //! (`_ms`, `_hz`).
 //!
-//! # Effectiveness (slip)
-//!
-//! Mecanum rollers slide, so the robot moves less than its wheels say, most of all sideways.
-//! Both layouts of [`Geometry`] take three optional, dimensionless factors, each the fraction
-//! of the wheel-implied body motion the robot really makes along one axis:
-//!
-//! | key | axis | default |
-//! |---|---|---|
-//! | `forward_effectiveness` | x, forward (`vx`) | 1.0 |
-//! | `lateral_effectiveness` | y, left (`vy`); a strafe typically makes 0.7-0.8 | 1.0 |
-//! | `yaw_effectiveness` | yaw (`wz`) | 1.0 |
-//!
-//! Each must be finite and in `(0, 1.5]`. The odometry (and the measured velocity) reports
-//! the factor times what the wheels imply; the wheels are asked for the commanded twist
-//! divided by it, so the robot reaches the command (see
-//! [`kinematics::Effectiveness`]). At 1.0, the default, the maps and so every output are
-//! the ideal model's bit for bit, and a key at 1.0 is left out of the TOML a configuration
-//! serialises to (`Config::to_toml_string`, feature `std`; the text a log records), so a
-//! configuration without them writes the same text as before they existed. Road Runner's `lateralMultiplier` is
-//! `1 / lateral_effectiveness`.
-//!
-//! # Heading from a gyro
-//!
-//! The optional `[odometry]` section chooses where the odometry's rotation comes from (WPILib
-//! puts a gyro heading in every odometry update; so can this robot):
-//!
-//! ```toml
-//! [odometry]
-//! heading_source = "gyro"        # "wheels" (the default) | "gyro"
-//! gyro_timeout_ms = 50           # default 50
-//! gyro_standstill_ms = 50        # default 50
-//! gyro_bias_estimation = true    # default true
-//! ```
-//!
-//! With `"gyro"`, each step's rotation is the latest `IMU_YAW_RATE` less the estimated gyro
-//! bias, times the step; the translation still comes from the wheels (see
-//! [`crate::control`]). Without a valid `IMU_YAW_RATE` for `gyro_timeout_ms` the wheels give
-//! the heading again and `STATUS.heading_source` says why, until the gyro is back. The bias is
-//! learned while the robot stands still (no motion commanded and the wheels at rest) for
-//! longer than `gyro_standstill_ms`. Every key has a default, and a section at its defaults
-//! is left out of the TOML a configuration serialises to, so a configuration without it
-//! writes, and runs, exactly as before the section existed.
+//! The optional effectiveness factors of [`Geometry`] (slip) and the `[odometry]` section
+//! ([`OdometryConfig`], heading from a gyro) are specified in `docs/protocol.md`, section
+//! "Configuration file".
 
 use core::fmt;
 
@@ -82,9 +43,8 @@ pub struct Config {
     /// Loop, telemetry and timeout timing.
     #[cfg_attr(feature = "serde", serde(default))]
     pub timing: Timing,
-    /// Where the odometry's heading comes from: the wheels, or a gyro (see
-    /// [the module docs](crate::config#heading-from-a-gyro)). Left out of the TOML at its
-    /// defaults.
+    /// Where the odometry's heading comes from: the wheels, or a gyro (see `docs/protocol.md`,
+    /// section "Heading from a gyro"). Left out of the TOML at its defaults.
     #[cfg_attr(
         feature = "serde",
         serde(default, skip_serializing_if = "OdometryConfig::is_default")
@@ -109,7 +69,7 @@ pub enum Geometry {
         /// Wheel radius, m.
         wheel_radius: f32,
         /// Fraction of the wheel-implied forward (x) motion the robot makes, in `(0, 1.5]`
-        /// (see [the module docs](crate::config#effectiveness-slip)).
+        /// (see `docs/protocol.md`, section "Effectiveness (slip)").
         #[cfg_attr(
             feature = "serde",
             serde(default = "unit::one", skip_serializing_if = "unit::is_one")
@@ -133,7 +93,7 @@ pub enum Geometry {
         /// Per-wheel geometry.
         wheels: [WheelConfig; 4],
         /// Fraction of the wheel-implied forward (x) motion the robot makes, in `(0, 1.5]`
-        /// (see [the module docs](crate::config#effectiveness-slip)).
+        /// (see `docs/protocol.md`, section "Effectiveness (slip)").
         #[cfg_attr(
             feature = "serde",
             serde(default = "unit::one", skip_serializing_if = "unit::is_one")

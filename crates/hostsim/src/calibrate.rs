@@ -1,59 +1,15 @@
 //! `hostsim calibrate`: the wheel radius, lx + ly and lateral effectiveness that make the
 //! odometry match a reference pose, fitted by least squares from a log.
 //!
-//! # The model
+//! [`calibrate`] (a file) and [`calibrate_bytes`] take a log and [`Options`] (the reference
+//! pose channel, by default [`GROUND_TRUTH`], and the fit's window) and return a
+//! [`Calibration`]: per-axis corrections with their standard errors, and the refined
+//! configuration values. A log without enough steady motion (at least [`MIN_TRAVEL_M`]
+//! forward and sideways, [`MIN_TURN_RAD`] of turning) is refused with a
+//! [`CalibrateError`] naming the missing motion.
 //!
-//! Over a short stretch of motion, the robot really moves a fixed fraction of what its
-//! odometry says, per body axis: `u_ref = a ⊙ u_odo`, with `u` the body-frame increment over
-//! the stretch (forward, left, yaw) and `a = (a_x, a_y, a_θ)` the *corrections* of the logged
-//! configuration's model. The odometry's increments are recomputed from the logged wheel
-//! angles (`/joint_states`) with the logged configuration (the metadata's `config`), exactly
-//! as the firmware's odometry does it (its maps, effectiveness factors included, and the SE(2)
-//! exponential per sample); a log without wheel angles falls back to the firmware's `/odom`.
-//! The reference is any pose channel of the same log: the simulator's ground truth
-//! (`/ground_truth/odom`, the default) or an external tracker's `geometry_msgs/msg/PoseStamped`
-//! or `nav_msgs/msg/Odometry`, interpolated on SE(2) at the odometry's log times. Its body
-//! frame must be the robot's (the tracked point at the centre, its x axis forward).
-//!
-//! # The fit
-//!
-//! The log is cut into consecutive windows of [`Options::window_s`] (0.1 s by default). For
-//! each, both increments are the SE(2) logarithm of the relative pose,
-//! `log(P(t0)⁻¹ · P(t1))` ([`Pose2::relative`], [`Pose2::log`]). The windows in which the
-//! odometry moves (5 mm/s or 5 mrad/s) at a steady speed (each axis within 2 % plus 2 mm/s or
-//! 2 mrad/s of both neighbouring windows) enter three regressions through the origin, one per
-//! axis, solved with nalgebra. Each gives its correction with its standard error and the RMS
-//! of the per-window residuals; the refusal below guarantees each axis enough motion.
-//!
-//! Constant factors describe the steady slip. The transients of a start or a stop (the body
-//! lagging the wheels while it accelerates, sliding on after they stop, the velocity loop's
-//! ringing) come and go, and in a fit they would weigh by how much starting and stopping the
-//! log has: on the simulator's `calibration` run they move the lateral factor by 0.6 % and
-//! the radius by 0.3 %, and they are left out.
-//!
-//! # The convention
-//!
-//! The wheels' twist is proportional to the wheel radius `r` in all three axes, and the yaw to
-//! `r / (lx + ly)`: so `r` cannot be told from the forward effectiveness `kx`, nor `lx + ly`
-//! from the yaw effectiveness `kw`. The fit therefore gives
-//!
-//! - `wheel_radius`: the *effective* radius with `forward_effectiveness = 1`,
-//!   `r = r₀ · kx₀ · a_x`;
-//! - `lx + ly`: the *effective* sum with `yaw_effectiveness = 1`,
-//!   `L = L₀ · kx₀ · a_x / (kw₀ · a_θ)` (`lx` and `ly` keep their ratio);
-//! - `lateral_effectiveness`: relative to the fitted radius, `ky = ky₀ · a_y / (kx₀ · a_x)`,
-//!
-//! where `₀` marks the logged configuration's values. They refine the logged values
-//! multiplicatively: a log recorded with the calibrated configuration gives corrections of 1.
-//! A robot whose yaw slips (rollers spin in a turn) has an effective `lx + ly` larger than the
-//! geometric one by the inverse of that slip: that is the value its odometry needs.
-//!
-//! # Refusals
-//!
-//! A log that cannot determine a value is refused, naming the missing motion: each axis needs
-//! [`MIN_TRAVEL_M`] of forward and of sideways travel and [`MIN_TURN_RAD`] of turning at a
-//! steady speed (in the fit's windows, as the odometry counts it), as the built-in
-//! `calibration` scenario drives them.
+//! The model, the fit, the convention the fitted values follow (effective radius and
+//! lx + ly) and the refusals are specified in `docs/simulator.md`, section "Calibration".
 
 use std::collections::BTreeMap;
 use std::fmt;
@@ -442,7 +398,7 @@ struct LogData {
     error: Option<CalibrateError>,
 }
 
-/// Calibrates from the log at `path` (see the [module docs](self)).
+/// Calibrates from the log at `path` (see `docs/simulator.md`, section "Calibration").
 ///
 /// # Errors
 /// [`CalibrateError`] naming what is missing or wrong; a damaged log is not an error (it is

@@ -14,32 +14,9 @@
 //!   [`run_plant`], a scripted host) each on its own thread, advancing together in virtual
 //!   time.
 //!
-//! # The plant loop ([`run_plant`])
-//!
-//! Ticks are due at absolute deadlines `start + k · period` (1 ms by default), re-anchored at
-//! the wake-up time after an overrun (a tick more than one period late): the firmware
-//! runner's [`Schedule`]. Each tick, at wake-up time `now`:
-//!
-//! 1. every frame waiting on the bus (at most [`PlantOptions::max_rx_per_tick`]) goes to
-//!    [`SimPlant::on_frame`], stamped with the plant's simulated time (the drives pick out
-//!    their commands and ignore the rest);
-//! 2. the plant advances in steps of one period until its simulated time reaches the
-//!    elapsed time `now - start` rounded down to a period, so simulated time follows the
-//!    clock (after a late tick it catches up with several steps, at most
-//!    [`PlantOptions::max_catch_up`]; time beyond that is skipped and reported as
-//!    [`PlantReport::skipped_us`]);
-//! 3. the feedback frames the drives produced meanwhile ([`SimPlant::feedback`]), then an
-//!    IMU node's frames if the plant has one ([`SimPlant::imu_frames`]), are sent,
-//!    busy errors (`ENOBUFS`, `EAGAIN`) retried until half a period after the deadline.
-//!
-//! The loop stops when the stop flag becomes non-zero (a signal) or the duration has
-//! elapsed, and reports the ground truth, frame counts and the lateness of its ticks.
-//!
-//! # The frame player ([`play_frames`])
-//!
-//! Sends logged frames at their logged times relative to the first one (scaled by a speed
-//! factor): it sleeps until each frame's due time and sends it, retrying busy errors for at
-//! most [`PlayOptions::give_up_us`].
+//! [`run_plant`] runs a plant ([`PlantOptions`] → [`PlantReport`]); [`play_frames`] sends
+//! logged frames at their times ([`PlayOptions`] → [`PlayReport`]). Their timing is specified
+//! in `docs/simulator.md`, section "Real time" ("The plant loop", "The frame player").
 
 use std::fmt;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -209,7 +186,8 @@ impl fmt::Display for PlantReport {
 }
 
 /// Runs `plant` on `bus` in real time (as `clock` tells it) until `stop` is non-zero or
-/// `options.duration_us` has elapsed. See the [module documentation](self).
+/// `options.duration_us` has elapsed. See `docs/simulator.md`, section "Real time", "The
+/// plant loop".
 ///
 /// Bus errors are counted in the [`PlantReport`], never returned: the loop keeps running.
 pub fn run_plant<P: SimPlant, B: Bus, C: Clock>(
@@ -557,7 +535,8 @@ impl fmt::Display for PlayReport {
 }
 
 /// Sends `frames` (in time order) on `bus`, each at `start + (t - t_first) / speed`, until
-/// the last one is sent or `stop` becomes non-zero. See the [module documentation](self).
+/// the last one is sent or `stop` becomes non-zero. See `docs/simulator.md`, section "Real
+/// time", "The frame player".
 pub fn play_frames<B: Bus, C: Clock>(
     frames: &[TimedFrame],
     bus: &mut B,

@@ -1,55 +1,16 @@
 //! Replay: run the firmware core again on a log's inbound frames and check that it sends the
 //! same frames, bit for bit.
 //!
-//! An MCAP log ([`crate::log`]) holds the configuration (metadata record `mecanum_drive`, key
-//! `config`), every frame the firmware received (`/can/rx`, log time: when the firmware took
-//! it) and every frame it sent (`/can/tx`, publish time: the step that sent it). Steps happen
-//! every control period from time 0. Replay builds a fresh [`Controller`] from the logged
-//! configuration, feeds each received frame before the first step at or after its time — the
-//! order the simulator used — and compares what comes out with `/can/tx`, frame by frame. The
-//! frames of one step are compared in arbitration order ([`wire_order`]), the order in which
-//! they left on the bus and were logged, so a step's frames are compared as a whole whatever
-//! order the core queued them in. The first difference is reported with its time, the
-//! expected frame and the replayed one.
+//! [`replay_mcap`] replays an MCAP log ([`crate::log`]) through a fresh [`Controller`] built
+//! from the logged configuration and returns a [`ReplayReport`] with the first difference, if
+//! any; [`replay_frames`] and [`replay_at_steps`] do the same on frames already read. A
+//! candump log ([`replay_candump`]) is split into the two directions with [`split_candump`]
+//! and replayed with [`replay_split`], which also compares the odometry ([`CandumpReplay`]).
+//! [`check_time_gaps`] bounds the work.
 //!
-//! # Logs of `mecanum-runner`
-//!
-//! A runner in real time steps when its clock says so: late by the wake-up latency, or
-//! re-anchored after an overrun, never on an exact period grid. Its log therefore records
-//! the time of every step, and of the shutdown, on `/firmware/steps` (log time = the time
-//! passed to the core, as for the received frames). When a log has step records, replay
-//! steps at exactly those times instead of on the grid ([`replay_at_steps`]), and runs the
-//! core's shutdown at the shutdown record, whose frames the runner logged too: the rest is
-//! the same, so a runner's log replays bit for bit. The frames' own times would not do: a
-//! step that sends nothing and receives nothing leaves no frame, yet moves the core's
-//! timers. The simulator's logs have no step records and replay on the grid as before.
-//!
-//! A candump log (`candump -L`, see [`drivelog::candump`]) has every frame on the bus, both
-//! directions mixed and no configuration: [`split_candump`] classifies the frames with the
-//! firmware's codecs ([`firmware_sends`]) and [`replay_split`] runs a fresh core on the
-//! received ones on a period grid anchored at the first frame. A real-time log is not on that
-//! grid, so the report gives both the frame-stream comparison (time ignored) and the
-//! odometry comparison ([`CandumpReplay`]).
-//!
-//! # Damaged logs
-//!
-//! The reader ([`crate::log::for_each_message`]) takes every complete, intact chunk before
-//! the first damage. A damaged MCAP log (cut short by a killed run, or corrupt) is replayed up
-//! to a cut-off: the time `L` of the last message read, less the longest time a sent frame
-//! took to reach the bus's end in what was read (`LogContent::tx_lag_ns`). Messages are
-//! written in log-time order, and a sent frame is logged when it comes off the wire, so the
-//! frames received before `L` are all there, and so are the frames sent by the steps before
-//! the cut-off, as long as none of them waited on the bus longer than any frame read did.
-//! [`ReplayReport::read`] says what was read and where the damage is, with its byte offset.
-//!
-//! # Bounded work
-//!
-//! Replay steps the core once per control period from the log's start to its last frame, so
-//! its work grows with the log's time span, not its size. A corrupt timestamp near 2^64 ns
-//! would make a small file replay for centuries. [`check_time_gaps`] refuses a log whose
-//! frames, in time order, are more than [`MAX_GAP_NS`] apart (or whose first frame is that
-//! far from the start): replay then runs at most 60 000 steps (of 1 ms) per frame. Playback
-//! onto a bus applies the same check.
+//! How frames and steps are ordered, how a `mecanum-runner` log and a candump log replay,
+//! what of a damaged log is replayed and why gaps are refused: `docs/simulator.md`, section
+//! "Replay".
 
 use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
@@ -362,8 +323,8 @@ pub struct ReplayReport {
     /// The first difference, if any.
     pub difference: Option<Difference>,
     /// What was read from the log, and where it is damaged if it is ([`replay_mcap`] sets it;
-    /// a damaged log is replayed up to the time of its last message, see the
-    /// [module documentation](self#damaged-logs)).
+    /// a damaged log is replayed up to the time of its last message, see `docs/simulator.md`,
+    /// section "Replay", "Damaged logs").
     pub read: Option<ReadReport>,
 }
 
@@ -376,7 +337,7 @@ impl ReplayReport {
 }
 
 /// Replays a hostsim MCAP log through a fresh firmware core: the whole log if it is intact,
-/// else its complete part (see the [module documentation](self#damaged-logs)).
+/// else its complete part (see `docs/simulator.md`, section "Replay", "Damaged logs").
 ///
 /// # Errors
 /// [`ReplayError`] if the log cannot be read, has no usable configuration, or has a gap in
@@ -467,7 +428,7 @@ pub fn open_mcap(path: &Path) -> Result<McapReplayInput, ReplayError> {
 
 /// The frames of a log to replay: all of an intact log's, and of one whose every message was
 /// read (damage after the data section, in the summary); of a log cut short, those before
-/// its cut-off (see the [module documentation](self#damaged-logs)).
+/// its cut-off (see `docs/simulator.md`, section "Replay", "Damaged logs").
 #[must_use]
 pub fn complete_part(content: &LogContent) -> (Vec<TimedFrame>, Vec<TimedFrame>, Vec<StepTime>) {
     let read = &content.read;
@@ -539,7 +500,8 @@ pub(crate) fn step_schedule<'a>(
 }
 
 /// Runs the core on `rx` and compares its output with `tx`, stepping at the recorded
-/// `steps` (a runner's log, see [the module documentation](self#logs-of-mecanum-runner)).
+/// `steps` (a runner's log, see `docs/simulator.md`, section "Replay", "Logs of
+/// `mecanum-runner`").
 ///
 /// # Errors
 /// [`ReplayRunError`] if the firmware refuses `config`.

@@ -1,48 +1,16 @@
 //! The lockstep runner: the real firmware core, a simulated plant and a host on one
 //! simulated bus, in simulated time.
 //!
-//! # One tick (one control period, 1 ms by default) at time `t`
+//! [`run`] plays a [`Scenario`] on a [`SimPlant`] (the plant as the runner sees it), logging
+//! to MCAP if asked ([`crate::log`]), and returns a [`RunSummary`]; [`run_observed`] also
+//! shows an observer every firmware step ([`StepView`]). A tick is one control period (1 ms
+//! by default). Nothing here reads a clock or draws an unseeded random number: the same
+//! scenario gives the same frames, bit for bit, and the log is all that [`crate::replay`]
+//! needs to run the firmware again.
 //!
-//! 1. The host ([`crate::host`]) acts: scenario actions due by `t`, a `TWIST_CMD` when the stream is due (each
-//!    with the next `seq`, the alive counter; during a `repeated_twist` fault its last frame
-//!    again, unchanged), and the non-finite twists of a `non_finite_twist` fault when they
-//!    are due.
-//! 2. The drives queue the feedback frames due at `t` that are not on the bus yet (at `t = 0`;
-//!    later, step 6 has queued them as they were sent), and so does the scenario's IMU node
-//!    if it has one ([`crate::imu`]: `IMU_YAW_RATE`, sent by the bus node `imu`).
-//! 3. The bus transmits everything that starts before `t` (arbitration, exact frame times,
-//!    faults); each frame reaches the other nodes at its end of transmission.
-//! 4. Frames delivered by `t` go to the firmware (`on_frame` with their delivery time).
-//! 5. The firmware steps at `t`; its frames are queued on the bus at `t`. An observer
-//!    ([`run_observed`]) sees the step: the controller, the deliveries, the frames sent.
-//! 6. The plant advances to `t + period` together with the bus: each frame for the drives
-//!    (the firmware's commands, the host's) acts from its delivery time, and the drives'
-//!    feedback goes on the bus when it is sent. The bus runs ahead of the plant only up to
-//!    the drives' next feedback, whose frames may win arbitration over the ones waiting. The
-//!    scenario's wheel faults (stuck encoder, drive offline) of the period's end are set to
-//!    take effect when the plant gets there, so a fault over `[from, until)` covers exactly
-//!    the feedback stamped in that window, while the motion of the period before `from` does
-//!    not feel it.
-//!
-//! Feedback measured at `t` therefore reaches the firmware's step at `t + 1 ms`, as on a real
-//! loop that reads the bus at the top of its period, and a command the firmware sends at `t`
-//! acts on the drives when it arrives, some 130 µs later, as a real C620 or ODrive applies it.
-//!
-//! Nothing here reads a clock or draws an unseeded random number: the same scenario gives
-//! the same frames, bit for bit. The log's `/can/rx` stream and the configuration are all
-//! that [`crate::replay`] needs to run the firmware again.
-//!
-//! # What a run logs
-//!
-//! Every frame on the bus once, as the firmware sees it ([`crate::log`]): a frame it received
-//! on `/can/rx` when it took it, a frame it sent on `/can/tx` when it reached the drives (its
-//! publish time is the step that sent it), both stamped with the end of the frame on the
-//! wire; the frames the fault injector dropped or corrupted, with their sender, on
-//! `/can/faults`. A frame of the host or the drives that was dropped reached nobody: it is on
-//! `/can/faults` only. Every 10 ms (by default): the firmware's odometry (`/odom`), wheels
-//! (`/joint_states`) and diagnostics, and the ground truth; the host's setpoint when it
-//! changes (`/cmd_vel`); state changes and faults (`/rosout`). The frames the firmware sent at
-//! the last step are logged once they complete on the wire, after the run's end.
+//! The order of one tick (host, feedback, bus, firmware step, plant), when feedback and
+//! commands take effect, and what a run logs are specified in `docs/simulator.md`, section
+//! "Lockstep runner".
 
 use std::collections::BTreeMap;
 

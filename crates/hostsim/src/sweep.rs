@@ -9,7 +9,7 @@
 //! threads, and each row is what `hostsim run` with the row's seed and values gives
 //! ([`Row::reproduce`]).
 //!
-//! Parameter names: `plant.<field>` sets the simulated robot ([`PlantSpec`]: `wheel_radius`,
+//! Parameter names: `plant.<field>` sets the simulated robot ([`PlantSpec`](crate::scenario::PlantSpec): `wheel_radius`,
 //! `lx`, `ly`, `roller_drag`, `mass_kg`); any other dotted name is a field of the drive
 //! configuration as its TOML file names it (`gains.kp`, `limits.max_current`,
 //! `timing.command_timeout_ms`, ...). Every name and value is checked before any run starts,

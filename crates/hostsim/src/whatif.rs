@@ -1,52 +1,14 @@
 //! What-if replay: a logged session through a core built from another configuration, to see
 //! what a gain or limit change would have changed in the frames the firmware sent.
 //!
-//! # Open loop
+//! [`what_if_mcap`] replays a log's inbound frames through a fresh [`Controller`] built from
+//! a configuration file and returns a [`WhatIfReport`] ([`IdComparison`], [`SeriesDiff`],
+//! [`StateComparison`]); [`what_if_frames`] does the same on frames already read, and
+//! [`check_compatible`] refuses a configuration for other drives ([`Incompatible`]). It is
+//! open loop: the plant's reaction to the changed outputs is **not** simulated.
 //!
-//! [`what_if_mcap`] feeds the log's recorded inbound frames (`/can/rx`: the motors' feedback,
-//! the host's commands) at their recorded times to a fresh [`Controller`] built from the
-//! what-if configuration, stepping at the recorded step times (a runner's log) or on the
-//! period grid (the simulator's), through the same loop as [`crate::replay`]. The feedback is
-//! what the motors reported in the logged session: the plant's reaction to the changed
-//! outputs is **not** simulated. A what-if is therefore exact for the first differing step
-//! and a first-order estimate after it; to see the closed-loop effect, run the scenario again
-//! with `hostsim run --config`.
-//!
-//! # What is compared
-//!
-//! The what-if core's outbound frames against the logged ones (`/can/tx`), its `HEARTBEAT`s
-//! carrying the logged configuration's id (`config_id` names the configuration, so it differs
-//! by construction):
-//!
-//! - the first difference: frames in step order, each step's frames in [`wire_order`],
-//!   compared with their step times, as [`crate::replay::replay_mcap`] compares them;
-//! - per arbitration id ([`IdComparison`]): frames logged and sent, and frames that differ.
-//!   Frames are paired by id, step time and order within the step; a pair whose data differ,
-//!   or a frame without a partner, differs;
-//! - the drive setpoints per wheel (FL, FR, RL, RR), decoded with the firmware's codecs
-//!   ([`firmware::protocol::dji::CurrentCommand`]: motor current, A;
-//!   [`firmware::protocol::odrive::Command::SetInputVel`]: motor velocity, rev/s, and torque
-//!   feed-forward, Nm), as sent (a mirrored motor's sign included). Each side's setpoint is
-//!   held from one command to the next; at every time either side sent one, the difference
-//!   what-if − logged is taken ([`SeriesDiff`]): its largest magnitude with the time, and its
-//!   RMS over those times;
-//! - the state changes in each side's `STATUS` frames ([`StateComparison`]), and those that
-//!   are in one side only; plus the what-if core's own changes at the step they happen.
-//!
-//! # Refused
-//!
-//! A what-if configuration must describe the same drives on the same bus as the logged one:
-//! the same protocol, ESC model and ESC ids (DJI) or node ids (ODrive), wheel for wheel, else
-//! the recorded feedback is another bus's and means nothing to it ([`Incompatible`]). Four
-//! wheels is fixed by [`Config`]'s type. A runner's log, which records its step times, also
-//! needs the logged `timing.control_hz`: the core's period must be the period it is stepped
-//! at. Everything else (gains, limits, geometry, gear ratio, mounting, rates, timeouts) can
-//! change.
-//!
-//! # Determinism
-//!
-//! The core is deterministic and everything here is ordered (by time, by id, by wheel): the
-//! same log and configuration give the same report, bit for bit.
+//! What is fed, what is compared, what is refused and why the report is deterministic:
+//! `docs/simulator.md`, section "What-if replay".
 
 use std::collections::BTreeMap;
 use std::fmt;
@@ -488,8 +450,8 @@ pub struct WhatIfReport {
 
 /// Replays an MCAP log's inbound frames through a core built from the configuration file
 /// `config` instead of the logged one, and compares its outbound frames with the logged ones
-/// (see the [module documentation](self)). A damaged log is replayed up to its cut-off, as
-/// [`crate::replay::replay_mcap`] does; [`WhatIfReport::read`] says so.
+/// (see `docs/simulator.md`, section "What-if replay"). A damaged log is replayed up to its
+/// cut-off, as [`crate::replay::replay_mcap`] does; [`WhatIfReport::read`] says so.
 ///
 /// # Errors
 /// [`WhatIfError`]: the log cannot be replayed, the configuration does not load or is

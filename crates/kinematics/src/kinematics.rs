@@ -1,50 +1,15 @@
 //! Wheel geometry and the inverse / forward wheel maps.
 //!
-//! A mecanum wheel can only push the chassis along the axis of the roller touching the ground;
-//! motion along the roller is free. Wheel `i`, centred at `(a_x, a_y)` in the body frame, with
-//! its axle at angle `α` from the body x axis, rollers at angle `δ` to the axle and radius `r`,
-//! must turn at (Gfrerrer 2008, eq. 16)
+//! [`WheelGeometry`] is one wheel: its centre, axle angle α, roller angle δ and radius.
+//! [`MecanumKinematics`] stacks one row per wheel into the inverse map `J` (N × 3), refuses a
+//! layout it cannot invert, and computes the least-squares forward map `J⁺` once, at
+//! construction; the residual of the forward map is the wheels' disagreement (slip, a bad
+//! encoder, a wrong radius). [`Effectiveness`] is the per-axis slip model folded into both
+//! maps. Every per-step method computes in `T` alone.
 //!
-//! ```text
-//! w_i = -1 / (r sin δ) · [cos(α+δ) vx + sin(α+δ) vy + (a_x sin(α+δ) - a_y cos(α+δ)) wz]
-//! ```
-//!
-//! for the body to move with twist `(vx, vy, wz)`. Stacking one row per wheel gives the
-//! inverse map `J` (N × 3). Row `i` is, up to scale, the Plücker coordinates of the line of
-//! the roller axis in the ground plane, so `J` has rank 3 unless all roller axes meet in one
-//! point or are all parallel (Gfrerrer 2008, Theorem 2). Such layouts are refused at construction.
-//!
-//! With more than three wheels the forward map is over-determined: the crate uses the
-//! least-squares inverse `J⁺ = (JᵀJ)⁻¹Jᵀ`, computed once at construction. What it cannot
-//! explain, the residual `w - J J⁺ w`, is a wheel disagreement: slip, a bad encoder or a
-//! wrong wheel radius.
-//!
-//! `J⁺` is not computed from that formula: forming `JᵀJ` squares the condition number, which
-//! in `f32` cost 3e-4 relative on a layout of condition 21. Construction widens `J` (as
-//! rounded to `T`, so `J⁺` inverts exactly the map [`inverse`](MecanumKinematics::inverse)
-//! applies) to `f64`, scales it to unit magnitude by a power of two, solves by Householder
-//! QR, and rounds `J⁺` to `T` once. The forward map is then accurate to a few
-//! `condition · ε` of `T`. This is the only `f64` arithmetic in the crate, done once per
-//! layout (slow software floating point on a single-precision FPU, but heap-free and a few
-//! thousand operations); every per-step method computes in `T` alone.
-//!
-//! # Effectiveness (slip-aware maps)
-//!
-//! Mecanum rollers slide, so a robot moves less than its wheels say, most of all sideways
-//! (a pure strafe commonly reaches 70-80 % of the commanded speed). [`Effectiveness`] models
-//! that per body axis: `k = (kx, ky, kw)`, the fraction of the wheel-implied motion the robot
-//! really makes. Forward kinematics (and so [`Odometry`](crate::Odometry)) reports
-//! `diag(k) J⁺ w`; inverse kinematics asks the wheels for `J diag(k)⁻¹ v`, so the robot
-//! reaches the commanded `v`. Inverse then forward stays the identity on twists, forward then
-//! inverse the projection onto the wheels' range, and desaturation (one common factor on the
-//! wheels) still keeps the direction of the command.
-//!
-//! The factors are folded into the two precomputed maps at construction (`J` divided
-//! column-wise by `k` and `J⁺` multiplied row-wise by `k`, in `f64`, each rounded to `T` once),
-//! so they cost nothing per step. The layout checks (rank, condition number) are made on the
-//! geometric map, before the factors: they describe the wheels, not the floor. With the
-//! default `k = 1` every entry is the ideal map's, bit for bit (`x / 1` and `x · 1` are exact).
-//! Road Runner's `lateralMultiplier` is `1 / ky`.
+//! The derivation (Gfrerrer 2008, eq. 16 and Theorem 2), how `J⁺` is computed (in `f64`, by
+//! Householder QR) and how the effectiveness factors enter the maps are in the crate's
+//! `README.md`, section "Wheel maps" ([crate documentation](crate#wheel-maps)).
 
 use nalgebra::{Matrix3, SMatrix, Vector3};
 
@@ -135,7 +100,8 @@ pub const MAX_EFFECTIVENESS: f64 = 1.5;
 ///
 /// Plain data: [`MecanumKinematics::with_effectiveness`] and
 /// [`MecanumKinematics::standard_with_effectiveness`] check it ([`check`](Self::check)).
-/// See the [module docs](self) for how it enters the maps.
+/// See the [crate documentation](crate#effectiveness-slip-aware-maps) for how it enters the
+/// maps.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Effectiveness<T> {
     /// Forward (x) factor: body x velocity made per unit the wheels imply.
@@ -231,8 +197,8 @@ impl<T: Real, const N: usize> MecanumKinematics<T, N> {
     }
 
     /// As [`new`](Self::new), with per-axis [`Effectiveness`] factors (the slip-aware maps,
-    /// see the module docs). With [`Effectiveness::ideal`] it is [`new`](Self::new), bit for
-    /// bit.
+    /// see the [crate documentation](crate#effectiveness-slip-aware-maps)). With
+    /// [`Effectiveness::ideal`] it is [`new`](Self::new), bit for bit.
     ///
     /// # Errors
     /// As [`new`](Self::new); [`GeometryError::Effectiveness`] for a factor that is not finite
@@ -270,8 +236,8 @@ impl<T: Real, const N: usize> MecanumKinematics<T, N> {
 
     /// Completes construction from the validated rows of the inverse map (in `f64`) and
     /// checked factors: rounds the rows to `T`, checks the rank, computes the conditioning
-    /// figure and the least-squares forward map (in `f64`, see the module docs), then folds
-    /// the factors into both maps.
+    /// figure and the least-squares forward map (in `f64`, see the
+    /// [crate documentation](crate#wheel-maps)), then folds the factors into both maps.
     fn from_rows(
         wheels: [WheelGeometry<T>; N],
         rows: &SMatrix<f64, N, 3>,
@@ -519,8 +485,9 @@ impl<T: Real> MecanumKinematics<T, 4> {
     }
 
     /// As [`standard`](Self::standard), with per-axis [`Effectiveness`] factors (the
-    /// slip-aware maps, see the module docs): `FL = (vx/kx − vy/ky − (lx+ly) wz/kw) / r`, and
-    /// so on. With [`Effectiveness::ideal`] it is [`standard`](Self::standard), bit for bit.
+    /// slip-aware maps, see the [crate documentation](crate#effectiveness-slip-aware-maps)):
+    /// `FL = (vx/kx − vy/ky − (lx+ly) wz/kw) / r`, and so on. With [`Effectiveness::ideal`] it
+    /// is [`standard`](Self::standard), bit for bit.
     ///
     /// # Errors
     /// As [`standard`](Self::standard), and as

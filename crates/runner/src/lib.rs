@@ -1,54 +1,17 @@
 //! The `mecanum-runner` binary's library: its log ([`McapRecorder`]).
 //!
-//! # The runner's log (`--log FILE.mcap`)
+//! [`McapRecorder`] is the [`mecanum_linux::Recorder`] that writes a run to drivelog's
+//! [`McapLog`] (a ROS 2 bag in MCAP, the simulator's format), in its non-blocking mode
+//! ([`McapLog::drop_when_behind`]): the control loop only pushes small values and never waits
+//! for the disk. [`metadata`] is the log's `mecanum_drive` record; the odometry, wheels and
+//! diagnostics are logged every [`SNAPSHOT_EVERY`] steps. With [`McapRecorder::rotating`] the
+//! log is a directory of numbered files ([`rotated_path`]), each a complete log of its own.
+//! [`Console`] is the binary's recorder: the log, and the link's losses on stderr.
 //!
-//! The same format as the simulator's logs (drivelog's [`McapLog`]: a ROS 2 bag in MCAP), fed
-//! from the control loop through [`mecanum_linux::Recorder`]. Log time 0 is the runner's
-//! first step; every time is the one the core was given, in ns (µs · 1000):
-//!
-//! - `/can/rx`: every frame passed to `on_frame`, at its time (log time, publish time and
-//!   stamp alike);
-//! - `/can/tx`: every frame a step (or the shutdown) produced, publish time = that step's
-//!   time, log time and stamp = when it was handed to the socket (or given up: the frame is
-//!   logged all the same, so that replay compares what the core sent);
-//! - `/firmware/steps`: the time of each step and of the shutdown. The runner's steps are
-//!   real times, late by the wake-up latency and re-anchored after an overrun, not on the
-//!   simulator's grid: replay steps at these times (hostsim's `replay_at_steps`), so a run
-//!   replays bit for bit;
-//! - `/odom`, `/tf`, `/joint_states`, `/diagnostics` every [`SNAPSHOT_EVERY`] steps, and the
-//!   state and fault changes, the heading source's changes (gyro heading), and the CAN
-//!   link's losses and recoveries on `/rosout`;
-//! - metadata `mecanum_drive`: `config` (the TOML), `program` = `mecanum-runner`,
-//!   `firmware_version`, `protocol_version`.
-//!
-//! The loop only pushes small values; [`McapLog`] encodes and writes on its own thread, in
-//! its non-blocking mode ([`McapLog::drop_when_behind`]): if the disk falls behind, messages
-//! are dropped and counted ([`McapRecorder::dropped`], the `--stats-json` `log.dropped`, and a
-//! `/rosout` warning) and the loop never waits. A write error stops the logging (the run goes
-//! on) and is reported at the end.
-//!
-//! # Rotation (`--log-max-mb N --log-keep K`)
-//!
-//! With [`McapRecorder::rotating`], `--log` names a directory (created if missing) holding
-//! `runner-000001.mcap`, `runner-000002.mcap`, ...: once the current file's size (the bytes
-//! its writer thread has written, [`McapLog::bytes_written`], which grows at each hand-over,
-//! so a file ends somewhat past the limit) reaches the limit, the next file is started, with
-//! the same metadata, and the full one is finished (its last batch, summary and footer)
-//! on a thread of its own, which then removes the oldest file beyond K. The next file is
-//! created (header, channels, metadata, rename) on a thread too, as soon as the current one
-//! starts: a rotation costs the loop a swap and two thread starts, at most 0.31 ms of CPU time
-//! in 15 runs of the debug test on a busy machine (`crates/runner/tests/log_rotate.rs` prints
-//! it; the loop never waits for a file to be created or finished). The file prepared for the next rotation is removed at
-//! the end of the run: during the run the directory holds at most K files and that one, after
-//! it at most K.
-//!
-//! Every file is a complete MCAP log on its own: its own `/firmware/steps` and frames, from
-//! its first step (the step at which it was started) on, and the state at its start on
-//! `/rosout`. Replay (`hostsim replay FILE`) starts the core empty at that file's first step:
-//! the first file replays bit for bit; a later file does not in general, since the core had
-//! a state (enabled, wheel speeds, integrators, watchdog) when its file began that the file
-//! does not hold. Replaying a later file is bit-identical only if the core's state then was
-//! that of a new core (e.g. the runner idle and disabled since its start).
+//! What each channel of the runner's log holds and at which times, what happens when the disk
+//! falls behind or fails, and how rotation works (and what a later file replays) are
+//! specified in `docs/logs.md`, sections "The runner's log (`--log FILE.mcap`)" and "Rotation
+//! (`--log-max-mb N --log-keep K`)".
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -87,7 +50,9 @@ pub fn metadata(config: &Config) -> BTreeMap<String, String> {
     ])
 }
 
-/// A [`Recorder`] that writes the run to an MCAP log. See the [crate documentation](crate).
+/// A [`Recorder`] that writes the run to an MCAP log. See the [crate documentation](crate) and
+/// `docs/logs.md`, sections "The runner's log (`--log FILE.mcap`)" and "Rotation
+/// (`--log-max-mb N --log-keep K`)".
 pub struct McapRecorder {
     log: Option<McapLog>,
     rotation: Option<Rotation>,
@@ -127,7 +92,8 @@ impl McapRecorder {
     }
 
     /// A log rotated in `dir` (created if missing): files `runner-NNNNNN.mcap` of about
-    /// `max_bytes` each, the newest `keep` kept. See [Rotation](crate#rotation---log-max-mb-n---log-keep-k).
+    /// `max_bytes` each, the newest `keep` kept. See `docs/logs.md`, section "Rotation
+    /// (`--log-max-mb N --log-keep K`)".
     ///
     /// # Errors
     /// [`LogError`] naming the directory or the first file; `max_bytes` 0 or `keep` 0 as an

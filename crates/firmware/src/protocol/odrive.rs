@@ -1,30 +1,11 @@
 //! ODrive "CAN Simple" protocol, firmware 0.6 (a velocity interface: the drive runs the loop).
 //!
-//! # The protocol
-//!
-//! Each axis has a node id (0..=63) and every message an id `node_id << 5 | cmd_id`
-//! (standard 11-bit). Fields are little-endian. The layouts follow ODrive's official DBC,
-//! `odrive-cansimple-0.6.10.dbc` (shipped in the `odrive-can` PyPI package); the project's
-//! copy for nodes 0-3 is `dbc/odrive_cansimple.dbc`. The subset implemented here:
-//!
-//! | cmd | message | dir | DLC | fields |
-//! |---|---|---|---|---|
-//! | `0x01` | `Heartbeat` | drive → host | 8 | `Axis_Error` u32, `Axis_State` u8, `Procedure_Result` u8, `Trajectory_Done_Flag` bit 0 of byte 6 |
-//! | `0x02` | `Estop` | host → drive | 0 | |
-//! | `0x01`, `0x03`, `0x09` | `Heartbeat`, `Get_Error`, `Get_Encoder_Estimates` | host → drive | RTR or 0 | request: a remote frame (any DLC) or an empty data frame; the drive answers with the message |
-//! | `0x03` | `Get_Error` | drive → host | 8 | `Active_Errors` u32, `Disarm_Reason` u32 |
-//! | `0x07` | `Set_Axis_State` | host → drive | 8 | `Axis_Requested_State` u32 (1 idle, 8 closed loop) |
-//! | `0x09` | `Get_Encoder_Estimates` | drive → host | 8 | `Pos_Estimate` f32 rev, `Vel_Estimate` f32 rev/s |
-//! | `0x0B` | `Set_Controller_Mode` | host → drive | 8 | `Control_Mode` u32, `Input_Mode` u32 |
-//! | `0x0D` | `Set_Input_Vel` | host → drive | 8 | `Input_Vel` f32 rev/s, `Input_Torque_FF` f32 Nm |
-//! | `0x18` | `Clear_Errors` | host → drive | 1 | `Identify` u8 |
-//!
-//! The drive sends the heartbeat every 100 ms and the encoder estimates every 10 ms by
-//! default, and has its own watchdog (axis error `0x1000000` when it expires).
-//!
-//! Deviations from a strict reading of the DBC, all on the lenient side: `Clear_Errors` is
-//! also accepted with DLC 0 (the 0.5 DBC's length); bits 1-7 of byte 6 and byte 7 of the
-//! heartbeat are ignored.
+//! Each axis has a node id ([`NodeId`], 0..=63) and every message an id
+//! `node_id << 5 | cmd_id` ([`split_id`]). [`layout`] mirrors ODrive's official DBC (0.6.10)
+//! for the subset implemented; [`Command`] is what the host sends, [`Feedback`] what a drive
+//! sends, [`decode`] reads either. The message table, the drive's rates and watchdog, and
+//! where the decoders are more lenient than the DBC are in `docs/protocol.md`, section
+//! "ODrive CAN Simple".
 //!
 //! # Encoding and decoding
 //!

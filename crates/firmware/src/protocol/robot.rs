@@ -1,73 +1,13 @@
 //! The robot's own protocol: twist setpoints (and an optional gyro's yaw rate) in; odometry,
 //! status, counters and heartbeat out.
 //!
-//! # The protocol
-//!
 //! Defined by `dbc/mecanum_robot.dbc` (the file is the specification; this module follows
-//! it). CAN 2.0A standard ids, little-endian ("Intel") fields, in the block `0x300..=0x31F`,
-//! chosen to stay clear of ODrive nodes 0-3 (`0x000..=0x07F`), CANopen (`0x000..=0x0FF`,
-//! `0x580..=0x77F`) and DJI ESCs (`0x1FF..=0x20B`). A lower id wins arbitration, so the
-//! e-stop is the block's lowest id.
-//!
-//! | id | message | dir | DLC | fields |
-//! |---|---|---|---|---|
-//! | `0x300` | `ESTOP` | host → robot | 1 | `magic` u8, must be `0xE5` |
-//! | `0x301` | `TWIST_CMD` | host → robot | 8 | `vx`, `vy` i16 0.001 m/s; `wz` i16 0.001 rad/s; `seq` u8 (alive counter); reserved u8 |
-//! | `0x302` | `MODE_CMD` | host → robot | 1 | `request` u8: 0 disable, 1 enable, 2 reset |
-//! | `0x303` | `STATUS_REQ` | host → robot | 0 | asks for an immediate `STATUS` |
-//! | `0x304` | `IMU_YAW_RATE` | IMU node → robot | 8 | `yaw_rate` f32 rad/s (±35); `seq` u8 (alive counter); reserved 3 bytes |
-//! | `0x305` | `WHEEL_TEST` | host → robot | 8 | `wheel` u8 (0-3); `speed` i16 0.001 rad/s (±10); `duration_ms` u16 (1-3000); reserved 3 bytes |
-//! | `0x310` | `ODOM_POSITION` | robot → host | 8 | `x`, `y` i32 0.0001 m (odometry frame) |
-//! | `0x311` | `ODOM_VELOCITY` | robot → host | 8 | `heading` i16 0.0001 rad; `vx`, `vy` i16 0.001 m/s; `wz` i16 0.001 rad/s |
-//! | `0x312` | `STATUS` | robot → host | 8 | `state` u8, `fault` u8, `rx_errors` u16, `unknown_ids` u16, `motors_online` 4 bits, `heading_source` 4 bits, `seq` u8 |
-//! | `0x313` | `STATUS_COUNTERS` | robot → host | 8 | `repeated_seq`, `wrong_dlc`, `out_of_range`, `non_finite` u16 |
-//! | `0x314` | `WHEEL_TEST_RESULT` | robot → host | 8 | `wheel` u8; `outcome` u8; `angle` i16 0.001 rad; `peak_current` i16 0.01 A; reserved u16 |
-//! | `0x31F` | `HEARTBEAT` | robot → host | 8 | `uptime_ms` u32, `state` u8, `protocol_version` u8 (= 5), `config_id` u16 |
-//!
-//! Velocities are in the body frame (x forward, y left, yaw counter-clockwise positive).
-//! The raw value `-32768` of the i16 velocity fields is reserved as "invalid" and rejected,
-//! so every range is symmetric (±32.767). `heading` is in `-π..=π` (raw `±31416`).
-//! `STATUS_REQ` never counts as a motion command. Reserved bytes are sent as 0 and ignored
-//! on receipt. Values of `state`, `fault` and `request` not listed are reserved for later
-//! versions and rejected.
-//!
-//! `TWIST_CMD.seq` is an alive counter: the host increments it in every `TWIST_CMD` (it may
-//! skip values; 255 → 0 is an increment). A twist whose `seq` equals that of the last twist
-//! the robot accepted is a repeat, as a host, a USB adapter or a gateway that resends one
-//! frame forever sends: the robot does not apply it, it does not feed the command watchdog,
-//! and it is counted (`STATUS_COUNTERS.repeated_seq`). The first twist after an enable or a
-//! reset is accepted whatever its `seq`. (The codec only carries the number;
-//! [`crate::control`] applies the rule.)
-//!
-//! `IMU_YAW_RATE` is optional: an IMU node sends its gyro's yaw rate (counter-clockwise
-//! positive, bias and all: the robot estimates the bias while it stands still) at its own
-//! rate, 200 Hz typically. Its `seq` is an alive counter like `TWIST_CMD`'s: a frame that
-//! repeats the last accepted `seq` is not used and is counted in
-//! `STATUS_COUNTERS.repeated_seq`. A robot configured for gyro heading reports in
-//! `STATUS.heading_source` where its heading comes from: `GYRO`, or `WHEELS_GYRO_SILENT` when
-//! no valid `IMU_YAW_RATE` arrived within its gyro timeout (a warning, not a fault: the robot
-//! keeps driving on wheel heading and takes the gyro again when it is back). A robot without
-//! a gyro reports `WHEELS` and sends exactly the frames it sent before the gyro existed, so
-//! these additions did not change the protocol version. (The codec only carries the
-//! numbers; [`crate::control`] applies the rules.)
-//!
-//! `WHEEL_TEST` is the bring-up check's test mode (a robot on blocks, its wheels off the
-//! ground): a *disabled* robot drives the one wheel at `speed` (wheel rad/s, robot-forward
-//! positive) for `duration_ms`, with a quarter of its current limit, the other wheels without
-//! torque; `STATUS.state` says `WHEEL_TEST` meanwhile. It ends with one `WHEEL_TEST_RESULT`:
-//! `DONE` after the duration, `STOPPED` by `MODE_CMD` disable or `ESTOP`, `FAULT` by a fault
-//! (the robot is then in `FAULT`), or `REFUSED` at once when the robot was not disabled.
-//! `angle` is how far that wheel's encoder says it turned, in the configured sense
-//! (robot-forward positive), and `peak_current` the largest current commanded (0 for
-//! velocity-mode drives). No wheel encoder can tell *which* wheel turned, or which way it
-//! really did: someone watching the robot (or the simulator) says that (see the
-//! `mecanum-drive check` command).
-//!
-//! `STATUS_COUNTERS` follows every `STATUS` (periodic or requested). `STATUS` has no room
-//! left, and the counters a host needs to tell a stuck sender from a noisy bus belong
-//! together: the repeats, and the three kinds of malformed frames of this stack's own
-//! protocols, split out of `STATUS.rx_errors` (the rest of which, extended ids and remote
-//! frames, is foreign traffic like `unknown_ids`).
+//! it): CAN 2.0A standard ids in the block `0x300..=0x31F` ([`in_block`]), little-endian
+//! fields. [`layout`] mirrors the DBC; [`Command`] is what the host (and an IMU node) sends,
+//! [`Telemetry`] what the robot sends, [`decode`] reads either; [`PROTOCOL_VERSION`] is the
+//! version implemented. The message table, the alive counters (`TWIST_CMD.seq`,
+//! `IMU_YAW_RATE.seq`), the gyro's heading source, the wheel test and `STATUS_COUNTERS` are
+//! specified in `docs/protocol.md`, section "Robot protocol".
 //!
 //! # Encoding and decoding
 //!
@@ -203,7 +143,7 @@ pub mod layout {
     pub const TWIST_WZ: Field = Field::int("wz", 4, I16, Little)
         .scaled(ANGULAR_SCALE)
         .range(-VEL_RAW_MAX, VEL_RAW_MAX);
-    /// `TWIST_CMD.seq`, alive counter (see the [module documentation](super)).
+    /// `TWIST_CMD.seq`, alive counter (see `docs/protocol.md`, section "Robot protocol").
     pub const TWIST_SEQ: Field = Field::int("seq", 6, U8, Little);
 
     /// Largest `|IMU_YAW_RATE.yaw_rate|`, rad/s: beyond a MEMS gyro's ±2000 °/s full scale
@@ -468,8 +408,8 @@ pub struct TwistCmd {
     /// Yaw rate, counter-clockwise positive, rad/s (±32.767, LSB 0.001).
     pub wz: f32,
     /// Alive counter set by the host: one more (mod 256, or any other new value) in every
-    /// twist it sends. A repeat of the last accepted one is not applied (see the
-    /// [module documentation](self)).
+    /// twist it sends. A repeat of the last accepted one is not applied (see
+    /// `docs/protocol.md`, section "Robot protocol").
     pub seq: u8,
 }
 

@@ -1,139 +1,15 @@
 //! The chassis: a planar rigid body on four mecanum wheels, with friction-limited slip.
 //!
-//! # Model
+//! [`Chassis`] is built from [`ChassisParams`] (e.g. [`ChassisParams::from_config`]) and
+//! advanced by [`Chassis::step`] with one [`WheelInput`] per wheel (a drive torque, or a
+//! wheel held at a speed); its state is a [`ChassisState`] (world pose, body velocity, wheel
+//! speeds). The contact is anisotropic Coulomb friction on the rollers, each step is linearly
+//! implicit (unconditionally stable, 1 ms by default), and [`Ripple`] optionally adds the
+//! contact-point ripple of Gfrerrer 2008.
 //!
-//! The body has mass `m` and yaw inertia `I`, a world pose `(x, y, θ)` and a body-frame
-//! velocity `v = (vx, vy)`, `ω = wz` (x forward, y left, yaw counter-clockwise). Wheel `i`
-//! sits at `a_i` in the body frame with the geometry of [`WheelGeometry`]: axle angle `α`,
-//! roller angle `δ`, radius `r` (Gfrerrer 2008, the same parameters the kinematics crate uses).
-//! Each wheel spins at `ω_i` (positive rolls the robot forward) with spin inertia `J_i` as
-//! seen at the wheel.
-//!
-//! Per wheel, in the body frame:
-//!
-//! ```text
-//! contact point          c_i  = a_i                      (nominal; see "ripple" below)
-//! contact velocity       v_c  = v + ω × c_i = (vx − ω c_y, vy + ω c_x)
-//! rolling direction      d    = (cos(α − π/2), sin(α − π/2))       (+x for α = π/2)
-//! roller axis (ground)   e_a  = (cos(α+δ), sin(α+δ))               constrained direction
-//! roller free direction  e_f  = (−sin(α+δ), cos(α+δ))              the roller spins along it
-//! slip of the contact    s    = v_c − r ω_i d                       (rim point vs ground)
-//! axial slip             s_a  = s·e_a = v_c·e_a + r ω_i sin δ       (d·e_a = −sin δ)
-//! roller spin speed      s_f  = s·e_f = v_c·e_f + r ω_i cos δ       (d·e_f = −cos δ)
-//! ```
-//!
-//! `s_a = 0` is exactly the wheel's row of the inverse kinematics (Gfrerrer 2008, eq. 16), so a
-//! chassis whose wheels turn at `MecanumKinematics::inverse(v)` moves at `v` without slip.
-//!
-//! **Contact force** (on the chassis, from the ground): anisotropic Coulomb friction with a
-//! smooth slip curve. Sliding along the roller axis is weighted 1, rolling the roller along
-//! its free direction is weighted `ε` (the rollers' rolling-to-sliding resistance ratio,
-//! [`ChassisParams::roller_drag`]):
-//!
-//! ```text
-//! F_i = −μ N_i · (s_a e_a + ε s_f e_f) / sqrt(s_a² + ε² s_f² + s0²)
-//! ```
-//!
-//! `|F_i| < μ N_i` always (the friction ellipse); below the slip velocity `s0` the force is
-//! linear in the slip (a stiff viscous contact, no stick-slip chatter), above it it saturates
-//! at the friction limit. Its power `F_i·s = −μN (s_a² + ε s_f²)/sqrt(…) ≤ 0`: the contact
-//! only dissipates.
-//!
-//! **Equations of motion** (body frame):
-//!
-//! ```text
-//! J_i ω̇_i = τ_i − r (F_i·d)                 wheel: drive torque against the ground reaction
-//! m (v̇ + ω × v) = Σ F_i                     chassis translation
-//! I ω̇ = Σ c_i × F_i                          chassis yaw
-//! pose ← pose · exp((vx, vy, ω) h)           exact SE(2) exponential (kinematics::Pose2::exp)
-//! ```
-//!
-//! # Integration
-//!
-//! The contact is stiff: below the slip velocity `s0` it acts as a damper of `k = μN/s0`
-//! (784 N·s/m per wheel on the default chassis), whose time constant with the wheel and body
-//! inertias, `1 / (k (r²/J + 4/m + 4|c|²/I))`, is about 0.94 ms. An explicit step must stay
-//! well below that (this model used 100 µs substeps): at a 1 ms step the slip would flip sign
-//! every step, and a stiffer chassis (more grip, lighter wheels) would diverge. So each step
-//! is *linearly implicit* (backward Euler with the friction coefficient frozen at the start
-//! of the step):
-//!
-//! ```text
-//! k_i = μN_i / sqrt(s_a² + ε² s_f² + s0²)            from the slip at the start of the step
-//! F_i = −k_i A_i s_i(q⁺),  A_i = e_a e_aᵀ + ε e_f e_fᵀ  force from the slip at the end
-//! (M + h Σ k_i B_iᵀ A_i B_i) q⁺ = M q + h τ          q = (vx, vy, ω, ω_1..ω_4), s_i = B_i q
-//! ```
-//!
-//! The matrix is symmetric positive definite for any `h`, so the step is unconditionally
-//! stable, and it only dissipates: `q⁺ᵀM q⁺ ≤ q⁺ᵀM q` gives `½q⁺ᵀMq⁺ ≤ ½qᵀMq`. That holds in
-//! exact arithmetic; in floating point the elimination below loses precision when the contact
-//! is many orders stiffer than the body (`h μN / s0` thousands of times the mass: a slip
-//! velocity `s0` of 1e-6 m/s, or an absurd normal load), and a coasting robot then gains
-//! energy slowly. The defaults are 0.03 times the mass; 1e-4 m/s still dissipates. In steady
-//! state the frozen coefficient is the true one, so steady slip, the strafe ratio below and
-//! the wheel loads are exact. Each wheel couples only to the body, so the 7 × 7 system is an
-//! arrowhead: the wheels are eliminated into the 3 × 3 body block (a Schur complement), which
-//! a Cholesky factorisation solves; the wheel speeds follow. A wheel held at a speed
-//! ([`WheelInput::Speed`]) moves its column to the right-hand side. Drive torques are taken
-//! from the start of the step (the drives' own dynamics are slow against 1 ms). The `ω × v`
-//! term is then applied as an exact rotation of the body velocity by `−ω h`, so it never adds
-//! energy, and the wheel angles and the pose (exact SE(2) exponential) follow from the new
-//! velocities. The step is at most [`ChassisParams::max_substep`] (1 ms by default: one step
-//! per control period, so a 60 s run costs 60,000 steps).
-
-//! # Why strafing is slower than driving forward
-//!
-//! Driving straight, every contact velocity is along `d`, so `s_f = 0`: the rollers do not
-//! spin and nothing but the axial traction acts. Strafing (or rotating), the rollers must
-//! spin: for the standard layout at strafe speed `V` commanded `V0`, each roller spins at
-//! `|s_f| = (V0 + V)/√2` and the roller drag pulls back along `e_f`. The wheels, held at their
-//! kinematic speeds by the velocity loop, push back only by slipping along their roller axes,
-//! `|s_a| = (V0 − V)/√2`. The lateral force balance `|s_a| = ε |s_f|` gives
-//!
-//! ```text
-//! V / V0 = (1 − ε) / (1 + ε)
-//! ```
-//!
-//! independent of speed, μ and s0. The default `ε = 1/7` puts a pure strafe at 75 % of
-//! forward speed, the middle of the 70-80 % that FTC mecanum tutorials report. The price is
-//! real: at 1 m/s commanded the contacts slide at about 0.18 m/s along the roller axes and the
-//! wheels carry a steady torque (about 10 A per M3508 on the default 20 kg chassis), which shows up
-//! as motor current. Diagonal motion loses its lateral part the same way: wheel patterns that ask
-//! for 45° travel at `atan(0.75)` ≈ 36.9° from the x axis.
-//!
-//! Why one friction ellipse and not a separate roller resistance: with the traction saturated
-//! at `μN` and a Coulomb roller friction `μ_r N`, the balance fixes the *slip*, not the
-//! ratio (tuned to 75 % at 1 m/s, a strafe falls the same 0.25 m/s short at any speed: 17 %
-//! of the command at 0.3 m/s, 88 % at 2 m/s);
-//! with a viscous one `c_r s_f` the drag grows past `μN` and a fast strafe stalls. Weighting
-//! the slip keeps the tutorial's ratio at every speed. Its limit: a roller spun much faster than
-//! `s0/ε` (0.35 m/s) along its free direction by a wheel that is *held* still drags with
-//! nearly the full `μN`, more than a real free roller would.
-//!
-//! # Contact-point ripple (Gfrerrer 2008, eq. 10 and 11)
-//!
-//! A real mecanum wheel touches the ground with one of its `k` rollers at a time, and the
-//! contact point is not under the wheel centre: with `u` the wheel's rotation angle measured
-//! from the moment the touching roller is centred (`|u| ≤ π/k`), and `d` the distance between
-//! the wheel axis and the roller axis (their common perpendicular), the contact point is
-//! (eq. 11)
-//!
-//! ```text
-//! c_x = a_x − d cos α cot δ tan u,        c_y = a_y − d sin α cot δ tan u
-//! ```
-//!
-//! and the roller axis `b(u) = (cos α cos δ − sin α sin δ cos u,
-//! sin α cos δ + cos α sin δ cos u, sin δ sin u)` (eq. 10) tilts, so its ground projection,
-//! which replaces `e_a`, turns: `tan δ_eff = tan δ cos u`. The contact slides along the axle
-//! by `±d cot δ tan(π/k)` and jumps back when the next roller takes over, once per roller
-//! pitch `2π/k`, and the effective rolling ratio `r sin δ_eff / sin δ` dips with the same
-//! period: a ripple in speed and yaw at `k` times the wheel frequency. Rolling straight is
-//! the exception: eq. 15 then reduces to `r u̇ = vx` whatever the tilt, and the left and right
-//! contacts shift symmetrically, so a pure forward run has no ripple; strafing does
-//! (`vy = r ω cos u` for forced wheels, a dip of `1 − cos(π/k)`), and so does turning.
-//! [`Ripple`] turns it on (off by default, where `c_i = a_i` and `e_a` is fixed, eq. 16's
-//! simplification). The wheel angle `u` is the same angle as the wheel's own (eq. 13 gives
-//! the rim velocity `−u̇ r d`, our positive rolling sense).
+//! The model (contact slip and force, equations of motion), the integration, why strafing is
+//! slower than driving forward and the ripple are specified in `docs/simulator.md`, section
+//! "Chassis".
 
 use kinematics::{ChassisVelocity, MecanumKinematics, Pose2, Twist2, WheelGeometry, wrap_angle};
 
@@ -143,7 +19,8 @@ use super::error::{ParamError, finite, non_negative, positive};
 /// Standard gravity, m/s².
 pub const STANDARD_GRAVITY: f64 = 9.806_65;
 
-/// Contact-point ripple after Gfrerrer 2008, eq. 10-11 (see the [module docs](self)).
+/// Contact-point ripple after Gfrerrer 2008, eq. 10-11 (see `docs/simulator.md`, section
+/// "Chassis", "Contact-point ripple").
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Ripple {
     /// Number of rollers `k` per wheel (≥ 3; 8-12 is common).
@@ -457,7 +334,8 @@ struct WheelConst {
     j: f64,
 }
 
-/// A planar rigid body on four mecanum wheels (see the [module docs](self) for the model).
+/// A planar rigid body on four mecanum wheels (the model: `docs/simulator.md`, section
+/// "Chassis").
 #[derive(Debug, Clone, PartialEq)]
 pub struct Chassis {
     params: ChassisParams,
@@ -645,7 +523,7 @@ impl Chassis {
     }
 
     /// One substep of `h` seconds (`h` at most [`Self::substep`]; not checked): the
-    /// linearly implicit step of the [module docs](self#integration).
+    /// linearly implicit step of `docs/simulator.md`, section "Chassis", "Integration".
     pub(crate) fn advance(&mut self, h: f64, inputs: &[WheelInput; WHEELS]) {
         let s = self.state;
         let (vx, vy, wz) = (s.velocity.vx, s.velocity.vy, s.velocity.wz);

@@ -15,44 +15,9 @@
 //! - [`odrive`]: an ODrive axis (velocity loop, watchdog, 10 ms encoder estimates, 100 ms
 //!   heartbeat).
 //!
-//! # Coupling and signs
-//!
-//! Wheel order is FL, FR, RL, RR ([`Wheel`]); positive wheel speed rolls the robot forward.
-//! Each wheel's drive has a mounting sign `s = −1` where `inverted` (the mirrored right side
-//! of the example configurations), `+1` otherwise, and a gear ratio `G` (motor turns per wheel
-//! turn). The drive sees its motor shaft at
-//!
-//! ```text
-//! θ_motor = s · G · θ_wheel,      ω_motor = s · G · ω_wheel
-//! ```
-//!
-//! and its output torque `τ` (at the wheel side of the gear, in the motor's positive sense)
-//! acts on the wheel as `s · τ`. So for an inverted wheel a positive motor current or velocity
-//! rolls the robot backward, the DJI rotor angle counts down when the robot drives forward,
-//! exactly what `firmware::config::Drive::*::inverted` undoes. The rotor's inertia appears at
-//! the wheel as `J_rotor · G²`, added to the chassis wheel inertia by [`Plant::new`].
-//!
-//! # Time and feedback
-//!
-//! Time is kept in integer nanoseconds from 0. [`Plant::step`] advances in substeps of at most
-//! [`Plant::substep_ns`] (1 ms by default, a divisor of 1 ms) and also stops exactly at each
-//! instant a drive's feedback is due, so the feedback carries the state of that instant. Each
-//! drive keeps its own schedule (see [`Drive::next_feedback_ns`]): DJI every 1 ms from 1 ms,
-//! ODrive encoder estimates every 10 ms from 10 ms and heartbeats every 100 ms from 100 ms.
-//! Due feedback is queued with its timestamp; the adapter collects it with
-//! [`Plant::take_feedback`] after each step and puts the frames on the bus at those times.
-//! Commands act from the moment they are given (the state at the current time).
-//!
-//! # Faults
-//!
-//! [`Plant::set_stuck_encoder`] freezes a wheel's *reported* angle and speed at their values
-//! when the fault starts while the wheel keeps moving (the drive's own control, e.g. the
-//! ODrive velocity loop, still sees the truth). [`Plant::set_offline`] turns a wheel's drive
-//! off: no feedback at all and no torque (the wheel coasts); the adapter must also not
-//! deliver commands to it (check [`Plant::is_offline`]). [`Plant::set_faults_at`] sets both
-//! for every wheel from a given instant on: the motion up to that instant does not feel them,
-//! the feedback due at that instant already does.
-//! [`Plant::set_friction`] changes the ground's friction coefficient.
+//! Wheel order is FL, FR, RL, RR ([`Wheel`]). How the drives' mounting signs and gear ratios
+//! couple them to the wheels, when feedback is due ([`Plant::take_feedback`]) and what the
+//! faults ([`Plant::set_faults_at`]) do: `docs/simulator.md`, section "Plant".
 
 pub mod chassis;
 pub mod dji;
@@ -162,7 +127,8 @@ struct Faults {
     offline: bool,
 }
 
-/// A chassis on four drives of one kind (see the [module docs](self)).
+/// A chassis on four drives of one kind (see the [module docs](self) and `docs/simulator.md`,
+/// section "Plant").
 #[derive(Debug, Clone, PartialEq)]
 pub struct Plant<D: Drive> {
     chassis: Chassis,

@@ -1,40 +1,12 @@
 //! An ODrive axis (firmware 0.6, CAN Simple): a velocity-mode drive with its own watchdog.
 //!
-//! # Model
+//! [`OdriveAxis`] is built from [`OdriveParams`]; it takes the firmware's ODrive commands
+//! ([`OdriveAxis::apply`]) and produces [`OdriveFeedback`] (encoder estimates, heartbeats,
+//! `Get_Error` answers). Its error bits include [`WATCHDOG_TIMER_EXPIRED`] and
+//! [`ESTOP_REQUESTED`].
 //!
-//! State machine: `Idle` (no torque) and `ClosedLoopControl` (the velocity loop runs). Other
-//! requested states are refused (procedure result `INVALID_STATE`). An axis with active
-//! errors refuses closed loop until `Clear_Errors`.
-//!
-//! Velocity loop (ODrive's `Controller`, velocity control mode), per substep `h`, in motor
-//! turns:
-//!
-//! ```text
-//! vel_sp   = input_vel                       (input mode passthrough)
-//!          → input_vel at vel_ramp_rate       (input mode vel ramp)
-//! vel_sp   = clamp(vel_sp, ±vel_limit)
-//! err      = vel_sp − vel_estimate
-//! τ_m      = torque_ff + vel_gain · err + integrator,  clamped to ±torque_limit
-//! integrator += vel_integrator_gain · err · h   (or decays by 1 % if τ_m was clamped)
-//! ```
-//!
-//! The motor's torque follows `τ_m` exactly (the current loop is much faster than anything
-//! here); motor friction is subtracted, and the gear (`gear_ratio` motor turns per wheel turn,
-//! 5 in `firmware::Config::odrive_example()`) multiplies the torque at the wheel. The encoder
-//! estimates are the true motor angle and speed (no PLL lag, no quantisation).
-//!
-//! Watchdog (`axis.config.enable_watchdog`, off by default as on a real ODrive): when enabled,
-//! closed loop without a `Set_Input_Vel` for `watchdog_timeout` seconds sets
-//! [`WATCHDOG_TIMER_EXPIRED`] (`0x1000000`) and drops the axis to `Idle`. Entering closed loop
-//! feeds it. Real ODrive firmware feeds it from other setpoint messages too; here only
-//! `Set_Input_Vel` does, which is the one this project sends.
-//!
-//! # Feedback schedule
-//!
-//! The axis keeps its own schedule, from time 0: encoder estimates every 10 ms, heartbeat every
-//! 100 ms (ODrive's `encoder_rate_ms` and `heartbeat_rate_ms` defaults). When both are due
-//! at the same instant the heartbeat comes first. `Get_Error` is answered at once by
-//! [`OdriveAxis::apply`].
+//! The state machine, velocity loop, watchdog and feedback schedule are specified in
+//! `docs/simulator.md`, section "ODrive axis".
 
 use firmware::protocol::odrive::{AxisState, Command, ControlMode, Feedback, Heartbeat, InputMode};
 
@@ -155,7 +127,7 @@ impl OdriveFeedback {
     }
 }
 
-/// One ODrive axis (see the [module docs](self)).
+/// One ODrive axis (the model: `docs/simulator.md`, section "ODrive axis").
 #[derive(Debug, Clone, PartialEq)]
 pub struct OdriveAxis {
     params: OdriveParams,
