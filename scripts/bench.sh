@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# The project's performance figures in one run, printed as a Markdown table for
-# docs/benchmarks.md (with the machine and the date):
+# The project's performance figures in one run, printed as a Markdown table and written as
+# the "current figures" at the top of docs/benchmarks.md (with the machine, the date and the
+# commit; not with --quick):
 #   kinematics full step (f32, f64) and the control step on the host (criterion medians),
 #   the parts of one lockstep period (a frame's length on the wire, a chassis step, a
 #   simulated ms of the C620 plant) and the built-in square in process (criterion),
@@ -31,7 +32,7 @@ for arg in "$@"; do
     case $arg in
     --quick) quick=1 ;;
     --no-vcan) vcan=0 ;;
-    -h | --help) sed -n '2,23p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    -h | --help) sed -n '2,24p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
     *) echo "bench.sh: unknown argument $arg (see --help)" >&2; exit 2 ;;
     esac
 done
@@ -170,9 +171,26 @@ if [ "$vcan" = 1 ]; then
     fi
 fi
 
-printf '\n%s, %s, %s cores (%s), Linux %s, %s\n\n' "$(date -u +%Y-%m-%d)" \
-    "$(sed -n 's/^model name\s*: //p' /proc/cpuinfo | head -1)" "$(nproc)" \
-    "$(grep -q hypervisor /proc/cpuinfo && echo VM || echo bare metal)" "$(uname -r)" "$(rustc --version)"
-echo "| figure | value | unit |"
-echo "|---|---|---|"
-printf '%s\n' "${rows[@]}"
+table=$(
+    printf '%s, %s, %s cores (%s), Linux %s, %s, commit %s%s.\n\n' "$(date -u +%Y-%m-%d)" \
+        "$(sed -n 's/^model name\s*: //p' /proc/cpuinfo | head -1)" "$(nproc)" \
+        "$(grep -q hypervisor /proc/cpuinfo && echo VM || echo bare metal)" "$(uname -r)" \
+        "$(rustc --version)" "$(git rev-parse --short HEAD)" "$(git diff --quiet HEAD || echo ' with changes')"
+    echo "| figure | value | unit |"
+    echo "|---|---|---|"
+    printf '%s\n' "${rows[@]}"
+)
+printf '\n%s\n' "$table"
+# The current figures at the top of docs/benchmarks.md are this table; the dated sections
+# below them are the history (--quick figures are not written there).
+if [ "$quick" = 0 ]; then
+    "$PY" - docs/benchmarks.md "$table" <<'PY'
+import sys
+path, table = sys.argv[1], sys.argv[2]
+begin, end = "<!-- current-figures:begin -->\n", "<!-- current-figures:end -->"
+doc = open(path).read()
+b, e = doc.index(begin) + len(begin), doc.index(end)
+open(path, "w").write(doc[:b] + table + "\n" + doc[e:])
+PY
+    log "wrote the current figures into docs/benchmarks.md"
+fi

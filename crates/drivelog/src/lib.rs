@@ -9,35 +9,21 @@
 //!
 //! # Channels
 //!
-//! | topic | type | what |
-//! |---|---|---|
-//! | `/can/rx` | `can_msgs/msg/Frame` | every frame the firmware received. Log time: when the firmware took it (end of frame on the wire, plus any delay fault); publish time: when its sender queued it; `header.stamp`: when it completed on the wire |
-//! | `/can/tx` | `can_msgs/msg/Frame` | every frame the firmware sent, dropped ones included. Log time and `header.stamp`: when it completed on the wire; publish time: the control step that sent it |
-//! | `/can/faults` | `mecanum_drive_msgs/msg/BusFault` | the frames the simulated bus's fault injector dropped or corrupted: sender, fate, the frame as sent and the data as received |
-//! | `/cmd_vel` | `geometry_msgs/msg/TwistStamped` | the host's twist setpoint, when it changes (frame `base_link`) |
-//! | `/odom` | `nav_msgs/msg/Odometry` | the firmware's odometry: pose in `odom`, measured twist in `base_link` |
-//! | `/ground_truth/odom` | `nav_msgs/msg/Odometry` | the plant's true pose in `odom` (the simulator's `odom` origin is where the robot starts) and body twist in `base_link_truth` |
-//! | `/tf` | `tf2_msgs/msg/TFMessage` | `odom` → `base_link` (odometry) and `odom` → `base_link_truth` (ground truth) |
-//! | `/joint_states` | `sensor_msgs/msg/JointState` | wheels `fl`, `fr`, `rl`, `rr`: angle (rad, robot-forward positive, accumulated since start), speed (rad/s), effort: the commanded motor current (A; 0 for velocity-mode drives) |
-//! | `/diagnostics` | `diagnostic_msgs/msg/DiagnosticArray` | the firmware's state, fault, motors online, commanded and measured twist, wheel setpoints, rejected-frame counters; with gyro heading, the heading source and the gyro bias |
-//! | `/rosout` | `rcl_interfaces/msg/Log` | state changes and faults, as text; heading source changes ([`heading_source_line`]); messages dropped because the writer fell behind ([`McapLog::drop_when_behind`]) |
-//! | `/firmware/steps` | `mecanum_drive_msgs/msg/Step` | `mecanum-runner` only: the time of each control step and of the shutdown (log time = `stamp` = the time passed to the core). The simulator steps every control period from 0 and logs none |
+//! [`Channel::ALL`]; what each carries and when is the README's "Logs" table, the one place
+//! it is written (a test checks it names every channel with its type).
 //!
 //! Log time 0 is the start of the run. The run's configuration (TOML) and its origin
 //! (scenario, seed, program and versions) are the [`METADATA_NAME`] metadata record, written
 //! before the first message, so that `replay` can rebuild the same firmware.
 //!
-//! # Writing
+//! # Writing and reading
 //!
 //! [`McapLog`] is what a run calls: it records each message's values in a batch (a few
 //! dozen bytes a message, no encoding), and hands each batch to a thread of its own, which
 //! encodes the messages in CDR ([`msg`]) and writes them with the `mcap` crate's [`Writer`]
 //! (zstd chunks with message indexes, the summary section with chunk indexes and statistics).
-//! See [`mod@write`] for the crash safety: a chunk ends at least every quarter second of log time,
-//! a killed run loses at most the last second, and a `.mcap` file always opens.
-//!
-//! # Reading
-//!
+//! A chunk ends at least every quarter second of log time, a killed run loses at most the last
+//! second, and a `.mcap` file always opens (`docs/logs.md`, section "Crash safety").
 //! [`for_each_message`] reads a log with the `mcap` crate's reader, every complete chunk of a
 //! damaged file included, and names the byte offset of the damage ([`read`]).
 //!

@@ -368,7 +368,7 @@ fn stale_rule_row(
         None => {
             let last = rec.at(end_us);
             (
-                "Enabled, no fault".to_string(),
+                "ENABLED, no fault".to_string(),
                 "-".to_string(),
                 format!("{}, {}", last.state, last.fault),
                 format!(
@@ -910,8 +910,13 @@ fn doc_path() -> std::path::PathBuf {
 }
 
 /// Checks (or, with `UPDATE_FAULT_MATRIX` set, rewrites) the block between
-/// `<!-- {name}:begin -->` and `<!-- {name}:end -->` in docs/reliability.md.
+/// `<!-- {name}:begin -->` and `<!-- {name}:end -->` in docs/reliability.md. One test at a
+/// time reads and writes the file.
 fn keep_in_docs(name: &str, block: &str) {
+    static DOC: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _one_at_a_time = DOC
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let path = doc_path();
     let doc = std::fs::read_to_string(&path).unwrap();
     let (begin, end) = (
@@ -948,6 +953,32 @@ fn every_fault_ends_in_its_specified_state_within_its_budget() {
         .collect();
     assert!(failed.is_empty(), "failed rows: {failed:#?}");
     keep_in_docs("fault-matrix", &t);
+    keep_in_docs("current-fault-matrix", &current_figures(&rows));
+}
+
+/// The fault matrix's line of the current figures at the top of docs/reliability.md.
+fn current_figures(rows: &[Row]) -> String {
+    let faults: std::collections::BTreeSet<&str> = rows
+        .iter()
+        .map(|r| r.fault.split(',').next().unwrap_or(&r.fault))
+        .collect();
+    let stops = rows
+        .iter()
+        .filter(|r| r.expected.contains("zero current"))
+        .count();
+    let mut t = String::new();
+    writeln!(t, "| fault matrix (the simulator, lockstep) | rows | kinds of fault | rows that must stop the motors | in their specified state within budget |").unwrap();
+    writeln!(t, "|---|---|---|---|---|").unwrap();
+    writeln!(
+        t,
+        "| `cargo test -p hostsim --test fault_matrix` | {} | {} | {stops} | {} of {} |",
+        rows.len(),
+        faults.len(),
+        rows.iter().filter(|r| r.pass).count(),
+        rows.len()
+    )
+    .unwrap();
+    t
 }
 
 // ---------------------------------------------------------------------------------------
