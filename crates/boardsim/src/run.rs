@@ -17,7 +17,7 @@ use firmware::protocol::robot::{Fault, RobotState, Telemetry};
 use hostsim::bus::{Bus, Fate, Node};
 use hostsim::drives::SimDrives;
 use hostsim::host::HostNode;
-use hostsim::log::{McapLog, OdometrySource, msg};
+use hostsim::log::{CoreLog, McapLog, msg};
 use hostsim::scenario::Scenario;
 use hostsim::sim::{LogOptions, SimPlant, log_transmission, queue_feedback, set_wheel_faults};
 
@@ -313,13 +313,8 @@ pub fn run_scenario(
                             odom: [pose[0], pose[1]],
                         });
                         if let Some(l) = log.as_deref_mut() {
-                            l.odometry(tx.delivered_ns, OdometrySource::Firmware, pose, twist)?;
-                            l.odometry(
-                                tx.delivered_ns,
-                                OdometrySource::GroundTruth,
-                                truth,
-                                plant.truth_velocity(),
-                            )?;
+                            let truth = (truth, plant.truth_velocity());
+                            CoreLog::odometry(l, tx.delivered_ns, (pose, twist), Some(truth))?;
                         }
                     }
                     Some(Seen::Transition(state, fault)) => {

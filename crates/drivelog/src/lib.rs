@@ -60,13 +60,13 @@
 //! [`Writer`]: mcap::Writer
 
 pub mod candump;
+pub mod core_log;
 pub mod msg;
 pub mod read;
-pub mod status;
 pub mod write;
 
+pub use core_log::{Changes, CoreLog, PoseTwist, StatusLog, heading_source_line, state_line};
 pub use read::{Damage, Message, Problem, ReadReport, for_each_message};
-pub use status::{StatusLog, heading_source_line, state_line};
 pub use write::{CHUNK_SIZE, Direction, LogError, McapLog, OdometrySource, part_path};
 
 /// The MCAP profile of every log.

@@ -30,7 +30,7 @@ use serde::Serialize;
 
 use firmware::protocol::robot;
 
-use crate::log::{Direction, LogError, McapLog, OdometrySource};
+use crate::log::{CoreLog, Direction, LogError, McapLog};
 use crate::replay::TimedFrame;
 use crate::sim::SimPlant;
 
@@ -453,8 +453,7 @@ impl<P: SimPlant> PlantObserver<P> for PlantLog {
             let (odom, odom_twist) = (self.odom, self.odom_twist);
             let (truth, truth_twist) = (plant.truth(), plant.truth_velocity());
             self.write(|log| {
-                log.odometry(t_ns, OdometrySource::Firmware, odom, odom_twist)?;
-                log.odometry(t_ns, OdometrySource::GroundTruth, truth, truth_twist)
+                CoreLog::odometry(log, t_ns, (odom, odom_twist), Some((truth, truth_twist)))
             });
         }
     }

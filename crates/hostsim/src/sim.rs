@@ -16,11 +16,11 @@ use std::collections::BTreeMap;
 
 use firmware::CanFrame;
 use firmware::control::{Controller, Instant, Outbox, Snapshot};
-use firmware::protocol::robot::{self, RobotState};
+use firmware::protocol::robot::{self};
 
 use crate::bus::{Bus, BusStats, Fate, Node, Transmission};
 use crate::host::HostNode;
-use crate::log::{Direction, LogError, McapLog, OdometrySource};
+use crate::log::{Direction, LogError, McapLog};
 use crate::scenario::Scenario;
 
 /// The plant as the runner sees it: drives that take command frames and produce feedback
@@ -283,8 +283,8 @@ pub fn run_observed<P: SimPlant>(
     let mut last_truth = plant.truth();
     let mut transitions = Vec::new();
     // The firmware boots DISABLED without a fault: the log says the changes from there.
-    let mut status = crate::log::StatusLog::new()
-        .starting_in(RobotState::Disabled, firmware::control::Fault::None);
+    let mut core_log =
+        crate::log::CoreLog::new(options.snapshot_every, options.pose_every).from_boot();
     let mut heading_changes = Vec::new();
     let mut t_us = 0u64;
     let mut step = 0u64;
@@ -344,20 +344,6 @@ pub fn run_observed<P: SimPlant>(
             hash.add(t_us, f);
             summary_tx += 1;
         }
-        let (state, fault) = (ctl.state(), ctl.fault());
-        if let Some((level, text)) = status.state(state, fault) {
-            if let Some(l) = log.as_deref_mut() {
-                l.text(t_ns, level, &text)?;
-            }
-            transitions.push((t_us as f64 * 1e-6, state.to_string(), fault.to_string()));
-        }
-        let timeout_ms = scenario.config.odometry.gyro_timeout_ms;
-        if let Some((level, text)) = status.heading(ctl.heading_source(), timeout_ms) {
-            if let Some(l) = log.as_deref_mut() {
-                l.text(t_ns, level, &text)?;
-            }
-            heading_changes.push((t_us as f64 * 1e-6, ctl.heading_source().to_string()));
-        }
         let odom = pose_array(ctl.pose());
         let truth = plant.truth();
         last_truth = truth;
@@ -369,18 +355,16 @@ pub fn run_observed<P: SimPlant>(
                 odom: [odom[0], odom[1]],
             });
         }
+        let truth_now = || (truth, plant.truth_velocity());
+        let changes = core_log.step(log.as_deref_mut(), t_ns, &ctl, Some(&truth_now))?;
+        if changes.state {
+            let (state, fault) = (ctl.state().to_string(), ctl.fault().to_string());
+            transitions.push((t_us as f64 * 1e-6, state, fault));
+        }
+        if changes.heading {
+            heading_changes.push((t_us as f64 * 1e-6, ctl.heading_source().to_string()));
+        }
         if let Some(l) = log.as_deref_mut() {
-            let every = |n: u32| n > 0 && step.is_multiple_of(u64::from(n));
-            if every(options.snapshot_every) {
-                l.snapshot(t_ns, &ctl.snapshot())?;
-            }
-            if every(options.pose_every) {
-                let measured = ctl.snapshot().measured;
-                let twist = [measured.vx, measured.vy, measured.wz].map(f64::from);
-                l.odometry(t_ns, OdometrySource::Firmware, odom, twist)?;
-                let truth_twist = plant.truth_velocity();
-                l.odometry(t_ns, OdometrySource::GroundTruth, truth, truth_twist)?;
-            }
             l.maybe_flush()?;
         }
 

@@ -17,14 +17,14 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::thread::JoinHandle;
 
-use drivelog::{Direction, LogError, McapLog, OdometrySource, StatusLog, msg};
+use drivelog::{CoreLog, Direction, LogError, McapLog, msg};
 use firmware::control::{Controller, Fault};
 use firmware::protocol::robot::RobotState;
 use firmware::{CanFrame, Config};
 use mecanum_linux::{LinkEvent, Recorder};
 
 /// The odometry, wheels and diagnostics are logged every this many steps (10 ms at 1 kHz).
-pub const SNAPSHOT_EVERY: u64 = 10;
+pub const SNAPSHOT_EVERY: u32 = 10;
 
 /// Messages the open batch may hold while the writer is behind (some 5 s of a 1 kHz run).
 pub const MAX_PENDING_EVENTS: usize = 1 << 15;
@@ -57,9 +57,8 @@ pub struct McapRecorder {
     log: Option<McapLog>,
     rotation: Option<Rotation>,
     error: Option<LogError>,
-    steps: u64,
-    /// The state and heading source last logged (a change is a `/rosout` line).
-    status: StatusLog,
+    /// What the steps log of the core: the status lines, the snapshot and the odometry.
+    core: CoreLog,
     dropped: u64,
     messages: u64,
 }
@@ -84,8 +83,7 @@ impl McapRecorder {
             log: Some(log),
             rotation: None,
             error: None,
-            steps: 0,
-            status: StatusLog::new(),
+            core: CoreLog::new(SNAPSHOT_EVERY, SNAPSHOT_EVERY),
             dropped: 0,
             messages: 0,
         }
@@ -213,7 +211,7 @@ impl McapRecorder {
         }
         rotation.prepare();
         // The new file opens with the state at its start.
-        self.status = StatusLog::new();
+        self.core.new_file();
     }
 
     /// Waits until the log's writer has written every batch handed over and the next
@@ -280,26 +278,22 @@ impl McapRecorder {
         first.and(current)
     }
 
-    fn snapshot(&mut self, t_us: u64, controller: &Controller, every: bool) {
-        let s = controller.snapshot();
+    /// What the step (`last`: the shutdown) at `t_us` logs of the core: [`CoreLog`] decides.
+    fn core(&mut self, t_us: u64, controller: &Controller, last: bool) {
         let t_ns = t_us * 1000;
-        if every {
-            self.with(|log| {
-                log.snapshot(t_ns, &s)?;
-                log.odometry(
-                    t_ns,
-                    OdometrySource::Firmware,
-                    [s.pose.x, s.pose.y, s.pose.heading].map(f64::from),
-                    [s.measured.vx, s.measured.vy, s.measured.wz].map(f64::from),
-                )
-            });
-        }
-        if let Some((level, text)) = self.status.state(s.state, s.fault) {
-            self.with(|log| log.text(t_ns, level, &text));
-        }
-        let timeout_ms = controller.config().odometry.gyro_timeout_ms;
-        if let Some((level, text)) = self.status.heading(s.heading_source, timeout_ms) {
-            self.with(|log| log.text(t_ns, level, &text));
+        let Some(log) = self.log.as_mut() else {
+            return;
+        };
+        let logged = if last {
+            self.core.last(Some(log), t_ns, controller, None)
+        } else {
+            self.core.step(Some(log), t_ns, controller, None)
+        };
+        if let Err(e) = logged {
+            self.dropped = log.dropped();
+            self.messages = log.messages();
+            self.log = None;
+            self.error = Some(e);
         }
     }
 }
@@ -365,14 +359,12 @@ impl Recorder for McapRecorder {
 
     fn stepped(&mut self, t_us: u64, controller: &Controller) {
         self.with(|log| log.step(t_us * 1000, msg::Step::STEP));
-        let every = self.steps.is_multiple_of(SNAPSHOT_EVERY);
-        self.steps += 1;
-        self.snapshot(t_us, controller, every);
+        self.core(t_us, controller, false);
     }
 
     fn shut_down(&mut self, t_us: u64, controller: &Controller) {
         self.with(|log| log.step(t_us * 1000, msg::Step::SHUTDOWN));
-        self.snapshot(t_us, controller, true);
+        self.core(t_us, controller, true);
     }
 
     fn sent(&mut self, step_us: u64, sent_us: u64, frame: &CanFrame, _sent: bool) {
