@@ -409,6 +409,9 @@ def test_the_command_line_on_a_virtual_bus(channel: str, capsys: pytest.CaptureF
         assert cli.main([*common, "drive", "--vx", "0.5", "--duration", "0.4"]) == 0
         out = capsys.readouterr().out
         assert "state     ENABLED" in out
+        # The command returns once the robot reported DISABLED (the scripted robot's own state
+        # changed before it sent that STATUS).
+        assert out.rstrip().endswith("disabled: the robot reports DISABLED"), out
         # 0.5 m/s for 0.4 s, and until the stop's first frame (20 ms later at most, on a
         # quiet machine).
         assert fake.pose[0] == pytest.approx(0.2, abs=0.06), fake.pose

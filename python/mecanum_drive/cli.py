@@ -136,6 +136,10 @@ def cmd_drive(args: argparse.Namespace) -> int:
         robot.stop()
         time.sleep(0.3)  # let it come to rest before the disable
         print(_status_text(robot))
+        # The command ends with the robot disabled, as the robot says (not merely asked).
+        robot.disable()
+        robot.wait_state("DISABLED", timeout=args.timeout)
+        print("disabled: the robot reports DISABLED")
     return 0
 
 
