@@ -215,9 +215,12 @@ impl Decoded {
     }
 }
 
-/// One JSON line; the values here always serialise.
+/// One JSON line. The values here always serialise; were one not to, the line is an error
+/// line like the others (serde_json escapes its message), not a hand-written one.
 fn to_line(value: &impl Serialize) -> String {
-    serde_json::to_string(value).unwrap_or_else(|e| format!("{{\"error\":\"{e}\"}}"))
+    serde_json::to_string(value).unwrap_or_else(|e| {
+        serde_json::json!({"error": {"kind": "internal", "message": e.to_string()}}).to_string()
+    })
 }
 
 fn raw_id(id: Id) -> u32 {
