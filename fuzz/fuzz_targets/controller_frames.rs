@@ -8,7 +8,7 @@ use arbitrary::Arbitrary;
 use firmware::config::{Config, Drive};
 use firmware::control::{Controller, Instant, Outbox};
 use firmware::protocol::robot::{self, ModeRequest, TwistCmd};
-use firmware::protocol::{dji, odrive};
+use firmware::protocol::{canopen, dji, odrive};
 use libfuzzer_sys::fuzz_target;
 use mecanum_fuzz::FrameInput;
 
@@ -48,9 +48,17 @@ enum Op {
     Shutdown,
 }
 
+/// The example configuration fuzzed.
+#[derive(Arbitrary, Debug)]
+enum Example {
+    Dji,
+    Odrive,
+    Cia402,
+}
+
 #[derive(Arbitrary, Debug)]
 struct Input {
-    odrive: bool,
+    drive: Example,
     /// `[odometry] heading_source = "gyro"`.
     gyro: bool,
     start_us: u32,
@@ -63,16 +71,17 @@ fn check_outbox(config: &Config, out: &Outbox) {
             || match config.drive {
                 Drive::Dji { model, .. } => dji::CurrentCommand::decode(f, model).is_ok(),
                 Drive::Odrive { .. } => odrive::Command::decode(f).is_ok(),
+                Drive::Cia402 { .. } => canopen::decode(f).is_ok(),
             };
         assert!(ok, "the core sent a frame its own codecs reject: {f}");
     }
 }
 
 fuzz_target!(|input: Input| {
-    let mut config = if input.odrive {
-        Config::odrive_example()
-    } else {
-        Config::dji_m3508_example()
+    let mut config = match input.drive {
+        Example::Dji => Config::dji_m3508_example(),
+        Example::Odrive => Config::odrive_example(),
+        Example::Cia402 => Config::cia402_example(),
     };
     if input.gyro {
         config.odometry.heading_source = firmware::config::HeadingMode::Gyro;

@@ -153,7 +153,7 @@ class Heartbeat:
     uptime_ms: int
     state: str
     protocol_version: int
-    config_id: int  # the id of the robot's drive configuration (protocol version 5)
+    config_id: int  # the id of the robot's drive configuration (protocol version 5 and later)
     received: float  # time.monotonic()
     stamp: float = math.nan  # the frame's receive time (see `Odometry.stamp`)
 

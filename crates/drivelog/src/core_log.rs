@@ -1,10 +1,11 @@
 //! What every run's log says of its firmware, decided once: a `/rosout` line when the state
-//! (with the fault) or the heading source changes, in the DBC's names ([`StatusLog`]), and at
-//! a fixed cadence of control steps the core's snapshot (`/joint_states`, `/diagnostics`)
-//! and its odometry (`/odom`, `/tf`) with the ground truth beside it when the run has a
-//! simulated robot ([`CoreLog`]). The simulator and the runner feed a [`CoreLog`] their core
-//! at every step; `hostsim plant` and boardsim, which see the firmware only through its
-//! frames, feed a [`StatusLog`] and [`CoreLog::odometry`] what the frames say.
+//! (with the fault, and what a CiA 402 drive's bus said of it) or the heading source changes,
+//! in the DBC's names ([`StatusLog`]), and at a fixed cadence of control steps the core's
+//! snapshot (`/joint_states`, `/diagnostics`) and its odometry (`/odom`, `/tf`) with the
+//! ground truth beside it when the run has a simulated robot ([`CoreLog`]). The simulator and
+//! the runner feed a [`CoreLog`] their core at every step; `hostsim plant` and boardsim, which
+//! see the firmware only through its frames, feed a [`StatusLog`] and [`CoreLog::odometry`]
+//! what the frames say.
 
 use firmware::control::Controller;
 use firmware::protocol::robot::{Fault, HeadingSource, RobotState};
@@ -181,11 +182,18 @@ impl CoreLog {
     ) -> Result<Changes, LogError> {
         let mut changes = Changes::default();
         let timeout_ms = ctl.config().odometry.gyro_timeout_ms;
+        // A CiA 402 fault's line says what the bus said (node, object, code, statusword).
+        let state_line = self
+            .status
+            .state(ctl.state(), ctl.fault())
+            .map(|(level, text)| match ctl.drive_issue() {
+                Some(issue) if ctl.state() == RobotState::Fault && issue.fault() == ctl.fault() => {
+                    (level, format!("{text} ({issue})"))
+                }
+                _ => (level, text),
+            });
         for (line, changed) in [
-            (
-                self.status.state(ctl.state(), ctl.fault()),
-                &mut changes.state,
-            ),
+            (state_line, &mut changes.state),
             (
                 self.status.heading(ctl.heading_source(), timeout_ms),
                 &mut changes.heading,

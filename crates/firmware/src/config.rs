@@ -18,6 +18,7 @@ use core::fmt;
 
 use kinematics::{Effectiveness, GeometryError, MecanumKinematics, WheelGeometry};
 
+use crate::protocol::canopen::NodeId as Cia402Node;
 use crate::protocol::dji::{EscId, EscModel};
 use crate::protocol::odrive::NodeId;
 use crate::protocol::robot;
@@ -201,6 +202,59 @@ pub enum Drive {
         #[cfg_attr(feature = "serde", serde(default))]
         vel_ramp: bool,
     },
+    /// CANopen CiA 402 drives in profile velocity mode; the drive runs the velocity loop and
+    /// the core is the CANopen master (`docs/protocol.md`, section "CANopen CiA 402").
+    Cia402 {
+        /// Node id (1..=127) of each wheel's drive; a dual-axis drive's node appears twice.
+        node_ids: [u8; 4],
+        /// Each wheel's axis on its node: 0 for a single-axis drive (objects at sub-index
+        /// 0), 1 or 2 for an axis of a dual-axis drive (sub-indices 1 and 2).
+        axes: [u8; 4],
+        /// Motor turns per wheel turn (1 for a hub motor).
+        gear_ratio: f32,
+        /// `true` where a positive motor velocity rolls the robot backward.
+        inverted: [bool; 4],
+        /// Motor rpm per raw unit of target velocity (0x60FF): 1 for drives that take rpm.
+        target_rpm_per_unit: f32,
+        /// Motor rpm per raw unit of actual velocity (0x606C): 0.1 for drives that report
+        /// 0.1 rpm.
+        actual_rpm_per_unit: f32,
+        /// The master's own node id (1..=127), whose heartbeat (`0x700 + master_node`) the
+        /// drives watch. Default 127.
+        #[cfg_attr(feature = "serde", serde(default = "cia402_defaults::master_node"))]
+        master_node: u8,
+        /// The drives' and the master's heartbeat period, ms (object 0x1017). Default 50.
+        #[cfg_attr(feature = "serde", serde(default = "cia402_defaults::heartbeat_ms"))]
+        heartbeat_ms: u16,
+        /// A heartbeat silent this long is lost, ms: the master's limit for each drive's, and
+        /// the drives' for the master's (object 0x1016). Default 150.
+        #[cfg_attr(
+            feature = "serde",
+            serde(default = "cia402_defaults::heartbeat_timeout_ms")
+        )]
+        heartbeat_timeout_ms: u16,
+    },
+}
+
+/// The defaults of the `[drive]` keys of a CiA 402 configuration.
+pub mod cia402_defaults {
+    /// `drive.master_node`.
+    #[must_use]
+    pub const fn master_node() -> u8 {
+        127
+    }
+
+    /// `drive.heartbeat_ms`.
+    #[must_use]
+    pub const fn heartbeat_ms() -> u16 {
+        50
+    }
+
+    /// `drive.heartbeat_timeout_ms`.
+    #[must_use]
+    pub const fn heartbeat_timeout_ms() -> u16 {
+        150
+    }
 }
 
 #[cfg(feature = "serde")]
@@ -306,7 +360,9 @@ pub struct Timing {
     pub odometry_hz: u32,
     /// Status and heartbeat frames rate, Hz; must divide `control_hz`.
     pub status_hz: u32,
-    /// Velocity setpoint rate to velocity-mode drives (ODrive), Hz; must divide `control_hz`.
+    /// Velocity setpoint rate to velocity-mode drives, Hz (ODrive setpoints; for CiA 402
+    /// drives the SYNC cycle, each with the targets and the drives' feedback); must divide
+    /// `control_hz`.
     pub setpoint_hz: u32,
     /// Command watchdog, ms: without a fresh valid twist command for this long the robot
     /// stops and disables (latched).
@@ -436,6 +492,52 @@ fn check_gear_ratio(value: f32) -> Result<(), ConfigError> {
     }
 }
 
+/// The nodes of a CiA 402 configuration: ids in 1..=127, axes 0 (single-axis node, one
+/// wheel) or 1 and 2 (dual-axis node, a wheel each), the master's id not a drive's.
+fn check_cia402_nodes(node_ids: [u8; 4], axes: [u8; 4], master: u8) -> Result<(), ConfigError> {
+    for (i, (&id, &axis)) in node_ids.iter().zip(&axes).enumerate() {
+        if Cia402Node::new(id).is_none() {
+            return Err(ConfigError {
+                field: field_at("drive.node_ids", i),
+                value: f64::from(id),
+                expected: "a CANopen node id in 1..=127",
+            });
+        }
+        if axis > 2 {
+            return Err(ConfigError {
+                field: field_at("drive.axes", i),
+                value: f64::from(axis),
+                expected: "0 (a single-axis drive) or 1, 2 (an axis of a dual-axis drive)",
+            });
+        }
+        for (&other_id, &other_axis) in node_ids[..i].iter().zip(&axes[..i]) {
+            if other_id == id && (axis == 0 || other_axis == 0 || other_axis == axis) {
+                return Err(ConfigError {
+                    field: field_at("drive.axes", i),
+                    value: f64::from(axis),
+                    expected: "a different axis (1 or 2) of a node that drives two wheels; \
+                               0 only on a node that drives one",
+                });
+            }
+        }
+        if id == master {
+            return Err(ConfigError {
+                field: "drive.master_node",
+                value: f64::from(master),
+                expected: "a node id in 1..=127 that no drive has",
+            });
+        }
+    }
+    if Cia402Node::new(master).is_none() {
+        return Err(ConfigError {
+            field: "drive.master_node",
+            value: f64::from(master),
+            expected: "a node id in 1..=127 that no drive has",
+        });
+    }
+    Ok(())
+}
+
 /// The gear ratios a configuration may give: from a 100:1 step-up to a 1000:1 reduction.
 pub const GEAR_RATIO_RANGE: core::ops::RangeInclusive<f32> = 0.01..=1000.0;
 
@@ -539,6 +641,47 @@ impl Config {
             },
             gains: Gains::default(),
             timing: Timing::default(),
+            odometry: OdometryConfig::default(),
+        }
+    }
+
+    /// The example CiA 402 chassis (`config/cia402.toml`): two dual-axis hub-motor drives
+    /// (nodes 1 and 2, a ZLAC8015D-class drive per axle: target velocity in rpm, actual in
+    /// 0.1 rpm), 0.50 m x 0.42 m between wheel centres, 100 mm radius wheels, a 250 Hz cycle.
+    #[must_use]
+    pub fn cia402_example() -> Self {
+        Self {
+            geometry: Geometry::Standard {
+                lx: 0.25,
+                ly: 0.21,
+                wheel_radius: 0.1,
+                forward_effectiveness: 1.0,
+                lateral_effectiveness: 1.0,
+                yaw_effectiveness: 1.0,
+            },
+            drive: Drive::Cia402 {
+                node_ids: [1, 1, 2, 2],
+                axes: [1, 2, 1, 2],
+                gear_ratio: 1.0,
+                inverted: [false, true, false, true],
+                target_rpm_per_unit: 1.0,
+                actual_rpm_per_unit: 0.1,
+                master_node: cia402_defaults::master_node(),
+                heartbeat_ms: cia402_defaults::heartbeat_ms(),
+                heartbeat_timeout_ms: cia402_defaults::heartbeat_timeout_ms(),
+            },
+            limits: Limits {
+                max_linear_speed: 1.5,
+                max_angular_speed: 3.0,
+                // Hub motors at 300 rpm: 31 rad/s.
+                max_wheel_speed: 30.0,
+                ..Limits::default()
+            },
+            gains: Gains::default(),
+            timing: Timing {
+                setpoint_hz: 250,
+                ..Timing::default()
+            },
             odometry: OdometryConfig::default(),
         }
     }
@@ -676,6 +819,38 @@ impl Config {
                     }
                 }
                 check_gear_ratio(gear_ratio)?;
+            }
+            Drive::Cia402 {
+                node_ids,
+                axes,
+                gear_ratio,
+                target_rpm_per_unit,
+                actual_rpm_per_unit,
+                master_node,
+                heartbeat_ms,
+                heartbeat_timeout_ms,
+                ..
+            } => {
+                check_cia402_nodes(node_ids, axes, master_node)?;
+                check_gear_ratio(gear_ratio)?;
+                positive("drive.target_rpm_per_unit", target_rpm_per_unit)?;
+                positive("drive.actual_rpm_per_unit", actual_rpm_per_unit)?;
+                let control_hz = self.timing.control_hz;
+                if heartbeat_ms == 0 || !(u32::from(heartbeat_ms) * control_hz).is_multiple_of(1000)
+                {
+                    return Err(ConfigError {
+                        field: "drive.heartbeat_ms",
+                        value: f64::from(heartbeat_ms),
+                        expected: "a period > 0 ms that is a whole number of control periods",
+                    });
+                }
+                if heartbeat_timeout_ms <= heartbeat_ms {
+                    return Err(ConfigError {
+                        field: "drive.heartbeat_timeout_ms",
+                        value: f64::from(heartbeat_timeout_ms),
+                        expected: "a time longer than drive.heartbeat_ms",
+                    });
+                }
             }
         }
 
@@ -842,6 +1017,7 @@ fn field_at(prefix: &'static str, i: usize) -> &'static str {
     table!(
         "drive.esc_ids",
         "drive.node_ids",
+        "drive.axes",
         "geometry.wheels",
         "geometry.wheels.radius",
         "geometry.wheels.roller_angle"

@@ -19,11 +19,78 @@ fn example_files_match_the_built_in_examples() {
     assert_eq!(dji, Config::dji_m3508_example());
     let odrive = Config::from_toml_file(&repo_file("config/odrive.toml")).unwrap();
     assert_eq!(odrive, Config::odrive_example());
+    let cia402 = Config::from_toml_file(&repo_file("config/cia402.toml")).unwrap();
+    assert_eq!(cia402, Config::cia402_example());
+}
+
+/// The CiA 402 example with one line replaced.
+fn cia402_with(from: &str, to: &str) -> Result<Config, String> {
+    let text = std::fs::read_to_string(repo_file("config/cia402.toml")).unwrap();
+    assert!(text.contains(from), "fixture line {from:?} missing");
+    Config::from_toml_str(&text.replacen(from, to, 1)).map_err(|e| e.to_string())
+}
+
+#[test]
+fn cia402_nodes_and_axes_are_checked_naming_the_wheel() {
+    for (from, to, error) in [
+        (
+            "node_ids = [1, 1, 2, 2]",
+            "node_ids = [1, 1, 2, 0]",
+            "drive.node_ids[3] (RR) = 0: a CANopen node id in 1..=127",
+        ),
+        (
+            "axes = [1, 2, 1, 2]",
+            "axes = [1, 1, 1, 2]",
+            "drive.axes[1] (FR) = 1: a different axis (1 or 2) of a node that drives two wheels; \
+             0 only on a node that drives one",
+        ),
+        (
+            "axes = [1, 2, 1, 2]",
+            "axes = [0, 2, 1, 2]",
+            "drive.axes[1] (FR) = 2: a different axis (1 or 2) of a node that drives two wheels; \
+             0 only on a node that drives one",
+        ),
+        (
+            "axes = [1, 2, 1, 2]",
+            "axes = [1, 2, 1, 3]",
+            "drive.axes[3] (RR) = 3: 0 (a single-axis drive) or 1, 2 (an axis of a dual-axis drive)",
+        ),
+        (
+            "master_node = 127",
+            "master_node = 2",
+            "drive.master_node = 2: a node id in 1..=127 that no drive has",
+        ),
+        (
+            "heartbeat_timeout_ms = 150",
+            "heartbeat_timeout_ms = 50",
+            "drive.heartbeat_timeout_ms = 50: a time longer than drive.heartbeat_ms",
+        ),
+        (
+            "actual_rpm_per_unit = 0.1",
+            "actual_rpm_per_unit = 0.0",
+            "drive.actual_rpm_per_unit = 0: a finite number > 0",
+        ),
+    ] {
+        let e = cia402_with(from, to).unwrap_err();
+        assert!(e.ends_with(error), "{to}: {e}");
+    }
+    // Four single-axis nodes are a valid layout.
+    let single = cia402_with("axes = [1, 2, 1, 2]", "axes = [0, 0, 0, 0]");
+    assert!(single.is_err(), "nodes 1 and 2 drive two wheels each");
+    let text = std::fs::read_to_string(repo_file("config/cia402.toml"))
+        .unwrap()
+        .replacen("node_ids = [1, 1, 2, 2]", "node_ids = [1, 2, 3, 4]", 1)
+        .replacen("axes = [1, 2, 1, 2]", "axes = [0, 0, 0, 0]", 1);
+    Config::from_toml_str(&text).expect("four single-axis drives");
 }
 
 #[test]
 fn toml_round_trip() {
-    for c in [Config::dji_m3508_example(), Config::odrive_example()] {
+    for c in [
+        Config::dji_m3508_example(),
+        Config::odrive_example(),
+        Config::cia402_example(),
+    ] {
         assert_eq!(Config::from_toml_str(&c.to_toml_string()).unwrap(), c);
     }
 }

@@ -311,6 +311,10 @@ fn robot_status() {
         Fault::EncoderStuck,
         Fault::WheelRunaway,
         Fault::WheelFight,
+        Fault::DriveSilent,
+        Fault::DriveRebooted,
+        Fault::DriveSetup,
+        Fault::DriveTransition,
     ];
     for (raw, fault) in faults.into_iter().enumerate() {
         let f = frame(0x312, &[2, raw as u8, 0, 0, 0, 0, 0, 0]);
@@ -321,7 +325,7 @@ fn robot_status() {
     }
     for (data, field, value) in [
         ([5u8, 0, 0, 0, 0, 0, 0, 0], "state", 5),
-        ([0, 9, 0, 0, 0, 0, 0, 0], "fault", 9),
+        ([0, 13, 0, 0, 0, 0, 0, 0], "fault", 13),
         ([0, 0, 0, 0, 0, 0, 0x3F, 0], "heading_source", 3),
         ([0, 0, 0, 0, 0, 0, 0xF0, 0], "heading_source", 15),
     ] {
@@ -372,9 +376,9 @@ fn robot_status_counters() {
 
 #[test]
 fn robot_heartbeat() {
-    // uptime 0x12345678 ms, state 3 (e-stop), protocol version 5, configuration 0xC0DE.
-    let f = frame(0x31F, &[0x78, 0x56, 0x34, 0x12, 0x03, 0x05, 0xDE, 0xC0]);
-    assert_eq!(robot::PROTOCOL_VERSION, 5);
+    // uptime 0x12345678 ms, state 3 (e-stop), protocol version 6, configuration 0xC0DE.
+    let f = frame(0x31F, &[0x78, 0x56, 0x34, 0x12, 0x03, 0x06, 0xDE, 0xC0]);
+    assert_eq!(robot::PROTOCOL_VERSION, 6);
     let h = Heartbeat {
         uptime_ms: 0x1234_5678,
         state: RobotState::Estop,

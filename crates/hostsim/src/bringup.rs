@@ -47,14 +47,16 @@ pub const WHEEL_NAMES: [&str; 4] = ["FL", "FR", "RL", "RR"];
 /// A wheel that turned less than this (rad, either way) in a test did not turn.
 pub const TURNED_MIN_ANGLE: f64 = 0.3;
 
-/// How a robot is wired: a drive id (ESC id or ODrive node id) and a mounting sign per wheel.
+/// How a robot is wired: a drive id (ESC id, ODrive or CANopen node id) and a mounting sign
+/// per wheel. (A CiA 402 robot's `drive.axes` are not part of it: a dual-axis drive's two
+/// wheels swapped show as wheels that do not turn where expected, not as a swap to propose.)
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Wiring {
-    /// `drive.esc_ids` (DJI) or `drive.node_ids` (ODrive), FL, FR, RL, RR.
+    /// `drive.esc_ids` (DJI) or `drive.node_ids` (ODrive, CiA 402), FL, FR, RL, RR.
     pub ids: [u8; 4],
     /// `drive.inverted`.
     pub inverted: [bool; 4],
-    /// `true` for ODrive (`node_ids`), `false` for DJI (`esc_ids`).
+    /// `true` for node ids (`node_ids`), `false` for DJI (`esc_ids`).
     pub odrive: bool,
 }
 
@@ -71,6 +73,9 @@ impl Wiring {
                 odrive: false,
             },
             Drive::Odrive {
+                node_ids, inverted, ..
+            }
+            | Drive::Cia402 {
                 node_ids, inverted, ..
             } => Self {
                 ids: node_ids,
@@ -95,6 +100,9 @@ impl Wiring {
                 esc_ids, inverted, ..
             } => (*esc_ids, *inverted) = (self.ids, self.inverted),
             Drive::Odrive {
+                node_ids, inverted, ..
+            }
+            | Drive::Cia402 {
                 node_ids, inverted, ..
             } => (*node_ids, *inverted) = (self.ids, self.inverted),
         }

@@ -64,6 +64,12 @@ impl SimDrives {
                     node,
                 })
             }
+            DriveConfig::Cia402 { .. } => Err(ParamError::new(
+                "drive.protocol",
+                f64::NAN,
+                "dji or odrive: the simulator has no CiA 402 drive model yet (cia402 runs on \
+                 a real bus, with mecanum-runner)",
+            )),
         }
     }
 }

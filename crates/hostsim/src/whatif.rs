@@ -19,7 +19,7 @@ use firmware::CanFrame;
 use firmware::config::{Config, ConfigError, Drive, LoadError};
 use firmware::control::Controller;
 use firmware::protocol::robot::{Fault, RobotState, Telemetry};
-use firmware::protocol::{dji, odrive};
+use firmware::protocol::{canopen, dji, odrive};
 use serde::Serialize;
 
 use crate::log::ReadReport;
@@ -101,6 +101,33 @@ pub fn check_compatible(logged: &Config, what_if: &Config) -> Result<(), Incompa
                 });
             }
         }
+        (
+            Drive::Cia402 {
+                node_ids: i0,
+                axes: a0,
+                ..
+            },
+            Drive::Cia402 {
+                node_ids: i1,
+                axes: a1,
+                ..
+            },
+        ) => {
+            if (i0, a0) != (i1, a1) {
+                let field = if i0 == i1 {
+                    "drive.axes"
+                } else {
+                    "drive.node_ids"
+                };
+                let (l, w) = if i0 == i1 { (a0, a1) } else { (i0, i1) };
+                return Err(Incompatible {
+                    field,
+                    logged: ids(l),
+                    what_if: ids(w),
+                    why: OTHER_BUS,
+                });
+            }
+        }
         (a, b) => {
             return Err(Incompatible {
                 field: "drive.protocol",
@@ -117,6 +144,7 @@ fn protocol_name(drive: &Drive) -> &'static str {
     match drive {
         Drive::Dji { .. } => "dji",
         Drive::Odrive { .. } => "odrive",
+        Drive::Cia402 { .. } => "cia402",
     }
 }
 
@@ -611,6 +639,13 @@ fn message_name(config: &Config, frame: &CanFrame) -> String {
             |_| "not a firmware frame".to_string(),
             |c| format!("{} node {}", c.msg.def().name, c.node.get()),
         ),
+        Drive::Cia402 { .. } => canopen::decode(frame).map_or_else(
+            |_| "not a firmware frame".to_string(),
+            |m| match m.node() {
+                Some(node) => format!("{} node {}", m.def().name, node.get()),
+                None => m.def().name.to_string(),
+            },
+        ),
     }
 }
 
@@ -669,6 +704,7 @@ fn quantities(config: &Config) -> &'static [(&'static str, &'static str)] {
     match config.drive {
         Drive::Dji { .. } => &[("motor current", "A")],
         Drive::Odrive { .. } => &[("motor velocity", "rev/s"), ("torque feed-forward", "Nm")],
+        Drive::Cia402 { .. } => &[("target velocity", "drive units")],
     }
 }
 
@@ -707,6 +743,21 @@ fn setpoint_series(config: &Config, stream: &[TimedFrame]) -> Series {
                 if let Some(wheel) = node_ids.iter().position(|&n| n == node.get()) {
                     out[0][wheel].push((f.t_ns, f64::from(vel)));
                     out[1][wheel].push((f.t_ns, f64::from(torque_ff)));
+                }
+            }
+        }
+        Drive::Cia402 { node_ids, axes, .. } => {
+            for f in stream {
+                // RPDO1 carries axis 0 or 1, RPDO3 axis 2.
+                let (node, second, target) = match canopen::decode(&f.frame) {
+                    Ok(canopen::Message::Rpdo1 { node, target, .. }) => (node, false, target),
+                    Ok(canopen::Message::Rpdo3 { node, target }) => (node, true, target),
+                    _ => continue,
+                };
+                for (wheel, (&n, &axis)) in node_ids.iter().zip(&axes).enumerate() {
+                    if n == node.get() && (axis == 2) == second {
+                        out[0][wheel].push((f.t_ns, f64::from(target)));
+                    }
                 }
             }
         }

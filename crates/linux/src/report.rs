@@ -245,7 +245,7 @@ impl fmt::Display for LatencySummary {
 }
 
 /// The controller as the loop left it.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
 pub struct ControllerReport {
     /// State when the loop stopped, before the shutdown (`Disabled`, `Enabled`, `Fault`,
     /// `Estop`).
@@ -263,6 +263,12 @@ pub struct ControllerReport {
     /// `TWIST_CMD`s not applied because their `seq` repeated the last accepted one's
     /// ([`Snapshot::repeated_seq`](firmware::control::Snapshot::repeated_seq)).
     pub repeated_seq: u32,
+    /// CiA 402 drives: what the bus said of the latest drive fault
+    /// ([`Controller::drive_issue`](firmware::Controller::drive_issue)), `node 2: SDO abort
+    /// 0x06090011 on 0x6060:00 (...)`; `None` for other drives and without one.
+    pub drive_issue: Option<String>,
+    /// CiA 402 drives: EMCY frames received.
+    pub drive_emcy: u32,
 }
 
 /// The shutdown frames and how many went out.
@@ -393,6 +399,9 @@ impl fmt::Display for Report {
             "repeated twists (seq of the last accepted one): {}",
             c.repeated_seq
         )?;
+        if let Some(issue) = &c.drive_issue {
+            writeln!(f, "drive: {issue}; {} EMCY received", c.drive_emcy)?;
+        }
         write!(
             f,
             "shutdown: {} of {} frames sent",

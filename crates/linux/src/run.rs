@@ -432,6 +432,8 @@ pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
             motors_online: at_stop.motors_online,
             rx_errors: at_stop.rx_errors,
             repeated_seq: at_stop.repeated_seq,
+            drive_issue: controller.drive_issue().map(|i| i.to_string()),
+            drive_emcy: controller.drive_emcy_count(),
         },
     }
 }

@@ -285,6 +285,9 @@ fn startup(args: &Args) -> Result<Setup> {
     let drive = match config.drive {
         Drive::Dji { model, esc_ids, .. } => format!("DJI {model:?} ESCs {esc_ids:?}"),
         Drive::Odrive { node_ids, .. } => format!("ODrive nodes {node_ids:?}"),
+        Drive::Cia402 { node_ids, axes, .. } => {
+            format!("CiA 402 nodes {node_ids:?} axes {axes:?}")
+        }
     };
     let summary = format!(
         "{} at {} Hz ({} µs period), {drive}, configuration: {source} (id 0x{:04x})",

@@ -21,14 +21,15 @@ use super::{
 };
 use crate::protocol::dji::EscModel;
 
-/// The format's version, the first byte of the encoding.
-const FORMAT: u8 = 1;
+/// The format's version, the first byte of the encoding (2: the CiA 402 drive's fields).
+const FORMAT: u8 = 2;
 
 /// Bytes of the geometry: a tag and 23 f32 (four wheels of five, three factors).
 const GEOMETRY_LEN: usize = 1 + 23 * 4;
 /// Bytes of the drive: a tag, the ESC model, four ids, the gear ratio, the inversion bits
-/// and the ramp flag.
-const DRIVE_LEN: usize = 1 + 1 + 4 + 4 + 1 + 1;
+/// and the ramp flag; then the CiA 402 drive's: four axes, the two velocity units, the
+/// master's node and the two heartbeat times.
+const DRIVE_LEN: usize = 1 + 1 + 4 + 4 + 1 + 1 + 4 + 2 * 4 + 1 + 2 * 2;
 
 /// The length of every encoded configuration, bytes.
 pub const ENCODED_LEN: usize = 1 + GEOMETRY_LEN + DRIVE_LEN + 8 * 4 + 3 * 4 + 7 * 4 + 1 + 2 * 4 + 1;
@@ -108,6 +109,12 @@ impl Config {
                 inverted,
                 vel_ramp,
             } => (1, 0, node_ids, gear_ratio, inverted, vel_ramp),
+            Drive::Cia402 {
+                node_ids,
+                gear_ratio,
+                inverted,
+                ..
+            } => (2, 0, node_ids, gear_ratio, inverted, false),
         };
         w.u8(protocol);
         w.u8(model);
@@ -115,7 +122,23 @@ impl Config {
         w.f32s(&[gear_ratio]);
         w.u8(bits(inverted));
         w.u8(u8::from(vel_ramp));
-        debug_assert_eq!(w.at, 1 + GEOMETRY_LEN + DRIVE_LEN);
+        if let Drive::Cia402 {
+            axes,
+            target_rpm_per_unit,
+            actual_rpm_per_unit,
+            master_node,
+            heartbeat_ms,
+            heartbeat_timeout_ms,
+            ..
+        } = drive
+        {
+            w.bytes(&axes);
+            w.f32s(&[target_rpm_per_unit, actual_rpm_per_unit]);
+            w.u8(master_node);
+            w.bytes(&heartbeat_ms.to_le_bytes());
+            w.bytes(&heartbeat_timeout_ms.to_le_bytes());
+        }
+        w.at = start + GEOMETRY_LEN + DRIVE_LEN;
         let Limits {
             max_linear_speed,
             max_angular_speed,
@@ -263,7 +286,27 @@ impl Config {
                 inverted,
                 vel_ramp: r.flag("drive.vel_ramp")?,
             },
-            other => return Err(tag("drive.protocol", other, "0 (dji) or 1 (odrive)")),
+            2 => {
+                r.at += 1;
+                Drive::Cia402 {
+                    node_ids: ids,
+                    axes: [r.u8(), r.u8(), r.u8(), r.u8()],
+                    gear_ratio,
+                    inverted,
+                    target_rpm_per_unit: r.f32(),
+                    actual_rpm_per_unit: r.f32(),
+                    master_node: r.u8(),
+                    heartbeat_ms: r.u16(),
+                    heartbeat_timeout_ms: r.u16(),
+                }
+            }
+            other => {
+                return Err(tag(
+                    "drive.protocol",
+                    other,
+                    "0 (dji), 1 (odrive) or 2 (cia402)",
+                ));
+            }
         };
         r.at = start + DRIVE_LEN;
         let limits = Limits {
@@ -383,6 +426,10 @@ impl Reader<'_> {
         self.take::<1>()[0]
     }
 
+    fn u16(&mut self) -> u16 {
+        u16::from_le_bytes(self.take())
+    }
+
     fn u32(&mut self) -> u32 {
         u32::from_le_bytes(self.take())
     }
@@ -406,7 +453,11 @@ mod tests {
 
     #[test]
     fn examples_read_back_exactly() {
-        for config in [Config::dji_m3508_example(), Config::odrive_example()] {
+        for config in [
+            Config::dji_m3508_example(),
+            Config::odrive_example(),
+            Config::cia402_example(),
+        ] {
             let bytes = config.encode();
             assert_eq!(Config::decode(&bytes), Ok(config));
         }

@@ -105,7 +105,7 @@ impl Controller {
         self.commanded = ChassisVelocity::default();
         self.last_command = None;
         self.stopping = false;
-        self.drive.halt(self.state == RobotState::Enabled);
+        self.drive.halt(self.state);
     }
 
     /// Starts the watchdog's stop when the last accepted twist is too old.
@@ -167,7 +167,7 @@ impl Controller {
             self.state = RobotState::Disabled;
             self.stopping = false;
             self.last_command = None;
-            self.drive.halt(false);
+            self.drive.halt(RobotState::Disabled);
         }
     }
 }

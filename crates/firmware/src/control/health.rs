@@ -22,11 +22,12 @@ impl Controller {
             if fault != Fault::None {
                 continue;
             }
+            // A drive being configured (CiA 402) owes no feedback yet.
+            let configuring = self.drive.wheel_configuring(i);
             fault = match w.last_seen {
-                None if now.micros_since(boot) > boot_us => Fault::MotorMissing,
-                Some(_) if !fresh => Fault::MotorStale,
-                _ if self.drive.wheel_fault(i, enabled) => Fault::DriveError,
-                _ => Fault::None,
+                None if !configuring && now.micros_since(boot) > boot_us => Fault::MotorMissing,
+                Some(_) if !fresh && !configuring => Fault::MotorStale,
+                _ => self.drive.wheel_fault(i, enabled),
             };
         }
         self.online = online;

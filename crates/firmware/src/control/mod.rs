@@ -4,12 +4,13 @@
 //!
 //! ```text
 //! on_frame ─► decode (typed; errors counted) ─► command.rs (robot commands)
-//!                                            └► dji.rs │ odrive.rs (motor feedback)
+//!                                            └► dji.rs │ odrive.rs │ cia402.rs (drives)
 //! step(now) ─► health.rs (missing / stale / drive error, the drive's watches → fault)
 //!           ─► command.rs (watchdog, acceleration limits), wheel_test.rs
 //!           ─► odometry.rs (wheel increments, the gyro's rotation → SE(2) pose)
 //!           ─► inverse kinematics ─► desaturation
 //!           ─► dji.rs (current_loop.rs: velocity PI → currents) │ odrive.rs (setpoints)
+//!              │ cia402.rs (configuration, SYNC, controlword and targets)
 //!           ─► telemetry.rs (odometry, status, heartbeat at their rates)
 //! ```
 //!
@@ -22,6 +23,7 @@
 //! through a fixed-capacity [`Outbox`]. The same inputs give the same frames, bit for bit, on
 //! every target.
 
+mod cia402;
 mod command;
 mod current_loop;
 mod dji;
@@ -35,6 +37,9 @@ mod wheel_test;
 use embedded_can::Frame;
 use kinematics::{ChassisVelocity, MecanumKinematics, Odometry, Pose2, WheelSpeeds};
 
+pub use self::cia402::{
+    CANOPEN_SDO_TIMEOUT_US, CIA402_RESET_GRACE_US, CIA402_TRANSITION_TIMEOUT_US, DriveIssue,
+};
 pub use self::current_loop::{
     FIGHT_COMBINED_MIN, FIGHT_CURRENT_FRACTION, FIGHT_WINDOW_US, RUNAWAY_GROWTH, RUNAWAY_MIN_SPEED,
     RUNAWAY_SATURATION, RUNAWAY_WINDOW_US,
@@ -59,8 +64,9 @@ use crate::protocol::{DecodeError, RxErrorCounters};
 
 /// Most frames one [`Controller::step`] can emit: two DJI command frames, or for four ODrive
 /// axes `Clear_Errors` (after a reset), three state commands (after an enable) and a velocity
-/// setpoint each; plus odometry (2), status, status counters and heartbeat (3), and a wheel
-/// test's result (1).
+/// setpoint each (16), or for four CiA 402 nodes an SDO request, NMT start and RPDO1 each,
+/// SYNC and the master's heartbeat (14); plus odometry (2), status, status counters and
+/// heartbeat (3), and a wheel test's result (1).
 pub const OUTBOX_CAPACITY: usize = 26;
 
 /// The frames one step emits, in the order they should be sent.
@@ -106,6 +112,7 @@ impl WheelOf {
 enum DriveState {
     Dji(dji::Dji),
     Odrive(odrive::Odrive),
+    Cia402(cia402::Cia402),
 }
 
 impl DriveState {
@@ -121,45 +128,64 @@ impl DriveState {
         match self {
             Self::Dji(d) => d.on_frame(now, frame, wheel_of, wheels),
             Self::Odrive(o) => o.on_frame(now, frame, wheel_of, wheels),
+            Self::Cia402(c) => c.on_frame(now, frame, wheels),
         }
     }
 
-    /// Motion stopped (`enabled`: the robot stays enabled, at zero).
-    fn halt(&mut self, enabled: bool) {
+    /// Motion stopped; the robot is now in `state` (`Enabled`: it stays enabled, at zero).
+    fn halt(&mut self, state: RobotState) {
         match self {
             Self::Dji(d) => d.current.reset(),
-            Self::Odrive(o) if !enabled => o.request_idle(),
+            Self::Odrive(o) if state != RobotState::Enabled => o.request_idle(),
             Self::Odrive(_) => {}
+            Self::Cia402(c) => c.halt(state),
         }
     }
 
     /// An enable (`only` `None`) or a wheel test of wheel `only`.
     fn request_closed_loop(&mut self, now: Instant, only: Option<u8>) {
-        if let Self::Odrive(o) = self {
-            o.request_closed_loop(now, only);
+        match self {
+            Self::Dji(_) => {}
+            Self::Odrive(o) => o.request_closed_loop(now, only),
+            Self::Cia402(c) => c.request_enable(now, only),
         }
     }
 
     /// A reset from `Fault` or `Estop`.
     fn clear_errors(&mut self, now: Instant) {
-        if let Self::Odrive(o) = self {
-            o.clear_errors(now);
+        match self {
+            Self::Dji(_) => {}
+            Self::Odrive(o) => o.clear_errors(now),
+            Self::Cia402(c) => c.clear_errors(now),
         }
     }
 
     /// A step begins at `now`.
     fn step_started(&mut self, now: Instant) {
-        if let Self::Odrive(o) = self {
-            o.step_started(now);
+        match self {
+            Self::Dji(_) => {}
+            Self::Odrive(o) => o.step_started(now),
+            Self::Cia402(c) => c.step_started(now),
         }
     }
 
-    /// Wheel `i`'s drive reports an error of its own.
+    /// The fault wheel `i`'s drive reports of its own (`Fault::None` if none).
     #[inline]
-    fn wheel_fault(&self, i: usize, enabled: bool) -> bool {
+    fn wheel_fault(&self, i: usize, enabled: bool) -> Fault {
         match self {
-            Self::Dji(_) => false,
-            Self::Odrive(o) => o.wheel_fault(i, enabled),
+            Self::Dji(_) => Fault::None,
+            Self::Odrive(o) if o.wheel_fault(i, enabled) => Fault::DriveError,
+            Self::Odrive(_) => Fault::None,
+            Self::Cia402(c) => c.wheel_fault(i),
+        }
+    }
+
+    /// Wheel `i`'s drive is being configured: no feedback is expected from it yet.
+    #[inline]
+    fn wheel_configuring(&self, i: usize) -> bool {
+        match self {
+            Self::Cia402(c) => c.wheel_configuring(i),
+            Self::Dji(_) | Self::Odrive(_) => false,
         }
     }
 }
@@ -182,7 +208,8 @@ pub struct Controller {
     odom_clock: Every,
     /// Status and heartbeat frames are due (every `control_hz / status_hz` steps).
     status_clock: Every,
-    /// ODrive velocity setpoints are due (every `control_hz / setpoint_hz` steps).
+    /// Velocity setpoints (ODrive) or the SYNC cycle (CiA 402) are due (every
+    /// `control_hz / setpoint_hz` steps).
     setpoint_clock: Every,
 
     state: RobotState,
@@ -263,8 +290,36 @@ impl Controller {
                     config.limits.max_wheel_speed,
                 )),
             ),
+            Drive::Cia402 {
+                node_ids,
+                axes,
+                gear_ratio,
+                inverted,
+                target_rpm_per_unit,
+                actual_rpm_per_unit,
+                master_node,
+                heartbeat_ms,
+                heartbeat_timeout_ms,
+            } => (
+                node_ids,
+                inverted,
+                1_000_000 / u64::from(t.setpoint_hz),
+                DriveState::Cia402(cia402::Cia402::new(&cia402::Params {
+                    node_ids,
+                    axes,
+                    gear_ratio,
+                    target_rpm_per_unit,
+                    actual_rpm_per_unit,
+                    master_node,
+                    heartbeat_ms,
+                    heartbeat_timeout_ms,
+                    control_hz: t.control_hz,
+                    cycle_hz: t.setpoint_hz,
+                })),
+            ),
         };
-        // Ids are validated (in range, one per wheel), so every wheel lands in the table.
+        // Ids are validated (in range, one per wheel), so every wheel lands in the table
+        // (CiA 402 drives keep their own map: a node may drive two wheels).
         let mut wheel_of = [u8::MAX; 64];
         for (wheel, id) in (0u8..).zip(ids) {
             if let Some(w) = wheel_of.get_mut(usize::from(id)) {
@@ -439,14 +494,15 @@ impl Controller {
             self.setpoints = WheelSpeeds::zero();
             0
         };
-        self.emit_drive(out, mask, mask != 0 && setpoint_due);
+        self.emit_drive(out, mask, setpoint_due);
         self.note_test_current();
         self.emit_telemetry(out, now, boot, odom_due, status_due);
         self.steps += 1;
     }
 
     /// The drive's frames for this step: the wheels in `mask` driven towards their setpoints
-    /// (current drives), the setpoints sent (`setpoints_due`, velocity drives).
+    /// (current drives), the setpoints sent (`setpoints_due` and a wheel driven: ODrive), the
+    /// cycle run (`setpoints_due`, driven or not: CiA 402).
     fn emit_drive(&mut self, out: &mut Outbox, mask: u8, setpoints_due: bool) {
         let max = self.current_limit();
         match &mut self.drive {
@@ -463,7 +519,16 @@ impl Controller {
             }
             DriveState::Odrive(o) => {
                 self.currents = [0.0; 4];
-                o.emit(out, &self.wheels, self.setpoints, setpoints_due);
+                o.emit(
+                    out,
+                    &self.wheels,
+                    self.setpoints,
+                    mask != 0 && setpoints_due,
+                );
+            }
+            DriveState::Cia402(c) => {
+                self.currents = [0.0; 4];
+                c.emit(out, &mut self.wheels, self.setpoints, setpoints_due);
             }
         }
     }
@@ -486,23 +551,46 @@ impl Controller {
                     enabled: self.state == RobotState::Enabled,
                 },
             ),
-            DriveState::Odrive(_) => Fault::None,
+            DriveState::Odrive(_) | DriveState::Cia402(_) => Fault::None,
+        }
+    }
+
+    /// What the latest CiA 402 fault was, with what the bus said (the node, the object and
+    /// the abort code, the last statusword): for logs. `None` for other drives.
+    #[must_use]
+    pub const fn drive_issue(&self) -> Option<DriveIssue> {
+        match &self.drive {
+            DriveState::Cia402(c) => c.issue(),
+            DriveState::Dji(_) | DriveState::Odrive(_) => None,
+        }
+    }
+
+    /// EMCY frames received from CiA 402 drives since the start (saturating; 0 for other
+    /// drives).
+    #[must_use]
+    pub const fn drive_emcy_count(&self) -> u32 {
+        match &self.drive {
+            DriveState::Cia402(c) => c.emcy_count(),
+            DriveState::Dji(_) | DriveState::Odrive(_) => 0,
         }
     }
 
     /// Disables the drive and returns the frames that leave the motors safe: zero current for
-    /// DJI ESCs; zero velocity and the idle state for ODrive axes. For a runner that is about
+    /// DJI ESCs; zero velocity and the idle state for ODrive axes; for CiA 402 nodes SYNC and
+    /// shutdown with zero targets. For a runner that is about
     /// to exit (SIGINT/SIGTERM): send these, then stop.
     pub fn shutdown(&mut self) -> Outbox {
         if matches!(self.state, RobotState::Enabled | RobotState::WheelTest) {
             self.end_test(TestOutcome::Stopped);
             self.state = RobotState::Disabled;
         }
-        // Not enabled now, so the halt asks an ODrive for idle.
+        // Not enabled now, so the halt asks an ODrive for idle, a CiA 402 drive for shutdown.
         self.halt();
         self.setpoints = WheelSpeeds::zero();
         let mut out = Outbox::new();
-        self.emit_drive(&mut out, 0, false);
+        // A CiA 402 cycle now (the shutdown and zero targets); nothing due for the others.
+        let cia402 = matches!(self.drive, DriveState::Cia402(_));
+        self.emit_drive(&mut out, 0, cia402);
         out
     }
 }

@@ -14,6 +14,7 @@
 //! Decoders return [`DecodeError`] for anything they do not accept; encoders always succeed,
 //! saturating values that do not fit.
 
+pub mod canopen;
 pub mod dji;
 pub mod error;
 pub mod odrive;

@@ -24,6 +24,8 @@ use crate::frame::CanFrame;
 
 /// The protocol version this module implements, sent in [`Heartbeat::protocol_version`].
 ///
+/// Version 6 added `STATUS.fault` 9-12 (`DRIVE_SILENT`, `DRIVE_REBOOTED`, `DRIVE_SETUP`,
+/// `DRIVE_TRANSITION`), the faults of CANopen drives; a version 5 receiver rejects them.
 /// Version 5 sends the id of the robot's configuration ([`Config::id`](crate::Config::id))
 /// in `HEARTBEAT.config_id`, reserved (0) before.
 /// Version 4 added `STATUS.state` 4 (`WHEEL_TEST`) with `WHEEL_TEST` and `WHEEL_TEST_RESULT`,
@@ -33,7 +35,7 @@ use crate::frame::CanFrame;
 /// added `STATUS_COUNTERS`; a version 2 host that sends one `seq` forever stops the robot
 /// after one command timeout. Version 2 added `STATUS.fault` 6 (`ENCODER_STUCK`); a version
 /// 1 receiver rejects it.
-pub const PROTOCOL_VERSION: u8 = 5;
+pub const PROTOCOL_VERSION: u8 = 6;
 
 /// The frame layout: the Rust mirror of `dbc/mecanum_robot.dbc`. Every id, DLC, offset,
 /// scale and range the codec uses is here.
@@ -220,7 +222,7 @@ pub mod layout {
     /// `STATUS.state`: 0 disabled, 1 enabled, 2 fault, 3 estop, 4 wheel test.
     pub const STATUS_STATE: Field = Field::int("state", 0, U8, Little).range(0, 4);
     /// `STATUS.fault`: 0 none .. 6 encoder stuck, 7 wheel runaway.
-    pub const STATUS_FAULT: Field = Field::int("fault", 1, U8, Little).range(0, 8);
+    pub const STATUS_FAULT: Field = Field::int("fault", 1, U8, Little).range(0, 12);
     /// `STATUS.rx_errors`: rejected frames, saturating.
     pub const STATUS_RX_ERRORS: Field = Field::int("rx_errors", 2, U16, Little);
     /// `STATUS.unknown_ids`: frames with unknown ids, saturating.
@@ -287,7 +289,7 @@ pub enum RobotState {
     WheelTest = 4,
 }
 
-/// The latest fault (`STATUS.fault`). Raw values 9..=255 are reserved for later versions.
+/// The latest fault (`STATUS.fault`). Raw values 13..=255 are reserved for later versions.
 ///
 /// How each is detected, and how fast: [`crate::control`].
 #[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
@@ -315,6 +317,16 @@ pub enum Fault {
     /// The wheels pushed against each other for a window: the currents had a part that no
     /// body motion explains, as when a motor is mounted the other way than configured.
     WheelFight = 8,
+    /// A CANopen drive's heartbeat was silent for its consumer time.
+    DriveSilent = 9,
+    /// A CANopen drive booted again after it was configured: it is configured again, and
+    /// the robot does not move until the host resets and enables it.
+    DriveRebooted = 10,
+    /// A CANopen drive refused (SDO abort) or did not answer (timeout) its configuration,
+    /// or is not a CiA 402 drive.
+    DriveSetup = 11,
+    /// A CANopen drive did not reach the state an enable step asked for in time.
+    DriveTransition = 12,
 }
 
 macro_rules! u8_enum {
@@ -396,6 +408,10 @@ u8_enum!(Fault {
     EncoderStuck = 6 => "ENCODER_STUCK",
     WheelRunaway = 7 => "WHEEL_RUNAWAY",
     WheelFight = 8 => "WHEEL_FIGHT",
+    DriveSilent = 9 => "DRIVE_SILENT",
+    DriveRebooted = 10 => "DRIVE_REBOOTED",
+    DriveSetup = 11 => "DRIVE_SETUP",
+    DriveTransition = 12 => "DRIVE_TRANSITION",
 });
 
 /// A twist setpoint (`TWIST_CMD`), body frame.

@@ -5,8 +5,10 @@
 // The scripted drives walk several per-wheel arrays in step.
 #![allow(clippy::needless_range_loop)]
 
+mod canopen_bus;
 mod rig;
 
+mod cia402;
 mod drives;
 mod fight;
 mod gyro;

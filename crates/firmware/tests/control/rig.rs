@@ -8,6 +8,8 @@ pub use firmware::protocol::odrive::{self, AxisState, ControlMode, NodeId};
 pub use firmware::protocol::robot::{self, Command, Fault, ModeRequest, RobotState, TwistCmd};
 pub use proptest::prelude::*;
 
+pub use crate::canopen_bus::{ScriptedBus, sw};
+
 /// One millisecond of simulated time per tick (the default 1 kHz loop).
 pub const TICK_US: u64 = 1_000;
 
@@ -33,10 +35,13 @@ pub struct Rig {
     pub log: Vec<(u64, CanFrame)>,
     /// The `seq` of the next twist (the alive counter a host increments).
     pub seq: u8,
+    /// CiA 402: the scripted nodes.
+    pub canopen: ScriptedBus,
 }
 
 impl Rig {
     pub fn new(config: Config) -> Self {
+        let canopen = ScriptedBus::new(&config);
         Self {
             ctl: Controller::new(&config).expect("valid config"),
             config,
@@ -49,6 +54,7 @@ impl Rig {
             error_persists: [false; 4],
             log: Vec::new(),
             seq: 0,
+            canopen,
         }
     }
 
@@ -147,6 +153,11 @@ impl Rig {
                     }
                 }
             }
+            Drive::Cia402 { .. } => {
+                for frame in self.canopen.feed(self.now_us) {
+                    self.raw(frame);
+                }
+            }
         }
     }
 
@@ -154,6 +165,7 @@ impl Rig {
     pub fn tick(&mut self) -> Outbox {
         self.feed_motors();
         let out = self.ctl.step(self.now());
+        self.canopen.take(self.now_us, &out);
         for f in &out {
             self.log.push((self.now_us, *f));
             if let Drive::Odrive { node_ids, .. } = self.config.drive

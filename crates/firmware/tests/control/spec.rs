@@ -13,7 +13,7 @@ fn the_specifications_constants_are_the_codes() {
             let name = cells.get(1)?.strip_prefix('`')?.strip_suffix('`')?;
             let value = cells.get(2)?.replace('_', "").parse().ok()?;
             name.chars()
-                .all(|c| c.is_ascii_uppercase() || c == '_')
+                .all(|c| c.is_ascii_uppercase() || c.is_ascii_digit() || c == '_')
                 .then_some((name, value))
         })
         .collect();
@@ -51,6 +51,12 @@ fn the_specifications_constants_are_the_codes() {
             "WHEEL_TEST_CURRENT_FRACTION",
             f64::from(WHEEL_TEST_CURRENT_FRACTION),
         ),
+        ("CANOPEN_SDO_TIMEOUT_US", CANOPEN_SDO_TIMEOUT_US as f64),
+        (
+            "CIA402_TRANSITION_TIMEOUT_US",
+            CIA402_TRANSITION_TIMEOUT_US as f64,
+        ),
+        ("CIA402_RESET_GRACE_US", CIA402_RESET_GRACE_US as f64),
     ];
     assert_eq!(
         table.iter().map(|(n, _)| *n).collect::<Vec<_>>(),

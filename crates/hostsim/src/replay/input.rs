@@ -425,7 +425,7 @@ pub fn detect_format(path: &Path) -> Result<LogFormat, ReplayError> {
 #[must_use]
 pub fn firmware_sends(config: &Config, frame: &CanFrame) -> bool {
     use firmware::config::Drive;
-    use firmware::protocol::{dji, odrive, robot};
+    use firmware::protocol::{canopen, dji, odrive, robot};
     if robot::Telemetry::decode(frame).is_ok() {
         return true;
     }
@@ -443,6 +443,22 @@ pub fn firmware_sends(config: &Config, frame: &CanFrame) -> bool {
         Drive::Odrive { node_ids, .. } => {
             odrive::Command::decode(frame).is_ok_and(|c| node_ids.contains(&c.node.get()))
         }
+        // The master's frames: NMT, SYNC and its heartbeat, and the SDO requests and RPDOs
+        // to this robot's nodes.
+        Drive::Cia402 {
+            node_ids,
+            master_node,
+            ..
+        } => match canopen::decode(frame) {
+            Ok(canopen::Message::Nmt { .. } | canopen::Message::Sync { .. }) => true,
+            Ok(canopen::Message::Heartbeat { node, .. }) => node.get() == master_node,
+            Ok(
+                m @ (canopen::Message::SdoRequest { .. }
+                | canopen::Message::Rpdo1 { .. }
+                | canopen::Message::Rpdo3 { .. }),
+            ) => m.node().is_some_and(|n| node_ids.contains(&n.get())),
+            _ => false,
+        },
     }
 }
 

@@ -1,0 +1,417 @@
+//! CiA 402 drives: configuration by SDO, the enable sequence, the cycle, odometry from the
+//! actual velocities, and each fault with what it keeps for the log.
+
+use firmware::control::{CANOPEN_SDO_TIMEOUT_US, CIA402_TRANSITION_TIMEOUT_US, DriveIssue};
+use firmware::protocol::canopen::{self, Message, NmtCommand, SdoRequest};
+
+use crate::rig::*;
+
+/// The example: two dual-axis nodes (1: FL, FR; 2: RL, RR), a 250 Hz cycle.
+fn rig() -> Rig {
+    let mut c = Config::cia402_example();
+    c.limits.stop_linear_decel = f32::INFINITY;
+    c.limits.stop_angular_decel = f32::INFINITY;
+    Rig::new(c)
+}
+
+/// The CANopen messages of a step's output.
+fn messages(out: &Outbox) -> Vec<Message> {
+    out.iter().filter_map(|f| canopen::decode(f).ok()).collect()
+}
+
+/// A configured, started rig (every motor online).
+fn started() -> Rig {
+    let mut rig = rig();
+    rig.run_until(200, |r, _| r.ctl.snapshot().motors_online == 0b1111)
+        .expect("both nodes configured and reporting");
+    rig
+}
+
+/// A started rig, enabled and every node operation enabled.
+fn enabled() -> Rig {
+    let mut rig = started();
+    rig.enable();
+    rig.run_until(100, |r, _| {
+        r.canopen
+            .nodes
+            .iter()
+            .all(|n| n.statusword == sw::OPERATION_ENABLED)
+    })
+    .expect("the enable sequence completes");
+    rig
+}
+
+/// The (controlword, targets) of the last RPDOs to `node` in the log.
+fn last_rpdo(rig: &Rig, node: u8) -> (u16, i32, i32) {
+    let mut cw = None;
+    let mut t = (0, 0);
+    for (_, f) in &rig.log {
+        match canopen::decode(f) {
+            Ok(Message::Rpdo1 {
+                node: n,
+                controlword,
+                target,
+            }) if n.get() == node => {
+                cw = Some(controlword);
+                t.0 = target;
+            }
+            Ok(Message::Rpdo3 { node: n, target }) if n.get() == node => t.1 = target,
+            _ => {}
+        }
+    }
+    (cw.expect("an RPDO was sent"), t.0, t.1)
+}
+
+#[test]
+fn each_node_is_reset_configured_in_the_documented_order_and_started() {
+    let mut rig = rig();
+    let first = rig.tick();
+    let resets: Vec<_> = messages(&first)
+        .into_iter()
+        .filter_map(|m| match m {
+            Message::Nmt {
+                command: NmtCommand::ResetCommunication,
+                node,
+            } => node.map(|n| n.get()),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(resets, [1, 2], "each node reset at the first step");
+    let t = rig
+        .run_until(200, |r, _| r.ctl.snapshot().motors_online == 0b1111)
+        .expect("configured");
+    // 34 transfers a node, both nodes in parallel, one a step (the answer comes before the
+    // next step), then NMT start and the first SYNC's answer.
+    assert!((34_000..=40_000).contains(&t), "configured at {t} µs");
+    rig.run_ms(30);
+
+    let log = &rig.canopen.node(1).sdo_log;
+    assert_eq!(log.len(), 34, "{log:#x?}");
+    assert_eq!(
+        log[0],
+        SdoRequest::Upload {
+            index: 0x1000,
+            sub: 0
+        }
+    );
+    let dl = |index, sub, value, size| SdoRequest::Download {
+        index,
+        sub,
+        value,
+        size,
+    };
+    assert_eq!(
+        log[1],
+        dl(0x6060, 0, 3, 1),
+        "profile velocity before anything else"
+    );
+    assert_eq!(log[2], dl(0x1017, 0, 50, 2));
+    assert_eq!(log[3], dl(0x1016, 1, 127 << 16 | 150, 4));
+    // RPDO1: disable, clear, map, count, type, enable.
+    assert_eq!(
+        log[4..11],
+        [
+            dl(0x1400, 1, 0x8000_0201, 4),
+            dl(0x1600, 0, 0, 1),
+            dl(0x1600, 1, 0x6040_0010, 4),
+            dl(0x1600, 2, 0x60FF_0120, 4),
+            dl(0x1600, 0, 2, 1),
+            dl(0x1400, 2, 0xFF, 1),
+            dl(0x1400, 1, 0x201, 4),
+        ]
+    );
+    // The RPDO2 of the predefined set (0x300 + node: the robot's block) is switched off.
+    assert!(log.contains(&dl(0x1401, 1, 0x8000_0301, 4)));
+    assert!(log.contains(&dl(0x1A01, 1, 0x606C_0220, 4)));
+    // NMT start once the last answer came, then SYNC and the RPDOs every 4 ms.
+    let syncs: Vec<u64> = rig
+        .log
+        .iter()
+        .filter(|(_, f)| matches!(canopen::decode(f), Ok(Message::Sync { .. })))
+        .map(|(t, _)| *t)
+        .collect();
+    assert!(syncs.len() >= 2);
+    assert!(syncs.windows(2).all(|w| w[1] - w[0] == 4_000), "{syncs:?}");
+    assert_eq!(rig.ctl.state(), RobotState::Disabled);
+    assert_eq!(last_rpdo(&rig, 1), (0x06, 0, 0), "shutdown while disabled");
+    // The master's heartbeat, 0x77F, every 50 ms.
+    let beats: Vec<u64> = rig
+        .log
+        .iter()
+        .filter(|(_, f)| {
+            matches!(canopen::decode(f), Ok(Message::Heartbeat { node, .. }) if node.get() == 127)
+        })
+        .map(|(t, _)| *t)
+        .collect();
+    assert_eq!(beats[..2], [0, 50_000]);
+}
+
+#[test]
+fn an_enable_runs_shutdown_switch_on_enable_operation_checking_each_state() {
+    let mut rig = started();
+    let t0 = rig.now_us;
+    rig.enable();
+    rig.twist(0.5, 0.0, 0.0);
+    rig.run_until(100, |r, _| {
+        r.canopen
+            .nodes
+            .iter()
+            .all(|n| n.statusword == sw::OPERATION_ENABLED)
+    })
+    .expect("enabled");
+    for node in [1, 2] {
+        let words: Vec<u16> = rig
+            .canopen
+            .node(node)
+            .controlwords
+            .iter()
+            .filter(|(t, _)| *t >= t0)
+            .map(|(_, cw)| *cw)
+            .collect();
+        let mut steps = words.clone();
+        steps.dedup();
+        assert_eq!(steps, [0x06, 0x07, 0x0F], "node {node}: {words:?}");
+    }
+    // Targets only once both nodes are enabled; then 0.5 m/s on 0.1 m wheels: 5 rad/s,
+    // 47.7 rpm, the mirrored wheels negative.
+    let mut targets = Vec::new();
+    for _ in 0..400 {
+        rig.twist(0.5, 0.0, 0.0);
+        rig.tick();
+        targets.push(last_rpdo(&rig, 1));
+    }
+    assert_eq!(*targets.last().unwrap(), (0x0F, 48, -48));
+}
+
+#[test]
+fn the_odometry_integrates_the_actual_velocities_of_both_axes() {
+    let mut rig = enabled();
+    let x0 = rig.ctl.pose().x;
+    for _ in 0..1000 {
+        rig.twist(0.5, 0.0, 0.0);
+        rig.tick();
+    }
+    // 1 s at 0.5 m/s (an eighth of a second of ramp at 4 m/s²: 0.03125 m less), the drive
+    // reporting 477 x 0.1 rpm for 48 rpm asked: 0.49951 m/s.
+    let x = rig.ctl.pose().x - x0;
+    let expected = (0.5 - 0.5 * 0.125 / 2.0 / 1.0 * 1.0) * (47.7 / 48.0 * 48.0 / 47.746);
+    assert!(
+        (x - expected as f32).abs() < 0.01,
+        "x {x}, expected {expected}"
+    );
+    assert_eq!(rig.ctl.state(), RobotState::Enabled);
+}
+
+#[test]
+fn an_sdo_abort_faults_naming_the_node_object_and_code_and_the_reset_retries() {
+    let mut rig = rig();
+    rig.canopen.node(2).abort = Some(((0x6060, 0), 0x0609_0030));
+    rig.run_until(100, |r, _| r.ctl.state() == RobotState::Fault)
+        .expect("the abort faults the robot");
+    assert_eq!(rig.ctl.fault(), Fault::DriveSetup);
+    let issue = rig.ctl.drive_issue().unwrap();
+    assert_eq!(
+        issue,
+        DriveIssue::SdoAbort {
+            node: 2,
+            object: (0x6060, 0),
+            code: 0x0609_0030
+        }
+    );
+    assert_eq!(
+        issue.to_string(),
+        "node 2: SDO abort 0x06090030 on 0x6060:00 (invalid value for parameter)"
+    );
+    // Node 2 is told nothing more; node 1 carries on.
+    assert_eq!(rig.canopen.node(2).sdo_log.len(), 2);
+    rig.canopen.node(2).abort = None;
+    rig.send(Command::Mode(ModeRequest::Reset));
+    rig.run_until(200, |r, _| r.ctl.snapshot().motors_online == 0b1111)
+        .expect("configured on the retry");
+    assert_eq!(rig.ctl.state(), RobotState::Disabled);
+    rig.enable();
+    rig.run_ms(50);
+    assert_eq!(rig.ctl.state(), RobotState::Enabled);
+}
+
+#[test]
+fn an_unanswered_sdo_faults_after_its_timeout() {
+    let mut rig = rig();
+    rig.canopen.node(1).sdo_silent = true;
+    let t = rig
+        .run_until(1000, |r, _| r.ctl.state() == RobotState::Fault)
+        .expect("times out");
+    // The upload went out at the second step (1 ms); the timeout is strict.
+    assert_eq!(t, 1_000 + CANOPEN_SDO_TIMEOUT_US + 1_000);
+    assert_eq!(rig.ctl.fault(), Fault::DriveSetup);
+    assert_eq!(
+        rig.ctl.drive_issue(),
+        Some(DriveIssue::SdoTimeout {
+            node: 1,
+            object: (0x1000, 0)
+        })
+    );
+}
+
+#[test]
+fn a_silent_heartbeat_quick_stops_within_the_consumer_time() {
+    let mut rig = enabled();
+    rig.canopen.node(2).heartbeat_silent = true;
+    // The last heartbeat came at the last multiple of 50 ms.
+    let last = rig.now_us / 50_000 * 50_000;
+    let t = rig
+        .run_until(400, |r, _| r.ctl.state() == RobotState::Fault)
+        .expect("the silence faults the robot");
+    assert_eq!(rig.ctl.fault(), Fault::DriveSilent);
+    let latency = t - last;
+    assert!(
+        (150_000..=151_000).contains(&latency),
+        "{latency} µs after the last heartbeat"
+    );
+    // Quick stop and zero targets to every node at the next cycle.
+    rig.run_ms(5);
+    assert_eq!(last_rpdo(&rig, 1), (0x02, 0, 0));
+    assert_eq!(last_rpdo(&rig, 2), (0x02, 0, 0));
+    assert_eq!(
+        rig.ctl.drive_issue().map(|i| i.to_string()),
+        Some("node 2: heartbeat lost".into())
+    );
+}
+
+#[test]
+fn a_node_that_reboots_is_configured_again_and_needs_the_hosts_reset_and_enable() {
+    let mut rig = enabled();
+    let before = rig.canopen.node(1).sdo_log.len();
+    rig.canopen.node(1).reboot();
+    rig.run_until(10, |r, _| r.ctl.state() == RobotState::Fault)
+        .expect("the boot-up faults the robot");
+    assert_eq!(rig.ctl.fault(), Fault::DriveRebooted);
+    rig.run_until(200, |r, _| {
+        r.canopen.nodes[0].sdo_log.len() == 2 * before && r.canopen.nodes[0].operational
+    })
+    .expect("node 1 is configured again and started");
+    assert_eq!(rig.canopen.node(1).mode, 3);
+    // No motion until the host resets and enables: node 1 is told quick stop.
+    rig.run_ms(10);
+    assert_eq!(rig.ctl.state(), RobotState::Fault);
+    assert_eq!(last_rpdo(&rig, 1).0, 0x02);
+    rig.send(Command::Mode(ModeRequest::Reset));
+    rig.run_ms(10);
+    assert_eq!(rig.ctl.state(), RobotState::Disabled);
+    rig.enable();
+    rig.run_until(100, |r, _| {
+        r.canopen
+            .nodes
+            .iter()
+            .all(|n| n.statusword == sw::OPERATION_ENABLED)
+    })
+    .expect("enabled again");
+    assert_eq!(rig.ctl.state(), RobotState::Enabled);
+}
+
+#[test]
+fn a_drive_fault_is_reset_by_one_edge_on_the_hosts_reset_only() {
+    let mut rig = enabled();
+    rig.canopen.node(2).fault(0x2310);
+    rig.run_until(20, |r, _| r.ctl.state() == RobotState::Fault)
+        .expect("the statusword's fault bit faults the robot");
+    assert_eq!(rig.ctl.fault(), Fault::DriveError);
+    assert_eq!(rig.ctl.drive_emcy_count(), 1);
+    let issue = rig.ctl.drive_issue().unwrap();
+    assert_eq!(
+        issue.to_string(),
+        "node 2: statusword 0x0218 (FAULT), last EMCY 0x2310"
+    );
+    rig.run_ms(100);
+    let t_reset = rig.now_us;
+    assert!(
+        rig.canopen
+            .node(2)
+            .controlwords
+            .iter()
+            .all(|(_, cw)| cw & 0x80 == 0),
+        "no fault reset before the host's"
+    );
+    rig.send(Command::Mode(ModeRequest::Reset));
+    rig.run_ms(40);
+    let after: Vec<u16> = rig
+        .canopen
+        .node(2)
+        .controlwords
+        .iter()
+        .filter(|(t, _)| *t >= t_reset)
+        .map(|(_, cw)| *cw)
+        .collect();
+    assert_eq!(after[0], 0x80, "{after:?}");
+    assert!(after[1..].iter().all(|&cw| cw == 0x06), "{after:?}");
+    assert_eq!(rig.canopen.node(2).statusword, sw::READY_TO_SWITCH_ON);
+    assert_eq!(
+        (rig.ctl.state(), rig.ctl.fault()),
+        (RobotState::Disabled, Fault::None)
+    );
+    // Node 1 was not in fault: no edge for it.
+    assert!(
+        rig.canopen
+            .node(1)
+            .controlwords
+            .iter()
+            .all(|(_, cw)| cw & 0x80 == 0)
+    );
+}
+
+#[test]
+fn a_transition_that_does_not_come_faults_with_the_last_statusword() {
+    let mut rig = started();
+    rig.canopen.node(1).refuses_enable = true;
+    let t0 = rig.now_us;
+    rig.enable();
+    let t = rig
+        .run_until(400, |r, _| r.ctl.state() == RobotState::Fault)
+        .expect("times out");
+    assert_eq!(rig.ctl.fault(), Fault::DriveTransition);
+    // The enable step that does not come is the third; each step counts from the last.
+    let took = t - t0;
+    assert!(
+        took > CIA402_TRANSITION_TIMEOUT_US && took <= CIA402_TRANSITION_TIMEOUT_US + 20_000,
+        "{took} µs"
+    );
+    assert_eq!(
+        rig.ctl.drive_issue(),
+        Some(DriveIssue::TransitionTimeout {
+            node: 1,
+            controlword: 0x0F,
+            statusword: Some(sw::SWITCHED_ON)
+        })
+    );
+    // Node 2 went through; no target reached either node meanwhile.
+    assert!(rig.log.iter().all(|(_, f)| !matches!(
+        canopen::decode(f),
+        Ok(Message::Rpdo1 { target, .. }) if target != 0
+    )));
+}
+
+#[test]
+fn an_estop_quick_stops_every_node_with_zero_targets() {
+    let mut rig = enabled();
+    for _ in 0..200 {
+        rig.twist(0.5, 0.0, 0.0);
+        rig.tick();
+    }
+    assert_ne!(last_rpdo(&rig, 1).1, 0);
+    rig.send(Command::Estop);
+    rig.run_ms(5);
+    assert_eq!(rig.ctl.state(), RobotState::Estop);
+    assert_eq!(last_rpdo(&rig, 1), (0x02, 0, 0));
+    assert_eq!(last_rpdo(&rig, 2), (0x02, 0, 0));
+}
+
+#[test]
+fn a_node_that_never_boots_is_missing_after_the_boot_timeout() {
+    let mut rig = rig();
+    rig.canopen.node(2).mute = true;
+    let t = rig
+        .run_until(1500, |r, _| r.ctl.state() == RobotState::Fault)
+        .expect("missing");
+    assert_eq!(rig.ctl.fault(), Fault::MotorMissing);
+    assert_eq!(t, 1_001_000);
+}
