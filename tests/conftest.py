@@ -7,6 +7,7 @@ import os
 import pathlib
 import subprocess
 from collections.abc import Callable, Iterable
+from typing import NoReturn
 
 import cantools
 import pytest
@@ -17,6 +18,8 @@ DBC_FILES = {
     "robot": "mecanum_robot.dbc",
     "dji": "dji_c620.dbc",
     "odrive": "odrive_cansimple.dbc",
+    # CANopen CiA 301/402, nodes 1 and 2 (its ids overlap DJI's and ODrive's: `decode --canopen`).
+    "canopen": "cia402.dbc",
 }
 
 
@@ -82,11 +85,13 @@ def run_codec(codec_bin: pathlib.Path) -> Callable[..., list[dict]]:
 
 @pytest.fixture(scope="session")
 def dbs() -> dict[str, cantools.database.can.Database]:
-    """The three DBC files, loaded strictly, by protocol name."""
-    return {
-        name: cantools.database.load_file(str(DBC_DIR / file), strict=True)
-        for name, file in DBC_FILES.items()
-    }
+    """The DBC files (robot, dji, odrive, canopen), loaded strictly, by protocol name."""
+    out = {}
+    for name, file in DBC_FILES.items():
+        db = cantools.database.load_file(str(DBC_DIR / file), strict=True)
+        assert isinstance(db, cantools.database.can.Database), file
+        out[name] = db
+    return out
 
 
 @pytest.fixture(scope="session")
@@ -151,7 +156,7 @@ def _vcan_problem(name: str = VCAN_CHANNEL) -> str | None:
     return None
 
 
-def vcan_unavailable(what: str, detail: str) -> None:
+def vcan_unavailable(what: str, detail: str) -> NoReturn:
     """Skips the test for a missing vcan prerequisite, or fails it when vcan is required."""
     if vcan_required():
         pytest.fail(f"{detail}; MECANUM_VCAN_REQUIRED=1, so this is a failure, not a skip")

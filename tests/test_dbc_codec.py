@@ -6,7 +6,8 @@
     random values) of every message, decode in Rust to the same values.
 (c) Malformed frames are rejected by Rust with the right error kind, field and values.
 
-Field names are the DBC signal names; values are physical (scaled) values.
+Field names are the DBC signal names; values are physical (scaled) values. CANopen frames
+(dbc/cia402.dbc) go through `decode --canopen`: their ids overlap DJI's and ODrive's.
 """
 
 from __future__ import annotations
@@ -16,8 +17,12 @@ import pathlib
 import random
 import re
 import struct
+import subprocess
+import sys
 
 import pytest
+
+DBC_DIR = pathlib.Path(__file__).resolve().parent.parent / "dbc"
 
 # Messages the Rust codecs implement, per protocol (ODrive: per node 0-3, cmd suffix only).
 ODRIVE_NODES = range(4)
@@ -52,6 +57,72 @@ ENUM_VALUES = {
 
 # Signals Rust reads as a flag (nonzero = true, as ODrive does): generated as 0 or 1 only.
 FLAGS = {"Identify": [0, 1]}
+
+# CANopen (dbc/cia402.dbc, `decode --canopen`): per node 1 and 2 by function code (id = code +
+# node), and NMT, SYNC and the master's heartbeat (node 127) once.
+CANOPEN_NODES = (1, 2)
+CANOPEN_MASTER_NODE = 127
+CANOPEN_MESSAGES = {
+    0x080: "EMCY",
+    0x180: "TPDO1",
+    0x280: "TPDO2",
+    0x200: "RPDO1",
+    0x400: "RPDO3",
+    0x580: "SDO_RESPONSE",
+    0x600: "SDO_REQUEST",
+    0x700: "HEARTBEAT",
+}
+# docs/protocol.md, "CANopen CiA 402": kind -> (DLC, sent by the drive, [(signal, start bit,
+# length, signed)]), little-endian, unscaled.
+SDO_SIGNALS = [("command", 0, 8, False), ("index", 8, 16, False), ("subindex", 24, 8, False),
+               ("data", 32, 32, False)]
+CANOPEN_LAYOUT = {
+    "NMT": (2, False, [("command", 0, 8, False), ("node", 8, 8, False)]),
+    "SYNC": (0, False, []),
+    "EMCY": (8, True, [("error_code", 0, 16, False), ("error_register", 16, 8, False),
+                       ("manufacturer", 24, 40, False)]),
+    "TPDO1": (6, True, [("statusword", 0, 16, False), ("velocity_actual", 16, 32, True)]),
+    "TPDO2": (4, True, [("velocity_actual_2", 0, 32, True)]),
+    "RPDO1": (6, False, [("controlword", 0, 16, False), ("target_velocity", 16, 32, True)]),
+    "RPDO3": (4, False, [("target_velocity_2", 0, 32, True)]),
+    "SDO_RESPONSE": (8, True, SDO_SIGNALS),
+    "SDO_REQUEST": (8, False, SDO_SIGNALS),
+    "HEARTBEAT": (1, True, [("state", 0, 8, False)]),
+}
+# The Rust enums firmware::protocol::canopen::NmtCommand and NmtState, by raw value.
+NMT_COMMANDS = {0x01: "START", 0x02: "STOP", 0x80: "PRE_OPERATIONAL", 0x81: "RESET_NODE",
+                0x82: "RESET_COMMUNICATION"}
+NMT_STATES = {0x00: "BOOT_UP", 0x04: "STOPPED", 0x05: "OPERATIONAL", 0x7F: "PRE_OPERATIONAL"}
+
+# SDO command bytes (CiA 301) without data size: upload request, download response, abort.
+SDO_UPLOAD, SDO_DOWNLOADED, SDO_ABORT = 0x40, 0x60, 0x80
+
+
+def sdo_expedited(cs: int) -> list[int]:
+    """CiA 301 command bytes of an expedited initiate transfer with command specifier `cs`:
+    bits 7-5 cs, bit 4 reserved (0), bits 3-2 n (unused data bytes), bit 1 e (expedited, 1),
+    bit 0 s (size indicated); every n and s (without s, n is ignored: 4 bytes)."""
+    return [cs << 5 | n << 2 | 0b10 | s for n in range(4) for s in range(2)]
+
+
+def sdo_size(command: int) -> int:
+    """The data bytes of an expedited transfer: 4 - n if s is set, else 4."""
+    return 4 - (command >> 2 & 3) if command & 1 else 4
+
+
+# The SDO command bytes Rust accepts: only expedited transfers (download, client command
+# specifier 1; upload response, server command specifier 2) and aborts. Segmented (0x21, 0x41)
+# and block transfers are rejected.
+SDO_COMMANDS = {
+    "SDO_REQUEST": [SDO_UPLOAD, SDO_ABORT, *sdo_expedited(1)],
+    "SDO_RESPONSE": [SDO_DOWNLOADED, SDO_ABORT, *sdo_expedited(2)],
+}
+# Signals whose raw values form an enum in Rust, per CANopen message kind (part b and c).
+CANOPEN_ENUM_VALUES = {
+    ("NMT", "command"): sorted(NMT_COMMANDS),
+    ("HEARTBEAT", "state"): sorted(NMT_STATES),
+    **{(kind, "command"): sorted(commands) for kind, commands in SDO_COMMANDS.items()},
+}
 
 SEED = 0x3EC4  # fixed: the random value sets are the same on every run
 RANDOM_SETS_PER_MESSAGE = 40
@@ -112,7 +183,52 @@ def implemented_messages(dbs):
             m = dbs["odrive"].get_message_by_frame_id(node << 5 | cmd)
             assert m.name == f"Axis{node}_{name}", m.name
             out.append(("odrive", m))
+    canopen = dbs["canopen"]
+    master_heartbeat = 0x700 + CANOPEN_MASTER_NODE
+    for frame_id, name in [(0x000, "NMT"), (0x080, "SYNC"),
+                           (master_heartbeat, f"HEARTBEAT_{CANOPEN_MASTER_NODE}")]:
+        m = canopen.get_message_by_frame_id(frame_id)
+        assert m.name == name, m.name
+        out.append(("canopen", m))
+    for node in CANOPEN_NODES:
+        for code, name in CANOPEN_MESSAGES.items():
+            m = canopen.get_message_by_frame_id(code + node)
+            assert m.name == f"{name}_{node}", m.name
+            out.append(("canopen", m))
     return out
+
+
+def canopen_kind(name: str) -> str:
+    """A CANopen message's kind: `TPDO1_2` -> `TPDO1`, `SDO_REQUEST_1` -> `SDO_REQUEST`."""
+    base, _, node = name.rpartition("_")
+    return base if base and node.isdigit() else name
+
+
+def canopen_rust_view(msg, values: dict) -> dict:
+    """The values Rust reports for a CANopen frame that carries `values`: an SDO's data as
+    CiA 301 reads it (an expedited transfer's size low bytes; the code of an abort; nothing, 0,
+    in an upload request or a download response), every other signal as it is."""
+    if canopen_kind(msg.name) not in SDO_COMMANDS:
+        return values
+    command, data = values["command"], values["data"]
+    if command in (SDO_UPLOAD, SDO_DOWNLOADED):
+        data = 0
+    elif command != SDO_ABORT:
+        data &= (1 << 8 * sdo_size(command)) - 1
+    return {**values, "data": data}
+
+
+def check_canopen_extras(msg, rust: dict, values: dict, where: str) -> None:
+    """`node` (from the id; none for NMT and SYNC) and an SDO's `size` (expedited data only)."""
+    kind = canopen_kind(msg.name)
+    if kind in ("NMT", "SYNC"):
+        assert "node" not in rust, f"{where}: {rust}"
+    else:
+        assert rust["node"] == msg.frame_id & 0x7F == int(msg.name.rpartition("_")[2]), where
+    size = None
+    if kind in SDO_COMMANDS and values["command"] not in (SDO_UPLOAD, SDO_DOWNLOADED, SDO_ABORT):
+        size = sdo_size(values["command"])
+    assert rust.get("size") == size, f"{where}: size {rust.get('size')}, want {size}"
 
 
 def check_decoded(db_msg, rust: dict, expected: dict, tol_of, where: str) -> None:
@@ -139,6 +255,11 @@ def test_dbc_files_load_strictly(dbs):
     assert all(0x300 <= m.frame_id <= 0x31F for m in dbs["robot"].messages)
     assert sorted(m.frame_id for m in dbs["dji"].messages) == [0x1FF, *range(0x200, 0x209)]
     assert all(m.frame_id < 0x80 for m in dbs["odrive"].messages)
+    assert sorted(m.frame_id for m in dbs["canopen"].messages) == sorted(
+        [0x000, 0x080, 0x700 + CANOPEN_MASTER_NODE]
+        + [code + node for code in CANOPEN_MESSAGES for node in CANOPEN_NODES])
+    # No CANopen frame in the robot block: RPDO2 (0x300 + node) is not used.
+    assert not any(0x300 <= m.frame_id <= 0x31F for m in dbs["canopen"].messages)
     for db in dbs.values():
         assert all(not m.is_extended_frame for m in db.messages)
 
@@ -149,6 +270,45 @@ def test_robot_dbc_is_little_endian_and_dji_big_endian(dbs):
     for m in dbs["dji"].messages:
         multi_byte = [s for s in m.signals if s.length > 8]
         assert multi_byte and all(s.byte_order == "big_endian" for s in multi_byte), m.name
+
+
+def test_canopen_dbc_follows_the_protocol_doc(dbs):
+    """dbc/cia402.dbc: the layout of docs/protocol.md (ids, DLCs, senders, signals as the Rust
+    layout names them), comments that name the mapping objects and why RPDO2 is not used,
+    and the file is what dbc/gen_cia402.py writes."""
+    canopen = dbs["canopen"]
+    drives = sorted(f"DRIVE_{n}" for n in CANOPEN_NODES)
+    assert sorted(n.name for n in canopen.nodes) == sorted(["MASTER", *drives])
+    for m in canopen.messages:
+        dlc, from_drive, signals = CANOPEN_LAYOUT[canopen_kind(m.name)]
+        assert m.length == dlc and not m.is_extended_frame, m.name
+        assert [(s.name, s.start, s.length, s.is_signed) for s in m.signals] == signals, m.name
+        for s in m.signals:
+            assert (s.byte_order, s.scale, s.offset, s.is_float) == ("little_endian", 1, 0, False)
+        node = m.frame_id & 0x7F
+        if canopen_kind(m.name) in ("NMT", "SYNC") or node == CANOPEN_MASTER_NODE:
+            assert m.senders == ["MASTER"], m.name
+            assert all(sorted(s.receivers) == drives for s in m.signals), m.name
+        else:
+            sender, receiver = (f"DRIVE_{node}", "MASTER") if from_drive else ("MASTER", f"DRIVE_{node}")
+            assert m.senders == [sender], m.name
+            assert all(s.receivers == [receiver] for s in m.signals), m.name
+        assert m.comment, m.name
+        assert all(s.comment for s in m.signals), m.name
+    comment = {kind: canopen.get_message_by_name(f"{kind}_1").comment for kind in CANOPEN_MESSAGES.values()}
+    for kind, words in {
+        "RPDO1": ("0x6040:00", "0x60FF:00", "0x60FF:01", "0x1600", "0xFF"),
+        "RPDO3": ("0x60FF:02", "0x1602", "RPDO2", "0x300 + node", "robot protocol", "disables"),
+        "TPDO1": ("0x6041:00", "0x606C:00", "0x606C:01", "0x1A00", "SYNC"),
+        "TPDO2": ("0x606C:02", "0x1A01"),
+        "SDO_RESPONSE": ("0x41", "abort"),
+        "HEARTBEAT": ("BOOT_UP", "boot-up"),
+    }.items():
+        for word in words:
+            assert word in comment[kind], (kind, word)
+    proc = subprocess.run([sys.executable, str(DBC_DIR / "gen_cia402.py"), "--check"],
+                          capture_output=True, text=True, timeout=60, check=False)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
 
 
 # ------------------------------------------------------------------------------------------
@@ -162,7 +322,7 @@ def golden(run_codec):
     return lines
 
 
-ROBOT_DBC = pathlib.Path(__file__).resolve().parent.parent / "dbc" / "mecanum_robot.dbc"
+ROBOT_DBC = DBC_DIR / "mecanum_robot.dbc"
 
 
 def test_dbc_version_line_is_the_firmwares_protocol_version(golden):
@@ -240,6 +400,8 @@ def test_golden_frames_decode_with_cantools(golden, dbs):
         assert len(data) == db_msg.length, f"{g['candump']}: DLC {len(data)}, DBC {db_msg.length}"
         decoded = db_msg.decode(data, decode_choices=False, scaling=True)
         where = g["candump"]
+        if g["protocol"] == "canopen":
+            check_canopen_extras(db_msg, g, decoded, where)
         # Rust's decoded values = cantools' values (up to f32 rounding) ...
         check_decoded(db_msg, g, decoded, lambda s, v: f32_slack(v) + 1e-9, where)
         # ... and = the values given to the encoder, within half an LSB.
@@ -280,13 +442,53 @@ def test_golden_inputs_encode_to_the_same_bytes_with_cantools(golden, dbs):
     assert ties >= 4, f"only {ties} exact ties in the golden set"
 
 
+def test_golden_canopen_frames_cover_every_enum_and_sdo_variant(golden):
+    """The golden CANopen frames: every NMT command and state, and SDO uploads and downloads of
+    1, 2 and 4 bytes and aborts both ways, with the command bytes CiA 301 gives them (the
+    encoder always indicates the size) and the unused data bytes zero."""
+    canopen = [g for g in golden if g.get("protocol") == "canopen"]
+    assert {g["fields"]["command"] for g in canopen if g["message"] == "NMT"} == set(NMT_COMMANDS)
+    for node in (*CANOPEN_NODES, CANOPEN_MASTER_NODE):
+        assert any(g["message"] == f"HEARTBEAT_{node}" for g in canopen), node
+    for node in CANOPEN_NODES:
+        states = {g["fields"]["state"] for g in canopen if g["message"] == f"HEARTBEAT_{node}"}
+        assert states == set(NMT_STATES), node
+    seen = set()
+    for g in canopen:
+        kind = canopen_kind(g["message"])
+        if kind not in SDO_COMMANDS:
+            continue
+        _, data, _ = parse_candump(g["candump"])
+        command = g["fields"]["command"]
+        assert data[0] == command, g
+        if "size" in g:
+            size = g["size"]
+            cs = 1 if kind == "SDO_REQUEST" else 2
+            assert command == cs << 5 | (4 - size) << 2 | 0b11, g
+            assert data[4 + size:] == bytes(4 - size), g
+            seen.add((kind, g["node"], f"size {size}"))
+        else:
+            assert command in (SDO_ABORT, SDO_UPLOAD if kind == "SDO_REQUEST" else SDO_DOWNLOADED), g
+            if command != SDO_ABORT:
+                assert data[4:] == bytes(4), g
+            seen.add((kind, g["node"], hex(command)))
+    for node in CANOPEN_NODES:
+        for kind, plain in (("SDO_REQUEST", SDO_UPLOAD), ("SDO_RESPONSE", SDO_DOWNLOADED)):
+            for variant in ("size 1", "size 2", "size 4", hex(SDO_ABORT), hex(plain)):
+                assert (kind, node, variant) in seen, (kind, node, variant)
+
+
 # ------------------------------------------------------------------------------------------
 # (b) frames encoded by cantools, decoded by Rust
 
 
-def signal_domain(signal):
+def signal_domain(signal, proto: str = "", message: str = ""):
     """(kind, values or bounds) of the physical values Rust accepts for a signal."""
-    if signal.name in ENUM_VALUES:
+    if proto == "canopen":
+        enum = CANOPEN_ENUM_VALUES.get((canopen_kind(message), signal.name))
+        if enum is not None:
+            return "enum", enum
+    elif signal.name in ENUM_VALUES:
         return "enum", ENUM_VALUES[signal.name]
     if signal.name in FLAGS:
         return "enum", FLAGS[signal.name]
@@ -306,12 +508,12 @@ def is_integral(signal) -> bool:
     return signal.scale == 1 and signal.offset == 0 and not signal.is_float
 
 
-def value_sets(msg, rng: random.Random):
+def value_sets(msg, rng: random.Random, proto: str = ""):
     """Extremes, zeros and seeded random values for every signal of `msg`."""
-    domains = {s.name: (s, *signal_domain(s)) for s in msg.signals}
+    domains = {s.name: (s, *signal_domain(s, proto, msg.name)) for s in msg.signals}
 
     def pick(mode: str) -> dict:
-        values = {}
+        values: dict[str, float] = {}
         for name, (s, kind, dom) in domains.items():
             if name in RESERVED:
                 values[name] = 0
@@ -353,25 +555,40 @@ def test_cantools_encoded_frames_decode_in_rust(run_codec, dbs):
     rng = random.Random(SEED)
     cases = []
     for proto, msg in implemented_messages(dbs):
-        for values in value_sets(msg, rng):
+        for values in value_sets(msg, rng, proto):
             data = msg.encode(values, scaling=True, strict=True)
             assert len(data) == msg.length
             cases.append((proto, msg, values, data))
-    lines = [candump(m.frame_id, d, prefix=i % 2 == 0) for i, (_, m, _, d) in enumerate(cases)]
-    out = run_codec("decode", lines=lines)
-    assert len(out) == len(cases)
     messages = set()
-    for (proto, msg, values, data), rust, line in zip(cases, out, lines, strict=True):
-        where = line
-        assert rust.get("protocol") == proto, f"{where}: {rust}"
-        decoded = msg.decode(data, decode_choices=False, scaling=True)
-        # Rust = cantools' decoding of the same bytes (up to f32 rounding) ...
-        check_decoded(msg, rust, decoded, lambda s, v: f32_slack(v) + 1e-9, where)
-        # ... and = the values cantools encoded, within half an LSB.
-        check_decoded(msg, rust, values, lambda s, v: half_lsb(s) + f32_slack(v), where)
-        messages.add(msg.name)
-    assert len(messages) == 12 + 10 + 4 * len(ODRIVE_MESSAGES)
-    assert len(cases) >= len(messages) * RANDOM_SETS_PER_MESSAGE
+    # CANopen's ids overlap DJI's and ODrive's: its frames go through `decode --canopen`, and
+    # the robot's through both (the robot block is the robot's either way).
+    for canopen in (False, True):
+        run = [c for c in cases if (c[0] == "canopen") == canopen or c[0] == "robot"]
+        lines = [candump(m.frame_id, d, prefix=i % 2 == 0) for i, (_, m, _, d) in enumerate(run)]
+        out = run_codec("decode", *(["--canopen"] if canopen else []), lines=lines)
+        assert len(out) == len(run)
+        for (proto, msg, values, data), rust, line in zip(run, out, lines, strict=True):
+            where = f"{line} (--canopen)" if canopen else line
+            assert rust.get("protocol") == proto, f"{where}: {rust}"
+            decoded = msg.decode(data, decode_choices=False, scaling=True)
+            if proto == "canopen":
+                check_canopen_extras(msg, rust, values, where)
+                decoded, values = canopen_rust_view(msg, decoded), canopen_rust_view(msg, values)
+            # Rust = cantools' decoding of the same bytes (up to f32 rounding) ...
+            check_decoded(msg, rust, decoded, lambda s, v: f32_slack(v) + 1e-9, where)
+            # ... and = the values cantools encoded, within half an LSB.
+            check_decoded(msg, rust, values, lambda s, v: half_lsb(s) + f32_slack(v), where)
+            messages.add((proto, msg.name, canopen))
+    n_robot, n_canopen = 12, 3 + len(CANOPEN_NODES) * len(CANOPEN_MESSAGES)
+    assert len(messages) == 2 * n_robot + 10 + 4 * len(ODRIVE_MESSAGES) + n_canopen
+    assert len(cases) >= len({m[:2] for m in messages}) * RANDOM_SETS_PER_MESSAGE
+    # The SDO value sets hold every command byte Rust accepts, junk beyond an expedited
+    # transfer's size included (Rust ignores it, which canopen_rust_view expects).
+    for kind, commands in SDO_COMMANDS.items():
+        sent = [v for p, m, v, _ in cases if p == "canopen" and canopen_kind(m.name) == kind]
+        assert {v["command"] for v in sent} == set(commands), kind
+        assert any(sdo_size(v["command"]) < 4 and v["data"] >> 8 * sdo_size(v["command"])
+                   for v in sent if v["command"] not in (SDO_UPLOAD, SDO_DOWNLOADED, SDO_ABORT))
 
 
 def test_dbc_value_tables_match_rust_enums_and_rust_rejects_others(run_codec, dbs):
@@ -397,6 +614,58 @@ def test_dbc_value_tables_match_rust_enums_and_rust_rejects_others(run_codec, db
         assert set(robot_state.choices) == set(ENUM_VALUES["state"]), message
     out = run_codec("decode", lines=[candump(0x312, bytes([0, 13, 0, 0, 0, 0, 0, 0]))])
     assert out[0]["error"]["kind"] == "out_of_range"
+
+
+def test_canopen_value_tables_match_rust_enums_and_rust_rejects_others(run_codec, dbs) -> None:
+    """NMT.command and HEARTBEAT_n.state: the DBC's tables are Rust's NmtCommand and NmtState,
+    and of all 256 raw values Rust accepts exactly the table's (others: out_of_range)."""
+    canopen = dbs["canopen"]
+    command = canopen.get_message_by_name("NMT").get_signal_by_name("command")
+    assert {int(k): str(v) for k, v in command.choices.items()} == NMT_COMMANDS
+    for node in (*CANOPEN_NODES, CANOPEN_MASTER_NODE):
+        state = canopen.get_message_by_name(f"HEARTBEAT_{node}").get_signal_by_name("state")
+        assert {int(k): str(v) for k, v in state.choices.items()} == NMT_STATES, node
+    # Every raw value, node 2 (NMT) and node 1 (heartbeat).
+    cases = [("NMT", "command", raw, candump(0x000, bytes([raw, 2]))) for raw in range(256)]
+    cases += [("HEARTBEAT_1", "state", raw, candump(0x701, bytes([raw]))) for raw in range(256)]
+    out = run_codec("decode", "--canopen", lines=[line for *_, line in cases])
+    accepted: dict[str, set[int]] = {"NMT": set(), "HEARTBEAT_1": set()}
+    for (message, field, raw, line), rust in zip(cases, out, strict=True):
+        if "error" in rust:
+            assert rust["error"]["kind"] == "out_of_range", f"{line}: {rust}"
+            assert (rust["error"]["field"], rust["error"]["value"]) == (field, raw), f"{line}: {rust}"
+        else:
+            assert rust["message"] == message and rust["fields"][field] == raw, f"{line}: {rust}"
+            accepted[message].add(raw)
+    assert accepted == {"NMT": set(NMT_COMMANDS), "HEARTBEAT_1": set(NMT_STATES)}
+
+
+def test_canopen_sdo_command_bytes_are_the_expedited_transfers(run_codec, dbs) -> None:
+    """All 256 SDO command bytes, both directions: Rust accepts the expedited initiate transfers
+    (with their data size), the upload request (requests) or download response (responses) and
+    the abort, and rejects every other byte (segmented 0x21/0x41, block transfers, a byte of
+    the other direction, reserved bits) as out_of_range on `command`."""
+    cases = []
+    for kind, code in (("SDO_REQUEST", 0x600), ("SDO_RESPONSE", 0x580)):
+        msg = dbs["canopen"].get_message_by_frame_id(code + 2)
+        for command in range(256):
+            values = {"command": command, "index": 0x60FF, "subindex": 2, "data": 0x8D7C6B5A}
+            cases.append((kind, msg, values, msg.encode(values, strict=True)))
+    lines = [candump(m.frame_id, data) for _, m, _, data in cases]
+    out = run_codec("decode", "--canopen", lines=lines)
+    accepted: dict[str, set[int]] = {kind: set() for kind in SDO_COMMANDS}
+    for (kind, msg, values, _), rust, line in zip(cases, out, lines, strict=True):
+        if values["command"] in SDO_COMMANDS[kind]:
+            check_canopen_extras(msg, rust, values, line)
+            check_decoded(msg, rust, canopen_rust_view(msg, values), lambda s, v: 0, line)
+            accepted[kind].add(values["command"])
+        else:
+            err = rust.get("error", {})
+            assert (err.get("kind"), err.get("field"), err.get("value")) == (
+                "out_of_range", "command", values["command"]), f"{line}: {rust}"
+    assert accepted == {kind: set(commands) for kind, commands in SDO_COMMANDS.items()}
+    assert all(len(commands) == 10 for commands in accepted.values())
+    assert 0x21 not in accepted["SDO_REQUEST"] and 0x41 not in accepted["SDO_RESPONSE"]
 
 
 # ------------------------------------------------------------------------------------------
@@ -511,6 +780,144 @@ def test_malformed_frames_are_rejected_with_the_right_kind(run_codec, dbs):
     assert out[-1]["fields"]["vx"] == 0.5
 
 
+# Through `decode --canopen`: (candump line, error kind, extra fields the error must carry).
+CANOPEN_MALFORMED = [
+    # wrong DLC (expected = the DBC length, checked below)
+    ("000#01", "wrong_dlc", {"expected": 2, "got": 1}),
+    ("000#010100", "wrong_dlc", {"expected": 2, "got": 3}),
+    ("080#0000", "wrong_dlc", {"expected": 0, "got": 2}),
+    ("081#00000000", "wrong_dlc", {"expected": 8, "got": 4}),
+    ("181#3706FEFFFFFF00", "wrong_dlc", {"expected": 6, "got": 7}),
+    ("182#3706FEFF", "wrong_dlc", {"expected": 6, "got": 4}),
+    ("281#FEFFFFFF00", "wrong_dlc", {"expected": 4, "got": 5}),
+    ("201#0F00", "wrong_dlc", {"expected": 6, "got": 2}),
+    ("202#0F00D007000000000", None, {}),  # odd number of hex digits: parse error
+    ("401#D00700", "wrong_dlc", {"expected": 4, "got": 3}),
+    ("581#43001000920102", "wrong_dlc", {"expected": 8, "got": 7}),
+    ("602#40001000", "wrong_dlc", {"expected": 8, "got": 4}),
+    ("701#", "wrong_dlc", {"expected": 1, "got": 0}),
+    ("702#0500", "wrong_dlc", {"expected": 1, "got": 2}),
+    # unknown ids: function codes not used (TIME, RPDO2, TPDO3/4, RPDO4, LSS, 0x780+), node 0
+    ("100#000000000000", "unknown_id", {}),
+    ("341#0F00D0070000", "unknown_id", {}),  # RPDO2 of node 0x41 (0x301-0x31F: robot's)
+    ("37F#0F00D0070000", "unknown_id", {}),
+    ("381#3706FEFFFFFF", "unknown_id", {}),
+    ("481#3706FEFFFFFF", "unknown_id", {}),
+    ("501#0F00D0070000", "unknown_id", {}),
+    ("7E5#0400000000000000", "unknown_id", {}),
+    ("7E4#0400000000000000", "unknown_id", {}),
+    ("181#R", "remote", {}),  # a remote frame is checked before the node: RTR on a PDO id
+    ("180#3706FEFFFFFF", "unknown_id", {}),
+    ("580#4300100092010200", "unknown_id", {}),
+    ("700#05", "unknown_id", {}),
+    # extended ids, remote frames (node guarding's RTR on the heartbeat id is not used)
+    ("00000181#3706FEFFFFFF", "extended_id", {}),
+    ("00000000#0100", "extended_id", {}),
+    ("701#R1", "remote", {}),
+    ("601#R8", "remote", {}),
+    ("000#R2", "remote", {}),
+    # out-of-range values: unknown NMT commands and states, SYNC counters, segmented and block
+    # SDO transfers, bytes of the other direction
+    ("000#0300", "out_of_range", {"field": "command", "value": 3}),
+    ("000#8300", "out_of_range", {"field": "command", "value": 0x83}),
+    ("000#0180", "out_of_range", {"field": "node", "value": 128}),
+    ("080#00", "out_of_range", {"field": "counter", "value": 0}),
+    ("080#F1", "out_of_range", {"field": "counter", "value": 241}),
+    ("701#06", "out_of_range", {"field": "state", "value": 6}),
+    ("701#85", "out_of_range", {"field": "state", "value": 0x85}),  # node guarding toggle bit
+    ("702#FF", "out_of_range", {"field": "state", "value": 0xFF}),
+    ("581#4100100014000000", "out_of_range", {"field": "command", "value": 0x41}),  # segmented
+    ("601#2100100014000000", "out_of_range", {"field": "command", "value": 0x21}),  # segmented
+    ("602#C600100000000000", "out_of_range", {"field": "command", "value": 0xC6}),  # block
+    ("582#A400100000000000", "out_of_range", {"field": "command", "value": 0xA4}),  # block
+    ("601#6000100000000000", "out_of_range", {"field": "command", "value": 0x60}),
+    ("581#2300100003000000", "out_of_range", {"field": "command", "value": 0x23}),
+    ("581#4000100000000000", "out_of_range", {"field": "command", "value": 0x40}),
+    ("601#3300100000000000", "out_of_range", {"field": "command", "value": 0x33}),  # bit 4
+    ("601#0000100000000000", "out_of_range", {"field": "command", "value": 0x00}),
+]
+
+
+def test_malformed_canopen_frames_are_rejected_with_the_right_kind(run_codec, dbs):
+    good = "181#3706FEFFFFFF"
+    lines = []
+    for line, _, _ in CANOPEN_MALFORMED:
+        lines += [line, good]
+    out = run_codec("decode", "--canopen", lines=lines)
+    assert len(out) == len(lines)
+    for i, (line, kind, extra) in enumerate(CANOPEN_MALFORMED):
+        rust, after = out[2 * i], out[2 * i + 1]
+        assert after.get("message") == "TPDO1_1", f"line after {line}: {after}"
+        assert after["fields"] == {"statusword": 0x0637, "velocity_actual": -2}, after
+        assert "error" in rust, f"{line}: accepted as {rust}"
+        err = rust["error"]
+        assert err["kind"] == (kind or "parse"), f"{line}: {err}"
+        for key, want in extra.items():
+            assert err.get(key) == want, f"{line}: {key} = {err.get(key)!r}, want {want!r}"
+        if kind == "wrong_dlc":
+            frame_id, _, _ = parse_candump(line)
+            assert dbs["canopen"].get_message_by_frame_id(frame_id).length == err["expected"], line
+
+
+def test_malformed_canopen_frames_are_malformed_for_the_dbc_too(dbs):
+    """Sanity check of the table: the DBC's value tables do not have those values either, and
+    its SDO comments name the command bytes the firmware accepts."""
+    canopen = dbs["canopen"]
+    nmt = canopen.get_message_by_name("NMT")
+    raw = nmt.decode(bytes.fromhex("0300"), decode_choices=False)
+    assert raw["command"] not in nmt.get_signal_by_name("command").choices
+    assert nmt.decode(bytes.fromhex("0180"))["node"] > nmt.get_signal_by_name("node").maximum
+    heartbeat = canopen.get_message_by_name("HEARTBEAT_1")
+    assert 0x85 not in heartbeat.get_signal_by_name("state").choices
+    for name in ("SDO_REQUEST_1", "SDO_RESPONSE_1"):
+        comment = canopen.get_message_by_name(name).comment or ""
+        for command in SDO_COMMANDS[canopen_kind(name)]:
+            if command & 1 or command in (0x22, 0x42, SDO_UPLOAD, SDO_DOWNLOADED, SDO_ABORT):
+                assert f"0x{command:02X}" in comment, (name, hex(command))
+    assert "0x41" in canopen.get_message_by_name("SDO_RESPONSE_1").comment
+
+
+def test_canopen_routing_leaves_the_robot_block_to_the_robot(run_codec):
+    """`--canopen` routes every id outside 0x300-0x31F to CANopen. RPDO2's predefined ids
+    (0x300 + node) start in the robot block: there a frame is the robot's with or without the
+    flag (an RPDO-shaped frame is a robot frame of the wrong length, never a PDO), and beyond
+    it no protocol has them. The ids CANopen shares with DJI and ODrive switch with the flag."""
+    lines = [
+        "301#F40106FFE8030700",  # TWIST_CMD, on RPDO2's id for node 1
+        "301#0F00D0070000",  # RPDO2 of node 1 as RPDO1 is mapped: controlword, target
+        "31F#0F00D0070000",  # RPDO2 of node 0x1F: the robot's HEARTBEAT id
+        "341#0F00D0070000",  # RPDO2 of node 0x41, beyond the robot block
+        "201#0F00D0070000",  # RPDO1 of node 1: DJI FEEDBACK_1's id
+        "201#1FFF03E8FC182500",  # DJI FEEDBACK_1
+        "000#0100",  # NMT start, all nodes: ODrive Axis0_Get_Version's id (not implemented)
+        "001#0000000008000000",  # ODrive Axis0_Heartbeat
+    ]
+    plain = run_codec("decode", lines=lines)
+    canopen = run_codec("decode", "--canopen", lines=lines)
+    assert plain[0] == canopen[0] and canopen[0]["message"] == "TWIST_CMD"
+    for i in (1, 2):
+        assert plain[i] == canopen[i], lines[i]
+        assert canopen[i]["error"]["kind"] == "wrong_dlc" and canopen[i]["error"]["expected"] == 8
+    assert plain[3]["error"]["kind"] == canopen[3]["error"]["kind"] == "unknown_id"
+    # DJI (feedback is DLC 8) without the flag, CANopen RPDO1 (DLC 6) with it.
+    assert plain[4]["error"]["kind"] == "wrong_dlc" and plain[4]["error"]["expected"] == 8
+    assert canopen[4] == {"id": 0x201, "protocol": "canopen", "message": "RPDO1_1", "node": 1,
+                          "fields": {"controlword": 0x0F, "target_velocity": 2000}}
+    assert plain[5]["message"] == "FEEDBACK_1" and plain[5]["protocol"] == "dji"
+    assert canopen[5]["error"] == {"kind": "wrong_dlc", "message": canopen[5]["error"]["message"],
+                                   "expected": 6, "got": 8}
+    assert plain[6]["error"]["kind"] == "unknown_id"
+    assert canopen[6] == {"id": 0, "protocol": "canopen", "message": "NMT",
+                          "fields": {"command": 1, "node": 0}}
+    assert plain[7]["message"] == "Axis0_Heartbeat"
+    assert "error" in canopen[7], canopen[7]  # no CANopen frame has that id and length
+
+
+def test_canopen_ids_between_nmt_and_sync_are_unknown(run_codec):
+    out = run_codec("decode", "--canopen", lines=["001#0500", "07F#7F00", "001#05"])
+    assert [o.get("error", {}).get("kind") for o in out] == ["unknown_id"] * 3, out
+
+
 def _has_id(db, frame_id: int) -> bool:
     try:
         db.get_message_by_frame_id(frame_id)
@@ -568,9 +975,8 @@ def test_decode_accepts_candump_log_and_bare_lines(run_codec):
 
 
 def test_help_explains_the_tool(codec_bin):
-    import subprocess
-
     out = subprocess.run([str(codec_bin), "--help"], capture_output=True, text=True, check=True)
     assert "decode" in out.stdout and "golden" in out.stdout and "candump" in out.stdout
+    assert "--canopen" in out.stdout and "cia402.dbc" in out.stdout
     bad = subprocess.run([str(codec_bin), "frobnicate"], capture_output=True, text=True)
     assert bad.returncode == 2

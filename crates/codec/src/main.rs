@@ -1,10 +1,13 @@
 //! `mecanum-codec`: the firmware's CAN codecs on the command line, for logs and for the Python
 //! cross-check against the DBC files (see `--help`).
 
+mod canopen;
+
 use std::fmt::Write as _;
 use std::io::{self, BufRead, Write};
 use std::process::ExitCode;
 
+use canopen::CanopenFrame;
 use drivelog::candump;
 use embedded_can::{Frame, Id};
 use firmware::CanFrame;
@@ -20,7 +23,7 @@ const HELP: &str = "\
 mecanum-codec: decode CAN frames with the mecanum firmware's codecs, or print golden frames.
 
 USAGE:
-    mecanum-codec decode [--dji-model c620|c610]
+    mecanum-codec decode [--dji-model c620|c610] [--canopen]
     mecanum-codec golden
     mecanum-codec config-id FILE...
     mecanum-codec --help
@@ -37,15 +40,24 @@ decode
         {\"id\":769,\"error\":{\"kind\":\"wrong_dlc\",\"message\":\"...\",\"expected\":8,\"got\":7}}
     and carries on with the next line. Field names are the DBC signal names, values are
     physical (SI) values as the DBC scales them; enums are their numbers. `message` is the
-    DBC message name (ODrive messages carry a `node`, DJI feedback an `esc`).
+    DBC message name (ODrive and CANopen messages carry a `node`, DJI feedback an `esc`).
     Routing by id: 0x300-0x31F robot protocol, 0x1FF-0x208 DJI (C620 scale unless
     --dji-model c610), 0x000-0x07F ODrive CAN Simple nodes 0-3; anything else is unknown_id.
+    --canopen: CANopen's ids overlap the DJI and ODrive ones (a bus carries one drive
+    protocol), so with it 0x300-0x31F is the robot protocol and every other id CANopen
+    (CiA 301/402, dbc/cia402.dbc), for any node 1-127: messages are named as in the DBC with
+    the node's number (TPDO1_1, SDO_REQUEST_2, HEARTBEAT_127; NMT, SYNC). SDO frames give
+    `command` as received and `data` as the decoder reads it: the transfer's bytes (and its
+    `size`, 1-4) for expedited data, the abort code of an abort, 0 for an upload request or
+    a download response. A SYNC with a counter (DLC 1) gives it as `counter`. RPDO2's ids
+    (0x300 + node) are the robot protocol's, or unknown_id beyond its block.
     Error kinds: unknown_id, extended_id, remote, wrong_dlc, non_finite, out_of_range, parse.
 
 golden
     Prints a fixed set of frames built by the Rust encoders, one JSON line each, with the
     candump text of the frame, the values given to the encoder (\"input\") and the values the
-    Rust decoder reads back (\"fields\"). The Python tests decode the candump text with
+    Rust decoder reads back (\"fields\"), CANopen frames (protocol \"canopen\") included,
+    each read back as `decode --canopen` does. The Python tests decode the candump text with
     cantools and the DBC files and compare.
 
 config-id FILE...
@@ -59,7 +71,7 @@ line or field); 2 for bad arguments.
 
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let mut model = EscModel::C620;
+    let mut routing = Routing::default();
     let mut command = None;
     let mut files = Vec::new();
     let mut it = args.iter();
@@ -70,20 +82,21 @@ fn main() -> ExitCode {
                 return ExitCode::SUCCESS;
             }
             "--dji-model" => match it.next().map(String::as_str) {
-                Some("c620") => model = EscModel::C620,
-                Some("c610") => model = EscModel::C610,
+                Some("c620") => routing.model = EscModel::C620,
+                Some("c610") => routing.model = EscModel::C610,
                 Some(other) => {
                     return usage(&format!("--dji-model takes c620 or c610, got {other:?}"));
                 }
                 None => return usage("--dji-model takes c620 or c610, got nothing"),
             },
+            "--canopen" => routing.canopen = true,
             "decode" | "golden" | "config-id" if command.is_none() => command = Some(arg.clone()),
             file if command.as_deref() == Some("config-id") => files.push(file.to_owned()),
             other => return usage(&format!("unexpected argument {other:?}")),
         }
     }
     let result = match command.as_deref() {
-        Some("decode") => decode_stdin(model),
+        Some("decode") => decode_stdin(routing),
         Some("golden") => golden(),
         Some("config-id") if files.is_empty() => return usage("config-id takes FILE..."),
         Some("config-id") => return config_ids(&files),
@@ -393,6 +406,7 @@ enum AnyMessage {
     Robot(robot::Message),
     Odrive(odrive::Message),
     Dji(dji::Message),
+    Canopen(CanopenFrame),
 }
 
 impl AnyMessage {
@@ -401,6 +415,7 @@ impl AnyMessage {
             Self::Robot(m) => robot_fields(m),
             Self::Odrive(m) => odrive_fields(m),
             Self::Dji(m) => dji_fields(m),
+            Self::Canopen(m) => m.fields(),
         }
     }
 
@@ -409,6 +424,15 @@ impl AnyMessage {
             Self::Robot(m) => m.to_can_frame(),
             Self::Odrive(m) => m.to_can_frame(),
             Self::Dji(m) => m.to_can_frame(),
+            Self::Canopen(m) => m.to_can_frame(),
+        }
+    }
+
+    /// The routing that reads this message's frame back (`decode --canopen` for CANopen).
+    fn routing(&self) -> Routing {
+        Routing {
+            model: EscModel::C620,
+            canopen: matches!(self, Self::Canopen(_)),
         }
     }
 }
@@ -416,15 +440,35 @@ impl AnyMessage {
 /// Largest ODrive node routed to the ODrive codec (the DBC covers nodes 0-3).
 const ODRIVE_MAX_NODE: u16 = 3;
 
-fn route(frame: &CanFrame, model: EscModel) -> Result<AnyMessage, DecodeError> {
+/// Which codecs `decode` uses for ids outside the robot block.
+#[derive(Clone, Copy, Debug)]
+struct Routing {
+    /// The DJI ESC model (the current scale).
+    model: EscModel,
+    /// CANopen for every id outside the robot block, instead of DJI and ODrive.
+    canopen: bool,
+}
+
+impl Default for Routing {
+    fn default() -> Self {
+        Self {
+            model: EscModel::C620,
+            canopen: false,
+        }
+    }
+}
+
+fn route(frame: &CanFrame, routing: Routing) -> Result<AnyMessage, DecodeError> {
     let id = match frame.id() {
         Id::Standard(id) => id.as_raw(),
         Id::Extended(id) => return Err(DecodeError::ExtendedId { id: id.as_raw() }),
     };
     if robot::in_block(id) {
         robot::decode(frame).map(AnyMessage::Robot)
+    } else if routing.canopen {
+        CanopenFrame::decode(frame).map(AnyMessage::Canopen)
     } else if dji::is_dji_id(id) {
-        dji::decode(frame, model).map(AnyMessage::Dji)
+        dji::decode(frame, routing.model).map(AnyMessage::Dji)
     } else if id >> odrive::layout::CMD_BITS <= ODRIVE_MAX_NODE {
         odrive::decode(frame).map(AnyMessage::Odrive)
     } else {
@@ -432,30 +476,30 @@ fn route(frame: &CanFrame, model: EscModel) -> Result<AnyMessage, DecodeError> {
     }
 }
 
-fn decode_line(line: &str, model: EscModel) -> String {
+fn decode_line(line: &str, routing: Routing) -> String {
     let frame = match parse_candump(line) {
         Ok(f) => f,
         Err(msg) => return error_json(None, "parse", &msg, &[("line", line.into())]),
     };
-    match route(&frame, model) {
+    match route(&frame, routing) {
         Ok(msg) => msg.fields().json(frame.id(), None),
         Err(e) => decode_error_json(frame.id(), &e),
     }
 }
 
-fn decode_stdin(model: EscModel) -> io::Result<()> {
-    decode_stream(io::stdin().lock(), io::stdout().lock(), model)
+fn decode_stdin(routing: Routing) -> io::Result<()> {
+    decode_stream(io::stdin().lock(), io::stdout().lock(), routing)
 }
 
 /// One JSON line per non-blank input line; a line that is not UTF-8 gets a `parse` error
 /// naming its number and bytes, like any other line that does not parse.
-fn decode_stream(input: impl BufRead, output: impl Write, model: EscModel) -> io::Result<()> {
+fn decode_stream(input: impl BufRead, output: impl Write, routing: Routing) -> io::Result<()> {
     let mut out = io::BufWriter::new(output);
     for (n, line) in input.split(b'\n').enumerate() {
         let line = line?;
         let answer = match std::str::from_utf8(&line) {
             Ok(text) if text.trim().is_empty() => continue,
-            Ok(text) => decode_line(text.trim(), model),
+            Ok(text) => decode_line(text.trim(), routing),
             Err(e) => {
                 let mut hex = String::new();
                 for b in &line {
@@ -478,7 +522,8 @@ fn decode_stream(input: impl BufRead, output: impl Write, model: EscModel) -> io
 // Golden frames
 
 /// The golden messages, each with the values given to its encoder: the message's own
-/// fields, but for the DJI current commands the amps before rounding to raw values.
+/// fields, but for the DJI current commands the amps before rounding to raw values (and for
+/// CANopen SDO frames the command byte the encoder chose).
 fn golden_set() -> Vec<(AnyMessage, Decoded)> {
     use odrive::{Addressed, Command as OC, Feedback as OF};
     use robot::{Command as RC, Telemetry as RT};
@@ -627,6 +672,18 @@ fn golden_set() -> Vec<(AnyMessage, Decoded)> {
             HeadingSource::WheelsGyroSilent,
         ),
         (RobotState::Enabled, Fault::None, HeadingSource::Gyro),
+        (RobotState::Fault, Fault::DriveSilent, HeadingSource::Wheels),
+        (
+            RobotState::Fault,
+            Fault::DriveRebooted,
+            HeadingSource::Wheels,
+        ),
+        (RobotState::Fault, Fault::DriveSetup, HeadingSource::Gyro),
+        (
+            RobotState::Fault,
+            Fault::DriveTransition,
+            HeadingSource::Wheels,
+        ),
     ] {
         v.push(AnyMessage::Robot(robot::Message::Telemetry(RT::Status(
             robot::Status {
@@ -681,6 +738,7 @@ fn golden_set() -> Vec<(AnyMessage, Decoded)> {
             }),
         ]);
     }
+    v.extend(canopen::golden_set().into_iter().map(AnyMessage::Canopen));
     for n in 1..=8u8 {
         v.push(AnyMessage::Dji(dji::Message::Feedback(dji::Feedback {
             model: EscModel::C620,
@@ -729,7 +787,7 @@ fn golden() -> io::Result<()> {
     let mut out = io::BufWriter::new(io::stdout().lock());
     for (msg, input) in golden_set() {
         let frame = msg.to_can_frame();
-        let line = match route(&frame, EscModel::C620) {
+        let line = match route(&frame, msg.routing()) {
             Ok(decoded) => decoded
                 .fields()
                 .json(frame.id(), Some((&candump_text(&frame), &input))),
@@ -767,12 +825,12 @@ mod tests {
 
     #[test]
     fn decode_line_reports_errors_and_values() {
-        let ok = decode_line("301#F40106FFE8030700", EscModel::C620);
+        let ok = decode_line("301#F40106FFE8030700", Routing::default());
         assert!(ok.contains("\"message\":\"TWIST_CMD\""), "{ok}");
         assert!(ok.contains("\"vx\":0.5"), "{ok}");
-        let err = decode_line("301#F40106FFE80307", EscModel::C620);
+        let err = decode_line("301#F40106FFE80307", Routing::default());
         assert!(err.contains("\"kind\":\"wrong_dlc\""), "{err}");
-        let err = decode_line("garbage", EscModel::C620);
+        let err = decode_line("garbage", Routing::default());
         assert!(err.contains("\"kind\":\"parse\""), "{err}");
         assert_eq!(ErrorKind::WrongDlc.as_str(), "wrong_dlc");
     }
@@ -781,7 +839,7 @@ mod tests {
     fn a_line_that_is_not_utf8_is_an_error_line_and_the_rest_go_on() {
         let input: &[u8] = b"301#F40106FFE8030700\n\xFF\xFE\n\n301#F40106FFE8030700\r\n";
         let mut out = Vec::new();
-        decode_stream(input, &mut out, EscModel::C620).unwrap();
+        decode_stream(input, &mut out, Routing::default()).unwrap();
         let text = String::from_utf8(out).unwrap();
         let lines: Vec<&str> = text.lines().collect();
         assert_eq!(lines.len(), 3, "{text}");
@@ -795,11 +853,48 @@ mod tests {
     }
 
     #[test]
+    fn canopen_ids_route_to_canopen_only_with_the_flag() {
+        let canopen = Routing {
+            canopen: true,
+            ..Routing::default()
+        };
+        // 0x201: DJI feedback of ESC 1, or RPDO1 of node 1 (DLC 6).
+        let dji = decode_line("201#1FFF03E8FC182500", Routing::default());
+        assert!(dji.contains("\"message\":\"FEEDBACK_1\""), "{dji}");
+        let rpdo = decode_line("201#0F00D0070000", canopen);
+        assert!(rpdo.contains("\"protocol\":\"canopen\""), "{rpdo}");
+        assert!(
+            rpdo.contains("\"message\":\"RPDO1_1\",\"node\":1"),
+            "{rpdo}"
+        );
+        assert!(
+            rpdo.contains("{\"controlword\":15,\"target_velocity\":2000}"),
+            "{rpdo}"
+        );
+        // NMT (0x000) is ODrive's Get_Version without the flag (not implemented there).
+        let nmt = decode_line("000#0100", canopen);
+        assert!(nmt.contains("{\"command\":1,\"node\":0}"), "{nmt}");
+        assert!(!nmt.contains("\"node\":0,\"fields\""), "{nmt}");
+        let odrive = decode_line("000#0100", Routing::default());
+        assert!(odrive.contains("\"kind\":\"unknown_id\""), "{odrive}");
+        // The robot block stays the robot's: RPDO2 of node 1 is TWIST_CMD's id.
+        let twist = decode_line("301#F40106FFE8030700", canopen);
+        assert!(twist.contains("\"message\":\"TWIST_CMD\""), "{twist}");
+        let rpdo2 = decode_line("341#0F00D0070000", canopen);
+        assert!(rpdo2.contains("\"kind\":\"unknown_id\""), "{rpdo2}");
+        let sync = decode_line("080#05", canopen);
+        assert!(
+            sync.contains("\"message\":\"SYNC\",\"counter\":5,\"fields\":{}"),
+            "{sync}"
+        );
+    }
+
+    #[test]
     fn every_golden_frame_decodes() {
         for (msg, _) in golden_set() {
             let frame = msg.to_can_frame();
             assert!(
-                route(&frame, EscModel::C620).is_ok(),
+                route(&frame, msg.routing()).is_ok(),
                 "{}",
                 candump_text(&frame)
             );
