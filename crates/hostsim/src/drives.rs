@@ -4,13 +4,15 @@
 //! firmware crate's codecs (the same ones the firmware encodes with) and applied to the drive
 //! models; the drives' due feedback is encoded back into frames, timestamped when the drive
 //! sent it. Frames that are not for a configured drive are ignored, as a real drive would.
+//! CiA 402 nodes are [`CanopenDrives`], which speak CANopen themselves.
 
 use firmware::CanFrame;
 use firmware::config::{Config, Drive as DriveConfig};
 use firmware::protocol::dji::{CurrentCommand, EscId, EscModel};
 use firmware::protocol::odrive::{self, NodeId};
 
-use crate::plant::{ChassisParams, DjiDrive, OdriveAxis, ParamError, Plant, Wheel};
+use crate::canopen_drive::CanopenDrives;
+use crate::plant::{ChassisParams, Cia402Axis, DjiDrive, OdriveAxis, ParamError, Plant, Wheel};
 use crate::sim::SimPlant;
 
 /// A plant of one drive kind, with the ids its drives answer to.
@@ -31,6 +33,13 @@ pub enum SimDrives {
         plant: Box<Plant<OdriveAxis>>,
         /// Node id per wheel.
         node: [NodeId; 4],
+    },
+    /// CiA 402 drives: hub-motor axes, and the CANopen nodes that command them.
+    Cia402 {
+        /// The plant.
+        plant: Box<Plant<Cia402Axis>>,
+        /// The nodes.
+        nodes: Box<CanopenDrives>,
     },
 }
 
@@ -64,12 +73,10 @@ impl SimDrives {
                     node,
                 })
             }
-            DriveConfig::Cia402 { .. } => Err(ParamError::new(
-                "drive.protocol",
-                f64::NAN,
-                "dji or odrive: the simulator has no CiA 402 drive model yet (cia402 runs on \
-                 a real bus, with mecanum-runner)",
-            )),
+            DriveConfig::Cia402 { .. } => Ok(Self::Cia402 {
+                plant: Box::new(Plant::cia402_from_config(config)?),
+                nodes: Box::new(CanopenDrives::new(config)),
+            }),
         }
     }
 }
@@ -121,11 +128,21 @@ impl SimDrives {
                     node: spec.wired_ids(node),
                 }
             }
+            // Its motors mounted otherwise; its nodes' wiring is the configuration's.
+            Self::Cia402 { plant, nodes } => {
+                let plant = (*plant).with_chassis(adjust)?;
+                let inverted = rewire(plant.inverted());
+                Self::Cia402 {
+                    plant: Box::new(plant.with_inverted(inverted)),
+                    nodes,
+                }
+            }
         };
         if spec.lifted {
             match &mut drives {
                 Self::Dji { plant, .. } => plant.set_friction(LIFTED_FRICTION)?,
                 Self::Odrive { plant, .. } => plant.set_friction(LIFTED_FRICTION)?,
+                Self::Cia402 { plant, .. } => plant.set_friction(LIFTED_FRICTION)?,
             }
         }
         Ok(drives)
@@ -137,12 +154,13 @@ impl SimDrives {
         match self {
             Self::Dji { plant, .. } => plant.chassis().state(),
             Self::Odrive { plant, .. } => plant.chassis().state(),
+            Self::Cia402 { plant, .. } => plant.chassis().state(),
         }
     }
 }
 
 impl SimPlant for SimDrives {
-    fn on_frame(&mut self, _t_us: u64, frame: &CanFrame) {
+    fn on_frame(&mut self, t_us: u64, frame: &CanFrame) {
         match self {
             Self::Dji { plant, esc, model } => {
                 let Ok(cmd) = CurrentCommand::decode(frame, *model) else {
@@ -166,6 +184,7 @@ impl SimPlant for SimDrives {
                     }
                 }
             }
+            Self::Cia402 { plant, nodes } => nodes.on_frame(t_us * 1000, frame, plant),
         }
     }
 
@@ -184,6 +203,7 @@ impl SimPlant for SimDrives {
                     out.push((f.time_ns, frame));
                 }
             }
+            Self::Cia402 { plant, nodes } => nodes.feedback(until_ns, plant, out),
         }
         out.sort_by_key(|(t, _)| *t);
     }
@@ -194,6 +214,7 @@ impl SimPlant for SimDrives {
         let _ = match self {
             Self::Dji { plant, .. } => plant.step(dt),
             Self::Odrive { plant, .. } => plant.step(dt),
+            Self::Cia402 { plant, .. } => plant.step(dt),
         };
     }
 
@@ -201,6 +222,7 @@ impl SimPlant for SimDrives {
         match self {
             Self::Dji { plant, .. } => plant.advance_ns(dt_ns),
             Self::Odrive { plant, .. } => plant.advance_ns(dt_ns),
+            Self::Cia402 { plant, .. } => plant.advance_ns(dt_ns),
         }
     }
 
@@ -208,6 +230,7 @@ impl SimPlant for SimDrives {
         match self {
             Self::Dji { plant, .. } => plant.next_feedback_ns(),
             Self::Odrive { plant, .. } => plant.next_feedback_ns(),
+            Self::Cia402 { nodes, .. } => nodes.next_feedback_ns(),
         }
     }
 
@@ -215,6 +238,7 @@ impl SimPlant for SimDrives {
         let p = match self {
             Self::Dji { plant, .. } => plant.pose(),
             Self::Odrive { plant, .. } => plant.pose(),
+            Self::Cia402 { plant, .. } => plant.pose(),
         };
         [p.x, p.y, p.heading]
     }
@@ -223,6 +247,7 @@ impl SimPlant for SimDrives {
         let v = match self {
             Self::Dji { plant, .. } => plant.velocity(),
             Self::Odrive { plant, .. } => plant.velocity(),
+            Self::Cia402 { plant, .. } => plant.velocity(),
         };
         [v.vx, v.vy, v.wz]
     }
@@ -231,6 +256,7 @@ impl SimPlant for SimDrives {
         match self {
             Self::Dji { plant, .. } => plant.set_faults_at(at_ns, stuck, offline),
             Self::Odrive { plant, .. } => plant.set_faults_at(at_ns, stuck, offline),
+            Self::Cia402 { plant, .. } => plant.set_faults_at(at_ns, stuck, offline),
         }
     }
 }

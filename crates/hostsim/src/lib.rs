@@ -8,6 +8,7 @@
 pub mod bringup;
 pub mod bus;
 pub mod calibrate;
+pub mod canopen_drive;
 pub mod drives;
 pub mod host;
 pub mod imu;

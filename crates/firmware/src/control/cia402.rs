@@ -248,7 +248,13 @@ impl Node {
         if core::mem::take(&mut self.fault_reset) {
             return controlword::FAULT_RESET;
         }
+        let state = self.statusword.and_then(DriveState402::from_statusword);
         match self.command {
+            // A drive whose quick stop option (0x605A, 5-8) keeps it in quick stop active
+            // leaves it only by disable voltage; 0x06 is no transition there.
+            Command::Shutdown if state == Some(DriveState402::QuickStopActive) => {
+                controlword::DISABLE_VOLTAGE
+            }
             Command::Shutdown => controlword::SHUTDOWN,
             Command::QuickStop => controlword::QUICK_STOP,
             Command::Enabling { controlword, .. } => controlword,

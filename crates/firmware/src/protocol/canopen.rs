@@ -312,6 +312,8 @@ pub mod controlword {
     pub const ENABLE_OPERATION: u16 = 0x0F;
     /// Quick stop (bit 2 clear): to quick stop active, then switch on disabled.
     pub const QUICK_STOP: u16 = 0x02;
+    /// Disable voltage (bit 1 clear): to switch on disabled, from any powered state.
+    pub const DISABLE_VOLTAGE: u16 = 0x00;
     /// Fault reset: its rising edge (bit 7) leaves fault for switch on disabled.
     pub const FAULT_RESET: u16 = 0x80;
 }

@@ -415,3 +415,23 @@ fn a_node_that_never_boots_is_missing_after_the_boot_timeout() {
     assert_eq!(rig.ctl.fault(), Fault::MotorMissing);
     assert_eq!(t, 1_001_000);
 }
+
+#[test]
+fn a_node_left_in_quick_stop_is_sent_disable_voltage_until_it_leaves_it() {
+    let mut rig = enabled();
+    rig.send(Command::Estop);
+    rig.run_ms(5);
+    // A drive with quick stop option 5-8 stays in quick stop active.
+    rig.canopen.node(1).statusword = sw::QUICK_STOP_ACTIVE;
+    rig.send(Command::Mode(ModeRequest::Reset));
+    rig.run_ms(9);
+    assert_eq!(
+        last_rpdo(&rig, 1).0,
+        0x00,
+        "disable voltage out of quick stop"
+    );
+    assert_eq!(rig.canopen.node(1).statusword, sw::SWITCH_ON_DISABLED);
+    rig.run_ms(8);
+    assert_eq!(last_rpdo(&rig, 1).0, 0x06, "then shutdown");
+    assert_eq!(rig.canopen.node(1).statusword, sw::READY_TO_SWITCH_ON);
+}

@@ -14,12 +14,15 @@
 //!   angle).
 //! - [`odrive`]: an ODrive axis (velocity loop, watchdog, 10 ms encoder estimates, 100 ms
 //!   heartbeat).
+//! - [`cia402`]: a CiA 402 drive's hub-motor axis (the CANopen node around it is the
+//!   adapter's, `crate::canopen_drive`).
 //!
 //! Wheel order is FL, FR, RL, RR ([`Wheel`]). How the drives' mounting signs and gear ratios
 //! couple them to the wheels, when feedback is due ([`Plant::take_feedback`]) and what the
 //! faults ([`Plant::set_faults_at`]) do: `docs/simulator.md`, section "Plant".
 
 pub mod chassis;
+pub mod cia402;
 pub mod dji;
 pub mod error;
 pub mod odrive;
@@ -27,6 +30,7 @@ pub mod odrive;
 use kinematics::{ChassisVelocity, Pose2};
 
 pub use chassis::{Chassis, ChassisParams, ChassisState, Contact, Ripple, WheelInput};
+pub use cia402::{Cia402Axis, Cia402Params};
 pub use dji::{C620Params, DjiDrive, DjiFeedback, M3508Params};
 pub use error::ParamError;
 pub use odrive::{OdriveAxis, OdriveFeedback, OdriveParams};
@@ -234,6 +238,36 @@ impl Plant<OdriveAxis> {
             core::array::from_fn(|_| OdriveAxis::default()),
             [false, true, false, true],
         )
+    }
+}
+
+impl Plant<Cia402Axis> {
+    /// The plant for a CiA 402 configuration: its geometry with a 40 kg body, its gear ratio
+    /// and mounting signs, hub-motor axes ([`Cia402Params`]).
+    ///
+    /// # Errors
+    /// [`ParamError`] if the configuration is not a CiA 402 one (field `"drive"`), or its
+    /// geometry or gear ratio is refused.
+    pub fn cia402_from_config(config: &firmware::Config) -> Result<Self, ParamError> {
+        use firmware::config::Drive as D;
+        let D::Cia402 {
+            gear_ratio,
+            inverted,
+            ..
+        } = config.drive
+        else {
+            return Err(ParamError::new("drive", f64::NAN, "a CiA 402 drive"));
+        };
+        let axis = Cia402Axis::new(Cia402Params {
+            gear_ratio: f64::from(gear_ratio),
+            ..Cia402Params::default()
+        })?;
+        let mut chassis = ChassisParams::from_config(config);
+        // A 0.6 m x 0.5 m AGV of 40 kg on 200 mm wheels of 1.5 kg.
+        chassis.mass = 40.0;
+        chassis.yaw_inertia = 2.0;
+        chassis.wheel_inertia = [7.5e-3; WHEELS];
+        Self::new(chassis, core::array::from_fn(|_| axis.clone()), inverted)
     }
 }
 

@@ -1,0 +1,782 @@
+//! Simulated CANopen CiA 402 drives on the bus: each node's NMT state, its object dictionary
+//! as an SDO server (what the master writes is what the node does), its PDOs as mapped,
+//! answered on SYNC, its heartbeat and the master's watched, EMCY, boot-up, and the 402 state
+//! machine powering its axes ([`Cia402Axis`]) in the plant.
+//!
+//! PDOs are packed and unpacked from the mapping the master wrote (`0x1600..`/`0x1A00..`),
+//! not from the firmware codec's fixed layout: a master that maps wrong gets what a drive
+//! would give it. A mapping or COB-ID written out of the disable → map → enable order is
+//! refused with the abort code a drive gives. The model is specified in
+//! `docs/simulator.md`, section "CiA 402 drive".
+
+use std::collections::BTreeMap;
+
+use embedded_can::{Frame, Id, StandardId};
+use firmware::CanFrame;
+use firmware::protocol::canopen::{
+    self, Emcy, Message, NmtCommand, NmtState, NodeId, SdoRequest, SdoResponse,
+};
+
+use crate::plant::{Cia402Axis, Plant, Wheel};
+
+/// Time from a request (SDO, SYNC, NMT) to the node's answer, ns.
+pub const ANSWER_NS: u64 = 200_000;
+/// Time from an NMT reset to the boot-up, ns.
+pub const BOOT_NS: u64 = 2_000_000;
+/// EMCY error code of a heartbeat consumer timeout (CiA 301: life guard / heartbeat error).
+pub const EMCY_HEARTBEAT: u16 = 0x8130;
+/// A quick stop ends once every axis of the node turns slower than this, rad/s (motor side).
+pub const QUICK_STOP_REST_RAD_S: f64 = 0.1;
+/// The device type (0x1000) the nodes report: CiA 402, servo drive.
+pub const DEVICE_TYPE: u32 = 0x0002_0192;
+
+/// Statuswords (CiA 402; bit 4 voltage enabled, bit 9 remote).
+mod sw {
+    pub const SWITCH_ON_DISABLED: u16 = 0x0250;
+    pub const READY_TO_SWITCH_ON: u16 = 0x0231;
+    pub const SWITCHED_ON: u16 = 0x0233;
+    pub const OPERATION_ENABLED: u16 = 0x0237;
+    pub const QUICK_STOP_ACTIVE: u16 = 0x0217;
+    pub const FAULT: u16 = 0x0218;
+}
+
+/// SDO abort codes the nodes give (CiA 301 table 22).
+mod abort {
+    pub const NO_OBJECT: u32 = 0x0602_0000;
+    pub const READ_ONLY: u32 = 0x0601_0002;
+    pub const CANNOT_MAP: u32 = 0x0604_0041;
+    pub const INCOMPATIBLE: u32 = 0x0604_0043;
+    pub const NO_SUBINDEX: u32 = 0x0609_0011;
+    pub const INVALID_VALUE: u32 = 0x0609_0030;
+    pub const DEVICE_STATE: u32 = 0x0800_0022;
+}
+
+/// Faults a scenario can give a node, for the fault matrix.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct NodeFaults {
+    /// The node sends no heartbeat.
+    pub heartbeat_silent: bool,
+    /// Its enable never reaches operation enabled (stays switched on).
+    pub refuses_enable: bool,
+    /// An SDO write to this object is aborted with this code.
+    pub abort: Option<((u16, u8), u32)>,
+}
+
+/// A PDO mapping entry: object index, sub-index, length in bits.
+type Entry = (u16, u8, u8);
+
+/// One simulated node.
+#[derive(Debug, Clone)]
+struct Node {
+    id: NodeId,
+    /// The wheels of its axes: sub-index 0 (single-axis) or 1 and 2.
+    axes: [Option<Wheel>; 3],
+    od: BTreeMap<(u16, u8), u32>,
+    nmt: NmtState,
+    statusword: u16,
+    last_controlword: u16,
+    /// Targets of sub-indices 0, 1, 2, raw.
+    targets: [i32; 3],
+    next_heartbeat_ns: u64,
+    last_master_heartbeat_ns: Option<u64>,
+    faults: NodeFaults,
+}
+
+/// The CiA 402 nodes of a configuration.
+#[derive(Debug, Clone)]
+pub struct CanopenDrives {
+    nodes: Vec<Node>,
+    /// Motor rev/s per raw unit of 0x60FF, motor rpm per raw unit of 0x606C.
+    target_rev_s_per_unit: f64,
+    actual_rpm_per_unit: f64,
+    /// Frames owed, with their send time (ns), in time order per node.
+    queue: Vec<(u64, CanFrame)>,
+    emcy_sent: u32,
+}
+
+impl CanopenDrives {
+    /// The nodes of a `Drive::Cia402` configuration, booting at time 0.
+    #[must_use]
+    pub fn new(config: &firmware::Config) -> Self {
+        let firmware::config::Drive::Cia402 {
+            node_ids,
+            axes,
+            target_rpm_per_unit,
+            actual_rpm_per_unit,
+            ..
+        } = config.drive
+        else {
+            return Self::empty();
+        };
+        let mut nodes: Vec<Node> = Vec::new();
+        for ((wheel, &id), &axis) in Wheel::ALL.iter().zip(&node_ids).zip(&axes) {
+            let Some(nid) = NodeId::new(id) else { continue };
+            let i = match nodes.iter().position(|n| n.id == nid) {
+                Some(i) => i,
+                None => {
+                    nodes.push(Node::new(nid));
+                    nodes.len() - 1
+                }
+            };
+            if let Some(slot) = nodes[i].axes.get_mut(usize::from(axis)) {
+                *slot = Some(*wheel);
+            }
+        }
+        let mut drives = Self {
+            nodes,
+            target_rev_s_per_unit: f64::from(target_rpm_per_unit) / 60.0,
+            actual_rpm_per_unit: f64::from(actual_rpm_per_unit),
+            queue: Vec::new(),
+            emcy_sent: 0,
+        };
+        for i in 0..drives.nodes.len() {
+            drives.boot(i, 0);
+        }
+        drives
+    }
+
+    const fn empty() -> Self {
+        Self {
+            nodes: Vec::new(),
+            target_rev_s_per_unit: 0.0,
+            actual_rpm_per_unit: 1.0,
+            queue: Vec::new(),
+            emcy_sent: 0,
+        }
+    }
+
+    /// The faults of node `id` from now on.
+    pub fn set_faults(&mut self, id: u8, faults: NodeFaults) {
+        if let Some(n) = self.nodes.iter_mut().find(|n| n.id.get() == id) {
+            n.faults = faults;
+        }
+    }
+
+    /// Node `id` reboots at `t_ns`: its axes lose power and it boots (boot-up, defaults).
+    pub fn reboot(&mut self, id: u8, t_ns: u64, plant: &mut Plant<Cia402Axis>) {
+        if let Some(i) = self.nodes.iter().position(|n| n.id.get() == id) {
+            self.boot(i, t_ns);
+            self.power(i, plant);
+        }
+    }
+
+    /// Node `id` faults at `t_ns` with EMCY `code` (a drive error: overcurrent 0x2310, ...).
+    pub fn fault(&mut self, id: u8, t_ns: u64, code: u16, plant: &mut Plant<Cia402Axis>) {
+        if let Some(i) = self.nodes.iter().position(|n| n.id.get() == id) {
+            self.enter_fault(i, t_ns, code, plant);
+        }
+    }
+
+    /// EMCY frames sent so far.
+    #[must_use]
+    pub const fn emcy_sent(&self) -> u32 {
+        self.emcy_sent
+    }
+
+    /// The statusword of node `id`.
+    #[must_use]
+    pub fn statusword(&self, id: u8) -> Option<u16> {
+        self.nodes
+            .iter()
+            .find(|n| n.id.get() == id)
+            .map(|n| n.statusword)
+    }
+
+    fn send(&mut self, t_ns: u64, msg: Message) {
+        self.queue.push((t_ns, msg.to_can_frame()));
+    }
+
+    /// Node `i` (re)boots at `t_ns`: its dictionary at its defaults, pre-operational, switch
+    /// on disabled; the boot-up goes out [`BOOT_NS`] later.
+    fn boot(&mut self, i: usize, t_ns: u64) {
+        let n = &mut self.nodes[i];
+        let axes = n.axes;
+        let faults = n.faults;
+        *n = Node::new(n.id);
+        n.axes = axes;
+        n.faults = faults;
+        let id = n.id;
+        // The heartbeat producer starts with the boot-up, at its default period (0: off).
+        self.send(
+            t_ns + BOOT_NS,
+            Message::Heartbeat {
+                node: id,
+                state: NmtState::BootUp,
+            },
+        );
+    }
+
+    fn enter_fault(&mut self, i: usize, t_ns: u64, code: u16, plant: &mut Plant<Cia402Axis>) {
+        let n = &mut self.nodes[i];
+        if n.statusword == sw::FAULT {
+            return;
+        }
+        n.statusword = sw::FAULT;
+        let id = n.id;
+        self.emcy_sent += 1;
+        self.send(
+            t_ns,
+            Message::Emcy {
+                node: id,
+                emcy: Emcy {
+                    error_code: code,
+                    error_register: 0x01,
+                    manufacturer: [0; 5],
+                },
+            },
+        );
+        self.power(i, plant);
+    }
+
+    /// Powers node `i`'s axes as its state says, with their targets.
+    fn power(&self, i: usize, plant: &mut Plant<Cia402Axis>) {
+        let n = &self.nodes[i];
+        for (sub, wheel) in n.axes.iter().enumerate() {
+            let Some(wheel) = wheel else { continue };
+            let axis = plant.drive_mut(*wheel);
+            match n.statusword {
+                sw::OPERATION_ENABLED => {
+                    axis.set_powered(true);
+                    axis.set_target(f64::from(n.targets[sub]) * self.target_rev_s_per_unit);
+                }
+                sw::QUICK_STOP_ACTIVE => {
+                    axis.set_powered(true);
+                    axis.set_target(0.0);
+                }
+                _ => {
+                    axis.set_target(0.0);
+                    axis.set_powered(false);
+                }
+            }
+        }
+    }
+
+    /// A frame on the bus at `t_ns`.
+    pub fn on_frame(&mut self, t_ns: u64, frame: &CanFrame, plant: &mut Plant<Cia402Axis>) {
+        let Id::Standard(id) = frame.id() else { return };
+        let raw = id.as_raw();
+        // PDOs first: their ids are whatever the master mapped.
+        for i in 0..self.nodes.len() {
+            if self.nodes[i].nmt == NmtState::Operational
+                && let Some(k) = self.nodes[i].rpdo_with(raw)
+            {
+                self.on_rpdo(i, k, frame.data(), plant);
+                return;
+            }
+        }
+        match canopen::decode(frame) {
+            Ok(Message::Nmt { command, node }) => {
+                for i in 0..self.nodes.len() {
+                    if node.is_none_or(|id| id == self.nodes[i].id) {
+                        self.on_nmt(i, command, t_ns, plant);
+                    }
+                }
+            }
+            Ok(Message::Sync { .. }) => self.on_sync(t_ns, plant),
+            Ok(Message::SdoRequest { node, request }) => {
+                if let Some(i) = self.nodes.iter().position(|n| n.id == node) {
+                    let response = self.nodes[i].sdo(request);
+                    let n = &mut self.nodes[i];
+                    if response
+                        == (SdoResponse::Downloaded {
+                            index: 0x1017,
+                            sub: 0,
+                        })
+                    {
+                        // The producer runs from the write on, at the new period.
+                        let start = t_ns + ANSWER_NS;
+                        n.next_heartbeat_ns =
+                            n.heartbeat_period_ns().map_or(u64::MAX, |p| start + p);
+                    }
+                    self.send(t_ns + ANSWER_NS, Message::SdoResponse { node, response });
+                }
+            }
+            Ok(Message::Heartbeat { node, .. }) => {
+                for n in &mut self.nodes {
+                    if n.consumer().is_some_and(|(master, _)| master == node.get()) {
+                        n.last_master_heartbeat_ns = Some(t_ns);
+                    }
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn on_nmt(&mut self, i: usize, command: NmtCommand, t_ns: u64, plant: &mut Plant<Cia402Axis>) {
+        match command {
+            NmtCommand::Start => {
+                let n = &mut self.nodes[i];
+                n.nmt = NmtState::Operational;
+                // The master's heartbeat is watched from the start.
+                n.last_master_heartbeat_ns = Some(t_ns);
+            }
+            NmtCommand::Stop => self.nodes[i].nmt = NmtState::Stopped,
+            NmtCommand::EnterPreOperational => self.nodes[i].nmt = NmtState::PreOperational,
+            NmtCommand::ResetNode | NmtCommand::ResetCommunication => {
+                self.boot(i, t_ns);
+                self.power(i, plant);
+            }
+        }
+    }
+
+    fn on_sync(&mut self, t_ns: u64, plant: &mut Plant<Cia402Axis>) {
+        // A quick stop ends when the axes are at rest: switch on disabled, no power.
+        for i in 0..self.nodes.len() {
+            let n = &self.nodes[i];
+            let at_rest = n
+                .axes
+                .iter()
+                .flatten()
+                .all(|w| plant.shaft(*w).speed.abs() < QUICK_STOP_REST_RAD_S);
+            if n.statusword == sw::QUICK_STOP_ACTIVE && at_rest {
+                self.nodes[i].statusword = sw::SWITCH_ON_DISABLED;
+                self.power(i, plant);
+            }
+        }
+        let mut frames = Vec::new();
+        for n in &self.nodes {
+            if n.nmt != NmtState::Operational {
+                continue;
+            }
+            let actual = n.axes.map(|w| {
+                w.map_or(0, |w| {
+                    let rpm = plant.shaft(w).speed * 60.0 / core::f64::consts::TAU;
+                    // Saturating float-to-int: a wheel far beyond any drive's range.
+                    #[allow(clippy::cast_possible_truncation)]
+                    let raw = (rpm / self.actual_rpm_per_unit).round() as i32;
+                    raw
+                })
+            });
+            for k in 0..4u16 {
+                let Some((cob, entries)) = n.tpdo(k) else {
+                    continue;
+                };
+                let mut data = [0u8; 8];
+                let mut at = 0usize;
+                for (index, sub, bits) in entries {
+                    let value: u32 = match (index, sub) {
+                        (0x6041, 0) => u32::from(n.statusword),
+                        // Two's complement on the wire.
+                        #[allow(clippy::cast_sign_loss)]
+                        (0x606C, s) => actual[usize::from(s).min(2)] as u32,
+                        _ => 0,
+                    };
+                    let bytes = usize::from(bits / 8);
+                    data[at..at + bytes].copy_from_slice(&value.to_le_bytes()[..bytes]);
+                    at += bytes;
+                }
+                if let Some(id) = StandardId::new(cob)
+                    && let Some(frame) = CanFrame::standard(id, &data[..at])
+                {
+                    frames.push((t_ns + ANSWER_NS, frame));
+                }
+            }
+        }
+        self.queue.extend(frames);
+    }
+
+    fn on_rpdo(&mut self, i: usize, k: u16, data: &[u8], plant: &mut Plant<Cia402Axis>) {
+        let Some(entries) = self.nodes[i].mapping(0x1600 + k) else {
+            return;
+        };
+        let mut at = 0usize;
+        let mut controlword = None;
+        for (index, sub, bits) in entries {
+            let bytes = usize::from(bits / 8);
+            let Some(field) = data.get(at..at + bytes) else {
+                // A frame shorter than its mapping: a drive ignores it.
+                return;
+            };
+            let mut word = [0u8; 4];
+            word[..bytes].copy_from_slice(field);
+            let value = u32::from_le_bytes(word);
+            at += bytes;
+            match (index, sub) {
+                // 16 bits mapped.
+                #[allow(clippy::cast_possible_truncation)]
+                (0x6040, 0) => controlword = Some(value as u16),
+                // Two's complement on the wire.
+                #[allow(clippy::cast_possible_wrap)]
+                (0x60FF, s) => self.nodes[i].targets[usize::from(s).min(2)] = value as i32,
+                _ => {}
+            }
+        }
+        if let Some(cw) = controlword {
+            self.nodes[i].control(cw);
+        }
+        self.power(i, plant);
+    }
+
+    /// The frames the nodes send up to `until_ns`: answers, TPDOs, heartbeats, EMCY; and the
+    /// master's heartbeat watched.
+    pub fn feedback(
+        &mut self,
+        until_ns: u64,
+        plant: &mut Plant<Cia402Axis>,
+        out: &mut Vec<(u64, CanFrame)>,
+    ) {
+        for i in 0..self.nodes.len() {
+            // The heartbeat consumer.
+            if let Some((_, timeout_ms)) = self.nodes[i].consumer()
+                && self.nodes[i].nmt == NmtState::Operational
+                && let Some(last) = self.nodes[i].last_master_heartbeat_ns
+            {
+                let deadline = last + u64::from(timeout_ms) * 1_000_000;
+                if deadline <= until_ns {
+                    self.nodes[i].last_master_heartbeat_ns = None;
+                    self.enter_fault(i, deadline, EMCY_HEARTBEAT, plant);
+                }
+            }
+            // The heartbeat producer.
+            loop {
+                let n = &mut self.nodes[i];
+                if n.next_heartbeat_ns > until_ns {
+                    break;
+                }
+                let t = n.next_heartbeat_ns;
+                n.next_heartbeat_ns = n.heartbeat_period_ns().map_or(u64::MAX, |p| t + p);
+                if !n.faults.heartbeat_silent {
+                    let (node, state) = (n.id, n.nmt);
+                    self.send(t, Message::Heartbeat { node, state });
+                }
+            }
+        }
+        let mut due = Vec::new();
+        self.queue.retain(|&(t, f)| {
+            if t <= until_ns {
+                due.push((t, f));
+                false
+            } else {
+                true
+            }
+        });
+        // Boot-ups start the heartbeat producer at the node's default period.
+        for (t, f) in &due {
+            if let Ok(Message::Heartbeat {
+                node,
+                state: NmtState::BootUp,
+            }) = canopen::decode(f)
+                && let Some(n) = self.nodes.iter_mut().find(|n| n.id == node)
+            {
+                n.next_heartbeat_ns = n.heartbeat_period_ns().map_or(u64::MAX, |p| t + p);
+            }
+        }
+        due.sort_by_key(|(t, _)| *t);
+        out.extend(due);
+    }
+
+    /// When the next frame is due, ns.
+    #[must_use]
+    pub fn next_feedback_ns(&self) -> u64 {
+        let queued = self.queue.iter().map(|(t, _)| *t).min().unwrap_or(u64::MAX);
+        let beats = self
+            .nodes
+            .iter()
+            .map(|n| n.next_heartbeat_ns)
+            .min()
+            .unwrap_or(u64::MAX);
+        queued.min(beats)
+    }
+}
+
+impl Node {
+    fn new(id: NodeId) -> Self {
+        let node = u32::from(id.get());
+        let mut od = BTreeMap::new();
+        od.insert((0x1000, 0), DEVICE_TYPE);
+        od.insert((0x1017, 0), 0);
+        od.insert((0x1016, 1), 0);
+        od.insert((0x6060, 0), 0);
+        // The predefined connection set, PDOs valid as a drive ships them.
+        for k in 0..4u32 {
+            let k16 = u16::try_from(k).unwrap_or(0);
+            od.insert((0x1400 + k16, 1), 0x200 + 0x100 * k + node);
+            od.insert((0x1400 + k16, 2), 0xFF);
+            od.insert((0x1800 + k16, 1), 0x180 + 0x100 * k + node);
+            od.insert((0x1800 + k16, 2), 0xFF);
+            for map in [0x1600 + k16, 0x1A00 + k16] {
+                for sub in 0..=8 {
+                    od.insert((map, sub), 0);
+                }
+            }
+        }
+        Self {
+            id,
+            axes: [None; 3],
+            od,
+            nmt: NmtState::PreOperational,
+            statusword: sw::SWITCH_ON_DISABLED,
+            last_controlword: 0,
+            targets: [0; 3],
+            next_heartbeat_ns: u64::MAX,
+            last_master_heartbeat_ns: None,
+            faults: NodeFaults::default(),
+        }
+    }
+
+    fn get(&self, index: u16, sub: u8) -> u32 {
+        self.od.get(&(index, sub)).copied().unwrap_or(0)
+    }
+
+    fn heartbeat_period_ns(&self) -> Option<u64> {
+        let ms = self.get(0x1017, 0);
+        (ms > 0).then(|| u64::from(ms) * 1_000_000)
+    }
+
+    /// The consumer entry (0x1016:01): the producer's node and the time, ms.
+    fn consumer(&self) -> Option<(u8, u16)> {
+        let v = self.get(0x1016, 1);
+        let (node, ms) = (((v >> 16) & 0x7F) as u8, (v & 0xFFFF) as u16);
+        (node != 0 && ms != 0).then_some((node, ms))
+    }
+
+    /// The entries `(index, sub, bits)` of mapping object `map`, if its PDO is valid.
+    fn mapping(&self, map: u16) -> Option<Vec<Entry>> {
+        let comm = map - 0x200;
+        if self.get(comm, 1) & 0x8000_0000 != 0 {
+            return None;
+        }
+        let count = self.get(map, 0).min(8);
+        Some(
+            (1..=count)
+                .map(|s| {
+                    // s <= 8.
+                    #[allow(clippy::cast_possible_truncation)]
+                    let e = self.get(map, s as u8);
+                    ((e >> 16) as u16, (e >> 8) as u8, e as u8)
+                })
+                .collect(),
+        )
+    }
+
+    /// The RPDO (0..=3) received on `cob`, if one is valid on it.
+    fn rpdo_with(&self, cob: u16) -> Option<u16> {
+        (0..4u16).find(|k| {
+            let c = self.get(0x1400 + k, 1);
+            c & 0x8000_0000 == 0 && c & 0x7FF == u32::from(cob)
+        })
+    }
+
+    /// TPDO `k`'s COB-ID and entries, if it is valid and sent on SYNC.
+    fn tpdo(&self, k: u16) -> Option<(u16, Vec<Entry>)> {
+        let kind = self.get(0x1800 + k, 2);
+        if kind == 0 || kind > 240 {
+            return None;
+        }
+        let entries = self.mapping(0x1A00 + k)?;
+        // 11 bits.
+        #[allow(clippy::cast_possible_truncation)]
+        let cob = (self.get(0x1800 + k, 1) & 0x7FF) as u16;
+        Some((cob, entries))
+    }
+
+    /// Whether `(index, sub)` may be mapped into an RPDO (`rx`) or a TPDO.
+    fn mappable(&self, index: u16, sub: u8, rx: bool) -> bool {
+        let dual = self.axes[1].is_some() || self.axes[2].is_some();
+        let axis_sub = if dual {
+            (1..=2).contains(&sub)
+        } else {
+            sub == 0
+        };
+        match index {
+            0x6040 => rx && sub == 0,
+            0x60FF => rx && axis_sub,
+            0x6041 => !rx && sub == 0,
+            0x606C => !rx && axis_sub,
+            _ => false,
+        }
+    }
+
+    /// Answers one SDO request.
+    fn sdo(&mut self, request: SdoRequest) -> SdoResponse {
+        let (index, sub) = request.object();
+        let refuse = |code| SdoResponse::Abort { index, sub, code };
+        match request {
+            SdoRequest::Abort { .. } => refuse(abort::INCOMPATIBLE),
+            SdoRequest::Upload { .. } => match self.od.get(&(index, sub)) {
+                Some(&value) => SdoResponse::Uploaded {
+                    index,
+                    sub,
+                    value,
+                    size: 4,
+                },
+                None if self.od.keys().any(|(i, _)| *i == index) => refuse(abort::NO_SUBINDEX),
+                None => refuse(abort::NO_OBJECT),
+            },
+            SdoRequest::Download { value, .. } => {
+                if let Some((object, code)) = self.faults.abort
+                    && object == (index, sub)
+                {
+                    return refuse(code);
+                }
+                match self.check_write(index, sub, value) {
+                    Ok(()) => {
+                        self.od.insert((index, sub), value);
+                        SdoResponse::Downloaded { index, sub }
+                    }
+                    Err(code) => refuse(code),
+                }
+            }
+        }
+    }
+
+    /// Whether writing `value` to `(index, sub)` is allowed now (CiA 301's PDO rules).
+    fn check_write(&self, index: u16, sub: u8, value: u32) -> Result<(), u32> {
+        if !self.od.contains_key(&(index, sub)) {
+            return Err(if self.od.keys().any(|(i, _)| *i == index) {
+                abort::NO_SUBINDEX
+            } else {
+                abort::NO_OBJECT
+            });
+        }
+        match index {
+            0x1000 => Err(abort::READ_ONLY),
+            0x6060 if value != 3 => Err(abort::INVALID_VALUE),
+            // Mapping: only while the PDO is off; entries only while the count is 0.
+            0x1600..=0x1603 | 0x1A00..=0x1A03 => {
+                let comm = index - 0x200;
+                if self.get(comm, 1) & 0x8000_0000 == 0 {
+                    return Err(abort::DEVICE_STATE);
+                }
+                let rx = index < 0x1A00;
+                if sub == 0 {
+                    let entries: Vec<_> = (1..=value.min(8))
+                        .map(|s| self.get(index, s as u8))
+                        .collect();
+                    let bits: u32 = entries.iter().map(|e| e & 0xFF).sum();
+                    let ok = value <= 8
+                        && bits <= 64
+                        && entries
+                            .iter()
+                            .all(|e| self.mappable((e >> 16) as u16, (e >> 8) as u8, rx));
+                    if ok { Ok(()) } else { Err(abort::CANNOT_MAP) }
+                } else if self.get(index, 0) != 0 {
+                    Err(abort::DEVICE_STATE)
+                } else if self.mappable((value >> 16) as u16, (value >> 8) as u8, rx)
+                    && matches!(value & 0xFF, 16 | 32)
+                {
+                    Ok(())
+                } else {
+                    Err(abort::CANNOT_MAP)
+                }
+            }
+            // A valid PDO's COB-ID changes only through invalid.
+            0x1400..=0x1403 | 0x1800..=0x1803 if sub == 1 => {
+                let now = self.get(index, 1);
+                let both_valid = now & 0x8000_0000 == 0 && value & 0x8000_0000 == 0;
+                if both_valid && now & 0x7FF != value & 0x7FF {
+                    Err(abort::INVALID_VALUE)
+                } else {
+                    Ok(())
+                }
+            }
+            _ => Ok(()),
+        }
+    }
+
+    /// The 402 state machine, on a controlword.
+    fn control(&mut self, cw: u16) {
+        let rising_reset = cw & 0x80 != 0 && self.last_controlword & 0x80 == 0;
+        self.last_controlword = cw;
+        let s = self.statusword;
+        if s == sw::FAULT {
+            if rising_reset {
+                self.statusword = sw::SWITCH_ON_DISABLED;
+            }
+            return;
+        }
+        let mode_ok = self.get(0x6060, 0) == 3;
+        self.statusword = match cw & 0x8F {
+            c if c & 0x02 == 0 => sw::SWITCH_ON_DISABLED,
+            c if c & 0x06 == 0x02 => {
+                if s == sw::OPERATION_ENABLED || s == sw::QUICK_STOP_ACTIVE {
+                    sw::QUICK_STOP_ACTIVE
+                } else {
+                    sw::SWITCH_ON_DISABLED
+                }
+            }
+            0x06 => sw::READY_TO_SWITCH_ON,
+            0x07 if s == sw::READY_TO_SWITCH_ON || s == sw::OPERATION_ENABLED => sw::SWITCHED_ON,
+            0x0F if s == sw::SWITCHED_ON && mode_ok && !self.faults.refuses_enable => {
+                sw::OPERATION_ENABLED
+            }
+            _ => s,
+        };
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn write(n: &mut Node, index: u16, sub: u8, value: u32) -> SdoResponse {
+        n.sdo(SdoRequest::Download {
+            index,
+            sub,
+            value,
+            size: 4,
+        })
+    }
+
+    #[test]
+    fn a_mapping_changes_only_in_the_disable_map_enable_order() {
+        let mut n = Node::new(NodeId::new(1).unwrap());
+        n.axes = [Some(Wheel::FrontLeft), None, None];
+        let refused = |code| SdoResponse::Abort {
+            index: 0x1600,
+            sub: 0,
+            code,
+        };
+        // RPDO1 is valid as the drive ships: its mapping is locked.
+        assert_eq!(write(&mut n, 0x1600, 0, 0), refused(abort::DEVICE_STATE));
+        assert!(matches!(
+            write(&mut n, 0x1400, 1, 0x8000_0201),
+            SdoResponse::Downloaded { .. }
+        ));
+        assert!(matches!(
+            write(&mut n, 0x1600, 0, 0),
+            SdoResponse::Downloaded { .. }
+        ));
+        assert!(matches!(
+            write(&mut n, 0x1600, 1, 0x6040_0010),
+            SdoResponse::Downloaded { .. }
+        ));
+        // A TPDO object in an RPDO, or a dual-axis sub-index on a single-axis node: refused.
+        for bad in [0x6041_0010, 0x60FF_0120] {
+            assert_eq!(
+                write(&mut n, 0x1600, 2, bad),
+                SdoResponse::Abort {
+                    index: 0x1600,
+                    sub: 2,
+                    code: abort::CANNOT_MAP
+                }
+            );
+        }
+        assert!(matches!(
+            write(&mut n, 0x1600, 2, 0x60FF_0020),
+            SdoResponse::Downloaded { .. }
+        ));
+        assert!(matches!(
+            write(&mut n, 0x1600, 0, 2),
+            SdoResponse::Downloaded { .. }
+        ));
+        // Entries only while the count is 0.
+        assert_eq!(
+            write(&mut n, 0x1600, 1, 0x6040_0010),
+            SdoResponse::Abort {
+                index: 0x1600,
+                sub: 1,
+                code: abort::DEVICE_STATE
+            }
+        );
+        assert!(matches!(
+            write(&mut n, 0x1400, 1, 0x201),
+            SdoResponse::Downloaded { .. }
+        ));
+        assert_eq!(
+            n.mapping(0x1600),
+            Some(vec![(0x6040, 0, 16), (0x60FF, 0, 32)])
+        );
+        assert_eq!(n.rpdo_with(0x201), Some(0));
+    }
+}

@@ -1,0 +1,128 @@
+//! The core as the CANopen master of simulated CiA 402 drives (`config/cia402.toml`): each
+//! node configured, started and enabled on the bit-timed bus, the robot driving its square,
+//! and the bus load of the cycle the configuration sets.
+
+use embedded_can::Frame;
+use firmware::Config;
+use firmware::protocol::canopen::{self, Message, NmtCommand};
+use firmware::protocol::robot::{self, RobotState};
+use hostsim::bus::Node;
+use hostsim::drives::SimDrives;
+use hostsim::scenario::Scenario;
+use hostsim::sim::{LogOptions, RunSummary, run, run_observed};
+
+fn cia402() -> Config {
+    Config::from_toml_file(std::path::Path::new("../../config/cia402.toml")).unwrap()
+}
+
+fn square(config: Config) -> Scenario {
+    let mut s = Scenario::builtin("square").unwrap();
+    s.config = config;
+    s
+}
+
+fn simulate(s: &Scenario) -> RunSummary {
+    let mut plant = SimDrives::new(&s.config).unwrap();
+    run(s, &mut plant, None, LogOptions::default(), |_| {}).unwrap()
+}
+
+#[test]
+fn the_square_drives_on_cia402_drives_and_the_odometry_closes() {
+    let r = simulate(&square(cia402()));
+    assert_eq!(r.last.state, RobotState::Enabled, "{:?}", r.transitions);
+    assert_eq!(r.last.rx_errors.total(), 0);
+    assert_eq!(r.last.motors_online, 0b1111);
+    // As the ODrive and DJI robots on the same square: the odometry ends within 2 cm of the
+    // truth (the strafing legs slip, as the chassis model makes every mecanum robot slip).
+    assert!(
+        r.final_position_error < 0.02,
+        "{} m",
+        r.final_position_error
+    );
+    assert!(
+        r.truth[0].abs() < 0.05 && r.truth[1].abs() < 0.05,
+        "{:?}",
+        r.truth
+    );
+}
+
+/// Times (µs) at which a node is started and reaches operation enabled, and when the master
+/// sent its first frame: read from the frames on the bus.
+#[derive(Debug, Default, Clone, Copy)]
+struct Trace {
+    start: Option<u64>,
+    enabled: Option<u64>,
+}
+
+#[test]
+fn each_node_is_configured_started_and_enabled_in_simulated_milliseconds() {
+    let s = square(cia402());
+    let mut plant = SimDrives::new(&s.config).unwrap();
+    let mut traces = [Trace::default(); 2];
+    let mut enable_sent = None;
+    run_observed(&s, &mut plant, None, LogOptions::default(), |step| {
+        for tx in step.delivered {
+            let t = tx.delivered_ns / 1000;
+            match canopen::decode(&tx.frame) {
+                Ok(Message::Nmt {
+                    command: NmtCommand::Start,
+                    node: Some(n),
+                }) if tx.from == Node::Controller => {
+                    traces[usize::from(n.get() - 1)].start.get_or_insert(t);
+                }
+                Ok(Message::Tpdo1 {
+                    node, statusword, ..
+                }) if statusword & 0x6F == 0x27 => {
+                    traces[usize::from(node.get() - 1)].enabled.get_or_insert(t);
+                }
+                _ => {}
+            }
+            let mode_cmd = embedded_can::Id::Standard(
+                embedded_can::StandardId::new(robot::layout::MODE_CMD.id).unwrap(),
+            );
+            if tx.frame.id() == mode_cmd && tx.frame.data() == [1] && enable_sent.is_none() {
+                enable_sent = Some(t);
+            }
+        }
+    })
+    .unwrap();
+    let enable_sent = enable_sent.expect("the host enabled the robot");
+    for (i, t) in traces.iter().enumerate() {
+        let start = t.start.expect("started");
+        let enabled = t.enabled.expect("enabled") - enable_sent;
+        eprintln!(
+            "node {}: started {:.1} ms after boot, operation enabled {:.1} ms after the host's enable",
+            i + 1,
+            start as f64 / 1e3,
+            enabled as f64 / 1e3
+        );
+        // 34 SDO transfers, one per 1 ms step; then three enable steps, each answered by the
+        // next SYNC (4 ms).
+        assert!(
+            (34_000..=40_000).contains(&start),
+            "node {}: {start} µs",
+            i + 1
+        );
+        assert!(enabled <= 20_000, "node {}: {enabled} µs", i + 1);
+    }
+}
+
+#[test]
+fn the_cycle_sets_the_bus_load_and_a_1_khz_cycle_nearly_fills_the_bus() {
+    let load = |hz: u32| {
+        let mut c = cia402();
+        c.timing.setpoint_hz = hz;
+        let r = simulate(&square(c));
+        assert!(
+            r.last.state == RobotState::Enabled,
+            "{hz} Hz: {:?}",
+            r.transitions
+        );
+        r.bus_load
+    };
+    let (l250, l1000) = (load(250), load(1000));
+    // Two dual-axis nodes: SYNC, two RPDO1, two RPDO3, two TPDO1, two TPDO2 a cycle, beside
+    // the robot's own frames.
+    assert!((0.20..0.30).contains(&l250), "250 Hz: {l250}");
+    assert!(l1000 > 0.80, "1 kHz: {l1000}");
+}
