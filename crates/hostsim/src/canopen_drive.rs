@@ -23,6 +23,8 @@ use crate::plant::{Cia402Axis, Plant, Wheel};
 pub const ANSWER_NS: u64 = 200_000;
 /// Time from an NMT reset to the boot-up, ns.
 pub const BOOT_NS: u64 = 2_000_000;
+/// EMCY error code of a scenario's `drive_fault` (CiA 402: continuous over-current).
+pub const EMCY_DRIVE_FAULT: u16 = 0x2310;
 /// EMCY error code of a heartbeat consumer timeout (CiA 301: life guard / heartbeat error).
 pub const EMCY_HEARTBEAT: u16 = 0x8130;
 /// A quick stop ends once every axis of the node turns slower than this, rad/s (motor side).
@@ -80,6 +82,8 @@ struct Node {
     next_heartbeat_ns: u64,
     last_master_heartbeat_ns: Option<u64>,
     faults: NodeFaults,
+    /// The scenario's faults last set (for their rising edges).
+    scenario: crate::sim::DriveFaults,
 }
 
 /// The CiA 402 nodes of a configuration.
@@ -167,6 +171,43 @@ impl CanopenDrives {
         }
     }
 
+    /// The scenario's faults of each wheel's node from `at_ns` on: heartbeat, enable and SDO
+    /// faults as they say; a rising `reboot` reboots the node, a rising `fault` faults it
+    /// (EMCY 0x2310).
+    pub fn set_wheel_faults(
+        &mut self,
+        at_ns: u64,
+        faults: [crate::sim::DriveFaults; 4],
+        plant: &mut Plant<Cia402Axis>,
+    ) {
+        for i in 0..self.nodes.len() {
+            let mut f = crate::sim::DriveFaults::default();
+            for (w, wf) in Wheel::ALL.iter().zip(faults) {
+                if self.nodes[i].axes.contains(&Some(*w)) {
+                    f.silent |= wf.silent;
+                    f.reboot |= wf.reboot;
+                    f.fault |= wf.fault;
+                    f.refuses_enable |= wf.refuses_enable;
+                    f.sdo_abort |= wf.sdo_abort;
+                }
+            }
+            let before = self.nodes[i].scenario;
+            self.nodes[i].scenario = f;
+            self.nodes[i].faults = NodeFaults {
+                heartbeat_silent: f.silent,
+                refuses_enable: f.refuses_enable,
+                abort: f.sdo_abort.then_some(((0x6060, 0), abort::INVALID_VALUE)),
+            };
+            if f.reboot && !before.reboot {
+                self.boot(i, at_ns);
+                self.power(i, plant);
+            }
+            if f.fault && !before.fault {
+                self.enter_fault(i, at_ns, EMCY_DRIVE_FAULT, plant);
+            }
+        }
+    }
+
     /// EMCY frames sent so far.
     #[must_use]
     pub const fn emcy_sent(&self) -> u32 {
@@ -190,11 +231,9 @@ impl CanopenDrives {
     /// on disabled; the boot-up goes out [`BOOT_NS`] later.
     fn boot(&mut self, i: usize, t_ns: u64) {
         let n = &mut self.nodes[i];
-        let axes = n.axes;
-        let faults = n.faults;
+        let (axes, faults, scenario) = (n.axes, n.faults, n.scenario);
         *n = Node::new(n.id);
-        n.axes = axes;
-        n.faults = faults;
+        (n.axes, n.faults, n.scenario) = (axes, faults, scenario);
         let id = n.id;
         // The heartbeat producer starts with the boot-up, at its default period (0: off).
         self.send(
@@ -511,6 +550,7 @@ impl Node {
             next_heartbeat_ns: u64::MAX,
             last_master_heartbeat_ns: None,
             faults: NodeFaults::default(),
+            scenario: crate::sim::DriveFaults::default(),
         }
     }
 

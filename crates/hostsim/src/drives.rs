@@ -87,6 +87,17 @@ impl SimDrives {
     /// # Errors
     /// As [`Self::with_spec`].
     pub fn for_scenario(scenario: &crate::scenario::Scenario) -> Result<Self, ParamError> {
+        if !matches!(scenario.config.drive, DriveConfig::Cia402 { .. })
+            && scenario.wheel_faults.iter().any(|f| f.kind.cia402_only())
+        {
+            return Err(ParamError::new(
+                "faults[].kind",
+                f64::NAN,
+                "stuck_encoder or motor_offline: drive_silent, drive_reboot, drive_fault, \
+                 enable_refused and sdo_abort act on CANopen nodes, a protocol = \"cia402\" \
+                 configuration",
+            ));
+        }
         Self::with_spec(&scenario.config, &scenario.plant)
     }
 
@@ -257,6 +268,12 @@ impl SimPlant for SimDrives {
             Self::Dji { plant, .. } => plant.set_faults_at(at_ns, stuck, offline),
             Self::Odrive { plant, .. } => plant.set_faults_at(at_ns, stuck, offline),
             Self::Cia402 { plant, .. } => plant.set_faults_at(at_ns, stuck, offline),
+        }
+    }
+
+    fn set_drive_faults(&mut self, at_ns: u64, faults: [crate::sim::DriveFaults; 4]) {
+        if let Self::Cia402 { plant, nodes } = self {
+            nodes.set_wheel_faults(at_ns, faults, plant);
         }
     }
 }

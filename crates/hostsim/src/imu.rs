@@ -288,6 +288,10 @@ impl<P: SimPlant> SimPlant for WithImu<'_, P> {
     fn set_faults(&mut self, at_ns: u64, stuck: [bool; 4], offline: [bool; 4]) {
         self.inner.set_faults(at_ns, stuck, offline);
     }
+
+    fn set_drive_faults(&mut self, at_ns: u64, faults: [crate::sim::DriveFaults; 4]) {
+        self.inner.set_drive_faults(at_ns, faults);
+    }
 }
 
 #[cfg(test)]

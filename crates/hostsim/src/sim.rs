@@ -55,6 +55,25 @@ pub trait SimPlant {
     /// freezes wheel i's encoder, `offline[i]` silences its drive. The motion before `at_ns`
     /// does not feel them; the feedback stamped `at_ns` does.
     fn set_faults(&mut self, at_ns: u64, stuck: [bool; 4], offline: [bool; 4]);
+    /// CiA 402 drives' faults in force from `at_ns` on, by wheel (the wheel's node): a plant
+    /// without CANopen nodes has none (such a scenario is refused before the run).
+    fn set_drive_faults(&mut self, _at_ns: u64, _faults: [DriveFaults; 4]) {}
+}
+
+/// The CiA 402 faults in force on one wheel's drive (its node), from the scenario's
+/// `drive_*`, `enable_refused` and `sdo_abort` faults.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct DriveFaults {
+    /// `drive_silent`: no heartbeat.
+    pub silent: bool,
+    /// `drive_reboot`: its rising edge reboots the node.
+    pub reboot: bool,
+    /// `drive_fault`: its rising edge faults the node.
+    pub fault: bool,
+    /// `enable_refused`.
+    pub refuses_enable: bool,
+    /// `sdo_abort`: the write of 0x6060 is aborted.
+    pub sdo_abort: bool,
 }
 
 /// What to log.
@@ -502,6 +521,25 @@ pub fn set_wheel_faults<P: SimPlant>(s: &Scenario, plant: &mut P, t_us: u64) {
     let stuck = wheel_flags(s, t_us, crate::scenario::FaultName::StuckEncoder);
     let offline = wheel_flags(s, t_us, crate::scenario::FaultName::MotorOffline);
     plant.set_faults(t_us * 1000, stuck, offline);
+    if s.wheel_faults.iter().any(|f| f.kind.cia402_only()) {
+        use crate::scenario::FaultName as F;
+        let [silent, reboot, fault, refuses_enable, sdo_abort] = [
+            F::DriveSilent,
+            F::DriveReboot,
+            F::DriveFault,
+            F::EnableRefused,
+            F::SdoAbort,
+        ]
+        .map(|kind| wheel_flags(s, t_us, kind));
+        let faults = core::array::from_fn(|i| DriveFaults {
+            silent: silent[i],
+            reboot: reboot[i],
+            fault: fault[i],
+            refuses_enable: refuses_enable[i],
+            sdo_abort: sdo_abort[i],
+        });
+        plant.set_drive_faults(t_us * 1000, faults);
+    }
 }
 
 fn wheel_flags(s: &Scenario, t_us: u64, kind: crate::scenario::FaultName) -> [bool; 4] {

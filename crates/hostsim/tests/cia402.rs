@@ -126,3 +126,41 @@ fn the_cycle_sets_the_bus_load_and_a_1_khz_cycle_nearly_fills_the_bus() {
     assert!((0.20..0.30).contains(&l250), "250 Hz: {l250}");
     assert!(l1000 > 0.80, "1 kHz: {l1000}");
 }
+
+#[test]
+fn the_reboot_scenario_faults_reconfigures_and_drives_again_after_the_hosts_reset() {
+    let s =
+        Scenario::from_file(std::path::Path::new("../../scenarios/cia402_reboot.toml")).unwrap();
+    let mut plant = SimDrives::for_scenario(&s).unwrap();
+    let r = run(&s, &mut plant, None, LogOptions::default(), |_| {}).unwrap();
+    let states: Vec<(&str, &str)> = r
+        .transitions
+        .iter()
+        .map(|(_, s, f)| (s.as_str(), f.as_str()))
+        .collect();
+    assert_eq!(
+        states,
+        [
+            ("ENABLED", "NONE"),
+            ("FAULT", "DRIVE_REBOOTED"),
+            ("DISABLED", "NONE"),
+            ("ENABLED", "NONE")
+        ],
+        "{:?}",
+        r.transitions
+    );
+    let fault_at = r.transitions[1].0;
+    assert!((0.602..0.605).contains(&fault_at), "{fault_at} s");
+    assert_eq!(r.last.motors_online, 0b1111);
+    // Driving forward again at the end: 0.4 m/s for about a second.
+    assert!(r.truth[0] > 0.5, "{:?}", r.truth);
+}
+
+#[test]
+fn canopen_faults_are_refused_for_other_drives() {
+    let mut s =
+        Scenario::from_file(std::path::Path::new("../../scenarios/cia402_reboot.toml")).unwrap();
+    s.config = Config::dji_m3508_example();
+    let e = SimDrives::for_scenario(&s).unwrap_err().to_string();
+    assert!(e.contains("faults[].kind") && e.contains("cia402"), "{e}");
+}

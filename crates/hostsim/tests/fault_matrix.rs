@@ -1,6 +1,7 @@
 //! The fault matrix: every fault the simulator injects, at several moments of a drive, run in
 //! lockstep with the real firmware core; each must end in the state the firmware specifies
-//! (`firmware::control` module docs) within its latency budget.
+//! (`docs/control.md`) within its latency budget. The CiA 402 drives' rows are in
+//! `fault_matrix/cia402.rs`.
 //!
 //! Latencies are measured from the simulator's record, not from the firmware's opinion of
 //! itself: the fault's onset is the scenario time, the reaction is the first step whose state
@@ -28,6 +29,9 @@ use hostsim::sim::{LogOptions, StepView, run_observed};
 use kinematics::ChassisVelocity;
 
 const MS: u64 = 1_000;
+
+#[path = "fault_matrix/cia402.rs"]
+mod cia402;
 
 // ---------------------------------------------------------------------------------------
 // Recording a run
@@ -667,6 +671,7 @@ fn matrix() -> Vec<Row> {
         );
         rows.push(watchdog_row(name, onset, &s, &run(&s)));
     }
+    rows.extend(cia402::rows());
     rows
 }
 
@@ -964,7 +969,7 @@ fn current_figures(rows: &[Row]) -> String {
         .collect();
     let stops = rows
         .iter()
-        .filter(|r| r.expected.contains("zero current"))
+        .filter(|r| r.expected.contains("zero current") || r.expected.contains("zero targets"))
         .count();
     let mut t = String::new();
     writeln!(t, "| fault matrix (the simulator, lockstep) | rows | kinds of fault | rows that must stop the motors | in their specified state within budget |").unwrap();

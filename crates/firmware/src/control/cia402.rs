@@ -193,8 +193,12 @@ enum Command {
     Shutdown,
     /// Quick stop (0x02): stop on the drive's quick-stop ramp, then no torque.
     QuickStop,
-    /// Enabling: `controlword` sent since `since`, until the statusword shows its state.
-    Enabling { controlword: u16, since: Instant },
+    /// Enabling: `controlword` sent since `since` (`None`: not sent yet), until the
+    /// statusword shows its state.
+    Enabling {
+        controlword: u16,
+        since: Option<Instant>,
+    },
     /// Operation enabled: following the targets.
     Enabled,
 }
@@ -465,7 +469,7 @@ impl Cia402 {
             n.command = match next {
                 Some(controlword) => Command::Enabling {
                     controlword,
-                    since: now,
+                    since: None,
                 },
                 None => Command::Enabled,
             };
@@ -542,13 +546,13 @@ impl Cia402 {
     }
 
     /// Runs the enable sequence on every node (`only` `None`) or on wheel `only`'s.
-    pub(super) fn request_enable(&mut self, now: Instant, only: Option<u8>) {
+    pub(super) fn request_enable(&mut self, only: Option<u8>) {
         let only = only.and_then(|w| self.wheel_node.get(usize::from(w)).map(|s| s.0));
         for (i, n) in self.nodes.iter_mut().enumerate() {
             if only.is_none_or(|o| o == i) {
                 n.command = Command::Enabling {
                     controlword: controlword::SHUTDOWN,
-                    since: now,
+                    since: None,
                 };
             }
         }
@@ -606,9 +610,13 @@ impl Cia402 {
                 {
                     Some(DriveIssue::HeartbeatLost { node })
                 }
-                (_, Command::Enabling { controlword, since })
-                    if now.micros_since(since) > CIA402_TRANSITION_TIMEOUT_US =>
-                {
+                (
+                    _,
+                    Command::Enabling {
+                        controlword,
+                        since: Some(since),
+                    },
+                ) if now.micros_since(since) > CIA402_TRANSITION_TIMEOUT_US => {
                     Some(DriveIssue::TransitionTimeout {
                         node,
                         controlword,
@@ -746,6 +754,17 @@ impl Cia402 {
                             targets[usize::from(second)] = raw as i32;
                         }
                     }
+                }
+                // An enable step's time runs from the cycle that first sends it.
+                if let Command::Enabling {
+                    controlword,
+                    since: None,
+                } = n.command
+                {
+                    n.command = Command::Enabling {
+                        controlword,
+                        since: Some(now),
+                    };
                 }
                 let rpdo1 = Message::Rpdo1 {
                     node: n.id,

@@ -147,7 +147,7 @@ impl DriveState {
         match self {
             Self::Dji(_) => {}
             Self::Odrive(o) => o.request_closed_loop(now, only),
-            Self::Cia402(c) => c.request_enable(now, only),
+            Self::Cia402(c) => c.request_enable(only),
         }
     }
 

@@ -11,7 +11,8 @@ use crate::scenario::ScenarioError;
 #[serde(deny_unknown_fields)]
 pub struct FaultSpec {
     /// `drop`, `burst`, `delay`, `corrupt`, `stuck_encoder`, `motor_offline`,
-    /// `non_finite_twist` or `repeated_twist`.
+    /// `non_finite_twist`, `repeated_twist`, or for CiA 402 drives `drive_silent`,
+    /// `drive_reboot`, `drive_fault`, `enable_refused`, `sdo_abort`.
     pub kind: FaultName,
     /// Start, s.
     pub from_s: f64,
@@ -26,7 +27,8 @@ pub struct FaultSpec {
     /// Sender the bus fault applies to (all if absent).
     #[serde(default)]
     pub sender: Option<SenderName>,
-    /// Wheel (0 FL, 1 FR, 2 RL, 3 RR) for `stuck_encoder` and `motor_offline`.
+    /// Wheel (0 FL, 1 FR, 2 RL, 3 RR) for `stuck_encoder` and `motor_offline`, and the wheel
+    /// whose drive (CANopen node) the CiA 402 faults act on.
     #[serde(default)]
     pub wheel: Option<usize>,
 }
@@ -50,6 +52,19 @@ pub enum FaultName {
     /// Besides its own stream, the host sends `TWIST_CMD` frames whose values are not finite
     /// numbers (see [`crate::host::non_finite_twist_frames`]), once per command period.
     NonFiniteTwist,
+    /// CiA 402: the wheel's drive sends no heartbeat (its PDOs still flow).
+    DriveSilent,
+    /// CiA 402: the wheel's drive reboots at `from_s` (once; boot-up 2 ms later, its
+    /// configuration lost).
+    DriveReboot,
+    /// CiA 402: the wheel's drive faults at `from_s` (statusword fault, EMCY 0x2310), until
+    /// a fault reset.
+    DriveFault,
+    /// CiA 402: the wheel's drive does not reach operation enabled (it stays switched on).
+    EnableRefused,
+    /// CiA 402: the wheel's drive aborts the master's write of the mode (0x6060) with
+    /// 0x06090030 (invalid value).
+    SdoAbort,
     /// The host's stream stops incrementing `TWIST_CMD.seq`: each frame it sends is its last
     /// one before the fault, unchanged (a stuck host, USB adapter or gateway repeating one
     /// frame), whatever its setpoint; afterwards it sends fresh frames again.
@@ -57,6 +72,19 @@ pub enum FaultName {
 }
 
 impl FaultName {
+    /// Whether the fault acts on a CiA 402 drive (a CANopen node), and only there.
+    #[must_use]
+    pub const fn cia402_only(self) -> bool {
+        matches!(
+            self,
+            Self::DriveSilent
+                | Self::DriveReboot
+                | Self::DriveFault
+                | Self::EnableRefused
+                | Self::SdoAbort
+        )
+    }
+
     /// The name a scenario file uses (`stuck_encoder`).
     #[must_use]
     pub const fn as_str(self) -> &'static str {
@@ -69,6 +97,11 @@ impl FaultName {
             Self::MotorOffline => "motor_offline",
             Self::NonFiniteTwist => "non_finite_twist",
             Self::RepeatedTwist => "repeated_twist",
+            Self::DriveSilent => "drive_silent",
+            Self::DriveReboot => "drive_reboot",
+            Self::DriveFault => "drive_fault",
+            Self::EnableRefused => "enable_refused",
+            Self::SdoAbort => "sdo_abort",
         }
     }
 }
@@ -101,7 +134,7 @@ impl From<SenderName> for Node {
 /// A plant-side fault: which wheel, when.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct WheelFault {
-    /// Stuck encoder or offline.
+    /// Stuck encoder, offline, or a CiA 402 drive's fault.
     pub kind: FaultName,
     /// Wheel index.
     pub wheel: usize,
@@ -175,9 +208,13 @@ pub(super) fn build(
             FaultName::Drop | FaultName::Corrupt => (true, false, true, false, "rate, sender"),
             FaultName::Burst => (false, false, true, false, "sender"),
             FaultName::Delay => (false, true, true, false, "delay_ms, sender"),
-            FaultName::StuckEncoder | FaultName::MotorOffline => {
-                (false, false, false, true, "wheel")
-            }
+            FaultName::StuckEncoder
+            | FaultName::MotorOffline
+            | FaultName::DriveSilent
+            | FaultName::DriveReboot
+            | FaultName::DriveFault
+            | FaultName::EnableRefused
+            | FaultName::SdoAbort => (false, false, false, true, "wheel"),
             FaultName::NonFiniteTwist | FaultName::RepeatedTwist => {
                 (false, false, false, false, "no other field")
             }
@@ -228,7 +265,12 @@ pub(super) fn build(
             FaultName::StuckEncoder
             | FaultName::MotorOffline
             | FaultName::NonFiniteTwist
-            | FaultName::RepeatedTwist => None,
+            | FaultName::RepeatedTwist
+            | FaultName::DriveSilent
+            | FaultName::DriveReboot
+            | FaultName::DriveFault
+            | FaultName::EnableRefused
+            | FaultName::SdoAbort => None,
         };
         if matches!(f.kind, FaultName::NonFiniteTwist | FaultName::RepeatedTwist) {
             host_faults.push(HostFault {

@@ -279,6 +279,11 @@ fn fault_names_are_the_ones_a_file_uses() {
         MotorOffline,
         NonFiniteTwist,
         RepeatedTwist,
+        DriveSilent,
+        DriveReboot,
+        DriveFault,
+        EnableRefused,
+        SdoAbort,
     ] {
         let parsed: FaultName =
             serde::de::Deserialize::deserialize(serde::de::value::StrDeserializer::<
