@@ -14,7 +14,7 @@ use std::collections::BTreeMap;
 use embedded_can::{Frame, Id, StandardId};
 use firmware::CanFrame;
 use firmware::protocol::canopen::{
-    self, Emcy, Message, NmtCommand, NmtState, NodeId, SdoRequest, SdoResponse,
+    self, DriveState402, Emcy, Message, NmtCommand, NmtState, NodeId, SdoRequest, SdoResponse,
 };
 
 use crate::plant::{Cia402Axis, Plant, Wheel};
@@ -32,14 +32,13 @@ pub const QUICK_STOP_REST_RAD_S: f64 = 0.1;
 /// The device type (0x1000) the nodes report: CiA 402, servo drive.
 pub const DEVICE_TYPE: u32 = 0x0002_0192;
 
-/// Statuswords (CiA 402; bit 4 voltage enabled, bit 9 remote).
+/// Statuswords (the codec's: bit 4 voltage enabled, bit 9 remote).
 mod sw {
-    pub const SWITCH_ON_DISABLED: u16 = 0x0250;
-    pub const READY_TO_SWITCH_ON: u16 = 0x0231;
-    pub const SWITCHED_ON: u16 = 0x0233;
-    pub const OPERATION_ENABLED: u16 = 0x0237;
-    pub const QUICK_STOP_ACTIVE: u16 = 0x0217;
-    pub const FAULT: u16 = 0x0218;
+    use firmware::protocol::canopen::DriveState402 as S;
+    pub const SWITCH_ON_DISABLED: u16 = S::SwitchOnDisabled.statusword();
+    pub const OPERATION_ENABLED: u16 = S::OperationEnabled.statusword();
+    pub const QUICK_STOP_ACTIVE: u16 = S::QuickStopActive.statusword();
+    pub const FAULT: u16 = S::Fault.statusword();
 }
 
 /// SDO abort codes the nodes give (CiA 301 table 22).
@@ -714,34 +713,15 @@ impl Node {
         }
     }
 
-    /// The 402 state machine, on a controlword.
+    /// The 402 state machine (the codec's drive side), on a controlword.
     fn control(&mut self, cw: u16) {
-        let rising_reset = cw & 0x80 != 0 && self.last_controlword & 0x80 == 0;
+        let state = DriveState402::from_statusword(self.statusword)
+            .unwrap_or(DriveState402::SwitchOnDisabled);
+        let may_enable = self.get(0x6060, 0) == 3 && !self.faults.refuses_enable;
+        self.statusword = state
+            .on_controlword(cw, self.last_controlword, may_enable)
+            .statusword();
         self.last_controlword = cw;
-        let s = self.statusword;
-        if s == sw::FAULT {
-            if rising_reset {
-                self.statusword = sw::SWITCH_ON_DISABLED;
-            }
-            return;
-        }
-        let mode_ok = self.get(0x6060, 0) == 3;
-        self.statusword = match cw & 0x8F {
-            c if c & 0x02 == 0 => sw::SWITCH_ON_DISABLED,
-            c if c & 0x06 == 0x02 => {
-                if s == sw::OPERATION_ENABLED || s == sw::QUICK_STOP_ACTIVE {
-                    sw::QUICK_STOP_ACTIVE
-                } else {
-                    sw::SWITCH_ON_DISABLED
-                }
-            }
-            0x06 => sw::READY_TO_SWITCH_ON,
-            0x07 if s == sw::READY_TO_SWITCH_ON || s == sw::OPERATION_ENABLED => sw::SWITCHED_ON,
-            0x0F if s == sw::SWITCHED_ON && mode_ok && !self.faults.refuses_enable => {
-                sw::OPERATION_ENABLED
-            }
-            _ => s,
-        };
     }
 }
 

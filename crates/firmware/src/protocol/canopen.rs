@@ -283,6 +283,59 @@ impl DriveState402 {
         })
     }
 
+    /// The state a drive goes to on `controlword` (CiA 402's device control, the drive's
+    /// side), `previous` the controlword before it: a fault leaves only on a rising edge of
+    /// bit 7; shutdown, switch on, enable operation, disable voltage and quick stop as the
+    /// profile's transitions 2-12 say; operation enabled only if `may_enable` (the drive's
+    /// mode and its own conditions allow it). For the simulated and scripted drives: the
+    /// master only reads states ([`Self::from_statusword`]).
+    #[must_use]
+    pub const fn on_controlword(self, cw: u16, previous: u16, may_enable: bool) -> Self {
+        use DriveState402 as S;
+        if let S::Fault | S::FaultReactionActive = self {
+            let rising_reset = cw & 0x80 != 0 && previous & 0x80 == 0;
+            return if rising_reset && matches!(self, S::Fault) {
+                S::SwitchOnDisabled
+            } else {
+                self
+            };
+        }
+        if cw & 0x80 != 0 {
+            // Fault reset outside a fault: no transition.
+            return self;
+        }
+        match (self, cw & 0x0F) {
+            // Disable voltage (bit 1 clear): transitions 7, 9, 10, 12.
+            (_, c) if c & 0x02 == 0 => S::SwitchOnDisabled,
+            // Quick stop (bit 2 clear): 11 from operation enabled, 7 and 10 otherwise.
+            (S::OperationEnabled | S::QuickStopActive, c) if c & 0x04 == 0 => S::QuickStopActive,
+            (_, c) if c & 0x04 == 0 => S::SwitchOnDisabled,
+            // Shutdown: 2, 6, 8.
+            (S::SwitchOnDisabled | S::SwitchedOn | S::OperationEnabled, 0x06) => S::ReadyToSwitchOn,
+            // Switch on (3) and disable operation (5).
+            (S::ReadyToSwitchOn | S::OperationEnabled, 0x07) => S::SwitchedOn,
+            // Enable operation: 4.
+            (S::SwitchedOn, 0x0F) if may_enable => S::OperationEnabled,
+            _ => self,
+        }
+    }
+
+    /// A statusword reporting this state, as the project's simulated drives send it (bit 4,
+    /// voltage enabled, and bit 9, remote, set).
+    #[must_use]
+    pub const fn statusword(self) -> u16 {
+        match self {
+            Self::NotReadyToSwitchOn => 0x0200,
+            Self::SwitchOnDisabled => 0x0250,
+            Self::ReadyToSwitchOn => 0x0231,
+            Self::SwitchedOn => 0x0233,
+            Self::OperationEnabled => 0x0237,
+            Self::QuickStopActive => 0x0217,
+            Self::FaultReactionActive => 0x021F,
+            Self::Fault => 0x0218,
+        }
+    }
+
     /// A name for logs (CiA 402's, in capitals).
     #[must_use]
     pub const fn as_str(self) -> &'static str {
@@ -953,6 +1006,52 @@ mod tests {
             assert_eq!(DriveState402::from_statusword(sw), Some(state), "{sw:#06x}");
         }
         assert_eq!(DriveState402::from_statusword(0x0001), None);
+    }
+
+    #[test]
+    fn the_drive_side_machine_follows_cia402s_transitions() {
+        use DriveState402 as S;
+        let walk = |cws: &[u16], may_enable: bool| {
+            let (mut s, mut prev) = (S::SwitchOnDisabled, 0);
+            for &cw in cws {
+                s = s.on_controlword(cw, prev, may_enable);
+                prev = cw;
+            }
+            s
+        };
+        assert_eq!(walk(&[0x06, 0x07, 0x0F], true), S::OperationEnabled);
+        assert_eq!(walk(&[0x06, 0x07, 0x0F], false), S::SwitchedOn);
+        assert_eq!(
+            walk(&[0x07, 0x0F], true),
+            S::SwitchOnDisabled,
+            "no skipping"
+        );
+        assert_eq!(walk(&[0x06, 0x07, 0x0F, 0x02], true), S::QuickStopActive);
+        assert_eq!(
+            walk(&[0x06, 0x07, 0x0F, 0x02, 0x00], true),
+            S::SwitchOnDisabled
+        );
+        assert_eq!(walk(&[0x06, 0x07, 0x0F, 0x06], true), S::ReadyToSwitchOn);
+        assert_eq!(walk(&[0x06, 0x07, 0x0F, 0x07], true), S::SwitchedOn);
+        // A fault leaves on the rising edge of bit 7 only.
+        assert_eq!(S::Fault.on_controlword(0x80, 0x80, true), S::Fault);
+        assert_eq!(S::Fault.on_controlword(0x06, 0x80, true), S::Fault);
+        assert_eq!(
+            S::Fault.on_controlword(0x80, 0x06, true),
+            S::SwitchOnDisabled
+        );
+        for s in [
+            S::NotReadyToSwitchOn,
+            S::SwitchOnDisabled,
+            S::ReadyToSwitchOn,
+            S::SwitchedOn,
+            S::OperationEnabled,
+            S::QuickStopActive,
+            S::FaultReactionActive,
+            S::Fault,
+        ] {
+            assert_eq!(S::from_statusword(s.statusword()), Some(s));
+        }
     }
 
     #[test]

@@ -6,17 +6,18 @@
 use firmware::CanFrame;
 use firmware::config::{Config, Drive};
 use firmware::protocol::canopen::{
-    self, Emcy, Message, NmtCommand, NmtState, NodeId, SdoRequest, SdoResponse,
+    self, DriveState402, Emcy, Message, NmtCommand, NmtState, NodeId, SdoRequest, SdoResponse,
 };
 
-/// Statuswords the scripted drives report (bit 4 voltage enabled, bit 9 remote).
+/// Statuswords the scripted drives report (the codec's: bit 4 voltage enabled, bit 9 remote).
 pub mod sw {
-    pub const SWITCH_ON_DISABLED: u16 = 0x0250;
-    pub const READY_TO_SWITCH_ON: u16 = 0x0231;
-    pub const SWITCHED_ON: u16 = 0x0233;
-    pub const OPERATION_ENABLED: u16 = 0x0237;
-    pub const QUICK_STOP_ACTIVE: u16 = 0x0217;
-    pub const FAULT: u16 = 0x0218;
+    use firmware::protocol::canopen::DriveState402 as S;
+    pub const SWITCH_ON_DISABLED: u16 = S::SwitchOnDisabled.statusword();
+    pub const READY_TO_SWITCH_ON: u16 = S::ReadyToSwitchOn.statusword();
+    pub const SWITCHED_ON: u16 = S::SwitchedOn.statusword();
+    pub const OPERATION_ENABLED: u16 = S::OperationEnabled.statusword();
+    pub const QUICK_STOP_ACTIVE: u16 = S::QuickStopActive.statusword();
+    pub const FAULT: u16 = S::Fault.statusword();
 }
 
 /// One scripted node.
@@ -272,33 +273,14 @@ impl ScriptedNode {
         );
     }
 
-    /// The CiA 402 state machine, on each controlword received.
+    /// The CiA 402 state machine (the codec's drive side), on each controlword received.
     fn control(&mut self, cw: u16) {
-        let rising_reset = cw & 0x80 != 0 && self.last_controlword & 0x80 == 0;
+        let state = DriveState402::from_statusword(self.statusword)
+            .unwrap_or(DriveState402::SwitchOnDisabled);
+        let may_enable = self.mode == 3 && !self.refuses_enable;
+        self.statusword = state
+            .on_controlword(cw, self.last_controlword, may_enable)
+            .statusword();
         self.last_controlword = cw;
-        if self.statusword == sw::FAULT {
-            if rising_reset {
-                self.statusword = sw::SWITCH_ON_DISABLED;
-            }
-            return;
-        }
-        let s = self.statusword;
-        self.statusword = match cw & 0x8F {
-            // Quick stop (bit 2 clear, bit 1 set) and disable voltage (bit 1 clear).
-            c if c & 0x02 == 0 => sw::SWITCH_ON_DISABLED,
-            c if c & 0x06 == 0x02 => {
-                if s == sw::OPERATION_ENABLED {
-                    sw::QUICK_STOP_ACTIVE
-                } else {
-                    sw::SWITCH_ON_DISABLED
-                }
-            }
-            0x06 => sw::READY_TO_SWITCH_ON,
-            0x07 if s == sw::READY_TO_SWITCH_ON || s == sw::OPERATION_ENABLED => sw::SWITCHED_ON,
-            0x0F if s == sw::SWITCHED_ON && self.mode == 3 && !self.refuses_enable => {
-                sw::OPERATION_ENABLED
-            }
-            _ => s,
-        };
     }
 }
