@@ -329,42 +329,6 @@ pub enum Fault {
     DriveTransition = 12,
 }
 
-macro_rules! u8_enum {
-    ($ty:ident { $($variant:ident = $raw:literal => $name:literal),+ $(,)? }) => {
-        impl $ty {
-            /// The enum value for a raw byte; `None` for values not defined.
-            #[must_use]
-            pub const fn from_raw(raw: u8) -> Option<Self> {
-                match raw {
-                    $($raw => Some(Self::$variant),)+
-                    _ => None,
-                }
-            }
-
-            /// The raw byte.
-            #[must_use]
-            pub const fn raw(self) -> u8 {
-                self as u8
-            }
-
-            /// The name in the DBC's value table (`dbc/mecanum_robot.dbc`): the name every
-            /// log and printout uses, stable when the Rust variant is renamed.
-            #[must_use]
-            pub const fn as_str(self) -> &'static str {
-                match self {
-                    $(Self::$variant => $name,)+
-                }
-            }
-        }
-
-        impl core::fmt::Display for $ty {
-            fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
-                f.write_str(self.as_str())
-            }
-        }
-    };
-}
-
 /// Where the odometry's heading comes from (`STATUS.heading_source`).
 #[derive(Clone, Copy, PartialEq, Eq, Debug, Default)]
 pub enum HeadingSource {
