@@ -31,14 +31,18 @@ fn started() -> Rig {
 fn enabled() -> Rig {
     let mut rig = started();
     rig.enable();
+    wait_enabled(&mut rig).expect("the enable sequence completes");
+    rig
+}
+
+/// Runs until every node is operation enabled (at most 100 ms); the time it was.
+fn wait_enabled(rig: &mut Rig) -> Option<u64> {
     rig.run_until(100, |r, _| {
         r.canopen
             .nodes
             .iter()
             .all(|n| n.statusword == sw::OPERATION_ENABLED)
     })
-    .expect("the enable sequence completes");
-    rig
 }
 
 /// The (controlword, targets) of the last RPDOs to `node` in the log.
@@ -152,13 +156,7 @@ fn an_enable_runs_shutdown_switch_on_enable_operation_checking_each_state() {
     let t0 = rig.now_us;
     rig.enable();
     rig.twist(0.5, 0.0, 0.0);
-    rig.run_until(100, |r, _| {
-        r.canopen
-            .nodes
-            .iter()
-            .all(|n| n.statusword == sw::OPERATION_ENABLED)
-    })
-    .expect("enabled");
+    wait_enabled(&mut rig).expect("enabled");
     for node in [1, 2] {
         let words: Vec<u16> = rig
             .canopen
@@ -299,13 +297,7 @@ fn a_node_that_reboots_is_configured_again_and_needs_the_hosts_reset_and_enable(
     rig.run_ms(10);
     assert_eq!(rig.ctl.state(), RobotState::Disabled);
     rig.enable();
-    rig.run_until(100, |r, _| {
-        r.canopen
-            .nodes
-            .iter()
-            .all(|n| n.statusword == sw::OPERATION_ENABLED)
-    })
-    .expect("enabled again");
+    wait_enabled(&mut rig).expect("enabled again");
     assert_eq!(rig.ctl.state(), RobotState::Enabled);
 }
 
