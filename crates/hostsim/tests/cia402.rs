@@ -2,12 +2,16 @@
 //! node configured, started and enabled on the bit-timed bus, the robot driving its square,
 //! and the bus load of the cycle the configuration sets.
 
+mod common;
+
 use embedded_can::Frame;
 use firmware::Config;
 use firmware::protocol::canopen::{self, Message, NmtCommand};
 use firmware::protocol::robot::{self, RobotState};
 use hostsim::bus::Node;
 use hostsim::drives::SimDrives;
+use hostsim::log::for_each_message;
+use hostsim::log::msg::{self, decode};
 use hostsim::scenario::Scenario;
 use hostsim::sim::{LogOptions, RunSummary, run, run_observed};
 
@@ -131,8 +135,23 @@ fn the_cycle_sets_the_bus_load_and_a_1_khz_cycle_nearly_fills_the_bus() {
 fn the_reboot_scenario_faults_reconfigures_and_drives_again_after_the_hosts_reset() {
     let s =
         Scenario::from_file(std::path::Path::new("../../scenarios/cia402_reboot.toml")).unwrap();
-    let mut plant = SimDrives::for_scenario(&s).unwrap();
-    let r = run(&s, &mut plant, None, LogOptions::default(), |_| {}).unwrap();
+    let path = common::scratch("cia402", "reboot.mcap");
+    let r = common::logged_run(&s, &path);
+    // The log's status line says what the bus said.
+    let bytes = std::fs::read(&path).unwrap();
+    let mut lines = Vec::new();
+    for_each_message(
+        &bytes,
+        |m| {
+            if m.topic == "/rosout" {
+                lines.push(decode::<msg::Log>(m.data).unwrap().msg);
+            }
+        },
+        |_, _| {},
+    )
+    .unwrap();
+    let line = "state FAULT, fault DRIVE_REBOOTED (node 1: booted again, configured anew)";
+    assert!(lines.iter().any(|l| l == line), "{lines:?}");
     let states: Vec<(&str, &str)> = r
         .transitions
         .iter()
