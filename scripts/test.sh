@@ -19,7 +19,7 @@ STAGES=(
     "prepare|the Rust target and components (rustup), cmake and libclang for boardsim (apt-get, as root), the Python virtual environment .venv (pip), and the binaries the Python stages run, built once: hostsim and mecanum-runner (release), mecanum-codec"
     "vcan|the tests marked vcan on a real vcan0: natively where the kernel has vcan, else in a QEMU micro-VM (scripts/vcan.sh); runs in the background beside the stages below"
     "fmt|cargo fmt --check"
-    "stm32f407|$BOARD: clippy, the release images for the DJI and the ODrive example (boardsim's tests run both), their flash and RAM budgets"
+    "stm32f407|$BOARD: clippy, the release images for the DJI, the ODrive and the CiA 402 example (boardsim's tests run the first two), their flash and RAM budgets"
     "clippy|cargo clippy, all targets and features, -D warnings"
     "rust-tests|cargo test: unit, integration, property and doc tests; boardsim runs the $BOARD image"
     "rustdoc|cargo doc, -D warnings, default and all features"
@@ -200,15 +200,17 @@ fi
 # The board crate is its own package (not a workspace member, its own Cargo.lock): its
 # commands run from its directory so that its .cargo/config.toml (target, linker script) applies.
 if wanted stm32f407; then
-    stage stm32f407 "$BOARD: clippy (-D warnings), release builds for config/odrive.toml and config/dji_m3508.toml (the default), flash and RAM (256 KiB, 32 KiB)"
+    stage stm32f407 "$BOARD: clippy (-D warnings), release builds for config/odrive.toml, config/cia402.toml and config/dji_m3508.toml (the default), flash and RAM (256 KiB, 32 KiB)"
     (cd "$BOARD" && cargo clippy --release --locked -- -D warnings)
     # The ODrive image first, kept under its own name for boardsim's tests; then the default,
     # which stays at the path a user flashes. Only the board crate rebuilds between the two.
     RELEASE="$BOARD/target/$THUMB/release"
     (cd "$BOARD" && MECANUM_CONFIG=../../config/odrive.toml cargo build --release --locked)
     cp "$RELEASE/board-stm32f407" "$RELEASE/board-stm32f407-odrive"
+    (cd "$BOARD" && MECANUM_CONFIG=../../config/cia402.toml cargo build --release --locked)
+    cp "$RELEASE/board-stm32f407" "$RELEASE/board-stm32f407-cia402"
     (cd "$BOARD" && cargo build --release --locked)
-    for elf in "$RELEASE/board-stm32f407-odrive" "$RELEASE/board-stm32f407"; do
+    for elf in "$RELEASE/board-stm32f407-odrive" "$RELEASE/board-stm32f407-cia402" "$RELEASE/board-stm32f407"; do
         python3 "$BOARD/size.py" "$elf" --max-flash 262144 --max-ram 32768
     done
 fi

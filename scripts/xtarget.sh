@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # Cross-target determinism: the firmware core and a fixed scenario (boards/qemu-m4/scenario:
-# scripted host commands and plant, 3,000 steps at 1 kHz, DJI and ODrive configurations) run
-# on an emulated Cortex-M4 (QEMU mps2-an386, thumbv7em-none-eabihf, semihosting) and on the
-# host; their reports (outbound frame count, FNV-1a 64 hash, checkpoints every 100 steps,
-# every 100th frame, final pose bits) must be byte-identical. Then counts the instructions
-# per control step on the emulated Cortex-M4 from QEMU's execution trace.
+# scripted host commands and plant, 3,000 steps at 1 kHz, DJI, ODrive and CiA 402
+# configurations) run on an emulated Cortex-M4 (QEMU mps2-an386, thumbv7em-none-eabihf,
+# semihosting) and on the host; their reports (outbound frame count, FNV-1a 64 hash,
+# checkpoints every 100 steps, every 100th frame, final pose bits) must be byte-identical.
+# Then counts the instructions per control step on the emulated Cortex-M4 from QEMU's
+# execution trace.
 #
 # Installs qemu-system-arm with apt-get when it is missing and the script runs as root.
 #
@@ -21,7 +22,7 @@ icount=1
 case "${1:-}" in
     "") ;;
     --no-icount) icount=0 ;;
-    -h | --help) sed -n '2,14p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    -h | --help) sed -n '2,15p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
     *) echo "usage: $0 [--no-icount] (see --help)" >&2; exit 2 ;;
 esac
 
@@ -86,7 +87,7 @@ total=$(grep '^total ' "$work/host.txt" || true)
 if cmp -s "$work/m4.txt" "$work/host.txt"; then
     frames=$(sed -n 's/^total frames=\([0-9]*\) .*/\1/p' <<<"$total")
     hash=$(sed -n 's/.* hash=\([0-9a-f]*\)$/\1/p' <<<"$total")
-    per_setup=$(sed -n 's/^end \([a-z]*\) frames=\([0-9]*\) hash=\([0-9a-f]*\).*/\1: \2 frames, hash \3/p' \
+    per_setup=$(sed -n 's/^end \([a-z0-9]*\) frames=\([0-9]*\) hash=\([0-9a-f]*\).*/\1: \2 frames, hash \3/p' \
         "$work/host.txt" | paste -sd ';' | sed 's/;/; /g')
     echo "bit-identical: $frames frames, hash $hash ($per_setup); Cortex-M4 (QEMU $qemu_version) = $HOST"
 else
@@ -144,9 +145,9 @@ if [ "$icount" = 1 ]; then
         }' | sort; } || die "the instruction-count run failed (exit $?; QEMU_TIMEOUT is ${QEMU_TIMEOUT} s)"
     [ -s "$work/icount.txt" ] || die "the instruction-count run printed no report"
     # The instrumented build must compute the same frames as the host up to its last step
-    # (both setups: no report line would otherwise pass unchecked).
-    checked=$(grep -c '^icount [a-z]* steps=' "$work/icount.txt" || true)
-    [ "$checked" = 2 ] || { echo "icount build: $checked report lines, expected 2 (dji, odrive)"; exit 1; }
+    # (every setup: no report line would otherwise pass unchecked).
+    checked=$(grep -c '^icount [a-z0-9]* steps=' "$work/icount.txt" || true)
+    [ "$checked" = 3 ] || { echo "icount build: $checked report lines, expected 3 (dji, odrive, cia402)"; exit 1; }
     while read -r _ setup range frames hash; do
         want=$(sed -n "s/^ck $setup step=${range#steps=*..} \(frames=[0-9]* hash=[0-9a-f]*\)$/\1/p" \
             "$work/host.txt")
@@ -154,6 +155,6 @@ if [ "$icount" = 1 ]; then
             echo "icount build of $setup differs from the host at ${range#steps=*..}: $frames $hash vs $want"
             exit 1
         fi
-    done < <(grep '^icount [a-z]* steps=' "$work/icount.txt")
+    done < <(grep '^icount [a-z0-9]* steps=' "$work/icount.txt")
     echo "(instrumented build: frames and hash at step $(sed -n 's/.*steps=[0-9]*\.\.\([0-9]*\) .*/\1/p' "$work/icount.txt" | head -1) equal the host's)"
 fi

@@ -93,7 +93,8 @@ fn exit(ok: bool) -> ! {
 ///
 /// Each setup runs its first [`END`](icount::END) steps with the report switched off; in
 /// steps [`BEGIN`](icount::BEGIN)..`END` (enabled, translating and rotating, 10 odometry
-/// frames and one status/heartbeat pair among them) the control core's work of each step (its
+/// frames and one status/heartbeat pair among them; CiA 402: 25 SYNC cycles, each SYNC with
+/// four RPDOs out and four TPDOs in the step after) the control core's work of each step (its
 /// `on_frame` calls and its `step`) runs between `xtarget_mark_<setup>_begin` and
 /// `xtarget_mark_<setup>_end`. Counting the trace lines (one per instruction with
 /// `-singlestep -d exec,nochain`) from each `begin` to the next `end` gives the instructions
@@ -110,7 +111,7 @@ mod icount {
     pub const END: u32 = 200;
 
     /// Written by the markers so that the calls are not optimised away; the values differ so
-    /// that the four functions are not merged into one.
+    /// that the six functions are not merged into one.
     static MARK: AtomicU32 = AtomicU32::new(0);
 
     #[inline(never)]
@@ -129,6 +130,14 @@ mod icount {
     fn xtarget_mark_odrive_end() {
         MARK.store(4, Ordering::Relaxed);
     }
+    #[inline(never)]
+    fn xtarget_mark_cia402_begin() {
+        MARK.store(5, Ordering::Relaxed);
+    }
+    #[inline(never)]
+    fn xtarget_mark_cia402_end() {
+        MARK.store(6, Ordering::Relaxed);
+    }
 
     struct Markers;
 
@@ -138,6 +147,7 @@ mod icount {
                 match setup {
                     Setup::Dji => xtarget_mark_dji_begin(),
                     Setup::Odrive => xtarget_mark_odrive_begin(),
+                    Setup::Cia402 => xtarget_mark_cia402_begin(),
                 }
             }
         }
@@ -146,6 +156,7 @@ mod icount {
                 match setup {
                     Setup::Dji => xtarget_mark_dji_end(),
                     Setup::Odrive => xtarget_mark_odrive_end(),
+                    Setup::Cia402 => xtarget_mark_cia402_end(),
                 }
             }
         }

@@ -1,7 +1,8 @@
 //! A fixed, deterministic scenario for the firmware control core: scripted host commands, a
-//! scripted plant answering the motor commands, 3,000 control steps at 1 kHz, for the DJI and
-//! the ODrive example configurations. It reports the outbound frame stream as text: a rolling
-//! FNV-1a 64 hash, checkpoints every 100 steps, every n-th frame, and the final state.
+//! scripted plant answering the motor commands, 3,000 control steps at 1 kHz, for the DJI, the
+//! ODrive and the CiA 402 example configurations. It reports the outbound frame stream as
+//! text: a rolling FNV-1a 64 hash, checkpoints every 100 steps, every n-th frame, and the final
+//! state.
 //!
 //! The same code runs on the host (`xtarget-host`) and on an emulated Cortex-M4
 //! (`board-qemu-m4`); `scripts/xtarget.sh` compares the two reports line by line. Everything
@@ -12,7 +13,9 @@
 //! # One step (time `t = k` ms)
 //!
 //! ```text
-//! plant ─► feedback frames ─► ctl.on_frame(t, ·)      (DJI: 4 every ms; ODrive: every 10 ms)
+//! plant ─► feedback frames ─► ctl.on_frame(t, ·)      (DJI: 4 every ms; ODrive: every 10 ms;
+//!                                                      CiA 402: the nodes' answers, TPDOs
+//!                                                      the ms after each SYNC, heartbeats)
 //! script ─► host commands  ─► ctl.on_frame(t, ·)      (enable, twists, e-stop, reset, junk)
 //! ctl.step(t) ─► outbox ─► hash, report ─► plant (applies the commands, integrates 1 ms)
 //! ```
@@ -30,8 +33,15 @@
 //! | 1900 | e-stop (twists keep coming until 2000 and are ignored) |
 //! | 2100, 2110 | reset, enable; twists 2120..2600 with a sinusoidal yaw rate |
 //! | 2600 | disable |
-//! | 2700 | wheel 2's feedback stops (DJI 10 ms, ODrive 50 ms): stale motor fault |
+//! | 2700 | wheel 2's feedback stops (DJI 10 ms, ODrive 50 ms, CiA 402 20 ms): stale motor fault |
 //! | 2800, 2850 | reset, enable; twists 2860..3000 |
+//!
+//! CiA 402: the core resets both nodes at 0 ms and configures them by SDO (34 transfers a
+//! node, one a step), so the enable at 10 ms waits in the enable sequence until the nodes are
+//! started (NMT start at 35 ms, SYNC from 36 ms) and runs it from there: operation enabled at
+//! 57 ms, targets from the SYNC at 60 ms. The disable, the watchdog's stop and the reset send
+//! shutdown, the e-stop and the stale fault a quick stop. Wheel 2's
+//! lost feedback is node 2's TPDO1 (its statusword and first axis); its TPDO2 still comes.
 
 #![no_std]
 #![forbid(unsafe_code)]
@@ -41,6 +51,10 @@ use core::f32::consts::TAU;
 use core::fmt::{self, Write};
 
 use embedded_can::{ExtendedId, Frame, Id, StandardId};
+use firmware::config::Drive;
+use firmware::protocol::canopen::{
+    self, DriveState402, Message, NmtCommand, NmtState, NodeId as CoNode, SdoRequest, SdoResponse,
+};
 use firmware::protocol::dji::{self, EscId, EscModel};
 use firmware::protocol::odrive::{self, AxisState, NodeId};
 use firmware::protocol::robot::{self, Command, ModeRequest, TwistCmd};
@@ -62,11 +76,14 @@ pub enum Setup {
     Dji,
     /// `Config::odrive_example()`: four ODrive axes, velocity setpoints.
     Odrive,
+    /// `Config::cia402_example()`: two dual-axis CiA 402 nodes, profile velocity mode, a
+    /// 250 Hz SYNC cycle; the core is their CANopen master.
+    Cia402,
 }
 
 impl Setup {
-    /// Both, in report order.
-    pub const ALL: [Self; 2] = [Self::Dji, Self::Odrive];
+    /// All three, in report order.
+    pub const ALL: [Self; 3] = [Self::Dji, Self::Odrive, Self::Cia402];
 
     /// Short name used in the report.
     #[must_use]
@@ -74,6 +91,7 @@ impl Setup {
         match self {
             Self::Dji => "dji",
             Self::Odrive => "odrive",
+            Self::Cia402 => "cia402",
         }
     }
 
@@ -83,6 +101,7 @@ impl Setup {
         match self {
             Self::Dji => Config::dji_m3508_example(),
             Self::Odrive => Config::odrive_example(),
+            Self::Cia402 => Config::cia402_example(),
         }
     }
 }
@@ -198,6 +217,169 @@ const DJI_COUNTS: f32 = 8192.0;
 const OD_K: f32 = 40.0;
 const OD_COAST: f32 = 2.0;
 
+/// CiA 402 axis model: the drive's profile velocity loop as the same first-order lag as the
+/// ODrive's; a quick stop decelerates with a 50 ms time constant, otherwise the axis coasts.
+const CO_QUICK_STOP: f32 = 20.0;
+
+/// The device type a CiA 402 drive reports (object 0x1000): profile 402, servo drive.
+const DEVICE_TYPE_402: u32 = 0x0002_0192;
+
+/// Frames one scripted CiA 402 node can owe the next step (an SDO answer or a boot-up, and
+/// the two TPDOs of a SYNC).
+const NODE_PENDING: usize = 3;
+
+/// One scripted CiA 402 node: it answers the master's NMT, SDO, SYNC and RPDOs the next
+/// millisecond and runs the 402 state machine (the codec's drive side,
+/// `DriveState402::on_controlword`) on each controlword: the firmware's test double in
+/// `crates/firmware/tests/control/canopen_bus.rs`, without heap and fault injection.
+#[derive(Clone, Copy, Debug)]
+struct Node402 {
+    id: CoNode,
+    operational: bool,
+    state: DriveState402,
+    mode: i8,
+    last_controlword: u16,
+    pending: [Option<CanFrame>; NODE_PENDING],
+}
+
+impl Node402 {
+    fn new(id: CoNode) -> Self {
+        Self {
+            id,
+            operational: false,
+            state: DriveState402::SwitchOnDisabled,
+            mode: 0,
+            last_controlword: 0,
+            pending: [None; NODE_PENDING],
+        }
+    }
+
+    fn owe(&mut self, frame: CanFrame) {
+        if let Some(slot) = self.pending.iter_mut().find(|p| p.is_none()) {
+            *slot = Some(frame);
+        }
+    }
+
+    /// A boot-up: pre-operational, switch on disabled, the mode forgotten.
+    fn reboot(&mut self) {
+        self.operational = false;
+        self.state = DriveState402::SwitchOnDisabled;
+        self.mode = 0;
+        self.pending = [None; NODE_PENDING];
+        self.owe(
+            Message::Heartbeat {
+                node: self.id,
+                state: NmtState::BootUp,
+            }
+            .to_can_frame(),
+        );
+    }
+
+    fn sdo(&mut self, request: SdoRequest) {
+        let (index, sub) = request.object();
+        let response = match request {
+            SdoRequest::Upload { .. } if (index, sub) == (0x1000, 0) => SdoResponse::Uploaded {
+                index,
+                sub,
+                value: DEVICE_TYPE_402,
+                size: 4,
+            },
+            SdoRequest::Download { value, .. } => {
+                if (index, sub) == (0x6060, 0) {
+                    self.mode = value as i8;
+                }
+                SdoResponse::Downloaded { index, sub }
+            }
+            _ => SdoResponse::Abort {
+                index,
+                sub,
+                code: 0x0602_0000,
+            },
+        };
+        self.owe(
+            Message::SdoResponse {
+                node: self.id,
+                response,
+            }
+            .to_can_frame(),
+        );
+    }
+
+    /// The CiA 402 state machine, on each controlword received.
+    fn control(&mut self, cw: u16) {
+        self.state = self
+            .state
+            .on_controlword(cw, self.last_controlword, self.mode == 3);
+        self.last_controlword = cw;
+    }
+}
+
+/// The CiA 402 side of the plant: the nodes and each wheel's place on them.
+#[derive(Clone, Copy, Debug)]
+struct Canopen {
+    /// The nodes, in the order they first appear in `node_ids` (the example has two).
+    nodes: [Option<Node402>; 2],
+    /// Each wheel's node (index into `nodes`) and axis slot (0: sub-index 0 or 1; 1: 2).
+    wheel_node: [(usize, usize); 4],
+    /// Motor rpm per raw unit of target and of actual velocity.
+    target_rpm: f32,
+    actual_rpm: f32,
+}
+
+impl Canopen {
+    fn new(config: &Config) -> Option<Self> {
+        let Drive::Cia402 {
+            node_ids,
+            axes,
+            target_rpm_per_unit,
+            actual_rpm_per_unit,
+            ..
+        } = config.drive
+        else {
+            return None;
+        };
+        let mut nodes: [Option<Node402>; 2] = [None; 2];
+        let mut wheel_node = [(0, 0); 4];
+        for ((slot, &id), &axis) in wheel_node.iter_mut().zip(&node_ids).zip(&axes) {
+            let index = nodes
+                .iter()
+                .position(|n| n.is_some_and(|n| n.id.get() == id))
+                .or_else(|| {
+                    let free = nodes.iter().position(Option::is_none)?;
+                    let node = nodes.get_mut(free)?;
+                    *node = Some(Node402::new(CoNode::new(id)?));
+                    Some(free)
+                });
+            let Some(index) = index else {
+                panic!("the scenario's CiA 402 plant takes at most two nodes");
+            };
+            *slot = (index, usize::from(axis == 2));
+        }
+        Some(Self {
+            nodes,
+            wheel_node,
+            target_rpm: target_rpm_per_unit,
+            actual_rpm: actual_rpm_per_unit,
+        })
+    }
+
+    /// A target (raw) of axis `(node index, slot)` into its wheel's command, motor rpm.
+    fn set_target(&self, axes: &mut [Axis; 4], axis: (usize, usize), target: i32) {
+        for (a, &w) in axes.iter_mut().zip(&self.wheel_node) {
+            if w == axis {
+                a.cmd = target as f32 * self.target_rpm;
+            }
+        }
+    }
+
+    fn node(&mut self, id: CoNode) -> Option<(usize, &mut Node402)> {
+        self.nodes
+            .iter_mut()
+            .enumerate()
+            .find_map(|(i, n)| n.as_mut().filter(|n| n.id == id).map(|n| (i, n)))
+    }
+}
+
 #[derive(Clone, Copy, Debug)]
 struct Axis {
     /// DJI: rotor speed, rad/s. ODrive: velocity, rev/s (motor side).
@@ -216,13 +398,17 @@ struct Plant {
     setup: Setup,
     axes: [Axis; 4],
     rng: Rng,
+    /// CiA 402: the nodes (`None` for the other setups).
+    canopen: Option<Canopen>,
+    /// The step of the last `feedback` call, ms.
+    ms: u32,
 }
 
 /// Frames one step can feed the controller (4 estimates + 4 heartbeats, or 4 DJI feedbacks).
 type Inbox = [Option<CanFrame>; 8];
 
 impl Plant {
-    fn new(setup: Setup) -> Self {
+    fn new(setup: Setup, config: &Config) -> Self {
         let axis = Axis {
             speed: 0.0,
             pos: 0.0,
@@ -236,17 +422,21 @@ impl Plant {
             a.pos = match setup {
                 Setup::Dji => 1000.0 * i as f32 + 17.0,
                 Setup::Odrive => 0.25 * i as f32 - 0.3,
+                Setup::Cia402 => 0.0,
             };
         }
         Self {
             setup,
             axes,
             rng: Rng(0x1234_5678),
+            canopen: Canopen::new(config),
+            ms: 0,
         }
     }
 
     fn feedback(&mut self, ms: u32, inbox: &mut Inbox) {
         *inbox = [None; 8];
+        self.ms = ms;
         match self.setup {
             Setup::Dji => {
                 for (i, a) in self.axes.iter().enumerate() {
@@ -299,6 +489,31 @@ impl Plant {
                     }
                 }
             }
+            Setup::Cia402 => {
+                let Some(co) = self.canopen.as_mut() else {
+                    return;
+                };
+                // What each node owes from the last step, then its heartbeat (50 ms, offset
+                // per node).
+                let mut slots = inbox.iter_mut();
+                for (i, n) in co.nodes.iter_mut().enumerate() {
+                    let Some(n) = n else { continue };
+                    let owed = core::mem::replace(&mut n.pending, [None; NODE_PENDING]);
+                    let heartbeat = (ms > 0 && (ms + 7 * i as u32).is_multiple_of(50)).then(|| {
+                        let state = if n.operational {
+                            NmtState::Operational
+                        } else {
+                            NmtState::PreOperational
+                        };
+                        Message::Heartbeat { node: n.id, state }.to_can_frame()
+                    });
+                    for f in owed.into_iter().chain([heartbeat]).flatten() {
+                        if let Some(slot) = slots.next() {
+                            *slot = Some(f);
+                        }
+                    }
+                }
+            }
         }
     }
 
@@ -333,6 +548,96 @@ impl Plant {
                     }
                 }
             }
+            Setup::Cia402 => self.receive_canopen(frame),
+        }
+    }
+
+    /// CiA 402: takes one frame of the master (frames of the next step are owed by the nodes).
+    fn receive_canopen(&mut self, frame: &CanFrame) {
+        let ms = self.ms;
+        let Some(co) = self.canopen.as_mut() else {
+            return;
+        };
+        let Ok(msg) = canopen::decode(frame) else {
+            return;
+        };
+        match msg {
+            Message::Nmt { command, node } => {
+                for n in co.nodes.iter_mut().flatten() {
+                    if node.is_some_and(|id| id != n.id) {
+                        continue;
+                    }
+                    match command {
+                        NmtCommand::Start => n.operational = true,
+                        NmtCommand::Stop | NmtCommand::EnterPreOperational => {
+                            n.operational = false;
+                        }
+                        NmtCommand::ResetNode | NmtCommand::ResetCommunication => n.reboot(),
+                    }
+                }
+            }
+            Message::SdoRequest { node, request } => {
+                if let Some((_, n)) = co.node(node) {
+                    n.sdo(request);
+                }
+            }
+            Message::Sync { .. } => {
+                // Each operational node's TPDO1 (statusword, first axis) and TPDO2 (second
+                // axis), delivered the next step: synchronous TPDOs, sampled at the SYNC, so
+                // before the RPDOs that follow it in the outbox.
+                for (index, n) in co.nodes.iter_mut().enumerate() {
+                    let Some(n) = n.as_mut().filter(|n| n.operational) else {
+                        continue;
+                    };
+                    let mut actual = [0i32; 2];
+                    let mut first_wheel = None;
+                    for (w, (a, &(i, slot))) in self.axes.iter().zip(&co.wheel_node).enumerate() {
+                        if i == index
+                            && let Some(v) = actual.get_mut(slot)
+                        {
+                            // Saturating, truncating: the drive's own rounding.
+                            *v = (a.speed / co.actual_rpm) as i32;
+                            if slot == 0 {
+                                first_wheel = Some(w);
+                            }
+                        }
+                    }
+                    let [v1, v2] = actual;
+                    if !first_wheel.is_some_and(|w| dropped(self.setup, ms + 1, w)) {
+                        n.owe(
+                            Message::Tpdo1 {
+                                node: n.id,
+                                statusword: n.state.statusword(),
+                                velocity: v1,
+                            }
+                            .to_can_frame(),
+                        );
+                    }
+                    n.owe(
+                        Message::Tpdo2 {
+                            node: n.id,
+                            velocity: v2,
+                        }
+                        .to_can_frame(),
+                    );
+                }
+            }
+            Message::Rpdo1 {
+                node,
+                controlword,
+                target,
+            } => {
+                if let Some((index, n)) = co.node(node) {
+                    n.control(controlword);
+                    co.set_target(&mut self.axes, (index, 0), target);
+                }
+            }
+            Message::Rpdo3 { node, target } => {
+                if let Some((index, _)) = co.node(node) {
+                    co.set_target(&mut self.axes, (index, 1), target);
+                }
+            }
+            _ => {}
         }
     }
 
@@ -358,6 +663,19 @@ impl Plant {
                     }
                     a.pos += a.speed * dt;
                 }
+                Setup::Cia402 => {}
+            }
+        }
+        if let Some(co) = &self.canopen {
+            for (a, &(i, _)) in self.axes.iter_mut().zip(&co.wheel_node) {
+                let state = co.nodes.get(i).copied().flatten().map(|n| n.state);
+                // Motor rpm; a drive not enabled has no torque and coasts.
+                a.speed += match state {
+                    Some(DriveState402::OperationEnabled) => (a.cmd - a.speed) * (OD_K * dt),
+                    Some(DriveState402::QuickStopActive) => -a.speed * (CO_QUICK_STOP * dt),
+                    _ => -a.speed * (OD_COAST * dt),
+                };
+                a.pos += a.speed * (dt / 60.0);
             }
         }
     }
@@ -368,6 +686,7 @@ fn dropped(setup: Setup, ms: u32, i: usize) -> bool {
     let len = match setup {
         Setup::Dji => 10,
         Setup::Odrive => 50,
+        Setup::Cia402 => 20,
     };
     i == 2 && (2700..2700 + len).contains(&ms)
 }
@@ -472,7 +791,7 @@ pub fn run<W: Write, P: Probe>(
     };
     let dt = ctl.period();
     let name = setup.name();
-    let mut plant = Plant::new(setup);
+    let mut plant = Plant::new(setup, &config);
     let mut hash = Fnv1a64::default();
     let mut frames = 0u64;
     let mut seq = 0u8;
@@ -527,8 +846,8 @@ pub fn run<W: Write, P: Probe>(
     })
 }
 
-/// Runs both setups and ends with a `total` line: frames of both and the hash of the two
-/// hashes.
+/// Runs every setup ([`Setup::ALL`]) and ends with a `total` line: the frames of all and the
+/// hash of their hashes.
 ///
 /// # Errors
 /// Only those of `out`.
