@@ -137,14 +137,24 @@ class _Listener(can.Listener):
 
 class Cia402Peer:
     """A simulated CiA 402 drive (node `node_id`) on `channel`; boots (sends its boot-up) at
-    once. `with Cia402Peer(...) as peer:` or `close()` ends its threads and its bus."""
+    once. `with Cia402Peer(...) as peer:` or `close()` ends its threads and its bus.
+
+    `actual_per_target`: the velocity actual value's (0x606C) units per target velocity
+    (0x60FF) unit; vendors differ, e.g. 10 for a drive taking rpm and reporting 0.1 rpm.
+    `own_frames_only`: the socket's acceptance filter passes only what a drive's CAN
+    controller would (NMT, SYNC, heartbeats and this node's ids) so the rest of the bus never
+    reaches the peer's Python thread."""
 
     def __init__(self, channel: str, node_id: int, eds: str | pathlib.Path = DUAL_EDS, *,
-                 time_constant_s: float = 0.05, interface: str = "socketcan") -> None:
+                 time_constant_s: float = 0.05, interface: str = "socketcan",
+                 actual_per_target: float = 1.0, own_frames_only: bool = False) -> None:
         if not 1 <= node_id <= 127:
             raise ValueError(f"node id {node_id} is outside 1..127")
+        if not (math.isfinite(actual_per_target) and actual_per_target > 0):
+            raise ValueError(f"actual_per_target {actual_per_target} is not a positive number")
         self.node_id = node_id
         self.time_constant_s = time_constant_s
+        self.actual_per_target = actual_per_target
         self.node = canopen.LocalNode(node_id, canopen.import_od(str(eds), node_id))
         od = self.node.object_dictionary
         self.axes = 2 if isinstance(od[0x60FF], ODArray) else 1
@@ -171,6 +181,14 @@ class Cia402Peer:
         self.network.unsubscribe(self.node.sdo.rx_cobid, self.node.sdo.on_request)
         self.network.subscribe(self.node.sdo.rx_cobid, self._on_sdo)
         self.network.connect(interface=interface, channel=channel)
+        if own_frames_only:
+            assert self.network.bus is not None
+            self.network.bus.set_filters([
+                {"can_id": 0x000, "can_mask": 0x7FF, "extended": False},  # NMT
+                {"can_id": 0x080, "can_mask": 0x7FF, "extended": False},  # SYNC (0x1005's default)
+                {"can_id": 0x700, "can_mask": 0x780, "extended": False},  # heartbeats
+                {"can_id": node_id, "can_mask": 0x07F, "extended": False},  # this node's ids
+            ])
         assert self.network.notifier is not None
         self.network.notifier.add_listener(_Listener(self))
         with self._lock:
@@ -212,7 +230,7 @@ class Cia402Peer:
         """Velocity actual value per axis (0x606C), raw units, now."""
         with self._lock:
             self._advance()
-            return tuple(round(v) for v in self._velocity)
+            return tuple(round(v * self.actual_per_target) for v in self._velocity)
 
     def target_velocity(self) -> tuple[int, ...]:
         with self._lock:
@@ -381,7 +399,9 @@ class Cia402Peer:
             if index in (0x606C, 0x60FF) and subindex in self._subs:
                 self._advance()
                 axis = self._subs.index(subindex)
-                return round(self._velocity[axis]) if index == 0x606C else self._target[axis]
+                if index == 0x606C:
+                    return round(self._velocity[axis] * self.actual_per_target)
+                return self._target[axis]
             return None
 
     def _on_write(self, index: int, subindex: int, od: ODVariable, data: bytes) -> None:

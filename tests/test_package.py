@@ -17,13 +17,14 @@ import sys
 import textwrap
 import threading
 import time
+from typing import Any
 
 import can
 import pytest
 
 import mecanum_drive
 from mecanum_drive import NotResponding, ProtocolMismatch, Robot, RobotFault, cli, protocol
-from scripted_robot import ScriptedRobot
+from scripted_robot import FAULTS, ScriptedRobot
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 _channels = itertools.count()
@@ -148,7 +149,7 @@ def test_the_interpreters_exit_stops_the_robot(tmp_path: pathlib.Path) -> None:
         import atexit, json, sys, time
         sys.path.insert(0, {str(ROOT / "tests")!r})
         import can
-        from scripted_robot import ScriptedRobot
+        from scripted_robot import FAULTS, ScriptedRobot
         from mecanum_drive import Robot
 
         fake = ScriptedRobot("exit").__enter__()
@@ -371,6 +372,52 @@ def test_a_fault_is_raised_by_name_and_reset_clears_it(channel: str) -> None:
         robot.reset()
         robot.wait_state("DISABLED", timeout=1.0)
         robot.check()
+
+
+def test_a_status_stamped_before_the_reset_is_not_the_robots_state(channel: str) -> None:
+    """A FAULT STATUS the kernel received before `reset()` went out, read only after it (the
+    receiving thread running late), is older than the reset and must not make `check` or
+    `wait_state` raise; one stamped after the reset still does. The frames carry chosen
+    receive stamps (python-can's virtual bus with preserve_timestamps)."""
+    status = protocol.database().get_message_by_name("STATUS")
+    counters = protocol.database().get_message_by_name("STATUS_COUNTERS")
+
+    def frame(message: Any, stamp: float, **signals: int) -> can.Message:
+        return can.Message(arbitration_id=message.frame_id, data=message.encode(signals), is_extended_id=False,
+                           timestamp=stamp)
+
+    def fault(stamp: float) -> can.Message:
+        return frame(status, stamp, state=2, fault=FAULTS["MOTOR_STALE"], rx_errors=0, unknown_ids=0,
+                     motors_online=0x0F, heading_source=0, seq=0)
+
+    def marker(stamp: float, n: int) -> can.Message:  # read after the frame before it
+        return frame(counters, stamp, repeated_seq=n, wrong_dlc=0, out_of_range=0, non_finite=0)
+
+    injector = can.Bus(interface="virtual", channel=channel, receive_own_messages=False, preserve_timestamps=True)
+    try:
+        with Robot(host_bus(channel), owns_bus=True) as robot, ScriptedRobot(channel, period_s=60.0):
+            robot.wait_state("DISABLED", timeout=1.0)  # the scripted robot's first STATUS
+            before = time.time()
+            robot.reset()
+            injector.send(fault(before - 0.001))
+            injector.send(marker(before - 0.001, 1001))
+            deadline = time.monotonic() + 1.0
+            while (robot.counters is None or robot.counters.repeated_seq != 1001) and time.monotonic() < deadline:
+                time.sleep(0.005)
+            assert robot.counters is not None and robot.counters.repeated_seq == 1001
+            assert robot.status is None, robot.status
+            robot.check()
+            after = time.time()
+            injector.send(fault(after))
+            injector.send(marker(after, 1002))
+            deadline = time.monotonic() + 1.0
+            while (robot.counters is None or robot.counters.repeated_seq != 1002) and time.monotonic() < deadline:
+                time.sleep(0.005)
+            assert robot.status is not None and robot.status.state == "FAULT", robot.status
+            with pytest.raises(RobotFault, match="MOTOR_STALE"):
+                robot.check()
+    finally:
+        injector.shutdown()
 
 
 def test_the_heading_source_is_decoded_by_name(channel: str, capsys: pytest.CaptureFixture[str]) -> None:

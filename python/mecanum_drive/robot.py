@@ -287,6 +287,9 @@ class Robot:
         self._position: tuple[float, float] | None = None
         self._odometry: Odometry | None = None
         self._status: Status | None = None
+        # When the latest reset() was sent (time.time()): a STATUS stamped before it is older
+        # than the reset, however late the receiving thread reads it.
+        self._reset_sent = -math.inf
         # The recent STATUS frames, numbered: `wait_state` looks at every one since it began,
         # not only the latest (ENABLED then, 20 ms later, DISABLED by the watchdog: it was
         # reached).
@@ -426,6 +429,7 @@ class Robot:
         self._check_open()
         with self._lock:
             self._status = None  # a fault reported before the reset no longer counts
+            self._reset_sent = time.time()
         self._send("MODE_CMD", request=self._mode("RESET"))
 
     def estop(self) -> None:
@@ -546,6 +550,14 @@ class Robot:
                     self._receive_error = err
                     self._lock.notify_all()
 
+    def _before_reset(self, stamp: float) -> bool:
+        """Whether a frame with receive `stamp` arrived before the latest reset() was sent.
+        Only a wall-clock stamp (SocketCAN's kernel time) can say so; another clock says no.
+        A STATUS the robot sends after the reset arrived but before its next step took it is
+        not caught: at most one control period, then STATUS reports the reset's outcome."""
+        return (math.isfinite(stamp) and abs(time.time() - stamp) < _STAMP_CLOCK_TOLERANCE_S
+                and stamp < self._reset_sent)
+
     def _on_message(self, msg: can.Message) -> None:
         stamp = float(msg.timestamp) if msg.timestamp else math.nan
         with self._lock:
@@ -570,6 +582,8 @@ class Robot:
                 odometry = Odometry(x, y, float(values["heading"]), float(values["vx"]), float(values["vy"]),
                                     float(values["wz"]), now, stamp)
                 self._odometry = odometry
+            elif message.name == "STATUS" and self._before_reset(stamp):
+                pass  # the robot sent it before the reset existed; its fault no longer counts
             elif message.name == "STATUS":
                 mask = int(values["motors_online"])
                 self._status = Status(
