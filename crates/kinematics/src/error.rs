@@ -202,3 +202,108 @@ impl fmt::Display for EncoderError {
 }
 
 impl core::error::Error for EncoderError {}
+
+/// Why a tracking-pod layout was refused by
+/// [`PodLocalizer::three`](crate::PodLocalizer::three) or
+/// [`PodLocalizer::two`](crate::PodLocalizer::two).
+///
+/// Pods are named by their index in the array given to the constructor. Values are widened
+/// to `f64` so that the error type does not depend on the scalar type. `condition` is the
+/// Frobenius condition number of the (scaled) pod map that was found too large, possibly
+/// infinite; the limit is
+/// [`PodLocalizer::max_condition_number`](crate::PodLocalizer::max_condition_number)
+/// (about 362 in `f32`, 8.4e6 in `f64`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
+pub enum PodLayoutError {
+    /// A parameter of pod `pod` is NaN or infinite.
+    NonFinite {
+        /// Index of the pod.
+        pod: usize,
+        /// Name of the parameter: `"x"`, `"y"` or `"direction"`.
+        field: &'static str,
+    },
+    /// Two pods measure along (nearly) the same line direction, so together they see only one
+    /// component of the translation: the other is invisible. For two pods this is the only
+    /// geometric rejection (the heading comes from elsewhere).
+    Parallel {
+        /// Index of the first pod.
+        first: usize,
+        /// Index of the second pod.
+        second: usize,
+        /// Angle from the first pod's direction to the second's, rad, in `[-π, π]`: near 0
+        /// (parallel) or near ±π (anti-parallel).
+        angle: f64,
+        /// Condition number of the 2 × 2 direction matrix.
+        condition: f64,
+    },
+    /// All three pods measure along (nearly) the same direction, collinear or not: the
+    /// translation across that direction is invisible. Every pair of them would be refused
+    /// as a two-pod layout ([`Parallel`](Self::Parallel)).
+    AllParallel {
+        /// The largest angle between the lines of action of any two pods, rad, in `[0, π/2]`.
+        angle: f64,
+        /// Condition number of the scaled 3 × 3 pod map.
+        condition: f64,
+    },
+    /// The lines of action of the three pods (nearly) meet in one point, `(x, y)` in the body
+    /// frame: a rotation about that point moves every contact point perpendicular to its
+    /// pod's direction, so no pod sees it. Two pods on one line with the third crossing it
+    /// are a case of this (the lines meet where the third crosses).
+    Concurrent {
+        /// Where the lines meet (of the two pods whose lines cross at the largest angle), m.
+        x: f64,
+        /// Where the lines meet, m.
+        y: f64,
+        /// Condition number of the scaled 3 × 3 pod map.
+        condition: f64,
+    },
+    /// The layout is geometrically fine, but its numbers do not fit the float type: a pod's
+    /// moment arm or an entry of the precomputed inverse overflows, or underflows to a few
+    /// digits, so that the inverse rounded to the type does not invert the model. Coordinates
+    /// of extreme magnitude cause it (e.g. pods 1e-40 m from the origin in `f32`); check
+    /// their units.
+    Unrepresentable {
+        /// The largest entry of `|F A − I|` (scaled as for the condition number), or the
+        /// largest rounding error of a moment arm relative to the layout's size; infinite if
+        /// an entry is not finite.
+        deviation: f64,
+    },
+}
+
+impl fmt::Display for PodLayoutError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match *self {
+            Self::NonFinite { pod, field } => write!(f, "pod {pod}: {field} is not finite"),
+            Self::Parallel {
+                first,
+                second,
+                angle,
+                condition,
+            } => write!(
+                f,
+                "pods {first} and {second} are (nearly) parallel (angle between their \
+                 directions {angle} rad, condition number {condition:e}): the translation \
+                 across them is not determined"
+            ),
+            Self::AllParallel { angle, condition } => write!(
+                f,
+                "pods 0, 1 and 2 are (nearly) parallel (largest angle between their lines \
+                 {angle} rad, condition number {condition:e}): the translation across them is \
+                 not determined"
+            ),
+            Self::Concurrent { x, y, condition } => write!(
+                f,
+                "the lines of pods 0, 1 and 2 (nearly) meet at ({x} m, {y} m) (condition \
+                 number {condition:e}): a rotation about that point is invisible to them"
+            ),
+            Self::Unrepresentable { deviation } => write!(
+                f,
+                "pod map does not fit the float type (deviation {deviation:e}): coordinates of \
+                 extreme magnitude overflow or underflow it; check units"
+            ),
+        }
+    }
+}
+
+impl core::error::Error for PodLayoutError {}
