@@ -49,6 +49,7 @@ ENUM_VALUES = {
     "wheel": [0, 1, 2, 3],
     "outcome": [0, 1, 2, 3],
     "heading_source": [0, 1, 2],
+    "source": [0, 1, 2, 3],
     "Axis_State": list(range(15)),
     "Axis_Requested_State": list(range(15)),
     "Control_Mode": [0, 1, 2, 3],
@@ -249,8 +250,9 @@ def check_decoded(db_msg, rust: dict, expected: dict, tol_of, where: str) -> Non
 
 def test_dbc_files_load_strictly(dbs):
     assert {m.name for m in dbs["robot"].messages} == {
-        "ESTOP", "TWIST_CMD", "MODE_CMD", "STATUS_REQ", "IMU_YAW_RATE", "WHEEL_TEST",
-        "WHEEL_TEST_RESULT", "ODOM_POSITION", "ODOM_VELOCITY", "STATUS", "STATUS_COUNTERS", "HEARTBEAT",
+        "ESTOP", "TWIST_CMD", "MODE_CMD", "STATUS_REQ", "IMU_YAW_RATE", "WHEEL_TEST", "POD_COUNTS",
+        "WHEEL_TEST_RESULT", "ODOM_POSITION", "ODOM_VELOCITY", "STATUS", "STATUS_COUNTERS", "ODOM_SLIP",
+        "HEARTBEAT",
     }
     assert all(0x300 <= m.frame_id <= 0x31F for m in dbs["robot"].messages)
     assert sorted(m.frame_id for m in dbs["dji"].messages) == [0x1FF, *range(0x200, 0x209)]
@@ -335,7 +337,7 @@ def test_dbc_version_line_is_the_firmwares_protocol_version(golden):
     m = re.fullmatch(r"Mecanum robot CAN protocol, version (\d+) \(.+?\)\. .*", comments[0])
     assert m, comments[0][:120]
     version = int(m.group(1))
-    assert version == 6
+    assert version == 7
     beats = [g for g in golden if g.get("message") == "HEARTBEAT"]
     assert beats and all(g["fields"]["protocol_version"] == version for g in beats), beats
     assert f'protocol_version "Protocol version: {version} for this file.' in text
@@ -379,6 +381,39 @@ def test_imu_yaw_rate_is_an_optional_float_frame_with_an_alive_counter(dbs):
         0: "WHEELS", 1: "GYRO", 2: "WHEELS_GYRO_SILENT"}
     # 0.5 rad/s counter-clockwise, seq 7, as cantools writes it: float32 LE.
     assert imu.encode({"yaw_rate": 0.5, "seq": 7, "reserved": 0}) == bytes.fromhex("0000003F07000000")
+
+
+def test_pod_counts_and_odom_slip_are_version_7s_optional_frames(dbs):
+    """POD_COUNTS: host-to-robot block, from its own node (PODS), three wrapping u16 counts and
+    an alive counter, the rules (baseline, timeout, fallback, counting) in its comments.
+    ODOM_SLIP: robot-to-host, the slip velocities as ODOM_VELOCITY's and the source in byte 6's
+    low nibble; a robot without pods sends none."""
+    robot = dbs["robot"]
+    pods = robot.get_message_by_name("POD_COUNTS")
+    assert (pods.frame_id, pods.length, pods.senders) == (0x306, 8, ["PODS"])
+    assert [s.name for s in pods.signals] == ["count0", "count1", "count2", "seq", "reserved"]
+    for i, name in enumerate(("count0", "count1", "count2")):
+        sig = pods.get_signal_by_name(name)
+        assert (sig.start, sig.length, sig.is_signed, sig.byte_order) == (16 * i, 16, False, "little_endian")
+    assert pods.get_signal_by_name("seq").start == 48
+    for words in ("baseline", "timeout", "WHEELS_PODS_SILENT", "not a fault", "DLC"):
+        assert words in pods.comment, words
+    assert "signed 16-bit difference" in pods.get_signal_by_name("count0").comment
+    assert "repeated_seq" in pods.get_signal_by_name("seq").comment
+    assert pods.encode({"count0": 1, "count1": 65535, "count2": 0, "seq": 9, "reserved": 0}) == bytes.fromhex(
+        "0100FFFF00000900")
+    slip = robot.get_message_by_name("ODOM_SLIP")
+    assert (slip.frame_id, slip.length, slip.senders) == (0x315, 8, ["ROBOT"])
+    velocity = robot.get_message_by_name("ODOM_VELOCITY")
+    for name in ("vx", "vy", "wz"):
+        a, b = slip.get_signal_by_name(name), velocity.get_signal_by_name(name)
+        assert (a.length, a.is_signed, a.scale, a.minimum, a.maximum, a.unit) == (
+            b.length, b.is_signed, b.scale, b.minimum, b.maximum, b.unit), name
+    source = slip.get_signal_by_name("source")
+    assert (source.start, source.length) == (48, 4)
+    assert {int(k): str(v) for k, v in source.choices.items()} == {
+        0: "WHEELS", 1: "PODS2_GYRO", 2: "PODS3", 3: "WHEELS_PODS_SILENT"}
+    assert "only from a robot configured with pods" in slip.comment
 
 
 def test_golden_covers_every_implemented_message(golden, dbs):
@@ -579,7 +614,7 @@ def test_cantools_encoded_frames_decode_in_rust(run_codec, dbs):
             # ... and = the values cantools encoded, within half an LSB.
             check_decoded(msg, rust, values, lambda s, v: half_lsb(s) + f32_slack(v), where)
             messages.add((proto, msg.name, canopen))
-    n_robot, n_canopen = 12, 3 + len(CANOPEN_NODES) * len(CANOPEN_MESSAGES)
+    n_robot, n_canopen = 14, 3 + len(CANOPEN_NODES) * len(CANOPEN_MESSAGES)
     assert len(messages) == 2 * n_robot + 10 + 4 * len(ODRIVE_MESSAGES) + n_canopen
     assert len(cases) >= len({m[:2] for m in messages}) * RANDOM_SETS_PER_MESSAGE
     # The SDO value sets hold every command byte Rust accepts, junk beyond an expedited
@@ -693,9 +728,9 @@ MALFORMED = [
     ("038#0000", "wrong_dlc", {"expected": 1, "got": 2}),
     # unknown ids
     ("123#00", "unknown_id", {}),
-    ("306#", "unknown_id", {}),
+    ("307#", "unknown_id", {}),
     ("30F#0000000000000000", "unknown_id", {}),
-    ("315#0000000000000000", "unknown_id", {}),
+    ("316#0000000000000000", "unknown_id", {}),
     ("31E#0000000000000000", "unknown_id", {}),
     ("320#00", "unknown_id", {}),
     ("209#0000000000000000", "unknown_id", {}),
@@ -742,6 +777,10 @@ MALFORMED = [
     ("314#0004000000000000", "out_of_range", {"field": "outcome", "value": 4}),
     ("312#0000000000003F00", "out_of_range", {"field": "heading_source", "value": 3}),
     ("312#000000000000F000", "out_of_range", {"field": "heading_source", "value": 15}),
+    ("315#0000000000000400", "out_of_range", {"field": "source", "value": 4}),
+    ("315#0000000000000F00", "out_of_range", {"field": "source", "value": 15}),
+    ("315#0080000000000000", "out_of_range", {"field": "vx", "value": -32768}),
+    ("306#00000000000000", "wrong_dlc", {"expected": 8, "got": 7}),
     # beyond +-35 rad/s (the raw value of a float field is its bits)
     ("304#" + struct.pack("<f", 35.5).hex() + "00000000", "out_of_range",
      {"field": "yaw_rate", "value": struct.unpack("<I", struct.pack("<f", 35.5))[0]}),

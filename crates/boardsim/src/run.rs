@@ -211,6 +211,7 @@ pub fn run_scenario(
     let mut drives =
         SimDrives::for_scenario(scenario).map_err(|e| RunError::Plant(e.to_string()))?;
     let plant = &mut hostsim::imu::WithImu::new(&mut drives, scenario.imu.as_ref(), scenario.seed);
+    let plant = &mut hostsim::pods::WithPods::for_scenario(plant, scenario);
     let bus = Bus::new(1_000_000, scenario.bus_faults.clone(), scenario.seed);
     let mut ls = Lockstep::new(board, bus);
     let mut host = HostNode::new(scenario);

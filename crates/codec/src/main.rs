@@ -309,6 +309,16 @@ fn robot_fields(msg: &robot::Message) -> Decoded {
             .i(&l::TEST_WHEEL, t.wheel)
             .f(&l::TEST_SPEED, t.speed)
             .i(&l::TEST_DURATION, t.duration_ms),
+        robot::Message::Command(C::PodCounts(c)) => d
+            .i(&l::POD_COUNT[0], c.counts[0])
+            .i(&l::POD_COUNT[1], c.counts[1])
+            .i(&l::POD_COUNT[2], c.counts[2])
+            .i(&l::POD_SEQ, c.seq),
+        robot::Message::Telemetry(T::OdomSlip(s)) => d
+            .f(&l::SLIP_VX, s.vx)
+            .f(&l::SLIP_VY, s.vy)
+            .f(&l::SLIP_WZ, s.wz)
+            .i(&l::SLIP_SOURCE, s.source.raw()),
         robot::Message::Telemetry(T::OdomPosition(o)) => d.f(&l::ODOM_X, o.x).f(&l::ODOM_Y, o.y),
         robot::Message::Telemetry(T::OdomVelocity(o)) => d
             .f(&l::ODOM_HEADING, o.heading)
@@ -561,6 +571,32 @@ fn golden_set() -> Vec<(AnyMessage, Decoded)> {
         AnyMessage::Robot(robot::Message::Command(RC::ImuYawRate(robot::ImuYawRate {
             yaw_rate: 35.0,
             seq: 17,
+        }))),
+        AnyMessage::Robot(robot::Message::Command(RC::PodCounts(robot::PodCounts {
+            counts: [0, 65535, 32768],
+            seq: 0,
+        }))),
+        AnyMessage::Robot(robot::Message::Command(RC::PodCounts(robot::PodCounts {
+            counts: [1234, 40000, 0],
+            seq: 255,
+        }))),
+        AnyMessage::Robot(robot::Message::Telemetry(RT::OdomSlip(robot::OdomSlip {
+            vx: 0.012,
+            vy: -0.345,
+            wz: 0.2,
+            source: robot::OdometrySource::Pods3,
+        }))),
+        AnyMessage::Robot(robot::Message::Telemetry(RT::OdomSlip(robot::OdomSlip {
+            vx: -32.767,
+            vy: 32.767,
+            wz: -0.001,
+            source: robot::OdometrySource::WheelsPodsSilent,
+        }))),
+        AnyMessage::Robot(robot::Message::Telemetry(RT::OdomSlip(robot::OdomSlip {
+            vx: 0.0,
+            vy: 0.0,
+            wz: 0.0,
+            source: robot::OdometrySource::Pods2Gyro,
         }))),
         AnyMessage::Robot(robot::Message::Telemetry(RT::OdomPosition(
             robot::OdomPosition {

@@ -80,6 +80,11 @@ pub const METADATA_NAME: &str = "mecanum_drive";
 /// The wheels' joint names, in the project's wheel order.
 pub const WHEEL_NAMES: [&str; 4] = ["fl", "fr", "rl", "rr"];
 
+/// The joint names of the tracking pods in `/joint_states`, after the wheels (a robot with
+/// pods only; position only: a free-rolling pod has no speed the core measures, and no
+/// effort).
+pub const POD_NAMES: [&str; 3] = ["pod0", "pod1", "pod2"];
+
 /// A channel of the logs.
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
 pub enum Channel {

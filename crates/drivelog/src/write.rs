@@ -30,7 +30,7 @@ use mcap::records::{MessageHeader, Metadata};
 use mcap::write::NoSeek;
 
 use crate::msg::{self, Header, RosMsg};
-use crate::{Channel, METADATA_NAME, PROFILE, WHEEL_NAMES, frames};
+use crate::{Channel, METADATA_NAME, POD_NAMES, PROFILE, WHEEL_NAMES, frames};
 
 /// Why a log could not be written.
 #[derive(Debug, thiserror::Error)]
@@ -861,11 +861,19 @@ impl Encoder {
 }
 
 /// `/joint_states` of a snapshot.
+/// A robot with tracking pods adds them after the wheels (`pod0`...), with a position only:
+/// ROS allows `velocity` and `effort` shorter than `name`, and no speed or effort of a pod is
+/// known to the core.
 fn joint_state(t_ns: u64, s: &Snapshot) -> msg::JointState {
+    let pods = usize::from(s.pods).min(POD_NAMES.len());
+    let mut name = WHEEL_NAMES.map(str::to_string).to_vec();
+    name.extend(POD_NAMES[..pods].iter().map(|n| (*n).to_string()));
+    let mut position = s.wheel_angles.map(f64::from).to_vec();
+    position.extend(s.pod_angles[..pods].iter().map(|&a| f64::from(a)));
     msg::JointState {
         header: Header::new(t_ns, ""),
-        name: WHEEL_NAMES.map(str::to_string).to_vec(),
-        position: s.wheel_angles.map(f64::from).to_vec(),
+        name,
+        position,
         velocity: s.wheel_speeds.0.map(f64::from).to_vec(),
         effort: s.currents.map(f64::from).to_vec(),
     }
@@ -881,14 +889,17 @@ pub const DIAGNOSTIC_NAME: &str = "mecanum_drive: firmware";
 /// because their `seq` repeated the last accepted one's). A robot configured for gyro heading
 /// adds `heading_source` (`Gyro`, or `WheelsGyroSilent`: the gyro is silent and the wheels
 /// give the heading, which makes the status a warning), `gyro_bias` (rad/s) and
-/// `gyro_bias_samples`; without a gyro these keys are absent, as before they existed.
+/// `gyro_bias_samples`; without a gyro these keys are absent, as before they existed. A robot
+/// with tracking pods adds `odometry_source` (`PODS2_GYRO`, `PODS3`, or `WHEELS_PODS_SILENT`, a
+/// warning) and the slip estimate `slip_vx`, `slip_vy` (m/s), `slip_wz` (rad/s).
 fn diagnostics(t_ns: u64, s: &Snapshot) -> msg::DiagnosticArray {
-    use firmware::protocol::robot::{HeadingSource, RobotState};
+    use firmware::protocol::robot::{HeadingSource, OdometrySource, RobotState};
     let gyro_silent = s.heading_source == HeadingSource::WheelsGyroSilent;
+    let pods_silent = s.odometry_source == OdometrySource::WheelsPodsSilent;
     let level = match s.state {
         RobotState::Fault => msg::DiagnosticStatus::ERROR,
         RobotState::Estop => msg::DiagnosticStatus::WARN,
-        _ if gyro_silent => msg::DiagnosticStatus::WARN,
+        _ if gyro_silent || pods_silent => msg::DiagnosticStatus::WARN,
         _ => msg::DiagnosticStatus::OK,
     };
     let mut message = if s.fault == firmware::protocol::robot::Fault::None {
@@ -898,6 +909,9 @@ fn diagnostics(t_ns: u64, s: &Snapshot) -> msg::DiagnosticArray {
     };
     if gyro_silent {
         message.push_str(", heading from the wheels: gyro silent");
+    }
+    if pods_silent {
+        message.push_str(", odometry from the wheels: pods silent");
     }
     let mut values = Vec::with_capacity(24);
     let mut kv = |key: &str, value: String| {
@@ -934,6 +948,12 @@ fn diagnostics(t_ns: u64, s: &Snapshot) -> msg::DiagnosticArray {
         kv("heading_source", s.heading_source.to_string());
         kv("gyro_bias", s.gyro_bias.to_string());
         kv("gyro_bias_samples", s.gyro_bias_samples.to_string());
+    }
+    if s.pods > 0 {
+        kv("odometry_source", s.odometry_source.to_string());
+        kv("slip_vx", s.slip.vx.to_string());
+        kv("slip_vy", s.slip.vy.to_string());
+        kv("slip_wz", s.slip.wz.to_string());
     }
     msg::DiagnosticArray {
         header: Header::new(t_ns, ""),

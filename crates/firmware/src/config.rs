@@ -24,7 +24,10 @@ use crate::protocol::odrive::NodeId;
 use crate::protocol::robot;
 
 mod encoding;
+mod pods;
 pub use encoding::ENCODED_LEN;
+pub use pods::{OdometryMode, PODS_MAX, PodConfig, Pods};
+pub(crate) use pods::{PodSolve, localizer as pod_localizer};
 
 /// The whole drive configuration.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -400,7 +403,8 @@ pub enum HeadingMode {
     Gyro,
 }
 
-/// The odometry's heading source and the gyro's parameters (`[odometry]`).
+/// Where the odometry's increments and heading come from, the gyro's parameters and the
+/// tracking pods (`[odometry]`).
 #[derive(Debug, Clone, Copy, PartialEq)]
 #[cfg_attr(feature = "serde", derive(serde::Deserialize, serde::Serialize))]
 #[cfg_attr(feature = "serde", serde(default, deny_unknown_fields))]
@@ -419,6 +423,17 @@ pub struct OdometryConfig {
     /// With the gyro: learn its bias while standing still and subtract it (default `true`).
     /// `false` for a gyro that removes its own bias.
     pub gyro_bias_estimation: bool,
+    /// Where each step's increments come from: the wheels (default) or tracking pods
+    /// ([`OdometryMode`]; `docs/control.md`, "Odometry from tracking pods").
+    pub source: OdometryMode,
+    /// With pods: without a valid `POD_COUNTS` for this long the wheels give the odometry
+    /// (`ODOM_SLIP.source` reports the pods silent), ms. Default 50: ten periods of a 200 Hz
+    /// pod node. In `1..=10000`.
+    pub pod_timeout_ms: u32,
+    /// The pods, in the order of `POD_COUNTS.count0..2`: two for `"pods2_gyro"`, three for
+    /// `"pods3"`, none otherwise.
+    #[cfg_attr(feature = "serde", serde(skip_serializing_if = "Pods::is_empty"))]
+    pub pods: Pods,
 }
 
 impl Default for OdometryConfig {
@@ -428,6 +443,9 @@ impl Default for OdometryConfig {
             gyro_timeout_ms: 50,
             gyro_standstill_ms: 50,
             gyro_bias_estimation: true,
+            source: OdometryMode::Wheels,
+            pod_timeout_ms: 50,
+            pods: Pods::default(),
         }
     }
 }
@@ -938,6 +956,23 @@ impl Config {
                            learned)",
             });
         }
+        if !(1..=10_000).contains(&o.pod_timeout_ms) {
+            return Err(ConfigError {
+                field: "odometry.pod_timeout_ms",
+                value: f64::from(o.pod_timeout_ms),
+                expected: "a timeout in 1..=10000 ms (silence of POD_COUNTS after which the \
+                           wheels give the odometry)",
+            });
+        }
+        if o.source == OdometryMode::Pods2Gyro && o.heading_source != HeadingMode::Gyro {
+            return Err(ConfigError {
+                field: "odometry.heading_source",
+                value: 0.0,
+                expected: "\"gyro\" with odometry.source = \"pods2_gyro\" (two pods cannot tell \
+                           a rotation; the gyro gives it)",
+            });
+        }
+        pods::localizer(o.source, &o.pods)?;
         Ok(())
     }
 }

@@ -449,10 +449,16 @@ fn odometry_values_out_of_range_name_the_key_and_value() {
 fn encoding_reads_back_every_field_and_ids_tell_configurations_apart() {
     use firmware::config::{Drive, Geometry, HeadingMode, WheelConfig};
     use firmware::protocol::dji::EscModel;
-    let mut configs: Vec<Config> = ["dji_m3508", "dji_m3508_gyro", "odrive"]
-        .iter()
-        .map(|name| Config::from_toml_file(&repo_file(&format!("config/{name}.toml"))).unwrap())
-        .collect();
+    let mut configs: Vec<Config> = [
+        "dji_m3508",
+        "dji_m3508_gyro",
+        "dji_m3508_pods3",
+        "dji_m3508_pods2_gyro",
+        "odrive",
+    ]
+    .iter()
+    .map(|name| Config::from_toml_file(&repo_file(&format!("config/{name}.toml"))).unwrap())
+    .collect();
     let mut general = Config::dji_m3508_example();
     let wheel = |x: f32, y: f32, roller: f32| WheelConfig {
         x,
@@ -496,4 +502,93 @@ fn encoding_reads_back_every_field_and_ids_tell_configurations_apart() {
     ids.sort_unstable();
     ids.dedup();
     assert_eq!(ids.len(), configs.len());
+}
+
+/// The pod configurations load, round-trip through TOML, and every wrong pod value or
+/// layout is refused naming the field and why.
+#[test]
+fn tracking_pods_are_validated_naming_the_field_and_why() {
+    use firmware::config::OdometryMode;
+    let pods3 = Config::from_toml_file(&repo_file("config/dji_m3508_pods3.toml")).unwrap();
+    assert_eq!(pods3.odometry.source, OdometryMode::Pods3);
+    assert_eq!(pods3.odometry.pods.len(), 3);
+    assert_eq!(
+        Config::from_toml_str(&pods3.to_toml_string()).unwrap(),
+        pods3
+    );
+    let pods2 = Config::from_toml_file(&repo_file("config/dji_m3508_pods2_gyro.toml")).unwrap();
+    assert_eq!(pods2.odometry.source, OdometryMode::Pods2Gyro);
+    assert_eq!(
+        Config::from_toml_str(&pods2.to_toml_string()).unwrap(),
+        pods2
+    );
+    assert_ne!(pods3.id(), pods2.id());
+
+    let text = std::fs::read_to_string(repo_file("config/dji_m3508_pods3.toml")).unwrap();
+    let with = |from: &str, to: &str| {
+        assert!(text.contains(from), "fixture {from:?} missing");
+        text.replacen(from, to, 1)
+    };
+    for (from, to, error) in [
+        (
+            "source = \"pods3\"",
+            "source = \"pods2_gyro\"",
+            "odometry.heading_source = 0: \"gyro\" with odometry.source = \"pods2_gyro\"",
+        ),
+        (
+            "source = \"pods3\"",
+            "source = \"wheels\"",
+            "odometry.pods = 3: no pods with odometry.source = \"wheels\"",
+        ),
+        (
+            "radius = 0.024                # m, the omni",
+            "radius = 0.0                # m, the omni",
+            "odometry.pods.radius[0] = 0: a radius in (0, 1] m",
+        ),
+        (
+            "counts_per_turn = 2000        # quadrature",
+            "counts_per_turn = 0        # quadrature",
+            "odometry.pods.counts_per_turn[0] = 0",
+        ),
+        (
+            "pod_timeout_ms = 50 ",
+            "pod_timeout_ms = 0 ",
+            "odometry.pod_timeout_ms = 0",
+        ),
+        // Pod 2 counting forward too: all three parallel, sideways motion unseen.
+        (
+            "direction_deg = 90.0",
+            "direction_deg = 0.0",
+            "odometry.pods.direction_deg = 0: three pods not all parallel",
+        ),
+        // Pod 2 on the centre line, counting leftwards, and the two forward pods moved onto
+        // the x axis: all three lines meet at the origin, a spin about it is invisible.
+        (
+            "y = 0.11 ",
+            "y = 0.0 ",
+            "odometry.pods = NaN: three pods whose lines of action do not meet in one point",
+        ),
+    ] {
+        let mut t = with(from, to);
+        if from == "y = 0.11 " {
+            t = t
+                .replacen("y = -0.11", "y = 0.0", 1)
+                .replacen("x = 0.12", "x = 0.0", 1);
+        }
+        let got = invalid(&t);
+        assert!(got.contains(error), "{to:?}: got {got}, want {error}");
+    }
+    // Two pods counting along parallel lines.
+    let text2 = std::fs::read_to_string(repo_file("config/dji_m3508_pods2_gyro.toml")).unwrap();
+    let got = invalid(&text2.replacen("direction_deg = 90.0", "direction_deg = 180.0", 1));
+    assert!(
+        got.contains("odometry.pods.direction_deg[1] = -180: a direction not parallel"),
+        "{got}"
+    );
+    // A fourth pod: POD_COUNTS carries three.
+    let four = format!(
+        "{text}\n[[odometry.pods]]\nx = 0.0\ny = 0.0\ndirection_deg = 45.0\nradius = 0.024\ncounts_per_turn = 2000\n"
+    );
+    let got = Config::from_toml_str(&four).unwrap_err().to_string();
+    assert!(got.contains("at most 3 pods"), "{got}");
 }

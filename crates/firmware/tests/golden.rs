@@ -376,9 +376,9 @@ fn robot_status_counters() {
 
 #[test]
 fn robot_heartbeat() {
-    // uptime 0x12345678 ms, state 3 (e-stop), protocol version 6, configuration 0xC0DE.
-    let f = frame(0x31F, &[0x78, 0x56, 0x34, 0x12, 0x03, 0x06, 0xDE, 0xC0]);
-    assert_eq!(robot::PROTOCOL_VERSION, 6);
+    // uptime 0x12345678 ms, state 3 (e-stop), protocol version 7, configuration 0xC0DE.
+    let f = frame(0x31F, &[0x78, 0x56, 0x34, 0x12, 0x03, 0x07, 0xDE, 0xC0]);
+    assert_eq!(robot::PROTOCOL_VERSION, 7);
     let h = Heartbeat {
         uptime_ms: 0x1234_5678,
         state: RobotState::Estop,
@@ -440,6 +440,40 @@ fn robot_wheel_test() {
 }
 
 #[test]
+fn robot_pod_counts_and_odom_slip() {
+    // Counts 1, 65535 and 0x8000 (wrapping u16s), seq 9.
+    let f = frame(0x306, &[0x01, 0x00, 0xFF, 0xFF, 0x00, 0x80, 0x09, 0x00]);
+    let c = robot::PodCounts {
+        counts: [1, 0xFFFF, 0x8000],
+        seq: 9,
+    };
+    assert_eq!(robot::Command::decode(&f), Ok(robot::Command::PodCounts(c)));
+    assert_eq!(robot::Command::PodCounts(c).to_can_frame(), f);
+    // vx 0.012 m/s, vy -0.345 m/s, wz 0.2 rad/s, source 2 (PODS3) in byte 6's low nibble.
+    let f = frame(0x315, &[0x0C, 0x00, 0xA7, 0xFE, 0xC8, 0x00, 0x02, 0x00]);
+    let s = robot::OdomSlip {
+        vx: 0.012,
+        vy: -0.345,
+        wz: 0.2,
+        source: robot::OdometrySource::Pods3,
+    };
+    assert_eq!(robot::Telemetry::OdomSlip(s).to_can_frame(), f);
+    let robot::Telemetry::OdomSlip(back) = robot::Telemetry::decode(&f).unwrap() else {
+        panic!("not ODOM_SLIP");
+    };
+    assert_eq!(back.source, robot::OdometrySource::Pods3);
+    assert!((back.vy + 0.345).abs() < 1e-6 && (back.wz - 0.2).abs() < 1e-6);
+    // Source 4 is reserved.
+    assert!(matches!(
+        robot::Telemetry::decode(&frame(0x315, &[0, 0, 0, 0, 0, 0, 0x04, 0])),
+        Err(DecodeError::OutOfRange {
+            field: "source",
+            value: 4
+        })
+    ));
+}
+
+#[test]
 fn robot_rejections() {
     // Wrong DLC, remote, extended, unknown, wrong direction.
     assert_eq!(
@@ -459,7 +493,7 @@ fn robot_rejections() {
         robot::decode(&ext),
         Err(DecodeError::ExtendedId { id: 0x301 })
     );
-    for id in [0x306, 0x31E, 0x123] {
+    for id in [0x307, 0x31E, 0x123] {
         assert_eq!(
             robot::decode(&frame(id, &[0; 8])),
             Err(DecodeError::UnknownId {

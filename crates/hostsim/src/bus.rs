@@ -38,6 +38,8 @@ pub enum Node {
     Host,
     /// An IMU node sending its gyro's yaw rate ([`crate::imu`]).
     Imu,
+    /// A tracking-pod node sending its pods' encoder counts ([`crate::pods`]).
+    Pods,
 }
 
 impl Node {
@@ -49,6 +51,7 @@ impl Node {
             Self::Drives => "drives",
             Self::Host => "host",
             Self::Imu => "imu",
+            Self::Pods => "pods",
         }
     }
 }
@@ -172,7 +175,7 @@ pub struct Bus {
     faults: Vec<Fault>,
     /// Per sender ([`node_index`]), when its last frame is delivered: no later frame of the
     /// same sender is delivered before it.
-    last_delivered_ns: [u64; 4],
+    last_delivered_ns: [u64; NODES],
     rng: SplitMix64,
     stats: BusStats,
 }
@@ -180,7 +183,8 @@ pub struct Bus {
 /// The arbitration key of a queued frame, lowest wins: the arbitration field as it goes on
 /// the wire (dominant 0 first), then the node order, then the order of queueing.
 fn arbitration_key(frame: &CanFrame, from: Node, seq: u64) -> u128 {
-    (u128::from(arbitration_field(frame)) << 66)
+    // The node order takes 3 bits (64..67): five nodes.
+    (u128::from(arbitration_field(frame)) << 67)
         | ((node_index(from) as u128) << 64)
         | u128::from(seq)
 }
@@ -200,12 +204,16 @@ fn arbitration_field(frame: &CanFrame) -> u32 {
     }
 }
 
+/// How many nodes there are ([`node_index`] is below).
+const NODES: usize = 5;
+
 fn node_index(n: Node) -> usize {
     match n {
         Node::Controller => 0,
         Node::Drives => 1,
         Node::Host => 2,
         Node::Imu => 3,
+        Node::Pods => 4,
     }
 }
 
@@ -226,7 +234,7 @@ impl Bus {
             queued: 0,
             idle_at_ns: 0,
             faults,
-            last_delivered_ns: [0; 4],
+            last_delivered_ns: [0; NODES],
             rng: SplitMix64(seed),
             stats: BusStats::default(),
         }

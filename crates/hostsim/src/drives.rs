@@ -263,6 +263,15 @@ impl SimPlant for SimDrives {
         [v.vx, v.vy, v.wz]
     }
 
+    fn truth_travel(&self) -> Option<[f64; 3]> {
+        let travel = match self {
+            Self::Dji { plant, .. } => plant.chassis().body_travel(),
+            Self::Odrive { plant, .. } => plant.chassis().body_travel(),
+            Self::Cia402 { plant, .. } => plant.chassis().body_travel(),
+        };
+        Some(travel)
+    }
+
     fn set_faults(&mut self, at_ns: u64, stuck: [bool; 4], offline: [bool; 4]) {
         match self {
             Self::Dji { plant, .. } => plant.set_faults_at(at_ns, stuck, offline),

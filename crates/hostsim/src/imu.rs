@@ -93,12 +93,13 @@ pub fn imu_seed(scenario_seed: u64) -> u64 {
     r.next_u64()
 }
 
-/// SplitMix64 (Steele, Lea and Flood 2014): 64-bit state, full period.
+/// SplitMix64 (Steele, Lea and Flood 2014): 64-bit state, full period. Shared with the pod
+/// node ([`crate::pods`]).
 #[derive(Debug, Clone, Copy)]
-struct SplitMix64(u64);
+pub(crate) struct SplitMix64(pub(crate) u64);
 
 impl SplitMix64 {
-    fn next_u64(&mut self) -> u64 {
+    pub(crate) fn next_u64(&mut self) -> u64 {
         self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
         let mut z = self.0;
         z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
@@ -112,7 +113,7 @@ impl SplitMix64 {
     }
 
     /// A standard normal number (Box–Muller, one of the pair).
-    fn normal(&mut self) -> f64 {
+    pub(crate) fn normal(&mut self) -> f64 {
         let (u1, u2) = (self.unit_open(), self.unit_open());
         libm::sqrt(-2.0 * libm::log(u1)) * libm::cos(std::f64::consts::TAU * u2)
     }
@@ -241,6 +242,10 @@ impl<P: SimPlant> SimPlant for WithImu<'_, P> {
         }
     }
 
+    fn pod_frames(&mut self, until_ns: u64, out: &mut Vec<(u64, CanFrame)>) {
+        self.inner.pod_frames(until_ns, out);
+    }
+
     fn advance(&mut self, dt: f64) {
         if self.imu.is_none() {
             // Exactly the plant's own step, as without the IMU.
@@ -283,6 +288,10 @@ impl<P: SimPlant> SimPlant for WithImu<'_, P> {
 
     fn truth_velocity(&self) -> [f64; 3] {
         self.inner.truth_velocity()
+    }
+
+    fn truth_travel(&self) -> Option<[f64; 3]> {
+        self.inner.truth_travel()
     }
 
     fn set_faults(&mut self, at_ns: u64, stuck: [bool; 4], offline: [bool; 4]) {

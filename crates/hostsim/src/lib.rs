@@ -17,6 +17,7 @@ pub mod kin;
 pub use drivelog as log;
 pub mod plant;
 pub mod plot;
+pub mod pods;
 pub mod realtime;
 pub mod replay;
 pub mod scenario;

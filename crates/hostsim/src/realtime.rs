@@ -301,6 +301,7 @@ pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
         feedback.clear();
         plant.feedback(sim_us * 1000, &mut feedback);
         plant.imu_frames(sim_us * 1000, &mut feedback);
+        plant.pod_frames(sim_us * 1000, &mut feedback);
         let give_up = deadline.max(woke).saturating_add(period / 2);
         for (_, frame) in &feedback {
             match send_with_retry(

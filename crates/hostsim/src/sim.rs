@@ -35,6 +35,10 @@ pub trait SimPlant {
     /// [`Self::feedback`] (the bus node [`Node::Imu`]). None by default: see
     /// [`crate::imu::WithImu`], which the runner puts around the plant.
     fn imu_frames(&mut self, _until_ns: u64, _out: &mut Vec<(u64, CanFrame)>) {}
+    /// `POD_COUNTS` frames a tracking-pod node on the plant has sent up to `until_ns`, as
+    /// [`Self::feedback`] (the bus node [`Node::Pods`]). None by default: see
+    /// [`crate::pods::WithPods`], which the runner puts around the plant.
+    fn pod_frames(&mut self, _until_ns: u64, _out: &mut Vec<(u64, CanFrame)>) {}
     /// Advances the physics by `dt` seconds.
     fn advance(&mut self, dt: f64);
     /// Advances the physics by `dt_ns` nanoseconds ([`Self::advance`] by default).
@@ -51,6 +55,13 @@ pub trait SimPlant {
     fn truth(&self) -> [f64; 3];
     /// Ground-truth body velocity `[vx, vy, wz]`.
     fn truth_velocity(&self) -> [f64; 3];
+    /// Ground-truth body velocity integrated over time since the plant was built,
+    /// `[∫vx dt, ∫vy dt, ∫wz dt]` (m, m, rad), in the plant's own integration steps
+    /// ([`crate::plant::Chassis::body_travel`]); `None` (the default) for a plant that does
+    /// not keep it: [`crate::pods::WithPods`] then integrates [`Self::truth_velocity`] itself.
+    fn truth_travel(&self) -> Option<[f64; 3]> {
+        None
+    }
     /// Plant faults from `at_ns` on (at once if the plant is there already): `stuck[i]`
     /// freezes wheel i's encoder, `offline[i]` silences its drive. The motion before `at_ns`
     /// does not feel them; the feedback stamped `at_ns` does.
@@ -281,8 +292,10 @@ pub fn run_observed<P: SimPlant>(
     options: LogOptions,
     mut observe: impl FnMut(&StepView<'_>),
 ) -> Result<RunSummary, SimError> {
-    // The scenario's IMU node, if any, on the plant (without one, a pass-through).
+    // The scenario's IMU node and pod node, if any, on the plant (without them, a
+    // pass-through).
     let plant = &mut crate::imu::WithImu::new(plant, scenario.imu.as_ref(), scenario.seed);
+    let plant = &mut crate::pods::WithPods::for_scenario(plant, scenario);
     let mut ctl = Controller::new(&scenario.config)?;
     let period_us = ctl.period_micros();
     let period_ns = period_us * 1000;
@@ -494,21 +507,21 @@ fn advance_period<P: SimPlant>(
     }
 }
 
-/// Hands `send` the drives' feedback frames and the IMU's frames sent up to `until_ns`, each
-/// with its send time and its node (the drives', then the IMU's, each in time order);
-/// `feedback` is scratch space.
+/// Hands `send` the drives' feedback frames, the IMU's and the pod node's frames sent up to
+/// `until_ns`, each with its send time and its node (the drives', then the IMU's, then the
+/// pods', each in time order); `feedback` is scratch space.
 pub fn queue_feedback<P: SimPlant>(
     plant: &mut P,
     feedback: &mut Vec<(u64, CanFrame)>,
     until_ns: u64,
     mut send: impl FnMut(u64, Node, CanFrame),
 ) {
-    for (node, imu) in [(Node::Drives, false), (Node::Imu, true)] {
+    for node in [Node::Drives, Node::Imu, Node::Pods] {
         feedback.clear();
-        if imu {
-            plant.imu_frames(until_ns, feedback);
-        } else {
-            plant.feedback(until_ns, feedback);
+        match node {
+            Node::Imu => plant.imu_frames(until_ns, feedback),
+            Node::Pods => plant.pod_frames(until_ns, feedback),
+            _ => plant.feedback(until_ns, feedback),
         }
         for &(at_ns, f) in feedback.iter() {
             send(at_ns, node, f);

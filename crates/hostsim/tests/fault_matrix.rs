@@ -150,8 +150,8 @@ fn run(s: &Scenario) -> Record {
                         last_feedback[wheel] = Some(t_us);
                     }
                 }
-                // The fault matrix's scenarios have no IMU.
-                Node::Controller | Node::Imu => {}
+                // The fault matrix's scenarios have no IMU and no pods.
+                Node::Controller | Node::Imu | Node::Pods => {}
             }
         }
         // The firmware's stale rule, from the deliveries: feedback older than the limit.

@@ -16,13 +16,14 @@
 use crc::{CRC_16_IBM_3740, Crc};
 
 use super::{
-    Config, ConfigError, Drive, Gains, Geometry, HeadingMode, Limits, OdometryConfig, Timing,
-    WheelConfig,
+    Config, ConfigError, Drive, Gains, Geometry, HeadingMode, Limits, OdometryConfig, OdometryMode,
+    PODS_MAX, PodConfig, Pods, Timing, WheelConfig,
 };
 use crate::protocol::dji::EscModel;
 
-/// The format's version, the first byte of the encoding (2: the CiA 402 drive's fields).
-const FORMAT: u8 = 2;
+/// The format's version, the first byte of the encoding (2: the CiA 402 drive's fields; 3:
+/// the odometry source and the tracking pods).
+const FORMAT: u8 = 3;
 
 /// Bytes of the geometry: a tag and 23 f32 (four wheels of five, three factors).
 const GEOMETRY_LEN: usize = 1 + 23 * 4;
@@ -31,8 +32,12 @@ const GEOMETRY_LEN: usize = 1 + 23 * 4;
 /// master's node and the two heartbeat times.
 const DRIVE_LEN: usize = 1 + 1 + 4 + 4 + 1 + 1 + 4 + 2 * 4 + 1 + 2 * 2;
 
+/// Bytes of the odometry: the heading tag, the gyro's two times and flag; the source tag,
+/// the pod timeout, the pod count and three pods of four f32 and a u32.
+const ODOMETRY_LEN: usize = 1 + 2 * 4 + 1 + 1 + 4 + 1 + PODS_MAX * 5 * 4;
+
 /// The length of every encoded configuration, bytes.
-pub const ENCODED_LEN: usize = 1 + GEOMETRY_LEN + DRIVE_LEN + 8 * 4 + 3 * 4 + 7 * 4 + 1 + 2 * 4 + 1;
+pub const ENCODED_LEN: usize = 1 + GEOMETRY_LEN + DRIVE_LEN + 8 * 4 + 3 * 4 + 7 * 4 + ODOMETRY_LEN;
 
 /// The CRC of [`Config::id`]: CRC-16/IBM-3740 (CCITT-FALSE), as in many CAN tools.
 const CRC: Crc<u16> = Crc::<u16>::new(&CRC_16_IBM_3740);
@@ -186,6 +191,9 @@ impl Config {
             gyro_timeout_ms,
             gyro_standstill_ms,
             gyro_bias_estimation,
+            source,
+            pod_timeout_ms,
+            pods,
         } = odometry;
         w.u8(match heading_source {
             HeadingMode::Wheels => 0,
@@ -194,6 +202,20 @@ impl Config {
         w.bytes(&gyro_timeout_ms.to_le_bytes());
         w.bytes(&gyro_standstill_ms.to_le_bytes());
         w.u8(u8::from(gyro_bias_estimation));
+        w.u8(match source {
+            OdometryMode::Wheels => 0,
+            OdometryMode::Pods2Gyro => 1,
+            OdometryMode::Pods3 => 2,
+        });
+        w.bytes(&pod_timeout_ms.to_le_bytes());
+        // At most PODS_MAX, so the count fits a byte.
+        w.u8(pods.len() as u8);
+        for i in 0..PODS_MAX {
+            // Unused slots are zeros.
+            let pod = pods.as_slice().get(i).copied().unwrap_or_default();
+            w.f32s(&[pod.x, pod.y, pod.direction_deg, pod.radius]);
+            w.bytes(&pod.counts_per_turn.to_le_bytes());
+        }
         debug_assert_eq!(w.at, ENCODED_LEN);
         w.out
     }
@@ -203,7 +225,7 @@ impl Config {
     /// # Errors
     /// A [`ConfigError`] naming what is wrong: the length (`encoded.len`), the format version
     /// (`encoded.format`), a tag out of range (`geometry.layout`, `drive.protocol`,
-    /// `drive.model`, `odometry.heading_source`, a flag other than 0 or 1), or the first
+    /// `drive.model`, `odometry.heading_source`, `odometry.source`, `odometry.pods`, a flag other than 0 or 1), or the first
     /// field out of range as [`validate`](Self::validate) finds it.
     pub fn decode(bytes: &[u8]) -> Result<Self, ConfigError> {
         if bytes.len() != ENCODED_LEN {
@@ -344,11 +366,45 @@ impl Config {
                 ));
             }
         };
+        let gyro_timeout_ms = r.u32();
+        let gyro_standstill_ms = r.u32();
+        let gyro_bias_estimation = r.flag("odometry.gyro_bias_estimation")?;
+        let source = match r.u8() {
+            0 => OdometryMode::Wheels,
+            1 => OdometryMode::Pods2Gyro,
+            2 => OdometryMode::Pods3,
+            other => {
+                return Err(tag(
+                    "odometry.source",
+                    other,
+                    "0 (wheels), 1 (pods2_gyro) or 2 (pods3)",
+                ));
+            }
+        };
+        let pod_timeout_ms = r.u32();
+        let count = r.u8();
+        let mut list = [PodConfig::default(); PODS_MAX];
+        for pod in &mut list {
+            *pod = PodConfig {
+                x: r.f32(),
+                y: r.f32(),
+                direction_deg: r.f32(),
+                radius: r.f32(),
+                counts_per_turn: r.u32(),
+            };
+        }
+        let pods = list
+            .get(..usize::from(count))
+            .and_then(Pods::new)
+            .ok_or_else(|| tag("odometry.pods", count, "at most 3 pods"))?;
         let odometry = OdometryConfig {
             heading_source,
-            gyro_timeout_ms: r.u32(),
-            gyro_standstill_ms: r.u32(),
-            gyro_bias_estimation: r.flag("odometry.gyro_bias_estimation")?,
+            gyro_timeout_ms,
+            gyro_standstill_ms,
+            gyro_bias_estimation,
+            source,
+            pod_timeout_ms,
+            pods,
         };
         let config = Self {
             geometry,

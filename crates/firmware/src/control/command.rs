@@ -66,6 +66,7 @@ impl Controller {
             }
             Command::StatusRequest => self.status_requested = true,
             Command::ImuYawRate(g) => self.on_gyro(now, g),
+            Command::PodCounts(c) => self.on_pods(now, c),
             Command::WheelTest(t) => self.start_test(now, t),
         }
         Ok(())

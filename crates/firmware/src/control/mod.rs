@@ -30,6 +30,7 @@ mod dji;
 mod health;
 mod odometry;
 mod odrive;
+mod pods;
 mod telemetry;
 mod time;
 mod wheel_test;
@@ -50,10 +51,11 @@ pub use self::dji::{
 };
 pub use self::odometry::{GYRO_BIAS_MAX_SAMPLES, STANDSTILL_WHEEL_SPEED};
 pub use self::odrive::{ODRIVE_CLEAR_GRACE_US, ODRIVE_MAX_JUMP_FACTOR, ODRIVE_STATE_GRACE_US};
+pub use self::pods::SLIP_TIME_CONSTANT_S;
 pub use self::telemetry::Snapshot;
 pub use self::time::Instant;
 pub use self::wheel_test::WHEEL_TEST_CURRENT_FRACTION;
-pub use crate::protocol::robot::{Fault, HeadingSource};
+pub use crate::protocol::robot::{Fault, HeadingSource, OdometrySource};
 
 use self::current_loop::WatchInputs;
 use self::time::Every;
@@ -65,9 +67,9 @@ use crate::protocol::{DecodeError, RxErrorCounters};
 /// Most frames one [`Controller::step`] can emit: two DJI command frames, or for four ODrive
 /// axes `Clear_Errors` (after a reset), three state commands (after an enable) and a velocity
 /// setpoint each (16), or for four CiA 402 nodes an SDO request, NMT start and RPDO1 each,
-/// SYNC and the master's heartbeat (14); plus odometry (2), status, status counters and
-/// heartbeat (3), and a wheel test's result (1).
-pub const OUTBOX_CAPACITY: usize = 26;
+/// SYNC and the master's heartbeat (14); plus odometry (2, and the slip with pods: 3), status,
+/// status counters and heartbeat (3), and a wheel test's result (1).
+pub const OUTBOX_CAPACITY: usize = 27;
 
 /// The frames one step emits, in the order they should be sent.
 pub type Outbox = heapless::Vec<CanFrame, OUTBOX_CAPACITY>;
@@ -241,6 +243,7 @@ pub struct Controller {
     currents: [f32; 4],
     rx_errors: RxErrorCounters,
     gyro: odometry::Gyro,
+    pods: pods::Pods,
 
     boot: Option<Instant>,
     steps: u64,
@@ -361,6 +364,7 @@ impl Controller {
             currents: [0.0; 4],
             rx_errors: RxErrorCounters::new(),
             gyro: odometry::Gyro::default(),
+            pods: pods::Pods::new(&config.odometry),
             boot: None,
             steps: 0,
             status_requested: false,
@@ -471,6 +475,7 @@ impl Controller {
         self.time_test(now);
         self.ramp();
         self.update_gyro(now);
+        self.update_pods(now);
         self.integrate_odometry();
         // One tick of every rate divider per step, whether or not its frames go out.
         let odom_due = self.odom_clock.tick();

@@ -100,22 +100,34 @@ impl Controller {
                 .all(|w| w.speed.abs() <= STANDSTILL_WHEEL_SPEED)
     }
 
-    /// Moves the pose by the step's wheel increments (and the gyro's rotation), and measures
-    /// the body's velocity from the wheels' speeds.
+    /// Moves the pose by the step's wheel increments (and the gyro's rotation), or by the
+    /// pods' increments when they give the odometry, and measures the body's velocity from
+    /// the wheels' speeds.
     pub(super) fn integrate_odometry(&mut self) {
         let deltas = WheelDeltas(self.wheels.map(|w| w.pending));
         for w in &mut self.wheels {
             w.angle += w.pending;
             w.pending = 0.0;
         }
-        self.measured = self.kin.forward(&WheelSpeeds(self.wheels.map(|w| w.speed)));
-        if self.gyro.source == HeadingSource::Gyro {
+        let wheels = self.kin.forward(&WheelSpeeds(self.wheels.map(|w| w.speed)));
+        self.measured = wheels;
+        let gyro = self.gyro.source == HeadingSource::Gyro;
+        let rate = self.gyro.rate - self.gyro.bias;
+        if gyro {
+            self.measured.wz = rate;
+        }
+        if self.pods.configured() {
+            let step = self.kin.displacement(&deltas);
+            let heading = if gyro { rate * self.dt } else { step.dtheta };
+            if self.integrate_pods(step, heading, wheels) {
+                return;
+            }
+        }
+        if gyro {
             // The wheels' translation, the gyro's rotation.
-            let rate = self.gyro.rate - self.gyro.bias;
             let mut step = self.kin.displacement(&deltas);
             step.dtheta = rate * self.dt;
             self.odometry.apply(step);
-            self.measured.wz = rate;
         } else {
             self.odometry.update(&self.kin, &deltas);
         }

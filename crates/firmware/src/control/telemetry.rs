@@ -1,11 +1,11 @@
-//! What the core reports: the frames it sends at their rates (odometry, status and its
+//! What the core reports: the frames it sends at their rates (odometry and slip, status and its
 //! counters, the heartbeat, a wheel test's result), and the [`Snapshot`] logs and tests read.
 
 use kinematics::{ChassisVelocity, Pose2, WheelSpeeds};
 
 use super::{Controller, Instant, Outbox, push};
 use crate::protocol::RxErrorCounters;
-use crate::protocol::robot::{self, Fault, HeadingSource, RobotState};
+use crate::protocol::robot::{self, Fault, HeadingSource, OdometrySource, RobotState};
 
 /// Snapshot of the controller for logs and tests.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -16,7 +16,8 @@ pub struct Snapshot {
     pub fault: Fault,
     /// Odometry pose.
     pub pose: Pose2<f32>,
-    /// Body velocity measured by the wheels (forward kinematics).
+    /// Body velocity measured by the wheels (forward kinematics; the gyro's yaw rate while
+    /// it gives the heading).
     pub measured: ChassisVelocity<f32>,
     /// Body velocity being commanded after acceleration limits.
     pub commanded: ChassisVelocity<f32>,
@@ -46,6 +47,16 @@ pub struct Snapshot {
     /// Standstill readings in the gyro's bias estimate (at most
     /// [`GYRO_BIAS_MAX_SAMPLES`](super::GYRO_BIAS_MAX_SAMPLES)).
     pub gyro_bias_samples: u32,
+    /// Where the odometry came from at the last step.
+    pub odometry_source: OdometrySource,
+    /// How many tracking pods are configured (0-3).
+    pub pods: u8,
+    /// The pods' wheel angles since the start, rad, as their counts say (the first
+    /// `pods`; a silence's turns are not in them).
+    pub pod_angles: [f32; crate::config::PODS_MAX],
+    /// The wheels' body velocity less the pods', filtered (zero without pods, or while
+    /// they are silent).
+    pub slip: ChassisVelocity<f32>,
     /// Steps run.
     pub steps: u64,
 }
@@ -70,6 +81,10 @@ impl Controller {
             heading_source: self.gyro.source,
             gyro_bias: self.gyro.bias,
             gyro_bias_samples: self.gyro.samples,
+            odometry_source: self.pods.source,
+            pods: self.pods.count,
+            pod_angles: self.pods.angles,
+            slip: self.pods.slip,
             steps: self.steps,
         }
     }
@@ -86,6 +101,7 @@ impl Controller {
     ) {
         if odom_due {
             let p = self.odometry.pose();
+            let v = self.pods.velocity(self.measured);
             push(
                 out,
                 robot::Telemetry::OdomPosition(robot::OdomPosition { x: p.x, y: p.y })
@@ -95,12 +111,25 @@ impl Controller {
                 out,
                 robot::Telemetry::OdomVelocity(robot::OdomVelocity {
                     heading: p.heading,
-                    vx: self.measured.vx,
-                    vy: self.measured.vy,
-                    wz: self.measured.wz,
+                    vx: v.vx,
+                    vy: v.vy,
+                    wz: v.wz,
                 })
                 .to_can_frame(),
             );
+            if self.pods.configured() {
+                let s = self.pods.slip;
+                push(
+                    out,
+                    robot::Telemetry::OdomSlip(robot::OdomSlip {
+                        vx: s.vx,
+                        vy: s.vy,
+                        wz: s.wz,
+                        source: self.pods.source,
+                    })
+                    .to_can_frame(),
+                );
+            }
         }
         if status_due || self.status_requested {
             self.status_requested = false;

@@ -3,7 +3,8 @@
 //!
 //! Defined by `dbc/mecanum_robot.dbc` (the file is the specification; this module follows
 //! it): CAN 2.0A standard ids in the block `0x300..=0x31F` ([`in_block`]), little-endian
-//! fields. [`layout`] mirrors the DBC; [`Command`] is what the host (and an IMU node) sends,
+//! fields. [`layout`] mirrors the DBC; [`Command`] is what the host (and an IMU or pod node)
+//! sends,
 //! [`Telemetry`] what the robot sends, [`decode`] reads either; [`PROTOCOL_VERSION`] is the
 //! version implemented. The message table, the alive counters (`TWIST_CMD.seq`,
 //! `IMU_YAW_RATE.seq`), the gyro's heading source, the wheel test and `STATUS_COUNTERS` are
@@ -24,6 +25,9 @@ use crate::frame::CanFrame;
 
 /// The protocol version this module implements, sent in [`Heartbeat::protocol_version`].
 ///
+/// Version 7 added the optional `POD_COUNTS` (a tracking-pod node's counts) and
+/// `ODOM_SLIP` (the odometry source and the slip estimate); a robot configured without pods
+/// neither expects nor sends either.
 /// Version 6 added `STATUS.fault` 9-12 (`DRIVE_SILENT`, `DRIVE_REBOOTED`, `DRIVE_SETUP`,
 /// `DRIVE_TRANSITION`), the faults of CANopen drives; a version 5 receiver rejects them.
 /// Version 5 sends the id of the robot's configuration ([`Config::id`](crate::Config::id))
@@ -35,7 +39,7 @@ use crate::frame::CanFrame;
 /// added `STATUS_COUNTERS`; a version 2 host that sends one `seq` forever stops the robot
 /// after one command timeout. Version 2 added `STATUS.fault` 6 (`ENCODER_STUCK`); a version
 /// 1 receiver rejects it.
-pub const PROTOCOL_VERSION: u8 = 6;
+pub const PROTOCOL_VERSION: u8 = 7;
 
 /// The frame layout: the Rust mirror of `dbc/mecanum_robot.dbc`. Every id, DLC, offset,
 /// scale and range the codec uses is here.
@@ -83,6 +87,12 @@ pub mod layout {
         id: 0x305,
         dlc: 8,
     };
+    /// `POD_COUNTS`, pod node → robot (version 7).
+    pub const POD_COUNTS: MessageDef = MessageDef {
+        name: "POD_COUNTS",
+        id: 0x306,
+        dlc: 8,
+    };
     /// `ODOM_POSITION`, robot → host.
     pub const ODOM_POSITION: MessageDef = MessageDef {
         name: "ODOM_POSITION",
@@ -111,6 +121,12 @@ pub mod layout {
     pub const WHEEL_TEST_RESULT: MessageDef = MessageDef {
         name: "WHEEL_TEST_RESULT",
         id: 0x314,
+        dlc: 8,
+    };
+    /// `ODOM_SLIP`, robot → host (version 7, only with pods configured).
+    pub const ODOM_SLIP: MessageDef = MessageDef {
+        name: "ODOM_SLIP",
+        id: 0x315,
         dlc: 8,
     };
     /// `HEARTBEAT`, robot → host.
@@ -156,6 +172,35 @@ pub mod layout {
     pub const IMU_YAW_RATE_VALUE: Field = Field::int("yaw_rate", 0, F32, Little);
     /// `IMU_YAW_RATE.seq`, alive counter.
     pub const IMU_SEQ: Field = Field::int("seq", 4, U8, Little);
+
+    /// Most pods a `POD_COUNTS` frame carries.
+    pub const PODS_MAX: usize = 3;
+    /// `POD_COUNTS.count0..2`, wrapping encoder counts (the receiver takes the signed
+    /// 16-bit difference between frames).
+    pub const POD_COUNT: [Field; PODS_MAX] = [
+        Field::int("count0", 0, U16, Little),
+        Field::int("count1", 2, U16, Little),
+        Field::int("count2", 4, U16, Little),
+    ];
+    /// `POD_COUNTS.seq`, alive counter.
+    pub const POD_SEQ: Field = Field::int("seq", 6, U8, Little);
+
+    /// `ODOM_SLIP.vx`, m/s: the wheels' forward velocity less the pods'.
+    pub const SLIP_VX: Field = Field::int("vx", 0, I16, Little)
+        .scaled(LINEAR_SCALE)
+        .range(-VEL_RAW_MAX, VEL_RAW_MAX);
+    /// `ODOM_SLIP.vy`, m/s.
+    pub const SLIP_VY: Field = Field::int("vy", 2, I16, Little)
+        .scaled(LINEAR_SCALE)
+        .range(-VEL_RAW_MAX, VEL_RAW_MAX);
+    /// `ODOM_SLIP.wz`, rad/s.
+    pub const SLIP_WZ: Field = Field::int("wz", 4, I16, Little)
+        .scaled(ANGULAR_SCALE)
+        .range(-VEL_RAW_MAX, VEL_RAW_MAX);
+    /// `ODOM_SLIP.source`: 0 wheels, 1 pods2_gyro, 2 pods3, 3 wheels because the pods are
+    /// silent; the low 4 bits of byte 6 (other values reserved, rejected).
+    pub const SLIP_SOURCE: Field =
+        Field::int("source", 6, Bits { shift: 0, width: 4 }, Little).range(0, 3);
 
     /// `WHEEL_TEST.wheel`: 0 FL, 1 FR, 2 RL, 3 RR.
     pub const TEST_WHEEL: Field = Field::int("wheel", 0, U8, Little).range(0, 3);
@@ -362,6 +407,12 @@ u8_enum!(HeadingSource {
     Gyro = 1 => "GYRO",
     WheelsGyroSilent = 2 => "WHEELS_GYRO_SILENT",
 });
+u8_enum!(OdometrySource {
+    Wheels = 0 => "WHEELS",
+    Pods2Gyro = 1 => "PODS2_GYRO",
+    Pods3 = 2 => "PODS3",
+    WheelsPodsSilent = 3 => "WHEELS_PODS_SILENT",
+});
 u8_enum!(Fault {
     None = 0 => "NONE",
     MotorStale = 1 => "MOTOR_STALE",
@@ -377,6 +428,23 @@ u8_enum!(Fault {
     DriveSetup = 11 => "DRIVE_SETUP",
     DriveTransition = 12 => "DRIVE_TRANSITION",
 });
+
+/// Where the odometry comes from (`ODOM_SLIP.source`, version 7).
+#[derive(Clone, Copy, PartialEq, Eq, Debug, Default)]
+pub enum OdometrySource {
+    /// The wheels (and the gyro's rotation, as `STATUS.heading_source` says): the robot is
+    /// configured without pods. Never sent: such a robot sends no `ODOM_SLIP`.
+    #[default]
+    Wheels = 0,
+    /// Two pods' translation, the gyro's rotation (the wheels' while the gyro is silent).
+    Pods2Gyro = 1,
+    /// Three pods: translation and rotation.
+    Pods3 = 2,
+    /// The wheels, although the robot is configured for pods: no valid `POD_COUNTS` within
+    /// the pod timeout (or none yet). A warning, not a fault; the pods take over again from
+    /// the second valid frame (the first sets their baseline).
+    WheelsPodsSilent = 3,
+}
 
 /// A twist setpoint (`TWIST_CMD`), body frame.
 #[derive(Clone, Copy, PartialEq, Debug, Default)]
@@ -400,6 +468,16 @@ pub struct ImuYawRate {
     /// measures it (bias included); finite, within ±35 rad/s.
     pub yaw_rate: f32,
     /// Alive counter set by the IMU node: one more (mod 256) in every frame. A repeat of the
+    /// last accepted one is not used.
+    pub seq: u8,
+}
+
+/// The tracking pods' encoder counts (`POD_COUNTS`, version 7), from a pod node.
+#[derive(Clone, Copy, PartialEq, Eq, Debug, Default)]
+pub struct PodCounts {
+    /// Each pod's count, wrapping mod 65536; with two pods the third is sent as 0 and ignored.
+    pub counts: [u16; layout::PODS_MAX],
+    /// Alive counter set by the pod node: one more (mod 256) in every frame. A repeat of the
     /// last accepted one is not used.
     pub seq: u8,
 }
@@ -458,6 +536,8 @@ pub enum Command {
     ImuYawRate(ImuYawRate),
     /// `WHEEL_TEST`: drive one wheel for the bring-up check.
     WheelTest(WheelTest),
+    /// `POD_COUNTS`: the tracking pods' counts. Not a motion command.
+    PodCounts(PodCounts),
 }
 
 /// Odometry pose position (`ODOM_POSITION`), odometry frame.
@@ -480,6 +560,20 @@ pub struct OdomVelocity {
     pub vy: f32,
     /// Yaw rate, rad/s (LSB 0.001).
     pub wz: f32,
+}
+
+/// The odometry source and the slip estimate (`ODOM_SLIP`, version 7): the wheels' body
+/// velocity less the pods', filtered.
+#[derive(Clone, Copy, PartialEq, Debug, Default)]
+pub struct OdomSlip {
+    /// Forward slip velocity, m/s (LSB 0.001).
+    pub vx: f32,
+    /// Leftward slip velocity, m/s (LSB 0.001).
+    pub vy: f32,
+    /// Yaw-rate difference, rad/s (LSB 0.001).
+    pub wz: f32,
+    /// Where the odometry comes from.
+    pub source: OdometrySource,
 }
 
 /// Robot status (`STATUS`).
@@ -546,6 +640,8 @@ pub enum Telemetry {
     Heartbeat(Heartbeat),
     /// `WHEEL_TEST_RESULT`.
     WheelTestResult(WheelTestResult),
+    /// `ODOM_SLIP` (version 7).
+    OdomSlip(OdomSlip),
 }
 
 /// Any message of the protocol.
@@ -606,6 +702,7 @@ impl Command {
             Self::StatusRequest => layout::STATUS_REQ,
             Self::ImuYawRate(_) => layout::IMU_YAW_RATE,
             Self::WheelTest(_) => layout::WHEEL_TEST,
+            Self::PodCounts(_) => layout::POD_COUNTS,
         }
     }
 
@@ -623,6 +720,7 @@ impl Command {
             x if x == layout::STATUS_REQ.id => layout::STATUS_REQ,
             x if x == layout::IMU_YAW_RATE.id => layout::IMU_YAW_RATE,
             x if x == layout::WHEEL_TEST.id => layout::WHEEL_TEST,
+            x if x == layout::POD_COUNTS.id => layout::POD_COUNTS,
             _ => return Err(wire::unknown(frame)),
         };
         let p = wire::data_payload(frame, id, &[def.dlc])?;
@@ -668,6 +766,10 @@ impl Command {
                 speed: layout::TEST_SPEED.physical(&p)?,
                 duration_ms: layout::TEST_DURATION.checked(&p)? as u16,
             }),
+            x if x == layout::POD_COUNTS.id => Self::PodCounts(PodCounts {
+                counts: layout::POD_COUNT.map(|f| f.raw(&p) as u16),
+                seq: layout::POD_SEQ.raw(&p) as u8,
+            }),
             _ => Self::StatusRequest,
         })
     }
@@ -702,6 +804,12 @@ impl Command {
                     i64::from(t.duration_ms).clamp(1, layout::TEST_DURATION_MAX_MS),
                 );
             }
+            Self::PodCounts(c) => {
+                for (field, count) in layout::POD_COUNT.iter().zip(c.counts) {
+                    field.put_raw(&mut p, count.into());
+                }
+                layout::POD_SEQ.put_raw(&mut p, c.seq.into());
+            }
         }
         CanFrame::from_buffer(sid(def.id), p.0, def.dlc)
     }
@@ -724,6 +832,7 @@ impl Telemetry {
             Self::StatusCounters(_) => layout::STATUS_COUNTERS,
             Self::Heartbeat(_) => layout::HEARTBEAT,
             Self::WheelTestResult(_) => layout::WHEEL_TEST_RESULT,
+            Self::OdomSlip(_) => layout::ODOM_SLIP,
         }
     }
 
@@ -740,6 +849,7 @@ impl Telemetry {
             x if x == layout::STATUS_COUNTERS.id => layout::STATUS_COUNTERS,
             x if x == layout::HEARTBEAT.id => layout::HEARTBEAT,
             x if x == layout::WHEEL_TEST_RESULT.id => layout::WHEEL_TEST_RESULT,
+            x if x == layout::ODOM_SLIP.id => layout::ODOM_SLIP,
             _ => return Err(wire::unknown(frame)),
         };
         let p = wire::data_payload(frame, id, &[def.dlc])?;
@@ -792,6 +902,15 @@ impl Telemetry {
                     peak_current: layout::RESULT_PEAK_CURRENT.physical(&p)?,
                 })
             }
+            x if x == layout::ODOM_SLIP.id => Self::OdomSlip(OdomSlip {
+                vx: layout::SLIP_VX.physical(&p)?,
+                vy: layout::SLIP_VY.physical(&p)?,
+                wz: layout::SLIP_WZ.physical(&p)?,
+                source: u8::try_from(layout::SLIP_SOURCE.checked(&p)?)
+                    .ok()
+                    .and_then(OdometrySource::from_raw)
+                    .unwrap_or_default(),
+            }),
             _ => Self::Heartbeat(Heartbeat {
                 uptime_ms: layout::HEARTBEAT_UPTIME.raw(&p) as u32,
                 state: state_of(layout::HEARTBEAT_STATE.checked(&p)?),
@@ -846,6 +965,12 @@ impl Telemetry {
                 layout::RESULT_OUTCOME.put_raw(&mut p, r.outcome.raw().into());
                 layout::RESULT_ANGLE.put_physical(&mut p, r.angle);
                 layout::RESULT_PEAK_CURRENT.put_physical(&mut p, r.peak_current);
+            }
+            Self::OdomSlip(s) => {
+                layout::SLIP_VX.put_physical(&mut p, s.vx);
+                layout::SLIP_VY.put_physical(&mut p, s.vy);
+                layout::SLIP_WZ.put_physical(&mut p, s.wz);
+                layout::SLIP_SOURCE.put_raw(&mut p, s.source.raw().into());
             }
         }
         CanFrame::from_buffer(sid(def.id), p.0, def.dlc)

@@ -14,6 +14,7 @@ mod fight;
 mod gyro;
 mod odometry;
 mod odrive;
+mod pods;
 mod rejection;
 mod spec;
 mod states;

@@ -343,6 +343,8 @@ pub struct Chassis {
     substep: f64,
     state: ChassisState,
     contacts: [Contact; WHEELS],
+    /// `∫(vx, vy, wz) dt` since the chassis was built: see [`Self::body_travel`].
+    travel: [f64; 3],
 }
 
 impl Chassis {
@@ -381,6 +383,7 @@ impl Chassis {
             substep: params.max_substep,
             state: ChassisState::default(),
             contacts: [Contact::default(); WHEELS],
+            travel: [0.0; 3],
         })
     }
 
@@ -433,6 +436,20 @@ impl Chassis {
             ..state
         };
         Ok(())
+    }
+
+    /// The body-frame velocity integrated over time since the chassis was built,
+    /// `(∫vx dt, ∫vy dt, ∫wz dt)` (m, m, rad), in the substeps the pose is integrated with:
+    /// each substep adds its twist times its length, the twist the pose moves by.
+    /// [`Self::set_state`] does not change it.
+    ///
+    /// Within a substep the twist is constant, so a point fixed on the body moves at a
+    /// constant body-frame velocity: the distance it travels along a body-fixed direction
+    /// `(cos φ, sin φ)` from `(x, y)` is exactly `cos φ (T_x − y T_ω) + sin φ (T_y + x T_ω)`
+    /// for the difference `T` of two readings (what a tracking pod rolls, `crate::pods`).
+    #[must_use]
+    pub const fn body_travel(&self) -> [f64; 3] {
+        self.travel
     }
 
     /// The contacts of the last substep.
@@ -641,6 +658,9 @@ impl Chassis {
         }
         st.pose = st.pose.exp(Twist2::new(vx_new * h, vy_new * h, wz_new * h));
         st.yaw += wz_new * h;
+        self.travel[0] += vx_new * h;
+        self.travel[1] += vy_new * h;
+        self.travel[2] += wz_new * h;
     }
 }
 

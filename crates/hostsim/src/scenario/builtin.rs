@@ -111,6 +111,8 @@ impl Scenario {
             host_faults: Vec::new(),
             plant,
             imu: None,
+            pods: None,
+            node_faults: Vec::new(),
         })
     }
 }

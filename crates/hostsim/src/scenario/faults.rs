@@ -11,8 +11,8 @@ use crate::scenario::ScenarioError;
 #[serde(deny_unknown_fields)]
 pub struct FaultSpec {
     /// `drop`, `burst`, `delay`, `corrupt`, `stuck_encoder`, `motor_offline`,
-    /// `non_finite_twist`, `repeated_twist`, or for CiA 402 drives `drive_silent`,
-    /// `drive_reboot`, `drive_fault`, `enable_refused`, `sdo_abort`.
+    /// `non_finite_twist`, `repeated_twist`, `pods_silent`, or for CiA 402 drives
+    /// `drive_silent`, `drive_reboot`, `drive_fault`, `enable_refused`, `sdo_abort`.
     pub kind: FaultName,
     /// Start, s.
     pub from_s: f64,
@@ -69,6 +69,9 @@ pub enum FaultName {
     /// one before the fault, unchanged (a stuck host, USB adapter or gateway repeating one
     /// frame), whatever its setpoint; afterwards it sends fresh frames again.
     RepeatedTwist,
+    /// The tracking-pod node (`[pods]`) sends nothing: its pods roll and count on, its `seq`
+    /// counts on, its frames stay off the bus (a disconnected node; `crate::pods`).
+    PodsSilent,
 }
 
 impl FaultName {
@@ -102,6 +105,7 @@ impl FaultName {
             Self::DriveFault => "drive_fault",
             Self::EnableRefused => "enable_refused",
             Self::SdoAbort => "sdo_abort",
+            Self::PodsSilent => "pods_silent",
         }
     }
 }
@@ -118,6 +122,8 @@ pub enum SenderName {
     Host,
     /// The IMU node (`[imu]`).
     Imu,
+    /// The tracking-pod node (`[pods]`).
+    Pods,
 }
 
 impl From<SenderName> for Node {
@@ -127,6 +133,7 @@ impl From<SenderName> for Node {
             SenderName::Drives => Self::Drives,
             SenderName::Host => Self::Host,
             SenderName::Imu => Self::Imu,
+            SenderName::Pods => Self::Pods,
         }
     }
 }
@@ -171,8 +178,27 @@ impl HostFault {
     }
 }
 
-/// A file's faults by where they act: on the bus, in a motor, at the host.
-pub(super) type Faults = (Vec<Fault>, Vec<WheelFault>, Vec<HostFault>);
+/// A fault of a sensor node on the plant (`pods_silent`): what, when.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NodeFault {
+    /// What it does (`PodsSilent`).
+    pub kind: FaultName,
+    /// Start, µs.
+    pub from_us: u64,
+    /// End, µs.
+    pub until_us: u64,
+}
+
+impl NodeFault {
+    /// Whether the fault is active at `t_us`.
+    #[must_use]
+    pub const fn active(&self, t_us: u64) -> bool {
+        self.from_us <= t_us && t_us < self.until_us
+    }
+}
+
+/// A file's faults by where they act: on the bus, in a motor, at the host, at a sensor node.
+pub(super) type Faults = (Vec<Fault>, Vec<WheelFault>, Vec<HostFault>, Vec<NodeFault>);
 
 /// The faults of a file whose run lasts `duration_s`, checked and sorted by where they act.
 pub(super) fn build(
@@ -183,6 +209,7 @@ pub(super) fn build(
     let mut bus_faults = Vec::new();
     let mut wheel_faults = Vec::new();
     let mut host_faults = Vec::new();
+    let mut node_faults = Vec::new();
     for (i, f) in faults.iter().enumerate() {
         if !(f.from_s.is_finite()
             && f.until_s.is_finite()
@@ -215,7 +242,7 @@ pub(super) fn build(
             | FaultName::DriveFault
             | FaultName::EnableRefused
             | FaultName::SdoAbort => (false, false, false, true, "wheel"),
-            FaultName::NonFiniteTwist | FaultName::RepeatedTwist => {
+            FaultName::NonFiniteTwist | FaultName::RepeatedTwist | FaultName::PodsSilent => {
                 (false, false, false, false, "no other field")
             }
         };
@@ -270,8 +297,17 @@ pub(super) fn build(
             | FaultName::DriveReboot
             | FaultName::DriveFault
             | FaultName::EnableRefused
-            | FaultName::SdoAbort => None,
+            | FaultName::SdoAbort
+            | FaultName::PodsSilent => None,
         };
+        if f.kind == FaultName::PodsSilent {
+            node_faults.push(NodeFault {
+                kind: f.kind,
+                from_us,
+                until_us,
+            });
+            continue;
+        }
         if matches!(f.kind, FaultName::NonFiniteTwist | FaultName::RepeatedTwist) {
             host_faults.push(HostFault {
                 kind: f.kind,
@@ -304,5 +340,5 @@ pub(super) fn build(
             },
         }
     }
-    Ok((bus_faults, wheel_faults, host_faults))
+    Ok((bus_faults, wheel_faults, host_faults, node_faults))
 }

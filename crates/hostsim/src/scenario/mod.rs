@@ -3,7 +3,8 @@
 //! A scenario is a list of timed host [`Action`]s (enable, twist setpoints, e-stop, silence)
 //! and timed [`FaultSpec`]s (bus faults, a stuck encoder, a motor offline, a host sending
 //! non-finite twists or repeating one twist frame), plus the drive configuration, the
-//! simulated robot where it differs from it ([`PlantSpec`]), an optional IMU and a seed.
+//! simulated robot where it differs from it ([`PlantSpec`]), an optional IMU, optional
+//! tracking pods (`[pods]`, [`crate::pods`]) and a seed.
 //! While a twist setpoint is active and the host is not silent, the host streams `TWIST_CMD`
 //! frames at `command_hz`, as a teleoperation or navigation stack would.
 //!
@@ -24,7 +25,7 @@ use firmware::Config;
 use serde::Deserialize;
 
 pub use self::actions::{Action, WheelTestSpec};
-pub use self::faults::{FaultName, FaultSpec, HostFault, SenderName, WheelFault};
+pub use self::faults::{FaultName, FaultSpec, HostFault, NodeFault, SenderName, WheelFault};
 pub use self::plant::PlantSpec;
 pub use self::set::{PLANT_FIELDS, SetError};
 use crate::bus::Fault;
@@ -54,6 +55,11 @@ pub struct Scenario {
     pub plant: PlantSpec,
     /// The IMU node on the plant (`[imu]`), if any.
     pub imu: Option<crate::imu::ImuParams>,
+    /// The tracking-pod node on the plant (`[pods]`), if any: the configuration's pods
+    /// (`[[odometry.pods]]`) as they truly are ([`crate::pods`]).
+    pub pods: Option<crate::pods::PodsParams>,
+    /// Faults of the sensor nodes (`pods_silent`).
+    pub node_faults: Vec<NodeFault>,
 }
 
 /// Why a scenario could not be used.
@@ -131,6 +137,7 @@ struct ScenarioFile {
     #[serde(default)]
     plant: PlantSpec,
     imu: Option<crate::imu::ImuParams>,
+    pods: Option<crate::pods::PodsParams>,
 }
 
 const fn default_command_hz() -> f64 {
@@ -284,8 +291,9 @@ impl Scenario {
         if let Some((key, value, expected)) = file.imu.as_ref().and_then(|i| i.invalid()) {
             return Err(invalid.at(&format!("imu.{key}"), value.to_string(), expected));
         }
-        let (bus_faults, wheel_faults, host_faults) =
+        let (bus_faults, wheel_faults, host_faults, node_faults) =
             faults::build(&file.faults, file.duration_s, &invalid)?;
+        check_pods(file.pods.as_ref(), &config, &file.faults, &invalid)?;
         if let Some((field, value, expected)) = file.plant.first_invalid() {
             return Err(invalid.at(field, value.to_string(), expected));
         }
@@ -306,8 +314,49 @@ impl Scenario {
             host_faults,
             plant: file.plant,
             imu: file.imu,
+            pods: file.pods,
+            node_faults,
         })
     }
+}
+
+/// `[pods]` against the configuration's pods, and the `pods_silent` faults against `[pods]`.
+fn check_pods(
+    pods: Option<&crate::pods::PodsParams>,
+    config: &Config,
+    faults: &[FaultSpec],
+    invalid: &Invalid<'_>,
+) -> Result<(), ScenarioError> {
+    let configured = config.odometry.pods.len();
+    let Some(pods) = pods else {
+        if let Some(i) = faults.iter().position(|f| f.kind == FaultName::PodsSilent) {
+            return Err(invalid.at(
+                &format!("faults[{i}].kind"),
+                "\"pods_silent\"".to_owned(),
+                "a fault of the pod node, which needs a [pods] table",
+            ));
+        }
+        return Ok(());
+    };
+    if let Some((key, value, expected)) = pods.invalid() {
+        return Err(invalid.at(&format!("pods.{key}"), value.to_string(), expected));
+    }
+    if configured == 0 {
+        return Err(invalid.at(
+            "pods",
+            "(a table)".to_owned(),
+            "a configuration with [[odometry.pods]]: the simulated pods are the configured \
+             ones (place, direction, radius, counts per turn), made true by [[pods.pod]]",
+        ));
+    }
+    if pods.pod.len() > configured {
+        return Err(invalid.at(
+            "pods.pod",
+            format!("{} tables for {configured} configured pods", pods.pod.len()),
+            "at most one [[pods.pod]] per pod of [[odometry.pods]], in its order",
+        ));
+    }
+    Ok(())
 }
 
 /// A field's value for an error message: as written, or `(missing)`.
