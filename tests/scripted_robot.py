@@ -3,7 +3,8 @@
 It plays the firmware's side of the robot protocol, encoded by cantools from
 dbc/mecanum_robot.dbc: HEARTBEAT and STATUS every `period_s` (and STATUS at once on
 STATUS_REQ, each followed by STATUS_COUNTERS), ODOM_POSITION and ODOM_VELOCITY every
-`odom_period_s` integrating the last accepted twist, the enable latch (MODE_CMD), the e-stop
+`odom_period_s` integrating the last accepted twist (and after them ODOM_SLIP, as a robot
+configured with tracking pods sends it, when `odometry_source` is set), the enable latch (MODE_CMD), the e-stop
 latch, a command watchdog that a twist repeating the last accepted `seq` does not feed, and a
 fault on demand. It records every frame it receives with its arrival time, so a test can
 measure what the package sent and when. It is a test double of the firmware's behaviour on
@@ -26,6 +27,9 @@ DB = cantools.database.load_file(str(ROOT / "dbc" / "mecanum_robot.dbc"), strict
 IDS = {m.name: m.frame_id for m in DB.messages}
 STATES = {"DISABLED": 0, "ENABLED": 1, "FAULT": 2, "ESTOP": 3}
 FAULTS = {str(v): int(k) for k, v in DB.get_message_by_name("STATUS").get_signal_by_name("fault").choices.items()}
+#: ODOM_SLIP.source by name: WHEELS, PODS2_GYRO, PODS3, WHEELS_PODS_SILENT.
+ODOMETRY_SOURCES = {str(v): int(k)
+                    for k, v in DB.get_message_by_name("ODOM_SLIP").get_signal_by_name("source").choices.items()}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -49,6 +53,8 @@ class ScriptedRobot:
         command_timeout_s: float = 0.1,
         protocol_version: int | None = None,
         config_id: int = 0,
+        odometry_source: str | None = None,
+        slip: tuple[float, float, float] = (0.0, 0.0, 0.0),
     ) -> None:
         self.bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
         self.period_s = period_s
@@ -64,6 +70,11 @@ class ScriptedRobot:
         self.last_seq: int | None = None
         self.repeated_seq = 0
         self.heading_source = 0  # STATUS.heading_source: 0 WHEELS, 1 GYRO, 2 WHEELS_GYRO_SILENT
+        # ODOM_SLIP.source by name (PODS2_GYRO, PODS3, WHEELS_PODS_SILENT), sent with the slip
+        # (vx, vy, wz) after every ODOM_VELOCITY; None: no ODOM_SLIP (a robot without pods).
+        # set_odometry_source changes both while the robot runs.
+        self.odometry_source = odometry_source
+        self.slip = slip
         self.received: list[Received] = []
         self.heartbeats = True  # False: the robot goes silent
         self._lock = threading.Lock()
@@ -87,6 +98,12 @@ class ScriptedRobot:
     def frames(self, name: str) -> list[Received]:
         with self._lock:
             return [r for r in self.received if r.name == name]
+
+    def set_odometry_source(self, source: str | None, slip: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+        """ODOM_SLIP's source (by name) and slip from the next odometry sample on, together;
+        None: no more ODOM_SLIP."""
+        with self._lock:
+            self.odometry_source, self.slip = source, slip
 
     def set_fault(self, fault: str) -> None:
         with self._lock:
@@ -150,6 +167,9 @@ class ScriptedRobot:
                     self.pose[2] = (self.pose[2] + wz * dt + math.pi) % (2 * math.pi) - math.pi
                     self._send("ODOM_POSITION", x=self.pose[0], y=self.pose[1])
                     self._send("ODOM_VELOCITY", heading=self.pose[2], vx=vx, vy=vy, wz=wz)
+                    if self.odometry_source is not None:
+                        self._send("ODOM_SLIP", vx=self.slip[0], vy=self.slip[1], wz=self.slip[2],
+                                   source=ODOMETRY_SOURCES[self.odometry_source], reserved=0)
                     next_odom += self.odom_period_s
                 if now >= next_status:
                     if self.heartbeats:

@@ -442,6 +442,64 @@ def test_the_heading_source_is_decoded_by_name(channel: str, capsys: pytest.Capt
         assert json.loads(capsys.readouterr().out)["heading_source"] == "GYRO"
 
 
+def test_the_odometry_source_and_the_slip_are_decoded(channel: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """ODOM_SLIP (protocol version 7, a robot with tracking pods): `Robot.slip` holds the slip
+    estimate to the frame's resolution (0.001) and the source by its DBC name, which
+    `odometry_source` reports; a change of source is seen with the next sample. The command
+    line shows both."""
+    common = ["--interface", "virtual", "--channel", channel]
+    sent = (0.123, -0.0456, 0.0789)  # the last two between LSBs: the frame rounds them
+    with ScriptedRobot(channel, odometry_source="PODS3", slip=sent) as fake, \
+            Robot(host_bus(channel), owns_bus=True) as robot:
+        robot.wait_state("DISABLED", timeout=1.0)
+        deadline = time.monotonic() + 1.0
+        while robot.slip is None and time.monotonic() < deadline:
+            time.sleep(0.005)
+        slip = robot.slip
+        assert slip is not None, "no ODOM_SLIP decoded within 1 s"
+        print(f"Robot.slip: {slip}, age {slip.age() * 1e3:.1f} ms")
+        assert isinstance(slip, mecanum_drive.Slip)
+        assert (slip.vx, slip.vy, slip.wz) == pytest.approx(sent, abs=1e-3)
+        assert (slip.vx, slip.vy, slip.wz) == pytest.approx((0.123, -0.046, 0.079), abs=1e-9)  # the frame's values
+        assert slip.source == "PODS3" and robot.odometry_source == "PODS3"
+        assert 0 <= slip.age() < 0.5
+        fake.set_odometry_source("WHEELS_PODS_SILENT")  # slip 0, as the firmware sends it then
+        time.sleep(0.1)
+        assert robot.odometry_source == "WHEELS_PODS_SILENT"
+        slip = robot.slip
+        assert slip is not None and (slip.vx, slip.vy, slip.wz) == (0.0, 0.0, 0.0)
+        fake.set_odometry_source("PODS2_GYRO", (-1.5, 2.25, -0.5))
+        time.sleep(0.1)
+        assert robot.odometry_source == "PODS2_GYRO"
+        capsys.readouterr()
+        assert cli.main([*common, "status", "--once"]) == 0
+        out = capsys.readouterr().out
+        assert "slip      vx -1.500 m/s  vy +2.250 m/s  wz -0.500 rad/s   odometry from PODS2_GYRO" in out, out
+        assert cli.main([*common, "status", "--json"]) == 0
+        status = json.loads(capsys.readouterr().out)
+        assert status["odometry_source"] == "PODS2_GYRO"
+        assert status["slip"] == pytest.approx({"vx": -1.5, "vy": 2.25, "wz": -0.5})
+
+
+def test_a_robot_without_pods_has_wheel_odometry_and_no_slip(channel: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """No ODOM_SLIP (a robot configured without tracking pods): `slip` stays None and
+    `odometry_source` is WHEELS, while odometry arrives; the command line's view shows no
+    slip line, its JSON the source WHEELS and a null slip."""
+    common = ["--interface", "virtual", "--channel", channel]
+    with ScriptedRobot(channel), Robot(host_bus(channel), owns_bus=True) as robot:
+        robot.wait_state("DISABLED", timeout=1.0)
+        time.sleep(0.1)  # ten odometry samples
+        assert robot.odometry is not None
+        assert robot.slip is None
+        assert robot.odometry_source == "WHEELS"
+        assert cli.main([*common, "status", "--once"]) == 0
+        out = capsys.readouterr().out
+        assert "slip" not in out and "odometry from" not in out, out
+        assert cli.main([*common, "status", "--json"]) == 0
+        status = json.loads(capsys.readouterr().out)
+        assert (status["odometry_source"], status["slip"]) == ("WHEELS", None)
+
+
 def test_the_command_line_on_a_virtual_bus(channel: str, capsys: pytest.CaptureFixture[str]) -> None:
     """`mecanum-drive` commands in this process, against the scripted robot."""
     common = ["--interface", "virtual", "--channel", channel]
@@ -486,9 +544,9 @@ def test_the_package_type_checks_strictly() -> None:
     proc = subprocess.run([sys.executable, "-m", "mypy", "--strict", "--no-incremental", "-p", "mecanum_drive"],
                           capture_output=True, text=True, timeout=300, check=False)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    # The ROS 2 bridge's three modules included (mecanum_drive.ros2: rclpy is in this
+    # The ROS 2 bridge's four modules included (mecanum_drive.ros2: rclpy is in this
     # environment, scripts/test.sh installs ./python[ros2]).
-    assert "no issues found in 9 source files" in proc.stdout, proc.stdout
+    assert "no issues found in 10 source files" in proc.stdout, proc.stdout
 
 
 #: Python that runs with rclpy made unimportable (as where the ros2 extra is not installed).

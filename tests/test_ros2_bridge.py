@@ -1,7 +1,8 @@
 """The ROS 2 bridge's logic (python/mecanum_drive/ros2/bridge.py) in one process, fast: the real
 node and a real ROS 2 peer (rclpy, DDS over loopback) against the scripted robot on python-can's
 virtual bus (tests/scripted_robot.py): the services' answers in every state, /cmd_vel clamping,
-rejection and timeout, /odom and /diagnostics, the parameters, and what the command line says
+rejection and timeout, /odom (its covariance's growth with the odometry source) and
+/diagnostics (the odometry source and the slip), the parameters, and what the command line says
 about bad ones. Against the real firmware on vcan0, as processes: tests/test_vcan_ros2.py.
 
 Every DDS participant here lives in a network namespace of this module's own (ros2_peer.py);
@@ -51,7 +52,7 @@ class Rig:
     """The scripted robot, the bridge node (its own rclpy context and executor thread) and a
     peer node, on a virtual channel of their own."""
 
-    def __init__(self, rclpy: Any, params: dict[str, str]) -> None:
+    def __init__(self, rclpy: Any, params: dict[str, str], robot: dict[str, Any] | None = None) -> None:
         from rclpy.signals import SignalHandlerOptions
 
         from mecanum_drive.ros2.bridge import Bridge, make_executor
@@ -60,7 +61,7 @@ class Rig:
         channel = f"ros2-bridge-test-{next(_channels)}"
         # A command timeout that this one process (robot, bridge and peer share its GIL) keeps
         # on a loaded machine: the watchdog is the firmware's business, tested on vcan0.
-        self.fake = ScriptedRobot(channel, command_timeout_s=0.5, config_id=0x1A2B).__enter__()
+        self.fake = ScriptedRobot(channel, command_timeout_s=0.5, config_id=0x1A2B, **(robot or {})).__enter__()
         args = ["bridge", "--ros-args"] + [a for k, v in params.items() for a in ("-p", f"{k}:={v}")]
         self.context = rclpy.Context()
         rclpy.init(args=args, context=self.context, signal_handler_options=SignalHandlerOptions.NO)
@@ -88,12 +89,14 @@ class Rig:
 
 @pytest.fixture
 def make_rig(ros: Any) -> Iterator[Any]:
-    """make_rig(**params): a Rig whose bridge has these parameters (on top of a short
-    service_timeout and quick rates); closed after the test."""
+    """make_rig(robot=None, **params): a Rig whose bridge has these parameters (on top of a
+    short service_timeout and quick rates), its scripted robot these options (ScriptedRobot's
+    keyword arguments: odometry_source, slip, ...); closed after the test."""
     rigs: list[Rig] = []
 
-    def make(**params: str) -> Rig:
-        rigs.append(Rig(ros, {"service_timeout": "0.5", "publish_rate": "25.0", "diagnostics_rate": "10.0", **params}))
+    def make(robot: dict[str, Any] | None = None, **params: str) -> Rig:
+        rigs.append(Rig(ros, {"service_timeout": "0.5", "publish_rate": "25.0", "diagnostics_rate": "10.0", **params},
+                        robot))
         return rigs[-1]
 
     try:
@@ -233,7 +236,14 @@ def test_odom_reports_the_robots_odometry_in_the_frames_and_at_the_rate_asked(ma
     assert (last.x, last.y) == pytest.approx(pose[:2], abs=2e-4)
     assert last.heading == pytest.approx(pose[2], abs=2e-4)
     assert (last.frame_id, last.child_frame_id) == ("odom_test", "base_test")
-    assert last.pose_covariance == pytest.approx((0.1, 0.2, 0.3, 0.4, 0.5, 0.6))
+    # The pose covariance: the base given, grown with the distance and the rotation at the
+    # wheels' default rates (a robot without pods or gyro: 0.06 m/m, 0.05 rad/rad).
+    growth = rig.bridge.pose_growth
+    d, r = growth.distance, growth.rotation
+    print(f"/odom pose covariance {last.pose_covariance} after {d:.4f} m, {r:.4f} rad")
+    assert d / r == pytest.approx(math.hypot(0.3, 0.1) / 0.4, rel=0.01)  # one twist throughout
+    assert last.pose_covariance == pytest.approx(
+        (0.1 + (0.06 * d) ** 2, 0.2 + (0.06 * d) ** 2, 0.3, 0.4, 0.5, 0.6 + (0.05 * r) ** 2), rel=1e-9)
     # Never faster than asked; slower only where the robot's samples stalled (this process
     # runs robot, bridge and peer together; the schedule itself: test_decimator_...).
     assert 12.0 <= rate <= 21.0, rate
@@ -285,6 +295,8 @@ def test_diagnostics_levels_follow_the_robot(make_rig: Any) -> None:
     assert (v["fault"], v["motors_online"], v["heading_source"], v["protocol_version"], v["config_id"], v["rx_errors"],
             v["repeated_seq"]) == ("NONE", "FL FR RL RR", "WHEELS", str(mecanum_drive.protocol_version()), "0x1a2b",
                                    "0", "0"), v
+    # A robot without tracking pods sends no ODOM_SLIP: wheel odometry, no slip keys.
+    assert v["odometry_source"] == "WHEELS" and not any(k.startswith("slip_") for k in v), v
     assert levels["enabled"].hardware_id.startswith("virtual:ros2-bridge-test-")
     assert (levels["estop"].level, levels["estop"].message) == (1, "ESTOP (latched; ~/reset clears it)")
     assert (levels["gyro silent"].level, levels["gyro silent"].message) == (
@@ -292,6 +304,149 @@ def test_diagnostics_levels_follow_the_robot(make_rig: Any) -> None:
     assert (levels["fault"].level, levels["fault"].values["fault"]) == (2, "ENCODER_STUCK")
     assert levels["fault"].message == "FAULT: ENCODER_STUCK (~/reset clears it)"
     assert levels["silent"].level == 2 and levels["silent"].message.startswith("no HEARTBEAT from the robot for ")
+
+
+def test_diagnostics_carry_the_odometry_source_and_the_slip(make_rig: Any) -> None:
+    """From a robot with tracking pods (ODOM_SLIP): `odometry_source` by name and the slip
+    estimate (`slip_vx`, `slip_vy`, `slip_wz`, to the frame's 0.001); pods silent is a WARN,
+    alone or with a silent gyro. (A robot without pods: test_diagnostics_levels_follow_the_robot.)"""
+    rig = make_rig(robot={"odometry_source": "PODS2_GYRO", "slip": (0.123, -0.045, 0.067)})
+    seen = {}
+    seen["pods"] = rig.peer.wait_diag(lambda d: d.values.get("odometry_source") == "PODS2_GYRO", 5, "PODS2_GYRO")
+    rig.fake.set_odometry_source("WHEELS_PODS_SILENT")  # slip 0, as the firmware sends it then
+    seen["pods silent"] = rig.peer.wait_diag(lambda d: d.values["odometry_source"] == "WHEELS_PODS_SILENT", 5,
+                                             "pods silent", since=time.time())
+    rig.fake.heading_source = 2  # WHEELS_GYRO_SILENT
+    seen["both silent"] = rig.peer.wait_diag(lambda d: d.values["heading_source"] == "WHEELS_GYRO_SILENT", 5,
+                                             "gyro silent too", since=time.time())
+    rig.fake.heading_source = 0
+    rig.fake.set_odometry_source("PODS3", (-2.5, 0.001, -0.0))
+    seen["pods back"] = rig.peer.wait_diag(lambda d: d.values["odometry_source"] == "PODS3", 5, "PODS3",
+                                           since=time.time())
+    for k, d in seen.items():
+        slip = tuple(d.values.get(key) for key in ("slip_vx", "slip_vy", "slip_wz"))
+        print(f"/diagnostics {k}: level {d.level} {d.message!r}, odometry_source {d.values['odometry_source']}, "
+              f"slip {slip}")
+    v = seen["pods"].values
+    assert (seen["pods"].level, seen["pods"].message) == (0, "DISABLED")
+    assert (v["slip_vx"], v["slip_vy"], v["slip_wz"]) == ("0.123", "-0.045", "0.067"), v
+    keys = list(v)
+    assert keys[keys.index("heading_source") + 1:keys.index("heading_source") + 5] == [
+        "odometry_source", "slip_vx", "slip_vy", "slip_wz"], keys
+    assert (seen["pods silent"].level, seen["pods silent"].message) == (
+        1, "DISABLED, pods silent: odometry from the wheels")
+    assert (seen["pods silent"].values["slip_vx"], seen["pods silent"].values["slip_wz"]) == ("0.000", "0.000")
+    assert (seen["both silent"].level, seen["both silent"].message) == (
+        1, "DISABLED, gyro silent: heading from the wheels, pods silent: odometry from the wheels")
+    v = seen["pods back"].values
+    assert (seen["pods back"].level, seen["pods back"].message) == (0, "DISABLED")
+    assert (v["slip_vx"], v["slip_vy"], v["slip_wz"]) == ("-2.500", "0.001", "0.000"), v
+
+
+#: The pose covariance's base in the growth tests (x, y, z, roll, pitch, yaw).
+GROWTH_BASE = (0.001, 0.002, 0.003, 0.004, 0.005, 0.006)
+
+
+@pytest.mark.parametrize("source,heading_source,k_pos,k_yaw", [
+    (None, 0, 0.06, 0.05),                # no pods, no gyro: the wheels' figures
+    ("PODS3", 0, 0.01, 0.01),             # three pods: position and heading
+    ("PODS2_GYRO", 2, 0.01, 0.05),        # two pods, gyro silent: heading from the wheels
+], ids=["WHEELS", "PODS3", "PODS2_GYRO-gyro-silent"])
+def test_odom_pose_covariance_grows_with_the_odometry_sources_error(
+        make_rig: Any, source: str | None, heading_source: int, k_pos: float, k_yaw: float) -> None:
+    """The robot drives 1 m straight, then turns a quarter turn in place, through /cmd_vel: the
+    /odom x and y variances grow by (k_pos x distance)^2 over the base, the yaw's by
+    (k_yaw x rotation)^2, with the default rates of the source (0.06 or 0.01 m/m, 0.05 or
+    0.01 rad/rad); z, roll and pitch stay the base."""
+    rig = make_rig(robot={"odometry_source": source}, pose_covariance_diagonal=str(list(GROWTH_BASE)))
+    rig.fake.heading_source = heading_source
+    assert rig.peer.call("/mecanum_drive/enable", 5).success
+    rig.peer.use_cmd_vel(stamped=False)
+
+    def drive(vx: float, wz: float, until: Any, what: str) -> None:
+        """Drives (vx, wz) until `until(0.9)`, then a fifth of it until `until(1.0)`: a late stop
+        (this process runs robot, bridge and peer together) overshoots little."""
+        rig.peer.twist(vx, 0.0, wz)
+        wait_for(lambda: until(0.9), 10, what)
+        rig.peer.twist(vx / 5, 0.0, wz / 5)
+        wait_for(lambda: until(1.0), 10, what)
+        rig.peer.twist(0.0, 0.0, 0.0)
+        wait_for(lambda: rig.fake.twist == (0.0, 0.0, 0.0), 5, f"{what}: stopped")
+        time.sleep(0.3)  # /odom at 25 Hz has the robot standing
+
+    def variances() -> tuple[float, ...]:
+        last = rig.peer.odom[-1]
+        return tuple(c - b for c, b in zip(last.pose_covariance, GROWTH_BASE))
+
+    drive(0.5, 0.0, lambda part: rig.fake.pose[0] >= part * 0.99, "1 m driven")
+    distance = math.hypot(rig.fake.pose[0], rig.fake.pose[1])
+    straight = variances()
+    drive(0.0, 1.0, lambda part: rig.fake.pose[2] >= part * 1.5, "a quarter turn")
+    rotation, turned = rig.fake.pose[2], variances()
+    rig.peer.stop_stream()
+    print(f"{source or 'no ODOM_SLIP'}: after {distance:.4f} m, sigma_x^2 - base {straight[0]:.3e} "
+          f"(k_pos {k_pos}: {(k_pos * distance) ** 2:.3e}; for 1 m {(k_pos * 1.0) ** 2:.3e}); after {rotation:.4f} rad, "
+          f"sigma_yaw^2 - base {turned[5]:.3e} (k_yaw {k_yaw}: {(k_yaw * rotation) ** 2:.3e})")
+    assert 0.99 <= distance <= 1.08 and abs(rig.fake.pose[1]) < 1e-9
+    # To the distance the robot drove (the bridge sums its samples, 0.1 mm resolution) ...
+    assert straight[0] == pytest.approx((k_pos * distance) ** 2, rel=0.02)
+    assert straight[1] == pytest.approx(straight[0], rel=1e-9)
+    # ... and what the issue asks: (k_pos x 1 m)^2 within 20 %.
+    assert straight[0] == pytest.approx((k_pos * 1.0) ** 2, rel=0.2)
+    assert straight[5] == pytest.approx(0.0, abs=1e-12)  # no rotation yet
+    assert turned[5] == pytest.approx((k_yaw * rotation) ** 2, rel=0.02)
+    assert turned[0] == pytest.approx(straight[0], rel=1e-9)  # a turn in place adds no distance
+    assert turned[2:5] == pytest.approx((0.0, 0.0, 0.0), abs=1e-15)
+
+
+def test_the_covariance_growth_model_with_exact_numbers() -> None:
+    """mecanum_drive.ros2.covariance, without ROS: each increment of the distance and of the
+    wrapped rotation at its source's rate, the standard deviations summed, the variances the
+    base plus their squares; the first sample and samples that are not finite add nothing."""
+    from mecanum_drive.ros2.covariance import CovarianceGrowth, ErrorRates
+
+    rates = ErrorRates()
+    assert (rates.position_wheels, rates.position_pods, rates.heading_wheels, rates.heading_gyro) == (
+        0.06, 0.01, 0.05, 0.01)
+    assert [rates.position(s) for s in ("WHEELS", "WHEELS_PODS_SILENT", "PODS2_GYRO", "PODS3", "7")] == [
+        0.06, 0.06, 0.01, 0.01, 0.06]
+    assert [rates.heading(s, h) for s, h in [
+        ("WHEELS", None), ("WHEELS", "WHEELS"), ("WHEELS", "GYRO"), ("PODS2_GYRO", "GYRO"),
+        ("PODS2_GYRO", "WHEELS_GYRO_SILENT"), ("PODS3", "WHEELS"), ("WHEELS_PODS_SILENT", "WHEELS"),
+    ]] == [0.05, 0.05, 0.01, 0.01, 0.05, 0.01, 0.05]
+
+    g = CovarianceGrowth((0.001, 0.002, 0.003, 0.004, 0.005, 0.006), rates)
+    assert g.pose_diagonal() == (0.001, 0.002, 0.003, 0.004, 0.005, 0.006)
+    g.update(10.0, 20.0, 1.0, "WHEELS", None)  # where it starts: nothing yet
+    assert (g.position_stddev, g.heading_stddev, g.distance, g.rotation) == (0.0, 0.0, 0.0, 0.0)
+    g.update(10.3, 20.4, 1.0, "WHEELS", "WHEELS")  # 0.5 m on the wheels: +0.03
+    g.update(10.3, 20.4, 1.5, "PODS3", "WHEELS")  # 0.5 rad, three pods: +0.005
+    g.update(10.3, 21.4, 1.5, "PODS2_GYRO", "GYRO")  # 1 m on pods: +0.01
+    g.update(math.nan, 0.0, 0.0, "WHEELS", "WHEELS")  # ignored
+    g.update(10.3, 21.4, math.pi - 0.1, "PODS2_GYRO", "WHEELS_GYRO_SILENT")  # pi - 1.6 rad, wheel heading
+    g.update(10.3, 21.4, -math.pi + 0.1, "WHEELS_PODS_SILENT", "GYRO")  # 0.2 rad across +-pi, gyro
+    assert g.distance == pytest.approx(1.5, abs=1e-12)
+    assert g.rotation == pytest.approx(0.5 + (math.pi - 1.6) + 0.2, abs=1e-12)
+    assert g.position_stddev == pytest.approx(0.03 + 0.01, abs=1e-12)
+    heading = 0.01 * 0.5 + 0.05 * (math.pi - 1.6) + 0.01 * 0.2
+    assert g.heading_stddev == pytest.approx(heading, abs=1e-12)
+    assert g.pose_diagonal() == pytest.approx(
+        (0.001 + 0.04 ** 2, 0.002 + 0.04 ** 2, 0.003, 0.004, 0.005, 0.006 + heading ** 2), abs=1e-15)
+    matrix = g.pose_covariance()
+    assert len(matrix) == 36 and [matrix[i * 7] for i in range(6)] == list(g.pose_diagonal())
+    assert all(v == 0.0 for i, v in enumerate(matrix) if i % 7)
+    # Backwards counts as forwards: distance, not displacement.
+    g.update(10.3, 20.4, -math.pi + 0.1, "WHEELS", "WHEELS")
+    assert g.position_stddev == pytest.approx(0.04 + 0.06, abs=1e-12)
+    # Rates of its own; bad numbers refused.
+    own = CovarianceGrowth([0.0] * 6, ErrorRates(position_wheels=0.1, heading_wheels=0.2))
+    own.update(0.0, 0.0, 0.0, "WHEELS", None)
+    own.update(2.0, 0.0, 0.5, "WHEELS", None)
+    assert own.pose_diagonal() == pytest.approx((0.04, 0.04, 0.0, 0.0, 0.0, 0.01), abs=1e-15)
+    with pytest.raises(ValueError, match="position_pods = -0.01: must be a finite number >= 0"):
+        ErrorRates(position_pods=-0.01)
+    with pytest.raises(ValueError, match="base"):
+        CovarianceGrowth([0.0] * 5)
 
 
 def test_decimator_keeps_a_rate_that_divides_the_samples_and_never_exceeds_it() -> None:
@@ -362,6 +517,9 @@ def run_bridge_cli(*args: str, timeout: float = 60) -> subprocess.CompletedProce
     ("pose_covariance_diagonal", "[1.0, 2.0]",
      "parameter pose_covariance_diagonal = [1.0, 2.0]: must be 6 finite numbers >= 0"),
     ("bitrate", "-5", "parameter bitrate = -5: must be an integer >= 0"),
+    ("position_error_pods", "-0.01", "parameter position_error_pods = -0.01: must be a finite number >= 0"),
+    ("heading_error_gyro", ".inf", "parameter heading_error_gyro = inf: must be a finite number >= 0"),
+    ("heading_error_wheels", "abc", "parameter heading_error_wheels = 'abc': must be a number"),
     ("missed_heartbeats", "0", "parameter missed_heartbeats = 0: must be a whole number >= 1"),
     ("odom_frame_id", "''", "parameter odom_frame_id = '': must be a non-empty string"),
 ])

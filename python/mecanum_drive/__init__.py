@@ -25,6 +25,7 @@ from .robot import (
     Robot,
     RobotError,
     RobotFault,
+    Slip,
     Status,
     WheelTestResult,
 )
@@ -38,6 +39,7 @@ __all__ = [
     "Robot",
     "RobotError",
     "RobotFault",
+    "Slip",
     "Status",
     "WheelTestResult",
     "database",

@@ -66,12 +66,16 @@ def _wait_first_status(robot: Robot, timeout: float) -> None:
 
 
 def _status_dict(robot: Robot) -> dict[str, Any]:
-    s, o, h, c = robot.status, robot.odometry, robot.heartbeat, robot.counters
+    s, o, h, c, slip = robot.status, robot.odometry, robot.heartbeat, robot.counters, robot.slip
     return {
         "state": s.state if s else None,
         "fault": s.fault if s else None,
         "motors_online": list(s.motors_online) if s else None,
         "heading_source": s.heading_source if s else None,
+        # ODOM_SLIP (protocol version 7), from a robot with tracking pods only: without it the
+        # source is WHEELS and the slip null.
+        "odometry_source": "WHEELS" if slip is None else slip.source,
+        "slip": None if slip is None else {"vx": slip.vx, "vy": slip.vy, "wz": slip.wz},
         "rx_errors": s.rx_errors if s else None,
         "unknown_ids": s.unknown_ids if s else None,
         "counters": None if c is None else {
@@ -96,6 +100,9 @@ def _status_text(robot: Robot) -> str:
         f"odometry  x {o['x']:+.4f} m  y {o['y']:+.4f} m  heading {math.degrees(o['heading']):+.2f}°" if o else "odometry  (none yet)",
         f"velocity  vx {o['vx']:+.3f} m/s  vy {o['vy']:+.3f} m/s  wz {o['wz']:+.3f} rad/s" if o else "",
         f"heading   from {d['heading_source']}" if d["heading_source"] not in (None, "WHEELS") else "",
+        # Only from a robot with tracking pods (it sends ODOM_SLIP).
+        "" if d["slip"] is None else "slip      vx {vx:+.3f} m/s  vy {vy:+.3f} m/s  wz {wz:+.3f} rad/s".format(**d["slip"])
+        + f"   odometry from {d['odometry_source']}",
         f"counters  rejected frames {d['rx_errors']}   unknown ids {d['unknown_ids']}",
         "" if d["counters"] is None else "          repeated twists {repeated_seq}   wrong DLC {wrong_dlc}   "
         "out of range {out_of_range}   not finite {non_finite}".format(**d["counters"]),
@@ -331,7 +338,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for the robot's answers (default 2)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("status", help="live view of state, fault, motors, odometry, counters")
+    p = sub.add_parser("status", help="live view of state, fault, motors, odometry (its source and the slip "
+                       "with tracking pods), counters")
     p.add_argument("--once", action="store_true", help="print one view and exit")
     p.add_argument("--json", action="store_true", help="print one view as JSON and exit")
     p.set_defaults(func=cmd_status)

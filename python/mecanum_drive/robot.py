@@ -7,9 +7,9 @@ A `Robot` owns three things on any python-can bus:
   with the alive counter (`seq`) that the protocol asks for incremented on every frame: the
   robot refuses a twist that repeats the last accepted `seq`, so a stuck sender (this process
   frozen, an adapter repeating its last frame) lets its watchdog stop it;
-- a **receiver**: a thread that reads the bus and decodes ODOM_POSITION, ODOM_VELOCITY, STATUS,
-  STATUS_COUNTERS and HEARTBEAT into the latest `Odometry`, `Status`, `Counters` and
-  `Heartbeat`, and watches the heartbeat (`_Liveness`: a silence is one this process has read
+- a **receiver**: a thread that reads the bus and decodes ODOM_POSITION, ODOM_VELOCITY,
+  ODOM_SLIP, STATUS, STATUS_COUNTERS and HEARTBEAT into the latest `Odometry`, `Slip`,
+  `Status`, `Counters` and `Heartbeat`, and watches the heartbeat (`_Liveness`: a silence is one this process has read
   on the bus, so a slow process is not mistaken for a silent robot);
 - **the way out**: leaving the `with` block, an exception through it, `close()` and the
   interpreter's exit all stop the stream, send a zero twist and MODE_CMD disable.
@@ -95,6 +95,34 @@ class Odometry:
         """Seconds since the frame arrived: from `stamp` where it is this computer's wall
         clock (SocketCAN), so that a process that decoded it late does not make it look
         younger; else since it was decoded."""
+        return _age(self.stamp, self.received)
+
+
+@dataclasses.dataclass(frozen=True)
+class Slip:
+    """The robot's last ODOM_SLIP (protocol version 7), which only a robot configured with
+    tracking pods sends, with every odometry sample: where the odometry comes from and the slip
+    estimate.
+
+    `source`, by the DBC's name: "PODS2_GYRO" (two pods' translation, the gyro's rotation),
+    "PODS3" (three pods: translation and rotation) or "WHEELS_PODS_SILENT" (configured for pods
+    that sent no valid POD_COUNTS within their timeout: wheel odometry, a warning; the robot
+    keeps driving). "WHEELS" is never sent: a robot without pods sends no ODOM_SLIP
+    (`Robot.slip` is None, `Robot.odometry_source` "WHEELS").
+
+    `vx`, `vy` (m/s), `wz` (rad/s): the wheels' body velocity less the pods' (body frame),
+    low-pass filtered (time constant 0.1 s), to the frame's resolution (0.001); large while the
+    body slides and the wheels turn; 0 while the pods are silent."""
+
+    vx: float
+    vy: float
+    wz: float
+    source: str
+    received: float  # time.monotonic() when this process decoded the ODOM_SLIP frame
+    stamp: float = math.nan  # the frame's receive time (see `Odometry.stamp`)
+
+    def age(self) -> float:
+        """Seconds since the frame arrived (as `Odometry.age`)."""
         return _age(self.stamp, self.received)
 
 
@@ -237,6 +265,12 @@ class Robot:
     `missed_heartbeats`: heartbeat periods without one after which the robot counts as not
     responding (`NotResponding`); more tolerates a computer that stalls for longer.
     `owns_bus`: shut `bus` down on `close()` (as `Robot.open` does).
+
+    What the robot reports, the latest of each (None before the first): `odometry`, `status`,
+    `counters`, `heartbeat`, and, from a robot configured with tracking pods (protocol version
+    7), `slip`; `odometry_source` names where the odometry comes from ("WHEELS" from a robot
+    without pods, else the latest `slip.source`), `status.heading_source` where its heading
+    comes from.
     """
 
     def __init__(
@@ -270,7 +304,7 @@ class Robot:
         self._msg = {name: self._db.get_message_by_name(name) for name in (
             "ESTOP", "TWIST_CMD", "MODE_CMD", "STATUS_REQ",
             "ODOM_POSITION", "ODOM_VELOCITY", "STATUS", "STATUS_COUNTERS", "HEARTBEAT",
-            "WHEEL_TEST", "WHEEL_TEST_RESULT",
+            "WHEEL_TEST", "WHEEL_TEST_RESULT", "ODOM_SLIP",
         )}
         self._by_id = {m.frame_id: m for m in self._msg.values()}
         self._version = protocol.protocol_version()
@@ -278,6 +312,7 @@ class Robot:
         self._faults = protocol.choices("STATUS", "fault")
         self._heading_sources = protocol.choices("STATUS", "heading_source")
         self._outcomes = protocol.choices("WHEEL_TEST_RESULT", "outcome")
+        self._odometry_sources = protocol.choices("ODOM_SLIP", "source")
 
         self._send_lock = threading.Lock()
         self._lock = threading.Condition()
@@ -287,6 +322,7 @@ class Robot:
         self._position: tuple[float, float] | None = None
         self._odometry: Odometry | None = None
         self._status: Status | None = None
+        self._slip: Slip | None = None
         # When the latest reset() was sent (time.time()): a STATUS stamped before it is older
         # than the reset, however late the receiving thread reads it.
         self._reset_sent = -math.inf
@@ -582,6 +618,15 @@ class Robot:
                 odometry = Odometry(x, y, float(values["heading"]), float(values["vx"]), float(values["vy"]),
                                     float(values["wz"]), now, stamp)
                 self._odometry = odometry
+            elif message.name == "ODOM_SLIP":
+                self._slip = Slip(
+                    vx=float(values["vx"]),
+                    vy=float(values["vy"]),
+                    wz=float(values["wz"]),
+                    source=self._odometry_sources.get(int(values["source"]), str(values["source"])),
+                    received=now,
+                    stamp=stamp,
+                )
             elif message.name == "STATUS" and self._before_reset(stamp):
                 pass  # the robot sent it before the reset existed; its fault no longer counts
             elif message.name == "STATUS":
@@ -647,6 +692,21 @@ class Robot:
         """The latest odometry, or None before the first."""
         with self._lock:
             return self._odometry
+
+    @property
+    def slip(self) -> Slip | None:
+        """The latest ODOM_SLIP (the odometry source and the slip estimate), or None before the
+        first: always None from a robot configured without tracking pods, which sends none."""
+        with self._lock:
+            return self._slip
+
+    @property
+    def odometry_source(self) -> str:
+        """Where the robot's odometry comes from: the latest ODOM_SLIP's `source` ("PODS2_GYRO",
+        "PODS3", "WHEELS_PODS_SILENT"), or "WHEELS" while none has arrived (a robot without
+        tracking pods). Where its heading comes from is `Status.heading_source`."""
+        with self._lock:
+            return "WHEELS" if self._slip is None else self._slip.source
 
     @property
     def status(self) -> Status | None:

@@ -8,13 +8,13 @@ needs rclpy and the message packages geometry_msgs, nav_msgs, diagnostic_msgs an
 | name | type | what |
 |---|---|---|
 | `cmd_vel` (sub) | `geometry_msgs/msg/Twist` (`TwistStamped` with `use_stamped_vel`) | body-frame setpoint: linear.x, linear.y, angular.z; streamed to the robot at 50 Hz. None for `cmd_vel_timeout` s: zero twist (the robot stays enabled and holds still) |
-| `odom` (pub) | `nav_msgs/msg/Odometry` | the robot's odometry: pose in `odom_frame_id`, measured twist in `base_frame_id`, at most `publish_rate` Hz (the robot sends its `timing.odometry_hz`, 100 by default) |
+| `odom` (pub) | `nav_msgs/msg/Odometry` | the robot's odometry: pose in `odom_frame_id`, measured twist in `base_frame_id`, at most `publish_rate` Hz (the robot sends its `timing.odometry_hz`, 100 by default); the pose's covariance grows with the distance driven and the rotation turned, at the odometry source's expected error (below); the twist's is `twist_covariance_diagonal`, constant |
 | `/tf` (pub) | `tf2_msgs/msg/TFMessage` | `odom_frame_id` -> `base_frame_id`, with each `odom`, when `enable_odom_tf` and `tf2_msgs` is importable (a ROS 2 installation has it; the PyPI wheels do not: the node says so once at start-up) |
-| `/diagnostics` (pub) | `diagnostic_msgs/msg/DiagnosticArray` | state, fault, motors online, heading source (wheels or gyro), the robot's counters and the bridge's, at `diagnostics_rate` Hz |
+| `/diagnostics` (pub) | `diagnostic_msgs/msg/DiagnosticArray` | state, fault, motors online, heading source (wheels or gyro), odometry source (wheels or tracking pods) and, from a robot with pods, the slip estimate, the robot's counters and the bridge's, at `diagnostics_rate` Hz |
 | `~/enable`, `~/disable`, `~/reset`, `~/estop` | `std_srvs/srv/Trigger` | MODE_CMD enable / disable / reset, ESTOP; `success` when the robot reports the state reached (ENABLED, DISABLED, DISABLED, ESTOP) within `service_timeout` s; `message`: its state and fault, or why not |
 
-`/joint_states` is not published: the robot protocol (dbc/mecanum_robot.dbc, version 4) carries
-no wheel states, only odometry, status, counters and the heartbeat. (The drives' own frames
+`/joint_states` is not published: the robot protocol (dbc/mecanum_robot.dbc) carries no wheel
+states, only odometry, the slip estimate, status, counters and the heartbeat. (The drives' own frames
 are on the bus, but decoding them is the firmware's job, at 4 kHz.)
 
 Twists beyond the robot's limits are **clamped**: the whole twist is scaled by one factor
@@ -22,6 +22,26 @@ Twists beyond the robot's limits are **clamped**: the whole twist is scaled by o
 `max_angular_speed`, with a warning at most every 5 s. The firmware would otherwise reject
 such a twist, and a robot fed only rejected twists stops on its command watchdog. A twist
 with a component that is not a finite number is rejected (zero twist sent, warning).
+
+**The pose covariance** of `/odom` is `pose_covariance_diagonal` at the start, and grows as
+odometry drifts: the standard deviations of x and y grow by `position_error_wheels` (default
+0.06) times each increment of the distance driven while the odometry comes from the wheels
+(`Robot.odometry_source` WHEELS: a robot without tracking pods; or WHEELS_PODS_SILENT), by
+`position_error_pods` (0.01) while it comes from pods (PODS2_GYRO, PODS3); the heading's by
+`heading_error_gyro` (0.01) times each increment of the rotation while the heading comes from
+a gyro (STATUS.heading_source GYRO) or from three pods (PODS3), else by `heading_error_wheels`
+(0.05). Each variance is its base plus that standard deviation squared (x, y, yaw; z, roll,
+pitch stay the base). The increments are those between successive odometry samples (every
+one the robot sends, not only those published), and the growth never resets: the drift
+accumulates for as long as the bridge runs. The model is `mecanum_drive.ros2.covariance`.
+The twist's covariance is `twist_covariance_diagonal`, constant: the measured velocity's
+error does not accumulate.
+
+`/diagnostics` carries `odometry_source` (WHEELS from a robot without pods) and, once the
+robot has sent ODOM_SLIP (only a robot with pods does), the slip estimate `slip_vx`,
+`slip_vy` (m/s), `slip_wz` (rad/s); without ODOM_SLIP there are no slip keys. Pods silent
+(WHEELS_PODS_SILENT) is a WARN, "<state>, pods silent: odometry from the wheels", as a
+silent gyro is.
 
 The parameters (PARAMETERS below; `ros2 param describe /mecanum_drive NAME`) are read once at
 start-up and read-only after. The robot stays disabled until `~/enable`, or enables once it
@@ -60,6 +80,14 @@ from std_srvs.srv import Trigger  # type: ignore[import-untyped]
 
 from .. import protocol
 from ..robot import Odometry, Robot, RobotError, RobotFault, Status
+from .covariance import (
+    HEADING_ERROR_GYRO,
+    HEADING_ERROR_WHEELS,
+    POSITION_ERROR_PODS,
+    POSITION_ERROR_WHEELS,
+    CovarianceGrowth,
+    ErrorRates,
+)
 
 #: The node's name (services are `/mecanum_drive/enable`, ...; `-r __node:=NAME` renames it).
 NODE_NAME = "mecanum_drive"
@@ -91,8 +119,20 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     "odom_frame_id": ("odom", "frame of the odometry's pose"),
     "base_frame_id": ("base_link", "the robot's body frame (the odometry's child frame)"),
     "enable_odom_tf": (True, "publish odom_frame_id -> base_frame_id on /tf (needs tf2_msgs)"),
-    "pose_covariance_diagonal": (DEFAULT_COVARIANCE, "x, y, z, roll, pitch, yaw variances of the pose"),
-    "twist_covariance_diagonal": (DEFAULT_COVARIANCE, "vx, vy, vz, wx, wy, wz variances of the twist"),
+    "pose_covariance_diagonal": (DEFAULT_COVARIANCE, "x, y, z, roll, pitch, yaw variances of the pose at the start "
+                                 "(x, y and yaw then grow with the motion: the position_error_* and heading_error_* "
+                                 "parameters)"),
+    "twist_covariance_diagonal": (DEFAULT_COVARIANCE, "vx, vy, vz, wx, wy, wz variances of the twist (constant)"),
+    "position_error_wheels": (POSITION_ERROR_WHEELS, "m per m driven: the /odom x and y standard deviations grow "
+                              "by this times the distance driven while the odometry comes from the wheels (no "
+                              "pods, or pods silent); 0.06: the largest error along the path on the built-in "
+                              "square at speed was 5.9 % of the distance"),
+    "position_error_pods": (POSITION_ERROR_PODS, "m per m driven, as position_error_wheels while the odometry comes "
+                            "from tracking pods (PODS2_GYRO, PODS3); 0.01: the pods' target"),
+    "heading_error_wheels": (HEADING_ERROR_WHEELS, "rad per rad turned: the /odom yaw standard deviation grows by "
+                             "this times the rotation while the heading comes from the wheels"),
+    "heading_error_gyro": (HEADING_ERROR_GYRO, "rad per rad turned, as heading_error_wheels while the heading comes "
+                           "from a gyro (STATUS.heading_source GYRO) or three pods (PODS3)"),
     "diagnostics_rate": (1.0, "Hz, /diagnostics messages per second"),
     "service_timeout": (2.0, "s a service waits for the robot to report the state it asked for"),
     "enable_on_start": (False, "enable the robot once it answers, at start-up"),
@@ -131,6 +171,10 @@ class Settings:
     enable_odom_tf: bool
     pose_covariance_diagonal: tuple[float, ...]
     twist_covariance_diagonal: tuple[float, ...]
+    position_error_wheels: float
+    position_error_pods: float
+    heading_error_wheels: float
+    heading_error_gyro: float
     diagnostics_rate: float
     service_timeout: float
     enable_on_start: bool
@@ -146,6 +190,14 @@ class Settings:
             if not (math.isfinite(value) and 0 < value <= upper):
                 bound = f" at most {upper}{unit}" if math.isfinite(upper) else ""
                 raise ParameterError(name, value, f"must be a positive number{bound}")
+            return float(value)
+
+        def nonnegative(name: str) -> float:
+            value = values[name]
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ParameterError(name, value, "must be a number")
+            if not (math.isfinite(value) and value >= 0):
+                raise ParameterError(name, value, "must be a finite number >= 0")
             return float(value)
 
         def text(name: str) -> str:
@@ -192,6 +244,10 @@ class Settings:
             enable_odom_tf=flag("enable_odom_tf"),
             pose_covariance_diagonal=covariance("pose_covariance_diagonal"),
             twist_covariance_diagonal=covariance("twist_covariance_diagonal"),
+            position_error_wheels=nonnegative("position_error_wheels"),
+            position_error_pods=nonnegative("position_error_pods"),
+            heading_error_wheels=nonnegative("heading_error_wheels"),
+            heading_error_gyro=nonnegative("heading_error_gyro"),
             diagnostics_rate=positive("diagnostics_rate"),
             service_timeout=positive("service_timeout"),
             enable_on_start=flag("enable_on_start"),
@@ -264,7 +320,11 @@ class Bridge(Node):
         self.cmd_vel_rejected = 0
         self.cmd_vel_timeouts = 0
         self._odom_rate = Decimator(s.publish_rate)
-        self._pose_cov = _covariance_matrix(s.pose_covariance_diagonal)
+        # The /odom pose covariance (mecanum_drive.ros2.covariance), grown with every odometry
+        # sample by the robot's receiving thread; read it only for a look (tests, a debugger).
+        self.pose_growth = CovarianceGrowth(s.pose_covariance_diagonal, ErrorRates(
+            position_wheels=s.position_error_wheels, position_pods=s.position_error_pods,
+            heading_wheels=s.heading_error_wheels, heading_gyro=s.heading_error_gyro))
         self._twist_cov = _covariance_matrix(s.twist_covariance_diagonal)
 
         kwargs: dict[str, Any] = {"heartbeat_period_s": 1.0 / s.status_rate, "missed_heartbeats": s.missed_heartbeats}
@@ -390,6 +450,12 @@ class Bridge(Node):
         publish_rate times a second."""
         if self._closing or not (math.isfinite(odom.x) and math.isfinite(odom.y)):
             return
+        # The covariance grows with every sample, published or not; the source is the latest
+        # ODOM_SLIP's (sent after the ODOM_VELOCITY of its step: a change counts from the next
+        # sample, 10 ms later).
+        status = self.robot.status
+        self.pose_growth.update(odom.x, odom.y, odom.heading, self.robot.odometry_source,
+                                 status.heading_source if status is not None else None)
         # The stamp is when the frame arrived on the bus (its kernel receive time on SocketCAN,
         # `Odometry.age`), not when this process got to it: a busy receiving thread delays the
         # messages, not their stamps. The age is read first, so that a thread switch between
@@ -409,7 +475,7 @@ class Bridge(Node):
         msg.pose.pose.position.y = odom.y
         msg.pose.pose.orientation.z = qz
         msg.pose.pose.orientation.w = qw
-        msg.pose.covariance = self._pose_cov
+        msg.pose.covariance = self.pose_growth.pose_covariance()
         msg.twist.twist.linear.x = odom.vx
         msg.twist.twist.linear.y = odom.vy
         msg.twist.twist.angular.z = odom.wz
@@ -495,6 +561,8 @@ class Bridge(Node):
         robot, s = self.robot, self.settings
         status: Status | None = robot.status
         heartbeat, counters = robot.heartbeat, robot.counters
+        slip = robot.slip  # ODOM_SLIP: only from a robot with tracking pods
+        odometry_source = "WHEELS" if slip is None else slip.source
         problem = None
         try:
             robot.check()
@@ -517,8 +585,12 @@ class Bridge(Node):
             level, message = DiagnosticStatus.WARN, f"{status.state}, motors offline: {' '.join(offline)}"
         elif status.fault != "NONE":
             level, message = DiagnosticStatus.WARN, f"{status.state} after fault {status.fault}"
-        elif status.heading_source == "WHEELS_GYRO_SILENT":
-            level, message = DiagnosticStatus.WARN, f"{status.state}, gyro silent: heading from the wheels"
+        elif status.heading_source == "WHEELS_GYRO_SILENT" or odometry_source == "WHEELS_PODS_SILENT":
+            silent = [what for what, yes in (
+                ("gyro silent: heading from the wheels", status.heading_source == "WHEELS_GYRO_SILENT"),
+                ("pods silent: odometry from the wheels", odometry_source == "WHEELS_PODS_SILENT"),
+            ) if yes]
+            level, message = DiagnosticStatus.WARN, f"{status.state}, {', '.join(silent)}"
         else:
             level, message = DiagnosticStatus.OK, status.state
         with self._lock:
@@ -534,6 +606,10 @@ class Bridge(Node):
             "fault": status.fault if status else "",
             "motors_online": " ".join(w for w, up in zip(WHEELS, status.motors_online) if up) if status else "",
             "heading_source": status.heading_source if status else "",
+            "odometry_source": odometry_source,
+            **({} if slip is None else {
+                "slip_vx": f"{slip.vx:.3f}", "slip_vy": f"{slip.vy:.3f}", "slip_wz": f"{slip.wz:.3f}",
+            }),
             "responding": robot.responding,
             "rx_errors": status.rx_errors if status else "",
             "unknown_ids": status.unknown_ids if status else "",
