@@ -1,28 +1,35 @@
 //! `hostsim calibrate`: the wheel radius, lx + ly and lateral effectiveness that make the
-//! odometry match a reference pose, fitted by least squares from a log.
+//! odometry match a reference pose, fitted by least squares from a log; and, for a robot
+//! with tracking pods, each pod's radius, direction and lever ([`PodFit`]).
 //!
 //! [`calibrate`] (a file) and [`calibrate_bytes`] take a log and [`Options`] (the reference
 //! pose channel, by default [`GROUND_TRUTH`], and the fit's window) and return a
-//! [`Calibration`]: per-axis corrections with their standard errors, and the refined
-//! configuration values. A log without enough steady motion (at least [`MIN_TRAVEL_M`]
-//! forward and sideways, [`MIN_TURN_RAD`] of turning) is refused with a
-//! [`CalibrateError`] naming the missing motion.
+//! [`Calibration`]: per-axis corrections with their standard errors, the pods' fits, and the
+//! refined configuration values. A log without enough steady motion (at least
+//! [`MIN_TRAVEL_M`] forward and sideways, [`MIN_TURN_RAD`] of turning; for each pod, as much
+//! travel along and across its direction and as much turning) is refused with a
+//! [`CalibrateError`] naming the missing motion (and the pod).
 //!
 //! The model, the fit, the convention the fitted values follow (effective radius and
-//! lx + ly) and the refusals are specified in `docs/simulator.md`, section "Calibration".
+//! lx + ly), the pods' model and the refusals are specified in `docs/simulator.md`, section
+//! "Calibration".
 
 use std::collections::BTreeMap;
 use std::fmt;
 use std::path::Path;
 
 use firmware::Config;
-use firmware::config::Geometry;
+use firmware::config::{Geometry, PODS_MAX, Pods};
 use kinematics::{Effectiveness, MecanumKinematics, Pose2, Twist2, WheelDeltas};
 use nalgebra::{DMatrix, DVector};
 use serde::Serialize;
 
 use crate::log::msg::{self, decode};
 use crate::log::{ReadReport, for_each_message};
+
+mod pods;
+
+pub use pods::{PodFit, PodValues};
 
 /// The default reference: the simulator's ground truth.
 pub const GROUND_TRUTH: &str = "/ground_truth/odom";
@@ -68,18 +75,26 @@ impl Default for Options {
 /// A motion the log lacks, for a value it then cannot determine.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct MissingMotion {
-    /// What is missing (`forward travel`, `strafe`, `rotation`).
+    /// What is missing (`forward travel`, `strafe`, `rotation`). For a pod, the body motion
+    /// that gives the travel along or across its direction: the nearer body axis.
     pub motion: &'static str,
-    /// How much of it the log has (m, or rad for rotation).
+    /// How much of it the log has (m, or rad for rotation). For a pod, the reference's
+    /// travel along (`radius`) or across (`direction_deg`) the pod's configured direction.
     pub have: f64,
     /// How much it needs.
     pub need: f64,
-    /// The value it cannot fit.
+    /// The value it cannot fit (a pod's: `radius`, `direction_deg`, `lever`).
     pub value: &'static str,
+    /// The pod (its index in the configuration), for a pod's value.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pod: Option<usize>,
 }
 
 impl fmt::Display for MissingMotion {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if let Some(pod) = self.pod {
+            return pods::describe(self, pod, f);
+        }
         match self.motion {
             "rotation" => write!(
                 f,
@@ -158,6 +173,17 @@ pub enum CalibrateError {
         t_s: f64,
         /// The decoder's error.
         reason: String,
+    },
+    /// The configuration has tracking pods, the log's `/joint_states` not their angles.
+    #[error(
+        "the log's configuration has {pods} tracking pods, but its /joint_states carry no \
+         angle of pod{missing} (joints pod0, pod1...): the pods cannot be fitted"
+    )]
+    NoPodAngles {
+        /// Pods configured.
+        pods: usize,
+        /// The first pod without angles.
+        missing: usize,
     },
     /// No odometry: neither wheel angles nor `/odom`.
     #[error("the log has no /joint_states with the wheels fl, fr, rl, rr and no /odom")]
@@ -276,7 +302,10 @@ pub struct Calibration {
     pub lx_plus_ly: Estimate,
     /// Fitted lateral effectiveness.
     pub lateral_effectiveness: Estimate,
-    /// The logged configuration with the fitted `[geometry]`.
+    /// Each tracking pod's fit, in the configuration's order (none without pods).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub pods: Vec<PodFit>,
+    /// The logged configuration with the fitted `[geometry]` (and pods).
     #[serde(skip)]
     pub config: Config,
     /// What was read, and where the log is damaged if it is.
@@ -304,12 +333,23 @@ impl Calibration {
         )
     }
 
-    /// The report as JSON (SI units).
+    /// The `[[odometry.pods]]` tables to paste into a configuration (empty without pods):
+    /// the fitted radius and direction, the configured contact point moved across the
+    /// pod's line of action to the fitted lever, `counts_per_turn` as configured.
+    #[must_use]
+    pub fn pod_lines(&self) -> String {
+        pods::lines(&self.pods)
+    }
+
+    /// The report as JSON (SI units; directions in degrees).
     #[must_use]
     pub fn to_json(&self) -> serde_json::Value {
         let mut v = serde_json::to_value(self).unwrap_or_default();
         if let Some(o) = v.as_object_mut() {
             o.insert("geometry_lines".into(), self.geometry_lines().into());
+            if !self.pods.is_empty() {
+                o.insert("pod_lines".into(), self.pod_lines().into());
+            }
             o.insert("complete".into(), self.read.is_complete().into());
         }
         v
@@ -377,19 +417,30 @@ impl fmt::Display for Calibration {
             "  lateral_effectiveness  {:.5} -> {:.5} ± {:.1e}",
             l.lateral_effectiveness, x.lateral_effectiveness.value, x.lateral_effectiveness.stderr
         )?;
+        if !self.pods.is_empty() {
+            pods::report(&self.pods, f)?;
+        }
         writeln!(f, "paste into the configuration:")?;
-        write!(f, "{}", self.geometry_lines())
+        write!(f, "{}{}", self.geometry_lines(), self.pod_lines())
     }
 }
 
 /// A pose track: log time (ns) and pose, in time order.
 type Track = Vec<(u64, Pose2<f64>)>;
 
+/// One `/joint_states` sample: its log time, the wheel angles and the pods' (rad).
+#[derive(Debug, Clone, Copy)]
+struct Joints {
+    t: u64,
+    wheels: [f64; 4],
+    pods: [Option<f64>; PODS_MAX],
+}
+
 /// What a log holds for calibration.
 #[derive(Default)]
 struct LogData {
     config: Option<String>,
-    joints: Vec<(u64, [f64; 4])>,
+    joints: Vec<Joints>,
     odom: Track,
     reference: Track,
     reference_type: Option<String>,
@@ -473,7 +524,11 @@ pub fn calibrate_bytes(bytes: &[u8], options: &Options) -> Result<Calibration, C
                         };
                         let [fl, fr, rl, rr] = crate::log::WHEEL_NAMES.map(angle);
                         if let (Some(fl), Some(fr), Some(rl), Some(rr)) = (fl, fr, rl, rr) {
-                            d.joints.push((m.log_time, [fl, fr, rl, rr]));
+                            d.joints.push(Joints {
+                                t: m.log_time,
+                                wheels: [fl, fr, rl, rr],
+                                pods: crate::log::POD_NAMES.map(angle),
+                            });
                         }
                     }
                     Err(e) => d.error = Some(fail(e.to_string())),
@@ -537,9 +592,9 @@ pub fn calibrate_bytes(bytes: &[u8], options: &Options) -> Result<Calibration, C
     let mut reference_track = d.reference;
     reference_track.sort_by_key(|(t, _)| *t);
     let all = windows(&track, &reference_track, options.window_s);
-    let moving: Vec<(Twist2<f64>, Twist2<f64>)> = steady_windows(&all, options.window_s)
-        .map(|w| (w.odometry, w.reference))
-        .collect();
+    let steady: Vec<&Window> = steady_windows(&all, options.window_s).collect();
+    let moving: Vec<(Twist2<f64>, Twist2<f64>)> =
+        steady.iter().map(|w| (w.odometry, w.reference)).collect();
     if moving.len() < 3 {
         let span = |t: &Track| match (t.first(), t.last()) {
             (Some(a), Some(b)) => format!("{:.3}..{:.3} s", a.0 as f64 * 1e-9, b.0 as f64 * 1e-9),
@@ -556,7 +611,9 @@ pub fn calibrate_bytes(bytes: &[u8], options: &Options) -> Result<Calibration, C
     let component = |t: &Twist2<f64>, axis: usize| [t.dx, t.dy, t.dtheta][axis];
     let travel: [f64; 3] =
         core::array::from_fn(|axis| moving.iter().map(|(o, _)| component(o, axis).abs()).sum());
-    let missing: Vec<MissingMotion> = [
+    let configured_pods = config.odometry.pods;
+    let pod_windows = pod_windows(configured_pods.len(), &d.joints, &steady)?;
+    let mut missing: Vec<MissingMotion> = [
         ("forward travel", MIN_TRAVEL_M, "wheel_radius"),
         ("strafe", MIN_TRAVEL_M, "lateral_effectiveness"),
         ("rotation", MIN_TURN_RAD, "lx + ly"),
@@ -569,8 +626,10 @@ pub fn calibrate_bytes(bytes: &[u8], options: &Options) -> Result<Calibration, C
         have,
         need,
         value,
+        pod: None,
     })
     .collect();
+    missing.extend(pods::missing(configured_pods.as_slice(), &pod_windows));
     if !missing.is_empty() {
         return Err(CalibrateError::MissingMotion(missing));
     }
@@ -622,7 +681,12 @@ pub fn calibrate_bytes(bytes: &[u8], options: &Options) -> Result<Calibration, C
         lateral_effectiveness: round(lateral, 1e-5),
         yaw_effectiveness: 1.0,
     };
+    let pod_fits = pods::fit(configured_pods.as_slice(), &pod_windows)?;
     let mut calibrated = config;
+    if !pod_fits.is_empty() {
+        calibrated.odometry.pods = Pods::new(&pods::refined(&pod_fits))
+            .ok_or_else(|| CalibrateError::Refused("more pods than the robot carries".into()))?;
+    }
     calibrated.geometry = Geometry::Standard {
         lx: fitted.lx as f32,
         ly: fitted.ly as f32,
@@ -658,15 +722,56 @@ pub fn calibrate_bytes(bytes: &[u8], options: &Options) -> Result<Calibration, C
             value: lateral,
             stderr: lateral * ry.hypot(rx),
         },
+        pods: pod_fits,
         config: calibrated,
         read,
     })
 }
 
+/// The pods' windows: for each of the fit's windows, the reference's increment and each of
+/// the `pods` configured pods' angle increments, from the `/joint_states` samples at the
+/// window's ends (the windows' ends are those samples' times). None without pods.
+///
+/// # Errors
+/// [`CalibrateError::NoPodAngles`] if the samples lack a pod's angle.
+fn pod_windows(
+    pods: usize,
+    joints: &[Joints],
+    steady: &[&Window],
+) -> Result<Vec<pods::PodWindow>, CalibrateError> {
+    if pods == 0 {
+        return Ok(Vec::new());
+    }
+    let no_angles = |missing| CalibrateError::NoPodAngles { pods, missing };
+    let Some(first) = joints.first() else {
+        return Err(no_angles(0));
+    };
+    if let Some(missing) = (0..pods).find(|&i| first.pods[i].is_none()) {
+        return Err(no_angles(missing));
+    }
+    let at = |t: u64| {
+        let i = joints.partition_point(|j| j.t < t);
+        joints.get(i).filter(|j| j.t == t)
+    };
+    Ok(steady
+        .iter()
+        .filter_map(|w| {
+            let (j0, j1) = (at(w.t0)?, at(w.t1)?);
+            let angles = (0..pods)
+                .map(|i| Some(j1.pods[i]? - j0.pods[i]?))
+                .collect::<Option<Vec<f64>>>()?;
+            Some(pods::PodWindow {
+                reference: w.reference,
+                angles,
+            })
+        })
+        .collect())
+}
+
 /// The odometry of the logged configuration recomputed from the wheel angles: each sample's
 /// increments through the forward kinematics (effectiveness included) and the SE(2)
 /// exponential, as the firmware integrates them.
-fn wheel_odometry(g: &GeometryValues, joints: &[(u64, [f64; 4])]) -> Result<Track, CalibrateError> {
+fn wheel_odometry(g: &GeometryValues, joints: &[Joints]) -> Result<Track, CalibrateError> {
     let k = Effectiveness::new(
         g.forward_effectiveness,
         g.lateral_effectiveness,
@@ -676,12 +781,12 @@ fn wheel_odometry(g: &GeometryValues, joints: &[(u64, [f64; 4])]) -> Result<Trac
         .map_err(|e| CalibrateError::Config(e.to_string()))?;
     let mut pose = Pose2::default();
     let mut track = Vec::with_capacity(joints.len());
-    let mut last = joints[0].1;
-    for &(t, angles) in joints {
-        let d: [f64; 4] = core::array::from_fn(|i| angles[i] - last[i]);
+    let mut last = joints[0].wheels;
+    for j in joints {
+        let d: [f64; 4] = core::array::from_fn(|i| j.wheels[i] - last[i]);
         pose = pose.exp(map.displacement(&WheelDeltas::new(d[0], d[1], d[2], d[3])));
-        last = angles;
-        track.push((t, pose));
+        last = j.wheels;
+        track.push((j.t, pose));
     }
     Ok(track)
 }
@@ -771,10 +876,12 @@ fn windows(odometry: &Track, reference: &Track, window_s: f64) -> Vec<Window> {
 struct LeastSquares {
     coefficients: DVector<f64>,
     stderr: DVector<f64>,
+    /// The coefficients' covariance `σ² (XᵀX)⁻¹`.
+    covariance: DMatrix<f64>,
     residual_rms: f64,
 }
 
-/// Least squares `y ≈ X β` (SVD): the coefficients, their standard errors
+/// Least squares `y ≈ X β` (SVD): the coefficients, their covariance and standard errors
 /// (`σ² (XᵀX)⁻¹`, `σ²` the residual variance with `n − p` degrees of freedom) and the RMS
 /// residual. `None` with no more rows than columns or a singular design.
 fn least_squares(x: &DMatrix<f64>, y: &DVector<f64>) -> Option<LeastSquares> {
@@ -786,11 +893,12 @@ fn least_squares(x: &DMatrix<f64>, y: &DVector<f64>) -> Option<LeastSquares> {
     let residual = y - x * &coefficients;
     let rss = residual.norm_squared();
     let variance = rss / (n - p) as f64;
-    let inverse = (x.transpose() * x).try_inverse()?;
-    let stderr = inverse.diagonal().map(|v| (v * variance).sqrt());
+    let covariance = (x.transpose() * x).try_inverse()? * variance;
+    let stderr = covariance.diagonal().map(f64::sqrt);
     Some(LeastSquares {
         coefficients,
         stderr,
+        covariance,
         residual_rms: (rss / n as f64).sqrt(),
     })
 }

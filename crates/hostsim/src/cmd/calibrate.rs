@@ -1,4 +1,5 @@
-//! `hostsim calibrate`: the geometry that makes a log's odometry match its reference.
+//! `hostsim calibrate`: the geometry (and the tracking pods) that make a log's odometry match
+//! its reference.
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -8,7 +9,7 @@ use anyhow::{Context, Result};
 use super::*;
 
 /// Fit the wheel radius, lx + ly and lateral effectiveness that make a log's odometry
-/// match a reference pose.
+/// match a reference pose, and each tracking pod's radius, direction and lever.
 ///
 /// The odometry is recomputed from the logged wheel angles (/joint_states) with the
 /// logged configuration (else the firmware's /odom); the reference is the simulator's
@@ -21,15 +22,25 @@ use super::*;
 /// lateral_effectiveness relative to that radius; they refine the logged values, so a log
 /// recorded with the calibrated configuration gives corrections of 1.
 ///
+/// A robot with tracking pods ([[odometry.pods]]) also has each pod fitted: its logged
+/// wheel angle (/joint_states pod0, pod1, pod2) over each window against the reference's
+/// body increment (dx, dy, dθ), Δα = (cos φ dx + sin φ dy + m dθ) / r, by least squares:
+/// the radius r, the direction φ and the lever m = x sin φ − y cos φ (the distance of the
+/// pod's line of action from the origin; where along that line it touches the floor is
+/// unobservable). A straight leg along the pod gives its radius, motion across it its
+/// direction, a spin its lever.
+///
 /// Prints each correction and value with its standard error, the RMS of the per-window
-/// residuals, and the [geometry] lines to paste; --write FILE writes the logged
-/// configuration with them. The loop: `hostsim run calibration`, `hostsim calibrate
-/// out/calibration.mcap --write cal.toml`, `hostsim run calibration --config cal.toml`.
+/// residuals, and the [geometry] lines to paste (and the [[odometry.pods]] tables, their
+/// contact point moved across the line of action to the fitted lever); --write FILE
+/// writes the logged configuration with them. The loop: `hostsim run calibration`,
+/// `hostsim calibrate out/calibration.mcap --write cal.toml`, `hostsim run calibration
+/// --config cal.toml`.
 ///
 /// Exit status: 0, 2 if the log is refused (its motion cannot determine a value: it
-/// needs 0.5 m of forward and of sideways travel and a full turn; no configuration or
-/// reference in it) or FILE cannot be written, 3 if the log is damaged (the fit used its
-/// complete part).
+/// needs 0.5 m of forward and of sideways travel and a full turn, and each pod 0.5 m of
+/// travel along and across its direction; no configuration or reference in it) or FILE
+/// cannot be written, 3 if the log is damaged (the fit used its complete part).
 #[derive(Debug, clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
@@ -41,7 +52,7 @@ pub struct Args {
     /// Window length, s.
     #[arg(long, value_name = "SECONDS", default_value_t = 0.1)]
     pub window: f64,
-    /// Write the logged configuration with the fitted [geometry] to FILE.
+    /// Write the logged configuration with the fitted [geometry] (and pods) to FILE.
     #[arg(long, value_name = "FILE")]
     pub write: Option<PathBuf>,
     /// Print the report as JSON (one object on stdout).
@@ -77,9 +88,14 @@ fn calibrate(
     warn_if_damaged(path, &c.read, "the fit used its complete part");
     if let Some(file) = write {
         let text = format!(
-            "# The configuration of {}, [geometry] calibrated by hostsim calibrate (reference \
-             {}).\n{}",
+            "# The configuration of {}, [geometry]{} calibrated by hostsim calibrate \
+             (reference {}).\n{}",
             path.display(),
+            if c.pods.is_empty() {
+                ""
+            } else {
+                " and [[odometry.pods]]"
+            },
             c.reference,
             c.config.to_toml_string()
         );
