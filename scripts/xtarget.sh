@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Cross-target determinism: the firmware core and a fixed scenario (boards/qemu-m4/scenario:
 # scripted host commands and plant, 3,000 steps at 1 kHz, DJI, ODrive and CiA 402
-# configurations) run on an emulated Cortex-M4 (QEMU mps2-an386, thumbv7em-none-eabihf,
-# semihosting) and on the host; their reports (outbound frame count, FNV-1a 64 hash,
+# configurations, and DJI with tracking pods) run on an emulated Cortex-M4 (QEMU
+# mps2-an386, thumbv7em-none-eabihf, semihosting) and on the host; their reports (outbound frame count, FNV-1a 64 hash,
 # checkpoints every 100 steps, every 100th frame, final pose bits) must be byte-identical.
 # Then counts the instructions per control step on the emulated Cortex-M4 from QEMU's
 # execution trace.
@@ -147,7 +147,7 @@ if [ "$icount" = 1 ]; then
     # The instrumented build must compute the same frames as the host up to its last step
     # (every setup: no report line would otherwise pass unchecked).
     checked=$(grep -c '^icount [a-z0-9]* steps=' "$work/icount.txt" || true)
-    [ "$checked" = 3 ] || { echo "icount build: $checked report lines, expected 3 (dji, odrive, cia402)"; exit 1; }
+    [ "$checked" = 4 ] || { echo "icount build: $checked report lines, expected 4 (dji, odrive, cia402, pods)"; exit 1; }
     while read -r _ setup range frames hash; do
         want=$(sed -n "s/^ck $setup step=${range#steps=*..} \(frames=[0-9]* hash=[0-9a-f]*\)$/\1/p" \
             "$work/host.txt")

@@ -111,7 +111,7 @@ mod icount {
     pub const END: u32 = 200;
 
     /// Written by the markers so that the calls are not optimised away; the values differ so
-    /// that the six functions are not merged into one.
+    /// that the eight functions are not merged into one.
     static MARK: AtomicU32 = AtomicU32::new(0);
 
     #[inline(never)]
@@ -138,6 +138,14 @@ mod icount {
     fn xtarget_mark_cia402_end() {
         MARK.store(6, Ordering::Relaxed);
     }
+    #[inline(never)]
+    fn xtarget_mark_pods_begin() {
+        MARK.store(7, Ordering::Relaxed);
+    }
+    #[inline(never)]
+    fn xtarget_mark_pods_end() {
+        MARK.store(8, Ordering::Relaxed);
+    }
 
     struct Markers;
 
@@ -148,6 +156,7 @@ mod icount {
                     Setup::Dji => xtarget_mark_dji_begin(),
                     Setup::Odrive => xtarget_mark_odrive_begin(),
                     Setup::Cia402 => xtarget_mark_cia402_begin(),
+                    Setup::Pods => xtarget_mark_pods_begin(),
                 }
             }
         }
@@ -157,6 +166,7 @@ mod icount {
                     Setup::Dji => xtarget_mark_dji_end(),
                     Setup::Odrive => xtarget_mark_odrive_end(),
                     Setup::Cia402 => xtarget_mark_cia402_end(),
+                    Setup::Pods => xtarget_mark_pods_end(),
                 }
             }
         }

@@ -1,6 +1,7 @@
 //! A fixed, deterministic scenario for the firmware control core: scripted host commands, a
 //! scripted plant answering the motor commands, 3,000 control steps at 1 kHz, for the DJI, the
-//! ODrive and the CiA 402 example configurations. It reports the outbound frame stream as
+//! ODrive and the CiA 402 example configurations, and the DJI one with its odometry from three
+//! tracking pods. It reports the outbound frame stream as
 //! text: a rolling FNV-1a 64 hash, checkpoints every 100 steps, every n-th frame, and the final
 //! state.
 //!
@@ -42,6 +43,12 @@
 //! 57 ms, targets from the SYNC at 60 ms. The disable, the watchdog's stop and the reset send
 //! shutdown, the e-stop and the stale fault a quick stop. Wheel 2's
 //! lost feedback is node 2's TPDO1 (its statusword and first axis); its TPDO2 still comes.
+//!
+//! Pods: the DJI setup with `odometry.source = "pods3"` (the layout of
+//! `config/dji_m3508_pods3.toml`). A pod node sends `POD_COUNTS` every 5 ms from the body
+//! motion the plant's wheels imply (forward kinematics) plus a sideways slide of 5 % of the
+//! forward speed that no wheel sees; it is silent from 2300 to 2400 ms (the wheels take over,
+//! then the pods again), and repeats one frame at 1000 ms (not used, counted).
 
 #![no_std]
 #![forbid(unsafe_code)]
@@ -51,7 +58,7 @@ use core::f32::consts::TAU;
 use core::fmt::{self, Write};
 
 use embedded_can::{ExtendedId, Frame, Id, StandardId};
-use firmware::config::Drive;
+use firmware::config::{Drive, OdometryMode, PodConfig, Pods};
 use firmware::protocol::canopen::{
     self, DriveState402, Message, NmtCommand, NmtState, NodeId as CoNode, SdoRequest, SdoResponse,
 };
@@ -59,6 +66,7 @@ use firmware::protocol::dji::{self, EscId, EscModel};
 use firmware::protocol::odrive::{self, AxisState, NodeId};
 use firmware::protocol::robot::{self, Command, ModeRequest, TwistCmd};
 use firmware::{CanFrame, Config, Controller, Instant};
+use kinematics::{MecanumKinematics, PodGeometry, Twist2, WheelSpeeds};
 
 /// Control steps of the full scenario (3 s at 1 kHz).
 pub const STEPS: u32 = 3000;
@@ -79,11 +87,13 @@ pub enum Setup {
     /// `Config::cia402_example()`: two dual-axis CiA 402 nodes, profile velocity mode, a
     /// 250 Hz SYNC cycle; the core is their CANopen master.
     Cia402,
+    /// The DJI example with its odometry from three tracking pods (`POD_COUNTS`).
+    Pods,
 }
 
 impl Setup {
-    /// All three, in report order.
-    pub const ALL: [Self; 3] = [Self::Dji, Self::Odrive, Self::Cia402];
+    /// All four, in report order.
+    pub const ALL: [Self; 4] = [Self::Dji, Self::Odrive, Self::Cia402, Self::Pods];
 
     /// Short name used in the report.
     #[must_use]
@@ -92,6 +102,7 @@ impl Setup {
             Self::Dji => "dji",
             Self::Odrive => "odrive",
             Self::Cia402 => "cia402",
+            Self::Pods => "pods",
         }
     }
 
@@ -102,6 +113,24 @@ impl Setup {
             Self::Dji => Config::dji_m3508_example(),
             Self::Odrive => Config::odrive_example(),
             Self::Cia402 => Config::cia402_example(),
+            Self::Pods => {
+                let pod = |x, y, direction_deg| PodConfig {
+                    x,
+                    y,
+                    direction_deg,
+                    radius: 0.024,
+                    counts_per_turn: 2000,
+                };
+                let mut c = Config::dji_m3508_example();
+                c.odometry.source = OdometryMode::Pods3;
+                c.odometry.pods = Pods::new(&[
+                    pod(0.0, 0.11, 0.0),
+                    pod(0.0, -0.11, 0.0),
+                    pod(0.12, 0.0, 90.0),
+                ])
+                .unwrap_or_default();
+                c
+            }
         }
     }
 }
@@ -392,6 +421,92 @@ struct Axis {
     state: AxisState,
 }
 
+/// The pods setup's pod node: the pods' travel from the body motion the wheels imply, plus
+/// a slide they do not see.
+#[derive(Debug)]
+struct PodNode {
+    kin: MecanumKinematics<f32, 4>,
+    /// Rotor rad/s to wheel rad/s, robot-forward positive, per wheel.
+    wheel_per_rotor: [f32; 4],
+    pods: [PodGeometry<f32>; 3],
+    metres_per_count: [f32; 3],
+    /// Each pod's travel, m.
+    travel: [f32; 3],
+    /// The last frame sent (repeated once, to be counted and not used).
+    last: robot::PodCounts,
+}
+
+impl PodNode {
+    /// Sideways slide, of the forward speed: what the pods see and the wheels do not.
+    const SLIDE: f32 = 0.05;
+
+    fn new(config: &Config) -> Option<Self> {
+        let Drive::Dji {
+            gear_ratio,
+            inverted,
+            ..
+        } = config.drive
+        else {
+            return None;
+        };
+        let list = config.odometry.pods.as_slice();
+        if list.len() != 3 {
+            return None;
+        }
+        let kin = config.kinematics().ok()?;
+        let pod = |i: usize| list[i];
+        Some(Self {
+            kin,
+            wheel_per_rotor: inverted.map(|inv| if inv { -1.0 } else { 1.0 } / gear_ratio),
+            pods: [0, 1, 2].map(|i| pod(i).geometry()),
+            metres_per_count: [0, 1, 2].map(|i| pod(i).metres_per_count()),
+            travel: [0.0; 3],
+            last: robot::PodCounts::default(),
+        })
+    }
+
+    /// The body moved for `dt` s with the wheels at `rotor` rad/s.
+    fn advance(&mut self, rotor: [f32; 4], dt: f32) {
+        let mut w = [0.0; 4];
+        for ((w, r), k) in w.iter_mut().zip(rotor).zip(self.wheel_per_rotor) {
+            *w = r * k;
+        }
+        let v = self.kin.forward(&WheelSpeeds(w));
+        let twist = Twist2 {
+            dx: v.vx * dt,
+            dy: (v.vy + Self::SLIDE * v.vx) * dt,
+            dtheta: v.wz * dt,
+        };
+        for (t, p) in self.travel.iter_mut().zip(&self.pods) {
+            *t += p.arc(twist);
+        }
+    }
+
+    /// `POD_COUNTS` at `ms` (every 5 ms; none from 2300 to 2400 ms; at 1000 ms the previous
+    /// frame again).
+    fn frame(&mut self, ms: u32) -> Option<CanFrame> {
+        if !ms.is_multiple_of(5) || (2300..2400).contains(&ms) {
+            return None;
+        }
+        if ms != 1000 {
+            let mut counts = [0u16; 3];
+            for ((c, t), m) in counts
+                .iter_mut()
+                .zip(self.travel)
+                .zip(self.metres_per_count)
+            {
+                // An encoder's count, wrapping as a 16-bit timer does.
+                *c = libm::floorf(t / m) as i32 as u16;
+            }
+            self.last = robot::PodCounts {
+                counts,
+                seq: self.last.seq.wrapping_add(1),
+            };
+        }
+        Some(Command::PodCounts(self.last).to_can_frame())
+    }
+}
+
 /// The scripted plant: four motors that answer the controller's frames.
 #[derive(Debug)]
 struct Plant {
@@ -400,6 +515,8 @@ struct Plant {
     rng: Rng,
     /// CiA 402: the nodes (`None` for the other setups).
     canopen: Option<Canopen>,
+    /// The pods setup: the pod node (`None` for the other setups).
+    pods: Option<PodNode>,
     /// The step of the last `feedback` call, ms.
     ms: u32,
 }
@@ -420,7 +537,7 @@ impl Plant {
         // Different starting angles so the encoders do not move in lockstep.
         for (i, a) in axes.iter_mut().enumerate() {
             a.pos = match setup {
-                Setup::Dji => 1000.0 * i as f32 + 17.0,
+                Setup::Dji | Setup::Pods => 1000.0 * i as f32 + 17.0,
                 Setup::Odrive => 0.25 * i as f32 - 0.3,
                 Setup::Cia402 => 0.0,
             };
@@ -430,6 +547,7 @@ impl Plant {
             axes,
             rng: Rng(0x1234_5678),
             canopen: Canopen::new(config),
+            pods: PodNode::new(config),
             ms: 0,
         }
     }
@@ -437,8 +555,11 @@ impl Plant {
     fn feedback(&mut self, ms: u32, inbox: &mut Inbox) {
         *inbox = [None; 8];
         self.ms = ms;
+        if let Some(p) = &mut self.pods {
+            inbox[4] = p.frame(ms);
+        }
         match self.setup {
-            Setup::Dji => {
+            Setup::Dji | Setup::Pods => {
                 for (i, a) in self.axes.iter().enumerate() {
                     // Up to ±1 count of jitter; the rng advances even when the frame is lost.
                     let jitter = (self.rng.next() % 3) as i32 - 1;
@@ -520,7 +641,7 @@ impl Plant {
     /// Takes one frame the controller sent.
     fn receive(&mut self, frame: &CanFrame) {
         match self.setup {
-            Setup::Dji => {
+            Setup::Dji | Setup::Pods => {
                 if let Ok(cmd) = dji::CurrentCommand::decode(frame, EscModel::C620) {
                     let first = usize::from(cmd.group.first_esc()) - 1;
                     for (slot, &raw) in cmd.raw.iter().enumerate() {
@@ -643,9 +764,12 @@ impl Plant {
 
     /// Integrates one period, `dt` s.
     fn advance(&mut self, dt: f32) {
+        if let Some(p) = &mut self.pods {
+            p.advance(self.axes.map(|a| a.speed), dt);
+        }
         for a in &mut self.axes {
             match self.setup {
-                Setup::Dji => {
+                Setup::Dji | Setup::Pods => {
                     a.speed += dt * (DJI_A * a.cmd - DJI_C * a.speed);
                     a.pos += a.speed * dt * (DJI_COUNTS / TAU);
                     while a.pos >= DJI_COUNTS {
@@ -684,7 +808,7 @@ impl Plant {
 /// Wheel `i`'s feedback is missing at `ms` (the stale-motor part of the script).
 fn dropped(setup: Setup, ms: u32, i: usize) -> bool {
     let len = match setup {
-        Setup::Dji => 10,
+        Setup::Dji | Setup::Pods => 10,
         Setup::Odrive => 50,
         Setup::Cia402 => 20,
     };
