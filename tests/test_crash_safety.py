@@ -26,8 +26,11 @@ from mcap.reader import NonSeekingReader
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 #: Runs killed (at least 100), how many at once, and when: seconds after the start, uniform in
-#: [0, KILL_WINDOW_S], or in the first 80 % of a whole run where that is shorter (a release
-#: build runs the 60 s square in half a second).
+#: [0, KILL_WINDOW_S], or in the first half of the fastest of three whole runs where that is
+#: shorter (a release build runs the 60 s square in half a second). Half of the fastest: a run
+#: timed while the machine was busier than during the kills (a build finishing beside the
+#: test) would otherwise let runs end before their kill; four at a time on two cores are
+#: slower, not faster, than one alone.
 KILLS = 104
 PARALLEL = 4
 KILL_WINDOW_S = 2.0
@@ -139,13 +142,16 @@ def test_killed_runs_leave_logs_that_open_and_lose_at_most_a_second(hostsim_bin,
     """
     whole = tmp_path / "whole"
     whole.mkdir()
-    started = time.monotonic()
-    subprocess.run(
-        [str(hostsim_bin), "run", str(ROOT / "scenarios" / "square_60s.toml"), "--out", str(whole), "--no-plot"],
-        capture_output=True, timeout=600, check=True,
-    )
-    window = min(KILL_WINDOW_S, 0.8 * (time.monotonic() - started))
-    (whole / "square-60s.mcap").unlink()
+    walls = []
+    for _ in range(3):
+        started = time.monotonic()
+        subprocess.run(
+            [str(hostsim_bin), "run", str(ROOT / "scenarios" / "square_60s.toml"), "--out", str(whole), "--no-plot"],
+            capture_output=True, timeout=600, check=True,
+        )
+        walls.append(time.monotonic() - started)
+        (whole / "square-60s.mcap").unlink()
+    window = min(KILL_WINDOW_S, 0.5 * min(walls))
     rng = random.Random(SEED)
     delays = [rng.uniform(0.0, window) for _ in range(KILLS)]
     started = time.monotonic()
