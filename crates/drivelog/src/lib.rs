@@ -25,7 +25,9 @@
 //! A chunk ends at least every quarter second of log time, a killed run loses at most the last
 //! second, and a `.mcap` file always opens (`docs/logs.md`, section "Crash safety").
 //! [`for_each_message`] reads a log with the `mcap` crate's reader, every complete chunk of a
-//! damaged file included, and names the byte offset of the damage ([`read`]).
+//! damaged file included, and names the byte offset of the damage ([`read`]). A
+//! [`MessageTap`] sees every message as the writing thread writes it: the `live` crate serves
+//! them to Foxglove while the run goes on.
 //!
 //! # Example
 //!
@@ -67,7 +69,7 @@ pub mod write;
 
 pub use core_log::{Changes, CoreLog, PoseTwist, StatusLog, heading_source_line, state_line};
 pub use read::{Damage, Message, Problem, ReadReport, for_each_message};
-pub use write::{CHUNK_SIZE, Direction, LogError, McapLog, OdometrySource, part_path};
+pub use write::{CHUNK_SIZE, Direction, LogError, McapLog, MessageTap, OdometrySource, part_path};
 
 /// The MCAP profile of every log.
 pub const PROFILE: &str = "ros2";

@@ -9,6 +9,14 @@
 //! comes back as a [`LogError`] from the next hand-over. After [`McapLog::drop_when_behind`] a hand-over never blocks: messages are
 //! dropped and counted instead.
 //!
+//! A [`MessageTap`] installed with [`McapLog::set_tap`] sees every message on that thread,
+//! as it is written: the channel, the log and publish times, and the very CDR bytes of the
+//! file (a live view serves them: the `live` crate). It runs after the message is in the
+//! `mcap` writer, on the writing thread, so the caller never waits on it; a tap must not
+//! block either, or the hand-overs that wait for the writer would wait for it.
+//! [`McapLog::set_flush_interval`] makes the hand-overs (and so what a tap receives at once)
+//! more frequent than every quarter second.
+//!
 //! The rest is specified in `docs/logs.md`: section "The writer thread" (why the file does
 //! not depend on the threads' timing), "Crash safety" (what a killed run leaves: at most the
 //! last second lost, a `.mcap` file that always opens) and "A control loop that must not
@@ -63,12 +71,45 @@ pub enum OdometrySource {
     GroundTruth,
 }
 
-/// Log time between two hand-overs, ns. The batch in flight and the open one are what a run
-/// that dies loses: at most twice this.
+/// Log time between two hand-overs, ns, by default ([`McapLog::set_flush_interval`]). The
+/// batch in flight and the open one are what a run that dies loses: at most twice this.
 const FLUSH_LOG_INTERVAL_NS: u64 = 250_000_000;
 
-/// Wall-clock time between two hand-overs, for runs slower than real time.
+/// Wall-clock time between two hand-overs, for runs slower than real time, by default: twice
+/// the log-time interval.
 const FLUSH_WALL_INTERVAL: Duration = Duration::from_millis(500);
+
+/// What sees every message of a log as the writing thread writes it: a live view, say. See
+/// [`McapLog::set_tap`].
+///
+/// Every method but [`channels`](Self::channels) runs on the writing thread, between the
+/// messages it writes: a tap that
+/// blocks holds up the log (and a caller whose hand-over waits for the writer), so a tap
+/// hands the bytes on without waiting, and drops (and counts) what it cannot hand on.
+pub trait MessageTap: Send {
+    /// Once, when the tap is installed ([`McapLog::set_tap`], on the caller's thread) and
+    /// before any message: the log's channels, in channel id order. Each names its
+    /// topic ([`Channel::topic`]), its ROS 2 type ([`Channel::def`]: `name`, and the
+    /// `ros2msg` text of the file's Schema record, [`msg::MsgDef::schema_text`]); the
+    /// message encoding is `cdr`.
+    fn channels(&mut self, channels: &[Channel]);
+
+    /// A message, as the file has it: its channel, log time and publish time (ns), and its
+    /// CDR bytes (the Message record's data). Called in file order.
+    fn message(&mut self, channel: Channel, log_ns: u64, publish_ns: u64, cdr: &[u8]);
+
+    /// The end of a hand-over's messages: they are all in the file's buffer now (and on disk
+    /// but for the file's own buffering). A tap that gathers messages sends them here.
+    fn end_batch(&mut self) {}
+
+    /// A status of the tap's own to add to each `/diagnostics` message after the firmware's
+    /// ([`DIAGNOSTIC_NAME`]), in the file and so for every reader of it: a live view reports
+    /// its clients and what they lost there. `None` (the default): the message is as without
+    /// a tap.
+    fn status(&mut self) -> Option<msg::DiagnosticStatus> {
+        None
+    }
+}
 
 /// [`McapLog::maybe_flush`] reads the wall clock on every this many calls.
 const CALLS_PER_CLOCK_READ: u64 = 64;
@@ -145,6 +186,9 @@ struct Batch {
     snapshots: Vec<Snapshot>,
     odometry: Vec<OdometryRecord>,
     texts: Vec<String>,
+    /// A tap for the writing thread to install before this batch's messages
+    /// ([`McapLog::set_tap`]).
+    tap: Option<Box<dyn MessageTap>>,
 }
 
 impl Batch {
@@ -276,6 +320,10 @@ pub struct McapLog {
     dropped_reported: u64,
     /// Bytes the writing thread has passed to the file (or writer) so far.
     written: Arc<AtomicU64>,
+    /// Log time between two hand-overs, ns ([`Self::set_flush_interval`]).
+    flush_log_interval_ns: u64,
+    /// Wall-clock time between two hand-overs.
+    flush_wall_interval: Duration,
 }
 
 impl McapLog {
@@ -362,6 +410,8 @@ impl McapLog {
             dropped: 0,
             dropped_reported: 0,
             written,
+            flush_log_interval_ns: FLUSH_LOG_INTERVAL_NS,
+            flush_wall_interval: FLUSH_WALL_INTERVAL,
         })
     }
 
@@ -378,6 +428,31 @@ impl McapLog {
     #[must_use]
     pub fn path(&self) -> &Path {
         &self.path
+    }
+
+    /// Has `tap` see every message from the open batch on, on the writing thread (see
+    /// [`MessageTap`]); it is shown the channels at once. Install it before the first
+    /// message for it to see them all. The tap
+    /// goes to the writing thread with the next hand-over, and is dropped when that thread
+    /// ends ([`finish`](Self::finish)); a second call replaces a tap not yet handed over, and
+    /// the one installed before it from the next hand-over on.
+    pub fn set_tap(&mut self, mut tap: Box<dyn MessageTap>) {
+        tap.channels(&Channel::ALL);
+        self.batch.tap = Some(tap);
+    }
+
+    /// Hands the messages over every `interval` of log time (and twice that of wall-clock
+    /// time, for runs slower than real time) instead of every quarter second: what a
+    /// [`MessageTap`] receives then comes at most `interval` late (a live view wants some
+    /// 50 ms). Each hand-over ends a chunk, so a short interval makes more, smaller chunks
+    /// (a somewhat larger file); a killed run loses at most twice the interval of log time.
+    /// The wall clock is still read on every 64th [`maybe_flush`](Self::maybe_flush) only.
+    pub fn set_flush_interval(&mut self, interval: Duration) {
+        let ns = u64::try_from(interval.as_nanos())
+            .unwrap_or(u64::MAX)
+            .max(1);
+        self.flush_log_interval_ns = ns;
+        self.flush_wall_interval = interval.saturating_mul(2);
     }
 
     fn io_err(&self, source: io::Error) -> LogError {
@@ -487,7 +562,8 @@ impl McapLog {
                 Ok(Err(back)) => {
                     // The writer is busy: keep the batch open, try again at the next call.
                     self.batch = back;
-                    self.flushed_log_ns = self.last_log_ns.saturating_sub(FLUSH_LOG_INTERVAL_NS);
+                    self.flushed_log_ns =
+                        self.last_log_ns.saturating_sub(self.flush_log_interval_ns);
                     Ok(())
                 }
                 Err(e) => {
@@ -646,15 +722,17 @@ impl McapLog {
 
     /// Hands the messages logged so far to the writing thread if a quarter of a second of log
     /// time, or half a second of wall-clock time, has passed since the last hand-over (see
-    /// `docs/logs.md`, section "Crash safety"). Call it after each step's messages, at least
-    /// every few milliseconds of log time: it reads the wall clock only on every 64th call.
+    /// `docs/logs.md`, section "Crash safety"; other intervals: [`Self::set_flush_interval`]).
+    /// Call it after each step's messages, at least every few milliseconds of log time: it
+    /// reads the wall clock only on every 64th call.
     ///
     /// # Errors
     /// [`LogError`] if writing the log failed (the previous batch, or an earlier one).
     pub fn maybe_flush(&mut self) -> Result<(), LogError> {
         self.flush_calls += 1;
-        let log_due = self.last_log_ns.saturating_sub(self.flushed_log_ns) >= FLUSH_LOG_INTERVAL_NS;
-        let wall_due = || self.last_flush.elapsed() >= FLUSH_WALL_INTERVAL;
+        let log_due =
+            self.last_log_ns.saturating_sub(self.flushed_log_ns) >= self.flush_log_interval_ns;
+        let wall_due = || self.last_flush.elapsed() >= self.flush_wall_interval;
         if log_due || (self.flush_calls.is_multiple_of(CALLS_PER_CLOCK_READ) && wall_due()) {
             self.hand_over()?;
         }
@@ -726,19 +804,28 @@ impl Drop for McapLog {
     }
 }
 
-/// The writing thread's state: the `mcap` writer and the encoding buffer.
+/// The writing thread's state: the `mcap` writer, the encoding buffer and the tap.
 struct Encoder {
     writer: Writer,
     buf: Vec<u8>,
+    tap: Option<Box<dyn MessageTap>>,
 }
 
 impl Encoder {
-    /// Encodes and writes `batch`'s messages, then ends the chunk and flushes the file.
-    fn batch(&mut self, batch: &Batch) -> io::Result<()> {
+    /// Encodes and writes `batch`'s messages, then ends the chunk and flushes the file
+    /// (installing the tap that came with it first).
+    fn batch(&mut self, batch: &mut Batch) -> io::Result<()> {
+        if let Some(tap) = batch.tap.take() {
+            self.tap = Some(tap);
+        }
         for event in &batch.events {
             self.event(batch, event).map_err(mcap_err)?;
         }
-        self.writer.flush().map_err(mcap_err)
+        self.writer.flush().map_err(mcap_err)?;
+        if let Some(tap) = self.tap.as_mut() {
+            tap.end_batch();
+        }
+        Ok(())
     }
 
     #[inline]
@@ -760,7 +847,11 @@ impl Encoder {
             log_time: log_ns,
             publish_time: publish_ns,
         };
-        self.writer.write_to_known_channel(&header, &self.buf)
+        self.writer.write_to_known_channel(&header, &self.buf)?;
+        if let Some(tap) = self.tap.as_mut() {
+            tap.message(channel, log_ns, publish_ns, &self.buf);
+        }
+        Ok(())
     }
 
     fn event(&mut self, batch: &Batch, event: &Event) -> mcap::McapResult<()> {
@@ -800,7 +891,11 @@ impl Encoder {
             Event::Snapshot { t_ns, index } => {
                 let s = &batch.snapshots[index as usize];
                 self.write(Channel::JointStates, t_ns, t_ns, &joint_state(t_ns, s))?;
-                self.write(Channel::Diagnostics, t_ns, t_ns, &diagnostics(t_ns, s))
+                let mut m = diagnostics(t_ns, s);
+                if let Some(status) = self.tap.as_mut().and_then(|tap| tap.status()) {
+                    m.status.push(status);
+                }
+                self.write(Channel::Diagnostics, t_ns, t_ns, &m)
             }
             Event::Odometry { t_ns, index } => {
                 let o = batch.odometry[index as usize];
@@ -882,7 +977,8 @@ fn joint_state(t_ns: u64, s: &Snapshot) -> msg::JointState {
 /// The name of the firmware's [`msg::DiagnosticStatus`].
 pub const DIAGNOSTIC_NAME: &str = "mecanum_drive: firmware";
 
-/// `/diagnostics` of a snapshot: one status, [`DIAGNOSTIC_NAME`], whose values are named
+/// `/diagnostics` of a snapshot: one status, [`DIAGNOSTIC_NAME`] (and a tap's after it,
+/// [`MessageTap::status`]), whose values are named
 /// `state`, `fault`, `motors_online` (a mask, wheel i at bit i), `steps`, `commanded_vx`...,
 /// `measured_vx`..., `setpoint_fl`... (rad/s), one counter per rejected-frame kind
 /// (`rx_unknown_id`, `rx_wrong_dlc`...) and `repeated_seq` (twists and gyro frames not used
@@ -1005,6 +1101,7 @@ impl BatchWriter {
         let mut encoder = Encoder {
             writer,
             buf: Vec::with_capacity(1024),
+            tap: None,
         };
         // One batch waits while the thread writes the one before it; two answers at most are
         // pending (the previous batch's, and the waiting one's if the thread is quick).
@@ -1021,7 +1118,7 @@ impl BatchWriter {
                         in_background = true;
                         step_aside();
                     }
-                    match encoder.batch(&batch) {
+                    match encoder.batch(&mut batch) {
                         Ok(()) => {
                             batch.clear();
                             if done.send(Ok(batch)).is_err() {
@@ -1368,6 +1465,110 @@ mod tests {
         }
         // Chunks close on log time here, long before the half second of wall-clock time.
         assert_eq!(std::fs::read(&a.0).unwrap(), std::fs::read(&b.0).unwrap());
+    }
+
+    /// A tap that keeps what it is shown, behind a mutex the test reads.
+    #[derive(Default)]
+    struct Seen {
+        channels: Vec<Vec<Channel>>,
+        messages: Vec<(String, u64, u64, Vec<u8>)>,
+        batches: usize,
+    }
+
+    struct Keep(std::sync::Arc<std::sync::Mutex<Seen>>);
+
+    impl MessageTap for Keep {
+        fn channels(&mut self, channels: &[Channel]) {
+            self.0.lock().unwrap().channels.push(channels.to_vec());
+        }
+        fn message(&mut self, channel: Channel, log_ns: u64, publish_ns: u64, cdr: &[u8]) {
+            let m = (
+                channel.topic().to_string(),
+                log_ns,
+                publish_ns,
+                cdr.to_vec(),
+            );
+            self.0.lock().unwrap().messages.push(m);
+        }
+        fn end_batch(&mut self) {
+            self.0.lock().unwrap().batches += 1;
+        }
+        fn status(&mut self) -> Option<msg::DiagnosticStatus> {
+            Some(msg::DiagnosticStatus {
+                name: "tap".to_string(),
+                values: vec![msg::KeyValue {
+                    key: "seen".to_string(),
+                    value: self.0.lock().unwrap().messages.len().to_string(),
+                }],
+                ..msg::DiagnosticStatus::default()
+            })
+        }
+    }
+
+    #[test]
+    fn a_tap_sees_every_message_as_the_file_has_it() {
+        let file = TempFile::new("tap");
+        let seen = std::sync::Arc::new(std::sync::Mutex::new(Seen::default()));
+        let mut log = McapLog::create(&file.0, &BTreeMap::new()).unwrap();
+        log.set_tap(Box::new(Keep(seen.clone())));
+        log.set_flush_interval(Duration::from_millis(50));
+        log_steps(&mut log, 0..600).unwrap();
+        log.finish().unwrap();
+        let bytes = std::fs::read(&file.0).unwrap();
+        let mut read = Vec::new();
+        let report = for_each_message(
+            &bytes,
+            |m| {
+                read.push((
+                    m.topic.to_string(),
+                    m.log_time,
+                    m.publish_time,
+                    m.data.to_vec(),
+                ))
+            },
+            |_, _| {},
+        )
+        .unwrap();
+        assert!(report.is_complete(), "{report}");
+        let seen = seen.lock().unwrap();
+        assert_eq!(seen.channels, vec![Channel::ALL.to_vec()]);
+        assert_eq!(seen.messages.len(), read.len());
+        assert!(
+            seen.messages == read,
+            "the tap saw other bytes than the file's"
+        );
+        // A hand-over every 50 ms of log time: 12 in 600 ms, and the last at the finish.
+        assert_eq!(seen.batches, 12);
+        // The tap's status follows the firmware's on /diagnostics, in the file too.
+        let diag = read.iter().rfind(|r| r.0 == "/diagnostics").unwrap();
+        let diag: msg::DiagnosticArray = msg::decode(&diag.3).unwrap();
+        assert_eq!(diag.status.len(), 2);
+        assert_eq!(diag.status[0].name, DIAGNOSTIC_NAME);
+        assert_eq!(diag.status[1].name, "tap");
+        let n: usize = diag.status[1].value("seen").unwrap().parse().unwrap();
+        assert!(n > 0 && n < read.len(), "{n}");
+    }
+
+    #[test]
+    fn without_a_tap_diagnostics_have_the_firmware_status_alone() {
+        let file = TempFile::new("no-tap");
+        let mut log = McapLog::create(&file.0, &BTreeMap::new()).unwrap();
+        log_steps(&mut log, 0..20).unwrap();
+        log.finish().unwrap();
+        let bytes = std::fs::read(&file.0).unwrap();
+        let mut statuses = Vec::new();
+        for_each_message(
+            &bytes,
+            |m| {
+                if m.topic == "/diagnostics" {
+                    let d: msg::DiagnosticArray = msg::decode(m.data).unwrap();
+                    statuses.push(d.status.len());
+                }
+            },
+            |_, _| {},
+        )
+        .unwrap();
+        assert_eq!(statuses, vec![1, 1]);
     }
 
     #[test]

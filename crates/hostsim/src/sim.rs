@@ -3,7 +3,8 @@
 //!
 //! [`run`] plays a [`Scenario`] on a [`SimPlant`] (the plant as the runner sees it), logging
 //! to MCAP if asked ([`crate::log`]), and returns a [`RunSummary`]; [`run_observed`] also
-//! shows an observer every firmware step ([`StepView`]). A tick is one control period (1 ms
+//! shows an observer every firmware step ([`StepView`]), and [`run_until`] lets it end the
+//! run early. A tick is one control period (1 ms
 //! by default). Nothing here reads a clock or draws an unseeded random number: the same
 //! scenario gives the same frames, bit for bit, and the log is all that [`crate::replay`]
 //! needs to run the firmware again.
@@ -13,6 +14,7 @@
 //! "Lockstep runner".
 
 use std::collections::BTreeMap;
+use std::ops::ControlFlow;
 
 use firmware::CanFrame;
 use firmware::control::{Controller, Instant, Outbox, Snapshot};
@@ -288,9 +290,29 @@ pub fn run<P: SimPlant>(
 pub fn run_observed<P: SimPlant>(
     scenario: &Scenario,
     plant: &mut P,
-    mut log: Option<&mut McapLog>,
+    log: Option<&mut McapLog>,
     options: LogOptions,
     mut observe: impl FnMut(&StepView<'_>),
+) -> Result<RunSummary, SimError> {
+    run_until(scenario, plant, log, options, |step| {
+        observe(step);
+        ControlFlow::Continue(())
+    })
+}
+
+/// [`run_observed`], whose observer may end the run after any step with
+/// [`ControlFlow::Break`] (a run stopped by Ctrl-C): the run then ends as at the scenario's
+/// end (the frames on the wire logged, the summary of the steps run), and the summary's
+/// `duration_s` is the simulated time of the last step.
+///
+/// # Errors
+/// [`SimError`] if the configuration is refused or the log cannot be written.
+pub fn run_until<P: SimPlant>(
+    scenario: &Scenario,
+    plant: &mut P,
+    mut log: Option<&mut McapLog>,
+    options: LogOptions,
+    mut observe: impl FnMut(&StepView<'_>) -> ControlFlow<()>,
 ) -> Result<RunSummary, SimError> {
     // The scenario's IMU node and pod node, if any, on the plant (without them, a
     // pass-through).
@@ -321,6 +343,7 @@ pub fn run_observed<P: SimPlant>(
     let mut t_us = 0u64;
     let mut step = 0u64;
     let mut track = Vec::with_capacity((duration_us / 10_000 + 2) as usize);
+    let mut stopped_at_us = None;
 
     set_wheel_faults(scenario, plant, 0);
     let mut twists_to_log = Vec::new();
@@ -400,13 +423,19 @@ pub fn run_observed<P: SimPlant>(
             l.maybe_flush()?;
         }
 
-        observe(&StepView {
+        let flow = observe(&StepView {
             t_us,
             controller: &ctl,
             delivered: &delivered,
             sent: &out,
             truth,
         });
+        if flow.is_break() {
+            stopped_at_us = Some(t_us);
+            step += 1;
+            t_us += period_us;
+            break;
+        }
 
         // 6. Plant, with the wheel faults of the period's end: the feedback stamped then
         // (emitted as the plant gets there) already shows them.
@@ -437,7 +466,7 @@ pub fn run_observed<P: SimPlant>(
     let truth = last_truth;
     Ok(RunSummary {
         scenario: scenario.name.clone(),
-        duration_s: scenario.duration_s,
+        duration_s: stopped_at_us.map_or(scenario.duration_s, |t| t as f64 * 1e-6),
         steps: step,
         tx_frames: summary_tx,
         rx_frames: summary_rx,
@@ -625,6 +654,39 @@ mod tests {
             [0.0; 3]
         }
         fn set_faults(&mut self, _: u64, _: [bool; 4], _: [bool; 4]) {}
+    }
+
+    #[test]
+    fn an_observer_can_end_the_run_after_any_step() {
+        let s = Scenario::load("square", None).unwrap();
+        let mut plant = crate::drives::SimDrives::for_scenario(&s).unwrap();
+        let mut last = 0;
+        let summary = run_until(&s, &mut plant, None, LogOptions::default(), |step| {
+            last = step.t_us;
+            if step.t_us >= 500_000 {
+                ControlFlow::Break(())
+            } else {
+                ControlFlow::Continue(())
+            }
+        })
+        .unwrap();
+        assert_eq!(last, 500_000);
+        assert_eq!(summary.steps, 501);
+        assert!(
+            (summary.duration_s - 0.5).abs() < 1e-12,
+            "{}",
+            summary.duration_s
+        );
+        // The same steps as a whole run's first half second.
+        let mut whole = Vec::new();
+        let mut plant = crate::drives::SimDrives::for_scenario(&s).unwrap();
+        run_observed(&s, &mut plant, None, LogOptions::default(), |step| {
+            if step.t_us <= 500_000 {
+                whole.push(step.controller.pose());
+            }
+        })
+        .unwrap();
+        assert_eq!(summary.odometry, pose_array(whole[500]));
     }
 
     #[test]

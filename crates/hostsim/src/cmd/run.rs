@@ -1,8 +1,13 @@
-//! `hostsim run`: a scenario in lockstep, its log, plot and summary.
+//! `hostsim run`: a scenario in lockstep, its log, plot and summary; with `--live`, served to
+//! Foxglove as it runs, paced to the wall clock.
 
 use std::io::Write as _;
+use std::net::SocketAddr;
+use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::sync::atomic::Ordering;
+use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
 use hostsim::log::McapLog;
@@ -22,6 +27,10 @@ use super::*;
 /// and the faults on a timeline, and optionally the drive configuration, the simulated robot
 /// where it differs from it (a miswiring too) and an IMU: the format is docs/scenarios.md
 /// in the repository. Every error names the file, the field and the value.
+///
+/// With --live the run is served to Foxglove or Lichtblick as it goes (Foxglove WebSocket
+/// protocol, every channel of the log with its schema), paced to the wall clock (--rate),
+/// and Ctrl-C stops it cleanly: the log finished, exit status 130 (docs/live.md).
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// A scenario TOML file, or the name of a built-in.
@@ -54,6 +63,44 @@ pub struct Args {
     /// run (the progress bar is drawn only on a terminal).
     #[arg(long)]
     pub progress_lines: bool,
+    /// Serve the run live on ADDR to Foxglove or Lichtblick ("Open connection", Foxglove
+    /// WebSocket, ws://ADDR): 127.0.0.1:8765 when no ADDR is given; a port alone serves on
+    /// loopback (0: a free port). Any other host warns: the protocol has no authentication.
+    /// The simulation is paced to the wall clock; Ctrl-C stops it with the log finished.
+    #[arg(
+        long,
+        value_name = "ADDR",
+        num_args = 0..=1,
+        default_missing_value = "127.0.0.1:8765",
+        value_parser = live::parse_addr,
+        conflicts_with = "no_log"
+    )]
+    pub live: Option<SocketAddr>,
+    /// With --live: simulated seconds per wall-clock second (1: real time, 0.5: half speed,
+    /// 4: four times). Without --live a run goes as fast as it can, and --rate is refused.
+    #[arg(long, value_name = "X", requires = "live", value_parser = parse_rate)]
+    pub rate: Option<f64>,
+    /// With --live: the /can/* frames forwarded to live clients, per channel and CAN id, per
+    /// second of simulated time (0: every frame). The log keeps every frame.
+    #[arg(long, value_name = "HZ", requires = "live")]
+    pub live_can_hz: Option<u32>,
+}
+
+/// `--rate`: finite and positive.
+fn parse_rate(s: &str) -> Result<f64, String> {
+    let rate: f64 = s
+        .trim()
+        .parse()
+        .map_err(|_| format!("{s:?}: expected a number, e.g. 1 (real time) or 0.5"))?;
+    live::Pacer::check_rate(rate)
+}
+
+/// How a live run serves and paces.
+#[derive(Debug, Clone, Copy)]
+struct LiveArgs {
+    addr: SocketAddr,
+    rate: f64,
+    can_hz: u32,
 }
 
 /// `hostsim run`.
@@ -70,6 +117,11 @@ pub fn execute(a: &Args) -> Result<ExitCode> {
             json: a.json,
             progress_lines: a.progress_lines,
         },
+        a.live.map(|addr| LiveArgs {
+            addr,
+            rate: a.rate.unwrap_or(1.0),
+            can_hz: a.live_can_hz.unwrap_or(live::LiveOptions::default().can_hz),
+        }),
     )
 }
 
@@ -89,6 +141,7 @@ fn run(
     seed: Option<u64>,
     set: &[String],
     outputs: RunOutputs,
+    live_args: Option<LiveArgs>,
 ) -> Result<ExitCode> {
     let RunOutputs {
         log: write_log,
@@ -136,11 +189,18 @@ fn run(
         std::fs::File::create(&png_path)
             .with_context(|| format!("cannot create the plot {}", png_path.display()))?;
     }
+    // Before the log: an address that cannot be served fails before a file is made.
+    let mut live = live_args
+        .map(|args| Live::start(args, &scenario.name))
+        .transpose()?;
     let mut log = if write_log {
         Some(McapLog::create(&log_path, &run_metadata(&scenario))?)
     } else {
         None
     };
+    if let (Some(live), Some(log)) = (live.as_mut(), log.as_mut()) {
+        live.attach(log);
+    }
     let mut plant = hostsim::drives::SimDrives::for_scenario(&scenario)?;
     let bar = ProgressBar::new(scenario.duration_us() / 1000);
     bar.set_style(
@@ -149,17 +209,24 @@ fn run(
     );
     bar.set_message(scenario.name.clone());
     let wall = std::time::Instant::now();
-    let summary = hostsim::sim::run(
+    let summary = hostsim::sim::run_until(
         &scenario,
         &mut plant,
         log.as_mut(),
         LogOptions::default(),
-        |t_us| {
-            bar.set_position(t_us / 1000);
-            if progress_lines {
-                // One write, so that a reader never sees half a line from a killed run.
-                let line = format!("progress {:.3}\n", t_us as f64 * 1e-6);
-                let _ = std::io::stderr().write_all(line.as_bytes());
+        |step| {
+            let t_us = step.t_us;
+            if t_us.is_multiple_of(100_000) {
+                bar.set_position(t_us / 1000);
+                if progress_lines {
+                    // One write, so that a reader never sees half a line from a killed run.
+                    let line = format!("progress {:.3}\n", t_us as f64 * 1e-6);
+                    let _ = std::io::stderr().write_all(line.as_bytes());
+                }
+            }
+            match live.as_mut() {
+                Some(live) => live.step(t_us),
+                None => ControlFlow::Continue(()),
             }
         },
     )?;
@@ -168,11 +235,19 @@ fn run(
     if let Some(log) = log {
         log.finish()?;
     }
+    // After the log: its last messages are queued for the clients before they are let go.
+    let live = live.map(Live::finish);
     if draw_plot {
         plot_run(&png_path, &scenario.name, &summary.track)?;
     }
+    let interrupted = live.as_ref().is_some_and(|l| l.interrupted);
     if json {
-        println!("{}", summary_json(&summary, wall_s));
+        let mut value = summary_json(&summary, wall_s);
+        if let Some(l) = &live {
+            value["live"] = l.json();
+            value["interrupted"] = serde_json::Value::Bool(l.interrupted);
+        }
+        println!("{value}");
     } else {
         print_summary(&summary, wall_s);
         if write_log {
@@ -182,7 +257,129 @@ fn run(
             println!("plot:  {}", png_path.display());
         }
     }
-    Ok(ExitCode::SUCCESS)
+    if let Some(l) = &live {
+        eprintln!("live: {}", l.report);
+        eprintln!("live: {}", l.pacing);
+        if l.interrupted {
+            eprintln!(
+                "live: INTERRUPTED at {:.3} s simulated: the log holds the run up to there",
+                summary.duration_s
+            );
+        }
+    }
+    Ok(if interrupted {
+        ExitCode::from(EXIT_INTERRUPTED)
+    } else {
+        ExitCode::SUCCESS
+    })
+}
+
+/// A live run's server, pacer and stop flag.
+struct Live {
+    server: live::LiveServer,
+    rate: f64,
+    /// Started at the run's first step.
+    pacer: Option<live::Pacer>,
+    /// SIGINT/SIGTERM: the number of the first one, 0 before.
+    signal: std::sync::Arc<std::sync::atomic::AtomicUsize>,
+}
+
+/// What a live run did.
+struct LiveEnd {
+    report: live::LiveReport,
+    pacing: live::PacingReport,
+    interrupted: bool,
+}
+
+impl Live {
+    /// Listens on `args.addr`, says where on stderr (and warns off loopback), and takes
+    /// SIGINT/SIGTERM as "stop the run".
+    fn start(args: LiveArgs, scenario: &str) -> Result<Self> {
+        let options = live::LiveOptions {
+            name: format!("hostsim run {scenario}"),
+            can_hz: args.can_hz,
+            ..live::LiveOptions::default()
+        };
+        let server = live::LiveServer::start(args.addr, options).context("--live")?;
+        if live::is_exposed(server.local_addr()) {
+            eprintln!(
+                "warning: live: serving on {}, beyond this machine: the Foxglove WebSocket \
+                 protocol has no authentication, anyone who reaches the address can watch the run",
+                server.local_addr()
+            );
+        }
+        let signal = mecanum_linux::stop_on_signals()?;
+        eprintln!(
+            "live: {} ({}), {}x real time; stop with Ctrl-C",
+            server.url(),
+            live::SUBPROTOCOL,
+            args.rate
+        );
+        Ok(Self {
+            server,
+            rate: args.rate,
+            pacer: None,
+            signal,
+        })
+    }
+
+    /// Serves what `log` writes, in batches every 50 ms of wall-clock time at most (also in
+    /// slow motion).
+    fn attach(&self, log: &mut McapLog) {
+        log.set_tap(Box::new(self.server.tap()));
+        let interval = live::FLUSH_INTERVAL.mul_f64(self.rate.min(1.0));
+        log.set_flush_interval(interval.max(Duration::from_millis(5)));
+    }
+
+    /// After each step: waits for the wall clock, and ends the run on a stop signal.
+    fn step(&mut self, t_us: u64) -> ControlFlow<()> {
+        let rate = self.rate;
+        self.pacer
+            .get_or_insert_with(|| live::Pacer::new(rate))
+            .pace(t_us * 1000);
+        if self.signal.load(Ordering::Relaxed) == 0 {
+            ControlFlow::Continue(())
+        } else {
+            ControlFlow::Break(())
+        }
+    }
+
+    fn finish(self) -> LiveEnd {
+        LiveEnd {
+            pacing: self
+                .pacer
+                .unwrap_or_else(|| live::Pacer::new(self.rate))
+                .report(),
+            interrupted: self.signal.load(Ordering::Relaxed) != 0,
+            report: self.server.stop(),
+        }
+    }
+}
+
+impl LiveEnd {
+    fn json(&self) -> serde_json::Value {
+        let r = &self.report;
+        let p = &self.pacing;
+        serde_json::json!({
+            "url": r.url,
+            "clients": r.clients.iter().map(|c| serde_json::json!({
+                "addr": c.addr.to_string(),
+                "subprotocol": c.subprotocol,
+                "connected_s": c.connected.as_secs_f64(),
+                "queued": c.queued,
+                "sent": c.sent,
+                "dropped": c.dropped,
+            })).collect::<Vec<_>>(),
+            "sent": r.sent(),
+            "dropped": r.dropped(),
+            "thinned": r.thinned,
+            "rate": p.rate,
+            "paced_steps": p.steps,
+            "late_mean_s": p.mean_late_s,
+            "late_p99_s": p.p99_late_s,
+            "late_max_s": p.max_late_s,
+        })
+    }
 }
 
 fn print_summary(s: &RunSummary, wall_s: f64) {
@@ -247,7 +444,7 @@ fn print_summary(s: &RunSummary, wall_s: f64) {
     println!("outbound stream hash {:016x}", s.tx_hash);
 }
 
-fn summary_json(s: &RunSummary, wall_s: f64) -> String {
+fn summary_json(s: &RunSummary, wall_s: f64) -> serde_json::Value {
     serde_json::json!({
         "scenario": s.scenario,
         "duration_s": s.duration_s,
@@ -270,5 +467,4 @@ fn summary_json(s: &RunSummary, wall_s: f64) -> String {
         "heading_changes": s.heading_changes,
         "tx_hash": format!("{:016x}", s.tx_hash),
     })
-    .to_string()
 }

@@ -1,0 +1,109 @@
+//! Watch the mecanum drive live: every channel of its log, served to Foxglove and
+//! Lichtblick over the Foxglove WebSocket protocol while the log is written.
+//!
+//! Every log the project writes is a ROS 2 bag in MCAP (`drivelog`): CDR messages whose
+//! schemas are `ros2msg` text. A [`LiveServer`] serves the same channels, with the same
+//! schemas and the very same bytes, to WebSocket clients (`foxglove.sdk.v1`, and the same
+//! protocol under its old name `foxglove.websocket.v1` for older Lichtblick), each message at
+//! its log time: Foxglove and Lichtblick decode them as they decode the file after the run.
+//!
+//! # How a program uses it
+//!
+//! ```no_run
+//! # fn main() -> Result<(), Box<dyn std::error::Error>> {
+//! use std::collections::BTreeMap;
+//! let server = live::LiveServer::start(live::DEFAULT_ADDR, live::LiveOptions::default())?;
+//! eprintln!("live: {} ({})", server.url(), live::SUBPROTOCOL);
+//! let mut log = drivelog::McapLog::create("run.mcap".as_ref(), &BTreeMap::new())?;
+//! log.set_tap(Box::new(server.tap()));
+//! log.set_flush_interval(live::FLUSH_INTERVAL);
+//! // ... the run logs as usual ...
+//! log.finish()?;
+//! let report = server.stop();
+//! eprintln!("live: {report}");
+//! # Ok(()) }
+//! ```
+//!
+//! The tap ([`LiveTap`], a [`drivelog::MessageTap`]) runs on the log's writing thread, after
+//! each message is in the file's writer: the control loop or simulation never waits on it,
+//! and the tap itself never waits on a client (it queues, and drops the oldest of a full
+//! queue). The server runs on a thread of its own.
+//!
+//! # What clients get, and lose
+//!
+//! - Every channel of the log is advertised: topic, encoding `cdr`, schema name (the ROS 2
+//!   type, `nav_msgs/msg/Odometry`), schema encoding `ros2msg`, schema text as in the file's
+//!   Schema record. A subscribed client gets each message with its log time.
+//! - `/can/rx`, `/can/tx` and `/can/faults` are thinned for live clients: per channel and per
+//!   CAN id, at most [`LiveOptions::can_hz`] frames a second of log time (100 by default; 0
+//!   forwards every frame). The log keeps every frame. [`LiveStats::thinned`] counts the
+//!   frames not forwarded.
+//! - A client that reads slower than the messages come has a queue of its own of
+//!   [`LiveOptions::backlog`] messages; when it is full the oldest message is dropped, and
+//!   counted ([`ClientReport::dropped`]). The count is on `/diagnostics` (a second status,
+//!   [`STATUS_NAME`], after the firmware's), in the log too, and in the [`LiveReport`] at the
+//!   end.
+//! - The protocol has no authentication: anyone who reaches the address can watch. Serve on
+//!   loopback ([`DEFAULT_ADDR`]) unless the network is trusted; [`is_exposed`] tells a program
+//!   when to warn.
+//!
+//! The rest (connecting Foxglove and Lichtblick, the figures) is `docs/live.md`.
+
+mod addr;
+mod pace;
+mod server;
+mod tap;
+
+pub use addr::{DEFAULT_ADDR, DEFAULT_PORT, is_exposed, parse_addr};
+pub use pace::{Pacer, PacingReport};
+pub use server::{ClientReport, LiveReport, LiveServer, LiveStats};
+pub use tap::LiveTap;
+
+use std::time::Duration;
+
+/// The WebSocket subprotocol the server prefers: the Foxglove SDK's name of the Foxglove
+/// WebSocket protocol, version 1.
+pub const SUBPROTOCOL: &str = "foxglove.sdk.v1";
+
+/// The same protocol under its former name, which Lichtblick before late 2025 and older
+/// Foxglove Studio offer; accepted when a client offers no [`SUBPROTOCOL`].
+pub const SUBPROTOCOL_LEGACY: &str = "foxglove.websocket.v1";
+
+/// The name of the live server's status on `/diagnostics` (after the firmware's).
+pub const STATUS_NAME: &str = "mecanum_drive: live";
+
+/// The log's hand-over interval for a live run ([`drivelog::McapLog::set_flush_interval`]):
+/// what the writing thread (and so the tap) receives at once, and so how late a message
+/// reaches a client at most, besides the network.
+pub const FLUSH_INTERVAL: Duration = Duration::from_millis(50);
+
+/// How a [`LiveServer`] serves.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct LiveOptions {
+    /// The server's name in `serverInfo` (Foxglove shows it): the program and its run.
+    pub name: String,
+    /// Messages queued for one client at most; a full queue drops its oldest.
+    pub backlog: usize,
+    /// `/can/*` frames forwarded per channel and CAN id, per second of log time (0: all).
+    pub can_hz: u32,
+    /// How long [`LiveServer::stop`] lets clients take what is queued for them and the close
+    /// frame, before it cuts them off.
+    pub close_grace: Duration,
+    /// The kernel's send buffer of each client's socket, bytes (`SO_SNDBUF`; Linux doubles
+    /// it). What waits there is neither counted nor dropped, and a loopback socket left to
+    /// itself grows to megabytes (seconds of a run): kept small, a slow client's losses show
+    /// in its queue, counted, and what it does get is recent.
+    pub send_buffer: u32,
+}
+
+impl Default for LiveOptions {
+    fn default() -> Self {
+        Self {
+            name: "mecanum drive".to_string(),
+            backlog: 4096,
+            can_hz: 100,
+            close_grace: Duration::from_millis(500),
+            send_buffer: 256 << 10,
+        }
+    }
+}
