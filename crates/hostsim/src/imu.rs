@@ -17,16 +17,17 @@
 //! [`imu_seed`], so that it does not repeat the bus's fault draws) and Box–Muller with `libm`:
 //! the same seed gives the same frames, bit for bit, on every machine.
 //!
-//! [`WithImu`] puts the node beside any [`SimPlant`]: it advances the plant to each sample
-//! instant, so the sample carries the state of that instant, and hands the frames to the
-//! runner ([`SimPlant::imu_frames`]), which sends them as the bus node
-//! [`Node::Imu`](crate::bus::Node::Imu). Without an IMU it only passes every call through, so
-//! a run without one is what it was before the IMU existed.
+//! [`WithImu`] puts the node beside any [`SimPlant`] ([`crate::sensor::WithNode`]: the plant
+//! advanced to each sample instant, the frames sent as the bus node [`Node::Imu`]). Without
+//! an IMU it only passes every call through, so a run without one is what it was before the
+//! IMU existed.
 
 use firmware::CanFrame;
 use firmware::protocol::robot::{Command, ImuYawRate};
 use serde::Deserialize;
 
+use crate::bus::Node;
+use crate::sensor::{SensorNode, WithNode};
 use crate::sim::SimPlant;
 
 /// The IMU of a scenario (its `[imu]` table).
@@ -197,109 +198,38 @@ impl ImuNode {
 }
 
 /// A plant with an IMU node on it (see the [module documentation](self)).
-#[derive(Debug)]
-pub struct WithImu<'a, P: SimPlant> {
-    inner: &'a mut P,
-    imu: Option<ImuNode>,
-    /// The plant's time, ns since the start (the runner's calls are all that moves it).
-    now_ns: u64,
-}
+pub type WithImu<'a, P> = WithNode<'a, P, ImuNode>;
 
-impl<'a, P: SimPlant> WithImu<'a, P> {
+impl<'a, P: SimPlant> WithNode<'a, P, ImuNode> {
     /// `plant` with an IMU of `params` (none if `None` or not enabled), seeded with
     /// [`imu_seed`]`(seed)`. The plant must be at time 0.
     pub fn new(plant: &'a mut P, params: Option<&ImuParams>, seed: u64) -> Self {
-        Self {
-            inner: plant,
-            imu: params
-                .filter(|p| p.enabled)
-                .map(|p| ImuNode::new(*p, imu_seed(seed))),
-            now_ns: 0,
-        }
+        let node = params
+            .filter(|p| p.enabled)
+            .map(|p| ImuNode::new(*p, imu_seed(seed)));
+        Self::with(plant, node)
     }
 
     /// The IMU node, if there is one.
     #[must_use]
     pub const fn imu(&self) -> Option<&ImuNode> {
-        self.imu.as_ref()
+        self.node()
     }
 }
 
-impl<P: SimPlant> SimPlant for WithImu<'_, P> {
-    fn on_frame(&mut self, t_us: u64, frame: &CanFrame) {
-        self.inner.on_frame(t_us, frame);
+impl SensorNode for ImuNode {
+    const NODE: Node = Node::Imu;
+
+    fn next_ns(&self) -> u64 {
+        self.next_ns
     }
 
-    fn feedback(&mut self, until_ns: u64, out: &mut Vec<(u64, CanFrame)>) {
-        self.inner.feedback(until_ns, out);
+    fn measure<P: SimPlant + ?Sized>(&mut self, at_ns: u64, plant: &P) {
+        self.sample(at_ns, plant.truth_velocity()[2]);
     }
 
-    fn imu_frames(&mut self, until_ns: u64, out: &mut Vec<(u64, CanFrame)>) {
-        // The plant's own, if it has any (a test's), then this node's.
-        self.inner.imu_frames(until_ns, out);
-        if let Some(imu) = &mut self.imu {
-            imu.drain(until_ns, out);
-        }
-    }
-
-    fn pod_frames(&mut self, until_ns: u64, out: &mut Vec<(u64, CanFrame)>) {
-        self.inner.pod_frames(until_ns, out);
-    }
-
-    fn advance(&mut self, dt: f64) {
-        if self.imu.is_none() {
-            // Exactly the plant's own step, as without the IMU.
-            self.inner.advance(dt);
-            self.now_ns += crate::plant::round(dt * 1e9) as u64;
-            return;
-        }
-        self.advance_ns(crate::plant::round(dt * 1e9) as u64);
-    }
-
-    fn advance_ns(&mut self, dt_ns: u64) {
-        let end = self.now_ns + dt_ns;
-        if let Some(imu) = &mut self.imu {
-            // Stop at each sample instant: the sample reads the state of that instant.
-            while imu.next_ns() <= end {
-                let at = imu.next_ns();
-                if at > self.now_ns {
-                    self.inner.advance_ns(at - self.now_ns);
-                    self.now_ns = at;
-                }
-                imu.sample(at, self.inner.truth_velocity()[2]);
-            }
-        }
-        if end > self.now_ns {
-            self.inner.advance_ns(end - self.now_ns);
-            self.now_ns = end;
-        }
-    }
-
-    fn next_feedback_ns(&self) -> u64 {
-        let drives = self.inner.next_feedback_ns();
-        self.imu
-            .as_ref()
-            .map_or(drives, |imu| drives.min(imu.next_ns()))
-    }
-
-    fn truth(&self) -> [f64; 3] {
-        self.inner.truth()
-    }
-
-    fn truth_velocity(&self) -> [f64; 3] {
-        self.inner.truth_velocity()
-    }
-
-    fn truth_travel(&self) -> Option<[f64; 3]> {
-        self.inner.truth_travel()
-    }
-
-    fn set_faults(&mut self, at_ns: u64, stuck: [bool; 4], offline: [bool; 4]) {
-        self.inner.set_faults(at_ns, stuck, offline);
-    }
-
-    fn set_drive_faults(&mut self, at_ns: u64, faults: [crate::sim::DriveFaults; 4]) {
-        self.inner.set_drive_faults(at_ns, faults);
+    fn drain(&mut self, until_ns: u64, out: &mut Vec<(u64, CanFrame)>) {
+        ImuNode::drain(self, until_ns, out);
     }
 }
 
@@ -337,7 +267,7 @@ mod tests {
         let mut out = Vec::new();
         for _ in 0..ms {
             imu.advance_ns(1_000_000);
-            imu.imu_frames(u64::MAX, &mut out);
+            imu.node_frames(Node::Imu, u64::MAX, &mut out);
         }
         out.iter()
             .map(|(t, f)| match Command::decode(f) {
@@ -418,7 +348,7 @@ mod tests {
         imu.advance(0.0015);
         assert_eq!(imu.next_feedback_ns(), u64::MAX);
         let mut out = Vec::new();
-        imu.imu_frames(u64::MAX, &mut out);
+        imu.node_frames(Node::Imu, u64::MAX, &mut out);
         assert!(out.is_empty());
         assert_eq!(plant.now_ns, 1_500_000);
     }

@@ -21,6 +21,7 @@ pub mod pods;
 pub mod realtime;
 pub mod replay;
 pub mod scenario;
+pub mod sensor;
 pub mod sim;
 pub mod summary;
 pub mod sweep;

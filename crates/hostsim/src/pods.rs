@@ -20,15 +20,18 @@
 //! frames, bit for bit, on every machine. At every `k / rate_hz` (k = 1, 2, ...) the node
 //! sends the counts with `seq` counting up from 0 (mod 256), unless a `pods_silent` fault
 //! holds it (the counts and `seq` go on; nothing is sent). [`WithPods`] puts it beside any
-//! [`SimPlant`] and hands its frames to the runner ([`SimPlant::pod_frames`], the bus node
-//! [`Node::Pods`](crate::bus::Node::Pods)); without pods it only passes every call through.
+//! [`SimPlant`] ([`crate::sensor::WithNode`]) and hands its frames to the runner
+//! ([`SimPlant::node_frames`], the bus node
+//! [`Node::Pods`]); without pods it only passes every call through.
 
 use firmware::CanFrame;
 use firmware::config::{PODS_MAX, PodConfig};
 use firmware::protocol::robot::{Command, PodCounts};
 use serde::Deserialize;
 
+use crate::bus::Node;
 use crate::imu::SplitMix64;
+use crate::sensor::{SensorNode, WithNode};
 use crate::sim::SimPlant;
 
 /// The pod node of a scenario (its `[pods]` table). The pods themselves are the robot
@@ -202,6 +205,11 @@ pub struct PodNode {
     /// `[from, until)` windows, ns, in which the node sends nothing (`pods_silent`).
     silent: Vec<(u64, u64)>,
     queue: Vec<(u64, CanFrame)>,
+    /// The plant's body travel when the node was put on it ([`SimPlant::truth_travel`]).
+    origin: [f64; 3],
+    /// For a plant that does not integrate its travel: `truth_velocity` at the end of each
+    /// advance times its length.
+    own_travel: [f64; 3],
 }
 
 impl PodNode {
@@ -228,6 +236,8 @@ impl PodNode {
             rng: SplitMix64(seed),
             silent: Vec::new(),
             queue: Vec::new(),
+            origin: [0.0; 3],
+            own_travel: [0.0; 3],
         };
         node.schedule_next();
         node
@@ -293,30 +303,12 @@ impl PodNode {
 }
 
 /// A plant with a pod node on it (see the [module documentation](self)).
-#[derive(Debug)]
-pub struct WithPods<'a, P: SimPlant> {
-    inner: &'a mut P,
-    pods: Option<PodNode>,
-    /// The plant's time, ns since the start (the runner's calls are all that moves it).
-    now_ns: u64,
-    /// The plant's body travel at the start ([`SimPlant::truth_travel`]).
-    origin: [f64; 3],
-    /// For a plant that does not integrate its travel: `truth_velocity` at the end of each
-    /// advance times its length.
-    own_travel: [f64; 3],
-}
+pub type WithPods<'a, P> = WithNode<'a, P, PodNode>;
 
-impl<'a, P: SimPlant> WithPods<'a, P> {
+impl<'a, P: SimPlant> WithNode<'a, P, PodNode> {
     /// `plant` with the pod node `node` (none: a pass-through). The plant must be at time 0.
     pub fn new(plant: &'a mut P, node: Option<PodNode>) -> Self {
-        let origin = plant.truth_travel().unwrap_or_default();
-        Self {
-            inner: plant,
-            pods: node,
-            now_ns: 0,
-            origin,
-            own_travel: [0.0; 3],
-        }
+        Self::with(plant, node)
     }
 
     /// `plant` with the pod node of `scenario`: its `[pods]` on the configuration's pods,
@@ -343,111 +335,42 @@ impl<'a, P: SimPlant> WithPods<'a, P> {
     /// The pod node, if there is one.
     #[must_use]
     pub const fn pods(&self) -> Option<&PodNode> {
-        self.pods.as_ref()
+        self.node()
+    }
+}
+
+impl SensorNode for PodNode {
+    const NODE: Node = Node::Pods;
+
+    fn next_ns(&self) -> u64 {
+        self.next_ns
     }
 
-    /// The body's travel since the start: the plant's own integral, else this wrapper's.
-    fn travel(&self) -> [f64; 3] {
-        match self.inner.truth_travel() {
-            Some(t) => [0, 1, 2].map(|i| t[i] - self.origin[i]),
-            None => self.own_travel,
-        }
+    fn start<P: SimPlant + ?Sized>(&mut self, plant: &P) {
+        self.origin = plant.truth_travel().unwrap_or_default();
     }
 
-    /// Advances the inner plant by `dt_ns` (> 0).
-    fn step_inner(&mut self, dt_ns: u64) {
-        self.inner.advance_ns(dt_ns);
-        self.now_ns += dt_ns;
-        if self.inner.truth_travel().is_none() {
-            let v = self.inner.truth_velocity();
+    fn advanced<P: SimPlant + ?Sized>(&mut self, plant: &P, dt_ns: u64) {
+        if plant.truth_travel().is_none() {
+            let v = plant.truth_velocity();
             let dt = dt_ns as f64 * 1e-9;
             for (t, v) in self.own_travel.iter_mut().zip(v) {
                 *t += v * dt;
             }
         }
     }
-}
 
-impl<P: SimPlant> SimPlant for WithPods<'_, P> {
-    fn on_frame(&mut self, t_us: u64, frame: &CanFrame) {
-        self.inner.on_frame(t_us, frame);
+    fn measure<P: SimPlant + ?Sized>(&mut self, at_ns: u64, plant: &P) {
+        // The body's travel since the start: the plant's own integral, else the node's.
+        let travel = match plant.truth_travel() {
+            Some(t) => [0, 1, 2].map(|i| t[i] - self.origin[i]),
+            None => self.own_travel,
+        };
+        self.sample(at_ns, travel);
     }
 
-    fn feedback(&mut self, until_ns: u64, out: &mut Vec<(u64, CanFrame)>) {
-        self.inner.feedback(until_ns, out);
-    }
-
-    fn imu_frames(&mut self, until_ns: u64, out: &mut Vec<(u64, CanFrame)>) {
-        self.inner.imu_frames(until_ns, out);
-    }
-
-    fn pod_frames(&mut self, until_ns: u64, out: &mut Vec<(u64, CanFrame)>) {
-        // The plant's own, if it has any (a test's), then this node's.
-        self.inner.pod_frames(until_ns, out);
-        if let Some(pods) = &mut self.pods {
-            pods.drain(until_ns, out);
-        }
-    }
-
-    fn advance(&mut self, dt: f64) {
-        if self.pods.is_none() {
-            // Exactly the plant's own step, as without the pods.
-            self.inner.advance(dt);
-            self.now_ns += crate::plant::round(dt * 1e9) as u64;
-            return;
-        }
-        self.advance_ns(crate::plant::round(dt * 1e9) as u64);
-    }
-
-    fn advance_ns(&mut self, dt_ns: u64) {
-        let end = self.now_ns + dt_ns;
-        if self.pods.is_none() {
-            self.inner.advance_ns(dt_ns);
-            self.now_ns = end;
-            return;
-        }
-        // Stop at each sample instant: the sample reads the travel up to that instant.
-        while let Some(at) = self.pods.as_ref().map(PodNode::next_ns)
-            && at <= end
-        {
-            if at > self.now_ns {
-                self.step_inner(at - self.now_ns);
-            }
-            let travel = self.travel();
-            if let Some(pods) = &mut self.pods {
-                pods.sample(at, travel);
-            }
-        }
-        if end > self.now_ns {
-            self.step_inner(end - self.now_ns);
-        }
-    }
-
-    fn next_feedback_ns(&self) -> u64 {
-        let inner = self.inner.next_feedback_ns();
-        self.pods
-            .as_ref()
-            .map_or(inner, |pods| inner.min(pods.next_ns()))
-    }
-
-    fn truth(&self) -> [f64; 3] {
-        self.inner.truth()
-    }
-
-    fn truth_velocity(&self) -> [f64; 3] {
-        self.inner.truth_velocity()
-    }
-
-    fn truth_travel(&self) -> Option<[f64; 3]> {
-        self.inner.truth_travel()
-    }
-
-    fn set_faults(&mut self, at_ns: u64, stuck: [bool; 4], offline: [bool; 4]) {
-        self.inner.set_faults(at_ns, stuck, offline);
-    }
-
-    fn set_drive_faults(&mut self, at_ns: u64, faults: [crate::sim::DriveFaults; 4]) {
-        self.inner.set_drive_faults(at_ns, faults);
+    fn drain(&mut self, until_ns: u64, out: &mut Vec<(u64, CanFrame)>) {
+        PodNode::drain(self, until_ns, out);
     }
 }
 
@@ -539,7 +462,7 @@ mod tests {
         let mut out = Vec::new();
         for _ in 0..ms {
             with.advance_ns(1_000_000);
-            with.pod_frames(u64::MAX, &mut out);
+            with.node_frames(Node::Pods, u64::MAX, &mut out);
         }
         out.iter()
             .map(|(t, f)| match Command::decode(f) {
@@ -766,8 +689,8 @@ mod tests {
         assert_eq!(with.next_feedback_ns(), u64::MAX);
         assert_eq!(with.truth_velocity(), [0.5, 0.0, 0.1]);
         let mut out = Vec::new();
-        with.pod_frames(u64::MAX, &mut out);
-        with.imu_frames(u64::MAX, &mut out);
+        with.node_frames(Node::Pods, u64::MAX, &mut out);
+        with.node_frames(Node::Imu, u64::MAX, &mut out);
         assert!(out.is_empty());
         // Exactly the calls made, zero-length ones too.
         assert_eq!(plant.advances, [1_500_000, 0, 2_500_001]);

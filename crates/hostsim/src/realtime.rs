@@ -30,6 +30,7 @@ use serde::Serialize;
 
 use firmware::protocol::robot;
 
+use crate::bus::Node;
 use crate::log::{CoreLog, Direction, LogError, McapLog};
 use crate::replay::TimedFrame;
 use crate::sim::SimPlant;
@@ -300,8 +301,8 @@ pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
         // 3. Feedback.
         feedback.clear();
         plant.feedback(sim_us * 1000, &mut feedback);
-        plant.imu_frames(sim_us * 1000, &mut feedback);
-        plant.pod_frames(sim_us * 1000, &mut feedback);
+        plant.node_frames(Node::Imu, sim_us * 1000, &mut feedback);
+        plant.node_frames(Node::Pods, sim_us * 1000, &mut feedback);
         let give_up = deadline.max(woke).saturating_add(period / 2);
         for (_, frame) in &feedback {
             match send_with_retry(

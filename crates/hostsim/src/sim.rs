@@ -33,14 +33,11 @@ pub trait SimPlant {
     /// Feedback frames the drives have sent up to `until_ns`, each with its send time (ns),
     /// in time order; called once per tick.
     fn feedback(&mut self, until_ns: u64, out: &mut Vec<(u64, CanFrame)>);
-    /// `IMU_YAW_RATE` frames an IMU node on the plant has sent up to `until_ns`, as
-    /// [`Self::feedback`] (the bus node [`Node::Imu`]). None by default: see
-    /// [`crate::imu::WithImu`], which the runner puts around the plant.
-    fn imu_frames(&mut self, _until_ns: u64, _out: &mut Vec<(u64, CanFrame)>) {}
-    /// `POD_COUNTS` frames a tracking-pod node on the plant has sent up to `until_ns`, as
-    /// [`Self::feedback`] (the bus node [`Node::Pods`]). None by default: see
-    /// [`crate::pods::WithPods`], which the runner puts around the plant.
-    fn pod_frames(&mut self, _until_ns: u64, _out: &mut Vec<(u64, CanFrame)>) {}
+    /// The frames a sensor node on the plant has sent as bus node `node` up to `until_ns`
+    /// (`IMU_YAW_RATE` as [`Node::Imu`], `POD_COUNTS` as [`Node::Pods`]), as
+    /// [`Self::feedback`]. None by default: see [`crate::sensor::WithNode`], which the runner
+    /// puts around the plant for the scenario's IMU and pods.
+    fn node_frames(&mut self, _node: Node, _until_ns: u64, _out: &mut Vec<(u64, CanFrame)>) {}
     /// Advances the physics by `dt` seconds.
     fn advance(&mut self, dt: f64);
     /// Advances the physics by `dt_ns` nanoseconds ([`Self::advance`] by default).
@@ -548,9 +545,8 @@ pub fn queue_feedback<P: SimPlant>(
     for node in [Node::Drives, Node::Imu, Node::Pods] {
         feedback.clear();
         match node {
-            Node::Imu => plant.imu_frames(until_ns, feedback),
-            Node::Pods => plant.pod_frames(until_ns, feedback),
-            _ => plant.feedback(until_ns, feedback),
+            Node::Drives => plant.feedback(until_ns, feedback),
+            _ => plant.node_frames(node, until_ns, feedback),
         }
         for &(at_ns, f) in feedback.iter() {
             send(at_ns, node, f);

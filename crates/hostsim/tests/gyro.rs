@@ -392,7 +392,10 @@ impl SimPlant for BadImu {
     fn feedback(&mut self, until_ns: u64, out: &mut Vec<(u64, CanFrame)>) {
         self.drives.feedback(until_ns, out);
     }
-    fn imu_frames(&mut self, until_ns: u64, out: &mut Vec<(u64, CanFrame)>) {
+    fn node_frames(&mut self, node: Node, until_ns: u64, out: &mut Vec<(u64, CanFrame)>) {
+        if node != Node::Imu {
+            return;
+        }
         while self.next_ns <= until_ns.min(self.now_ns).min(Self::LAST_NS) {
             for (i, (_, dlc, rate)) in Self::FRAMES.into_iter().enumerate() {
                 let mut data = [0u8; 8];
