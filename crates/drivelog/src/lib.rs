@@ -69,7 +69,9 @@ pub mod write;
 
 pub use core_log::{Changes, CoreLog, PoseTwist, StatusLog, heading_source_line, state_line};
 pub use read::{Damage, Message, Problem, ReadReport, for_each_message};
-pub use write::{CHUNK_SIZE, Direction, LogError, McapLog, MessageTap, OdometrySource, part_path};
+pub use write::{
+    CHUNK_SIZE, Direction, LogError, McapLog, MessageTap, OdometrySource, part_path, step_aside,
+};
 
 /// The MCAP profile of every log.
 pub const PROFILE: &str = "ros2";

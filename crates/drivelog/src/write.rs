@@ -158,6 +158,8 @@ enum Event {
     Text { t_ns: u64, level: u8, index: u32 },
     /// `/firmware/steps`.
     Step { t_ns: u64, kind: u8 },
+    /// `/diagnostics` with the tap's status alone ([`McapLog::tap_status`]).
+    TapStatus { t_ns: u64 },
 }
 
 /// A `/can/faults` message's values.
@@ -324,6 +326,8 @@ pub struct McapLog {
     flush_log_interval_ns: u64,
     /// Wall-clock time between two hand-overs.
     flush_wall_interval: Duration,
+    /// Whether a tap was installed ([`Self::set_tap`]).
+    tapped: bool,
 }
 
 impl McapLog {
@@ -412,6 +416,7 @@ impl McapLog {
             written,
             flush_log_interval_ns: FLUSH_LOG_INTERVAL_NS,
             flush_wall_interval: FLUSH_WALL_INTERVAL,
+            tapped: false,
         })
     }
 
@@ -439,6 +444,20 @@ impl McapLog {
     pub fn set_tap(&mut self, mut tap: Box<dyn MessageTap>) {
         tap.channels(&Channel::ALL);
         self.batch.tap = Some(tap);
+        self.tapped = true;
+    }
+
+    /// Logs a `/diagnostics` message at `t_ns` with the tap's status alone
+    /// ([`MessageTap::status`]; none if it gives none), for a log without the firmware's
+    /// snapshots, which carry it otherwise: the plant's. Without a tap, nothing is logged.
+    ///
+    /// # Errors
+    /// [`LogError`] if writing the log failed.
+    pub fn tap_status(&mut self, t_ns: u64) -> Result<(), LogError> {
+        if !self.tapped || !self.admit(t_ns, 1)? {
+            return Ok(());
+        }
+        self.push(Event::TapStatus { t_ns }, t_ns, 1)
     }
 
     /// Hands the messages over every `interval` of log time (and twice that of wall-clock
@@ -951,6 +970,18 @@ impl Encoder {
                 };
                 self.write(Channel::Steps, t_ns, t_ns, &m)
             }
+            Event::TapStatus { t_ns } => {
+                let m = msg::DiagnosticArray {
+                    header: Header::new(t_ns, ""),
+                    status: self
+                        .tap
+                        .as_mut()
+                        .and_then(|tap| tap.status())
+                        .into_iter()
+                        .collect(),
+                };
+                self.write(Channel::Diagnostics, t_ns, t_ns, &m)
+            }
         }
     }
 }
@@ -1065,8 +1096,10 @@ fn diagnostics(t_ns: u64, s: &Snapshot) -> msg::DiagnosticArray {
 
 /// Lowers the calling thread's priority as far as an unprivileged thread can (Linux:
 /// `SCHED_BATCH`, niceness 19; also out of a real-time class inherited from a runner started
-/// with `chrt`). Best effort: a refusal leaves the thread as it was.
-fn step_aside() {
+/// with `chrt`). Best effort: a refusal leaves the thread as it was. The log's writing thread
+/// does it in the non-blocking mode, and a live server's thread (the `live` crate) always:
+/// neither may hold up a control loop that shares their process.
+pub fn step_aside() {
     #[cfg(target_os = "linux")]
     {
         use thread_priority::unix::{
@@ -1547,6 +1580,44 @@ mod tests {
         assert_eq!(diag.status[1].name, "tap");
         let n: usize = diag.status[1].value("seen").unwrap().parse().unwrap();
         assert!(n > 0 && n < read.len(), "{n}");
+    }
+
+    #[test]
+    fn a_tap_status_alone_is_logged_only_with_a_tap() {
+        let diagnostics = |tap: bool| {
+            let file = TempFile::new(if tap { "tap-status" } else { "no-tap-status" });
+            let seen = std::sync::Arc::new(std::sync::Mutex::new(Seen::default()));
+            let mut log = McapLog::create(&file.0, &BTreeMap::new()).unwrap();
+            if tap {
+                log.set_tap(Box::new(Keep(seen)));
+            }
+            log.step(1_000, msg::Step::STEP).unwrap();
+            log.tap_status(2_000).unwrap();
+            let messages = log.messages();
+            log.finish().unwrap();
+            let mut out = Vec::new();
+            let bytes = std::fs::read(&file.0).unwrap();
+            for_each_message(
+                &bytes,
+                |m| {
+                    if m.topic == "/diagnostics" {
+                        let d: msg::DiagnosticArray = msg::decode(m.data).unwrap();
+                        let names: Vec<_> = d.status.iter().map(|s| s.name.clone()).collect();
+                        out.push((m.log_time, d.header.stamp, names));
+                    }
+                },
+                |_, _| {},
+            )
+            .unwrap();
+            (messages, out)
+        };
+        let (messages, tapped) = diagnostics(true);
+        assert_eq!(messages, 2);
+        assert_eq!(
+            tapped,
+            vec![(2_000, msg::Time::from_ns(2_000), vec!["tap".to_string()])]
+        );
+        assert_eq!(diagnostics(false), (1, vec![]));
     }
 
     #[test]

@@ -24,6 +24,10 @@
 //! # Ok(()) }
 //! ```
 //!
+//! A program's `--live [ADDR]` and `--live-can-hz` are `LiveArgs` (feature `cli`); a log
+//! that starts new files (the runner's rotation) takes a tap per file from
+//! [`LiveServer::tap_maker`].
+//!
 //! The tap ([`LiveTap`], a [`drivelog::MessageTap`]) runs on the log's writing thread, after
 //! each message is in the file's writer: the control loop or simulation never waits on it,
 //! and the tap itself never waits on a client (it queues, and drops the oldest of a full
@@ -50,11 +54,15 @@
 //! The rest (connecting Foxglove and Lichtblick, the figures) is `docs/live.md`.
 
 mod addr;
+#[cfg(any(feature = "cli", test))]
+mod cli;
 mod pace;
 mod server;
 mod tap;
 
 pub use addr::{DEFAULT_ADDR, DEFAULT_PORT, is_exposed, parse_addr};
+#[cfg(any(feature = "cli", test))]
+pub use cli::LiveArgs;
 pub use pace::{Pacer, PacingReport};
 pub use server::{ClientReport, LiveReport, LiveServer, LiveStats};
 pub use tap::LiveTap;

@@ -192,7 +192,12 @@ impl LiveServer {
             let (shared, stop) = (Arc::clone(&shared), Arc::clone(&stop));
             std::thread::Builder::new()
                 .name("live-server".to_string())
-                .spawn(move || runtime.block_on(serve(listener, shared, stop)))?
+                .spawn(move || {
+                    // Out of a real-time class inherited from a runner started with `chrt`:
+                    // sending to clients never holds up the control loop's thread.
+                    drivelog::step_aside();
+                    runtime.block_on(serve(listener, shared, stop));
+                })?
         };
         Ok(Self {
             shared,
@@ -214,11 +219,38 @@ impl LiveServer {
         self.shared.url.clone()
     }
 
+    /// What a program prints on stderr when it starts serving, one line: the URL and the
+    /// subprotocol, as `live: ws://127.0.0.1:8765 (foxglove.sdk.v1)` (scripts read it).
+    #[must_use]
+    pub fn banner(&self) -> String {
+        format!("live: {} ({SUBPROTOCOL})", self.shared.url)
+    }
+
+    /// The warning a program prints when the server can be reached from other machines
+    /// ([`is_exposed`](crate::is_exposed)): the protocol has no authentication.
+    #[must_use]
+    pub fn exposure_warning(&self) -> Option<String> {
+        crate::is_exposed(self.addr).then(|| {
+            format!(
+                "warning: live: serving on {}, beyond this machine: the Foxglove WebSocket \
+                 protocol has no authentication, anyone who reaches the address can watch",
+                self.addr
+            )
+        })
+    }
+
     /// The tap to install on the log ([`drivelog::McapLog::set_tap`]): what it receives, the
     /// server serves.
     #[must_use]
     pub fn tap(&self) -> LiveTap {
         LiveTap::new(Arc::clone(&self.shared))
+    }
+
+    /// Makes a [`tap`](Self::tap) each time it is called, from any thread: for a log that
+    /// starts new files (a runner's rotated log), each of which needs a tap of its own.
+    pub fn tap_maker(&self) -> impl Fn() -> LiveTap + Send + Sync + 'static {
+        let shared = Arc::clone(&self.shared);
+        move || LiveTap::new(Arc::clone(&shared))
     }
 
     /// The figures so far.
@@ -342,8 +374,14 @@ impl Client {
 
 impl Shared {
     /// The log's channels, from the tap: advertised to every client, now and later.
+    /// The log's channels, advertised to the clients when they differ from those advertised
+    /// before: a runner's rotated log installs a new tap on each file, with the same channels,
+    /// and its clients keep their subscriptions.
     pub(crate) fn set_channels(&self, channels: &[Channel]) {
         let mut state = lock(&self.state);
+        if state.channels == channels {
+            return;
+        }
         state.channels = channels.to_vec();
         let text = advertise(channels);
         for c in &state.clients {

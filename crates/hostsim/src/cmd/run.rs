@@ -2,7 +2,6 @@
 //! Foxglove as it runs, paced to the wall clock.
 
 use std::io::Write as _;
-use std::net::SocketAddr;
 use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -50,7 +49,7 @@ pub struct Args {
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub set: Vec<String>,
     /// Do not write the MCAP log.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "live")]
     pub no_log: bool,
     /// Do not draw the plot.
     #[arg(long)]
@@ -63,27 +62,12 @@ pub struct Args {
     /// run (the progress bar is drawn only on a terminal).
     #[arg(long)]
     pub progress_lines: bool,
-    /// Serve the run live on ADDR to Foxglove or Lichtblick ("Open connection", Foxglove
-    /// WebSocket, ws://ADDR): 127.0.0.1:8765 when no ADDR is given; a port alone serves on
-    /// loopback (0: a free port). Any other host warns: the protocol has no authentication.
-    /// The simulation is paced to the wall clock; Ctrl-C stops it with the log finished.
-    #[arg(
-        long,
-        value_name = "ADDR",
-        num_args = 0..=1,
-        default_missing_value = "127.0.0.1:8765",
-        value_parser = live::parse_addr,
-        conflicts_with = "no_log"
-    )]
-    pub live: Option<SocketAddr>,
+    #[command(flatten)]
+    pub live: live::LiveArgs,
     /// With --live: simulated seconds per wall-clock second (1: real time, 0.5: half speed,
     /// 4: four times). Without --live a run goes as fast as it can, and --rate is refused.
     #[arg(long, value_name = "X", requires = "live", value_parser = parse_rate)]
     pub rate: Option<f64>,
-    /// With --live: the /can/* frames forwarded to live clients, per channel and CAN id, per
-    /// second of simulated time (0: every frame). The log keeps every frame.
-    #[arg(long, value_name = "HZ", requires = "live")]
-    pub live_can_hz: Option<u32>,
 }
 
 /// `--rate`: finite and positive.
@@ -95,12 +79,11 @@ fn parse_rate(s: &str) -> Result<f64, String> {
     live::Pacer::check_rate(rate)
 }
 
-/// How a live run serves and paces.
-#[derive(Debug, Clone, Copy)]
+/// How a live run serves (`--live`) and paces (`--rate`).
+#[derive(Debug, Clone)]
 struct LiveArgs {
-    addr: SocketAddr,
+    serve: live::LiveArgs,
     rate: f64,
-    can_hz: u32,
 }
 
 /// `hostsim run`.
@@ -117,10 +100,9 @@ pub fn execute(a: &Args) -> Result<ExitCode> {
             json: a.json,
             progress_lines: a.progress_lines,
         },
-        a.live.map(|addr| LiveArgs {
-            addr,
+        a.live.live.is_some().then(|| LiveArgs {
+            serve: a.live.clone(),
             rate: a.rate.unwrap_or(1.0),
-            can_hz: a.live_can_hz.unwrap_or(live::LiveOptions::default().can_hz),
         }),
     )
 }
@@ -295,24 +277,17 @@ impl Live {
     /// Listens on `args.addr`, says where on stderr (and warns off loopback), and takes
     /// SIGINT/SIGTERM as "stop the run".
     fn start(args: LiveArgs, scenario: &str) -> Result<Self> {
-        let options = live::LiveOptions {
-            name: format!("hostsim run {scenario}"),
-            can_hz: args.can_hz,
-            ..live::LiveOptions::default()
-        };
-        let server = live::LiveServer::start(args.addr, options).context("--live")?;
-        if live::is_exposed(server.local_addr()) {
-            eprintln!(
-                "warning: live: serving on {}, beyond this machine: the Foxglove WebSocket \
-                 protocol has no authentication, anyone who reaches the address can watch the run",
-                server.local_addr()
-            );
+        let server = args
+            .serve
+            .serve(format!("hostsim run {scenario}"))?
+            .context("--live: no address")?;
+        if let Some(warning) = server.exposure_warning() {
+            eprintln!("{warning}");
         }
         let signal = mecanum_linux::stop_on_signals()?;
         eprintln!(
-            "live: {} ({}), {}x real time; stop with Ctrl-C",
-            server.url(),
-            live::SUBPROTOCOL,
+            "{}, {}x real time; stop with Ctrl-C",
+            server.banner(),
             args.rate
         );
         Ok(Self {
@@ -358,27 +333,14 @@ impl Live {
 
 impl LiveEnd {
     fn json(&self) -> serde_json::Value {
-        let r = &self.report;
         let p = &self.pacing;
-        serde_json::json!({
-            "url": r.url,
-            "clients": r.clients.iter().map(|c| serde_json::json!({
-                "addr": c.addr.to_string(),
-                "subprotocol": c.subprotocol,
-                "connected_s": c.connected.as_secs_f64(),
-                "queued": c.queued,
-                "sent": c.sent,
-                "dropped": c.dropped,
-            })).collect::<Vec<_>>(),
-            "sent": r.sent(),
-            "dropped": r.dropped(),
-            "thinned": r.thinned,
-            "rate": p.rate,
-            "paced_steps": p.steps,
-            "late_mean_s": p.mean_late_s,
-            "late_p99_s": p.p99_late_s,
-            "late_max_s": p.max_late_s,
-        })
+        let mut value = self.report.to_json();
+        value["rate"] = p.rate.into();
+        value["paced_steps"] = p.steps.into();
+        value["late_mean_s"] = p.mean_late_s.into();
+        value["late_p99_s"] = p.p99_late_s.into();
+        value["late_max_s"] = p.max_late_s.into();
+        value
     }
 }
 
