@@ -28,6 +28,7 @@ import pytest
 from foxglove_client import SUBPROTOCOL, FoxgloveClient, MessageData, StalledClient
 from mcap.reader import make_reader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from vcan_robot import binary
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 LIVE_LINE = re.compile(r"^live: (ws://\S+) \((\S+)\)")
@@ -230,3 +231,15 @@ def test_the_command_line_refuses_what_cannot_be_served(hostsim_bin: pathlib.Pat
     proc = subprocess.run([str(hostsim_bin), "run", "square", "--out", str(tmp_path), "--no-plot", "--json"],
                           capture_output=True, text=True, timeout=60, check=False)
     assert proc.returncode == 0 and "live" not in proc.stderr and "live" not in json.loads(proc.stdout)
+
+
+def test_the_plant_and_the_runner_refuse_live_without_a_log(hostsim_bin: pathlib.Path) -> None:
+    """--live serves the log as it is written: without --log there is nothing to serve, and
+    both programs say so before they touch the interface (exit 2, the startup error)."""
+    runner = binary("MECANUM_RUNNER", ROOT / "target" / "release" / "mecanum-runner")
+    for cmd in ([str(runner), "--iface", "vcan-none"], [str(hostsim_bin), "plant", "--iface", "vcan-none"]):
+        proc = subprocess.run([*cmd, "--live", "0"], capture_output=True, text=True, timeout=60, check=False)
+        assert proc.returncode == 2, (cmd, proc.stderr)
+        assert "--live" in proc.stderr and "--log FILE" in proc.stderr, proc.stderr
+        proc = subprocess.run([*cmd, "--live-can-hz", "10"], capture_output=True, text=True, timeout=60, check=False)
+        assert proc.returncode == 2 and "--live" in proc.stderr, (cmd, proc.stderr)

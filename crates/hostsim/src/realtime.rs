@@ -363,7 +363,8 @@ pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
 /// its `ODOM_*` frames, `/odom`) and the plant's ground truth (`/ground_truth/odom`, `/tf`).
 /// Log time counts from the plant's start: a frame is stamped with the clock at the tick
 /// that received or sent it, a pose with the plant's simulated time, which follows the clock
-/// except for time skipped after a stall ([`PlantReport::skipped_us`]).
+/// except for time skipped after a stall ([`PlantReport::skipped_us`]). A log with a tap (a
+/// live view, [`McapLog::set_tap`]) has its status on `/diagnostics` every second.
 ///
 /// A write error stops the logging (the run goes on) and is kept for [`PlantLog::finish`].
 pub struct PlantLog {
@@ -372,10 +373,14 @@ pub struct PlantLog {
     odom: [f64; 3],
     odom_twist: [f64; 3],
     next_pose_us: u64,
+    next_status_us: u64,
 }
 
 /// Period of the pose messages of a [`PlantLog`], µs.
 const PLANT_LOG_POSE_PERIOD_US: u64 = 10_000;
+
+/// Period of a [`PlantLog`]'s tap status on `/diagnostics` ([`McapLog::tap_status`]), µs.
+const PLANT_LOG_STATUS_PERIOD_US: u64 = 1_000_000;
 
 /// The longest [`play_frames`] sleeps without looking at its stop flag, µs.
 const STOP_POLL_US: u64 = 50_000;
@@ -390,6 +395,7 @@ impl PlantLog {
             odom: [0.0; 3],
             odom_twist: [0.0; 3],
             next_pose_us: 0,
+            next_status_us: 0,
         }
     }
 
@@ -457,6 +463,11 @@ impl<P: SimPlant> PlantObserver<P> for PlantLog {
             self.write(|log| {
                 CoreLog::odometry(log, t_ns, (odom, odom_twist), Some((truth, truth_twist)))
             });
+        }
+        if t_us >= self.next_status_us {
+            self.next_status_us =
+                t_us - t_us % PLANT_LOG_STATUS_PERIOD_US + PLANT_LOG_STATUS_PERIOD_US;
+            self.write(|log| log.tap_status(t_us.saturating_mul(1000)));
         }
     }
 }

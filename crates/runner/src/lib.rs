@@ -7,6 +7,8 @@
 //! diagnostics are logged every [`SNAPSHOT_EVERY`] steps. With [`McapRecorder::rotating`] the
 //! log is a directory of numbered files ([`rotated_path`]), each a complete log of its own.
 //! [`Console`] is the binary's recorder: the log, and the link's losses on stderr.
+//! [`McapRecorder::serve`] installs a live view's tap (`--live`) on the log, and on each file
+//! of a rotated one.
 //!
 //! What each channel of the runner's log holds and at which times, what happens when the disk
 //! falls behind or fails, and how rotation works (and what a later file replays) are
@@ -15,9 +17,11 @@
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::thread::JoinHandle;
+use std::time::Duration;
 
-use drivelog::{CoreLog, Direction, LogError, McapLog, msg};
+use drivelog::{CoreLog, Direction, LogError, McapLog, MessageTap, msg};
 use firmware::control::{Controller, Fault};
 use firmware::protocol::robot::RobotState;
 use firmware::{CanFrame, Config};
@@ -61,7 +65,12 @@ pub struct McapRecorder {
     core: CoreLog,
     dropped: u64,
     messages: u64,
+    /// [`Self::serve`]: a new tap for each file, and the hand-over interval.
+    tap: Option<(TapMaker, Duration)>,
 }
+
+/// Makes the tap of a live view ([`McapRecorder::serve`]), once for each file.
+pub type TapMaker = Arc<dyn Fn() -> Box<dyn MessageTap> + Send + Sync>;
 
 impl McapRecorder {
     /// Creates the log at `path` with `config` in its metadata.
@@ -86,7 +95,21 @@ impl McapRecorder {
             core: CoreLog::new(SNAPSHOT_EVERY, SNAPSHOT_EVERY),
             dropped: 0,
             messages: 0,
+            tap: None,
         }
+    }
+
+    /// Has a live view see the log as it is written: a tap from `make` on the current file,
+    /// and on each later file of a rotated log as it is started (its clients keep their
+    /// subscriptions), with hand-overs every `flush_interval` of log time
+    /// ([`McapLog::set_flush_interval`]; `live::FLUSH_INTERVAL`). The tap runs on the log's
+    /// writing thread: the loop never waits on it.
+    pub fn serve(&mut self, make: TapMaker, flush_interval: Duration) {
+        if let Some(log) = self.log.as_mut() {
+            log.set_tap(make());
+            log.set_flush_interval(flush_interval);
+        }
+        self.tap = Some((make, flush_interval));
     }
 
     /// A log rotated in `dir` (created if missing): files `runner-NNNNNN.mcap` of about
@@ -160,7 +183,7 @@ impl McapRecorder {
                 })
             })
         });
-        let new = match prepared {
+        let mut new = match prepared {
             Some(Ok(new)) => new,
             Some(Err(e)) => {
                 // The run goes on with the current file: a rotation that failed is an error
@@ -171,6 +194,10 @@ impl McapRecorder {
             }
             None => return,
         };
+        if let Some((make, interval)) = &self.tap {
+            new.set_tap(make());
+            new.set_flush_interval(*interval);
+        }
         let Some(old) = self.log.replace(new) else {
             return;
         };

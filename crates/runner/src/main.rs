@@ -56,6 +56,10 @@ resumes when it is back, without a restart. Each loss and recovery is printed as
 (and logged on /rosout with --log); the statistics count send and receive errors by kind and
 the gaps. --exit-on-link-loss stops instead.
 
+Live: with --live (and --log) the log is served to Foxglove or Lichtblick as it is written
+(Foxglove WebSocket protocol, every channel with its schema; docs/live.md). The loop never
+waits on a client: a slow one loses messages, counted on /diagnostics and in the statistics.
+
 Exit: on SIGINT or SIGTERM (or when --duration has elapsed) the runner stops the loop,
 sends the frames that leave the motors safe (DJI: zero current; ODrive: zero velocity, then
 the idle state), prints statistics to stderr (loop jitter p50/p99/max, frame counts, bus
@@ -124,6 +128,9 @@ struct Args {
     /// Print only errors (no start line, no statistics on stderr).
     #[arg(long, short)]
     quiet: bool,
+
+    #[command(flatten)]
+    live: live::LiveArgs,
 }
 
 fn parse_megabytes(s: &str) -> Result<f64, String> {
@@ -150,6 +157,7 @@ struct Setup {
     bus: SocketCanBus,
     stats: Option<(PathBuf, File)>,
     log: Option<McapRecorder>,
+    server: Option<live::LiveServer>,
     stop: Arc<AtomicUsize>,
     summary: String,
 }
@@ -169,11 +177,20 @@ fn main() -> ExitCode {
         mut bus,
         stats,
         mut log,
+        server,
         stop,
         summary,
     } = setup;
     if !args.quiet {
         eprintln!("mecanum-runner: {summary}; stop with Ctrl-C (SIGINT) or SIGTERM");
+    }
+    if let Some(server) = &server {
+        if let Some(warning) = server.exposure_warning() {
+            eprintln!("mecanum-runner: {warning}");
+        }
+        if !args.quiet {
+            eprintln!("{}", server.banner());
+        }
     }
     let options = RunOptions {
         duration_us: args.duration.map(|s| (s * 1e6).round() as u64),
@@ -194,6 +211,8 @@ fn main() -> ExitCode {
     };
     let log_stats = log.as_ref().map(|l| (l.messages(), l.dropped()));
     let log_result = log.map(McapRecorder::finish);
+    // After the log: its last messages are queued for the clients before they are let go.
+    let live = server.map(live::LiveServer::stop);
 
     // The statistics first, and stderr without a panic: a stderr pipe that closed with the
     // same Ctrl-C (`... 2>&1 | tee log`) must not cost the report file or the exit status.
@@ -202,7 +221,14 @@ fn main() -> ExitCode {
         let _ = writeln!(std::io::stderr(), "mecanum-runner: {line}");
     };
     if let Some((path, file)) = stats
-        && let Err(e) = write_stats(&path, file, &report, log_stats, args.log.as_deref())
+        && let Err(e) = write_stats(
+            &path,
+            file,
+            &report,
+            log_stats,
+            args.log.as_deref(),
+            live.as_ref(),
+        )
     {
         say(format_args!("{}", linux::error_line(e.as_ref())));
         status = ExitCode::FAILURE;
@@ -214,6 +240,9 @@ fn main() -> ExitCode {
                 "log {}: {messages} messages, {dropped} dropped (writer behind)",
                 path.display()
             ));
+        }
+        if let Some(live) = &live {
+            say(format_args!("live: {live}"));
         }
     }
     if let Some(Err(e)) = log_result {
@@ -255,13 +284,20 @@ fn startup(args: &Args) -> Result<Setup> {
     let controller = Controller::new(&config)
         .with_context(|| format!("configuration {source} rejected by the controller"))?;
 
+    if args.live.live.is_some() && args.log.is_none() {
+        anyhow::bail!("--live serves the log as it is written: give --log FILE too");
+    }
     // Signals before the socket: from here on SIGINT/SIGTERM stop the loop cleanly (a second
     // one exits at once).
     let stop = linux::stop_on_signals()?;
 
     let bus = SocketCanBus::open(&args.iface)?;
 
-    let log = match (&args.log, args.log_max_mb) {
+    // Before the log: an address that cannot be served fails before a file is made.
+    let server = args
+        .live
+        .serve(format!("mecanum-runner --iface {}", args.iface))?;
+    let mut log = match (&args.log, args.log_max_mb) {
         (Some(dir), Some(mb)) => Some(McapRecorder::rotating(
             dir,
             &config,
@@ -271,6 +307,13 @@ fn startup(args: &Args) -> Result<Setup> {
         (Some(path), None) => Some(McapRecorder::create(path, &config)?),
         (None, _) => None,
     };
+    if let (Some(server), Some(log)) = (&server, log.as_mut()) {
+        let tap = server.tap_maker();
+        log.serve(
+            Arc::new(move || Box::new(tap()) as Box<dyn drivelog::MessageTap>),
+            live::FLUSH_INTERVAL,
+        );
+    }
 
     // The statistics file is created before the loop starts (and after everything else
     // checked), so a bad path fails now and not after a long run.
@@ -301,6 +344,7 @@ fn startup(args: &Args) -> Result<Setup> {
         bus,
         stats,
         log,
+        server,
         stop,
         summary,
     })
@@ -312,8 +356,12 @@ fn write_stats(
     report: &Report,
     log: Option<(u64, u64)>,
     log_path: Option<&Path>,
+    live: Option<&live::LiveReport>,
 ) -> Result<()> {
     let mut json = serde_json::to_value(report)?;
+    if let (Some(live), Some(object)) = (live, json.as_object_mut()) {
+        object.insert("live".to_string(), live.to_json());
+    }
     if let (Some((messages, dropped)), Some(object)) = (log, json.as_object_mut()) {
         object.insert(
             "log".to_string(),

@@ -5,13 +5,14 @@
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicUsize;
+use std::sync::{Arc, Mutex};
 
 use firmware::{CanFrame, Config, Controller};
 use mecanum_linux::{LinkEvent, Recorder, RunOptions, run_recorded};
 
 mod common;
 use common::{bus, clock, enable_at, esc_feedback, twists};
-use mecanum_runner::{McapRecorder, rotated_path};
+use mecanum_runner::{McapRecorder, TapMaker, rotated_path};
 
 /// Run length: 3 s, 3000 steps.
 const RUN_MS: u64 = 3000;
@@ -81,8 +82,9 @@ impl Recorder for Settled<'_> {
     }
 }
 
-/// A 3 s run logged in `dir`, rotated at `max_bytes`, keeping `keep` files.
-fn run(dir: &Path, max_bytes: u64, keep: usize) -> Run {
+/// A 3 s run logged in `dir`, rotated at `max_bytes`, keeping `keep` files; served to the
+/// taps of `tap` if given ([`McapRecorder::serve`]).
+fn run(dir: &Path, max_bytes: u64, keep: usize, tap: Option<TapMaker>) -> Run {
     let _ = std::fs::remove_dir_all(dir);
     let config = Config::dji_m3508_example();
     // As fast as the machine goes: the recorder waits for its threads at each step
@@ -93,6 +95,9 @@ fn run(dir: &Path, max_bytes: u64, keep: usize) -> Run {
     let mut bus = bus(&clock, session());
     let mut controller = Controller::new(&config).unwrap();
     let mut recorder = McapRecorder::rotating(dir, &config, max_bytes, keep).unwrap();
+    if let Some(tap) = tap {
+        recorder.serve(tap, std::time::Duration::from_millis(50));
+    }
     let options = RunOptions {
         duration_us: Some(RUN_MS * 1000),
         ..RunOptions::default()
@@ -165,7 +170,7 @@ const MAX_BYTES: u64 = 40_000;
 #[test]
 fn a_rotated_log_keeps_the_newest_k_complete_files() {
     let dir = tmp("rotated_keep3");
-    let run = run(&dir, MAX_BYTES, 3);
+    let run = run(&dir, MAX_BYTES, 3, None);
     assert!(run.files >= 5, "{} files", run.files);
     let expected: Vec<String> = (run.files - 2..=run.files)
         .map(|i| format!("runner-{i:06}.mcap"))
@@ -207,7 +212,7 @@ fn a_rotated_log_keeps_the_newest_k_complete_files() {
 #[test]
 fn every_file_of_a_rotated_log_is_whole_and_the_first_replays_bit_for_bit() {
     let dir = tmp("rotated_keep_all");
-    let run = run(&dir, MAX_BYTES, 1000);
+    let run = run(&dir, MAX_BYTES, 1000, None);
     assert!(run.files >= 5, "{} files", run.files);
     let names = listing(&dir);
     assert_eq!(names.len() as u64, run.files);
@@ -244,6 +249,51 @@ fn every_file_of_a_rotated_log_is_whole_and_the_first_replays_bit_for_bit() {
     let third = rotated_path(&dir, 3);
     let later = hostsim::replay::replay_mcap(&third).unwrap();
     assert!(!later.identical());
+}
+
+/// What each tap of a served log saw: the channels shown, the messages (log time order).
+#[derive(Default)]
+struct Seen {
+    channels: usize,
+    messages: u64,
+}
+
+struct Counting(Arc<Mutex<Seen>>);
+
+impl drivelog::MessageTap for Counting {
+    fn channels(&mut self, _: &[drivelog::Channel]) {
+        self.0.lock().unwrap().channels += 1;
+    }
+    fn message(&mut self, _: drivelog::Channel, _: u64, _: u64, _: &[u8]) {
+        self.0.lock().unwrap().messages += 1;
+    }
+}
+
+#[test]
+fn a_served_rotated_log_gives_each_file_a_tap_that_sees_all_of_it() {
+    let dir = tmp("rotated_served");
+    let taps: Arc<Mutex<Vec<Arc<Mutex<Seen>>>>> = Arc::default();
+    let made = Arc::clone(&taps);
+    let maker: TapMaker = Arc::new(move || {
+        let seen = Arc::<Mutex<Seen>>::default();
+        made.lock().unwrap().push(Arc::clone(&seen));
+        Box::new(Counting(seen))
+    });
+    let run = run(&dir, MAX_BYTES, 1000, Some(maker));
+    assert!(run.files >= 5, "{} files", run.files);
+    let taps = taps.lock().unwrap();
+    assert_eq!(taps.len() as u64, run.files, "a tap per file");
+    for (i, seen) in taps.iter().enumerate() {
+        let seen = seen.lock().unwrap();
+        let file = rotated_path(&dir, i as u64 + 1);
+        assert_eq!(seen.channels, 1, "{}", file.display());
+        assert_eq!(
+            seen.messages,
+            complete_messages(&file),
+            "{}",
+            file.display()
+        );
+    }
 }
 
 #[test]

@@ -27,6 +27,9 @@ use super::*;
 /// both as JSON to --stats-json. A second SIGINT/SIGTERM exits at once with status 1.
 /// Exit status: 0 after a clean stop, 1 if the statistics or the log could not be
 /// written, 2 for a startup error (bad arguments, configuration, interface).
+///
+/// With --live (and --log) the log is served to Foxglove or Lichtblick as it is written
+/// (docs/live.md): the frames on the bus, the ground truth against the firmware's odometry.
 #[derive(Debug, clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
@@ -70,6 +73,8 @@ pub struct Args {
     /// The robot on blocks: no wheel touches the ground (for `mecanum-drive check`).
     #[arg(long)]
     pub lifted: bool,
+    #[command(flatten)]
+    pub live: live::LiveArgs,
 }
 
 /// `plant --iface IFACE`: the simulated drives on the interface in real time.
@@ -77,6 +82,9 @@ pub struct Args {
 pub fn execute(args: &Args) -> Result<ExitCode> {
     let (iface, quiet) = (args.iface.as_str(), args.quiet);
     let (stats_json, log) = (args.stats_json.as_deref(), args.log.as_deref());
+    if args.live.live.is_some() && log.is_none() {
+        bail!("--live serves the log as it is written: give --log FILE too");
+    }
     let (config, source) = load_config(args.config.as_deref())?;
     let spec = hostsim::scenario::PlantSpec {
         lifted: args.lifted,
@@ -106,6 +114,8 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
         )),
         None => None,
     };
+    // Before the log: an address that cannot be served fails before a file is made.
+    let server = args.live.serve(format!("hostsim plant --iface {iface}"))?;
     let mut plant_log = match log {
         Some(path) => {
             let start_unix_ns = std::time::SystemTime::now()
@@ -124,7 +134,12 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
                     env!("CARGO_PKG_VERSION").to_string(),
                 ),
             ]);
-            Some(PlantLog::new(McapLog::create(path, &metadata)?))
+            let mut log = McapLog::create(path, &metadata)?;
+            if let Some(server) = &server {
+                log.set_tap(Box::new(server.tap()));
+                log.set_flush_interval(live::FLUSH_INTERVAL);
+            }
+            Some(PlantLog::new(log))
         }
         None => None,
     };
@@ -138,6 +153,14 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
              stop with Ctrl-C (SIGINT) or SIGTERM",
             1_000_000 / options.period_us
         );
+    }
+    if let Some(server) = &server {
+        if let Some(warning) = server.exposure_warning() {
+            eprintln!("{warning}");
+        }
+        if !quiet {
+            eprintln!("{}", server.banner());
+        }
     }
     let clock = MonotonicClock::new(args.spin_us);
     let report = match plant_log.as_mut() {
@@ -159,6 +182,11 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
             }
         }
     }
+    // After the log: its last messages are queued for the clients before they are let go.
+    let live = server.map(live::LiveServer::stop);
+    if let (Some(report), false) = (&live, quiet) {
+        eprintln!("live: {report}");
+    }
     // The ground truth always goes out, on stdout; the statistics on stderr.
     println!(
         "ground truth: x {:+.4} m  y {:+.4} m  heading {:+.2}°  (vx {:+.4} m/s  vy {:+.4} m/s  \
@@ -174,7 +202,11 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
         eprintln!("hostsim plant: {report}");
     }
     if let Some((path, mut file)) = stats {
-        let written = serde_json::to_writer_pretty(&mut file, &report)
+        let mut json = serde_json::to_value(&report)?;
+        if let (Some(report), Some(object)) = (&live, json.as_object_mut()) {
+            object.insert("live".to_string(), report.to_json());
+        }
+        let written = serde_json::to_writer_pretty(&mut file, &json)
             .map_err(anyhow::Error::from)
             .and_then(|()| Ok(file.write_all(b"\n")?));
         if let Err(e) = written {
