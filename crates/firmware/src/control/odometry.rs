@@ -116,8 +116,8 @@ impl Controller {
         if gyro {
             self.measured.wz = rate;
         }
+        let mut step = self.kin.displacement(&deltas);
         if self.pods.configured() {
-            let step = self.kin.displacement(&deltas);
             let heading = if gyro { rate * self.dt } else { step.dtheta };
             if self.integrate_pods(step, heading, wheels) {
                 return;
@@ -125,11 +125,8 @@ impl Controller {
         }
         if gyro {
             // The wheels' translation, the gyro's rotation.
-            let mut step = self.kin.displacement(&deltas);
             step.dtheta = rate * self.dt;
-            self.odometry.apply(step);
-        } else {
-            self.odometry.update(&self.kin, &deltas);
         }
+        self.odometry.apply(step);
     }
 }
