@@ -68,6 +68,12 @@ pub struct Args {
     /// With --imu: the gyro's bias, °/s. Default 0.1.
     #[arg(long, value_name = "DEG_S", requires = "imu")]
     pub imu_bias_deg_s: Option<f64>,
+    /// Put the tracking pods of --config's [[odometry.pods]] on the interface too: a node
+    /// that sends POD_COUNTS (0x306) at 200 Hz from the chassis's true travel, the pods as
+    /// configured, for a runner configured with [odometry] source = "pods2_gyro" or "pods3"
+    /// (with "pods2_gyro", give --imu too).
+    #[arg(long)]
+    pub pods: bool,
     #[command(flatten)]
     pub wiring: WiringArgs,
     /// The robot on blocks: no wheel touches the ground (for `mecanum-drive check`).
@@ -102,7 +108,18 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
             key.replace('_', "-")
         );
     }
+    let nominal = config.odometry.pods;
+    if args.pods && nominal.is_empty() {
+        bail!(
+            "--pods: configuration {source} has no [[odometry.pods]]: the pod node counts the \
+             configured pods"
+        );
+    }
+    let pods = args.pods.then(|| {
+        hostsim::pods::PodNode::new(&hostsim::pods::PodsParams::default(), nominal.as_slice(), 0)
+    });
     let mut drives = hostsim::imu::WithImu::new(&mut drives, imu.as_ref(), 0);
+    let mut drives = hostsim::pods::WithPods::new(&mut drives, pods);
     let stop = mecanum_linux::stop_on_signals()?;
     let mut bus = SocketCanBus::open(iface)?;
     // Created before the loop starts, so a bad path fails now and not after a long run.
