@@ -153,7 +153,16 @@ def test_the_interpreters_exit_stops_the_robot(tmp_path: pathlib.Path) -> None:
         from mecanum_drive import Robot
 
         fake = ScriptedRobot("exit").__enter__()
-        atexit.register(lambda: print(json.dumps([(r.name, r.signals) for r in fake.received[-2:]])))
+        def report():
+            # The robot's thread receives what the package sent at exit: wait for the disable
+            # to arrive there (not for the package: it has sent it already).
+            deadline = time.monotonic() + 10
+            while not any(r.signals == {{"request": 0}} for r in fake.frames("MODE_CMD")):
+                if time.monotonic() > deadline:
+                    break
+                time.sleep(0.01)
+            print(json.dumps([(r.name, r.signals) for r in fake.received[-2:]]))
+        atexit.register(report)
         robot = Robot(can.Bus(interface="virtual", channel="exit"))
         robot.enable()
         robot.wait_state("ENABLED", timeout=5.0)  # a loaded machine starts threads slowly
