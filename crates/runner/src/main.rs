@@ -37,12 +37,17 @@ heartbeat. The same core runs on the motor-controller MCU and in the simulator.
 Robot protocol (dbc/mecanum_robot.dbc; CAN 2.0A, little-endian, ids 0x300-0x31F):
   host -> robot   0x300 ESTOP (magic 0xE5)    0x301 TWIST_CMD (vx, vy, wz, seq: +1 each)
                   0x302 MODE_CMD (0 disable, 1 enable, 2 reset)    0x303 STATUS_REQ
+                  0x305 WHEEL_TEST (the bring-up check, one wheel at a time)
   IMU -> robot    0x304 IMU_YAW_RATE (f32 rad/s, seq), optional: [odometry] heading_source
-  robot -> host   0x310 ODOM_POSITION, 0x311 ODOM_VELOCITY (timing.odometry_hz, 100 Hz)
+  pods -> robot   0x306 POD_COUNTS (three u16 counts, seq), optional: [odometry] source
+  robot -> host   0x310 ODOM_POSITION, 0x311 ODOM_VELOCITY (timing.odometry_hz, 100 Hz),
+                  0x315 ODOM_SLIP (with pods: the slip estimate, the odometry source)
                   0x312 STATUS, 0x313 STATUS_COUNTERS, 0x31F HEARTBEAT (timing.status_hz,
                   10 Hz)
+                  0x314 WHEEL_TEST_RESULT (after a WHEEL_TEST)
 Motor side: DJI C620/C610 current commands on 0x200 (ESC 1-4) / 0x1FF (ESC 5-8) every
-period, feedback on 0x201-0x208; or ODrive CAN Simple (node << 5 | command).
+period, feedback on 0x201-0x208; or ODrive CAN Simple (node << 5 | command); or CANopen
+CiA 402 drives (NMT, SDO configuration, SYNC, RPDO targets, TPDO status, heartbeats).
 The robot starts disabled: send MODE_CMD enable, then TWIST_CMD at least every
 timing.command_timeout_ms (100 ms), or it ramps to a stop and disables itself. TWIST_CMD.seq
 is an alive counter: a twist with the seq of the last accepted one is a repeat, not applied
