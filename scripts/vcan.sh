@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The vcan lane: runs a command where a real SocketCAN interface vcan0 is up.
-# Natively where the kernel has vcan, else in a QEMU micro-VM (virtme-ng) that boots Debian's
-# own kernel on the host's file system. `scripts/vcan.sh --help` says more.
+# Natively where the kernel has vcan, else in a QEMU micro-VM (scripts/vcan-vm.py) that boots
+# Debian's own kernel on the host's file system. `scripts/vcan.sh --help` says more.
 set -euo pipefail
 
 SCRIPT_DIR=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd -P)
@@ -9,19 +9,12 @@ ROOT=$(cd "$SCRIPT_DIR/.." && pwd -P)
 IFACE=vcan0
 LANE=$ROOT/target/vcan-lane
 TXQUEUELEN=10000
-DEB_PACKAGES=(qemu-system-x86 linux-image-amd64 busybox-static can-utils kmod iproute2 tmux)
-VNG_REQUIREMENT='virtme-ng>=1.42,<2'
-VENV=${VCAN_VENV:-$ROOT/.venv}
+DEB_PACKAGES=(qemu-system-x86 linux-image-amd64 busybox-static can-utils iproute2 tmux)
 MODE=${VCAN_MODE:-auto}
 VM_TIMEOUT=${VCAN_VM_TIMEOUT:-1800}
 VM_MEMORY=${VCAN_VM_MEMORY:-2G}
 VM_CLOCK=${VCAN_VM_CLOCK:-icount}
 VM_CPUS=${VCAN_VM_CPUS:-}
-# Modules the emulated machine's devices would make udev load at boot (KVM, CPU crypto, SATA and
-# CD-ROM, PS/2, watchdogs, cpufreq). None is needed for vcan; under software emulation loading
-# them costs some 15 s of boot.
-VM_MODULE_BLACKLIST=kvm_amd,kvm_intel,kvm,ccp,irqbypass,crct10dif_pclmul,crc32_pclmul,crc32c_intel,ghash_clmulni_intel,sha512_ssse3,sha256_ssse3,sha1_ssse3,aesni_intel,crypto_simd,cryptd,sr_mod,cdrom,sg,ahci,libahci,libata,scsi_mod,iTCO_wdt,intel_pmc_bxt,evdev,psmouse,serio_raw,pcspkr,i2c_i801,i2c_smbus,lpc_ich,button,qemu_fw_cfg,powernow_k8,acpi_cpufreq,intel_rapl_msr,intel_rapl_common
-
 usage() {
     cat <<EOF
 Usage: scripts/vcan.sh [--native | --vm] -- COMMAND [ARG...]
@@ -38,12 +31,14 @@ How $IFACE comes up, first that works:
      \`ip link add dev $IFACE type vcan\` work (root or CAP_NET_ADMIN); a $IFACE this script
      created gets txqueuelen $TXQUEUELEN and is deleted afterwards.
   2. vm: the kernel has no vcan (\`ip link add ... type vcan\` says "Unknown device type").
-     A QEMU micro-VM (virtme-ng, software emulation) boots Debian's kernel, which has vcan,
-     on the host's file system: COMMAND runs there as root, on the same repository (shared
-     read-write) and the same .venv, toolchains and host-built binaries (read-only). Needs
-     Debian ${DEB_PACKAGES[*]}
-     (installed with apt-get when run as root and missing) and PyPI $VNG_REQUIREMENT
-     (pip-installed into $VENV when missing). Allow ~1 min of boot.
+     A QEMU micro-VM (software emulation; scripts/vcan-vm.py) boots Debian's kernel, which has
+     vcan, on the host's file system: COMMAND runs there as root, on the same repository
+     (shared read-write) and the same .venv, toolchains and host-built binaries (read-only,
+     the guest's writes elsewhere stay in its memory). Needs Debian ${DEB_PACKAGES[*]}
+     (installed with apt-get when run as root and missing) and python3. The guest boots its
+     kernel's ELF image straight into an initramfs of busybox and the modules vcan needs
+     (scripts/vcan-init.sh), built once per kernel into $LANE/guest: vcan0 is up some 15 s
+     after QEMU starts.
      The guest's clock (VCAN_VM_CLOCK=icount, the default) is QEMU's -icount shift=0,sleep=off:
      guest time is the count of instructions the guest executed (1 ns each), and when every
      guest process waits it jumps to the next timer at once. A host that is busy, or that
@@ -58,7 +53,11 @@ How $IFACE comes up, first that works:
      The environment variables the tools need are passed on (paths, locale, toolchains,
      Python, CI, MECANUM_*; none whose name says token, secret, password or key), no
      others. Output is also kept in target/vcan-lane/output.log, the VM's exit code in
-     target/vcan-lane/exit-code.
+     target/vcan-lane/exit-code, and the progress lines (\`lane: ...\`, one as each test
+     starts and ends, with its guest time) with the host's wall time in
+     target/vcan-lane/timeline.tsv (scripts/lane-times.py makes the table of both).
+     At the time-out the script names the test that was running, has the guest print its
+     blocked tasks and its CPU's backtrace (magic SysRq), then stops the VM.
   3. neither: in CI (CI set to anything but empty, 0 or false) that is a failure (exit 1,
      saying why); elsewhere the script prints "SKIP: <why>" and exits 0 without running
      COMMAND.
@@ -70,10 +69,10 @@ Options:
   --vm         go straight to the VM        (or VCAN_MODE=vm)
   -h, --help   this text
 
-Environment: VCAN_VM_TIMEOUT (seconds, default 1800; bounds a native COMMAND too),
+Environment: VCAN_VM_TIMEOUT (wall seconds, default 1800; bounds a native COMMAND too),
 VCAN_VM_MEMORY (default 2G), VCAN_VM_CLOCK (icount or host; see above),
-VCAN_VM_CPUS (default 1 with icount, else host CPUs up to 4), VCAN_KERNEL (a vmlinuz to boot instead of the
-one linux-image-amd64 installed), VCAN_VENV (where virtme-ng is, default .venv),
+VCAN_VM_CPUS (default 1 with icount, else host CPUs up to 4), VCAN_KERNEL (a vmlinuz to boot
+instead of the one linux-image-amd64 installed; its modules must be in /lib/modules),
 VCAN_NO_INSTALL=1 (install nothing: what is missing makes the lane unavailable),
 VCAN_VM_APPEND (more kernel command-line arguments for the VM).
 EOF
@@ -97,16 +96,14 @@ unavailable() {
     exit 0
 }
 
-# Runs `timeout -k KILL_AFTER VM_TIMEOUT COMMAND...` and returns its status, passing SIGINT,
-# SIGTERM and SIGHUP on to it. `timeout` runs in a process group of its own, so a Ctrl-C at the
-# terminal (or a CI runner's signal to this script's group) would not reach COMMAND, which would
-# then run on until the timeout. On such a signal the script exits 130 once COMMAND has ended.
+# Runs COMMAND... in the background and returns its status, passing SIGINT, SIGTERM and SIGHUP
+# on to it (a CI runner's signal to this script alone, or test.sh stopping the lane, must reach
+# it). On such a signal the script exits 130 once COMMAND has ended (exit_if_interrupted).
 INTERRUPTED=0
-run_bounded() {
-    local kill_after=$1 pid rc
-    shift
+run_forwarding() {
+    local pid rc
     # 9>&-: COMMAND must not hold the lane's lock (a stray child would keep it).
-    timeout -k "$kill_after" "$VM_TIMEOUT" "$@" 9>&- &
+    "$@" 9>&- &
     pid=$!
     trap 'INTERRUPTED=1; kill -TERM "$pid" 2>/dev/null || true' INT TERM HUP
     while :; do
@@ -116,6 +113,15 @@ run_bounded() {
         kill -0 "$pid" 2>/dev/null || break
     done
     trap - INT TERM HUP
+    return "$rc"
+}
+
+# Runs `timeout -k KILL_AFTER VM_TIMEOUT COMMAND...` (run_forwarding: `timeout` runs in a
+# process group of its own, so a Ctrl-C at the terminal would not reach COMMAND otherwise).
+run_bounded() {
+    local kill_after=$1 rc=0
+    shift
+    run_forwarding timeout -k "$kill_after" "$VM_TIMEOUT" "$@" || rc=$?
     [ "$rc" = 124 ] && log "COMMAND did not finish within $VM_TIMEOUT s (VCAN_VM_TIMEOUT)"
     return "$rc"
 }
@@ -169,7 +175,7 @@ apt_install() {
         apt-get update -qq >&2
         APT_UPDATED=1
     fi
-    # INITRD=No: the kernel's own initramfs is never used (virtme-ng makes one each boot), and
+    # INITRD=No: the kernel's own initramfs is never used (the lane boots one of its own), and
     # generating it is most of the install time.
     DEBIAN_FRONTEND=noninteractive INITRD=No apt-get install -y -qq --no-install-recommends "$@" >&2
 }
@@ -312,7 +318,7 @@ vm_prepare() {
             return 1
         fi
     fi
-    for tool in qemu-system-x86_64 busybox modprobe ip python3; do
+    for tool in qemu-system-x86_64 busybox ip python3; do
         if ! command -v "$tool" >/dev/null; then
             VM_WHY="$tool not found (Debian: apt-get install ${DEB_PACKAGES[*]})"
             return 1
@@ -332,19 +338,6 @@ vm_prepare() {
     if ! compgen -G "/lib/modules/$KVER/kernel/drivers/net/can/vcan.ko*" >/dev/null; then
         VM_WHY="$KERNEL has no vcan module under /lib/modules/$KVER"
         return 1
-    fi
-    if [ ! -x "$VENV/bin/vng" ]; then
-        if [ "${VCAN_NO_INSTALL:-}" = "1" ]; then
-            VM_WHY="virtme-ng not installed in $VENV (pip install '$VNG_REQUIREMENT')"
-            return 1
-        fi
-        if [ ! -x "$VENV/bin/python" ]; then
-            log "creating the virtual environment $VENV"
-            python3 -m venv "$VENV" >&2 || { VM_WHY="python3 -m venv $VENV failed"; return 1; }
-        fi
-        log "installing PyPI $VNG_REQUIREMENT into $VENV"
-        "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check "$VNG_REQUIREMENT" >&2 ||
-            { VM_WHY="pip install '$VNG_REQUIREMENT' failed"; return 1; }
     fi
     return 0
 }
@@ -369,45 +362,18 @@ if ! vm_prepare; then
     unavailable "VM: $VM_WHY${NATIVE_WHY:+ (native: $NATIVE_WHY)}"
 fi
 
-rm -f "$LANE/exit-code" "$LANE/started" "$LANE/setup-failed" "$LANE/timing" "$LANE/output.log"
+rm -f "$LANE/exit-code" "$LANE/started" "$LANE/setup-failed" "$LANE/timing" "$LANE/output.log" "$LANE/timeline.tsv"
 printf '%q ' "$@" >"$LANE/command.sh"
 printf '\n' >>"$LANE/command.sh"
 (umask 077 && write_guest_env >"$LANE/env.sh")
 
-guest_cmd="bash $(printf '%q' "$SCRIPT_DIR/vcan-guest.sh") $(printf '%q' "$LANE") $(printf '%q' "$ROOT") $IFACE $TXQUEUELEN"
-# Two more 9p shares, which the guest script mounts with the page cache on (cache=loose): the
-# host's root (read-only) and the repository (read-write). virtme-ng mounts its own shares
-# uncached, and there every file read and page fault is a round trip to the host: Python
-# starts in some 10 s instead of 1 s. (vng hands these options to a shell, so the paths are
-# shell-quoted, and QEMU wants a comma in a value doubled.)
-qemu_path() { printf '%q' "${1//,/,,}"; }
-fast_shares="-fsdev local,id=vcanroot,path=/,security_model=none,readonly=on,multidevs=remap"
-fast_shares+=" -device virtio-9p-pci,fsdev=vcanroot,mount_tag=vcanroot"
-fast_shares+=" -fsdev local,id=vcanrepo,path=$(qemu_path "$ROOT"),security_model=none,multidevs=remap"
-fast_shares+=" -device virtio-9p-pci,fsdev=vcanrepo,mount_tag=vcanrepo"
-qemu_opts=$fast_shares
-if [ "$VM_CLOCK" = icount ]; then
-    qemu_opts+=" -icount shift=0,sleep=off"
-fi
 log "vm: booting $KERNEL (software emulation, $VM_CPUS CPU(s), $VM_MEMORY, guest clock: $VM_CLOCK; timeout ${VM_TIMEOUT}s)"
 T_BOOT=$(now)
-# KVM stays off: in nested virtualization it may be there and still fail (QEMU aborts on an
-# MSR, or the guest hangs). stdin is /dev/null: QEMU would otherwise take over a terminal.
-# Through a pipe (a FIFO to tee), not redirected to a file: QEMU opens the guest's stdout and
-# stderr as files of their own, and two descriptions of one regular file overwrite each
-# other's output.
-rm -f "$LANE/output.fifo"
-mkfifo "$LANE/output.fifo"
-tee "$LANE/output.log" <"$LANE/output.fifo" &
-tee_pid=$!
 cd "$ROOT"
-vng_rc=0
-PATH="$VENV/bin:$PATH" run_bounded 30 "$VENV/bin/vng" \
-    --disable-kvm --run "$KERNEL" --user root --cpus "$VM_CPUS" --memory "$VM_MEMORY" \
-    --rwdir="$ROOT" --append "modprobe.blacklist=$VM_MODULE_BLACKLIST clocksource=tsc tsc=reliable ${VCAN_VM_APPEND:-}" \
-    --exec "$guest_cmd" --qemu-opts="$qemu_opts" </dev/null >"$LANE/output.fifo" 2>&1 || vng_rc=$?
-wait "$tee_pid" || true
-rm -f "$LANE/output.fifo"
+vm_rc=0
+run_forwarding python3 "$SCRIPT_DIR/vcan-vm.py" --kernel "$KERNEL" --lane "$LANE" --root "$ROOT" \
+    --iface "$IFACE" --txqueuelen "$TXQUEUELEN" --memory "$VM_MEMORY" --clock "$VM_CLOCK" \
+    --cpus "$VM_CPUS" --timeout "$VM_TIMEOUT" --append "${VCAN_VM_APPEND:-}" || vm_rc=$?
 exit_if_interrupted
 T_END=$(now)
 
@@ -418,6 +384,10 @@ if [ -s "$LANE/timing" ]; then
 fi
 log "vm: prepare $(elapsed "$T_START" "$T_BOOT") s, VM $(elapsed "$T_BOOT" "$T_END") s$timing"
 
+if [ "$vm_rc" = 124 ]; then
+    log "FAIL: the VM's time-out (VCAN_VM_TIMEOUT=$VM_TIMEOUT s); the test it names above was running"
+    exit 124
+fi
 if [ -s "$LANE/exit-code" ]; then
     rc=$(cat "$LANE/exit-code")
     log "vm: command exited with $rc"
@@ -427,7 +397,7 @@ if [ -e "$LANE/setup-failed" ]; then
     unavailable "VM: $(cat "$LANE/setup-failed")${NATIVE_WHY:+ (native: $NATIVE_WHY)}"
 fi
 if [ -e "$LANE/started" ]; then
-    log "FAIL: the command started in the VM but reported no exit code (vng exited with $vng_rc)"
+    log "FAIL: the command started in the VM but reported no exit code (the VM exited with $vm_rc)"
     exit 1
 fi
-unavailable "VM: the guest did not start the command (vng exited with $vng_rc; output in $LANE/output.log)${NATIVE_WHY:+ (native: $NATIVE_WHY)}"
+unavailable "VM: the guest did not start the command (the VM exited with $vm_rc; output in $LANE/output.log)${NATIVE_WHY:+ (native: $NATIVE_WHY)}"

@@ -127,7 +127,12 @@ _ARPHRD_CAN = 280  # /sys/class/net/<if>/type of a CAN interface (linux/if_arp.h
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    """Registers the project's markers. (One hook per conftest: add further markers here.)"""
+    """Registers the project's markers (one hook per conftest: add further markers here) and
+    the vcan lane's hooks (lane.py: progress, the guest-time budget, the guest's state)."""
+    import lane
+
+    if not config.pluginmanager.is_registered(lane):
+        config.pluginmanager.register(lane, "mecanum-lane")
     config.addinivalue_line(
         "markers",
         "vcan: needs a real SocketCAN interface vcan0; skipped without it, a failure without it "

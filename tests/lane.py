@@ -1,0 +1,141 @@
+"""The vcan lane's own pytest hooks (conftest.py imports them): progress, a per-test budget of
+guest time, and the guest's state when something overruns. Active only where scripts/vcan.sh
+runs the tests (MECANUM_VCAN_MODE set); elsewhere every hook returns at once.
+
+Progress: one `lane: start [n/N] NODEID (guest T s)` line as a test starts and one
+`lane: end [n/N] OUTCOME NODEID in S s (guest T s)` as it ends, S being the test's setup, call
+and teardown. In the micro-VM these are guest times (the guest's clock counts its executed
+instructions, so they do not depend on the host's speed or load); scripts/vcan-vm.py stamps each
+line with the host's wall time as well (target/vcan-lane/timeline.tsv), and
+scripts/lane-times.py sets the two side by side.
+
+Budget: a test whose setup, call and teardown together run longer than `TEST_BUDGET_S` of guest
+time is stopped: the lane prints which test, every Python thread's stack, the guest's blocked
+tasks (SysRq w) and the kernel log's tail, then exits 124. Guest time is a count of
+instructions, so the budget holds on a slow host as on a fast one.
+
+A failed test in the VM carries the guest's blocked tasks and the kernel log's tail in its
+report (the `guest` section): where a guest command overran, what it waited on.
+"""
+
+from __future__ import annotations
+
+import faulthandler
+import os
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+IN_LANE = bool(os.environ.get("MECANUM_VCAN_MODE"))
+IN_VM = os.environ.get("MECANUM_VCAN_MODE") == "vm"
+#: Guest seconds a test may take, setup and teardown included: three times the longest the lane
+#: measured (docs/reliability.md, "Where the suite's time goes"), a module's shared session
+#: being built in its first test's setup.
+TEST_BUDGET_S = 360.0
+
+_state: dict[str, object] = {"n": 0, "total": 0, "timer": None, "started": 0.0}
+
+
+def guest_state(lines: int = 80) -> str:
+    """The guest's blocked tasks (SysRq w, into the kernel log) and the log's last `lines`
+    lines; empty outside the VM."""
+    if not IN_VM:
+        return ""
+    try:
+        with open("/proc/sysrq-trigger", "w") as trigger:
+            trigger.write("w")
+    except OSError as err:
+        return f"(SysRq w: {err})"
+    try:
+        out = subprocess.run(["dmesg"], capture_output=True, text=True, timeout=30, check=False).stdout
+    except (OSError, subprocess.TimeoutExpired) as err:
+        return f"(dmesg: {err})"
+    return "\n".join(out.splitlines()[-lines:])
+
+
+def _say(config: pytest.Config, line: str) -> None:
+    reporter = config.pluginmanager.get_plugin("terminalreporter")
+    if reporter is not None:
+        reporter.ensure_newline()
+        reporter.write_line(line)
+    else:
+        print(line, flush=True)
+    sys.stdout.flush()
+
+
+def _overrun(nodeid: str, started: float) -> None:
+    """The budget timer's action: say what ran and what the guest was doing, then end the lane."""
+    out = sys.__stdout__
+    out.write(f"\nlane: TIME-OUT {nodeid}: over its budget of {TEST_BUDGET_S:.0f} s of guest time "
+              f"(ran {time.monotonic() - started:.0f} s); every thread's stack:\n")
+    out.flush()
+    faulthandler.dump_traceback(file=out, all_threads=True)
+    state = guest_state(200)
+    if state:
+        out.write("lane: the guest's blocked tasks and kernel log:\n" + state + "\n")
+    out.flush()
+    os._exit(124)
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    _state["total"] = len(session.items)  # after -m and -k deselected theirs
+
+
+def pytest_runtest_logstart(nodeid: str, location: object) -> None:
+    if not IN_LANE:
+        return
+    _state["n"] = int(_state["n"]) + 1  # type: ignore[call-overload]
+    now = time.monotonic()
+    _state["started"] = now
+    timer = threading.Timer(TEST_BUDGET_S, _overrun, args=(nodeid, now))
+    timer.daemon = True
+    timer.start()
+    _state["timer"] = timer
+    _say(_CONFIG[0], f"lane: start [{_state['n']}/{_state['total']}] {nodeid} (guest {_uptime()} s)")
+
+
+def pytest_runtest_logfinish(nodeid: str, location: object) -> None:
+    if not IN_LANE:
+        return
+    timer = _state["timer"]
+    if isinstance(timer, threading.Timer):
+        timer.cancel()
+    took = time.monotonic() - float(_state["started"])  # type: ignore[arg-type]
+    outcome = _OUTCOMES.pop(nodeid, "passed")
+    _say(_CONFIG[0], f"lane: end [{_state['n']}/{_state['total']}] {outcome} {nodeid} in {took:.1f} s "
+                     f"(guest {_uptime()} s)")
+
+
+_OUTCOMES: dict[str, str] = {}
+_CONFIG: list[pytest.Config] = []
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    _CONFIG[:] = [config]
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]):  # type: ignore[no-untyped-def]
+    outcome = yield
+    report = outcome.get_result()
+    if not IN_LANE:
+        return
+    if report.failed:
+        _OUTCOMES[item.nodeid] = "FAILED" if report.when == "call" else f"ERROR ({report.when})"
+        state = guest_state()
+        if state:
+            report.sections.append(("guest: blocked tasks and kernel log", state))
+    elif report.skipped and item.nodeid not in _OUTCOMES:
+        _OUTCOMES[item.nodeid] = "skipped"
+
+
+def _uptime() -> str:
+    """The guest's (or the machine's) uptime, the lane's common clock, as `123.4`."""
+    try:
+        with open("/proc/uptime") as f:
+            return f"{float(f.read().split()[0]):.1f}"
+    except (OSError, ValueError):
+        return "?"
