@@ -16,7 +16,7 @@ LOGS=target/test-stages
 
 # name|what (the order they run in; `vcan` starts right after `prepare`, in the background)
 STAGES=(
-    "prepare|the Rust target and components (rustup), cmake and libclang for boardsim (apt-get, as root), the Python virtual environment .venv (pip), and the binaries the Python stages run, built once: hostsim and mecanum-runner (release), mecanum-codec"
+    "prepare|the Rust target and components (rustup), cmake and libclang for boardsim (apt-get, as root), the Python virtual environment .venv (pip), and the binaries the Python stages run: hostsim, mecanum-runner and mecanum-codec (the ci profile, which every Rust stage below shares)"
     "vcan|the tests marked vcan on a real vcan0: natively where the kernel has vcan, else in a QEMU micro-VM (scripts/vcan.sh); runs in the background beside the stages below"
     "fmt|cargo fmt --check"
     "stm32f407|$BOARD: clippy, the release images for the DJI, the ODrive and the CiA 402 example (boardsim's tests run the first two), their flash and RAM budgets"
@@ -109,9 +109,19 @@ finish_stage() {
 }
 stage() {
     finish_stage
+    lane_progress
     STAGE=$1
     STAGE_T=$(now)
     printf '\n==> %s: %s\n' "$1" "$2"
+}
+# Where the vcan lane is, while it runs in the background: its last progress line (the test,
+# n of N, guest time) and the wall time since it started.
+lane_progress() {
+    local last
+    if [ -n "${VCAN_PID:-}" ] && kill -0 "$VCAN_PID" 2>/dev/null; then
+        last=$(tail -n 1 target/vcan-lane/timeline.tsv 2>/dev/null | cut -f 2-)
+        printf '\n--- vcan lane, %d s in: %s\n' "$(($(now) - VCAN_T))" "${last:-booting}"
+    fi
 }
 print_times() {
     {
@@ -169,13 +179,14 @@ if wanted prepare; then
     # The project's own Python package (python/), as a user installs it: its wheel carries the
     # robot DBC from dbc/. Reinstalled every run, so the tests see this checkout's code.
     .venv/bin/python -m pip install --quiet --disable-pip-version-check --force-reinstall --no-deps ./python
-    # Built once, for both Python stages: the vcan lane runs the runner and the plant in real
-    # time (release: the micro-VM emulates its CPU, many times slower than the host).
-    cargo build --release --locked -p hostsim --bin hostsim -p mecanum-runner --bin mecanum-runner
-    cargo build --locked -p mecanum-codec
+    # Built once, for both Python stages, in the profile every Rust stage below shares (`ci`,
+    # Cargo.toml): optimised, as the vcan lane's runner and plant must be (a 1 kHz loop on an
+    # emulated CPU); `cargo test` reuses these crates instead of compiling them again.
+    cargo build --profile ci --locked --all-features -p hostsim --bin hostsim \
+        -p mecanum-runner --bin mecanum-runner -p mecanum-codec --bin mecanum-codec
 fi
-export HOSTSIM="$PWD/target/release/hostsim" MECANUM_RUNNER="$PWD/target/release/mecanum-runner" \
-    MECANUM_CODEC="$PWD/target/debug/mecanum-codec"
+export HOSTSIM="$PWD/target/ci/hostsim" MECANUM_RUNNER="$PWD/target/ci/mecanum-runner" \
+    MECANUM_CODEC="$PWD/target/ci/mecanum-codec"
 
 if wanted vcan; then
     stage vcan "starting the vcan lane in the background (output when it ends; $LOGS/vcan.log)"
@@ -183,8 +194,11 @@ if wanted vcan; then
     # micro-VM (scripts/vcan.sh says how). With CI=true a lane that cannot run fails.
     # -s: the tests print their measured figures. Its own stage time is taken when it ends.
     VCAN_T=$(now)
+    # The test modules compiled here, as pytest rewrites them, before the lane starts: the
+    # guest finds them in tests/__pycache__ instead of compiling them on its emulated CPU.
+    .venv/bin/python -m pytest tests -m vcan -q --collect-only -p no:cacheprovider >/dev/null
     VCAN_VM_TIMEOUT=${VCAN_VM_TIMEOUT:-1800} \
-        scripts/vcan.sh -- .venv/bin/python -m pytest tests -m vcan -q -s -p no:cacheprovider -rs \
+        scripts/vcan.sh -- .venv/bin/python -m pytest tests -m vcan -q -s -p no:cacheprovider -rs --color=no \
         >"$LOGS/vcan.log" 2>&1 &
     VCAN_PID=$!
     STAGE=
@@ -217,18 +231,18 @@ fi
 
 if wanted clippy; then
     stage clippy "all targets, all features, -D warnings"
-    cargo clippy --workspace --all-targets --all-features --locked -- -D warnings
+    cargo clippy --profile ci --workspace --all-targets --all-features --locked -- -D warnings
 fi
 
 if wanted rust-tests; then
-    stage rust-tests "cargo test --workspace --all-features"
-    cargo test --workspace --all-features --locked
+    stage rust-tests "cargo test --workspace --all-features (the ci profile)"
+    cargo test --profile ci --workspace --all-features --locked
 fi
 
 if wanted rustdoc; then
     stage rustdoc "-D warnings, default and all features"
-    RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --locked
-    RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --all-features --locked
+    RUSTDOCFLAGS="-D warnings" cargo doc --profile ci --workspace --no-deps --locked
+    RUSTDOCFLAGS="-D warnings" cargo doc --profile ci --workspace --no-deps --all-features --locked
 fi
 
 if wanted no-std; then
@@ -253,12 +267,12 @@ if wanted qemu-m4; then
     scripts/xtarget.sh
 fi
 
-# Every criterion benchmark compiles and links, built like the tests above (dev profile, the
+# Every criterion benchmark compiles and links, built like the tests above (the ci profile, the
 # same features: it reuses their dependencies). `cargo bench` builds them with the release
 # profile's fat LTO, minutes of compiling for the same check.
 if wanted bench-build; then
     stage bench-build "the benchmarks of every crate compile and link (cargo test --benches --no-run)"
-    cargo test --workspace --all-features --benches --no-run --locked
+    cargo test --profile ci --workspace --all-features --benches --no-run --locked
 fi
 
 if wanted python; then
