@@ -33,7 +33,6 @@ busybox mount -t tmpfs -o mode=0755 upper /upper || fail "tmpfs for the overlay"
 busybox mkdir -p /upper/data /upper/work
 busybox mount -t overlay -o lowerdir=/host,upperdir=/upper/data,workdir=/upper/work root /newroot ||
     fail "the overlay over the host's root"
-busybox mount -t 9p -o "$opts" vcanrepo "/newroot$ROOT" || fail "mount the repository (9p vcanrepo) at $ROOT"
 for fs in proc:proc sysfs:sys devtmpfs:dev tmpfs:tmp tmpfs:run; do
     busybox mount -t "${fs%%:*}" "${fs%%:*}" "/newroot/${fs#*:}" || fail "mount ${fs#*:}"
 done
@@ -41,6 +40,9 @@ busybox mkdir -p /newroot/dev/pts /newroot/dev/shm
 busybox mount -t devpts devpts /newroot/dev/pts
 busybox mount -t tmpfs shm /newroot/dev/shm
 busybox chmod 1777 /newroot/tmp /newroot/dev/shm
+# The repository last: it may live under /tmp or /run, which the guest has of its own.
+busybox mkdir -p "/newroot$ROOT"
+busybox mount -t 9p -o "$opts" vcanrepo "/newroot$ROOT" || fail "mount the repository (9p vcanrepo) at $ROOT"
 # The console as a plain byte stream: no \r added before each \n.
 busybox stty -F /dev/console -opost 2>/dev/null
 

@@ -22,6 +22,8 @@ import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
+from lane import guest_state
+
 _CLONE_NEWNET = 0x40000000
 
 
@@ -62,8 +64,13 @@ def private_network(vcan: str | None = None, txqueuelen: int = 10000) -> Iterato
         if vcan is not None:
             commands += (f"link add dev {vcan} type vcan\nlink set dev {vcan} txqueuelen {txqueuelen}\n"
                          f"link set up dev {vcan}\n")
-        setup = subprocess.run(["ip", "-batch", "-"], input=commands, capture_output=True, text=True,
-                               timeout=60, check=False)
+        try:
+            setup = subprocess.run(["ip", "-batch", "-"], input=commands, capture_output=True, text=True,
+                                   timeout=60, check=False)
+        except subprocess.TimeoutExpired as err:
+            # Seen once in CI, cause unknown: say what the guest's kernel was doing.
+            raise AssertionError(f"ip -batch in the new namespace did not finish within 60 s; the guest:\n"
+                                 f"{guest_state(200)}") from err
         assert setup.returncode == 0, f"ip in the new namespace: {setup.stderr}"
         yield
     finally:

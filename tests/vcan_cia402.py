@@ -26,7 +26,9 @@ from __future__ import annotations
 import bisect
 import dataclasses
 import math
+import os
 import pathlib
+import stat
 import struct
 import subprocess
 from collections.abc import Sequence
@@ -118,10 +120,16 @@ def warm_this_process() -> None:
     for path in sorted(paths):
         try:
             with open(path, "rb") as data:
-                while data.read(1 << 20):
-                    pass
+                # Regular files only, up to their size: a shared anonymous mapping shows as
+                # `/dev/zero (deleted)`, and /dev/zero never ends.
+                st = os.fstat(data.fileno())
+                if not stat.S_ISREG(st.st_mode):
+                    continue
+                left = st.st_size
+                while left > 0 and (chunk := data.read(min(left, 1 << 20))):
+                    left -= len(chunk)
         except OSError:
-            pass  # gone, or not a regular file (a deleted or special mapping)
+            pass  # gone (a deleted mapping's file)
 
 
 def read_runner_steps(path: pathlib.Path) -> list[float]:
