@@ -1,25 +1,38 @@
 #!/usr/bin/env bash
 # The whole suite on a busy machine: scripts/test.sh while `stress-ng --cpu N` keeps N cores
 # busy from before its first stage to after its last (docs/reliability.md, "A suite that does
-# not flake"). Usage: scripts/test-busy.sh [--cpus N] [--runs K] [-- TEST.SH ARGS...]
-#   --cpus N   busy cores (default 1)
-#   --runs K   run the suite K times in a row, stopping at the first failure (default 1)
-# Installs stress-ng (Debian) as root when missing. Prints each run's time and result, and
-# exits with the first failing run's status (0 when all passed).
+# not flake"). Usage: scripts/test-busy.sh [--cpus N] [--runs K] [--fresh DIR] [-- TEST.SH ARGS...]
+#   --cpus N     busy cores (default 1)
+#   --runs K     run the suite K times in a row, stopping at the first failure (default 1)
+#   --fresh DIR  each run in a fresh clone of this repository's HEAD at DIR (removed first
+#                and made anew for every run: no target/, no .venv), as CI runs it (CI=true)
+# Installs stress-ng (Debian) as root when missing. Prints each run's time, result and stage
+# times (also in target/test-stages/busy.txt), and exits with the first failing run's status
+# (0 when all passed).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-cpus=1 runs=1
+cpus=1 runs=1 fresh=
 while [ $# -gt 0 ]; do
     case $1 in
     --cpus) cpus=${2:?--cpus needs a number}; shift 2 ;;
     --runs) runs=${2:?--runs needs a number}; shift 2 ;;
-    -h | --help) sed -n '2,8p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    --fresh) fresh=${2:?--fresh needs a directory}; shift 2 ;;
+    -h | --help) sed -n '2,11p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
     --) shift; break ;;
     *) echo "test-busy.sh: unknown argument '$1' (--help)" >&2; exit 2 ;;
     esac
 done
 case "$cpus$runs" in *[!0-9]*) echo "test-busy.sh: --cpus and --runs take whole numbers" >&2; exit 2 ;; esac
+if [ -n "$fresh" ]; then
+    case $fresh in /*) ;; *) fresh=$PWD/$fresh ;; esac
+    case $fresh/ in "$PWD"/*) echo "test-busy.sh: --fresh $fresh is inside this repository" >&2; exit 2 ;; esac
+    # It is removed before each run: only a directory that is not there or an earlier clone.
+    if [ -e "$fresh" ] && [ ! -e "$fresh/.git" -o ! -e "$fresh/scripts/test-busy.sh" ]; then
+        echo "test-busy.sh: --fresh $fresh exists and is not a clone of this repository; not removing it" >&2
+        exit 2
+    fi
+fi
 
 if ! command -v stress-ng >/dev/null; then
     if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
@@ -50,10 +63,19 @@ for ((i = 1; i <= runs; i++)); do
     stress_pid=$!
     start=$(date +%s)
     run_rc=0
-    ./scripts/test.sh "$@" || run_rc=$?
+    if [ -n "$fresh" ]; then
+        rm -rf "$fresh"
+        git clone -q "$PWD" "$fresh"
+        (cd "$fresh" && CI=true ./scripts/test.sh "$@") || run_rc=$?
+        times=$fresh/target/test-stages/times.txt
+    else
+        ./scripts/test.sh "$@" || run_rc=$?
+        times=target/test-stages/times.txt
+    fi
     took=$(($(date +%s) - start))
     stop_stress
-    results+=("run $i of $runs, $cpus core(s) busy: exit $run_rc after $took s")
+    results+=("run $i of $runs${fresh:+ (fresh clone of $(git rev-parse --short HEAD))}, $cpus core(s) busy: exit $run_rc after $took s; $(
+        grep -E '^ +[0-9]+ s' "$times" 2>/dev/null | awk '{printf "%s%s %s", sep, $3, $1; sep=", "}')")
     printf '\n==> test-busy: %s\n' "${results[-1]}"
     if [ "$run_rc" != 0 ]; then
         rc=$run_rc

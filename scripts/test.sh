@@ -119,7 +119,8 @@ stage() {
 lane_progress() {
     local last
     if [ -n "${VCAN_PID:-}" ] && kill -0 "$VCAN_PID" 2>/dev/null; then
-        last=$(tail -n 1 target/vcan-lane/timeline.tsv 2>/dev/null | cut -f 2-)
+        # (Under set -e and pipefail: before the guest's first line there is no file yet.)
+        last=$(tail -n 1 target/vcan-lane/timeline.tsv 2>/dev/null | cut -f 2-) || last=
         printf '\n--- vcan lane, %d s in: %s\n' "$(($(now) - VCAN_T))" "${last:-booting}"
     fi
 }
