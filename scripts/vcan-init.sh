@@ -40,9 +40,48 @@ busybox mkdir -p /newroot/dev/pts /newroot/dev/shm
 busybox mount -t devpts devpts /newroot/dev/pts
 busybox mount -t tmpfs shm /newroot/dev/shm
 busybox chmod 1777 /newroot/tmp /newroot/dev/shm
-# The repository last: it may live under /tmp or /run, which the guest has of its own.
-busybox mkdir -p "/newroot$ROOT"
-busybox mount -t 9p -o "$opts" vcanrepo "/newroot$ROOT" || fail "mount the repository (9p vcanrepo) at $ROOT"
+
+# The trees the lane runs from, copied into the guest's memory (/ram.list, written by
+# scripts/vcan-vm.py): `tree PATH` is a tmpfs at PATH holding a copy of the host's PATH, but
+# for the `skip PATH` entries under it, which stay the host's (symbolic links into its root,
+# at /run/vcan-host), and the `empty PATH` ones, made as empty directories. The guest's clock
+# runs on while every guest process waits on the host (QEMU -icount sleep=off jumps to the
+# next timer), so a file read or opened through 9p mid-test could let another process's timer
+# fire first: a 60 s time-out while `ip` waited for its own binary, a plant's loop stalled
+# behind a page fault while the runner's went on.
+busybox mkdir -p /newroot/run/vcan-host
+busybox mount --bind /host /newroot/run/vcan-host
+listed() { busybox grep -qxF "$1 $2" /ram.list; }
+listed_below() { busybox grep -qF " $1/" /ram.list; }
+copy_children() { # PATH: the host's PATH's entries into the new root's PATH
+    local entry name
+    for entry in "/host$1"/* "/host$1"/.[!.]* "/host$1"/..?*; do
+        [ -e "$entry" ] || [ -L "$entry" ] || continue
+        name=${entry##*/}
+        if listed skip "$1/$name"; then
+            busybox ln -s "/run/vcan-host$1/$name" "/newroot$1/$name"
+        elif listed empty "$1/$name"; then
+            busybox mkdir -p "/newroot$1/$name"
+        elif [ -d "$entry" ] && [ ! -L "$entry" ] && listed_below "$1/$name"; then
+            busybox mkdir -p "/newroot$1/$name"
+            copy_children "$1/$name"
+        else
+            busybox cp -a "$entry" "/newroot$1/" || fail "copy $1/$name into memory"
+        fi
+    done
+}
+while read -r kind path; do
+    if [ "$kind" = tree ]; then
+        busybox mkdir -p "/newroot$path"
+        busybox mount -t tmpfs -o mode=0755 ram "/newroot$path" || fail "tmpfs at $path"
+        copy_children "$path"
+    fi
+done </ram.list
+# The lane's directory stays the host's, read-write (the exit code, the timing): the repository
+# shared writable, the lane's directory bound at its place.
+busybox mkdir -p /newroot/run/vcan-repo "/newroot$LANE"
+busybox mount -t 9p -o "$opts" vcanrepo /newroot/run/vcan-repo || fail "mount the repository (9p vcanrepo)"
+busybox mount --bind "/newroot/run/vcan-repo${LANE#"$ROOT"}" "/newroot$LANE" || fail "bind the lane's directory $LANE"
 # The console as a plain byte stream: no \r added before each \n.
 busybox stty -F /dev/console -opost 2>/dev/null
 

@@ -13,9 +13,10 @@ The console is the guest's serial port; every byte goes to stdout and to LANE/ou
 each line that starts with `lane:` or `vcan-guest:` (the pytest progress lines of
 tests/conftest.py, the guest script's own) also goes to LANE/timeline.tsv with the host's wall
 time since the VM started, so a run's guest and wall times can be set side by side
-(scripts/lane-times.py). At the time-out the guest is asked through the PS/2 keyboard (magic
-SysRq, over QMP) for its blocked tasks and what its CPU runs, the test that was running is
-named, and only then is QEMU stopped (exit 124).
+(scripts/lane-times.py). At the time-out (the whole VM's, or one test's: wall time, kept here
+because the guest's own clock jumps while it waits on the host) the test that was running is
+named, the guest is asked through its PS/2 keyboard (magic SysRq, over QMP) for its blocked
+tasks and what its CPU runs, and only then is QEMU stopped (exit 124).
 """
 
 from __future__ import annotations
@@ -166,6 +167,33 @@ def build_image(kernel: pathlib.Path, kver: str, init: pathlib.Path, guest_dir: 
     return (vmlinux if elf is not None else kernel), initramfs
 
 
+def ram_plan(root: pathlib.Path, lane: pathlib.Path, binaries: list[pathlib.Path]) -> list[str]:
+    """The lines of the guest's /ram.list (scripts/vcan-init.sh says what each kind means):
+    the repository, but for .git and, under target/, all but `binaries` (the lane's runner,
+    plant and codec) and the lane's own directory; and the Python the repository's .venv was
+    made from, but for its tests, its own site-packages (the venv has its own) and its static
+    libraries."""
+    lines = [f"tree {root}", f"skip {root / '.git'}", f"empty {lane}"]
+    target = root / "target"
+    keep = [b for b in binaries if b.is_file() and target in b.parents] + [lane]
+    # Every directory on the way from target/ to what is kept lists its other entries as skipped.
+    ancestors = {a for k in keep for a in k.parents if target == a or target in a.parents}
+    for directory in sorted(ancestors):
+        for entry in directory.iterdir():
+            if entry not in keep and entry not in ancestors:
+                lines.append(f"skip {entry}")
+    cfg = root / ".venv" / "pyvenv.cfg"
+    home = next((line.split("=", 1)[1].strip() for line in cfg.read_text().splitlines()
+                 if line.split("=", 1)[0].strip() == "home"), None) if cfg.is_file() else None
+    if home:
+        prefix = pathlib.Path(home).parent
+        if prefix != pathlib.Path("/") and root not in prefix.parents and prefix != root:
+            lines.append(f"tree {prefix}")
+            for pattern in ("lib/python3*/test", "lib/python3*/site-packages", "lib/python3*/config-*", "lib/*.a"):
+                lines += [f"skip {entry}" for entry in sorted(prefix.glob(pattern))]
+    return lines
+
+
 # --- the run -------------------------------------------------------------------------------------
 
 
@@ -181,6 +209,7 @@ class Console:
         self.timeline = open(lane / "timeline.tsv", "w")  # noqa: SIM115
         self.partial = b""
         self.last_start = ""  # the last `lane: start` line: the test now running
+        self.test_started: float | None = None  # its wall time (monotonic); None between tests
         self.setup_failed = ""
 
     def feed(self, data: bytes) -> None:
@@ -199,6 +228,9 @@ class Console:
                 self.timeline.flush()
                 if line.startswith("lane: start "):
                     self.last_start = line
+                    self.test_started = time.monotonic()
+                elif line.startswith("lane: end "):
+                    self.test_started = None
                 elif line.startswith("vcan-init: setup failed: "):
                     self.setup_failed = line.removeprefix("vcan-init: setup failed: ")
 
@@ -239,10 +271,12 @@ def main() -> int:
     ap.add_argument("--root", type=pathlib.Path, required=True, help="the repository, mounted read-write")
     ap.add_argument("--iface", default="vcan0")
     ap.add_argument("--txqueuelen", type=int, default=10000)
-    ap.add_argument("--memory", default="2G")
+    ap.add_argument("--memory", default="4G")
     ap.add_argument("--clock", choices=["icount", "host"], default="icount")
     ap.add_argument("--cpus", type=int, default=1)
     ap.add_argument("--timeout", type=float, required=True, help="wall seconds for the whole VM")
+    ap.add_argument("--test-timeout", type=float, default=0.0,
+                    help="wall seconds for one test (its `lane: start` to its `lane: end`); 0: none")
     ap.add_argument("--append", default="", help="more kernel command-line arguments")
     args = ap.parse_args()
     if not 1 <= args.cpus <= 64 or args.timeout <= 0:
@@ -255,8 +289,16 @@ def main() -> int:
     # The run's settings as a second archive after the first: the kernel unpacks both.
     env = "".join(f"{k}={shlex.quote(str(v))}\n" for k, v in
                   (("ROOT", root), ("LANE", lane), ("IFACE", args.iface), ("TXQUEUELEN", args.txqueuelen)))
+    binaries = [pathlib.Path(os.environ[v]).resolve() for v in ("HOSTSIM", "MECANUM_RUNNER", "MECANUM_CODEC")
+                if os.environ.get(v)]
+    # Opt-in (VCAN_VM_RAM=1) until it costs less: the copy through 9p took 139 s of wall time
+    # with the host busy (docs/reliability.md, "Where the suite's time goes").
+    plan = ram_plan(root, lane, binaries) if os.environ.get("VCAN_VM_RAM") == "1" else []
+    ram = "".join(line + "\n" for line in plan)
+    (lane / "ram.list").write_text(ram)  # for a look after a run
     initrd = lane / "initrd.cpio"
-    initrd.write_bytes(initramfs.read_bytes() + newc([("lane.env", 0o100644, env.encode())]))
+    initrd.write_bytes(initramfs.read_bytes() + newc([("lane.env", 0o100644, env.encode()),
+                                                      ("ram.list", 0o100644, ram.encode())]))
 
     def share(tag: str, path: pathlib.Path, readonly: bool) -> list[str]:
         quoted = str(path).replace(",", ",,")  # QEMU doubles a comma in an option's value
@@ -307,9 +349,14 @@ def main() -> int:
         now = time.monotonic()
         if stop["signal"] and proc.poll() is None:
             proc.terminate()
-        if dump_until is None and now >= deadline and proc.poll() is None:
+        test_over = (args.test_timeout > 0 and console.test_started is not None
+                     and now - console.test_started >= args.test_timeout)
+        if dump_until is None and (now >= deadline or test_over) and proc.poll() is None:
             running = console.last_start.removeprefix("lane: start ") or "no test had started"
-            log(f"TIME-OUT: the VM's limit of {args.timeout:.0f} s is reached; running: {running}")
+            if test_over:
+                log(f"TIME-OUT: a test ran longer than its limit of {args.test_timeout:.0f} s: {running}")
+            else:
+                log(f"TIME-OUT: the VM's limit of {args.timeout:.0f} s is reached; running: {running}")
             log("asking the guest for its blocked tasks and its CPU's backtrace (SysRq w, l)")
             problem = send_sysrq(qmp, "wl")
             if problem:

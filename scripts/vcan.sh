@@ -12,7 +12,8 @@ TXQUEUELEN=10000
 DEB_PACKAGES=(qemu-system-x86 linux-image-amd64 busybox-static can-utils iproute2 tmux)
 MODE=${VCAN_MODE:-auto}
 VM_TIMEOUT=${VCAN_VM_TIMEOUT:-1800}
-VM_MEMORY=${VCAN_VM_MEMORY:-2G}
+TEST_TIMEOUT=${VCAN_TEST_TIMEOUT:-0}
+VM_MEMORY=${VCAN_VM_MEMORY:-4G}
 VM_CLOCK=${VCAN_VM_CLOCK:-icount}
 VM_CPUS=${VCAN_VM_CPUS:-}
 usage() {
@@ -56,8 +57,9 @@ How $IFACE comes up, first that works:
      target/vcan-lane/exit-code, and the progress lines (\`lane: ...\`, one as each test
      starts and ends, with its guest time) with the host's wall time in
      target/vcan-lane/timeline.tsv (scripts/lane-times.py makes the table of both).
-     At the time-out the script names the test that was running, has the guest print its
-     blocked tasks and its CPU's backtrace (magic SysRq), then stops the VM.
+     At the time-out (VCAN_VM_TIMEOUT, or one test's VCAN_TEST_TIMEOUT) the script names the
+     test that was running, has the guest print its blocked tasks and its CPU's backtrace
+     (magic SysRq), then stops the VM.
   3. neither: in CI (CI set to anything but empty, 0 or false) that is a failure (exit 1,
      saying why); elsewhere the script prints "SKIP: <why>" and exits 0 without running
      COMMAND.
@@ -70,11 +72,15 @@ Options:
   -h, --help   this text
 
 Environment: VCAN_VM_TIMEOUT (wall seconds, default 1800; bounds a native COMMAND too),
-VCAN_VM_MEMORY (default 2G), VCAN_VM_CLOCK (icount or host; see above),
+VCAN_TEST_TIMEOUT (wall seconds one test may take in the VM, from its \`lane: start\` line to
+its \`lane: end\`; default 0, none),
+VCAN_VM_MEMORY (default 4G), VCAN_VM_CLOCK (icount or host; see above),
 VCAN_VM_CPUS (default 1 with icount, else host CPUs up to 4), VCAN_KERNEL (a vmlinuz to boot
 instead of the one linux-image-amd64 installed; its modules must be in /lib/modules),
 VCAN_NO_INSTALL=1 (install nothing: what is missing makes the lane unavailable),
-VCAN_VM_APPEND (more kernel command-line arguments for the VM).
+VCAN_VM_APPEND (more kernel command-line arguments for the VM), VCAN_VM_RAM=1 (copy the
+repository, its .venv and its Python into the guest's memory at boot, so that no test waits on
+9p: slow for now, see docs/reliability.md).
 EOF
 }
 
@@ -373,7 +379,8 @@ cd "$ROOT"
 vm_rc=0
 run_forwarding python3 "$SCRIPT_DIR/vcan-vm.py" --kernel "$KERNEL" --lane "$LANE" --root "$ROOT" \
     --iface "$IFACE" --txqueuelen "$TXQUEUELEN" --memory "$VM_MEMORY" --clock "$VM_CLOCK" \
-    --cpus "$VM_CPUS" --timeout "$VM_TIMEOUT" --append "${VCAN_VM_APPEND:-}" || vm_rc=$?
+    --cpus "$VM_CPUS" --timeout "$VM_TIMEOUT" --test-timeout "$TEST_TIMEOUT" \
+    --append "${VCAN_VM_APPEND:-}" || vm_rc=$?
 exit_if_interrupted
 T_END=$(now)
 
@@ -385,7 +392,7 @@ fi
 log "vm: prepare $(elapsed "$T_START" "$T_BOOT") s, VM $(elapsed "$T_BOOT" "$T_END") s$timing"
 
 if [ "$vm_rc" = 124 ]; then
-    log "FAIL: the VM's time-out (VCAN_VM_TIMEOUT=$VM_TIMEOUT s); the test it names above was running"
+    log "FAIL: a time-out (VCAN_VM_TIMEOUT=$VM_TIMEOUT s for the VM, VCAN_TEST_TIMEOUT=$TEST_TIMEOUT s a test); the TIME-OUT line above names the test"
     exit 124
 fi
 if [ -s "$LANE/exit-code" ]; then
