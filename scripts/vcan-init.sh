@@ -77,11 +77,18 @@ while read -r kind path; do
         copy_children "$path"
     fi
 done </ram.list
-# The lane's directory stays the host's, read-write (the exit code, the timing): the repository
-# shared writable, the lane's directory bound at its place.
-busybox mkdir -p /newroot/run/vcan-repo "/newroot$LANE"
-busybox mount -t 9p -o "$opts" vcanrepo /newroot/run/vcan-repo || fail "mount the repository (9p vcanrepo)"
-busybox mount --bind "/newroot/run/vcan-repo${LANE#"$ROOT"}" "/newroot$LANE" || fail "bind the lane's directory $LANE"
+# The repository, shared read-write, at its place (mounted after the guest's own /tmp and /run,
+# where it may live); when its copy in memory is there instead, the lane's directory alone is
+# bound from it at its place: it stays the host's (the exit code, the timing).
+if listed tree "$ROOT"; then
+    busybox mkdir -p /newroot/run/vcan-repo "/newroot$LANE"
+    busybox mount -t 9p -o "$opts" vcanrepo /newroot/run/vcan-repo || fail "mount the repository (9p vcanrepo)"
+    busybox mount --bind "/newroot/run/vcan-repo${LANE#"$ROOT"}" "/newroot$LANE" ||
+        fail "bind the lane's directory $LANE"
+else
+    busybox mkdir -p "/newroot$ROOT"
+    busybox mount -t 9p -o "$opts" vcanrepo "/newroot$ROOT" || fail "mount the repository (9p vcanrepo) at $ROOT"
+fi
 # The console as a plain byte stream: no \r added before each \n.
 busybox stty -F /dev/console -opost 2>/dev/null
 
