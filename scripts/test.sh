@@ -140,6 +140,14 @@ stop_vcan() {
     fi
     VCAN_PID=
 }
+# Waits for a job started in the background (PID), prints its output (LOG), and returns its
+# status: at the top level a failure there runs the ERR trap, which names the stage.
+join_background() {
+    local rc=0
+    wait "$1" || rc=$?
+    cat "$2"
+    return "$rc"
+}
 # prepare's build, while it runs in the background.
 BUILD_PID=
 stop_build() {
@@ -198,13 +206,9 @@ if wanted prepare; then
     # The project's own Python package (python/), as a user installs it: its wheel carries the
     # robot DBC from dbc/. Reinstalled every run, so the tests see this checkout's code.
     .venv/bin/python -m pip install --quiet --disable-pip-version-check --force-reinstall --no-deps ./python
-    build_rc=0
-    wait "$BUILD_PID" || build_rc=$?
+    build_pid=$BUILD_PID
     BUILD_PID=
-    cat "$LOGS/prepare-build.log"
-    if [ "$build_rc" != 0 ]; then
-        (exit "$build_rc")
-    fi
+    join_background "$build_pid" "$LOGS/prepare-build.log"
 fi
 export HOSTSIM="$PWD/target/ci/hostsim" MECANUM_RUNNER="$PWD/target/ci/mecanum-runner" \
     MECANUM_CODEC="$PWD/target/ci/mecanum-codec"
@@ -314,13 +318,9 @@ if [ -n "$VCAN_PID" ]; then
     STAGE=vcan
     STAGE_T=$VCAN_T
     printf '\n==> vcan: waiting for the lane (started %d s ago)\n' "$(($(now) - VCAN_T))"
-    vcan_rc=0
-    wait "$VCAN_PID" || vcan_rc=$?
+    vcan_pid=$VCAN_PID
     VCAN_PID=
-    cat "$LOGS/vcan.log"
-    if [ "$vcan_rc" != 0 ]; then
-        (exit "$vcan_rc")
-    fi
+    join_background "$vcan_pid" "$LOGS/vcan.log"
 fi
 
 finish_stage
