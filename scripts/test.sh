@@ -45,10 +45,12 @@ EOF
     cat <<EOF
 
 The vcan lane takes one host core (the micro-VM's clock counts the guest's instructions, so a
-busy host slows it down but cannot make its timing tests fail) and runs while the other
-stages use the rest of the machine; its output is printed when it ends (and kept in
-$LOGS/vcan.log). Without vcan0 and without the VM's packages it is skipped, or fails when CI
-is set (.ci/run sets it).
+busy host slows it down without moving its timeline) and runs while the other stages use the
+rest of the machine at a lower priority (niceness 10); at each stage this script says which
+test the lane is at, and its output is printed when it ends (and kept in $LOGS/vcan.log;
+scripts/lane-times.py tables its times). Its limits, in wall time: VCAN_VM_TIMEOUT (1530 s)
+and, per test, VCAN_TEST_TIMEOUT (390 s). Without vcan0 and without the VM's packages it is
+skipped, or fails when CI is set (.ci/run sets it).
 
 Options:
   --only STAGES  run only these stages (comma-separated names from the list), e.g.

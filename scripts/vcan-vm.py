@@ -31,10 +31,12 @@ import os
 import pathlib
 import selectors
 import shlex
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 
 # The modules the lane needs (with what they depend on, from the kernel's modules.dep): the
@@ -306,9 +308,10 @@ def main() -> int:
                 + (",readonly=on" if readonly else ""),
                 "-device", f"virtio-9p-pci,fsdev={tag},mount_tag={tag}"]
 
-    qmp = lane / "qmp.sock"
-    with contextlib.suppress(FileNotFoundError):
-        qmp.unlink()
+    # QEMU's monitor socket, in a directory of its own under the temporary directory: a socket's
+    # path has at most 107 bytes, and the repository's may be longer.
+    qmp_dir = pathlib.Path(tempfile.mkdtemp(prefix="vcan-qmp-"))
+    qmp = qmp_dir / "qmp.sock"
     # `no_timer_check`: the IO-APIC timer check's busy waits poll emulated timers, seconds of
     # wall time for milliseconds of guest time. The TSC is the guest's clock: with -icount it
     # counts the guest's instructions. `preempt=full`, as a robot's real-time computer runs: the
@@ -374,6 +377,7 @@ def main() -> int:
             break
         console.feed(data)
     rc = proc.wait()
+    shutil.rmtree(qmp_dir, ignore_errors=True)
     console.close()
     if console.setup_failed:
         (lane / "setup-failed").write_text(console.setup_failed + "\n")

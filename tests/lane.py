@@ -5,9 +5,9 @@ state when something fails. Active only where scripts/vcan.sh runs the tests
 Progress: one `lane: start [n/N] NODEID (guest T s)` line as a test starts and one
 `lane: end [n/N] OUTCOME NODEID in S s (guest T s)` as it ends, S being the test's setup, call
 and teardown. In the micro-VM these are guest times (the guest's clock counts its executed
-instructions, so they do not depend on the host's speed or load); scripts/vcan-vm.py stamps each
-line with the host's wall time as well (target/vcan-lane/timeline.tsv), and
-scripts/lane-times.py sets the two side by side.
+instructions, and jumps to its next timer while every guest process waits, also on the host:
+scripts/vcan.sh --help); scripts/vcan-vm.py stamps each line with the host's wall time as well
+(target/vcan-lane/timeline.tsv), and scripts/lane-times.py sets the two side by side.
 
 A test's budget is kept by the host, in wall time (scripts/vcan-vm.py --test-timeout), not here:
 while every guest process waits on the host, the guest's clock jumps to its next timer, and a
