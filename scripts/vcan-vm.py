@@ -281,8 +281,11 @@ def main() -> int:
                     help="wall seconds for one test (its `lane: start` to its `lane: end`); 0: none")
     ap.add_argument("--append", default="", help="more kernel command-line arguments")
     args = ap.parse_args()
-    if not 1 <= args.cpus <= 64 or args.timeout <= 0:
-        ap.error("--cpus must be 1..64 and --timeout positive")
+    if not 1 <= args.cpus <= 64:
+        ap.error(f"--cpus {args.cpus}: must be 1..64")
+    if not 0 < args.timeout < 1e7 or not 0 <= args.test_timeout < 1e7:
+        ap.error(f"--timeout {args.timeout} must be positive and --test-timeout {args.test_timeout} "
+                 "zero (none) or positive, both below 1e7 s")
     lane, root = args.lane.resolve(), args.root.resolve()
     kver = args.kernel.name.removeprefix("vmlinuz-")
     here = pathlib.Path(__file__).resolve().parent
