@@ -135,11 +135,15 @@ print_times() {
 }
 
 VCAN_PID=
-stop_vcan() {
-    if [ -n "$VCAN_PID" ] && kill -0 "$VCAN_PID" 2>/dev/null; then
-        kill -TERM "$VCAN_PID" 2>/dev/null || true
-        wait "$VCAN_PID" 2>/dev/null || true
+# Ends a job started in the background (PID, may be empty) and waits for it.
+stop_background() {
+    if [ -n "$1" ] && kill -0 "$1" 2>/dev/null; then
+        kill -TERM "$1" 2>/dev/null || true
+        wait "$1" 2>/dev/null || true
     fi
+}
+stop_vcan() {
+    stop_background "$VCAN_PID"
     VCAN_PID=
 }
 # Waits for a job started in the background (PID), prints its output (LOG), and returns its
@@ -153,10 +157,7 @@ join_background() {
 # prepare's build, while it runs in the background.
 BUILD_PID=
 stop_build() {
-    if [ -n "$BUILD_PID" ]; then
-        kill -TERM "$BUILD_PID" 2>/dev/null || true
-        wait "$BUILD_PID" 2>/dev/null || true
-    fi
+    stop_background "$BUILD_PID"
     BUILD_PID=
 }
 on_error() {
@@ -208,9 +209,9 @@ if wanted prepare; then
     # The project's own Python package (python/), as a user installs it: its wheel carries the
     # robot DBC from dbc/. Reinstalled every run, so the tests see this checkout's code.
     .venv/bin/python -m pip install --quiet --disable-pip-version-check --force-reinstall --no-deps ./python
-    build_pid=$BUILD_PID
+    # The PID stays set while it is waited for: a signal meanwhile stops the build (stop_build).
+    join_background "$BUILD_PID" "$LOGS/prepare-build.log"
     BUILD_PID=
-    join_background "$build_pid" "$LOGS/prepare-build.log"
 fi
 export HOSTSIM="$PWD/target/ci/hostsim" MECANUM_RUNNER="$PWD/target/ci/mecanum-runner" \
     MECANUM_CODEC="$PWD/target/ci/mecanum-codec"
@@ -320,9 +321,9 @@ if [ -n "$VCAN_PID" ]; then
     STAGE=vcan
     STAGE_T=$VCAN_T
     printf '\n==> vcan: waiting for the lane (started %d s ago)\n' "$(($(now) - VCAN_T))"
-    vcan_pid=$VCAN_PID
+    # The PID stays set while it is waited for: a signal meanwhile stops the lane (stop_vcan).
+    join_background "$VCAN_PID" "$LOGS/vcan.log"
     VCAN_PID=
-    join_background "$vcan_pid" "$LOGS/vcan.log"
 fi
 
 finish_stage

@@ -1,6 +1,7 @@
 #!/bin/busybox sh
-# PID 1 of the vcan lane's micro-VM (scripts/vcan.sh packs it into the guest's initramfs as
-# /init, with busybox, the kernel modules it lists in /modules.list and the run's /lane.env).
+# PID 1 of the vcan lane's micro-VM (scripts/vcan-vm.py packs it into the guest's initramfs as
+# /init, with busybox, the kernel modules it lists in /modules.list, the run's /lane.env and
+# /ram.list).
 # It loads the modules from the initramfs, mounts the host's root read-only over 9p with the
 # guest's page cache on, under an overlay whose upper layer is the guest's memory (the guest may
 # write anywhere; nothing reaches the host), mounts the repository read-write at its own path,
@@ -11,7 +12,7 @@ busybox mount -t proc proc /proc
 busybox mount -t sysfs sys /sys
 busybox mount -t devtmpfs dev /dev
 # shellcheck source=/dev/null
-. /lane.env # ROOT LANE IFACE TXQUEUELEN (scripts/vcan.sh writes it)
+. /lane.env # ROOT LANE IFACE TXQUEUELEN (scripts/vcan-vm.py writes it)
 # Magic SysRq on (the host's time-out asks for the blocked tasks through the PS/2 keyboard).
 echo 1 >/proc/sys/kernel/sysrq
 

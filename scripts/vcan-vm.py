@@ -54,6 +54,14 @@ def log(msg: str) -> None:
 # --- the guest image ---------------------------------------------------------------------------
 
 
+def write_whole(path: pathlib.Path, data: bytes) -> None:
+    """`data` to `path` through `PATH.part` and a rename: a run that fails midway leaves no
+    half-written file where QEMU or a later run would read one."""
+    part = path.with_name(path.name + ".part")
+    part.write_bytes(data)
+    part.rename(path)
+
+
 def unpack_vmlinux(bzimage: bytes) -> bytes | None:
     """The kernel's ELF image from a bzImage whose payload is xz or gzip (Debian's is xz), or
     None (the bzImage is booted as it is then: slower, the same guest)."""
@@ -149,8 +157,7 @@ def build_image(kernel: pathlib.Path, kver: str, init: pathlib.Path, guest_dir: 
     started = time.monotonic()
     elf = unpack_vmlinux(kernel.read_bytes())
     if elf is not None:
-        vmlinux.with_suffix(".part").write_bytes(elf)
-        vmlinux.with_suffix(".part").rename(vmlinux)
+        write_whole(vmlinux, elf)
     modules = module_paths(kver, MODULES)
     entries: list[tuple[str, int, bytes]] = [
         (d, 0o40755, b"") for d in ("bin", "dev", "proc", "sys", "lib", "lib/modules")
@@ -160,9 +167,7 @@ def build_image(kernel: pathlib.Path, kver: str, init: pathlib.Path, guest_dir: 
                 ("init", 0o100755, init.read_bytes()),
                 ("modules.list", 0o100644, "".join(ko_name(m) + "\n" for m in modules).encode())]
     entries += [(f"lib/modules/{ko_name(m)}", 0o100644, ko_bytes(m)) for m in modules]
-    part = initramfs.with_suffix(".part")
-    part.write_bytes(newc(entries))
-    part.rename(initramfs)
+    write_whole(initramfs, newc(entries))
     log(f"guest image built in {time.monotonic() - started:.1f} s: "
         f"{'vmlinux (PVH entry)' if elf is not None else kernel.name + ' (no ELF payload found)'}, "
         f"initramfs {initramfs.stat().st_size >> 10} KiB, {len(modules)} modules")
@@ -300,10 +305,10 @@ def main() -> int:
     # with the host busy (docs/reliability.md, "Where the suite's time goes").
     plan = ram_plan(root, lane, binaries) if os.environ.get("VCAN_VM_RAM") == "1" else []
     ram = "".join(line + "\n" for line in plan)
-    (lane / "ram.list").write_text(ram)  # for a look after a run
+    write_whole(lane / "ram.list", ram.encode())  # for a look after a run
     initrd = lane / "initrd.cpio"
-    initrd.write_bytes(initramfs.read_bytes() + newc([("lane.env", 0o100644, env.encode()),
-                                                      ("ram.list", 0o100644, ram.encode())]))
+    write_whole(initrd, initramfs.read_bytes() + newc([("lane.env", 0o100644, env.encode()),
+                                                       ("ram.list", 0o100644, ram.encode())]))
 
     def share(tag: str, path: pathlib.Path, readonly: bool) -> list[str]:
         quoted = str(path).replace(",", ",,")  # QEMU doubles a comma in an option's value

@@ -128,7 +128,7 @@ _ARPHRD_CAN = 280  # /sys/class/net/<if>/type of a CAN interface (linux/if_arp.h
 
 def pytest_configure(config: pytest.Config) -> None:
     """Registers the project's markers (one hook per conftest: add further markers here) and
-    the vcan lane's hooks (lane.py: progress, the guest-time budget, the guest's state)."""
+    the vcan lane's hooks (lane.py: progress, the guest's state on a failure)."""
     import lane
 
     if not config.pluginmanager.is_registered(lane):

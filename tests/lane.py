@@ -28,7 +28,7 @@ import pytest
 
 IN_LANE = bool(os.environ.get("MECANUM_VCAN_MODE"))
 IN_VM = os.environ.get("MECANUM_VCAN_MODE") == "vm"
-_state: dict[str, object] = {"n": 0, "total": 0, "started": 0.0}
+_state: dict[str, object] = {"n": 0, "total": 0, "started": 0.0, "config": None}
 
 
 def guest_state(lines: int = 80) -> str:
@@ -48,8 +48,9 @@ def guest_state(lines: int = 80) -> str:
     return "\n".join(out.splitlines()[-lines:])
 
 
-def _say(config: pytest.Config, line: str) -> None:
-    reporter = config.pluginmanager.get_plugin("terminalreporter")
+def _say(line: str) -> None:
+    config = _state["config"]
+    reporter = config.pluginmanager.get_plugin("terminalreporter") if isinstance(config, pytest.Config) else None
     if reporter is not None:
         reporter.ensure_newline()
         reporter.write_line(line)
@@ -67,7 +68,7 @@ def pytest_runtest_logstart(nodeid: str, location: object) -> None:
         return
     _state["n"] = int(_state["n"]) + 1  # type: ignore[call-overload]
     _state["started"] = time.monotonic()
-    _say(_CONFIG[0], f"lane: start [{_state['n']}/{_state['total']}] {nodeid} (guest {_uptime()} s)")
+    _say(f"lane: start [{_state['n']}/{_state['total']}] {nodeid} (guest {_uptime()} s)")
 
 
 def pytest_runtest_logfinish(nodeid: str, location: object) -> None:
@@ -75,16 +76,14 @@ def pytest_runtest_logfinish(nodeid: str, location: object) -> None:
         return
     took = time.monotonic() - float(_state["started"])  # type: ignore[arg-type]
     outcome = _OUTCOMES.pop(nodeid, "passed")
-    _say(_CONFIG[0], f"lane: end [{_state['n']}/{_state['total']}] {outcome} {nodeid} in {took:.1f} s "
-                     f"(guest {_uptime()} s)")
+    _say(f"lane: end [{_state['n']}/{_state['total']}] {outcome} {nodeid} in {took:.1f} s (guest {_uptime()} s)")
 
 
 _OUTCOMES: dict[str, str] = {}
-_CONFIG: list[pytest.Config] = []
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    _CONFIG[:] = [config]
+    _state["config"] = config
 
 
 @pytest.hookimpl(hookwrapper=True)
