@@ -11,6 +11,11 @@ THUMB=thumbv7em-none-eabihf
 # no_std crates that must build for the MCU target.
 NO_STD_CRATES=(kinematics firmware)
 BOARD=boards/stm32f407
+# The workspace's `ci` builds compile its crates with Clippy's lints (scripts/clippy-rustc.sh):
+# one build is both the lint check and what the tests run. Every `--profile ci` command below
+# sets it, as Cargo rebuilds a crate whose wrapper changed. Not the boards: their images are
+# built as a user builds them.
+LINT_WRAPPER=$PWD/scripts/clippy-rustc.sh
 QEMU_BOARD=boards/qemu-m4
 LOGS=target/test-stages
 
@@ -20,13 +25,12 @@ STAGES=(
     "vcan|the tests marked vcan on a real vcan0: natively where the kernel has vcan, else in a QEMU micro-VM (scripts/vcan.sh); runs in the background beside the stages below"
     "fmt|cargo fmt --check"
     "stm32f407|$BOARD: clippy, the release images for the DJI, the ODrive and the CiA 402 example (boardsim's tests run the first two), their flash and RAM budgets"
-    "clippy|cargo clippy, all targets and features, -D warnings"
+    "clippy|every target of the workspace (lib, bins, tests, benchmarks, examples; all features) built with Clippy's lints, -D warnings: the build the tests run (scripts/clippy-rustc.sh)"
     "rust-tests|cargo test: unit, integration, property and doc tests; boardsim runs the $BOARD image"
     "rustdoc|cargo doc, -D warnings, default and all features"
     "no-std|the no_std crates (${NO_STD_CRATES[*]}, firmware with serde) for $THUMB"
     "qemu-m4|$QEMU_BOARD: fmt, clippy; the core on an emulated Cortex-M4 bit-identical to the host (scripts/xtarget.sh)"
-    "bench-build|the criterion benchmarks of every crate compile and link"
-    "python|the Python tests that need no CAN bus (cantools, mcap, rosbags, the package)"
+    "python|the Python tests that need no CAN bus (cantools, mcap, rosbags, the package), a worker per core (pytest-xdist)"
 )
 
 usage() {
@@ -186,7 +190,8 @@ if wanted prepare; then
     # network): once, in the profile every Rust stage below shares (`ci`, Cargo.toml),
     # optimised, as the vcan lane's runner and plant must be (a 1 kHz loop on an emulated
     # CPU); `cargo test` reuses these crates instead of compiling them again.
-    cargo build --profile ci --locked --all-features -p hostsim --bin hostsim \
+    RUSTC_WORKSPACE_WRAPPER=$LINT_WRAPPER \
+        cargo build --profile ci --locked --all-features -p hostsim --bin hostsim \
         -p mecanum-runner --bin mecanum-runner -p mecanum-codec --bin mecanum-codec \
         >"$LOGS/prepare-build.log" 2>&1 &
     BUILD_PID=$!
@@ -230,8 +235,10 @@ if wanted vcan; then
     # ROS 2 session) 100-130 s; two and a half times the one, three times the other. The lane
     # keeps its core on a busy machine (the stages below run niced), so only a hang, or a
     # machine far slower, reaches them; then the lane names the test and what the guest did.
+    # (pytest-xdist, the python stage's, is not loaded there: its import costs the guest's CPU.)
     VCAN_VM_TIMEOUT=${VCAN_VM_TIMEOUT:-1530} VCAN_TEST_TIMEOUT=${VCAN_TEST_TIMEOUT:-390} \
         scripts/vcan.sh -- .venv/bin/python -m pytest tests -m vcan -q -s -p no:cacheprovider -rs --color=no \
+        -p no:xdist -p no:xdist.looponfail \
         >"$LOGS/vcan.log" 2>&1 &
     VCAN_PID=$!
     STAGE=
@@ -266,19 +273,25 @@ if wanted stm32f407; then
 fi
 
 if wanted clippy; then
-    stage clippy "all targets, all features, -D warnings"
-    cargo clippy --profile ci --workspace --all-targets --all-features --locked -- -D warnings
+    stage clippy "every target, all features, built with Clippy's lints (-D warnings)"
+    # `cargo clippy --all-targets` with code generation: the same lints on the same targets,
+    # and the build that rust-tests runs (what `cargo test` builds: examples as programs, not
+    # as tests as with --all-targets), then the benchmarks (criterion: built, not run).
+    RUSTC_WORKSPACE_WRAPPER=$LINT_WRAPPER cargo test --profile ci --workspace --all-features --no-run --locked
+    RUSTC_WORKSPACE_WRAPPER=$LINT_WRAPPER cargo test --profile ci --workspace --all-features --benches --no-run --locked
 fi
 
 if wanted rust-tests; then
     stage rust-tests "cargo test --workspace --all-features (the ci profile)"
-    cargo test --profile ci --workspace --all-features --locked
+    RUSTC_WORKSPACE_WRAPPER=$LINT_WRAPPER cargo test --profile ci --workspace --all-features --locked
 fi
 
 if wanted rustdoc; then
     stage rustdoc "-D warnings, default and all features"
-    RUSTDOCFLAGS="-D warnings" cargo doc --profile ci --workspace --no-deps --locked
-    RUSTDOCFLAGS="-D warnings" cargo doc --profile ci --workspace --no-deps --all-features --locked
+    RUSTDOCFLAGS="-D warnings" RUSTC_WORKSPACE_WRAPPER=$LINT_WRAPPER \
+        cargo doc --profile ci --workspace --no-deps --locked
+    RUSTDOCFLAGS="-D warnings" RUSTC_WORKSPACE_WRAPPER=$LINT_WRAPPER \
+        cargo doc --profile ci --workspace --no-deps --all-features --locked
 fi
 
 if wanted no-std; then
@@ -303,17 +316,11 @@ if wanted qemu-m4; then
     scripts/xtarget.sh
 fi
 
-# Every criterion benchmark compiles and links, built like the tests above (the ci profile, the
-# same features: it reuses their dependencies). `cargo bench` builds them with the release
-# profile's fat LTO, minutes of compiling for the same check.
-if wanted bench-build; then
-    stage bench-build "the benchmarks of every crate compile and link (cargo test --benches --no-run)"
-    cargo test --profile ci --workspace --all-features --benches --no-run --locked
-fi
-
 if wanted python; then
-    stage python "pytest -m 'not vcan' (the binaries built in prepare)"
-    .venv/bin/python -m pytest tests -q -m "not vcan"
+    stage python "pytest -m 'not vcan' (the binaries built in prepare), a worker per core"
+    # Most of these tests wait on the processes they drive: spread over the cores, a module to
+    # a worker (its module fixtures built once), the stage took 63 s instead of 101 s.
+    .venv/bin/python -m pytest tests -q -m "not vcan" -n auto --dist loadfile
 fi
 
 if [ -n "$VCAN_PID" ]; then
