@@ -19,6 +19,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 
 import pytest
@@ -56,8 +57,9 @@ ANSWER_S = 10.0 if SLOW_CPU else 2.0
 #: the emulated machine stalls the runner or this process for a few hundred milliseconds at
 #: times when its host is busy (a CI run saw 0.34 s); natively the package's default, 3.
 MISSED_HEARTBEATS = 20 if HOST_STALLS else 3
-#: How late a key typed through tmux may act: each `tmux send-keys` is a process start,
-#: which the emulated machine takes a good part of a second for when it is busy.
+#: How late a key typed through tmux may act: it goes through the tmux server and the pane's
+#: terminal to the teleop process, which the emulated machine may stall for a good part of a
+#: second when it is busy.
 KEY_SLACK_S = 1.5 if SLOW_CPU else 0.2
 
 #: The README's example, as written there.
@@ -180,6 +182,47 @@ def test_a_program_killed_mid_drive_leaves_the_robot_stopped(robot_factory, vcan
     assert all(not any(dji_currents(f)) for f in after if f.t >= first_zero.t)
 
 
+def hold_key(tmux: str, socket: str, key: str, repeats: int, period_s: float) -> tuple[float, float]:
+    """Types `key` `repeats` times, `period_s` apart, as a terminal's auto-repeat does, into the
+    tmux server at `socket`; returns (first key sent, last key sent), wall time.
+
+    The keys go through one control-mode client (`tmux -C`, its pane output off), one command a
+    line: a `tmux send-keys` process per key takes the emulated machine a good part of a second
+    each, so the key would repeat a few times a second, not at 50 per second. The client is
+    attached (it has answered a command) before the first key."""
+    client = subprocess.Popen([tmux, "-S", socket, "-C", "attach-session", "-f", "no-output"],
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    assert client.stdin is not None and client.stdout is not None
+    answered = threading.Event()
+    lines: list[str] = []
+
+    def read() -> None:  # until the client exits: its stdout never fills
+        assert client.stdout is not None
+        for line in client.stdout:
+            lines.append(line)
+            if line.startswith("%end"):
+                answered.set()
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    try:
+        client.stdin.write("display-message -p attached\n")
+        client.stdin.flush()
+        assert answered.wait(3 * ANSWER_S), f"tmux -C did not answer: {lines}"
+        pressed = time.time()
+        for _ in range(repeats):
+            client.stdin.write(f"send-keys {key}\n")
+            client.stdin.flush()
+            time.sleep(period_s)
+        released = time.time()
+    finally:
+        client.stdin.close()  # detaches the client
+        client.wait(timeout=30)
+        reader.join(timeout=30)
+    assert not any(line.startswith("%error") for line in lines), lines
+    return pressed, released
+
+
 def test_teleop_under_tmux_moves_forward_and_stops(robot_factory, vcan, tmp_path) -> None:
     """`mecanum-drive teleop` in a real terminal (tmux): holding `w` (the key repeated, as a
     terminal's auto-repeat does) drives forward; releasing it stops the twist within the
@@ -205,11 +248,7 @@ def test_teleop_under_tmux_moves_forward_and_stops(robot_factory, vcan, tmp_path
             while "state     ENABLED" not in (screen := tmux_cmd("capture-pane", "-p").stdout):
                 assert time.monotonic() < deadline, f"teleop never showed ENABLED:\n{screen}"
                 time.sleep(0.2)
-            pressed = time.time()
-            for _ in range(60):  # 1.2 s of a held key at 50 repeats per second
-                tmux_cmd("send-keys", "w")
-                time.sleep(0.02)
-            released = time.time()
+            pressed, released = hold_key(tmux, socket, "w", repeats=60, period_s=0.02)
             time.sleep(1.0)
             screen = tmux_cmd("capture-pane", "-p").stdout
             tmux_cmd("send-keys", "Escape")
