@@ -107,9 +107,29 @@ TIMES=()
 STAGE=
 STAGE_T=
 now() { date +%s; }
+# The machine's busy and total CPU time so far, in clock ticks (the first line of /proc/stat;
+# busy is all but idle and iowait): a stage's share of the machine's cores, beside its wall
+# time, says whether it waited on one core or used them all. "0 0" where there is no /proc.
+cpu_ticks() {
+    local _cpu user nice system idle iowait rest
+    if read -r _cpu user nice system idle iowait rest </proc/stat 2>/dev/null; then
+        local total=$((user + nice + system + idle + iowait))
+        for n in $rest; do total=$((total + n)); done
+        echo "$((total - idle - iowait)) $total"
+    else
+        echo "0 0"
+    fi
+}
+read -r T0_BUSY T0_TOTAL <<<"$(cpu_ticks)"
 finish_stage() {
     if [ -n "$STAGE" ]; then
-        TIMES+=("$(printf '%6d s  %s' "$(($(now) - STAGE_T))" "$STAGE")")
+        local busy total
+        read -r busy total <<<"$(cpu_ticks)"
+        local share=
+        if [ "$((total - STAGE_TOTAL))" -gt 0 ]; then
+            share=$(printf '%4d%% of the CPUs' "$((100 * (busy - STAGE_BUSY) / (total - STAGE_TOTAL)))")
+        fi
+        TIMES+=("$(printf '%6d s  %-12s %s' "$(($(now) - STAGE_T))" "$STAGE" "$share")")
     fi
     STAGE=
 }
@@ -118,6 +138,7 @@ stage() {
     lane_progress
     STAGE=$1
     STAGE_T=$(now)
+    read -r STAGE_BUSY STAGE_TOTAL <<<"$(cpu_ticks)"
     printf '\n==> %s: %s\n' "$1" "$2"
 }
 # Where the vcan lane is, while it runs in the background: its last progress line (the test,
@@ -134,7 +155,10 @@ print_times() {
     {
         printf '\nstage times (wall):\n'
         printf '  %s\n' "${TIMES[@]}"
-        printf '  %6d s  total\n' "$(($(now) - T0))"
+        local busy total
+        read -r busy total <<<"$(cpu_ticks)"
+        printf '  %6d s  %-12s %4d%% of the CPUs\n' "$(($(now) - T0))" total \
+            "$((100 * (busy - T0_BUSY) / (total - T0_TOTAL > 0 ? total - T0_TOTAL : 1)))"
     } | tee "$LOGS/times.txt"
 }
 
@@ -227,6 +251,7 @@ if wanted vcan; then
     # micro-VM (scripts/vcan.sh says how). With CI=true a lane that cannot run fails.
     # -s: the tests print their measured figures. Its own stage time is taken when it ends.
     VCAN_T=$(now)
+    read -r VCAN_BUSY VCAN_TOTAL <<<"$(cpu_ticks)"
     # The test modules compiled here, as pytest rewrites them, before the lane starts: the
     # guest finds them in tests/__pycache__ instead of compiling them on its emulated CPU.
     .venv/bin/python -m pytest tests -m vcan -q --collect-only -p no:cacheprovider >/dev/null
@@ -327,6 +352,7 @@ if [ -n "$VCAN_PID" ]; then
     finish_stage
     STAGE=vcan
     STAGE_T=$VCAN_T
+    STAGE_BUSY=$VCAN_BUSY STAGE_TOTAL=$VCAN_TOTAL
     printf '\n==> vcan: waiting for the lane (started %d s ago)\n' "$(($(now) - VCAN_T))"
     # The PID stays set while it is waited for: a signal meanwhile stops the lane (stop_vcan).
     join_background "$VCAN_PID" "$LOGS/vcan.log"
