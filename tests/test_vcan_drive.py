@@ -13,6 +13,7 @@ import json
 import math
 import os
 import pathlib
+import queue
 import re
 import shutil
 import signal
@@ -182,45 +183,85 @@ def test_a_program_killed_mid_drive_leaves_the_robot_stopped(robot_factory, vcan
     assert all(not any(dji_currents(f)) for f in after if f.t >= first_zero.t)
 
 
-def hold_key(tmux: str, socket: str, key: str, repeats: int, period_s: float) -> tuple[float, float]:
-    """Types `key` `repeats` times, `period_s` apart, as a terminal's auto-repeat does, into the
-    tmux server at `socket`; returns (first key sent, last key sent), wall time.
+class TmuxControl:
+    """One control-mode client (`tmux -C`, pane output off) of the tmux server at `socket`:
+    commands one a line on its stdin, each answered by a %begin ... %end block on its stdout.
 
-    The keys go through one control-mode client (`tmux -C`, its pane output off), one command a
-    line: a `tmux send-keys` process per key takes the emulated machine a good part of a second
-    each, so the key would repeat a few times a second, not at 50 per second. The client is
-    attached (it has answered a command) before the first key."""
-    client = subprocess.Popen([tmux, "-S", socket, "-C", "attach-session", "-f", "no-output"],
-                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    assert client.stdin is not None and client.stdout is not None
-    answered = threading.Event()
-    lines: list[str] = []
+    Every tmux command of the teleop test goes through it: a `tmux` process per command (a
+    key, a look at the screen) takes the emulated machine a good part of a second each, so a
+    key held at 50 repeats per second would repeat a few times a second, and the looks would
+    slow the program they wait for."""
 
-    def read() -> None:  # until the client exits: its stdout never fills
-        assert client.stdout is not None
-        for line in client.stdout:
-            lines.append(line)
-            if line.startswith("%end"):
-                answered.set()
+    def __init__(self, tmux: str, socket: str, answer_s: float) -> None:
+        self.answer_s = answer_s
+        self.proc = subprocess.Popen([tmux, "-S", socket, "-C", "attach-session", "-f", "no-output"],
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                     text=True)
+        self.lines: queue.Queue[str | None] = queue.Queue()
+        self.unanswered = 1  # the attach-session command's own answer comes first
+        self.reader = threading.Thread(target=self._read, daemon=True)
+        self.reader.start()
 
-    reader = threading.Thread(target=read, daemon=True)
-    reader.start()
-    try:
-        client.stdin.write("display-message -p attached\n")
-        client.stdin.flush()
-        assert answered.wait(3 * ANSWER_S), f"tmux -C did not answer: {lines}"
+    def _read(self) -> None:  # until the client exits: its stdout never fills
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.put(line.rstrip("\n"))
+        self.lines.put(None)
+
+    def send(self, command: str) -> None:
+        """Sends `command` without waiting for its answer (`run` checks it later)."""
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(command + "\n")
+        self.proc.stdin.flush()
+        self.unanswered += 1
+
+    def _answer(self) -> list[str]:
+        """The next answer's lines; fails on an error answer or on none within answer_s."""
+        out: list[str] | None = None
+        deadline = time.monotonic() + self.answer_s
+        while True:
+            try:
+                line = self.lines.get(timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
+                raise AssertionError(f"tmux -C: no answer within {self.answer_s} s") from None
+            assert line is not None, f"tmux -C exited ({self.proc.poll()})"
+            if out is None:
+                if line.startswith("%begin"):
+                    out = []
+                continue  # a notification between answers
+            if line.startswith(("%end", "%error")):
+                assert line.startswith("%end"), f"tmux -C: {out}"
+                return out
+            out.append(line)
+
+    def run(self, command: str) -> list[str]:
+        """Sends `command` and returns its output lines, after checking every earlier answer."""
+        self.send(command)
+        while self.unanswered > 1:
+            self._answer()
+            self.unanswered -= 1
+        self.unanswered = 0
+        return self._answer()
+
+    def screen(self) -> str:
+        return "\n".join(self.run("capture-pane -p"))
+
+    def hold_key(self, key: str, repeats: int, period_s: float) -> tuple[float, float]:
+        """Types `key` `repeats` times, `period_s` apart, as a terminal's auto-repeat does;
+        returns the wall times of the first and the last key sent."""
         pressed = time.time()
         for _ in range(repeats):
-            client.stdin.write(f"send-keys {key}\n")
-            client.stdin.flush()
+            self.send(f"send-keys {key}")
             time.sleep(period_s)
         released = time.time()
-    finally:
-        client.stdin.close()  # detaches the client
-        client.wait(timeout=30)
-        reader.join(timeout=30)
-    assert not any(line.startswith("%error") for line in lines), lines
-    return pressed, released
+        self.run("display-message -p keys")  # every key answered, none refused
+        return pressed, released
+
+    def close(self) -> None:
+        assert self.proc.stdin is not None
+        self.proc.stdin.close()  # detaches the client
+        self.proc.wait(timeout=30)
+        self.reader.join(timeout=30)
 
 
 def test_teleop_under_tmux_moves_forward_and_stops(robot_factory, vcan, tmp_path) -> None:
@@ -243,20 +284,22 @@ def test_teleop_under_tmux_moves_forward_and_stops(robot_factory, vcan, tmp_path
         started = tmux_cmd("new-session", "-d", "-x", "100", "-y", "30",
                            f"{drive} --channel {vcan} --timeout {ANSWER_S} teleop; sleep 30")
         assert started.returncode == 0, started.stderr
+        control = TmuxControl(tmux, socket, 3 * ANSWER_S)
         try:
             deadline = time.monotonic() + 3 * ANSWER_S
-            while "state     ENABLED" not in (screen := tmux_cmd("capture-pane", "-p").stdout):
+            while "state     ENABLED" not in (screen := control.screen()):
                 assert time.monotonic() < deadline, f"teleop never showed ENABLED:\n{screen}"
                 time.sleep(0.2)
-            pressed, released = hold_key(tmux, socket, "w", repeats=60, period_s=0.02)
+            pressed, released = control.hold_key("w", repeats=60, period_s=0.02)
             time.sleep(1.0)
-            screen = tmux_cmd("capture-pane", "-p").stdout
-            tmux_cmd("send-keys", "Escape")
+            screen = control.screen()
+            control.run("send-keys Escape")
             deadline = time.monotonic() + ANSWER_S
-            while "teleop: stopped" not in (after := tmux_cmd("capture-pane", "-p").stdout):
+            while "teleop: stopped" not in (after := control.screen()):
                 assert time.monotonic() < deadline, f"teleop did not quit:\n{after}"
                 time.sleep(0.2)
         finally:
+            control.close()
             tmux_cmd("kill-server")
         time.sleep(0.3)
     print(f"teleop screen while stopped:\n{screen}")
