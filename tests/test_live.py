@@ -151,7 +151,8 @@ def test_a_subscriber_gets_the_logs_channels_and_bytes_at_their_log_times(
         expected = [t for t in times[topic] if t >= log_times[0]]
         assert log_times == expected, topic
         assert log_times[0] < 1.5e9 * RATE, f"{topic} from {log_times[0] * 1e-9:.2f} s on"
-    # /can/rx is thinned: each CAN id at most 100 frames a second of log time.
+    # /can/rx is thinned: each CAN id 100 frames a second of log time on average, a frame up to
+    # half a period (5 ms) early taken (docs/live.md): in a span, at most 100 a second plus 1.5.
     store = get_typestore(Stores.ROS2_HUMBLE)
     store.register(get_types_from_msg(channels["/can/rx"][1].data.decode(), "can_msgs/msg/Frame"))
     per_id: dict[int, list[int]] = defaultdict(list)
@@ -160,7 +161,7 @@ def test_a_subscriber_gets_the_logs_channels_and_bytes_at_their_log_times(
     assert len(per_id) >= 4, sorted(per_id)
     for can_id, log_times in per_id.items():
         span_s = (log_times[-1] - log_times[0]) * 1e-9
-        assert len(log_times) <= 100 * span_s + 1, f"{can_id:#x}: {len(log_times)} in {span_s:.2f} s"
+        assert len(log_times) <= 100 * span_s + 1.5, f"{can_id:#x}: {len(log_times)} in {span_s:.2f} s"
     assert len(times["/can/rx"]) > 3 * len(got["/can/rx"]), "the log keeps every frame"
     assert summary["live"]["thinned"] > 0
 

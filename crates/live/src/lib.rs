@@ -39,8 +39,8 @@
 //!   type, `nav_msgs/msg/Odometry`), schema encoding `ros2msg`, schema text as in the file's
 //!   Schema record. A subscribed client gets each message with its log time.
 //! - `/can/rx`, `/can/tx` and `/can/faults` are thinned for live clients: per channel and per
-//!   CAN id, at most [`LiveOptions::can_hz`] frames a second of log time (100 by default; 0
-//!   forwards every frame). The log keeps every frame. [`LiveStats::thinned`] counts the
+//!   CAN id, [`LiveOptions::can_hz`] frames a second of log time on average, jitter tolerated
+//!   (100 by default; 0 forwards every frame; docs/live.md). The log keeps every frame. [`LiveStats::thinned`] counts the
 //!   frames not forwarded.
 //! - A client that reads slower than the messages come has a queue of its own of
 //!   [`LiveOptions::backlog`] messages; when it is full the oldest message is dropped, and

@@ -49,23 +49,31 @@ impl MessageTap for LiveTap {
     }
 }
 
-/// `/can/*` for live clients: per channel and CAN id, at most one frame per `period_ns` of
-/// log time (the first of each period).
+/// `/can/*` for live clients: per channel and CAN id, one frame per `period_ns` of log time
+/// on average, on a schedule (the generic cell rate algorithm): a frame is forwarded when it
+/// is at most half a period ahead of its id's due time, which then moves one period past the
+/// later of itself and the frame. A periodic id at the limit passes whole whatever its jitter
+/// (up to a quarter period: a 100 Hz id with 1 ms of jitter arrives at 100 Hz); a faster one
+/// is cut to the limit, any second holding at most one frame more; a slower one passes whole.
 struct Thinning {
     period_ns: u64,
-    /// (channel id, CAN id) → log time of the last frame forwarded.
-    last: HashMap<(u16, u32), u64>,
+    /// How far ahead of its due time a frame is still forwarded: half a period.
+    early_ns: u64,
+    /// (channel id, CAN id) → when its next frame is due, log time.
+    due: HashMap<(u16, u32), u64>,
 }
 
 impl Thinning {
     fn new(hz: u32) -> Self {
+        let period_ns = if hz == 0 {
+            0
+        } else {
+            1_000_000_000 / u64::from(hz)
+        };
         Self {
-            period_ns: if hz == 0 {
-                0
-            } else {
-                1_000_000_000 / u64::from(hz)
-            },
-            last: HashMap::new(),
+            period_ns,
+            early_ns: period_ns / 2,
+            due: HashMap::new(),
         }
     }
 
@@ -81,17 +89,12 @@ impl Thinning {
         };
         // A frame that does not decode is forwarded: thinning never hides the unexpected.
         let Ok(id) = id else { return false };
-        match self.last.get_mut(&(channel.id(), id)) {
-            Some(last) if log_ns < last.saturating_add(self.period_ns) => true,
-            Some(last) => {
-                *last = log_ns;
-                false
-            }
-            None => {
-                self.last.insert((channel.id(), id), log_ns);
-                false
-            }
+        let due = self.due.entry((channel.id(), id)).or_insert(log_ns);
+        if log_ns.saturating_add(self.early_ns) < *due {
+            return true;
         }
+        *due = (*due).max(log_ns).saturating_add(self.period_ns);
+        false
     }
 }
 
@@ -128,10 +131,11 @@ mod tests {
                 }
             }
         }
+        // 100 a second, and one more from the half period of tolerance at the start.
         for name in ["rx 201", "rx 202", "tx 201"] {
             assert_eq!(
                 forwarded.iter().filter(|n| **n == name).count(),
-                100,
+                101,
                 "{name}"
             );
         }
@@ -141,5 +145,52 @@ mod tests {
         assert!((0..10).all(|i| !all.skip(Channel::CanRx, i, &a)));
         // A frame that does not decode passes.
         assert!(!t.skip(Channel::CanRx, 1, b"bad"));
+    }
+
+    /// Log times of `seconds` of an id at `hz`, each frame off its slot by up to `jitter_us`
+    /// either way (a fixed pattern that sweeps the whole range), in order.
+    fn jittered(hz: u64, jitter_us: i64, seconds: u64) -> Vec<u64> {
+        let period_us = 1_000_000 / hz;
+        (0..hz * seconds)
+            .map(|k| {
+                let off = (k as i64 * 7919) % (2 * jitter_us + 1) - jitter_us;
+                (1_000_000 + k * period_us).saturating_add_signed(off) * 1_000
+            })
+            .collect()
+    }
+
+    fn count_forwarded(t: &mut Thinning, times: &[u64], id: u32) -> usize {
+        let cdr = frame_cdr(id);
+        times
+            .iter()
+            .filter(|&&ns| !t.skip(Channel::CanRx, ns, &cdr))
+            .count()
+    }
+
+    #[test]
+    fn a_jittered_id_at_the_limit_passes_whole_and_a_faster_one_is_cut_to_it() {
+        // docs/live.md: a 100 Hz id with 1 ms of jitter arrives at 100 Hz (it arrived at 50
+        // when each frame had to be a whole period after the last one forwarded).
+        let mut t = Thinning::new(100);
+        for jitter_us in [0, 100, 1_000, 2_400] {
+            let times = jittered(100, jitter_us, 10);
+            assert_eq!(
+                count_forwarded(&mut t, &times, 0x300 + jitter_us as u32),
+                times.len(),
+                "100 Hz, jitter {jitter_us} us"
+            );
+        }
+        // 1 kHz and 333 Hz ids with jitter: 100 a second over 10 s, one more at the start.
+        for (hz, id) in [(1_000, 0x201), (333, 0x202)] {
+            let n = count_forwarded(&mut t, &jittered(hz, 200, 10), id);
+            assert!((1_000..=1_001).contains(&n), "{hz} Hz: {n} in 10 s");
+        }
+        // Slower than the limit, with jitter: whole.
+        let times = jittered(40, 1_000, 10);
+        assert_eq!(count_forwarded(&mut t, &times, 0x701), times.len());
+        // At 50 Hz a 100 Hz id is halved, jitter or not.
+        let mut half = Thinning::new(50);
+        let n = count_forwarded(&mut half, &jittered(100, 1_000, 10), 0x300);
+        assert!((500..=501).contains(&n), "{n}");
     }
 }
