@@ -27,10 +27,10 @@ STAGES=(
     "stm32f407|$BOARD: clippy, the release images for the DJI, the ODrive and the CiA 402 example (boardsim's tests run the first two), their flash and RAM budgets"
     "clippy|every target of the workspace (lib, bins, tests, benchmarks, examples; all features) built with Clippy's lints, -D warnings: the build the tests run (scripts/clippy-rustc.sh)"
     "rust-tests|cargo test: unit, integration, property and doc tests; boardsim runs the $BOARD image"
+    "python|the Python tests that need no CAN bus (cantools, mcap, rosbags, the package), a worker per core (pytest-xdist); in the background beside the stages below"
     "rustdoc|cargo doc, -D warnings, default and all features"
     "no-std|the no_std crates (${NO_STD_CRATES[*]}, firmware with serde) for $THUMB"
     "qemu-m4|$QEMU_BOARD: fmt, clippy; the core on an emulated Cortex-M4 bit-identical to the host (scripts/xtarget.sh)"
-    "python|the Python tests that need no CAN bus (cantools, mcap, rosbags, the package), a worker per core (pytest-xdist)"
 )
 
 usage() {
@@ -145,10 +145,10 @@ stage() {
 # n of N, guest time) and the wall time since it started.
 lane_progress() {
     local last
-    if [ -n "${VCAN_PID:-}" ] && kill -0 "$VCAN_PID" 2>/dev/null; then
+    if [ -n "${BG_PID[vcan]:-}" ] && kill -0 "${BG_PID[vcan]}" 2>/dev/null; then
         # (Under set -e and pipefail: before the guest's first line there is no file yet.)
         last=$(tail -n 1 target/vcan-lane/timeline.tsv 2>/dev/null | cut -f 2-) || last=
-        printf '\n--- vcan lane, %d s in: %s\n' "$(($(now) - VCAN_T))" "${last:-booting}"
+        printf '\n--- vcan lane, %d s in: %s\n' "$(($(now) - BG_T[vcan]))" "${last:-booting}"
     fi
 }
 print_times() {
@@ -162,17 +162,12 @@ print_times() {
     } | tee "$LOGS/times.txt"
 }
 
-VCAN_PID=
 # Ends a job started in the background (PID, may be empty) and waits for it.
 stop_background() {
     if [ -n "$1" ] && kill -0 "$1" 2>/dev/null; then
         kill -TERM "$1" 2>/dev/null || true
         wait "$1" 2>/dev/null || true
     fi
-}
-stop_vcan() {
-    stop_background "$VCAN_PID"
-    VCAN_PID=
 }
 # Waits for a job started in the background (PID), prints its output (LOG), and returns its
 # status: at the top level a failure there runs the ERR trap, which names the stage.
@@ -181,6 +176,34 @@ join_background() {
     wait "$1" || rc=$?
     cat "$2"
     return "$rc"
+}
+# Stages that run in the background, beside the ones after them (the vcan lane; the python
+# stage once the workspace's build is done): by name, the job, when the stage began and the
+# CPU ticks then. Their output goes to $LOGS/NAME.log and is printed when they are joined.
+declare -A BG_PID=() BG_T=() BG_TICKS=()
+# Runs a command as the current stage's job in the background; the next stage starts at once.
+start_background() {
+    "$@" >"$LOGS/$STAGE.log" 2>&1 &
+    BG_PID[$STAGE]=$!
+    BG_T[$STAGE]=$STAGE_T
+    BG_TICKS[$STAGE]="$STAGE_BUSY $STAGE_TOTAL"
+    STAGE=
+}
+# Waits for a background stage (by name), prints its output, and takes its time.
+join_stage() {
+    finish_stage
+    STAGE=$1
+    STAGE_T=${BG_T[$1]}
+    read -r STAGE_BUSY STAGE_TOTAL <<<"${BG_TICKS[$1]}"
+    printf '\n==> %s: waiting for it (started %d s ago)\n' "$1" "$(($(now) - STAGE_T))"
+    # The PID stays set while it is waited for: a signal meanwhile stops it (stop_stages).
+    join_background "${BG_PID[$1]}" "$LOGS/$1.log"
+    unset "BG_PID[$1]"
+}
+stop_stages() {
+    local name
+    for name in "${!BG_PID[@]}"; do stop_background "${BG_PID[$name]}"; done
+    BG_PID=()
 }
 # prepare's build, while it runs in the background.
 BUILD_PID=
@@ -192,12 +215,12 @@ on_error() {
     local rc=$?
     stop_build
     printf '\n==> FAILED (exit %s): %s\n' "$rc" "$STAGE" >&2
-    stop_vcan
+    stop_stages
     finish_stage
     print_times >&2
 }
 trap on_error ERR
-trap 'stop_build; stop_vcan; exit 130' INT TERM HUP
+trap 'stop_build; stop_stages; exit 130' INT TERM HUP
 
 if wanted prepare; then
     stage prepare "toolchain $(rustc --version); target $THUMB; .venv; the binaries the Python stages run"
@@ -250,8 +273,6 @@ if wanted vcan; then
     # Tests on a real SocketCAN interface: natively where the kernel has vcan, else in a QEMU
     # micro-VM (scripts/vcan.sh says how). With CI=true a lane that cannot run fails.
     # -s: the tests print their measured figures. Its own stage time is taken when it ends.
-    VCAN_T=$(now)
-    read -r VCAN_BUSY VCAN_TOTAL <<<"$(cpu_ticks)"
     # The test modules compiled here, as pytest rewrites them, before the lane starts: the
     # guest finds them in tests/__pycache__ instead of compiling them on its emulated CPU.
     .venv/bin/python -m pytest tests -m vcan -q --collect-only -p no:cacheprovider >/dev/null
@@ -261,12 +282,9 @@ if wanted vcan; then
     # keeps its core on a busy machine (the stages below run niced), so only a hang, or a
     # machine far slower, reaches them; then the lane names the test and what the guest did.
     # (pytest-xdist, the python stage's, is not loaded there: its import costs the guest's CPU.)
-    VCAN_VM_TIMEOUT=${VCAN_VM_TIMEOUT:-1530} VCAN_TEST_TIMEOUT=${VCAN_TEST_TIMEOUT:-390} \
+    start_background env VCAN_VM_TIMEOUT="${VCAN_VM_TIMEOUT:-1530}" VCAN_TEST_TIMEOUT="${VCAN_TEST_TIMEOUT:-390}" \
         scripts/vcan.sh -- .venv/bin/python -m pytest tests -m vcan -q -s -p no:cacheprovider -rs --color=no \
-        -p no:xdist -p no:xdist.looponfail \
-        >"$LOGS/vcan.log" 2>&1 &
-    VCAN_PID=$!
-    STAGE=
+        -p no:xdist -p no:xdist.looponfail
     # The lane is the critical path and keeps one core; every stage from here on runs at a
     # lower priority (niceness 10), so a busy machine stretches the build, not the lane.
     [ "$(nice)" -ge 10 ] || renice -n 10 -p $$ >/dev/null || true
@@ -311,6 +329,16 @@ if wanted rust-tests; then
     RUSTC_WORKSPACE_WRAPPER=$LINT_WRAPPER cargo test --profile ci --workspace --all-features --locked
 fi
 
+# In the background from here on, beside the stages below: after the workspace's build, which
+# takes the cores the lane leaves, and before the stages that use one core at a time (the
+# M4's comparison, rustdoc's dependency checks); they ended with the machine half idle.
+if wanted python; then
+    stage python "pytest -m 'not vcan' (the binaries built in prepare), a worker per core, in the background ($LOGS/python.log)"
+    # Most of these tests wait on the processes they drive: spread over the cores, a module to
+    # a worker (its module fixtures built once), the stage took 63 s instead of 101 s.
+    start_background .venv/bin/python -m pytest tests -q -m "not vcan" -n auto --dist loadfile
+fi
+
 if wanted rustdoc; then
     stage rustdoc "-D warnings, default and all features"
     RUSTDOCFLAGS="-D warnings" RUSTC_WORKSPACE_WRAPPER=$LINT_WRAPPER \
@@ -344,23 +372,10 @@ if wanted qemu-m4; then
     scripts/xtarget.sh
 fi
 
-if wanted python; then
-    stage python "pytest -m 'not vcan' (the binaries built in prepare), a worker per core"
-    # Most of these tests wait on the processes they drive: spread over the cores, a module to
-    # a worker (its module fixtures built once), the stage took 63 s instead of 101 s.
-    .venv/bin/python -m pytest tests -q -m "not vcan" -n auto --dist loadfile
-fi
-
-if [ -n "$VCAN_PID" ]; then
-    finish_stage
-    STAGE=vcan
-    STAGE_T=$VCAN_T
-    STAGE_BUSY=$VCAN_BUSY STAGE_TOTAL=$VCAN_TOTAL
-    printf '\n==> vcan: waiting for the lane (started %d s ago)\n' "$(($(now) - VCAN_T))"
-    # The PID stays set while it is waited for: a signal meanwhile stops the lane (stop_vcan).
-    join_background "$VCAN_PID" "$LOGS/vcan.log"
-    VCAN_PID=
-fi
+# The background stages, the python stage first (it ends sooner).
+for name in python vcan; do
+    if [ -n "${BG_PID[$name]:-}" ]; then join_stage "$name"; fi
+done
 
 finish_stage
 print_times
