@@ -99,7 +99,12 @@ impl Param {
     }
 }
 
-/// Parses `--seeds`: `A..B` (A up to B, both included), `A..=B`, or a list `1,5,9`.
+/// The most runs one sweep takes (seeds times the grid's combinations), and so the most
+/// seeds: its plan is built in memory before the first run, and it is counted first.
+pub const MAX_RUNS: u64 = 1_000_000;
+
+/// Parses `--seeds`: `A..B` (A up to B, both included), `A..=B`, or a list `1,5,9`; at most
+/// [`MAX_RUNS`] seeds, counted before the list is built.
 ///
 /// # Errors
 /// [`SweepError::Syntax`] naming the argument.
@@ -113,19 +118,28 @@ pub fn parse_seeds(arg: &str) -> Result<Vec<u64>, SweepError> {
             .parse::<u64>()
             .map_err(|_| syntax(&format!("{:?} is not a seed (0 or more)", s.trim())))
     };
-    let seeds: Vec<u64> = if let Some((lo, hi)) = arg.split_once("..") {
+    let too_many = |count: u128| {
+        syntax(&format!(
+            "{count} seeds; a sweep takes at most {MAX_RUNS} runs"
+        ))
+    };
+    if let Some((lo, hi)) = arg.split_once("..") {
         let (lo, hi) = (number(lo)?, number(hi.trim_start_matches('='))?);
         if lo > hi {
             return Err(syntax("the range's low end is above its high end"));
         }
-        (lo..=hi).collect()
+        let count = u128::from(hi - lo) + 1;
+        if count > u128::from(MAX_RUNS) {
+            return Err(too_many(count));
+        }
+        Ok((lo..=hi).collect())
     } else {
-        arg.split(',').map(number).collect::<Result<_, _>>()?
-    };
-    if seeds.is_empty() || seeds.len() > 1_000_000 {
-        return Err(syntax("expected 1 to 1,000,000 seeds"));
+        let count = arg.split(',').count() as u128;
+        if count > u128::from(MAX_RUNS) {
+            return Err(too_many(count));
+        }
+        arg.split(',').map(number).collect()
     }
-    Ok(seeds)
 }
 
 /// One run of a sweep: its index, seed and parameter values.
@@ -139,10 +153,38 @@ pub struct RunSpec {
     pub values: Vec<(String, f64)>,
 }
 
+/// How many runs `seeds` and `params` make: the seeds times every grid axis's length (a range
+/// parameter is drawn per run and adds none), counted without building them.
+///
+/// # Errors
+/// [`SweepError::Syntax`] naming the count and [`MAX_RUNS`] when there are more.
+pub fn count_runs(seeds: usize, params: &[Param]) -> Result<u64, SweepError> {
+    let count = params
+        .iter()
+        .map(|p| match &p.values {
+            Values::List(list) => list.len() as u128,
+            Values::Range(..) => 1,
+        })
+        .fold(seeds as u128, u128::saturating_mul);
+    if count > u128::from(MAX_RUNS) {
+        return Err(SweepError::Syntax {
+            arg: "--seeds and --set".to_string(),
+            why: format!(
+                "{count} runs ({seeds} seeds times the grid's values); a sweep takes at most {MAX_RUNS}"
+            ),
+        });
+    }
+    Ok(count as u64)
+}
+
 /// The runs of a sweep: every seed with every combination of the grid axes (the first
-/// parameter varying slowest, the seeds fastest), range parameters drawn per run.
-#[must_use]
-pub fn expand(seeds: &[u64], params: &[Param]) -> Vec<RunSpec> {
+/// parameter varying slowest, the seeds fastest), range parameters drawn per run. Counted
+/// first ([`count_runs`]): a plan over [`MAX_RUNS`] is refused before it is built.
+///
+/// # Errors
+/// [`SweepError::Syntax`] from [`count_runs`].
+pub fn expand(seeds: &[u64], params: &[Param]) -> Result<Vec<RunSpec>, SweepError> {
+    count_runs(seeds.len(), params)?;
     let mut combos: Vec<Vec<Option<f64>>> = vec![Vec::new()];
     for p in params {
         combos = match &p.values {
@@ -189,7 +231,7 @@ pub fn expand(seeds: &[u64], params: &[Param]) -> Vec<RunSpec> {
             });
         }
     }
-    runs
+    Ok(runs)
 }
 
 /// `base` with `values` applied and its seed set: the scenario of one run
@@ -483,6 +525,40 @@ mod tests {
             assert!(Param::parse(bad).is_err(), "{bad}");
         }
         assert!(parse_seeds("5..2").is_err());
+        // Counted before they are built: the whole u64 range, or a billion, is refused at
+        // once, naming the count and the cap; the cap itself is taken.
+        for (arg, count) in [
+            ("0..18446744073709551615", "18446744073709551616 seeds"),
+            ("1..100000000000", "100000000000 seeds"),
+            ("0..1000000", "1000001 seeds"),
+        ] {
+            let err = parse_seeds(arg).unwrap_err().to_string();
+            assert!(
+                err.contains(count) && err.contains("at most 1000000 runs"),
+                "{err}"
+            );
+        }
+        assert_eq!(parse_seeds("0..999999").unwrap().len(), 1_000_000);
+        let list = vec!["1"; 1_000_001].join(",");
+        assert!(
+            parse_seeds(&list)
+                .unwrap_err()
+                .to_string()
+                .contains("1000001 seeds")
+        );
+        // Seeds times grid values: counted, capped, nothing built.
+        let grid = |n: usize| Param {
+            key: "gains.kp".into(),
+            values: Values::List(vec![1.0; n]),
+        };
+        let range = Param {
+            key: "gains.ki".into(),
+            values: Values::Range(0.0, 1.0),
+        };
+        assert_eq!(count_runs(10, &[grid(3), range.clone(), grid(4)]), Ok(120));
+        let err = expand(&[0; 1000], &[grid(1000), grid(2)]).unwrap_err();
+        assert!(err.to_string().contains("2000000 runs"), "{err}");
+        assert!(count_runs(usize::MAX, &[grid(2)]).is_err());
     }
 
     #[test]
@@ -491,12 +567,12 @@ mod tests {
             Param::parse("gains.kp=1,2").unwrap(),
             Param::parse("plant.mass_kg=18..24").unwrap(),
         ];
-        let runs = expand(&[7, 8, 9], &params);
+        let runs = expand(&[7, 8, 9], &params).unwrap();
         assert_eq!(runs.len(), 6);
         assert_eq!((runs[0].seed, runs[0].values[0].1), (7, 1.0));
         assert_eq!((runs[5].seed, runs[5].values[0].1), (9, 2.0));
         assert!(runs.iter().all(|r| (18.0..=24.0).contains(&r.values[1].1)));
-        assert_eq!(runs, expand(&[7, 8, 9], &params));
+        assert_eq!(runs, expand(&[7, 8, 9], &params).unwrap());
     }
 
     #[test]

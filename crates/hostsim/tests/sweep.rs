@@ -21,7 +21,7 @@ fn the_table_is_the_runs_one_by_one_on_any_number_of_threads() {
         Param::parse("gains.kp=1.0,1.4").unwrap(),
         Param::parse("plant.mass_kg=18..24").unwrap(),
     ];
-    let runs = sweep::expand(&[1, 2, 3], &params);
+    let runs = sweep::expand(&[1, 2, 3], &params).unwrap();
     let never = || false;
     let two = sweep::run_all(&base, &runs, 2, &never, |_| {}).unwrap();
     let one = sweep::run_all(&base, &runs, 1, &never, |_| {}).unwrap();

@@ -24,9 +24,27 @@ pub struct LiveArgs {
     )]
     pub live: Option<SocketAddr>,
     /// With --live: the /can/* frames forwarded to live clients, per channel and CAN id, per
-    /// second of log time (0: every frame). Default 100. The log keeps every frame.
-    #[arg(long, value_name = "HZ", requires = "live")]
+    /// second of log time, a whole number up to 1,000,000 (0: every frame). Default 100. The
+    /// log keeps every frame.
+    #[arg(long, value_name = "HZ", requires = "live", value_parser = parse_can_hz)]
     pub live_can_hz: Option<u32>,
+}
+
+/// The most `--live-can-hz` takes: one frame a microsecond, beyond any CAN bus.
+pub const MAX_CAN_HZ: u32 = 1_000_000;
+
+/// `--live-can-hz`: a whole number of frames a second, 0 to [`MAX_CAN_HZ`].
+fn parse_can_hz(s: &str) -> Result<u32, String> {
+    let refused = || {
+        format!(
+            "{s:?}: expected a whole number of frames a second, 0 (every frame) to {MAX_CAN_HZ}"
+        )
+    };
+    let hz: u32 = s.trim().parse().map_err(|_| refused())?;
+    if hz > MAX_CAN_HZ {
+        return Err(refused());
+    }
+    Ok(hz)
 }
 
 impl LiveArgs {
@@ -89,6 +107,21 @@ mod tests {
     struct Cli {
         #[command(flatten)]
         live: LiveArgs,
+    }
+
+    #[test]
+    fn can_hz_is_a_whole_number_in_its_range_and_a_refusal_says_so() {
+        assert_eq!(parse_can_hz("0"), Ok(0));
+        assert_eq!(parse_can_hz(" 100 "), Ok(100));
+        assert_eq!(parse_can_hz("1000000"), Ok(MAX_CAN_HZ));
+        // "0.0001" was refused as "invalid digit found in string".
+        for bad in ["0.0001", "-1", "1000001", "1e3", "", "ten"] {
+            let err = parse_can_hz(bad).unwrap_err();
+            assert!(
+                err.contains("whole number of frames a second, 0 (every frame) to 1000000"),
+                "{bad}: {err}"
+            );
+        }
     }
 
     #[test]

@@ -51,7 +51,7 @@ impl Pacer {
     /// A pacer whose simulated time 0 is now; `rate` simulated seconds per wall-clock second.
     ///
     /// # Panics
-    /// If `rate` is not finite and positive: see [`Pacer::check_rate`] for the command line.
+    /// If `rate` is outside [`Pacer::RATES`]: see [`Pacer::check_rate`] for the command line.
     #[must_use]
     pub fn new(rate: f64) -> Self {
         assert!(Self::check_rate(rate).is_ok(), "rate {rate}");
@@ -62,16 +62,24 @@ impl Pacer {
         }
     }
 
-    /// Whether `rate` can pace (finite, positive); the error says what is expected.
+    /// The slowest and fastest rates, simulated seconds per wall-clock second: at the slowest
+    /// a 1 ms control step takes a second of wall time; the fastest is beyond what a run
+    /// keeps up with (it then runs as fast as it can). Outside them a run would never end or
+    /// wait longer than `Duration` holds.
+    pub const RATES: std::ops::RangeInclusive<f64> = 0.001..=1000.0;
+
+    /// Whether `rate` can pace (in [`RATES`](Self::RATES)); the error says what is expected.
     ///
     /// # Errors
     /// The message for a refused rate.
     pub fn check_rate(rate: f64) -> Result<f64, String> {
-        if rate.is_finite() && rate > 0.0 {
+        if Self::RATES.contains(&rate) {
             Ok(rate)
         } else {
             Err(format!(
-                "{rate}: expected a positive number of simulated seconds per second (1 = real time)"
+                "{rate:?}: expected {} to {} simulated seconds per second (1 = real time)",
+                Self::RATES.start(),
+                Self::RATES.end()
             ))
         }
     }
@@ -147,11 +155,23 @@ mod tests {
     }
 
     #[test]
-    fn rates_must_be_finite_and_positive() {
-        assert_eq!(Pacer::check_rate(0.5), Ok(0.5));
-        for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+    fn rates_are_those_a_run_can_keep() {
+        for good in [0.001, 0.5, 1.0, 1000.0] {
+            assert_eq!(Pacer::check_rate(good), Ok(good));
+        }
+        // 1e-300 made `Duration::from_secs_f64` panic; 1e-9 slept 11 days a step.
+        for bad in [
+            0.0,
+            -1.0,
+            1e-300,
+            1e-9,
+            0.000_999,
+            1000.1,
+            f64::NAN,
+            f64::INFINITY,
+        ] {
             let err = Pacer::check_rate(bad).unwrap_err();
-            assert!(err.contains("positive"), "{err}");
+            assert!(err.contains("expected 0.001 to 1000"), "{err}");
         }
     }
 }

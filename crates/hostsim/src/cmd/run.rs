@@ -65,12 +65,13 @@ pub struct Args {
     #[command(flatten)]
     pub live: live::LiveArgs,
     /// With --live: simulated seconds per wall-clock second (1: real time, 0.5: half speed,
-    /// 4: four times). Without --live a run goes as fast as it can, and --rate is refused.
+    /// 4: four times), 0.001 to 1000. Without --live a run goes as fast as it can, and
+    /// --rate is refused.
     #[arg(long, value_name = "X", requires = "live", value_parser = parse_rate)]
     pub rate: Option<f64>,
 }
 
-/// `--rate`: finite and positive.
+/// `--rate`: in [`live::Pacer::RATES`].
 fn parse_rate(s: &str) -> Result<f64, String> {
     let rate: f64 = s
         .trim()

@@ -16,7 +16,8 @@ use super::*;
 ///
 /// The runs are every seed of --seeds with every combination of the --set grids
 /// (`--set gains.kp=0.8,1.0,1.2`); a --set range (`--set plant.mass_kg=18..24`) is drawn
-/// at random for each run, from a generator seeded by the run's index. Names: a field of
+/// at random for each run, from a generator seeded by the run's index. At most 1,000,000
+/// runs (seeds times grid values), counted before any is planned. Names: a field of
 /// the drive configuration as its TOML names it (gains.kp, limits.max_current,
 /// timing.command_timeout_ms, ...) or plant.wheel_radius, plant.lx, plant.ly,
 /// plant.roller_drag, plant.mass_kg; every name and value is checked before the first
@@ -79,7 +80,7 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
         .iter()
         .map(|a| Param::parse(a))
         .collect::<Result<_, _>>()?;
-    let runs = sw::expand(&seeds, &params);
+    let runs = sw::expand(&seeds, &params)?;
     // Every name and value (and both ends of each range), before the first run.
     sw::check(&base, &runs, &params)?;
     std::fs::create_dir_all(&args.out)

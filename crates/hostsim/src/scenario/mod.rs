@@ -140,6 +140,10 @@ struct ScenarioFile {
     pods: Option<crate::pods::PodsParams>,
 }
 
+/// The host's command rates a scenario may ask for, Hz: a command period from 1 ms (the
+/// control step) to 100 s.
+pub const COMMAND_HZ: std::ops::RangeInclusive<f64> = 0.01..=1000.0;
+
 const fn default_command_hz() -> f64 {
     50.0
 }
@@ -269,11 +273,13 @@ impl Scenario {
                 "a name (it names the log and the plot), or no `name` for the file's stem",
             ));
         }
-        if !(file.command_hz.is_finite() && file.command_hz > 0.0 && file.command_hz <= 1000.0) {
+        // Checked as the host uses it, a period in microseconds: 1e-300 Hz passed `> 0` and
+        // made a period past u64, which wrapped the host's command clock (a run without end).
+        if !(COMMAND_HZ.contains(&file.command_hz)) {
             return Err(invalid.at(
                 "command_hz",
-                file.command_hz.to_string(),
-                "a rate in (0, 1000] Hz",
+                format!("{:?}", file.command_hz), // 1e-300, not 300 digits
+                "a rate in [0.01, 1000] Hz (a command every 1 ms to 100 s)",
             ));
         }
         let config = match (config, &file.config) {

@@ -73,6 +73,19 @@ fn toml_scenario_parses_and_validates() {
 
     for (bad, field) in [
         ("duration_s = -1.0", "duration_s"),
+        // Positive but a period past u64 microseconds: it wrapped the host's command clock.
+        (
+            "duration_s = 1.0\ncommand_hz = 1e-300",
+            "command_hz = 1e-300: a rate in [0.01, 1000] Hz",
+        ),
+        (
+            "duration_s = 1.0\ncommand_hz = 0.001",
+            "command_hz = 0.001: a rate in [0.01, 1000] Hz",
+        ),
+        (
+            "duration_s = 1.0\ncommand_hz = 1000.5",
+            "command_hz = 1000.5: a rate in [0.01, 1000] Hz",
+        ),
         ("name = \" \"\nduration_s = 1.0", "name = \" \": a name"),
         (
             "duration_s = 1.0\n[[faults]]\nkind = \"drop\"\nfrom_s = 0.0\nuntil_s = 1.0",
