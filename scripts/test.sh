@@ -121,15 +121,17 @@ cpu_ticks() {
     fi
 }
 read -r T0_BUSY T0_TOTAL <<<"$(cpu_ticks)"
+# "NN% of the CPUs" since the ticks BUSY TOTAL were read (nothing where no time was counted).
+cpu_share() {
+    local busy total
+    read -r busy total <<<"$(cpu_ticks)"
+    if [ "$((total - $2))" -gt 0 ]; then
+        printf '%4d%% of the CPUs' "$((100 * (busy - $1) / (total - $2)))"
+    fi
+}
 finish_stage() {
     if [ -n "$STAGE" ]; then
-        local busy total
-        read -r busy total <<<"$(cpu_ticks)"
-        local share=
-        if [ "$((total - STAGE_TOTAL))" -gt 0 ]; then
-            share=$(printf '%4d%% of the CPUs' "$((100 * (busy - STAGE_BUSY) / (total - STAGE_TOTAL)))")
-        fi
-        TIMES+=("$(printf '%6d s  %-12s %s' "$(($(now) - STAGE_T))" "$STAGE" "$share")")
+        TIMES+=("$(printf '%6d s  %-12s %s' "$(($(now) - STAGE_T))" "$STAGE" "$(cpu_share "$STAGE_BUSY" "$STAGE_TOTAL")")")
     fi
     STAGE=
 }
@@ -155,10 +157,7 @@ print_times() {
     {
         printf '\nstage times (wall):\n'
         printf '  %s\n' "${TIMES[@]}"
-        local busy total
-        read -r busy total <<<"$(cpu_ticks)"
-        printf '  %6d s  %-12s %4d%% of the CPUs\n' "$(($(now) - T0))" total \
-            "$((100 * (busy - T0_BUSY) / (total - T0_TOTAL > 0 ? total - T0_TOTAL : 1)))"
+        printf '  %6d s  %-12s %s\n' "$(($(now) - T0))" total "$(cpu_share "$T0_BUSY" "$T0_TOTAL")"
     } | tee "$LOGS/times.txt"
 }
 
