@@ -11,11 +11,11 @@ the latch, `~/reset` and `~/enable` can; the bridge gets SIGTERM mid-drive. A se
 (TwistStamped, `enable_on_start`) takes a twist beyond the robot's limits and is SIGKILLed
 mid-drive. The tests then check what crossed the bus (candump) and what the ROS side saw.
 
-ROS 2 finds its peers by multicast: every process of the session runs in a network namespace of
-its own, which this module makes (as `unshare -n` does) before any of them starts, with its
-own loopback and its own vcan0, and leaves afterwards. In the vcan lane's micro-VM (no
-network at all) that is one more wall; natively it keeps DDS off the host's network. It needs
-root; without, the module is skipped with the reason (a failure in CI).
+ROS 2 finds its peers by multicast. In the vcan lane's micro-VM, which has no network device but
+loopback and vcan0 (asserted), the VM keeps DDS in; natively every process of the session runs
+in a network namespace of its own, which this module makes (as `unshare -n` does) before any of
+them starts, with its own loopback and its own vcan0, and leaves afterwards. That needs root;
+without, the module is skipped with the reason (a failure in CI).
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from typing import Any
 import mecanum_drive
 import pytest
 from conftest import VCAN_CHANNEL, vcan_unavailable
-from ros2_peer import Call, NoNamespace, RosPeer, in_ci, private_network
+from ros2_peer import Call, NoNamespace, RosPeer, in_ci, ros2_network
 from test_vcan_runner import (  # noqa: F401 - fixtures, used by name
     COMMAND_TIMEOUT_S,
     CONTROL_PERIOD_S,
@@ -133,11 +133,11 @@ RAMP_S = 0.1 + 0.15
 
 @pytest.fixture(scope="module")
 def private_net(vcan: str) -> Iterator[str]:
-    """pytest's thread in a network namespace of its own with its own vcan0 (ros2_peer.py):
-    every process of the session is born there."""
+    """The session's network (ros2_peer.ros2_network): the lane's VM, or natively pytest's thread
+    in a network namespace of its own with its own vcan0, where every process is born."""
     try:
-        with private_network(VCAN_CHANNEL):
-            yield VCAN_CHANNEL
+        with ros2_network(VCAN_CHANNEL) as channel:
+            yield channel
     except NoNamespace as err:
         if in_ci():
             pytest.fail(str(err))
