@@ -2,8 +2,8 @@
 to `hostsim summary` and `hostsim replay`.
 
 What the writer promises (docs/logs.md, "Crash safety"): a run that dies
-leaves `NAME.mcap` cut short, every complete chunk readable, at most the last half second of
-log time lost; `NAME.mcap.part` only if it died before its header was on disk. What the reader
+leaves `NAME.mcap.part` cut short, every complete chunk readable, at most the last half second
+of log time lost (the log is renamed to `NAME.mcap` only when the run finishes). What the reader
 promises (crates/drivelog/src/read.rs): every complete, intact chunk before the damage is
 used, the damage is named with its byte offset, and `summary`/`replay` exit with status 3
 ("damaged") rather than crash.
@@ -16,6 +16,7 @@ import pathlib
 import random
 import re
 import signal
+import struct
 import subprocess
 import threading
 import time
@@ -73,8 +74,24 @@ def summary_messages(binary: pathlib.Path, path: pathlib.Path) -> tuple[int, int
     return proc.returncode, sum(int(n) for _, n in TOPIC_LINE.findall(proc.stdout)), proc.stderr
 
 
-def kill_one(binary: pathlib.Path, out: pathlib.Path, delay_s: float) -> dict:
-    """Starts the 60 s square, SIGKILLs it `delay_s` seconds later, and checks what it left."""
+def header_length(path: pathlib.Path) -> int:
+    """Bytes of a complete log before its first chunk: the magic, header, schemas, channels and
+    metadata that the writer puts on disk when it creates the file."""
+    with open(path, "rb") as f:
+        data = f.read(1 << 20)
+    at = 8  # the magic
+    while at + 9 <= len(data):
+        opcode, length = data[at], struct.unpack_from("<Q", data, at + 1)[0]
+        if opcode == 0x06:  # Chunk
+            return at
+        at += 9 + length
+    raise AssertionError(f"{path}: no chunk in its first MiB")
+
+
+def kill_one(binary: pathlib.Path, out: pathlib.Path, delay_s: float, header_len: int) -> dict:
+    """Starts the 60 s square, SIGKILLs it `delay_s` seconds later, and checks what it left.
+    A `.part` shorter than `header_len` was killed between its creation and its header's
+    write, microseconds apart: counted as `headerless`, not read."""
     proc = subprocess.Popen(
         [str(binary), "run", str(ROOT / "scenarios" / "square_60s.toml"), "--out", str(out), "--no-plot", "--progress-lines"],
         stdout=subprocess.DEVNULL,
@@ -104,8 +121,12 @@ def kill_one(binary: pathlib.Path, out: pathlib.Path, delay_s: float) -> dict:
     # of simulated time later: the log time it reached is in [reached, reached + 0.1 s].
     result["reached_s"] = progress[-1] if progress else 0.0
     result["progress_lines"] = len(progress)
-    log = out / "square-60s.mcap"
+    log = out / "square-60s.mcap.part"
     if not log.exists():
+        return result
+    if log.stat().st_size < header_len:
+        result["headerless"] = log.stat().st_size
+        log.unlink()
         return result
     count, last_ns, error = python_read(log)
     status, rust_count, stderr = summary_messages(binary, log)
@@ -126,9 +147,9 @@ def kill_one(binary: pathlib.Path, out: pathlib.Path, delay_s: float) -> dict:
 def test_killed_runs_leave_logs_that_open_and_lose_at_most_a_second(hostsim_bin, tmp_path) -> None:
     """SIGKILL `hostsim run` at KILLS random moments (seeded), PARALLEL runs at a time.
 
-    For every run: the only file left is `square-60s.mcap`, or `square-60s.mcap.part` if it
-    died before its header was on disk (or nothing, if it died before creating it). Every
-    `.mcap` left opens with the Python mcap reader, which reads exactly the messages `hostsim
+    For every run: the only file left is `square-60s.mcap.part` (or nothing, if it died before
+    creating it): a killed run is never renamed to `.mcap`. Every `.part` left that holds its
+    header opens with the Python mcap reader, which reads exactly the messages `hostsim
     summary` reads (every complete chunk: the two readers agree), and `summary` exits 3
     (damaged) naming a byte offset, never crashes.
 
@@ -150,6 +171,7 @@ def test_killed_runs_leave_logs_that_open_and_lose_at_most_a_second(hostsim_bin,
             capture_output=True, timeout=600, check=True,
         )
         walls.append(time.monotonic() - started)
+        header_len = header_length(whole / "square-60s.mcap")
         (whole / "square-60s.mcap").unlink()
     window = min(KILL_WINDOW_S, 0.5 * min(walls))
     rng = random.Random(SEED)
@@ -160,7 +182,7 @@ def test_killed_runs_leave_logs_that_open_and_lose_at_most_a_second(hostsim_bin,
         for i, delay in enumerate(delays):
             out = tmp_path / f"run{i:03d}"
             out.mkdir()
-            futures.append(pool.submit(kill_one, hostsim_bin, out, delay))
+            futures.append(pool.submit(kill_one, hostsim_bin, out, delay, header_len))
         results = [f.result() for f in futures]
     elapsed = time.monotonic() - started
 
@@ -169,7 +191,7 @@ def test_killed_runs_leave_logs_that_open_and_lose_at_most_a_second(hostsim_bin,
     with_log = [r for r in killed if "messages" in r]
     losses = []
     for r in killed:
-        assert r["files"] in ([], ["square-60s.mcap"], ["square-60s.mcap.part"]), r
+        assert r["files"] in ([], ["square-60s.mcap.part"]), r
         if "messages" not in r:
             continue
         assert r["summary_status"] == EXIT_DAMAGED, r
@@ -189,8 +211,9 @@ def test_killed_runs_leave_logs_that_open_and_lose_at_most_a_second(hostsim_bin,
     print(
         f"\n{len(killed)} runs killed in {elapsed:.1f} s: {len(with_log)} left a log "
         f"({sum(r['messages'] for r in with_log)} messages, up to {max(r['reached_s'] for r in killed):.1f} s "
-        f"simulated), {sum(r['files'] == ['square-60s.mcap.part'] for r in killed)} only a .part, "
-        f"{sum(r['files'] == [] for r in killed)} nothing; largest log-time loss bound "
+        f"simulated), {sum(r['files'] == ['square-60s.mcap.part'] for r in killed)} a .part in all, "
+        f"{sum(r['files'] == [] for r in killed)} nothing, {sum('headerless' in r for r in killed)} before "
+        f"their header; largest log-time loss bound "
         f"{max(losses):.3f} s (reached {worst['reached_s']:.1f} s, file ends at {worst['last_s']:.3f} s), "
         f"median {sorted(losses)[len(losses) // 2]:.3f} s"
     )

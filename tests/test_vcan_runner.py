@@ -898,8 +898,7 @@ def test_a_sigkilled_runners_log_opens_and_replays_bit_identical(robot_factory, 
     from mcap.exceptions import EndOfFile
     from mcap.reader import NonSeekingReader
 
-    log = tmp_path / "killed.mcap"
-    with robot_factory("killed", runner_args=["--log", str(log)]) as robot:
+    with robot_factory("killed", runner_args=["--log", str(tmp_path / "killed.mcap")]) as robot:
         t_ready = time.time()
         robot.mode(MODE_ENABLE, mark="enable")
         robot.twist(0.4, 0.1, 0.3)
@@ -909,7 +908,9 @@ def test_a_sigkilled_runners_log_opens_and_replays_bit_identical(robot_factory, 
         robot.stop_stream()
     # Killed: no shutdown, so no statistics file content.
     assert robot.runner_stats == {}
-    assert log.is_file() and not (tmp_path / "killed.mcap.part").exists()
+    # Never finished, so never renamed: the log is where it was written.
+    log = tmp_path / "killed.mcap.part"
+    assert log.is_file() and not (tmp_path / "killed.mcap").exists()
 
     topics = collections.Counter()
     steps: list[int] = []

@@ -162,7 +162,9 @@ fn run(
     let scenario = Scenario::load(scenario, config)?;
     let image = Image::read(elf)?;
     std::fs::create_dir_all(out).with_context(|| format!("--out {}", out.display()))?;
-    let log_path = out.join(format!("{}.mcap", scenario.name));
+    // The scenario's name, made a file name that stays in `out`.
+    let stem = hostsim::log::file_stem(&scenario.name);
+    let log_path = out.join(format!("{stem}.mcap"));
     let mut mcap = if log {
         Some(hostsim::log::McapLog::create(
             &log_path,
@@ -192,21 +194,30 @@ fn run(
     if !json {
         eprintln!();
     }
-    if let Some(l) = mcap {
-        l.finish()?;
-    }
     let run = match result {
         Ok(run) => run,
         Err(e) => {
             if !json {
                 print_lines(e.lines());
             }
-            return Err(e.into());
+            // The log stays a `.part`: the last good one is as it was.
+            let partial = mcap
+                .as_ref()
+                .and_then(|l| l.part())
+                .map(|p| p.display().to_string());
+            let err = anyhow::Error::from(e);
+            return Err(match partial {
+                Some(part) => err.context(format!("the run failed; what it logged is in {part}")),
+                None => err,
+            });
         }
     };
+    if let Some(l) = mcap {
+        l.finish()?;
+    }
     let wall = wall.elapsed().as_secs_f64();
     if plot && !run.track.is_empty() {
-        let png = out.join(format!("{}.png", scenario.name));
+        let png = out.join(format!("{stem}.png"));
         hostsim::plot::plot_run(
             &png,
             &format!("{} (board image)", scenario.name),

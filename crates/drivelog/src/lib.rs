@@ -23,7 +23,8 @@
 //! encodes the messages in CDR ([`msg`]) and writes them with the `mcap` crate's [`Writer`]
 //! (zstd chunks with message indexes, the summary section with chunk indexes and statistics).
 //! A chunk ends at least every quarter second of log time, a killed run loses at most the last
-//! second, and a `.mcap` file always opens (`docs/logs.md`, section "Crash safety").
+//! second, and the log is `NAME.mcap.part` until it is finished (`docs/logs.md`, section
+//! "Crash safety"); every other output file is written as a `.part` too ([`output`]).
 //! [`for_each_message`] reads a log with the `mcap` crate's reader, every complete chunk of a
 //! damaged file included, and names the byte offset of the damage ([`read`]). A
 //! [`MessageTap`] sees every message as the writing thread writes it: the `live` crate serves
@@ -64,14 +65,14 @@
 pub mod candump;
 pub mod core_log;
 pub mod msg;
+pub mod output;
 pub mod read;
 pub mod write;
 
 pub use core_log::{Changes, CoreLog, PoseTwist, StatusLog, heading_source_line, state_line};
+pub use output::{Staged, file_stem, part_path};
 pub use read::{Damage, Message, Problem, ReadReport, for_each_message};
-pub use write::{
-    CHUNK_SIZE, Direction, LogError, McapLog, MessageTap, OdometrySource, part_path, step_aside,
-};
+pub use write::{CHUNK_SIZE, Direction, LogError, McapLog, MessageTap, OdometrySource, step_aside};
 
 /// The MCAP profile of every log.
 pub const PROFILE: &str = "ros2";

@@ -4,8 +4,8 @@
 //! a batch, and hands the batch over to a second thread at each flush
 //! ([`McapLog::maybe_flush`]). That thread encodes the messages in CDR ([`crate::msg`]) and
 //! writes them with the `mcap` crate's [`Writer`](mcap::Writer), in zstd chunks of at most
-//! [`CHUNK_SIZE`] uncompressed bytes. The file is written as [`part_path`] and renamed once
-//! its header, schemas, channels and metadata are on disk; an error of the writing thread
+//! [`CHUNK_SIZE`] uncompressed bytes. The file is written as [`crate::part_path`] and
+//! renamed when the log is finished; an error of the writing thread
 //! comes back as a [`LogError`] from the next hand-over. After [`McapLog::drop_when_behind`] a hand-over never blocks: messages are
 //! dropped and counted instead.
 //!
@@ -19,11 +19,10 @@
 //!
 //! The rest is specified in `docs/logs.md`: section "The writer thread" (why the file does
 //! not depend on the threads' timing), "Crash safety" (what a killed run leaves: at most the
-//! last second lost, a `.mcap` file that always opens) and "A control loop that must not
+//! last second lost, the log a `.part` until finished) and "A control loop that must not
 //! wait: dropping instead of blocking".
 
 use std::collections::BTreeMap;
-use std::fs::File;
 use std::io::{self, BufWriter, Write};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -38,6 +37,7 @@ use mcap::records::{MessageHeader, Metadata};
 use mcap::write::NoSeek;
 
 use crate::msg::{self, Header, RosMsg};
+use crate::output::Staged;
 use crate::{Channel, METADATA_NAME, POD_NAMES, PROFILE, WHEEL_NAMES, frames};
 
 /// Why a log could not be written.
@@ -126,14 +126,6 @@ pub const CHUNK_SIZE: u64 = 1 << 20;
 /// zstd level of the chunks (the `mcap` crate takes levels from 1). See `docs/benchmarks.md`
 /// for the level against size and time.
 pub const ZSTD_LEVEL: u32 = 1;
-
-/// Where a log is written until its header is on disk: `NAME.mcap.part` for `NAME.mcap`.
-#[must_use]
-pub fn part_path(path: &Path) -> PathBuf {
-    let mut name = path.as_os_str().to_owned();
-    name.push(".part");
-    PathBuf::from(name)
-}
 
 /// A logged message, or the two of an odometry, as values: the writing thread encodes them.
 #[derive(Clone, Copy)]
@@ -298,6 +290,9 @@ fn start_file(
 /// An MCAP log being written. See the [module documentation](self) and `docs/logs.md`.
 pub struct McapLog {
     path: PathBuf,
+    /// The `.part` the log is written as until [`McapLog::finish`] renames it (`None` for a
+    /// log on a writer of the caller's).
+    staged: Option<Staged>,
     /// The messages logged since the last hand-over to the writing thread.
     batch: Batch,
     /// The writing thread; `None` once finished.
@@ -332,8 +327,9 @@ pub struct McapLog {
 
 impl McapLog {
     /// Creates the log file with the run's metadata ([`METADATA_NAME`]: `config` TOML,
-    /// scenario, seed, ...). The file is written as [`part_path`] and renamed to `path` once
-    /// its header, channels and metadata are on disk (see `docs/logs.md`, section "Crash
+    /// scenario, seed, ...). The file is written as [`crate::part_path`] (created without
+    /// following links: [`Staged`]) and renamed to `path` by [`finish`](Self::finish), so a
+    /// run that fails leaves the last good log at `path` (see `docs/logs.md`, section "Crash
     /// safety").
     ///
     /// # Errors
@@ -353,12 +349,12 @@ impl McapLog {
         metadata: &BTreeMap<String, String>,
         chunk_size: u64,
     ) -> Result<Self, LogError> {
-        let part = part_path(path);
+        let staged = Staged::create(path)?.keep_part();
         let part_err = |source| LogError::Io {
-            path: part.clone(),
+            path: staged.part().to_path_buf(),
             source,
         };
-        let file = File::create(&part).map_err(part_err)?;
+        let file = staged.file().try_clone().map_err(part_err)?;
         let written = Arc::new(AtomicU64::new(0));
         let writer = start_file(
             Box::new(BufWriter::with_capacity(1 << 16, file)),
@@ -367,11 +363,9 @@ impl McapLog {
             Arc::clone(&written),
         )
         .map_err(part_err)?;
-        std::fs::rename(&part, path).map_err(|source| LogError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
-        Self::start(path, writer, written)
+        let mut log = Self::start(path, writer, written)?;
+        log.staged = Some(staged);
+        Ok(log)
     }
 
     /// A log of `path` written to `out` (header, channels and metadata at once), for tests
@@ -402,6 +396,7 @@ impl McapLog {
         })?;
         Ok(Self {
             path: path.to_path_buf(),
+            staged: None,
             batch: Batch::default(),
             writer: Some(writer),
             failed: None,
@@ -429,10 +424,19 @@ impl McapLog {
         self.written.load(Ordering::Relaxed)
     }
 
-    /// The log's file.
+    /// The log's file, once [`finish`](Self::finish)ed; until then it is written as
+    /// [`part`](Self::part).
     #[must_use]
     pub fn path(&self) -> &Path {
         &self.path
+    }
+
+    /// The file the log is written as until it is finished ([`crate::part_path`]: a run
+    /// that fails or dies leaves it there, readable up to its last whole chunk); `None` for
+    /// a log on a writer of the caller's.
+    #[must_use]
+    pub fn part(&self) -> Option<&Path> {
+        self.staged.as_ref().map(Staged::part)
     }
 
     /// Has `tap` see every message from the open batch on, on the writing thread (see
@@ -476,7 +480,7 @@ impl McapLog {
 
     fn io_err(&self, source: io::Error) -> LogError {
         LogError::Io {
-            path: self.path.clone(),
+            path: self.part().unwrap_or(&self.path).to_path_buf(),
             source,
         }
     }
@@ -784,12 +788,17 @@ impl McapLog {
         self.messages
     }
 
-    /// Writes the summary and closes the file.
+    /// Writes the summary, closes the file and renames it from [`part`](Self::part) to
+    /// [`path`](Self::path), replacing the file there.
     ///
     /// # Errors
-    /// [`LogError`] if writing the log failed.
+    /// [`LogError`] if writing the log failed (the `.part` stays, as far as it got).
     pub fn finish(mut self) -> Result<(), LogError> {
-        self.close()
+        self.close()?;
+        match self.staged.take() {
+            Some(staged) => staged.commit().map(drop),
+            None => Ok(()),
+        }
     }
 
     /// Hands over the last batch, waits for the writing thread to end, then has the `mcap`
@@ -817,7 +826,8 @@ impl McapLog {
 
 impl Drop for McapLog {
     /// A log dropped without [`finish`](McapLog::finish) (a run that failed or panicked) is
-    /// finished here, as well as it can be: errors are ignored.
+    /// finished here, as well as it can be, and stays at [`McapLog::part`]: errors are
+    /// ignored.
     fn drop(&mut self) {
         let _ = self.close();
     }
@@ -1458,8 +1468,11 @@ mod tests {
         let tmp = TempFile::new("bytes-written");
         let mut log = McapLog::create(&tmp.0, &BTreeMap::new()).unwrap();
         let header = log.bytes_written();
-        // The header, schemas, channels and metadata, on disk at creation.
-        assert_eq!(header, std::fs::metadata(&tmp.0).unwrap().len());
+        // The header, schemas, channels and metadata, on disk (in the `.part`) at creation.
+        assert_eq!(
+            header,
+            std::fs::metadata(log.part().unwrap()).unwrap().len()
+        );
         assert!(header > 1000, "{header} bytes");
         // 600 ms: hand-overs at 250 and 500 ms, the second waits for the first's writing.
         log_steps(&mut log, 0..600).unwrap();
@@ -1480,7 +1493,10 @@ mod tests {
         log.wait_written().unwrap();
         let written = log.bytes_written();
         // Each batch ends with a flush: what was written is on disk, whatever the thread's speed.
-        assert_eq!(written, std::fs::metadata(&tmp.0).unwrap().len());
+        assert_eq!(
+            written,
+            std::fs::metadata(log.part().unwrap()).unwrap().len()
+        );
         assert!(written > 10_000, "{written} bytes");
         log.wait_written().unwrap();
         assert_eq!(log.bytes_written(), written, "the open batch stays open");

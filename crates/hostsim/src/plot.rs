@@ -2,8 +2,12 @@
 //! and the position error over time; or of several runs in one figure (`hostsim plot A B`:
 //! an uncalibrated run beside a calibrated one).
 
+use std::io::BufWriter;
 use std::path::Path;
 
+use drivelog::Staged;
+use image::ImageEncoder;
+use plotters::coord::Shift;
 use plotters::prelude::*;
 
 /// One sample of the trajectories: time s, truth `[x, y]`, odometry `[x, y]`.
@@ -23,6 +27,28 @@ pub struct TrackPoint {
 pub struct PlotError {
     path: String,
     message: String,
+}
+
+/// Draws a PNG of `size` pixels with `draw` and writes it to `path` through a [`Staged`] file:
+/// the previous PNG there stays until the new one is whole.
+fn png(
+    path: &Path,
+    size: (u32, u32),
+    err: &dyn Fn(&dyn std::fmt::Display) -> PlotError,
+    draw: impl FnOnce(&DrawingArea<BitMapBackend<'_>, Shift>) -> Result<(), PlotError>,
+) -> Result<(), PlotError> {
+    let mut pixels = vec![0_u8; size.0 as usize * size.1 as usize * 3];
+    {
+        let root = BitMapBackend::with_buffer(&mut pixels, size).into_drawing_area();
+        draw(&root)?;
+        root.present().map_err(|e| err(&e))?;
+    }
+    let mut out = Staged::create(path).map_err(|e| err(&e))?;
+    image::codecs::png::PngEncoder::new(BufWriter::new(&mut out))
+        .write_image(&pixels, size.0, size.1, image::ColorType::Rgb8)
+        .map_err(|e| err(&e))?;
+    out.commit().map_err(|e| err(&e))?;
+    Ok(())
 }
 
 fn register_font() {
@@ -81,138 +107,138 @@ pub fn plot_runs(
         message: e.to_string(),
     };
     let panels = u32::try_from(runs.len().max(1) + 1).unwrap_or(u32::MAX);
-    let root = BitMapBackend::new(path, (600 * panels, 600)).into_drawing_area();
-    root.fill(&WHITE).map_err(|e| err(&e))?;
-    let areas = root.split_evenly((1, panels as usize));
-    let (paths, right) = areas.split_at(areas.len() - 1);
-    let right = &right[0];
-    let prefix = |label: &str| {
-        if label.is_empty() {
-            String::new()
-        } else {
-            format!("{label}: ")
-        }
-    };
-
-    // Equal axes around every path, with a margin, the same for every run.
-    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-    for p in runs.iter().flat_map(|r| r.1) {
-        for [x, y] in [p.truth, p.odom] {
-            x0 = x0.min(x);
-            x1 = x1.max(x);
-            y0 = y0.min(y);
-            y1 = y1.max(y);
-        }
-    }
-    if runs.iter().all(|r| r.1.is_empty()) {
-        (x0, x1, y0, y1) = (-1.0, 1.0, -1.0, 1.0);
-    }
-    let span = (x1 - x0).max(y1 - y0).max(0.2) * 1.15;
-    let (cx, cy) = ((x0 + x1) / 2.0, (y0 + y1) / 2.0);
-    for (i, ((label, points), area)) in runs.iter().zip(paths).enumerate() {
-        let (truth, odom) = COLOURS[i % COLOURS.len()];
-        let caption = if label.is_empty() {
-            format!("{title}: path seen from above")
-        } else {
-            format!("{label}: path seen from above")
+    png(path, (600 * panels, 600), &err, |root| {
+        root.fill(&WHITE).map_err(|e| err(&e))?;
+        let areas = root.split_evenly((1, panels as usize));
+        let (paths, right) = areas.split_at(areas.len() - 1);
+        let right = &right[0];
+        let prefix = |label: &str| {
+            if label.is_empty() {
+                String::new()
+            } else {
+                format!("{label}: ")
+            }
         };
-        let mut chart = ChartBuilder::on(area)
-            .caption(
-                caption,
-                ("sans-serif", if label.is_empty() { 20 } else { 16 }),
-            )
+
+        // Equal axes around every path, with a margin, the same for every run.
+        let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+        for p in runs.iter().flat_map(|r| r.1) {
+            for [x, y] in [p.truth, p.odom] {
+                x0 = x0.min(x);
+                x1 = x1.max(x);
+                y0 = y0.min(y);
+                y1 = y1.max(y);
+            }
+        }
+        if runs.iter().all(|r| r.1.is_empty()) {
+            (x0, x1, y0, y1) = (-1.0, 1.0, -1.0, 1.0);
+        }
+        let span = (x1 - x0).max(y1 - y0).max(0.2) * 1.15;
+        let (cx, cy) = ((x0 + x1) / 2.0, (y0 + y1) / 2.0);
+        for (i, ((label, points), area)) in runs.iter().zip(paths).enumerate() {
+            let (truth, odom) = COLOURS[i % COLOURS.len()];
+            let caption = if label.is_empty() {
+                format!("{title}: path seen from above")
+            } else {
+                format!("{label}: path seen from above")
+            };
+            let mut chart = ChartBuilder::on(area)
+                .caption(
+                    caption,
+                    ("sans-serif", if label.is_empty() { 20 } else { 16 }),
+                )
+                .margin(10)
+                .x_label_area_size(35)
+                .y_label_area_size(50)
+                .build_cartesian_2d(
+                    cx - span / 2.0..cx + span / 2.0,
+                    cy - span / 2.0..cy + span / 2.0,
+                )
+                .map_err(|e| err(&e))?;
+            chart
+                .configure_mesh()
+                .x_desc("x [m]")
+                .y_desc("y [m]")
+                .draw()
+                .map_err(|e| err(&e))?;
+            chart
+                .draw_series(LineSeries::new(
+                    points.iter().map(|p| (p.truth[0], p.truth[1])),
+                    truth.stroke_width(3),
+                ))
+                .map_err(|e| err(&e))?
+                .label("ground truth")
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], truth.stroke_width(3))
+                });
+            chart
+                .draw_series(LineSeries::new(
+                    points.iter().map(|p| (p.odom[0], p.odom[1])),
+                    odom.stroke_width(1),
+                ))
+                .map_err(|e| err(&e))?
+                .label(format!(
+                    "odometry (firmware), max drift {:.1} mm",
+                    max_drift(points) * 1000.0
+                ))
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], odom));
+            chart
+                .configure_series_labels()
+                .background_style(WHITE.mix(0.8))
+                .border_style(BLACK)
+                .draw()
+                .map_err(|e| err(&e))?;
+        }
+
+        let t_end = runs
+            .iter()
+            .filter_map(|r| r.1.last())
+            .map(|p| p.t)
+            .fold(1e-3, f64::max);
+        let e_max = runs
+            .iter()
+            .map(|r| max_drift(r.1) * 1000.0)
+            .fold(1.0, f64::max)
+            * 1.1;
+        let mut chart = ChartBuilder::on(right)
+            .caption("odometry position error", ("sans-serif", 20))
             .margin(10)
             .x_label_area_size(35)
             .y_label_area_size(50)
-            .build_cartesian_2d(
-                cx - span / 2.0..cx + span / 2.0,
-                cy - span / 2.0..cy + span / 2.0,
-            )
+            .build_cartesian_2d(0.0..t_end, 0.0..e_max)
             .map_err(|e| err(&e))?;
         chart
             .configure_mesh()
-            .x_desc("x [m]")
-            .y_desc("y [m]")
+            .x_desc("t [s]")
+            .y_desc("error [mm]")
             .draw()
             .map_err(|e| err(&e))?;
-        chart
-            .draw_series(LineSeries::new(
-                points.iter().map(|p| (p.truth[0], p.truth[1])),
-                truth.stroke_width(3),
-            ))
-            .map_err(|e| err(&e))?
-            .label("ground truth")
-            .legend(move |(x, y)| {
-                PathElement::new(vec![(x, y), (x + 20, y)], truth.stroke_width(3))
+        for (i, (label, points)) in runs.iter().enumerate() {
+            let (_, odom) = COLOURS[i % COLOURS.len()];
+            let errs = points.iter().map(|p| {
+                let e = (p.truth[0] - p.odom[0]).hypot(p.truth[1] - p.odom[1]);
+                (p.t, e * 1000.0)
             });
-        chart
-            .draw_series(LineSeries::new(
-                points.iter().map(|p| (p.odom[0], p.odom[1])),
-                odom.stroke_width(1),
-            ))
-            .map_err(|e| err(&e))?
-            .label(format!(
-                "odometry (firmware), max drift {:.1} mm",
-                max_drift(points) * 1000.0
-            ))
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], odom));
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .draw()
-            .map_err(|e| err(&e))?;
-    }
-
-    let t_end = runs
-        .iter()
-        .filter_map(|r| r.1.last())
-        .map(|p| p.t)
-        .fold(1e-3, f64::max);
-    let e_max = runs
-        .iter()
-        .map(|r| max_drift(r.1) * 1000.0)
-        .fold(1.0, f64::max)
-        * 1.1;
-    let mut chart = ChartBuilder::on(right)
-        .caption("odometry position error", ("sans-serif", 20))
-        .margin(10)
-        .x_label_area_size(35)
-        .y_label_area_size(50)
-        .build_cartesian_2d(0.0..t_end, 0.0..e_max)
-        .map_err(|e| err(&e))?;
-    chart
-        .configure_mesh()
-        .x_desc("t [s]")
-        .y_desc("error [mm]")
-        .draw()
-        .map_err(|e| err(&e))?;
-    for (i, (label, points)) in runs.iter().enumerate() {
-        let (_, odom) = COLOURS[i % COLOURS.len()];
-        let errs = points.iter().map(|p| {
-            let e = (p.truth[0] - p.odom[0]).hypot(p.truth[1] - p.odom[1]);
-            (p.t, e * 1000.0)
-        });
-        chart
-            .draw_series(LineSeries::new(errs, odom))
-            .map_err(|e| err(&e))?
-            .label(format!(
-                "{}max {:.1} mm",
-                prefix(label),
-                max_drift(points) * 1000.0
-            ))
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], odom));
-    }
-    if runs.len() > 1 {
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .draw()
-            .map_err(|e| err(&e))?;
-    }
-    root.present().map_err(|e| err(&e))?;
-    Ok(())
+            chart
+                .draw_series(LineSeries::new(errs, odom))
+                .map_err(|e| err(&e))?
+                .label(format!(
+                    "{}max {:.1} mm",
+                    prefix(label),
+                    max_drift(points) * 1000.0
+                ))
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], odom));
+        }
+        if runs.len() > 1 {
+            chart
+                .configure_series_labels()
+                .background_style(WHITE.mix(0.8))
+                .border_style(BLACK)
+                .draw()
+                .map_err(|e| err(&e))?;
+        }
+        Ok(())
+    })
 }
 
 /// A logged run's track: the odometry (`/odom`) and the ground truth (`/ground_truth/odom`)
@@ -294,29 +320,29 @@ pub fn scatter(
     };
     let (x0, x1) = finite(xs);
     let (y0, y1) = finite(ys);
-    let root = BitMapBackend::new(path, (900, 600)).into_drawing_area();
-    root.fill(&WHITE).map_err(|e| err(&e))?;
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 20))
-        .margin(15)
-        .x_label_area_size(40)
-        .y_label_area_size(60)
-        .build_cartesian_2d(x0..x1, y0.min(0.0)..y1)
-        .map_err(|e| err(&e))?;
-    chart
-        .configure_mesh()
-        .x_desc(x_label)
-        .y_desc(y_label)
-        .draw()
-        .map_err(|e| err(&e))?;
-    chart
-        .draw_series(
-            xs.iter()
-                .zip(ys)
-                .filter(|(x, y)| x.is_finite() && y.is_finite())
-                .map(|(&x, &y)| Circle::new((x, y), 3, BLUE.mix(0.6).filled())),
-        )
-        .map_err(|e| err(&e))?;
-    root.present().map_err(|e| err(&e))?;
-    Ok(())
+    png(path, (900, 600), &err, |root| {
+        root.fill(&WHITE).map_err(|e| err(&e))?;
+        let mut chart = ChartBuilder::on(root)
+            .caption(title, ("sans-serif", 20))
+            .margin(15)
+            .x_label_area_size(40)
+            .y_label_area_size(60)
+            .build_cartesian_2d(x0..x1, y0.min(0.0)..y1)
+            .map_err(|e| err(&e))?;
+        chart
+            .configure_mesh()
+            .x_desc(x_label)
+            .y_desc(y_label)
+            .draw()
+            .map_err(|e| err(&e))?;
+        chart
+            .draw_series(
+                xs.iter()
+                    .zip(ys)
+                    .filter(|(x, y)| x.is_finite() && y.is_finite())
+                    .map(|(&x, &y)| Circle::new((x, y), 3, BLUE.mix(0.6).filled())),
+            )
+            .map_err(|e| err(&e))?;
+        Ok(())
+    })
 }

@@ -182,4 +182,19 @@ fn canopen_faults_are_refused_for_other_drives() {
     s.config = Config::dji_m3508_example();
     let e = SimDrives::for_scenario(&s).unwrap_err().to_string();
     assert!(e.contains("faults[].kind") && e.contains("cia402"), "{e}");
+    // Where the scenario is loaded with such a configuration, the file, the fault and its
+    // kind are named.
+    let path = std::path::Path::new("../../scenarios/cia402_reboot.toml");
+    let text = std::fs::read_to_string(path).unwrap();
+    let e = Scenario::from_toml_with_config(&text, path, Some(Config::dji_m3508_example()))
+        .unwrap_err()
+        .to_string();
+    for says in [
+        "cia402_reboot.toml",
+        "faults[0].kind",
+        "\"drive_reboot\"",
+        "cia402",
+    ] {
+        assert!(e.contains(says), "{says}: {e}");
+    }
 }

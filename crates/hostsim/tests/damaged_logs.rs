@@ -541,18 +541,44 @@ fn the_time_gap_check_bounds_replay_and_candump_replay() {
 }
 
 #[test]
-fn a_killed_writer_never_leaves_an_unopenable_mcap_file() {
-    // The header and metadata go to NAME.mcap.part, renamed to NAME.mcap once on disk.
+fn a_log_is_a_readable_part_until_finished_and_the_last_good_one_stays() {
+    // The log is written as NAME.mcap.part, readable from its header on, and renamed to
+    // NAME.mcap when finished: until then (or if the run never finishes) the last good
+    // NAME.mcap stays as it was.
     let dir = TempDir::new("part");
     let path = dir.0.join("run.mcap");
+    let part = hostsim::log::part_path(&path);
+    McapLog::create(&path, &Default::default())
+        .unwrap()
+        .finish()
+        .unwrap();
+    let good = std::fs::read(&path).unwrap();
     let log = McapLog::create(&path, &Default::default()).unwrap();
-    assert!(!hostsim::log::part_path(&path).exists());
-    let (r, _) = read(&std::fs::read(&path).unwrap());
+    assert_eq!(log.part(), Some(part.as_path()));
+    let (r, _) = read(&std::fs::read(&part).unwrap());
     let r = r.expect("readable before the first message");
     assert_eq!(r.damage.map(|d| d.problem), Some(Problem::Unfinished));
+    assert_eq!(
+        std::fs::read(&path).unwrap(),
+        good,
+        "the last good log is untouched"
+    );
     log.finish().unwrap();
+    assert!(!part.exists());
     let (r, _) = read(&std::fs::read(&path).unwrap());
     assert!(r.unwrap().is_complete());
+
+    // Dropped unfinished (a run that failed): the .part stays, the last good log too.
+    let log = McapLog::create(&path, &Default::default()).unwrap();
+    drop(log);
+    let (r, _) = read(&std::fs::read(&part).unwrap());
+    assert!(r.is_ok());
+    assert!(
+        read(&std::fs::read(&path).unwrap())
+            .0
+            .unwrap()
+            .is_complete()
+    );
 }
 
 #[test]

@@ -109,7 +109,10 @@ fn ctrl_c_keeps_the_rows_finished() {
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert_eq!(o.status.code(), Some(130), "{stdout}");
     assert!(stdout.contains("INTERRUPTED"), "{stdout}");
-    let csv = std::fs::read_to_string(out.join("sweep.csv")).unwrap();
+    // Not whole, so not renamed into place: the rows finished are in the `.part`.
+    assert!(!out.join("sweep.csv").exists() && !out.join("sweep.jsonl").exists());
+    assert!(stdout.contains("sweep.csv.part"), "{stdout}");
+    let csv = std::fs::read_to_string(out.join("sweep.csv.part")).unwrap();
     let rows: Vec<&str> = csv.lines().skip(1).collect();
     assert!(
         !rows.is_empty() && rows.len() < 2000,
@@ -133,7 +136,7 @@ fn ctrl_c_keeps_the_rows_finished() {
         .map(|r| r.split(',').next().unwrap().parse().unwrap())
         .collect();
     assert!(indices.windows(2).all(|w| w[0] < w[1]), "{indices:?}");
-    let jsonl = std::fs::read_to_string(out.join("sweep.jsonl")).unwrap();
+    let jsonl = std::fs::read_to_string(out.join("sweep.jsonl.part")).unwrap();
     assert_eq!(jsonl.lines().count(), rows.len());
 }
 

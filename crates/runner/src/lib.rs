@@ -292,7 +292,8 @@ impl McapRecorder {
         if let Some(rotation) = self.rotation.take() {
             // The file prepared for the next rotation is not part of the log.
             if let Some(Ok(Ok(unused))) = rotation.next.map(JoinHandle::join) {
-                let path = unused.path().to_path_buf();
+                // Never finished, it is still its `.part`.
+                let path = unused.part().unwrap_or(unused.path()).to_path_buf();
                 drop(unused);
                 if let Err(source) = std::fs::remove_file(&path) {
                     first = first.and(Err(LogError::Io { path, source }));

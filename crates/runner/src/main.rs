@@ -4,7 +4,6 @@
 //! of `firmware`, so that it can write its log through `drivelog` (which depends on
 //! `firmware`).
 
-use std::fs::File;
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -160,7 +159,7 @@ fn parse_keep(s: &str) -> Result<usize, String> {
 struct Setup {
     controller: Controller,
     bus: SocketCanBus,
-    stats: Option<(PathBuf, File)>,
+    stats: Option<(PathBuf, drivelog::Staged)>,
     log: Option<McapRecorder>,
     server: Option<live::LiveServer>,
     stop: Arc<AtomicUsize>,
@@ -324,8 +323,8 @@ fn startup(args: &Args) -> Result<Setup> {
     // checked), so a bad path fails now and not after a long run.
     let stats = match &args.stats_json {
         Some(path) => {
-            let file = File::create(path)
-                .with_context(|| format!("cannot create --stats-json file {}", path.display()))?;
+            // Renamed into place once written: a run that fails keeps the last report.
+            let file = drivelog::Staged::create(path).context("cannot create --stats-json file")?;
             Some((path.clone(), file))
         }
         None => None,
@@ -357,7 +356,7 @@ fn startup(args: &Args) -> Result<Setup> {
 
 fn write_stats(
     path: &Path,
-    mut file: File,
+    mut file: drivelog::Staged,
     report: &Report,
     log: Option<(u64, u64)>,
     log_path: Option<&Path>,
@@ -380,5 +379,7 @@ fn write_stats(
     serde_json::to_writer_pretty(&mut file, &json)
         .map_err(anyhow::Error::from)
         .and_then(|()| Ok(file.write_all(b"\n")?))
-        .with_context(|| format!("cannot write --stats-json file {}", path.display()))
+        .and_then(|()| Ok(file.commit()?))
+        .with_context(|| format!("cannot write --stats-json file {}", path.display()))?;
+    Ok(())
 }

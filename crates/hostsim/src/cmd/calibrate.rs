@@ -99,7 +99,8 @@ fn calibrate(
             c.reference,
             c.config.to_toml_string()
         );
-        std::fs::write(file, text).with_context(|| format!("cannot write {}", file.display()))?;
+        drivelog::output::write_whole(file, text.as_bytes())
+            .context("cannot write the calibration")?;
     }
     if json {
         println!("{}", c.to_json());

@@ -1,6 +1,5 @@
 //! `hostsim plant`: the simulated drives on a real SocketCAN interface, in real time.
 
-use std::fs::File;
 use std::io::Write as _;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -126,8 +125,8 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
     let stats = match stats_json {
         Some(p) => Some((
             p,
-            File::create(p)
-                .with_context(|| format!("cannot create --stats-json file {}", p.display()))?,
+            // Renamed into place once written: a run that fails keeps the last report.
+            drivelog::Staged::create(p).context("cannot create --stats-json file")?,
         )),
         None => None,
     };
@@ -225,7 +224,8 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
         }
         let written = serde_json::to_writer_pretty(&mut file, &json)
             .map_err(anyhow::Error::from)
-            .and_then(|()| Ok(file.write_all(b"\n")?));
+            .and_then(|()| Ok(file.write_all(b"\n")?))
+            .and_then(|()| Ok(file.commit()?));
         if let Err(e) = written {
             eprintln!(
                 "error: cannot write --stats-json file {}: {e:#}",

@@ -152,25 +152,17 @@ fn run(
         }
         scenario = hostsim::sweep::apply(&scenario, scenario.seed, &values)?;
     }
+    // The plant before any output: a scenario it refuses makes no file.
+    let mut plant = hostsim::drives::SimDrives::for_scenario(&scenario)?;
     std::fs::create_dir_all(out)
         .with_context(|| format!("cannot create the output folder {}", out.display()))?;
-    let stem: String = scenario
-        .name
-        .chars()
-        .map(|c| {
-            if c.is_ascii_alphanumeric() || c == '-' {
-                c
-            } else {
-                '_'
-            }
-        })
-        .collect();
+    let stem = drivelog::file_stem(&scenario.name);
     let log_path = out.join(format!("{stem}.mcap"));
     let png_path = out.join(format!("{stem}.png"));
     if draw_plot {
         // Now, not after a long run: a path that cannot be written fails before simulating.
-        std::fs::File::create(&png_path)
-            .with_context(|| format!("cannot create the plot {}", png_path.display()))?;
+        // (Its temporary file only: the last good plot stays until the new one is whole.)
+        drivelog::Staged::create(&png_path).context("cannot create the plot")?;
     }
     // Before the log: an address that cannot be served fails before a file is made.
     let mut live = live_args
@@ -184,7 +176,6 @@ fn run(
     if let (Some(live), Some(log)) = (live.as_mut(), log.as_mut()) {
         live.attach(log);
     }
-    let mut plant = hostsim::drives::SimDrives::for_scenario(&scenario)?;
     let bar = ProgressBar::new(scenario.duration_us() / 1000);
     bar.set_style(
         ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} ms simulated ({per_sec})")
@@ -192,6 +183,7 @@ fn run(
     );
     bar.set_message(scenario.name.clone());
     let wall = std::time::Instant::now();
+    let partial = log.as_ref().and_then(|l| l.part()).map(Path::to_path_buf);
     let summary = hostsim::sim::run_until(
         &scenario,
         &mut plant,
@@ -212,7 +204,14 @@ fn run(
                 None => ControlFlow::Continue(()),
             }
         },
-    )?;
+    )
+    .with_context(|| match &partial {
+        Some(part) => format!(
+            "the run failed; what it logged is in {} (the last good outputs are as they were)",
+            part.display()
+        ),
+        None => "the run failed (the last good outputs are as they were)".to_string(),
+    })?;
     bar.finish_and_clear();
     let wall_s = wall.elapsed().as_secs_f64();
     if let Some(log) = log {

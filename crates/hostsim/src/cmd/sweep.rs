@@ -1,11 +1,11 @@
 //! `hostsim sweep`: many runs of one scenario, on every core.
 
-use std::fs::File;
-use std::io::Write as _;
+use std::io::{BufWriter, Write as _};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::{Context, Result};
+use drivelog::Staged;
 use hostsim::log::McapLog;
 use hostsim::sim::{LogOptions, run_metadata};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -88,10 +88,12 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
     let csv_path = args.out.join("sweep.csv");
     let jsonl_path = args.out.join("sweep.jsonl");
     let png_path = args.out.join("sweep.png");
-    let mut csv =
-        File::create(&csv_path).with_context(|| format!("cannot create {}", csv_path.display()))?;
-    let mut jsonl = File::create(&jsonl_path)
-        .with_context(|| format!("cannot create {}", jsonl_path.display()))?;
+    // Written as `.part` files, renamed when the sweep is whole: an interrupted or failed
+    // sweep leaves the last whole table as it was.
+    let staged = |path: &std::path::Path| -> Result<BufWriter<Staged>> {
+        Ok(BufWriter::new(Staged::create(path)?.keep_part()))
+    };
+    let (mut csv, mut jsonl) = (staged(&csv_path)?, staged(&jsonl_path)?);
     let threads = if args.jobs == 0 {
         std::thread::available_parallelism().map_or(1, std::num::NonZero::get)
     } else {
@@ -121,6 +123,22 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
         writeln!(csv, "{}", r.csv())?;
         writeln!(jsonl, "{}", r.json())?;
     }
+    let done = |w: BufWriter<Staged>| -> Result<Staged> {
+        let part = w.get_ref().part().display().to_string();
+        w.into_inner()
+            .map_err(std::io::IntoInnerError::into_error)
+            .with_context(|| format!("cannot write {part}"))
+    };
+    let (csv, jsonl) = (done(csv)?, done(jsonl)?);
+    let table = if interrupted {
+        format!("{} and {}", csv.part().display(), jsonl.part().display())
+    } else {
+        format!(
+            "{} and {}",
+            csv.commit()?.display(),
+            jsonl.commit()?.display()
+        )
+    };
     let secs = wall.elapsed().as_secs_f64();
     let simulated: f64 =
         rows.iter().map(|r| r.steps as f64).sum::<f64>() / f64::from(base.config.timing.control_hz);
@@ -130,7 +148,8 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
         runs.len(),
         simulated / secs.max(1e-9),
         if interrupted {
-            "; INTERRUPTED: the rows finished are written"
+            "; INTERRUPTED: the rows finished are in the .part files, the last whole table \
+             is as it was"
         } else {
             ""
         }
@@ -191,7 +210,7 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
         log.finish()?;
         println!("  log of #{}: {}", r.index, path.display());
     }
-    if !args.no_plot && !rows.is_empty() {
+    if !args.no_plot && !rows.is_empty() && !interrupted {
         let (label, xs): (String, Vec<f64>) = match keys.first() {
             Some(k) => (k.clone(), rows.iter().map(|r| r.values[0].1).collect()),
             #[allow(clippy::cast_precision_loss)]
@@ -207,7 +226,7 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
             &ys,
         )?;
     }
-    println!("table: {} and {}", csv_path.display(), jsonl_path.display());
+    println!("table: {table}");
     Ok(if interrupted {
         ExitCode::from(EXIT_INTERRUPTED)
     } else {

@@ -300,6 +300,21 @@ impl Scenario {
         let (bus_faults, wheel_faults, host_faults, node_faults) =
             faults::build(&file.faults, file.duration_s, &invalid)?;
         check_pods(file.pods.as_ref(), &config, &file.faults, &invalid)?;
+        if !matches!(config.drive, firmware::config::Drive::Cia402 { .. })
+            && let Some((i, f)) = file
+                .faults
+                .iter()
+                .enumerate()
+                .find(|(_, f)| f.kind.cia402_only())
+        {
+            return Err(invalid.at(
+                &format!("faults[{i}].kind"),
+                format!("{:?}", f.kind.as_str()),
+                "a fault of this configuration's drives (stuck_encoder, motor_offline): \
+                 drive_silent, drive_reboot, drive_fault, enable_refused and sdo_abort act on \
+                 CANopen nodes, a protocol = \"cia402\" configuration",
+            ));
+        }
         if let Some((field, value, expected)) = file.plant.first_invalid() {
             return Err(invalid.at(field, value.to_string(), expected));
         }
