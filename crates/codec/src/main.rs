@@ -501,24 +501,38 @@ fn decode_stdin(routing: Routing) -> io::Result<()> {
     decode_stream(io::stdin().lock(), io::stdout().lock(), routing)
 }
 
-/// One JSON line per non-blank input line; a line that is not UTF-8 gets a `parse` error
-/// naming its number and bytes, like any other line that does not parse.
-fn decode_stream(input: impl BufRead, output: impl Write, routing: Routing) -> io::Result<()> {
+/// Bytes of an input line decoded at most: a candump line is under 100 (CAN FD under 300).
+const MAX_LINE: usize = 4096;
+
+/// One JSON line per non-blank input line; a line that is not UTF-8, or longer than
+/// [`MAX_LINE`] (read no further than that: the rest is skipped, not buffered), gets a `parse`
+/// error naming its number and its first bytes, like any other line that does not parse.
+fn decode_stream(mut input: impl BufRead, output: impl Write, routing: Routing) -> io::Result<()> {
     let mut out = io::BufWriter::new(output);
-    for (n, line) in input.split(b'\n').enumerate() {
-        let line = line?;
+    let mut line = Vec::with_capacity(128);
+    for n in 1.. {
+        line.clear();
+        let Some(overlong) = read_line_bounded(&mut input, &mut line, MAX_LINE)? else {
+            break;
+        };
         let answer = match std::str::from_utf8(&line) {
+            _ if overlong => error_json(
+                None,
+                "parse",
+                &format!("line {n} is longer than {MAX_LINE} bytes: not decoded"),
+                &[("begins", firmware::input::quote_bytes(&line).into())],
+            ),
             Ok(text) if text.trim().is_empty() => continue,
             Ok(text) => decode_line(text.trim(), routing),
             Err(e) => {
                 let mut hex = String::new();
-                for b in &line {
+                for b in line.iter().take(firmware::input::MAX_QUOTE) {
                     let _ = write!(hex, "{b:02X}");
                 }
                 error_json(
                     None,
                     "parse",
-                    &format!("line {} is not UTF-8: {e}", n + 1),
+                    &format!("line {n} is not UTF-8: {e}"),
                     &[("bytes", hex.into())],
                 )
             }
@@ -526,6 +540,33 @@ fn decode_stream(input: impl BufRead, output: impl Write, routing: Routing) -> i
         writeln!(out, "{answer}")?;
     }
     out.flush()
+}
+
+/// Reads one line (without its `\n`) into `line`, keeping at most `max` bytes of it and
+/// skipping the rest. `None` at the end of the input; else whether the line was longer.
+fn read_line_bounded(
+    input: &mut impl BufRead,
+    line: &mut Vec<u8>,
+    max: usize,
+) -> io::Result<Option<bool>> {
+    let (mut any, mut overlong) = (false, false);
+    loop {
+        let buf = input.fill_buf()?;
+        if buf.is_empty() {
+            return Ok(any.then_some(overlong));
+        }
+        any = true;
+        let end = buf.iter().position(|&b| b == b'\n');
+        let chunk = &buf[..end.unwrap_or(buf.len())];
+        let room = max.saturating_sub(line.len());
+        overlong |= chunk.len() > room;
+        line.extend_from_slice(&chunk[..chunk.len().min(room)]);
+        let used = end.map_or(buf.len(), |i| i + 1);
+        input.consume(used);
+        if end.is_some() {
+            return Ok(Some(overlong));
+        }
+    }
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -886,6 +927,35 @@ mod tests {
         assert!(lines[1].contains("\"kind\":\"parse\""), "{}", lines[1]);
         assert!(lines[1].contains("line 2 is not UTF-8"), "{}", lines[1]);
         assert!(lines[1].contains("\"bytes\":\"FFFE\""), "{}", lines[1]);
+    }
+
+    #[test]
+    fn a_line_past_the_bound_is_skipped_not_buffered_and_the_rest_go_on() {
+        let mut input = b"301#F40106FFE8030700\n".to_vec();
+        input.extend(std::iter::repeat_n(0x1b, 3 * MAX_LINE));
+        input.extend_from_slice(b"\n301#F40106FFE8030700");
+        let mut out = Vec::new();
+        // A reader that hands over 100 bytes at a time: the bound holds across its buffers.
+        let reader = io::BufReader::with_capacity(100, &input[..]);
+        decode_stream(reader, &mut out, Routing::default()).unwrap();
+        let text = String::from_utf8(out).unwrap();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines.len(), 3, "{text}");
+        assert!(
+            lines[0].contains("TWIST_CMD") && lines[2].contains("TWIST_CMD"),
+            "{text}"
+        );
+        assert!(
+            lines[1].contains("line 2 is longer than 4096 bytes"),
+            "{}",
+            lines[1]
+        );
+        // The start is quoted, cut and escaped: no raw ESC reaches a terminal.
+        assert!(
+            !lines[1].contains('\u{1b}') && lines[1].len() < 1200,
+            "{}",
+            lines[1]
+        );
     }
 
     #[test]

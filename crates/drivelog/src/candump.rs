@@ -107,11 +107,12 @@ impl fmt::Display for ErrorKind {
 
 /// A line that could not be parsed: its number (1-based), its text and what is wrong.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("line {line}: {kind}: {text:?}")]
+#[error("line {line}: {kind}: \"{text}\"")]
 pub struct CandumpError {
     /// Line number, 1-based.
     pub line: usize,
-    /// The line (shortened to 120 characters).
+    /// The line, [`quote`](firmware::input::quote)d: cut to 120 characters, control
+    /// characters escaped.
     pub text: String,
     /// What is wrong.
     pub kind: ErrorKind,
@@ -119,12 +120,11 @@ pub struct CandumpError {
 
 impl CandumpError {
     fn new(line: usize, text: &str, kind: ErrorKind) -> Self {
-        const MAX: usize = 120;
-        let text = match text.char_indices().nth(MAX) {
-            Some((cut, _)) => format!("{}…", &text[..cut]),
-            None => text.to_string(),
-        };
-        Self { line, text, kind }
+        Self {
+            line,
+            text: firmware::input::quote(text),
+            kind,
+        }
     }
 }
 
@@ -355,10 +355,13 @@ pub fn parse_log_bytes(bytes: &[u8]) -> Result<Vec<Entry>, CandumpError> {
 /// # Errors
 /// [`ReadError`] naming the file (and the line).
 pub fn read_file(path: &Path) -> Result<Vec<Entry>, ReadError> {
-    let bytes = std::fs::read(path).map_err(|source| ReadError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
+    let bytes =
+        firmware::input::read_bounded(path, crate::read::MAX_LOG_BYTES).map_err(|source| {
+            ReadError::Io {
+                path: path.to_path_buf(),
+                source,
+            }
+        })?;
     parse_log_bytes(&bytes).map_err(|source| ReadError::Line {
         path: path.to_path_buf(),
         source,

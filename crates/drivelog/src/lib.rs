@@ -71,7 +71,7 @@ pub mod write;
 
 pub use core_log::{Changes, CoreLog, PoseTwist, StatusLog, heading_source_line, state_line};
 pub use output::{Staged, file_stem, part_path};
-pub use read::{Damage, Message, Problem, ReadReport, for_each_message};
+pub use read::{Damage, Message, Problem, ReadReport, Undecodable, for_each_message};
 pub use write::{CHUNK_SIZE, Direction, LogError, McapLog, MessageTap, OdometrySource, step_aside};
 
 /// The MCAP profile of every log.

@@ -294,6 +294,87 @@ pub struct Message<'a> {
     pub data: &'a [u8],
 }
 
+/// Messages a reader could not decode, by topic, and the first of them. Every command that
+/// reads a log decodes through one and reports it: nothing is skipped in silence
+/// (`docs/logs.md`, "Reading damaged logs").
+#[derive(Debug, Default, Clone, PartialEq, Eq)]
+pub struct Undecodable {
+    /// Messages not decoded, by topic.
+    pub by_topic: BTreeMap<String, u64>,
+    /// The first: topic, log time (ns) and why, the reason [`quote`](firmware::input::quote)d.
+    pub first: Option<(String, u64, String)>,
+}
+
+impl Undecodable {
+    /// `m`'s data decoded as `M`; `None`, counted, if it is not one.
+    pub fn decode<M: crate::msg::RosMsg>(&mut self, m: &Message<'_>) -> Option<M> {
+        match crate::msg::decode::<M>(m.data) {
+            Ok(value) => Some(value),
+            Err(e) => {
+                self.count(m, &e);
+                None
+            }
+        }
+    }
+
+    /// A `/can/rx` or `/can/tx` message's frame; `None`, counted, if the message does not
+    /// decode or holds no valid CAN frame (identifier or length out of range).
+    pub fn frame(&mut self, m: &Message<'_>) -> Option<firmware::CanFrame> {
+        let frame = self.decode::<crate::msg::Frame>(m)?;
+        let can = frame.to_can();
+        if can.is_none() {
+            self.count(
+                m,
+                &"not a valid CAN frame (identifier or length out of range)",
+            );
+        }
+        can
+    }
+
+    /// Counts `m` as not decoded, for `why`.
+    pub fn count(&mut self, m: &Message<'_>, why: &dyn fmt::Display) {
+        *self.by_topic.entry(m.topic.to_string()).or_default() += 1;
+        if self.first.is_none() {
+            let why = firmware::input::quote(&why.to_string());
+            self.first = Some((m.topic.to_string(), m.log_time, why));
+        }
+    }
+
+    /// Messages not decoded in all.
+    #[must_use]
+    pub fn total(&self) -> u64 {
+        self.by_topic.values().sum()
+    }
+
+    /// Messages of `topic` not decoded.
+    #[must_use]
+    pub fn on(&self, topic: &str) -> u64 {
+        self.by_topic.get(topic).copied().unwrap_or(0)
+    }
+}
+
+impl fmt::Display for Undecodable {
+    /// `2 messages could not be decoded (/can/rx 1, /odom 1); the first: /can/rx at 1.234000 s:
+    /// ...`, or `every message decoded`.
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let Some((topic, t_ns, why)) = &self.first else {
+            return f.write_str("every message decoded");
+        };
+        let topics: Vec<String> = self
+            .by_topic
+            .iter()
+            .map(|(t, n)| format!("{t} {n}"))
+            .collect();
+        write!(
+            f,
+            "{} messages could not be decoded ({}); the first: {topic} at {:.6} s: {why}",
+            self.total(),
+            topics.join(", "),
+            *t_ns as f64 * 1e-9
+        )
+    }
+}
+
 /// The name of a record type, as the MCAP specification writes it.
 fn record_name(opcode: u8) -> &'static str {
     match opcode {
@@ -524,6 +605,25 @@ fn truncation(bytes: &[u8], pos: usize) -> Problem {
         record,
         needs: len.saturating_sub((rest.len() - RECORD_PREFIX) as u64),
     }
+}
+
+/// Bytes of a log read at most ([`read_log_file`]): 4 GiB, an hour of a robot's log about
+/// seven times over; the runner's `--log-max-mb` rotates long sessions into smaller files.
+pub const MAX_LOG_BYTES: u64 = 4 << 30;
+
+/// A log file's bytes for [`for_each_message`], its magic checked first: a file that does not
+/// begin with the MCAP magic is read no further than its first 8 bytes, which are returned
+/// (so [`for_each_message`] names the problem, [`Problem::NoMagic`] or
+/// [`Problem::TooShort`], without a 1 GB file that is not a log being read whole).
+///
+/// # Errors
+/// The OS error, or [`std::io::ErrorKind::FileTooLarge`] past [`MAX_LOG_BYTES`].
+pub fn read_log_file(path: &std::path::Path) -> std::io::Result<Vec<u8>> {
+    let head = firmware::input::read_head(path, MAGIC.len() as u64)?;
+    if head != MAGIC {
+        return Ok(head);
+    }
+    firmware::input::read_bounded(path, MAX_LOG_BYTES)
 }
 
 /// Calls `f` for every message of an MCAP file in file order, and `meta(name, key-values)` for

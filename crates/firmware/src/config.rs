@@ -1078,7 +1078,10 @@ mod load {
             source: std::io::Error,
         },
         /// The TOML is malformed, has an unknown or missing field, or a value of the wrong type.
-        #[error("{path}: {source}")]
+        /// (The parser's message quotes the line: each of its lines [`quote_lines`]d.)
+        ///
+        /// [`quote_lines`]: crate::input::quote_lines
+        #[error("{path}: {}", crate::input::quote_lines(&std::string::ToString::to_string(source)))]
         Toml {
             /// The file (or `<string>`).
             path: PathBuf,
@@ -1110,7 +1113,7 @@ mod load {
         /// # Errors
         /// As [`from_toml_str`](Self::from_toml_str), plus [`LoadError::Io`].
         pub fn from_toml_file(path: &Path) -> Result<Self, LoadError> {
-            let text = std::fs::read_to_string(path).map_err(|source| LoadError::Io {
+            let text = crate::input::read_toml_text(path).map_err(|source| LoadError::Io {
                 path: path.to_path_buf(),
                 source,
             })?;

@@ -49,6 +49,8 @@ extern crate std;
 pub mod config;
 pub mod control;
 pub mod frame;
+#[cfg(feature = "std")]
+pub mod input;
 pub mod protocol;
 
 pub use config::Config;

@@ -241,17 +241,30 @@ pub fn plot_runs(
     })
 }
 
+/// A logged run's track ([`track_from_log`]), with what the reader made of the file.
+#[derive(Debug, Clone)]
+pub struct LoggedTrack {
+    /// The track.
+    pub points: Vec<TrackPoint>,
+    /// What was read, and where the log is damaged if it is (the track is its complete part).
+    pub read: crate::log::ReadReport,
+    /// The odometry messages that did not decode.
+    pub undecodable: crate::log::Undecodable,
+}
+
 /// A logged run's track: the odometry (`/odom`) and the ground truth (`/ground_truth/odom`)
 /// at the log times both have, from the log's start (as `hostsim run` draws it).
 ///
 /// # Errors
 /// A description naming the file if it cannot be read, is not MCAP, or has no odometry and
 /// ground truth at the same times.
-pub fn track_from_log(path: &Path) -> Result<Vec<TrackPoint>, String> {
-    use crate::log::msg::{self, decode};
-    let bytes = std::fs::read(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+pub fn track_from_log(path: &Path) -> Result<LoggedTrack, String> {
+    use crate::log::msg;
+    let bytes = crate::log::read::read_log_file(path)
+        .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
     let (mut odom, mut truth) = (Vec::new(), Vec::new());
-    crate::log::for_each_message(
+    let mut undecodable = crate::log::Undecodable::default();
+    let read = crate::log::for_each_message(
         &bytes,
         |m| {
             let list = match m.topic {
@@ -259,7 +272,7 @@ pub fn track_from_log(path: &Path) -> Result<Vec<TrackPoint>, String> {
                 "/ground_truth/odom" => &mut truth,
                 _ => return,
             };
-            if let Ok(o) = decode::<msg::Odometry>(m.data) {
+            if let Some(o) = undecodable.decode::<msg::Odometry>(m) {
                 let [x, y, _] = o.pose.pose.to_planar();
                 list.push((m.log_time, [x, y]));
             }
@@ -285,7 +298,11 @@ pub fn track_from_log(path: &Path) -> Result<Vec<TrackPoint>, String> {
             path.display()
         ));
     }
-    Ok(points)
+    Ok(LoggedTrack {
+        points,
+        read,
+        undecodable,
+    })
 }
 
 /// A scatter of `ys` against `xs` (a sweep's metric against its swept parameter), PNG,

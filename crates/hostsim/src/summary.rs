@@ -10,7 +10,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use crate::bus::frame_bits;
-use crate::log::msg::{self, decode};
+use crate::log::msg;
 use crate::log::{ReadReport, for_each_message};
 
 /// Figures of a logged run.
@@ -38,6 +38,8 @@ pub struct LogSummary {
     pub events: Vec<(f64, u8, String)>,
     /// What was read, and where the log is damaged if it is.
     pub read: ReadReport,
+    /// The messages of the topics summarised here that did not decode.
+    pub undecodable: crate::log::Undecodable,
 }
 
 /// Summarises a log.
@@ -47,7 +49,8 @@ pub struct LogSummary {
 /// MCAP), or it is in the JSON layout of earlier versions. A damaged log is not an error:
 /// [`LogSummary::read`] says where the damage is.
 pub fn summarize(path: &Path) -> Result<LogSummary, String> {
-    let bytes = std::fs::read(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    let bytes = crate::log::read::read_log_file(path)
+        .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
     let mut s = LogSummary::default();
     let mut odom: Option<(u64, [f64; 3])> = None;
     let mut truth: Option<(u64, [f64; 3])> = None;
@@ -62,7 +65,7 @@ pub fn summarize(path: &Path) -> Result<LogSummary, String> {
             last_ns = last_ns.max(m.log_time);
             match m.topic {
                 "/odom" | "/ground_truth/odom" => {
-                    let Ok(o) = decode::<msg::Odometry>(m.data) else {
+                    let Some(o) = s.undecodable.decode::<msg::Odometry>(m) else {
                         return;
                     };
                     let pose = o.pose.pose.to_planar();
@@ -78,13 +81,13 @@ pub fn summarize(path: &Path) -> Result<LogSummary, String> {
                     }
                 }
                 "/can/rx" | "/can/tx" => {
-                    if let Some(f) = decode::<msg::Frame>(m.data).ok().and_then(|f| f.to_can()) {
+                    if let Some(f) = s.undecodable.frame(m) {
                         bus_bits += i64::from(frame_bits(&f));
                         frames += 1;
                     }
                 }
                 "/can/faults" => {
-                    let Ok(fault) = decode::<msg::BusFault>(m.data) else {
+                    let Some(fault) = s.undecodable.decode::<msg::BusFault>(m) else {
                         return;
                     };
                     *s.fates.entry(fault.fate.clone()).or_default() += 1;
@@ -113,7 +116,7 @@ pub fn summarize(path: &Path) -> Result<LogSummary, String> {
                     }
                 }
                 "/rosout" => {
-                    if let Ok(l) = decode::<msg::Log>(m.data) {
+                    if let Some(l) = s.undecodable.decode::<msg::Log>(m) {
                         s.events.push((m.log_time as f64 * 1e-9, l.level, l.msg));
                     }
                 }

@@ -581,7 +581,7 @@ fn the_plot_draws_two_runs_side_by_side() {
     );
     let (after_run, after) = run(group, &legs("after", after, &SQUARE, 0.5));
     for (path, summary) in [(&before, &before_run), (&after, &after_run)] {
-        let track = hostsim::plot::track_from_log(path).unwrap();
+        let track = hostsim::plot::track_from_log(path).unwrap().points;
         let drift = hostsim::plot::max_drift(&track);
         println!(
             "{}: max drift {:.1} mm from the log, {:.1} mm in the run",

@@ -670,3 +670,63 @@ fn a_log_in_the_old_json_layout_is_refused_in_one_line() {
     let err = hostsim::summary::summarize(&path).unwrap_err();
     assert!(err.contains("JSON layout"), "{err}");
 }
+
+#[test]
+fn an_undecodable_inbound_frame_fails_replay_and_summary_and_plot_count_it() {
+    // The square log rewritten message by message, its 1000th /can/rx cut to 3 bytes of CDR:
+    // every chunk whole and intact, one message that does not decode.
+    let fx = fixture();
+    let dir = TempDir::new("undecodable");
+    let path = dir.0.join("one-bad.mcap");
+    let file = std::io::BufWriter::new(std::fs::File::create(&path).unwrap());
+    let mut w = mcap::WriteOptions::new()
+        .profile("ros2")
+        .create(file)
+        .unwrap();
+    let mut metadata = Vec::new();
+    hostsim::log::for_each_message(
+        &fx.bytes,
+        |_| {},
+        |name, kv| {
+            metadata.push((name.to_string(), kv.clone()));
+        },
+    )
+    .unwrap();
+    for (name, metadata) in metadata {
+        w.write_metadata(&mcap::records::Metadata { name, metadata })
+            .unwrap();
+    }
+    let (mut rx, mut bad_at) = (0, 0);
+    for m in mcap::MessageStream::new(&fx.bytes).unwrap() {
+        let mut m = m.unwrap();
+        if m.channel.topic == "/can/rx" {
+            rx += 1;
+            if rx == 1000 {
+                m.data = std::borrow::Cow::Owned(m.data[..3].to_vec());
+                bad_at = m.log_time;
+            }
+        }
+        w.write(&m).unwrap();
+    }
+    w.finish().unwrap();
+    drop(w);
+    assert!(rx > 1000 && bad_at > 0);
+    let first = format!("the first: /can/rx at {:.6} s", bad_at as f64 * 1e-9);
+
+    let err = replay::replay_mcap(&path).unwrap_err();
+    assert!(matches!(err, ReplayError::Undecodable { .. }), "{err}");
+    let text = err.to_string();
+    for says in [
+        "one-bad.mcap",
+        "1 messages could not be decoded (/can/rx 1)",
+        &first,
+    ] {
+        assert!(text.contains(says), "{says}: {text}");
+    }
+    let s = hostsim::summary::summarize(&path).unwrap();
+    assert!(s.read.is_complete());
+    assert_eq!(s.undecodable.total(), 1);
+    assert_eq!(s.undecodable.on("/can/rx"), 1);
+    let track = hostsim::plot::track_from_log(&path).unwrap();
+    assert_eq!(track.undecodable.total(), 0, "the plot reads odometry only");
+}

@@ -5,6 +5,8 @@ use std::process::ExitCode;
 
 use anyhow::Result;
 
+use super::{EXIT_DAMAGED, warn_if_damaged};
+
 /// Draw logged runs side by side in one PNG, e.g. before and after `calibrate`.
 ///
 /// A panel per run with its ground truth and odometry seen from above (the same axes for
@@ -42,10 +44,28 @@ fn plot_logs(logs: &[PathBuf], out: Option<PathBuf>) -> Result<ExitCode> {
         }
         logs[0].with_file_name(format!("{name}.png"))
     });
-    let tracks = logs
+    let logged = logs
         .iter()
         .map(|p| hostsim::plot::track_from_log(p).map_err(anyhow::Error::msg))
         .collect::<Result<Vec<_>>>()?;
+    // Drawn all the same, from what could be read; said, and the exit status says it too.
+    let mut damaged = false;
+    for (path, l) in logs.iter().zip(&logged) {
+        if !l.read.is_complete() {
+            warn_if_damaged(path, &l.read, "the plot draws its complete part");
+            damaged = true;
+        }
+        if l.undecodable.total() > 0 {
+            eprintln!(
+                "warning: {}: {}: the plot leaves them out",
+                path.display(),
+                l.undecodable
+            );
+            damaged = true;
+        }
+    }
+    let tracks: Vec<Vec<hostsim::plot::TrackPoint>> =
+        logged.into_iter().map(|l| l.points).collect();
     let labels: Vec<String> = logs.iter().map(|p| p.display().to_string()).collect();
     let runs: Vec<(&str, &[hostsim::plot::TrackPoint])> = labels
         .iter()
@@ -61,5 +81,9 @@ fn plot_logs(logs: &[PathBuf], out: Option<PathBuf>) -> Result<ExitCode> {
         );
     }
     println!("plot:  {}", out.display());
-    Ok(ExitCode::SUCCESS)
+    Ok(if damaged {
+        ExitCode::from(EXIT_DAMAGED)
+    } else {
+        ExitCode::SUCCESS
+    })
 }

@@ -487,6 +487,9 @@ fn play(
             }
             let content = hostsim::replay::read_log(path)?;
             warn_if_damaged(path, &content.read, "playing its complete part");
+            if content.undecodable.total() > 0 {
+                bail!("{}: {}: not played", path.display(), content.undecodable);
+            }
             damaged = !content.read.is_complete();
             mcap_playback(&content, rx, tx)
         }

@@ -78,9 +78,20 @@ fn summary(path: &Path) -> Result<ExitCode> {
         println!("  {topic:24} {n:>9} messages");
     }
     println!("read: {}", s.read);
+    println!("decoded: {}", s.undecodable);
     if damaged {
         warn_if_damaged(path, &s.read, "the summary covers its complete part");
-        return Ok(ExitCode::from(EXIT_DAMAGED));
     }
-    Ok(ExitCode::SUCCESS)
+    if s.undecodable.total() > 0 {
+        eprintln!(
+            "warning: {}: {}: the summary leaves them out",
+            path.display(),
+            s.undecodable
+        );
+    }
+    Ok(if damaged || s.undecodable.total() > 0 {
+        ExitCode::from(EXIT_DAMAGED)
+    } else {
+        ExitCode::SUCCESS
+    })
 }

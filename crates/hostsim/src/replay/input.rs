@@ -47,6 +47,8 @@ pub struct LogContent {
     pub tx_lag_ns: u64,
     /// Messages per topic.
     pub topics: std::collections::BTreeMap<String, u64>,
+    /// The messages of the topics read here that did not decode.
+    pub undecodable: crate::log::Undecodable,
     /// What the reader read, and where the log is damaged if it is.
     pub read: ReadReport,
 }
@@ -69,6 +71,15 @@ pub enum ReplayError {
         path: PathBuf,
         /// The reader's error.
         reason: String,
+    },
+    /// Messages replay needs (`/can/rx`, `/can/tx`, `/firmware/steps`) did not decode: a
+    /// replay without them would feed or compare fewer frames than the run had.
+    #[error("{path}: {undecodable}: replay needs every one of them")]
+    Undecodable {
+        /// The log file.
+        path: PathBuf,
+        /// How many, on which topics, and the first.
+        undecodable: crate::log::Undecodable,
     },
     /// A log in the JSON layout of earlier versions, which this version does not read.
     #[error("{path}: {}", OLD_LAYOUT)]
@@ -176,7 +187,7 @@ pub fn check_time_gaps<'a>(
 /// [`ReplayError`] if the file cannot be read or nothing in it is readable. A damaged file is
 /// not an error: [`LogContent::read`] says where the damage is.
 pub fn read_log(path: &Path) -> Result<LogContent, ReplayError> {
-    let bytes = std::fs::read(path).map_err(|source| ReplayError::Io {
+    let bytes = crate::log::read::read_log_file(path).map_err(|source| ReplayError::Io {
         path: path.to_path_buf(),
         source,
     })?;
@@ -223,7 +234,6 @@ pub fn wire_order(frame: &CanFrame) -> u64 {
 /// # Errors
 /// The [`Damage`] at the start if nothing is readable (not an MCAP file).
 pub fn read_log_bytes(bytes: &[u8]) -> Result<LogContent, Damage> {
-    use crate::log::msg::{Frame, decode};
     let mut content = LogContent::default();
     let mut config = None;
     let mut scenario = None;
@@ -234,7 +244,7 @@ pub fn read_log_bytes(bytes: &[u8]) -> Result<LogContent, Damage> {
             *content.topics.entry(m.topic.to_string()).or_default() += 1;
             let (list, t_ns) = match m.topic {
                 "/firmware/steps" => {
-                    if let Ok(step) = decode::<crate::log::msg::Step>(m.data) {
+                    if let Some(step) = content.undecodable.decode::<crate::log::msg::Step>(m) {
                         content.steps.push(StepTime {
                             t_ns: m.log_time,
                             shutdown: step.kind == crate::log::msg::Step::SHUTDOWN,
@@ -250,7 +260,7 @@ pub fn read_log_bytes(bytes: &[u8]) -> Result<LogContent, Damage> {
                 }
                 _ => return,
             };
-            if let Some(frame) = decode::<Frame>(m.data).ok().and_then(|f| f.to_can()) {
+            if let Some(frame) = content.undecodable.frame(m) {
                 list.push(TimedFrame { t_ns, frame });
             }
         },
@@ -298,6 +308,12 @@ pub struct McapReplayInput {
 /// `hostsim plant`, or has no firmware frames.
 pub fn open_mcap(path: &Path) -> Result<McapReplayInput, ReplayError> {
     let content = read_log(path)?;
+    if content.undecodable.total() > 0 {
+        return Err(ReplayError::Undecodable {
+            path: path.to_path_buf(),
+            undecodable: content.undecodable,
+        });
+    }
     let text = content
         .config
         .as_deref()

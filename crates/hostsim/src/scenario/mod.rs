@@ -22,6 +22,7 @@ mod tests;
 use std::path::{Path, PathBuf};
 
 use firmware::Config;
+use firmware::input::{quote, quote_lines};
 use serde::Deserialize;
 
 pub use self::actions::{Action, WheelTestSpec};
@@ -74,7 +75,7 @@ pub enum ScenarioError {
         source: std::io::Error,
     },
     /// Malformed TOML, unknown field or wrong type.
-    #[error("scenario {path}: {source}")]
+    #[error("scenario {path}: {}", quote_lines(&source.to_string()))]
     Toml {
         /// The file.
         path: PathBuf,
@@ -90,7 +91,7 @@ pub enum ScenarioError {
         source: Box<firmware::config::LoadError>,
     },
     /// A value is out of range.
-    #[error("scenario {path}: {field} = {value}: {expected}")]
+    #[error("scenario {path}: {field} = {}: {expected}", quote(value))]
     Invalid {
         /// The scenario file.
         path: PathBuf,
@@ -102,7 +103,7 @@ pub enum ScenarioError {
         expected: &'static str,
     },
     /// A fault sets a field its kind does not use.
-    #[error("scenario {path}: {field} = {value}: not used by a \"{kind}\" fault (it takes {uses})", kind = kind.as_str())]
+    #[error("scenario {path}: {field} = {}: not used by a \"{kind}\" fault (it takes {uses})", quote(value), kind = kind.as_str())]
     UnusedField {
         /// The scenario file.
         path: PathBuf,
@@ -116,7 +117,7 @@ pub enum ScenarioError {
         uses: &'static str,
     },
     /// No built-in of that name.
-    #[error("no built-in scenario {0:?}; built-ins: {names}", names = Scenario::BUILTINS.join(", "))]
+    #[error("no built-in scenario \"{}\"; built-ins: {names}", quote(.0), names = Scenario::BUILTINS.join(", "))]
     UnknownBuiltin(String),
 }
 
@@ -217,7 +218,7 @@ impl Scenario {
         path: &Path,
         config: Option<Config>,
     ) -> Result<Self, ScenarioError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ScenarioError::Io {
+        let text = firmware::input::read_toml_text(path).map_err(|source| ScenarioError::Io {
             path: path.to_path_buf(),
             source,
         })?;
