@@ -7,7 +7,7 @@ import os
 import pathlib
 import subprocess
 from collections.abc import Callable, Iterable
-from typing import NoReturn
+from typing import Any, NoReturn
 
 import cantools
 import pytest
@@ -199,3 +199,16 @@ def can_utils() -> Callable[[str], str]:
         return path
 
     return find
+
+
+def pytest_terminal_summary(terminalreporter: Any) -> None:
+    """The bad-input corpus's count, when it ran (tests/test_bad_input.py)."""
+    outcomes: dict[str, int] = {}
+    for outcome in ("passed", "failed", "skipped", "error"):
+        for report in terminalreporter.stats.get(outcome, []):
+            if getattr(report, "nodeid", "").startswith("tests/test_bad_input.py::test_bad_input[") \
+                    and report.when in ("call", "setup") and not (outcome == "passed" and report.when == "setup"):
+                outcomes[outcome] = outcomes.get(outcome, 0) + 1
+    if outcomes:
+        terminalreporter.write_line("bad-input corpus: " + ", ".join(f"{n} {o}" for o, n in sorted(outcomes.items()))
+                                    + f" of {sum(outcomes.values())} cases")

@@ -64,8 +64,8 @@ enum Command {
     },
 }
 
-fn main() -> anyhow::Result<()> {
-    match Cli::parse().command {
+fn main() -> std::process::ExitCode {
+    let result = match Cli::parse().command {
         Command::Boot { elf, seconds } => boot(&elf, seconds),
         Command::Run {
             scenario,
@@ -84,6 +84,14 @@ fn main() -> anyhow::Result<()> {
             !no_plot,
             json,
         ),
+    };
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            // One line, as the other programs print an error (no backtrace for bad input).
+            eprintln!("boardsim: error: {}", mecanum_linux::error_line(e.as_ref()));
+            std::process::ExitCode::from(2)
+        }
     }
 }
 

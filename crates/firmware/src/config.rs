@@ -1078,15 +1078,16 @@ mod load {
             source: std::io::Error,
         },
         /// The TOML is malformed, has an unknown or missing field, or a value of the wrong type.
-        /// (The parser's message quotes the line: each of its lines [`quote_lines`]d.)
+        /// (The parser's message quotes the line: each of its lines [`quote_lines`]d; not the
+        /// error's `source`, whose text would show the line raw.)
         ///
         /// [`quote_lines`]: crate::input::quote_lines
-        #[error("{path}: {}", crate::input::quote_lines(&std::string::ToString::to_string(source)))]
+        #[error("{path}: {}", crate::input::quote_lines(&std::string::ToString::to_string(parse)))]
         Toml {
             /// The file (or `<string>`).
             path: PathBuf,
             /// The parser's error, with line and column.
-            source: toml::de::Error,
+            parse: toml::de::Error,
         },
         /// A value is out of range.
         #[error("{path}: {source}")]
@@ -1128,9 +1129,9 @@ mod load {
         }
 
         fn parse(text: &str, path: &Path) -> Result<Self, LoadError> {
-            let config: Self = toml::from_str(text).map_err(|source| LoadError::Toml {
+            let config: Self = toml::from_str(text).map_err(|parse| LoadError::Toml {
                 path: path.to_path_buf(),
-                source,
+                parse,
             })?;
             config.validate().map_err(|source| LoadError::Invalid {
                 path: path.to_path_buf(),

@@ -12,6 +12,10 @@ pub trait Clock {
     fn sleep_until(&self, deadline_us: u64);
 }
 
+/// The most a [`MonotonicClock`] spins before a deadline, µs: ten periods of a 1 kHz loop.
+/// More would spin through whole periods (the command lines refuse it where they parse it).
+pub const MAX_SPIN_US: u64 = 10_000;
+
 /// `CLOCK_MONOTONIC` through [`std::time::Instant`], with an optional busy-wait before each
 /// deadline.
 ///

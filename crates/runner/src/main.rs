@@ -97,8 +97,9 @@ struct Args {
     stats_json: Option<PathBuf>,
 
     /// Busy-wait the last MICROS before each deadline instead of sleeping: lower jitter, more
-    /// CPU. Default 0 (sleep only).
-    #[arg(long, value_name = "MICROS", default_value_t = 0)]
+    /// CPU. Default 0 (sleep only); at most 10000.
+    #[arg(long, value_name = "MICROS", default_value_t = 0,
+          value_parser = clap::value_parser!(u64).range(0..=mecanum_linux::MAX_SPIN_US))]
     spin_us: u64,
 
     /// Record the run in FILE (an MCAP log, a ROS 2 bag in the simulator's format: every

@@ -83,6 +83,11 @@ fn calibrate(
         reference,
         window_s,
     };
+    if let Some(file) = write {
+        // Now, not after the fit: a path that cannot be written fails first. (Its temporary
+        // file only: the last calibration there stays until the new one is whole.)
+        drivelog::Staged::create(file).context("cannot write the calibration")?;
+    }
     let c = hostsim::calibrate::calibrate(path, &options)
         .with_context(|| format!("cannot calibrate from {}", path.display()))?;
     warn_if_damaged(path, &c.read, "the fit used its complete part");

@@ -46,8 +46,9 @@ pub struct Args {
     #[arg(long, value_name = "FILE")]
     pub stats_json: Option<PathBuf>,
     /// Busy-wait the last MICROS before each deadline instead of sleeping: lower jitter,
-    /// more CPU. Default 0.
-    #[arg(long, value_name = "MICROS", default_value_t = 0)]
+    /// more CPU. Default 0; at most 10000.
+    #[arg(long, value_name = "MICROS", default_value_t = 0,
+          value_parser = clap::value_parser!(u64).range(0..=mecanum_linux::MAX_SPIN_US))]
     pub spin_us: u64,
     /// Write an MCAP log (a ROS 2 bag) of the run to FILE: every frame on the interface
     /// once, as the firmware sees it (/can/rx: the drives' feedback and the host's commands;

@@ -74,13 +74,14 @@ pub enum ScenarioError {
         /// The OS error.
         source: std::io::Error,
     },
-    /// Malformed TOML, unknown field or wrong type.
-    #[error("scenario {path}: {}", quote_lines(&source.to_string()))]
+    /// Malformed TOML, unknown field or wrong type. (Not the error's `source`: the parser's
+    /// text quotes the file's line raw, and the message shows it quoted.)
+    #[error("scenario {path}: {}", quote_lines(&parse.to_string()))]
     Toml {
         /// The file.
         path: PathBuf,
         /// Parser error with line and column.
-        source: toml::de::Error,
+        parse: toml::de::Error,
     },
     /// The drive configuration it names is not usable.
     #[error("scenario {path}: {source}")]
@@ -199,7 +200,9 @@ impl Scenario {
     /// [`ScenarioError`]: the file's, or no built-in of that name.
     pub fn load(arg: &str, config: Option<Config>) -> Result<Self, ScenarioError> {
         let path = Path::new(arg);
-        if path.extension().is_some_and(|e| e == "toml") || path.is_file() {
+        // A file by its extension, by being there (a device, a folder: its read says what is
+        // wrong), or by its path separator; else the name of a built-in.
+        if path.extension().is_some_and(|e| e == "toml") || path.exists() || arg.contains('/') {
             return Self::from_file_with_config(path, config);
         }
         let mut scenario = Self::builtin(arg)?;
@@ -253,9 +256,9 @@ impl Scenario {
         path: &Path,
         config: Option<Config>,
     ) -> Result<Self, ScenarioError> {
-        let file: ScenarioFile = toml::from_str(text).map_err(|source| ScenarioError::Toml {
+        let file: ScenarioFile = toml::from_str(text).map_err(|parse| ScenarioError::Toml {
             path: path.to_path_buf(),
-            source,
+            parse,
         })?;
         let invalid = Invalid { path };
         if !(file.duration_s.is_finite() && file.duration_s > 0.0 && file.duration_s <= 86_400.0) {
