@@ -91,6 +91,17 @@ wants() {
     return 1
 }
 
+if wants scenario_toml; then
+    d=$(seed_dir scenario_toml)
+    for f in "$root"/scenarios/*.toml "$root"/tests/bad_input/files/*.toml; do cp "$f" "$d/seed-$(basename "$f")"; done
+    printf 'name = "s"\nduration_s = 0.02\n[[actions]]\nat_s = 0.005\nenable = true\n[[actions]]\nat_s = 0.01\ntwist = [0.5, 0.1, 0.2]\n' >"$d/seed-short.toml"
+fi
+if wants sweep_args; then
+    d=$(seed_dir sweep_args)
+    printf '1..200\0gains.kp=0.8,1.0,1.2' >"$d/seed-grid"
+    printf '1,5,9\0plant.mass_kg=18..24\0gains.ki=20,30' >"$d/seed-draw"
+    printf '0..18446744073709551615\0pods.scale=0.99..1.01' >"$d/seed-huge"
+fi
 if wants config_toml; then
     d=$(seed_dir config_toml)
     for f in "$root"/config/*.toml; do cp "$f" "$d/seed-$(basename "$f")"; done
@@ -172,7 +183,7 @@ done
 max_len_for() {
     case "$1" in
     mcap_read) echo 131072 ;;
-    config_toml | candump_parse) echo 8192 ;;
+    config_toml | candump_parse | scenario_toml) echo 8192 ;;
     *) echo 4096 ;;
     esac
 }

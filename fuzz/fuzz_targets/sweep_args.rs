@@ -1,0 +1,42 @@
+//! The values of `hostsim run --seed/--set` and `hostsim sweep --seeds/--set` as a user
+//! types them: the input, split at NUL bytes, is a `--seeds` value and `--set` values. Never
+//! a panic or an allocation past the cap: `parse_seeds`, `Param::parse`, `count_runs`,
+//! `expand` (only within `MAX_RUNS`) and `check` against the built-in square, and `apply`
+//! of the first run.
+#![no_main]
+
+use hostsim::scenario::Scenario;
+use hostsim::sweep::{self, Param};
+use libfuzzer_sys::fuzz_target;
+
+fuzz_target!(|data: &[u8]| {
+    let Ok(text) = std::str::from_utf8(data) else {
+        return;
+    };
+    let mut args = text.split('\0');
+    let seeds = match sweep::parse_seeds(args.next().unwrap_or_default()) {
+        Ok(s) => s,
+        Err(e) => {
+            let _ = std::format!("{e}");
+            vec![1]
+        }
+    };
+    assert!(seeds.len() as u64 <= sweep::MAX_RUNS);
+    let params: Vec<Param> = args.filter_map(|a| Param::parse(a).ok()).collect();
+    let Ok(count) = sweep::count_runs(seeds.len(), &params) else {
+        return;
+    };
+    assert!(count <= sweep::MAX_RUNS);
+    // Building a million runs per input would be the fuzzer's time, not a finding.
+    if count > 10_000 {
+        return;
+    }
+    let runs = sweep::expand(&seeds, &params).expect("counted within the cap");
+    assert_eq!(runs.len() as u64, count);
+    let base = Scenario::builtin("square").expect("a built-in");
+    if sweep::check(&base, &runs, &params).is_ok()
+        && let Some(first) = runs.first()
+    {
+        let _ = sweep::apply(&base, first.seed, &first.values);
+    }
+});
