@@ -83,7 +83,21 @@ def work(tmp_path_factory: pytest.TempPathFactory, hostsim_bin: pathlib.Path) ->
     (work / "cut.mcap").write_bytes(good[: len(good) * 2 // 3])
     (work / "header-only.mcap").write_bytes(good[:600])
     _undecodable(work / "short.mcap", work / "undecodable.mcap")
+    _foreign(work / "foreign.mcap")
     return work
+
+
+def _foreign(out: pathlib.Path) -> None:
+    """Another program's MCAP: no `ros2` profile, JSON messages on a /can/rx topic."""
+    from mcap.writer import Writer
+
+    with open(out, "wb") as f:
+        writer = Writer(f)
+        writer.start(profile="", library="another program")
+        schema = writer.register_schema("Frame", "jsonschema", b"{}")
+        channel = writer.register_channel("/can/rx", "json", schema)
+        writer.add_message(channel, 0, b'{"id":513,"data":[]}', 0)
+        writer.finish()
 
 
 @pytest.fixture(scope="module")

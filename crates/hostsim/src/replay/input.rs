@@ -204,9 +204,9 @@ pub fn read_log(path: &Path) -> Result<LogContent, ReplayError> {
 }
 
 /// What a log in the earlier JSON layout is, in one line.
-pub const OLD_LAYOUT: &str = "a log in the JSON layout of hostsim before its logs became ROS 2 \
-     bags (MCAP profile `ros2`, CDR messages); this version reads only the new layout: record \
-     the run again";
+pub const OLD_LAYOUT: &str = "an MCAP file without the `ros2` profile: not a ROS 2 bag with CDR \
+     messages as this project writes, but another program's MCAP or a log in the JSON layout of \
+     hostsim before its logs became ROS 2 bags (record such a run again)";
 
 /// `true` for a log in the JSON layout of earlier versions: MCAP without the `ros2` profile.
 #[must_use]
