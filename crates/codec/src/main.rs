@@ -912,18 +912,24 @@ mod tests {
         assert_eq!(ErrorKind::WrongDlc.as_str(), "wrong_dlc");
     }
 
-    #[test]
-    fn a_line_that_is_not_utf8_is_an_error_line_and_the_rest_go_on() {
-        let input: &[u8] = b"301#F40106FFE8030700\n\xFF\xFE\n\n301#F40106FFE8030700\r\n";
+    /// The three output lines of `input`: a TWIST_CMD, the line under test, a TWIST_CMD.
+    fn decoded_between_two_twists(input: impl BufRead) -> Vec<String> {
         let mut out = Vec::new();
         decode_stream(input, &mut out, Routing::default()).unwrap();
         let text = String::from_utf8(out).unwrap();
-        let lines: Vec<&str> = text.lines().collect();
+        let lines: Vec<String> = text.lines().map(str::to_string).collect();
         assert_eq!(lines.len(), 3, "{text}");
         assert!(
             lines[0].contains("TWIST_CMD") && lines[2].contains("TWIST_CMD"),
             "{text}"
         );
+        lines
+    }
+
+    #[test]
+    fn a_line_that_is_not_utf8_is_an_error_line_and_the_rest_go_on() {
+        let input: &[u8] = b"301#F40106FFE8030700\n\xFF\xFE\n\n301#F40106FFE8030700\r\n";
+        let lines = decoded_between_two_twists(input);
         assert!(lines[1].contains("\"kind\":\"parse\""), "{}", lines[1]);
         assert!(lines[1].contains("line 2 is not UTF-8"), "{}", lines[1]);
         assert!(lines[1].contains("\"bytes\":\"FFFE\""), "{}", lines[1]);
@@ -934,17 +940,8 @@ mod tests {
         let mut input = b"301#F40106FFE8030700\n".to_vec();
         input.extend(std::iter::repeat_n(0x1b, 3 * MAX_LINE));
         input.extend_from_slice(b"\n301#F40106FFE8030700");
-        let mut out = Vec::new();
         // A reader that hands over 100 bytes at a time: the bound holds across its buffers.
-        let reader = io::BufReader::with_capacity(100, &input[..]);
-        decode_stream(reader, &mut out, Routing::default()).unwrap();
-        let text = String::from_utf8(out).unwrap();
-        let lines: Vec<&str> = text.lines().collect();
-        assert_eq!(lines.len(), 3, "{text}");
-        assert!(
-            lines[0].contains("TWIST_CMD") && lines[2].contains("TWIST_CMD"),
-            "{text}"
-        );
+        let lines = decoded_between_two_twists(io::BufReader::with_capacity(100, &input[..]));
         assert!(
             lines[1].contains("line 2 is longer than 4096 bytes"),
             "{}",
