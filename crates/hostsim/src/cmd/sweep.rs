@@ -89,9 +89,9 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
     let jsonl_path = args.out.join("sweep.jsonl");
     let png_path = args.out.join("sweep.png");
     // Written as `.part` files, renamed when the sweep is whole: an interrupted or failed
-    // sweep leaves the last whole table as it was.
+    // sweep leaves the last whole table as it was (an interrupted one its rows in the `.part`).
     let staged = |path: &std::path::Path| -> Result<BufWriter<Staged>> {
-        Ok(BufWriter::new(Staged::create(path)?.keep_part()))
+        Ok(BufWriter::new(Staged::create(path)?))
     };
     let (mut csv, mut jsonl) = (staged(&csv_path)?, staged(&jsonl_path)?);
     let threads = if args.jobs == 0 {
@@ -130,6 +130,12 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
             .with_context(|| format!("cannot write {part}"))
     };
     let (csv, jsonl) = (done(csv)?, done(jsonl)?);
+    // Kept only for an interrupted sweep: a sweep that fails leaves no empty `.part` behind.
+    let (csv, jsonl) = if interrupted {
+        (csv.keep_part(), jsonl.keep_part())
+    } else {
+        (csv, jsonl)
+    };
     let table = if interrupted {
         format!("{} and {}", csv.part().display(), jsonl.part().display())
     } else {
