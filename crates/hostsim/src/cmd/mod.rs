@@ -43,6 +43,20 @@ pub fn warn_if_damaged(path: &Path, read: &hostsim::log::ReadReport, doing: &str
     }
 }
 
+/// Warns on stderr that messages of the log at `path` did not decode, and what `doing` does
+/// about them; whether there were any.
+pub fn warn_if_undecodable(
+    path: &Path,
+    undecodable: &hostsim::log::Undecodable,
+    doing: &str,
+) -> bool {
+    let any = undecodable.total() > 0;
+    if any {
+        eprintln!("warning: {}: {undecodable}: {doing}", path.display());
+    }
+    any
+}
+
 /// A scenario file, or else a built-in of that name (`square` if none); `config` replaces
 /// its configuration.
 pub fn load_scenario(arg: Option<&str>, config: Option<firmware::Config>) -> Result<Scenario> {

@@ -5,7 +5,7 @@ use std::process::ExitCode;
 
 use anyhow::Result;
 
-use super::{EXIT_DAMAGED, warn_if_damaged};
+use super::{EXIT_DAMAGED, warn_if_damaged, warn_if_undecodable};
 
 /// Draw logged runs side by side in one PNG, e.g. before and after `calibrate`.
 ///
@@ -55,14 +55,7 @@ fn plot_logs(logs: &[PathBuf], out: Option<PathBuf>) -> Result<ExitCode> {
             warn_if_damaged(path, &l.read, "the plot draws its complete part");
             damaged = true;
         }
-        if l.undecodable.total() > 0 {
-            eprintln!(
-                "warning: {}: {}: the plot leaves them out",
-                path.display(),
-                l.undecodable
-            );
-            damaged = true;
-        }
+        damaged |= warn_if_undecodable(path, &l.undecodable, "the plot leaves them out");
     }
     let tracks: Vec<Vec<hostsim::plot::TrackPoint>> =
         logged.into_iter().map(|l| l.points).collect();

@@ -82,14 +82,8 @@ fn summary(path: &Path) -> Result<ExitCode> {
     if damaged {
         warn_if_damaged(path, &s.read, "the summary covers its complete part");
     }
-    if s.undecodable.total() > 0 {
-        eprintln!(
-            "warning: {}: {}: the summary leaves them out",
-            path.display(),
-            s.undecodable
-        );
-    }
-    Ok(if damaged || s.undecodable.total() > 0 {
+    let undecodable = warn_if_undecodable(path, &s.undecodable, "the summary leaves them out");
+    Ok(if damaged || undecodable {
         ExitCode::from(EXIT_DAMAGED)
     } else {
         ExitCode::SUCCESS
