@@ -1,6 +1,7 @@
-//! `--live [ADDR]` and `--live-can-hz HZ`: the command-line options of every program that
-//! serves its log live (`hostsim run`, `hostsim plant`, `mecanum-runner`), flattened into
-//! each program's own arguments (feature `cli`).
+//! `--live [ADDR]`, `--live-can-hz HZ`, `--live-max-clients N` and
+//! `--live-max-subscriptions N`: the command-line options of every program that serves its
+//! log live (`hostsim run`, `hostsim plant`, `mecanum-runner`), flattened into each
+//! program's own arguments (feature `cli`).
 
 use std::io;
 use std::net::SocketAddr;
@@ -28,6 +29,15 @@ pub struct LiveArgs {
     /// log keeps every frame.
     #[arg(long, value_name = "HZ", requires = "live", value_parser = parse_can_hz)]
     pub live_can_hz: Option<u32>,
+    /// With --live: live clients served at once, 1 to 1024. Default 32. A connection beyond
+    /// them is told so (a status error naming this option) and closed.
+    #[arg(long, value_name = "N", requires = "live", value_parser = parse_max_clients)]
+    pub live_max_clients: Option<usize>,
+    /// With --live: subscriptions one client may hold, 1 to 4096. Default 64 (a viewer
+    /// subscribes once per channel: 11). A client that asks for more, or subscribes a
+    /// channel or an id twice, is told so (a status error) and disconnected.
+    #[arg(long, value_name = "N", requires = "live", value_parser = parse_max_subscriptions)]
+    pub live_max_subscriptions: Option<usize>,
 }
 
 /// The most `--live-can-hz` takes: one frame a microsecond, beyond any CAN bus.
@@ -47,6 +57,43 @@ fn parse_can_hz(s: &str) -> Result<u32, String> {
     Ok(hz)
 }
 
+/// The range of `--live-max-clients`: each client may hold a queue (about a MiB) and a file
+/// descriptor.
+pub const MAX_CLIENTS: std::ops::RangeInclusive<usize> = 1..=1024;
+
+/// The range of `--live-max-subscriptions`: the log has 11 channels, one subscription each.
+pub const MAX_SUBSCRIPTIONS: std::ops::RangeInclusive<usize> = 1..=4096;
+
+/// A whole number of `what` in `range`.
+fn parse_count(
+    s: &str,
+    what: &str,
+    range: &std::ops::RangeInclusive<usize>,
+) -> Result<usize, String> {
+    let refused = || {
+        format!(
+            "{s:?}: expected a whole number of {what}, {} to {}",
+            range.start(),
+            range.end()
+        )
+    };
+    let n: usize = s.trim().parse().map_err(|_| refused())?;
+    if !range.contains(&n) {
+        return Err(refused());
+    }
+    Ok(n)
+}
+
+/// `--live-max-clients`: in [`MAX_CLIENTS`].
+fn parse_max_clients(s: &str) -> Result<usize, String> {
+    parse_count(s, "clients", &MAX_CLIENTS)
+}
+
+/// `--live-max-subscriptions`: in [`MAX_SUBSCRIPTIONS`].
+fn parse_max_subscriptions(s: &str) -> Result<usize, String> {
+    parse_count(s, "subscriptions per client", &MAX_SUBSCRIPTIONS)
+}
+
 impl LiveArgs {
     /// The server `--live` asks for, named `name` (Foxglove shows it), listening; `None`
     /// without `--live`.
@@ -57,10 +104,15 @@ impl LiveArgs {
         let Some(addr) = self.live else {
             return Ok(None);
         };
+        let default = LiveOptions::default();
         let options = LiveOptions {
             name,
-            can_hz: self.live_can_hz.unwrap_or(LiveOptions::default().can_hz),
-            ..LiveOptions::default()
+            can_hz: self.live_can_hz.unwrap_or(default.can_hz),
+            max_clients: self.live_max_clients.unwrap_or(default.max_clients),
+            max_subscriptions: self
+                .live_max_subscriptions
+                .unwrap_or(default.max_subscriptions),
+            ..default
         };
         LiveServer::start(addr, options)
             .map(Some)
@@ -70,8 +122,9 @@ impl LiveArgs {
 
 impl LiveReport {
     /// The report in a program's JSON statistics (`--stats-json`, `--json`): `url`,
-    /// `clients` (each `addr`, `subprotocol`, `connected_s`, `queued`, `sent`, `dropped`),
-    /// and the totals `sent`, `dropped`, `thinned`.
+    /// `clients` (each `addr`, `subprotocol`, `connected_s`, `queued`, `sent`, `dropped`,
+    /// `cut_off`: null or why the server disconnected it), and the totals `sent`, `dropped`,
+    /// `thinned` and `refused` (connections refused).
     #[must_use]
     pub fn to_json(&self) -> serde_json::Value {
         let clients: Vec<_> = self
@@ -85,6 +138,7 @@ impl LiveReport {
                     "queued": c.queued,
                     "sent": c.sent,
                     "dropped": c.dropped,
+                    "cut_off": c.cut_off,
                 })
             })
             .collect();
@@ -94,6 +148,7 @@ impl LiveReport {
             "sent": self.sent(),
             "dropped": self.dropped(),
             "thinned": self.thinned,
+            "refused": self.refused,
         })
     }
 }
@@ -136,20 +191,75 @@ mod tests {
         assert_eq!(cli.live.live.unwrap().port(), 9000);
         assert_eq!(cli.live.live_can_hz, Some(0));
         assert!(parse(&["--live-can-hz", "10"]).is_err());
+        assert!(parse(&["--live-max-clients", "10"]).is_err());
+        assert!(parse(&["--live-max-subscriptions", "10"]).is_err());
         let err = parse(&["--live", "nowhere"]).unwrap_err().to_string();
         assert!(err.contains("nowhere"), "{err}");
+    }
+
+    #[test]
+    fn the_caps_are_whole_numbers_in_their_ranges_and_a_refusal_names_option_and_value() {
+        let parse = |args: &[&str]| Cli::try_parse_from([&["prog", "--live"], args].concat());
+        let cli = parse(&[
+            "--live-max-clients",
+            "2",
+            "--live-max-subscriptions",
+            "4096",
+        ])
+        .unwrap();
+        assert_eq!(cli.live.live_max_clients, Some(2));
+        assert_eq!(cli.live.live_max_subscriptions, Some(4096));
+        for (option, bad, range) in [
+            ("--live-max-clients", "0", "clients, 1 to 1024"),
+            ("--live-max-clients", "1025", "clients, 1 to 1024"),
+            ("--live-max-clients", "-1", "clients, 1 to 1024"),
+            (
+                "--live-max-subscriptions",
+                "0",
+                "subscriptions per client, 1 to 4096",
+            ),
+            (
+                "--live-max-subscriptions",
+                "34000",
+                "subscriptions per client, 1 to 4096",
+            ),
+            (
+                "--live-max-subscriptions",
+                "1.5",
+                "subscriptions per client, 1 to 4096",
+            ),
+        ] {
+            let err = parse(&[&format!("{option}={bad}")])
+                .unwrap_err()
+                .to_string();
+            assert!(
+                err.contains(option) && err.contains(bad) && err.contains(range),
+                "{option} {bad}: {err}"
+            );
+        }
+        // The defaults are the library's, and hold a subscription to every channel.
+        let server = LiveArgs {
+            live: Some(parse_addr("127.0.0.1:0").unwrap()),
+            ..LiveArgs::default()
+        };
+        assert!(LiveOptions::default().max_subscriptions >= drivelog::Channel::ALL.len());
+        let server = server.serve("caps".into()).unwrap().unwrap();
+        let status = drivelog::MessageTap::status(&mut server.tap()).unwrap();
+        assert_eq!(status.value("max_clients"), Some("32"));
+        assert_eq!(status.value("max_subscriptions"), Some("64"));
+        let _ = server.stop();
     }
 
     #[test]
     fn serving_an_address_in_use_names_live_and_the_address() {
         let first = LiveArgs {
             live: Some(parse_addr("127.0.0.1:0").unwrap()),
-            live_can_hz: None,
+            ..LiveArgs::default()
         };
         let server = first.serve("a".into()).unwrap().unwrap();
         let taken = LiveArgs {
             live: Some(server.local_addr()),
-            live_can_hz: None,
+            ..LiveArgs::default()
         };
         let Err(err) = taken.serve("b".into()) else {
             panic!("a second server on {}", server.local_addr());

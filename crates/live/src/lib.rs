@@ -47,6 +47,10 @@
 //!   counted ([`ClientReport::dropped`]). The count is on `/diagnostics` (a second status,
 //!   [`STATUS_NAME`], after the firmware's), in the log too, and in the [`LiveReport`] at the
 //!   end.
+//! - A client never holds up the run, however it behaves: [`LiveOptions::max_clients`] at
+//!   once, [`LiveOptions::max_subscriptions`] each (one per channel, no duplicates), and
+//!   [`LiveOptions::queue_bytes`] queued each; a client beyond a cap gets a `status` error
+//!   naming it and is disconnected, and counted ([`LiveStats::refused`], [`LiveStats::cut_off`]).
 //! - The protocol has no authentication: anyone who reaches the address can watch. Serve on
 //!   loopback ([`DEFAULT_ADDR`]) unless the network is trusted; [`is_exposed`] tells a program
 //!   when to warn.
@@ -92,6 +96,22 @@ pub struct LiveOptions {
     pub name: String,
     /// Messages queued for one client at most; a full queue drops its oldest.
     pub backlog: usize,
+    /// Bytes of messages queued for one client at most (1 MiB): beyond them the oldest are
+    /// dropped and counted, as beyond [`backlog`](Self::backlog). With the write batch and
+    /// the WebSocket's buffers, what a client that reads nothing costs the server (about
+    /// 1.2 MiB with the defaults; docs/live.md, "Limits").
+    pub queue_bytes: usize,
+    /// Clients served at once (32): a connection beyond them gets a `status` error naming
+    /// the cap and is closed, and counted ([`LiveStats::refused`]). A viewer is one client
+    /// (Foxglove and Lichtblick open one connection per window); the cap keeps a flood of
+    /// connections from costing each a queue (`--live-max-clients`).
+    pub max_clients: usize,
+    /// Subscriptions one client may hold (64). The log advertises 11 channels, and Foxglove
+    /// and Lichtblick subscribe once per channel; a client may not subscribe a channel twice
+    /// or reuse an id, so 64 leaves room for more channels. A client that asks for more, or
+    /// for a duplicate, gets a `status` error naming it and is disconnected
+    /// (`--live-max-subscriptions`).
+    pub max_subscriptions: usize,
     /// `/can/*` frames forwarded per channel and CAN id, per second of log time (0: all).
     pub can_hz: u32,
     /// How long [`LiveServer::stop`] lets clients take what is queued for them and the close
@@ -109,6 +129,9 @@ impl Default for LiveOptions {
         Self {
             name: "mecanum drive".to_string(),
             backlog: 4096,
+            queue_bytes: 1 << 20,
+            max_clients: 32,
+            max_subscriptions: 64,
             can_hz: 100,
             close_grace: Duration::from_millis(500),
             send_buffer: 256 << 10,

@@ -9,10 +9,15 @@
 //!
 //! Each client has a queue of its own, filled by the log's writing thread ([`crate::LiveTap`])
 //! and emptied by the client's task into its socket. The writing thread never waits on a
-//! client: a full queue drops its oldest message and counts it; the task that sends blocks on
-//! a slow socket while its queue fills.
+//! client: a full queue (in messages or in bytes) drops its oldest message and counts it; the
+//! task that sends blocks on a slow socket while its queue fills. Per message, the writing
+//! thread does one look-up per client (a client holds one subscription per channel at most),
+//! whatever a client asked for.
+//!
+//! Caps ([`LiveOptions`]): clients at once, subscriptions per client, bytes queued per client,
+//! handshakes in progress, and the size of a client's message. A client that breaks one gets
+//! a `status` error naming it, then a close frame, and is no longer read.
 
-use std::collections::hash_map::Entry;
 use std::collections::{HashMap, VecDeque};
 use std::io;
 use std::net::SocketAddr;
@@ -23,27 +28,47 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use drivelog::Channel;
 use drivelog::msg::{DiagnosticStatus, KeyValue};
-use foxglove::websocket::ws_protocol::client::ClientMessage;
+use foxglove::websocket::ws_protocol::client::{ClientMessage, Subscription};
 use foxglove::websocket::ws_protocol::schema::Schema;
 use foxglove::websocket::ws_protocol::server::{self as proto, MessageData, ServerInfo, Status};
 use foxglove::websocket::ws_protocol::{BinaryMessage as _, JsonMessage as _};
 use futures_util::stream::SplitSink;
 use futures_util::{SinkExt as _, StreamExt as _};
 use tokio::net::{TcpListener, TcpSocket, TcpStream};
-use tokio::sync::Notify;
+use tokio::sync::{Notify, Semaphore};
 use tokio_tungstenite::WebSocketStream;
-use tokio_tungstenite::tungstenite::Message;
 use tokio_tungstenite::tungstenite::handshake::server::{ErrorResponse, Request, Response};
 use tokio_tungstenite::tungstenite::http::{HeaderValue, StatusCode};
-use tokio_tungstenite::tungstenite::protocol::WebSocketConfig;
+use tokio_tungstenite::tungstenite::protocol::frame::coding::CloseCode;
+use tokio_tungstenite::tungstenite::protocol::{CloseFrame, WebSocketConfig};
+use tokio_tungstenite::tungstenite::{Error as WsError, Message};
 
 use crate::{LiveOptions, LiveTap, STATUS_NAME, SUBPROTOCOL, SUBPROTOCOL_LEGACY};
 
 /// A client that has not completed the WebSocket handshake by then is let go.
 const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
 
-/// The largest message a client may send, bytes.
+/// Handshakes in progress at most: a connection beyond them is closed at once, before its
+/// handshake (and counted with the refused ones). Each holds a task and a few KiB for up to
+/// [`HANDSHAKE_TIMEOUT`].
+const MAX_HANDSHAKES: usize = 64;
+
+/// The largest message a client may send, bytes: a subscription is some 30 bytes, so the cap
+/// on subscriptions is met long before this; it bounds what parsing one message allocates.
 const MAX_CLIENT_MESSAGE: usize = 1 << 20;
+
+/// What tungstenite reads from a client's socket at once, bytes. Its default, 128 KiB, is
+/// zero-filled on the first read: resident for every client, even one that sends nothing.
+/// A larger message grows the buffer up to [`MAX_CLIENT_MESSAGE`].
+const READ_BUFFER: usize = 4 << 10;
+
+/// What tungstenite gathers before it writes to a client's socket, bytes (its default is
+/// 128 KiB): it holds up to this and one message more for a client that reads nothing.
+const WRITE_BUFFER: usize = 32 << 10;
+
+/// What a client's task takes from its queue at once, bytes (and one message more): the
+/// rest stays in the queue, where it is counted, and dropped when the queue is full.
+const WRITE_BATCH: usize = 32 << 10;
 
 /// Control messages (`serverInfo`, `advertise`, `status`) queued for a client at most: one
 /// that lets more pile up (it sends bad requests and reads nothing) is disconnected.
@@ -73,6 +98,12 @@ pub struct LiveStats {
     pub dropped: u64,
     /// `/can/*` frames not forwarded to live clients ([`LiveOptions::can_hz`]).
     pub thinned: u64,
+    /// Connections refused: beyond [`LiveOptions::max_clients`] (after a `status` error) or
+    /// beyond the handshakes in progress (closed before the handshake).
+    pub refused: u64,
+    /// Clients disconnected for breaking a cap: too many subscriptions, a duplicate, or
+    /// too many replies left unread.
+    pub cut_off: u64,
 }
 
 /// One client, at the end ([`LiveServer::stop`]).
@@ -91,6 +122,8 @@ pub struct ClientReport {
     /// Messages it lost: dropped from its full queue, or still queued when it left or the
     /// server stopped (`queued - sent`).
     pub dropped: u64,
+    /// Why the server disconnected it, when it did: the `status` error it was sent.
+    pub cut_off: Option<String>,
 }
 
 /// What a live server did: [`LiveServer::stop`].
@@ -102,6 +135,8 @@ pub struct LiveReport {
     pub clients: Vec<ClientReport>,
     /// `/can/*` frames not forwarded ([`LiveOptions::can_hz`]).
     pub thinned: u64,
+    /// Connections refused ([`LiveStats::refused`]); they are not in `clients`.
+    pub refused: u64,
 }
 
 impl LiveReport {
@@ -129,6 +164,9 @@ impl std::fmt::Display for LiveReport {
             self.dropped(),
             self.thinned
         )?;
+        if self.refused > 0 {
+            write!(f, ", {} connections refused", self.refused)?;
+        }
         for c in &self.clients {
             write!(
                 f,
@@ -139,6 +177,9 @@ impl std::fmt::Display for LiveReport {
                 c.sent,
                 c.dropped
             )?;
+            if let Some(why) = &c.cut_off {
+                write!(f, "; cut off: {why}")?;
+            }
         }
         Ok(())
     }
@@ -186,6 +227,8 @@ impl LiveServer {
             stopping: AtomicBool::new(false),
             thinned: AtomicU64::new(0),
             clients_seen: AtomicU64::new(0),
+            refused: AtomicU64::new(0),
+            cut_off: AtomicU64::new(0),
         });
         let stop = Arc::new(Notify::new());
         let thread = {
@@ -292,6 +335,8 @@ pub(crate) struct Shared {
     stopping: AtomicBool,
     pub(crate) thinned: AtomicU64,
     clients_seen: AtomicU64,
+    refused: AtomicU64,
+    cut_off: AtomicU64,
 }
 
 /// The channels (once the tap has them) and the clients: one lock, so that a client that
@@ -307,8 +352,7 @@ struct Client {
     addr: SocketAddr,
     subprotocol: &'static str,
     since: Instant,
-    /// Subscription id → channel id.
-    subscriptions: Mutex<HashMap<u32, u64>>,
+    subscriptions: Mutex<Subscriptions>,
     queue: Mutex<Queue>,
     wake: Notify,
     queued: AtomicU64,
@@ -316,12 +360,26 @@ struct Client {
     dropped: AtomicU64,
 }
 
+/// A client's subscriptions, both ways: one per channel at most, so that a message costs the
+/// writing thread one look-up per client.
+#[derive(Default)]
+struct Subscriptions {
+    /// Subscription id → channel id.
+    by_id: HashMap<u32, u64>,
+    /// Channel id → subscription id.
+    by_channel: HashMap<u64, u32>,
+}
+
 #[derive(Default)]
 struct Queue {
     control: VecDeque<Message>,
     data: VecDeque<Message>,
+    /// The bytes of the messages in `data`.
+    data_bytes: usize,
     /// Set when the client is to be disconnected.
     closed: bool,
+    /// Why the server disconnects it, if it does (the status it is sent).
+    cut_off: Option<String>,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -329,33 +387,94 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 impl Client {
-    fn push_control(&self, text: String) {
+    /// Queues a control message; a client that lets [`MAX_CONTROL`] pile up is cut off.
+    /// Whether it was cut off now.
+    fn push_control(&self, text: String) -> bool {
         let mut q = lock(&self.queue);
-        if q.control.len() >= MAX_CONTROL {
+        if q.closed {
+            return false;
+        }
+        let cut = q.control.len() >= MAX_CONTROL;
+        if cut {
             q.closed = true;
+            q.cut_off = Some(format!(
+                "{MAX_CONTROL} replies left unread (statuses to its requests)"
+            ));
         } else {
             q.control.push_back(Message::text(text));
         }
         drop(q);
         self.wake.notify_one();
+        cut
     }
 
-    /// Queues a data message; drops the oldest if the queue holds `backlog`.
-    fn push_data(&self, bytes: Vec<u8>, backlog: usize) {
+    /// Queues a data message; drops the oldest while the queue holds `backlog` messages or
+    /// more than `max_bytes` with it (a message larger than that is queued alone).
+    fn push_data(&self, bytes: Vec<u8>, backlog: usize, max_bytes: usize) {
         let mut q = lock(&self.queue);
         if q.closed {
             return;
         }
         self.queued.fetch_add(1, Ordering::Relaxed);
-        if q.data.len() >= backlog.max(1) {
-            q.data.pop_front();
-            self.dropped.fetch_add(1, Ordering::Relaxed);
+        let len = bytes.len();
+        while !q.data.is_empty()
+            && (q.data.len() >= backlog.max(1) || q.data_bytes + len > max_bytes)
+        {
+            if let Some(oldest) = q.data.pop_front() {
+                q.data_bytes -= oldest.len();
+                self.dropped.fetch_add(1, Ordering::Relaxed);
+            }
         }
+        q.data_bytes += len;
         q.data.push_back(Message::binary(bytes));
     }
 
-    fn status(&self, status: &Status) {
-        self.push_control(status.to_string());
+    /// Answers a request with a status (an error the client can live with).
+    fn status(&self, status: &Status) -> bool {
+        self.push_control(status.to_string())
+    }
+
+    /// Disconnects the client for `why`: a `status` error saying so is the last message it
+    /// gets (what was queued for it is dropped), then a close frame; it is no longer read.
+    /// Whether it was cut off now (not before).
+    fn cut_off(&self, why: String) -> bool {
+        let mut q = lock(&self.queue);
+        if q.closed {
+            return false;
+        }
+        q.control
+            .push_back(Message::text(Status::error(why.clone()).to_string()));
+        q.data.clear();
+        q.data_bytes = 0;
+        q.closed = true;
+        q.cut_off = Some(why);
+        drop(q);
+        self.wake.notify_one();
+        true
+    }
+
+    fn is_closed(&self) -> bool {
+        lock(&self.queue).closed
+    }
+
+    /// Control messages and at most [`WRITE_BATCH`] bytes of data (at least one message)
+    /// to send now, and whether the client is closed.
+    fn take_batch(&self) -> (VecDeque<Message>, Vec<Message>, bool) {
+        let mut q = lock(&self.queue);
+        let control = std::mem::take(&mut q.control);
+        let mut bytes = 0;
+        let n = q
+            .data
+            .iter()
+            .take_while(|m| {
+                let first = bytes == 0;
+                bytes += m.len().max(1);
+                first || bytes <= WRITE_BATCH
+            })
+            .count();
+        let data: Vec<Message> = q.data.drain(..n).collect();
+        q.data_bytes -= data.iter().map(Message::len).sum::<usize>();
+        (control, data, q.closed)
     }
 
     fn report(&self) -> ClientReport {
@@ -368,6 +487,7 @@ impl Client {
             queued,
             sent,
             dropped: queued.saturating_sub(sent),
+            cut_off: lock(&self.queue).cut_off.clone(),
         }
     }
 }
@@ -389,17 +509,16 @@ impl Shared {
         }
     }
 
-    /// A message of the log, from the tap: queued for every subscription to its channel.
+    /// A message of the log, from the tap: queued for each client subscribed to its channel
+    /// (one look-up per client: a client holds one subscription per channel at most).
     pub(crate) fn publish(&self, channel: Channel, log_ns: u64, cdr: &[u8]) {
         let id = u64::from(channel.id());
         let state = lock(&self.state);
         for c in &state.clients {
-            let subscriptions = lock(&c.subscriptions);
-            for (&sub, &ch) in subscriptions.iter() {
-                if ch == id {
-                    let bytes = MessageData::new(sub, log_ns, cdr).to_bytes();
-                    c.push_data(bytes, self.options.backlog);
-                }
+            let sub = lock(&c.subscriptions).by_channel.get(&id).copied();
+            if let Some(sub) = sub {
+                let bytes = MessageData::new(sub, log_ns, cdr).to_bytes();
+                c.push_data(bytes, self.options.backlog, self.options.queue_bytes);
             }
         }
     }
@@ -418,6 +537,8 @@ impl Shared {
             clients: state.clients.len(),
             clients_seen: self.clients_seen.load(Ordering::Relaxed),
             thinned: self.thinned.load(Ordering::Relaxed),
+            refused: self.refused.load(Ordering::Relaxed),
+            cut_off: self.cut_off.load(Ordering::Relaxed),
             ..LiveStats::default()
         };
         for c in &state.clients {
@@ -433,7 +554,8 @@ impl Shared {
         stats
     }
 
-    /// The server's status on `/diagnostics`: OK, or WARN once a client has lost messages.
+    /// The server's status on `/diagnostics`: OK, or WARN once a client has lost messages,
+    /// or a connection was refused or cut off.
     pub(crate) fn status(&self) -> DiagnosticStatus {
         let s = self.stats();
         let mut message = format!("{} clients on {}", s.clients, self.url);
@@ -443,12 +565,22 @@ impl Shared {
                 s.dropped
             ));
         }
+        if s.refused > 0 {
+            message.push_str(&format!(
+                "; {} connections refused (at most {} clients)",
+                s.refused, self.options.max_clients
+            ));
+        }
+        if s.cut_off > 0 {
+            message.push_str(&format!("; {} clients cut off", s.cut_off));
+        }
+        let warn = s.dropped > 0 || s.refused > 0 || s.cut_off > 0;
         let kv = |key: &str, value: String| KeyValue {
             key: key.to_string(),
             value,
         };
         DiagnosticStatus {
-            level: if s.dropped > 0 {
+            level: if warn {
                 DiagnosticStatus::WARN
             } else {
                 DiagnosticStatus::OK
@@ -464,6 +596,13 @@ impl Shared {
                 kv("thinned", s.thinned.to_string()),
                 kv("can_hz", self.options.can_hz.to_string()),
                 kv("backlog", self.options.backlog.to_string()),
+                kv("refused", s.refused.to_string()),
+                kv("cut_off", s.cut_off.to_string()),
+                kv("max_clients", self.options.max_clients.to_string()),
+                kv(
+                    "max_subscriptions",
+                    self.options.max_subscriptions.to_string(),
+                ),
             ],
         }
     }
@@ -477,11 +616,18 @@ impl Shared {
             url: self.url.clone(),
             clients,
             thinned: self.thinned.load(Ordering::Relaxed),
+            refused: self.refused.load(Ordering::Relaxed),
         }
     }
 
-    /// A client whose handshake is done: queued `serverInfo` and, once known, `advertise`.
-    fn register(&self, addr: SocketAddr, subprotocol: &'static str) -> Arc<Client> {
+    /// A client whose handshake is done: queued `serverInfo` and, once known, `advertise`;
+    /// `None` (counted) when [`LiveOptions::max_clients`] are connected.
+    fn register(&self, addr: SocketAddr, subprotocol: &'static str) -> Option<Arc<Client>> {
+        let mut state = lock(&self.state);
+        if state.clients.len() >= self.options.max_clients {
+            self.refused.fetch_add(1, Ordering::Relaxed);
+            return None;
+        }
         let client = Arc::new(Client {
             addr,
             subprotocol,
@@ -495,13 +641,35 @@ impl Shared {
         });
         let info = ServerInfo::new(self.options.name.clone()).with_session_id(&self.session_id);
         client.push_control(info.to_string());
-        let mut state = lock(&self.state);
         if !state.channels.is_empty() {
             client.push_control(advertise(&state.channels));
         }
         state.clients.push(Arc::clone(&client));
         self.clients_seen.fetch_add(1, Ordering::Relaxed);
-        client
+        Some(client)
+    }
+
+    /// The `status` a connection beyond [`LiveOptions::max_clients`] gets before the close.
+    fn refusal(&self) -> String {
+        let max = self.options.max_clients;
+        Status::error(format!(
+            "too many clients: this server serves {max} at once (--live-max-clients {max}); \
+             try again when one leaves, or restart it with a larger --live-max-clients"
+        ))
+        .to_string()
+    }
+
+    fn cut_off(&self, client: &Client, why: String) {
+        if client.cut_off(why) {
+            self.cut_off.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    /// Counts a client that [`Client::push_control`] cut off.
+    fn count_cut(&self, cut: bool) {
+        if cut {
+            self.cut_off.fetch_add(1, Ordering::Relaxed);
+        }
     }
 
     fn unregister(&self, client: &Arc<Client>) {
@@ -515,43 +683,76 @@ impl Shared {
     /// A text message from a client: subscriptions; anything else is answered with a status.
     fn on_text(&self, client: &Client, text: &str) {
         match ClientMessage::parse_json(text) {
-            Ok(ClientMessage::Subscribe(s)) => {
-                let channels: Vec<u64> = lock(&self.state)
-                    .channels
-                    .iter()
-                    .map(|c| u64::from(c.id()))
-                    .collect();
-                let mut subscriptions = lock(&client.subscriptions);
-                for sub in s.subscriptions {
-                    if !channels.contains(&sub.channel_id) {
-                        client.status(&Status::error(format!(
-                            "subscription {}: no channel {}",
-                            sub.id, sub.channel_id
-                        )));
-                        continue;
-                    }
-                    match subscriptions.entry(sub.id) {
-                        Entry::Occupied(_) => client.status(&Status::error(format!(
-                            "subscription {}: the id is in use",
-                            sub.id
-                        ))),
-                        Entry::Vacant(v) => {
-                            v.insert(sub.channel_id);
-                        }
-                    }
-                }
-            }
+            Ok(ClientMessage::Subscribe(s)) => self.subscribe(client, &s.subscriptions),
             Ok(ClientMessage::Unsubscribe(u)) => {
                 let mut subscriptions = lock(&client.subscriptions);
                 for id in u.subscription_ids {
-                    subscriptions.remove(&id);
+                    if let Some(channel) = subscriptions.by_id.remove(&id) {
+                        subscriptions.by_channel.remove(&channel);
+                    }
                 }
             }
-            Ok(other) => client.status(&Status::warning(format!(
+            Ok(other) => self.count_cut(client.status(&Status::warning(format!(
                 "not supported by this server (it serves a log, read-only): {}",
                 op_name(&other)
-            ))),
-            Err(e) => client.status(&Status::error(format!("invalid message: {e}"))),
+            )))),
+            Err(e) => {
+                self.count_cut(client.status(&Status::error(format!("invalid message: {e}"))));
+            }
+        }
+    }
+
+    /// A `subscribe`: a subscription to an unknown channel is answered with an error; more
+    /// than [`LiveOptions::max_subscriptions`] in all, an id in use or a channel subscribed
+    /// already cut the client off. The work is at most one step per subscription allowed.
+    fn subscribe(&self, client: &Client, asked: &[Subscription]) {
+        let max = self.options.max_subscriptions;
+        let mut subscriptions = lock(&client.subscriptions);
+        let held = subscriptions.by_id.len();
+        if held.saturating_add(asked.len()) > max {
+            drop(subscriptions);
+            return self.cut_off(
+                client,
+                format!(
+                    "subscribe: {} subscriptions more than the {held} held exceed the cap of \
+                     {max} per client (--live-max-subscriptions {max}); disconnected",
+                    asked.len()
+                ),
+            );
+        }
+        let channels: Vec<u64> = lock(&self.state)
+            .channels
+            .iter()
+            .map(|c| u64::from(c.id()))
+            .collect();
+        for sub in asked {
+            if !channels.contains(&sub.channel_id) {
+                let cut = client.status(&Status::error(format!(
+                    "subscription {}: no channel {}",
+                    sub.id, sub.channel_id
+                )));
+                self.count_cut(cut);
+                continue;
+            }
+            let why = if let Some(channel) = subscriptions.by_id.get(&sub.id) {
+                format!(
+                    "subscription {}: the id is in use (channel {channel}); a duplicate \
+                     subscription is refused; disconnected",
+                    sub.id
+                )
+            } else if let Some(other) = subscriptions.by_channel.get(&sub.channel_id) {
+                format!(
+                    "subscription {}: channel {} is subscribed already (subscription {other}); \
+                     one subscription per channel, a duplicate is refused; disconnected",
+                    sub.id, sub.channel_id
+                )
+            } else {
+                subscriptions.by_id.insert(sub.id, sub.channel_id);
+                subscriptions.by_channel.insert(sub.channel_id, sub.id);
+                continue;
+            };
+            drop(subscriptions);
+            return self.cut_off(client, why);
         }
     }
 }
@@ -595,13 +796,21 @@ fn advertise(channels: &[Channel]) -> String {
 /// Accepts clients until told to stop; then closes the port and lets the clients go.
 async fn serve(listener: TcpListener, shared: Arc<Shared>, stop: Arc<Notify>) {
     let mut tasks = tokio::task::JoinSet::new();
+    let handshakes = Arc::new(Semaphore::new(MAX_HANDSHAKES));
     loop {
         tokio::select! {
             () = stop.notified() => break,
             accepted = listener.accept() => match accepted {
-                Ok((stream, addr)) => {
-                    tasks.spawn(client_task(stream, addr, Arc::clone(&shared)));
-                }
+                Ok((stream, addr)) => match Arc::clone(&handshakes).try_acquire_owned() {
+                    Ok(permit) => {
+                        tasks.spawn(client_task(stream, addr, Arc::clone(&shared), permit));
+                    }
+                    // Too many handshakes under way: closed at once, nothing allocated.
+                    Err(_) => {
+                        shared.refused.fetch_add(1, Ordering::Relaxed);
+                        drop(stream);
+                    }
+                },
                 // Out of file descriptors, say: try again shortly.
                 Err(_) => tokio::time::sleep(Duration::from_millis(10)).await,
             },
@@ -616,9 +825,15 @@ async fn serve(listener: TcpListener, shared: Arc<Shared>, stop: Arc<Notify>) {
     // The clients still sending (stalled) are cut off: their tasks end with the runtime.
 }
 
-type Sink = SplitSink<WebSocketStream<TcpStream>, Message>;
+type Ws = WebSocketStream<TcpStream>;
+type Sink = SplitSink<Ws, Message>;
 
-async fn client_task(stream: TcpStream, addr: SocketAddr, shared: Arc<Shared>) {
+async fn client_task(
+    stream: TcpStream,
+    addr: SocketAddr,
+    shared: Arc<Shared>,
+    handshaking: tokio::sync::OwnedSemaphorePermit,
+) {
     let _ = stream.set_nodelay(true);
     let mut chosen = None;
     // The refusal is tungstenite's own type (the `Callback` trait's), however large.
@@ -647,58 +862,93 @@ async fn client_task(stream: TcpStream, addr: SocketAddr, shared: Arc<Shared>) {
         chosen = Some(protocol);
         Ok(response)
     };
-    // A client sends subscriptions, a few hundred bytes: nothing near tungstenite's default
-    // limits (64 MiB) is needed.
+    // A client sends subscriptions, a few KiB at most: nothing near tungstenite's default
+    // limits (64 MiB) is needed, nor its 128 KiB buffers for every client.
     let config = WebSocketConfig::default()
         .max_message_size(Some(MAX_CLIENT_MESSAGE))
-        .max_frame_size(Some(MAX_CLIENT_MESSAGE));
+        .max_frame_size(Some(MAX_CLIENT_MESSAGE))
+        .read_buffer_size(READ_BUFFER)
+        .write_buffer_size(WRITE_BUFFER);
     let handshake =
         tokio_tungstenite::accept_hdr_async_with_config(stream, negotiate, Some(config));
-    let Ok(Ok(ws)) = tokio::time::timeout(HANDSHAKE_TIMEOUT, handshake).await else {
+    let Ok(Ok(mut ws)) = tokio::time::timeout(HANDSHAKE_TIMEOUT, handshake).await else {
         return;
     };
+    drop(handshaking);
     let Some(subprotocol) = chosen else {
         return;
     };
     if shared.stopping.load(Ordering::Relaxed) {
         return;
     }
-    let client = shared.register(addr, subprotocol);
+    let Some(client) = shared.register(addr, subprotocol) else {
+        // Over the cap: told why, then closed, within the grace of a stop.
+        let refusal = Message::text(shared.refusal());
+        let _ = tokio::time::timeout(shared.options.close_grace, async {
+            ws.send(refusal).await?;
+            ws.close(Some(close_frame(CloseCode::Again))).await
+        })
+        .await;
+        return;
+    };
     let (mut sink, mut source) = ws.split();
     let read = async {
-        while let Some(Ok(message)) = source.next().await {
+        while let Some(message) = source.next().await {
             match message {
-                Message::Text(text) => shared.on_text(&client, text.as_str()),
-                Message::Binary(_) => client.status(&Status::warning(
+                Ok(Message::Text(text)) => shared.on_text(&client, text.as_str()),
+                Ok(Message::Binary(_)) => shared.count_cut(client.status(&Status::warning(
                     "not supported by this server (it serves a log, read-only): binary messages",
-                )),
-                Message::Close(_) => break,
-                _ => {}
+                ))),
+                Ok(Message::Close(_)) => return false,
+                Ok(_) => {}
+                Err(WsError::Capacity(e)) => shared.cut_off(
+                    &client,
+                    format!(
+                        "{e}: a client's message is at most {MAX_CLIENT_MESSAGE} bytes; \
+                         disconnected"
+                    ),
+                ),
+                Err(_) => return false,
+            }
+            if client.is_closed() {
+                return true;
             }
         }
+        false
     };
+    let write = write(&client, &mut sink, &shared);
+    tokio::pin!(write);
     tokio::select! {
-        () = read => {}
-        () = write(&client, &mut sink, &shared) => {}
+        cut = read => {
+            if cut {
+                // Cut off: no longer read; its status and the close frame, if it takes them.
+                let _ = tokio::time::timeout(shared.options.close_grace, &mut write).await;
+            }
+        }
+        () = &mut write => {}
     }
     shared.unregister(&client);
+}
+
+/// The close frame of a client the server lets go for breaking a cap (`Policy`) or refuses
+/// for now (`Again`): the `status` before it says why.
+fn close_frame(code: CloseCode) -> CloseFrame {
+    CloseFrame {
+        code,
+        reason: "see the status message before this close".into(),
+    }
 }
 
 /// Sends what is queued for `client`, control messages first, until the client is closed or
 /// the server stops (then with a close frame).
 async fn write(client: &Client, sink: &mut Sink, shared: &Shared) {
     loop {
-        let (control, data, closed) = {
-            let mut q = lock(&client.queue);
-            (
-                std::mem::take(&mut q.control),
-                std::mem::take(&mut q.data),
-                q.closed,
-            )
-        };
+        let (control, data, closed) = client.take_batch();
         if control.is_empty() && data.is_empty() {
             if closed || shared.stopping.load(Ordering::Relaxed) {
-                let _ = sink.send(Message::Close(None)).await;
+                let cut = lock(&client.queue).cut_off.is_some();
+                let frame = cut.then(|| close_frame(CloseCode::Policy));
+                let _ = sink.send(Message::Close(frame)).await;
                 return;
             }
             client.wake.notified().await;
@@ -719,5 +969,99 @@ async fn write(client: &Client, sink: &mut Sink, shared: &Shared) {
             return;
         }
         client.sent.fetch_add(n, Ordering::Relaxed);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn client() -> Client {
+        Client {
+            addr: "127.0.0.1:1".parse().unwrap(),
+            subprotocol: SUBPROTOCOL,
+            since: Instant::now(),
+            subscriptions: Mutex::default(),
+            queue: Mutex::default(),
+            wake: Notify::new(),
+            queued: AtomicU64::new(0),
+            sent: AtomicU64::new(0),
+            dropped: AtomicU64::new(0),
+        }
+    }
+
+    fn queued(c: &Client) -> (usize, usize) {
+        let q = lock(&c.queue);
+        (q.data.len(), q.data_bytes)
+    }
+
+    #[test]
+    fn a_queue_is_bounded_in_messages_and_in_bytes_dropping_its_oldest() {
+        let c = client();
+        // 100 messages of 100 bytes into 1,000 bytes: the last 10 stay, 90 dropped.
+        for i in 0..100u8 {
+            c.push_data(vec![i; 100], 4096, 1000);
+        }
+        assert_eq!(queued(&c), (10, 1000));
+        assert_eq!(c.dropped.load(Ordering::Relaxed), 90);
+        assert_eq!(lock(&c.queue).data[0].clone().into_data()[0], 90);
+        // In messages: a backlog of 4 keeps 4.
+        for _ in 0..10 {
+            c.push_data(vec![0; 10], 4, 1000);
+        }
+        assert_eq!(queued(&c), (4, 40));
+        // A message larger than the cap is queued alone.
+        c.push_data(vec![0; 5000], 4096, 1000);
+        assert_eq!(queued(&c), (1, 5000));
+        assert_eq!(c.queued.load(Ordering::Relaxed), 111);
+        assert_eq!(c.dropped.load(Ordering::Relaxed), 110);
+    }
+
+    #[test]
+    fn a_batch_takes_the_control_messages_and_a_bounded_share_of_data() {
+        let c = client();
+        c.push_control("hello".to_string());
+        for _ in 0..100 {
+            c.push_data(vec![0; 1000], 4096, 1 << 20);
+        }
+        let (control, data, closed) = c.take_batch();
+        assert_eq!(
+            (control.len(), data.len(), closed),
+            (1, WRITE_BATCH / 1000, false)
+        );
+        assert_eq!(
+            queued(&c),
+            (100 - WRITE_BATCH / 1000, (100 - WRITE_BATCH / 1000) * 1000)
+        );
+        // One message larger than a batch goes alone.
+        let big = client();
+        big.push_data(vec![0; 2 * WRITE_BATCH], 4096, 1 << 20);
+        big.push_data(vec![0; 10], 4096, 1 << 20);
+        assert_eq!(big.take_batch().1.len(), 1);
+        assert_eq!(queued(&big), (1, 10));
+    }
+
+    #[test]
+    fn a_cut_off_client_gets_its_status_first_and_nothing_more() {
+        let c = client();
+        c.push_data(vec![0; 10], 4096, 1 << 20);
+        assert!(c.cut_off("why".to_string()));
+        assert!(!c.cut_off("again".to_string()), "counted once");
+        c.push_data(vec![0; 10], 4096, 1 << 20);
+        let (control, data, closed) = c.take_batch();
+        assert!(closed && data.is_empty());
+        let status = control[0].to_text().unwrap();
+        assert!(
+            status.contains(r#""level":2"#) && status.contains("why"),
+            "{status}"
+        );
+        assert_eq!(c.report().cut_off.as_deref(), Some("why"));
+        // Replies left unread: cut off at the cap.
+        let deaf = client();
+        let cuts: Vec<bool> = (0..=MAX_CONTROL)
+            .map(|_| deaf.push_control("x".into()))
+            .collect();
+        assert_eq!(cuts.iter().filter(|c| **c).count(), 1);
+        assert!(cuts[MAX_CONTROL]);
     }
 }

@@ -14,8 +14,8 @@ use futures_util::{SinkExt as _, StreamExt as _};
 use live::{LiveOptions, LiveServer};
 use serde_json::{Value, json};
 use tokio::net::TcpStream;
-use tokio_tungstenite::tungstenite::Message;
 use tokio_tungstenite::tungstenite::client::IntoClientRequest as _;
+use tokio_tungstenite::tungstenite::{Error as WsError, Message};
 use tokio_tungstenite::{MaybeTlsStream, WebSocketStream};
 
 type Ws = WebSocketStream<MaybeTlsStream<TcpStream>>;
@@ -73,10 +73,15 @@ async fn next_json(ws: &mut Ws) -> Value {
 /// Logs `ms` milliseconds of messages: 4 frames a millisecond on /can/rx (two ids), one on
 /// /can/tx, odometry and diagnostics every 10 ms.
 fn log_run(log: &mut McapLog, ms: u64) {
+    log_span(log, 0..ms);
+}
+
+/// [`log_run`] from one log time to another, milliseconds.
+fn log_span(log: &mut McapLog, ms: std::ops::Range<u64>) {
     let snapshot = firmware::Controller::new(&firmware::Config::dji_m3508_example())
         .unwrap()
         .snapshot();
-    for i in 0..ms {
+    for i in ms {
         let t = i * 1_000_000;
         for k in 0..4u64 {
             let id = StandardId::new(0x201 + (k % 2) as u16).unwrap();
@@ -329,4 +334,399 @@ async fn after_stop_the_port_is_closed() {
     assert_eq!(report.clients.len(), 1);
     let err = TcpStream::connect(addr).await.unwrap_err();
     assert_eq!(err.kind(), std::io::ErrorKind::ConnectionRefused);
+}
+
+/// What a client receives: a [`Ws`] or its stream half.
+trait Incoming: futures_util::Stream<Item = Result<Message, WsError>> {}
+impl<S: futures_util::Stream<Item = Result<Message, WsError>>> Incoming for S {}
+
+/// Waits until `cond` holds, 5 s at most.
+async fn wait_until(what: &str, mut cond: impl FnMut() -> bool) {
+    let deadline = Instant::now() + Duration::from_secs(5);
+    while !cond() {
+        assert!(Instant::now() < deadline, "not within 5 s: {what}");
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+}
+
+/// The next message, `None` once the connection is closed; 5 s at most.
+async fn next_message(ws: &mut (impl Incoming + Unpin)) -> Option<Message> {
+    tokio::time::timeout(Duration::from_secs(5), ws.next())
+        .await
+        .expect("a message within 5 s")
+        .and_then(Result::ok)
+}
+
+/// Reads up to the server's `status` error, then its close frame: the error's message (which
+/// must name each of `names`) and the close code. Data and other statuses before are skipped.
+async fn expect_cut_off(ws: &mut (impl Incoming + Unpin), names: &[&str]) -> (String, u16) {
+    let message = loop {
+        match next_message(ws).await {
+            Some(Message::Text(t)) => {
+                let v: Value = serde_json::from_str(t.as_str()).unwrap();
+                if v["op"] == "status" && v["level"] == 2 {
+                    break v["message"].as_str().unwrap().to_string();
+                }
+            }
+            Some(Message::Binary(_)) => {}
+            other => panic!("a status error before {other:?}"),
+        }
+    };
+    for name in names {
+        assert!(message.contains(name), "{name:?} not in {message:?}");
+    }
+    loop {
+        match next_message(ws).await {
+            Some(Message::Close(Some(frame))) => return (message, u16::from(frame.code)),
+            Some(Message::Binary(_)) => {}
+            other => panic!("{message}: a close frame, not {other:?}"),
+        }
+    }
+}
+
+/// Sends `subscriptions` (id, channel id) in one `subscribe`.
+async fn subscribe(ws: &mut Ws, subscriptions: impl IntoIterator<Item = (u64, u64)>) {
+    let subscriptions: Vec<Value> = subscriptions
+        .into_iter()
+        .map(|(id, channel)| json!({"id": id, "channelId": channel}))
+        .collect();
+    let subscribe = json!({"op": "subscribe", "subscriptions": subscriptions});
+    ws.send(Message::text(subscribe.to_string())).await.unwrap();
+}
+
+/// Waits until the server has taken every request sent before: it answers the fence, an op it
+/// does not serve, with a warning, in order.
+async fn fence(ws: &mut Ws) {
+    let request = json!({"op": "subscribeConnectionGraph"});
+    ws.send(Message::text(request.to_string())).await.unwrap();
+    loop {
+        let Some(Message::Text(t)) = next_message(ws).await else {
+            continue;
+        };
+        let v: Value = serde_json::from_str(t.as_str()).unwrap();
+        if v["op"] == "status" {
+            let message = v["message"].as_str().unwrap();
+            assert!(message.contains("subscribeConnectionGraph"), "{v}");
+            return;
+        }
+    }
+}
+
+/// A client past `serverInfo` and `advertise`: the channel ids by topic.
+async fn connected(server: &LiveServer) -> (Ws, HashMap<String, u64>) {
+    let (mut ws, _) = connect(server, "foxglove.sdk.v1").await.unwrap();
+    assert_eq!(next_json(&mut ws).await["op"], "serverInfo");
+    let advertise = next_json(&mut ws).await;
+    assert_eq!(advertise["op"], "advertise");
+    let ids = advertise["channels"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| {
+            let topic = c["topic"].as_str().unwrap().to_string();
+            (topic, c["id"].as_u64().unwrap())
+        })
+        .collect();
+    (ws, ids)
+}
+
+/// The Foxglove ws-protocol close codes the server uses.
+const CLOSE_POLICY: u16 = 1008;
+const CLOSE_AGAIN: u16 = 1013;
+
+#[tokio::test]
+async fn a_client_beyond_max_clients_is_told_the_cap_and_closed_and_counted() {
+    let server = server(LiveOptions {
+        max_clients: 2,
+        ..LiveOptions::default()
+    });
+    let (mut a, _) = connect(&server, "foxglove.sdk.v1").await.unwrap();
+    let (mut b, _) = connect(&server, "foxglove.sdk.v1").await.unwrap();
+    // serverInfo is sent once a client is registered: both hold their place.
+    assert_eq!(next_json(&mut a).await["op"], "serverInfo");
+    assert_eq!(next_json(&mut b).await["op"], "serverInfo");
+    // The third one's handshake is accepted; then it is told why, and closed.
+    let (mut c, chosen) = connect(&server, "foxglove.sdk.v1").await.unwrap();
+    assert_eq!(chosen.as_deref(), Some("foxglove.sdk.v1"));
+    let (message, code) =
+        expect_cut_off(&mut c, &["too many clients", "--live-max-clients 2"]).await;
+    assert_eq!(code, CLOSE_AGAIN, "{message}");
+    assert_eq!(next_message(&mut c).await, None);
+    let stats = server.stats();
+    assert_eq!((stats.clients, stats.refused), (2, 1), "{stats:?}");
+    // A place that frees is taken by the next client.
+    drop(a);
+    wait_until("the first client is gone", || server.stats().clients == 1).await;
+    let (mut d, _) = connect(&server, "foxglove.sdk.v1").await.unwrap();
+    assert_eq!(next_json(&mut d).await["op"], "serverInfo");
+    assert_eq!(server.stats().clients, 2);
+    let report = server.stop();
+    assert_eq!(report.refused, 1, "{report}");
+    assert_eq!(report.clients.len(), 3, "{report}");
+    assert!(
+        report.to_string().contains("1 connections refused"),
+        "{report}"
+    );
+}
+
+#[tokio::test]
+async fn connections_beyond_the_handshakes_in_progress_are_closed_at_once() {
+    let server = server(LiveOptions::default());
+    // 64 connections that never send their handshake hold every handshake place.
+    let mut silent = Vec::new();
+    for _ in 0..64 {
+        silent.push(TcpStream::connect(server.local_addr()).await.unwrap());
+    }
+    // The 65th is closed before its handshake.
+    let refused = connect(&server, "foxglove.sdk.v1").await;
+    assert!(refused.is_err(), "a 65th handshake in progress was served");
+    wait_until("the refusal counted", || server.stats().refused >= 1).await;
+    drop(silent);
+    // Their places free as they close: a client is served again.
+    let deadline = Instant::now() + Duration::from_secs(5);
+    let mut ws = loop {
+        if let Ok((ws, _)) = connect(&server, "foxglove.sdk.v1").await {
+            break ws;
+        }
+        assert!(Instant::now() < deadline, "no handshake place freed in 5 s");
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    };
+    assert_eq!(next_json(&mut ws).await["op"], "serverInfo");
+    let _ = server.stop();
+}
+
+#[tokio::test]
+async fn a_duplicate_subscription_is_refused_naming_it_and_the_client_cut_off() {
+    let file = TempFile::new("duplicate");
+    let server = server(LiveOptions::default());
+    let mut log = McapLog::create(&file.0, &BTreeMap::new()).unwrap();
+    log.set_tap(Box::new(server.tap()));
+    let (mut same_channel, ids) = connected(&server).await;
+    let odom = ids["/odom"];
+    // A channel subscribed twice, in two messages.
+    subscribe(&mut same_channel, [(1, odom)]).await;
+    fence(&mut same_channel).await;
+    subscribe(&mut same_channel, [(2, odom)]).await;
+    let (message, code) = expect_cut_off(
+        &mut same_channel,
+        &[
+            "subscription 2",
+            &format!("channel {odom} is subscribed already (subscription 1)"),
+            "duplicate",
+        ],
+    )
+    .await;
+    assert_eq!(code, CLOSE_POLICY, "{message}");
+    // An id in use, in one message.
+    let (mut same_id, _) = connected(&server).await;
+    subscribe(&mut same_id, [(7, odom), (7, ids["/tf"])]).await;
+    let (message, code) = expect_cut_off(
+        &mut same_id,
+        &["subscription 7: the id is in use", "duplicate"],
+    )
+    .await;
+    assert_eq!(code, CLOSE_POLICY, "{message}");
+    // A channel twice in one message.
+    let (mut twice, _) = connected(&server).await;
+    subscribe(&mut twice, [(1, odom), (2, odom)]).await;
+    expect_cut_off(&mut twice, &["channel", "subscribed already"]).await;
+    wait_until("the three are gone", || server.stats().clients == 0).await;
+    log.finish().unwrap();
+    let report = server.stop();
+    assert_eq!(server_cut_offs(&report), 3, "{report}");
+    assert_eq!(report.refused, 0, "{report}");
+}
+
+fn server_cut_offs(report: &live::LiveReport) -> usize {
+    report
+        .clients
+        .iter()
+        .filter(|c| c.cut_off.is_some())
+        .count()
+}
+
+#[tokio::test]
+async fn subscriptions_beyond_max_subscriptions_are_refused_naming_the_cap() {
+    let file = TempFile::new("max-subscriptions");
+    let server = server(LiveOptions {
+        max_subscriptions: 4,
+        ..LiveOptions::default()
+    });
+    let mut log = McapLog::create(&file.0, &BTreeMap::new()).unwrap();
+    log.set_tap(Box::new(server.tap()));
+    let (mut ws, ids) = connected(&server).await;
+    let channels: Vec<u64> = Channel::ALL.iter().map(|c| ids[c.topic()]).collect();
+    // 3, then 1 more (the cap), then 1 beyond it.
+    subscribe(&mut ws, (0..3).map(|i| (i, channels[i as usize]))).await;
+    subscribe(&mut ws, [(3, channels[3])]).await;
+    fence(&mut ws).await;
+    subscribe(&mut ws, [(4, channels[4])]).await;
+    let (message, code) = expect_cut_off(
+        &mut ws,
+        &[
+            "1 subscriptions more than the 4 held",
+            "--live-max-subscriptions 4",
+        ],
+    )
+    .await;
+    assert_eq!(code, CLOSE_POLICY, "{message}");
+    log.finish().unwrap();
+    let report = server.stop();
+    assert_eq!(report.clients[0].cut_off.as_deref(), Some(message.as_str()));
+}
+
+/// The issue's client: 5 `subscribe` messages of 34,000 subscriptions each (ids unique, all
+/// to one channel), each some 920 KB, just under the 1 MiB a client's message may be.
+fn hostile_subscribes(channel: u64) -> Vec<Message> {
+    use std::fmt::Write as _;
+    (0..5u64)
+        .map(|k| {
+            let mut m = String::from(r#"{"op":"subscribe","subscriptions":["#);
+            for i in 0..34_000u64 {
+                let sep = if i == 0 { "" } else { "," };
+                let id = k * 34_000 + i;
+                write!(m, r#"{sep}{{"id":{id},"channelId":{channel}}}"#).unwrap();
+            }
+            m.push_str("]}");
+            Message::text(m)
+        })
+        .collect()
+}
+
+#[tokio::test]
+async fn a_viewer_gets_every_message_while_a_client_of_34000_subscriptions_is_cut_off() {
+    let file = TempFile::new("hostile");
+    let server = server(LiveOptions::default());
+    let mut log = McapLog::create(&file.0, &BTreeMap::new()).unwrap();
+    log.set_tap(Box::new(server.tap()));
+    log.set_flush_interval(live::FLUSH_INTERVAL);
+    let (mut viewer, ids) = connected(&server).await;
+    subscribe(&mut viewer, [(1, ids["/odom"]), (2, ids["/diagnostics"])]).await;
+    fence(&mut viewer).await;
+    // The viewer reads all along, and until the close at the stop.
+    let viewer = tokio::spawn(async move {
+        let mut received = HashMap::<u32, usize>::new();
+        while let Some(m) = next_message(&mut viewer).await {
+            match m {
+                Message::Binary(b) => {
+                    let sub = u32::from_le_bytes(b[1..5].try_into().unwrap());
+                    *received.entry(sub).or_default() += 1;
+                }
+                Message::Close(_) => break,
+                other => panic!("{other:?}"),
+            }
+        }
+        received
+    });
+    let (hostile, _) = connected(&server).await;
+    let (mut hostile_tx, mut hostile_rx) = hostile.split();
+    let messages = hostile_subscribes(ids["/can/rx"]);
+    assert!(messages.iter().all(|m| m.len() < 1 << 20));
+
+    // The run goes on, 10 ms of log at a time, until the hostile client is cut off and for
+    // at least half a second of log; then 100 ms more, so that its last status says so.
+    let (cut_tx, cut_rx) = std::sync::mpsc::channel::<()>();
+    let log_thread = std::thread::spawn(move || {
+        let (mut ms, mut cut) = (0, false);
+        while ms < 500 || !cut {
+            assert!(ms < 60_000, "not cut off within a minute of log");
+            log_span(&mut log, ms..ms + 10);
+            ms += 10;
+            cut |= cut_rx.try_recv().is_ok();
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        log_span(&mut log, ms..ms + 100);
+        log.finish().unwrap();
+    });
+    // Sent from a task of its own: once cut off, the client is no longer read, and what it
+    // still sends fills the socket.
+    let sender = tokio::spawn(async move {
+        for m in messages {
+            if hostile_tx.send(m).await.is_err() {
+                break;
+            }
+        }
+    });
+    let (message, code) = expect_cut_off(
+        &mut hostile_rx,
+        &[
+            "subscribe: 34000 subscriptions more than the 0 held",
+            "--live-max-subscriptions 64",
+        ],
+    )
+    .await;
+    assert_eq!(code, CLOSE_POLICY, "{message}");
+    cut_tx.send(()).unwrap();
+    let report = tokio::task::spawn_blocking(move || {
+        log_thread.join().unwrap();
+        server.stop()
+    })
+    .await
+    .unwrap();
+    sender.abort();
+
+    // The viewer got every /odom and /diagnostics of the run, then the close.
+    let received = viewer.await.unwrap();
+    let in_file = read_file(&file.0);
+    let count = |topic: &str| in_file.iter().filter(|r| r.0 == topic).count();
+    assert!(count("/odom") >= 60, "{} /odom", count("/odom"));
+    assert_eq!(received.get(&1).copied(), Some(count("/odom")));
+    assert_eq!(received.get(&2).copied(), Some(count("/diagnostics")));
+    let viewer_report = report.clients.iter().find(|c| c.cut_off.is_none()).unwrap();
+    assert_eq!(viewer_report.dropped, 0, "{report}");
+    assert_eq!(server_cut_offs(&report), 1, "{report}");
+    let status = server_status_in(&file.0);
+    assert_eq!(status.value("cut_off"), Some("1"));
+    assert_eq!(status.level, msg::DiagnosticStatus::WARN);
+}
+
+/// The live status in the last `/diagnostics` of a log.
+fn server_status_in(path: &PathBuf) -> msg::DiagnosticStatus {
+    let (_, _, last) = read_file(path)
+        .into_iter()
+        .rfind(|r| r.0 == "/diagnostics")
+        .unwrap();
+    let d: msg::DiagnosticArray = msg::decode(&last).unwrap();
+    d.status
+        .into_iter()
+        .find(|s| s.name == live::STATUS_NAME)
+        .unwrap()
+}
+
+#[tokio::test]
+async fn a_message_beyond_the_size_cap_gets_a_status_naming_it_and_the_close() {
+    let server = server(LiveOptions::default());
+    let (ws, _) = connect(&server, "foxglove.sdk.v1").await.unwrap();
+    let (mut tx, mut rx) = ws.split();
+    let big = Message::text("x".repeat((1 << 20) + 1));
+    let sender = tokio::spawn(async move { tx.send(big).await });
+    let mut ws_rx = Vec::new();
+    while let Some(m) = tokio::time::timeout(Duration::from_secs(5), rx.next())
+        .await
+        .expect("a message within 5 s")
+    {
+        let Ok(m) = m else { break };
+        let close = matches!(m, Message::Close(_));
+        ws_rx.push(m);
+        if close {
+            break;
+        }
+    }
+    let status = ws_rx
+        .iter()
+        .filter_map(|m| match m {
+            Message::Text(t) => Some(serde_json::from_str::<Value>(t.as_str()).unwrap()),
+            _ => None,
+        })
+        .find(|v| v["op"] == "status" && v["level"] == 2)
+        .unwrap_or_else(|| panic!("no status error: {ws_rx:?}"));
+    let message = status["message"].as_str().unwrap();
+    assert!(message.contains("at most 1048576 bytes"), "{message}");
+    let Some(Message::Close(Some(frame))) = ws_rx.last() else {
+        panic!("no close frame: {ws_rx:?}");
+    };
+    assert_eq!(u16::from(frame.code), CLOSE_POLICY);
+    drop(sender);
+    let report = server.stop();
+    assert_eq!(server_cut_offs(&report), 1, "{report}");
 }
