@@ -707,6 +707,12 @@ impl Shared {
     /// already cut the client off. The work is at most one step per subscription allowed.
     fn subscribe(&self, client: &Client, asked: &[Subscription]) {
         let max = self.options.max_subscriptions;
+        // Let go before the subscriptions are taken: `publish` takes the state first.
+        let channels: Vec<u64> = lock(&self.state)
+            .channels
+            .iter()
+            .map(|c| u64::from(c.id()))
+            .collect();
         let mut subscriptions = lock(&client.subscriptions);
         let held = subscriptions.by_id.len();
         if held.saturating_add(asked.len()) > max {
@@ -720,11 +726,6 @@ impl Shared {
                 ),
             );
         }
-        let channels: Vec<u64> = lock(&self.state)
-            .channels
-            .iter()
-            .map(|c| u64::from(c.id()))
-            .collect();
         for sub in asked {
             if !channels.contains(&sub.channel_id) {
                 let cut = client.status(&Status::error(format!(

@@ -730,3 +730,57 @@ async fn a_message_beyond_the_size_cap_gets_a_status_naming_it_and_the_close() {
     let report = server.stop();
     assert_eq!(server_cut_offs(&report), 1, "{report}");
 }
+
+#[tokio::test]
+async fn subscriptions_that_churn_during_a_run_hold_nothing_up() {
+    // A subscribe takes the server's state and the client's subscriptions in the order the
+    // writing thread takes them: in the other order the two threads stopped each other.
+    let file = TempFile::new("churn");
+    let server = server(LiveOptions::default());
+    let mut log = McapLog::create(&file.0, &BTreeMap::new()).unwrap();
+    log.set_tap(Box::new(server.tap()));
+    log.set_flush_interval(Duration::from_millis(1));
+    let (ws, ids) = connected(&server).await;
+    let (mut tx, mut rx) = ws.split();
+    let reader = tokio::spawn(async move { while let Some(Ok(_)) = rx.next().await {} });
+    let (done_tx, done_rx) = std::sync::mpsc::channel();
+    let log_thread = std::thread::spawn(move || {
+        log_run(&mut log, 3000);
+        log.finish().unwrap();
+        done_tx.send(()).unwrap();
+    });
+    let channels: Vec<u64> = ids.values().copied().collect();
+    let subs = channels
+        .iter()
+        .enumerate()
+        .map(|(i, &c)| json!({"id": i, "channelId": c}));
+    let subscribe = json!({"op": "subscribe", "subscriptions": subs.collect::<Vec<_>>()});
+    let ids: Vec<usize> = (0..channels.len()).collect();
+    let unsubscribe = json!({"op": "unsubscribe", "subscriptionIds": ids});
+    let mut rounds = 0u32;
+    let churn = async {
+        while done_rx.try_recv().is_err() {
+            tx.send(Message::text(subscribe.to_string())).await.unwrap();
+            tx.send(Message::text(unsubscribe.to_string()))
+                .await
+                .unwrap();
+            rounds += 1;
+            tokio::task::yield_now().await;
+        }
+    };
+    if tokio::time::timeout(Duration::from_secs(30), churn)
+        .await
+        .is_err()
+    {
+        // Stuck: a stop would wait on the server's thread for ever.
+        std::mem::forget(server);
+        panic!("the log did not finish within 30 s: the writing thread is held up");
+    }
+    log_thread.join().unwrap();
+    let report = tokio::task::spawn_blocking(move || server.stop())
+        .await
+        .unwrap();
+    reader.abort();
+    assert!(rounds > 10, "{rounds} rounds");
+    assert!(report.clients[0].cut_off.is_none(), "{report}");
+}
