@@ -25,6 +25,8 @@ use crate::protocol::robot;
 
 mod encoding;
 mod pods;
+#[cfg(feature = "serde")]
+mod tagged;
 pub use encoding::ENCODED_LEN;
 pub use pods::{OdometryMode, PODS_MAX, PodConfig, Pods};
 pub(crate) use pods::{PodSolve, localizer as pod_localizer};
@@ -57,12 +59,11 @@ pub struct Config {
 }
 
 /// Wheel layout.
+///
+/// In TOML, a table with `layout = "standard"` or `"general"` and that layout's keys.
 #[derive(Debug, Clone, Copy, PartialEq)]
-#[cfg_attr(feature = "serde", derive(serde::Deserialize, serde::Serialize))]
-#[cfg_attr(
-    feature = "serde",
-    serde(tag = "layout", rename_all = "snake_case", deny_unknown_fields)
-)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
+#[cfg_attr(feature = "serde", serde(tag = "layout", rename_all = "snake_case"))]
 pub enum Geometry {
     /// Four wheels at `(±lx, ±ly)`, 45° rollers pointing to the centre seen from above.
     Standard {
@@ -74,22 +75,13 @@ pub enum Geometry {
         wheel_radius: f32,
         /// Fraction of the wheel-implied forward (x) motion the robot makes, in `(0, 1.5]`
         /// (see `docs/protocol.md`, section "Effectiveness (slip)").
-        #[cfg_attr(
-            feature = "serde",
-            serde(default = "unit::one", skip_serializing_if = "unit::is_one")
-        )]
+        #[cfg_attr(feature = "serde", serde(skip_serializing_if = "unit::is_one"))]
         forward_effectiveness: f32,
         /// Fraction of the wheel-implied lateral (y) motion the robot makes, in `(0, 1.5]`.
-        #[cfg_attr(
-            feature = "serde",
-            serde(default = "unit::one", skip_serializing_if = "unit::is_one")
-        )]
+        #[cfg_attr(feature = "serde", serde(skip_serializing_if = "unit::is_one"))]
         lateral_effectiveness: f32,
         /// Fraction of the wheel-implied yaw motion the robot makes, in `(0, 1.5]`.
-        #[cfg_attr(
-            feature = "serde",
-            serde(default = "unit::one", skip_serializing_if = "unit::is_one")
-        )]
+        #[cfg_attr(feature = "serde", serde(skip_serializing_if = "unit::is_one"))]
         yaw_effectiveness: f32,
     },
     /// Any four wheels, each given by its own geometry (FL, FR, RL, RR).
@@ -98,22 +90,13 @@ pub enum Geometry {
         wheels: [WheelConfig; 4],
         /// Fraction of the wheel-implied forward (x) motion the robot makes, in `(0, 1.5]`
         /// (see `docs/protocol.md`, section "Effectiveness (slip)").
-        #[cfg_attr(
-            feature = "serde",
-            serde(default = "unit::one", skip_serializing_if = "unit::is_one")
-        )]
+        #[cfg_attr(feature = "serde", serde(skip_serializing_if = "unit::is_one"))]
         forward_effectiveness: f32,
         /// Fraction of the wheel-implied lateral (y) motion the robot makes, in `(0, 1.5]`.
-        #[cfg_attr(
-            feature = "serde",
-            serde(default = "unit::one", skip_serializing_if = "unit::is_one")
-        )]
+        #[cfg_attr(feature = "serde", serde(skip_serializing_if = "unit::is_one"))]
         lateral_effectiveness: f32,
         /// Fraction of the wheel-implied yaw motion the robot makes, in `(0, 1.5]`.
-        #[cfg_attr(
-            feature = "serde",
-            serde(default = "unit::one", skip_serializing_if = "unit::is_one")
-        )]
+        #[cfg_attr(feature = "serde", serde(skip_serializing_if = "unit::is_one"))]
         yaw_effectiveness: f32,
     },
 }
@@ -174,17 +157,19 @@ pub struct WheelConfig {
 }
 
 /// The motor controllers and how each wheel is wired to one.
+///
+/// In TOML, a table with `protocol = "dji"`, `"odrive"` or `"cia402"` and that protocol's keys.
 #[derive(Debug, Clone, Copy, PartialEq)]
-#[cfg_attr(feature = "serde", derive(serde::Deserialize, serde::Serialize))]
-#[cfg_attr(
-    feature = "serde",
-    serde(tag = "protocol", rename_all = "snake_case", deny_unknown_fields)
-)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
+#[cfg_attr(feature = "serde", serde(tag = "protocol", rename_all = "snake_case"))]
 pub enum Drive {
     /// DJI C620/C610 current-mode ESCs; the firmware runs the wheel velocity loop.
     Dji {
         /// ESC model.
-        #[cfg_attr(feature = "serde", serde(with = "esc_model_serde"))]
+        #[cfg_attr(
+            feature = "serde",
+            serde(serialize_with = "esc_model_serde::serialize")
+        )]
         model: EscModel,
         /// ESC id (1..=8) of each wheel.
         esc_ids: [u8; 4],
@@ -201,8 +186,7 @@ pub enum Drive {
         gear_ratio: f32,
         /// `true` where a positive motor velocity rolls the robot backward.
         inverted: [bool; 4],
-        /// Use the drive's velocity ramp input mode (else passthrough).
-        #[cfg_attr(feature = "serde", serde(default))]
+        /// Use the drive's velocity ramp input mode (else passthrough). Default `false`.
         vel_ramp: bool,
     },
     /// CANopen CiA 402 drives in profile velocity mode; the drive runs the velocity loop and
@@ -224,17 +208,11 @@ pub enum Drive {
         actual_rpm_per_unit: f32,
         /// The master's own node id (1..=127), whose heartbeat (`0x700 + master_node`) the
         /// drives watch. Default 127.
-        #[cfg_attr(feature = "serde", serde(default = "cia402_defaults::master_node"))]
         master_node: u8,
         /// The drives' and the master's heartbeat period, ms (object 0x1017). Default 50.
-        #[cfg_attr(feature = "serde", serde(default = "cia402_defaults::heartbeat_ms"))]
         heartbeat_ms: u16,
         /// A heartbeat silent this long is lost, ms: the master's limit for each drive's, and
         /// the drives' for the master's (object 0x1016). Default 150.
-        #[cfg_attr(
-            feature = "serde",
-            serde(default = "cia402_defaults::heartbeat_timeout_ms")
-        )]
         heartbeat_timeout_ms: u16,
     },
 }
@@ -271,7 +249,16 @@ mod esc_model_serde {
         })
     }
 
-    pub fn deserialize<'de, D: serde::Deserializer<'de>>(d: D) -> Result<EscModel, D::Error> {
+    /// `drive.model`, read.
+    pub struct Model(pub EscModel);
+
+    impl<'de> serde::Deserialize<'de> for Model {
+        fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+            deserialize(d).map(Model)
+        }
+    }
+
+    fn deserialize<'de, D: serde::Deserializer<'de>>(d: D) -> Result<EscModel, D::Error> {
         struct V;
         impl serde::de::Visitor<'_> for V {
             type Value = EscModel;
@@ -1061,10 +1048,12 @@ fn field_at(prefix: &'static str, i: usize) -> &'static str {
 
 #[cfg(feature = "std")]
 mod load {
+    use std::boxed::Box;
     use std::path::{Path, PathBuf};
     use std::string::String;
 
     use super::{Config, ConfigError};
+    use crate::input::TomlError;
 
     /// Why a configuration file could not be used.
     #[derive(Debug, thiserror::Error)]
@@ -1078,16 +1067,14 @@ mod load {
             source: std::io::Error,
         },
         /// The TOML is malformed, has an unknown or missing field, or a value of the wrong type.
-        /// (The parser's message quotes the line: each of its lines [`quote_lines`]d; not the
-        /// error's `source`, whose text would show the line raw.)
-        ///
-        /// [`quote_lines`]: crate::input::quote_lines
-        #[error("{path}: {}", crate::input::quote_lines(&std::string::ToString::to_string(parse)))]
+        /// (The message quotes the line and names the key: [`TomlError`]; not the error's
+        /// `source`, whose text would show the line raw.)
+        #[error("{path}: {parse}")]
         Toml {
             /// The file (or `<string>`).
             path: PathBuf,
-            /// The parser's error, with line and column.
-            parse: toml::de::Error,
+            /// The parser's error, with line and column, and the key it points at.
+            parse: Box<TomlError>,
         },
         /// A value is out of range.
         #[error("{path}: {source}")]
@@ -1103,8 +1090,8 @@ mod load {
         /// Parses and validates a TOML configuration.
         ///
         /// # Errors
-        /// [`LoadError::Toml`] for syntax, unknown fields and wrong types (with line and
-        /// column), [`LoadError::Invalid`] naming the field and value out of range.
+        /// [`LoadError::Toml`] for syntax, unknown fields and wrong types (with line, column
+        /// and key), [`LoadError::Invalid`] naming the field and value out of range.
         pub fn from_toml_str(text: &str) -> Result<Self, LoadError> {
             Self::parse(text, Path::new("<string>"))
         }
@@ -1131,7 +1118,7 @@ mod load {
         fn parse(text: &str, path: &Path) -> Result<Self, LoadError> {
             let config: Self = toml::from_str(text).map_err(|parse| LoadError::Toml {
                 path: path.to_path_buf(),
-                parse,
+                parse: Box::new(TomlError::new(text, parse)),
             })?;
             config.validate().map_err(|source| LoadError::Invalid {
                 path: path.to_path_buf(),

@@ -202,6 +202,183 @@ fn syntax_unknown_fields_and_types_are_toml_errors_with_a_line() {
     }
 }
 
+/// A TOML error's text, from a file's text with one line replaced.
+fn toml_error(file: &str, from: &str, to: &str) -> String {
+    let text = std::fs::read_to_string(repo_file(file)).unwrap();
+    assert!(text.contains(from), "fixture line {from:?} missing");
+    match Config::from_toml_str(&text.replacen(from, to, 1)) {
+        Err(e @ LoadError::Toml { .. }) => e.to_string(),
+        other => panic!("{to}: expected a TOML error, got {other:?}"),
+    }
+}
+
+/// A value of the wrong type or length names its key path, the value and the rule, on the
+/// key's line: inside `[geometry]` and `[drive]`, tables tagged by `layout` and `protocol`
+/// (every variant), as in the plain tables.
+#[test]
+fn wrong_types_name_the_key_path_value_and_line() {
+    for (file, from, to, want) in [
+        (
+            "config/dji_m3508.toml",
+            "lx = 0.20",
+            "lx = \"0.20\"",
+            "geometry.lx = \"0.20\": invalid type: string \"0.20\", expected a number (f32)",
+        ),
+        (
+            "config/dji_m3508.toml",
+            "esc_ids = [1, 2, 3, 4]",
+            "esc_ids = \"1,2,3,4\"",
+            "drive.esc_ids = \"1,2,3,4\": invalid type: string \"1,2,3,4\", expected an array \
+             of length 4",
+        ),
+        (
+            "config/dji_m3508.toml",
+            "esc_ids = [1, 2, 3, 4]",
+            "esc_ids = [1, 2, 3]",
+            "drive.esc_ids = [1, 2, 3]: invalid length 3, expected an array of length 4",
+        ),
+        (
+            "config/dji_m3508.toml",
+            "esc_ids = [1, 2, 3, 4]",
+            "esc_ids = [1, 2, 3, 300]",
+            "drive.esc_ids[3] = 300: invalid value: integer `300`, expected an integer in \
+             0..=255 (u8)",
+        ),
+        (
+            "config/dji_m3508.toml",
+            "kp = 1.2",
+            "kp = \"1.2\"",
+            "gains.kp = \"1.2\": invalid type: string \"1.2\", expected a number (f32)",
+        ),
+        (
+            "config/odrive.toml",
+            "gear_ratio = 5.0",
+            "gear_ratio = \"5:1\"",
+            "drive.gear_ratio = \"5:1\": invalid type: string \"5:1\", expected a number (f32)",
+        ),
+        (
+            "config/odrive.toml",
+            "vel_ramp = false",
+            "vel_ramp = 0",
+            "drive.vel_ramp = 0: invalid type: integer `0`, expected a boolean",
+        ),
+        (
+            "config/cia402.toml",
+            "heartbeat_ms = 50",
+            "heartbeat_ms = 50.5",
+            "drive.heartbeat_ms = 50.5: invalid type: floating point `50.5`, expected an \
+             integer in 0..=65535 (u16)",
+        ),
+        (
+            "config/cia402.toml",
+            "axes = [1, 2, 1, 2]",
+            "axes = [1, 2, 1, -2]",
+            "drive.axes[3] = -2: invalid value: integer `-2`, expected an integer in 0..=255 (u8)",
+        ),
+        (
+            "config/dji_m3508_pods3.toml",
+            "radius = 0.024 ",
+            "radius = \"24 mm\" ",
+            "odometry.pods[0].radius = \"24 mm\": invalid type: string \"24 mm\", expected a \
+             number (f32)",
+        ),
+    ] {
+        let msg = toml_error(file, from, to);
+        assert!(msg.ends_with(want), "{to}: {msg}");
+        let text = std::fs::read_to_string(repo_file(file)).unwrap();
+        let line = text.lines().position(|l| l.starts_with(from)).unwrap() + 1;
+        assert!(msg.contains(&format!("at line {line},")), "{to}: {msg}");
+        assert!(msg.contains(&format!("{line} | {to}")), "{to}: {msg}");
+    }
+}
+
+/// The tagged tables keep the derive's rules, wherever the tag stands: each variant takes its
+/// own keys, a missing one is named, an unknown one is named at its line.
+#[test]
+fn tagged_tables_name_unknown_missing_and_foreign_keys() {
+    for (file, from, to, want) in [
+        (
+            "config/dji_m3508.toml",
+            "esc_ids = [1, 2, 3, 4]",
+            "node_ids = [1, 2, 3, 4]",
+            "drive: unknown field `node_ids`, expected one of `model`, `esc_ids`, \
+             `gear_ratio`, `inverted`",
+        ),
+        (
+            "config/odrive.toml",
+            "vel_ramp = false",
+            "vel_ramp = false\nmodel = \"c620\"",
+            "drive: unknown field `model`, expected one of `node_ids`, `gear_ratio`, \
+             `inverted`, `vel_ramp`",
+        ),
+        (
+            "config/dji_m3508.toml",
+            "protocol = \"dji\"",
+            "protocol = \"dji\"\nvel_ramp = true",
+            "drive.vel_ramp: unknown field `vel_ramp`, expected one of `model`, `esc_ids`, \
+             `gear_ratio`, `inverted`",
+        ),
+        (
+            "config/dji_m3508.toml",
+            "layout = \"standard\"",
+            "layout = \"general\"",
+            "geometry.lx: unknown field `lx`, expected one of `wheels`, \
+             `forward_effectiveness`, `lateral_effectiveness`, `yaw_effectiveness`",
+        ),
+        (
+            "config/dji_m3508.toml",
+            "ly = 0.18",
+            "lz = 0.18",
+            "geometry.lz: unknown field `lz`, expected one of `lx`, `ly`, `wheel_radius`, \
+             `forward_effectiveness`, `lateral_effectiveness`, `yaw_effectiveness`",
+        ),
+        (
+            "config/dji_m3508.toml",
+            "esc_ids = [1, 2, 3, 4]",
+            "esc_ids = [1, 2, 3, 4]\nesc_id = 5",
+            "drive.esc_id: unknown field `esc_id`, expected one of `protocol`, `model`, \
+             `esc_ids`, `gear_ratio`, `inverted`, `node_ids`, `vel_ramp`, `axes`, \
+             `target_rpm_per_unit`, `actual_rpm_per_unit`, `master_node`, `heartbeat_ms`, \
+             `heartbeat_timeout_ms`",
+        ),
+        (
+            "config/dji_m3508.toml",
+            "wheel_radius = 0.076",
+            "",
+            "geometry: missing field `wheel_radius`",
+        ),
+        (
+            "config/cia402.toml",
+            "protocol = \"cia402\"",
+            "",
+            "drive: missing field `protocol`",
+        ),
+        (
+            "config/cia402.toml",
+            "protocol = \"cia402\"",
+            "protocol = \"canopen\"",
+            "drive.protocol = \"canopen\": unknown variant `canopen`, expected one of `dji`, \
+             `odrive`, `cia402`",
+        ),
+    ] {
+        let msg = toml_error(file, from, to);
+        assert!(msg.ends_with(want), "{to}: {msg}");
+    }
+    // The tag after the keys it selects.
+    let text = std::fs::read_to_string(repo_file("config/cia402.toml"))
+        .unwrap()
+        .replacen("protocol = \"cia402\"\n", "", 1)
+        .replacen(
+            "heartbeat_timeout_ms = 150",
+            "heartbeat_timeout_ms = 150\nprotocol = \"cia402\"",
+            1,
+        );
+    assert_eq!(
+        Config::from_toml_str(&text).unwrap(),
+        Config::cia402_example()
+    );
+}
+
 #[test]
 fn missing_file_is_an_io_error_naming_it() {
     let e = Config::from_toml_file(Path::new("no/such/config.toml")).unwrap_err();

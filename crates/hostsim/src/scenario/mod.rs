@@ -22,7 +22,7 @@ mod tests;
 use std::path::{Path, PathBuf};
 
 use firmware::Config;
-use firmware::input::{quote, quote_lines};
+use firmware::input::{TomlError, quote};
 use serde::Deserialize;
 
 pub use self::actions::{Action, WheelTestSpec};
@@ -76,12 +76,12 @@ pub enum ScenarioError {
     },
     /// Malformed TOML, unknown field or wrong type. (Not the error's `source`: the parser's
     /// text quotes the file's line raw, and the message shows it quoted.)
-    #[error("scenario {path}: {}", quote_lines(&parse.to_string()))]
+    #[error("scenario {path}: {parse}")]
     Toml {
         /// The file.
         path: PathBuf,
-        /// Parser error with line and column.
-        parse: toml::de::Error,
+        /// Parser error with line and column, and the key it points at.
+        parse: Box<TomlError>,
     },
     /// The drive configuration it names is not usable.
     #[error("scenario {path}: {source}")]
@@ -258,7 +258,7 @@ impl Scenario {
     ) -> Result<Self, ScenarioError> {
         let file: ScenarioFile = toml::from_str(text).map_err(|parse| ScenarioError::Toml {
             path: path.to_path_buf(),
-            parse,
+            parse: Box::new(TomlError::new(text, parse)),
         })?;
         let invalid = Invalid { path };
         if !(file.duration_s.is_finite() && file.duration_s > 0.0 && file.duration_s <= 86_400.0) {
