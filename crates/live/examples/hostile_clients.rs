@@ -1,6 +1,7 @@
-//! Careless and hostile live clients against a paced run: the run's wall time and the peak
-//! resident memory of the serving process (`hostsim run square --live --rate 1`, 9.1 s
-//! simulated), for each load:
+//! Careless and hostile live clients against a paced run: the run's wall time (the
+//! simulation's, as its summary reports it, and the process's, which adds the start and the
+//! stop's grace for clients) and the peak resident memory of the serving process
+//! (`hostsim run square --live --rate 1`, 9.1 s simulated), for each load:
 //!
 //! - `none`: no client, the reference;
 //! - `subs34k`: one client that sends 5 `subscribe` messages of 34,000 subscriptions each
@@ -102,9 +103,10 @@ async fn main() -> Result<(), Error> {
         std::env::consts::ARCH
     );
     println!(
-        "| load | wall time | peak RSS | clients seen by the server | what the clients saw | late max |"
+        "| load | simulation | process | peak RSS | late max | clients seen by the server | \
+         what the clients saw |"
     );
-    println!("|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|");
     for load in LOADS
         .iter()
         .filter(|l| a.only.is_empty() || a.only.iter().any(|o| o == *l))
@@ -116,14 +118,16 @@ async fn main() -> Result<(), Error> {
                 .as_array()
                 .map_or(0, |c| c.iter().filter(|c| !c["cut_off"].is_null()).count());
             println!(
-                "| {load} | {:.2} s | {:.1} MB | {} served, {} refused, {cut} cut off, {} dropped | {} | {:.1} ms |",
+                "| {load} | {:.2} s | {:.2} s | {:.1} MB | {:.1} ms | {} served, {} refused, \
+                 {cut} cut off, {} dropped | {} |",
+                m.summary["wall_s"].as_f64().unwrap_or(f64::NAN),
                 m.wall_s,
                 m.peak_rss_kb as f64 / 1000.0,
+                live["late_max_s"].as_f64().unwrap_or(f64::NAN) * 1e3,
                 live["clients"].as_array().map_or(0, Vec::len),
                 live["refused"].as_u64().unwrap_or(0),
                 live["dropped"],
                 m.seen,
-                live["late_max_s"].as_f64().unwrap_or(f64::NAN) * 1e3,
             );
         }
     }
