@@ -99,7 +99,7 @@ pub struct LiveOptions {
     /// Bytes of messages queued for one client at most (1 MiB): beyond them the oldest are
     /// dropped and counted, as beyond [`backlog`](Self::backlog). With the write batch and
     /// the WebSocket's buffers, what a client that reads nothing costs the server (about
-    /// 1.2 MiB with the defaults; docs/live.md, "Limits").
+    /// 1.3 MB measured with the defaults; docs/live.md, "Limits").
     pub queue_bytes: usize,
     /// Clients served at once (32): a connection beyond them gets a `status` error naming
     /// the cap and is closed, and counted ([`LiveStats::refused`]). A viewer is one client
