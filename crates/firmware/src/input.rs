@@ -191,7 +191,8 @@ enum Step<'a> {
 }
 
 /// The key path of the innermost key or value of `text` whose span holds `at`
-/// (`faults[3].kind`), with the value as written unless it is a table or tables.
+/// (`faults[3].kind`), with the value as written unless it is a table or tables. (The search
+/// recurses as deep as the tables nest, which the parser bounds: 80 levels.)
 fn toml_key(text: &str, at: &Range<usize>) -> Option<String> {
     let root = DeTable::parse(text).ok()?;
     let mut path = Vec::new();
@@ -331,6 +332,9 @@ mod tests {
             None,
             "no key where it does not parse"
         );
+        // Tables nested past the parser's bound: no document, so no search of them.
+        let deep = std::format!("{}a = 1\nb = 2\n", "a.".repeat(100_000));
+        assert_eq!(toml_key(&deep, &(deep.len() - 2..deep.len() - 1)), None);
     }
 
     #[test]
