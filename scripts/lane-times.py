@@ -6,7 +6,10 @@ scripts/vcan-vm.py writes the timeline: each progress line of the guest (tests/l
 seconds since the VM started. This prints the VM's start-up, then per test module its tests,
 guest seconds (the guest's clock: executed instructions, plus the jumps to the next timer
 while every guest process waits, on the host's file reads among them) and wall seconds, and
-their shares of the lane; `--tests` lists every test as well.
+their shares of the lane; where the lines carry them, the seconds the guest's CPU ran tasks
+and how often it went idle (both cost wall time under emulation) and the CPU seconds of
+pytest and of the programs it ran;
+`--tests` lists every test as well.
 
     scripts/lane-times.py [TIMELINE] [--tests]
 """
@@ -19,7 +22,8 @@ import pathlib
 import re
 import sys
 
-END = re.compile(r"lane: end \[(\d+)/(\d+)\] (\S+(?: \(\w+\))?) (\S+) in ([\d.]+) s \(guest ([\d.]+) s\)")
+END = re.compile(r"lane: end \[(\d+)/(\d+)\] (\S+(?: \(\w+\))?) (\S+) in ([\d.]+) s \(guest ([\d.]+) s\)"
+                 r"(?: cpu ([\d.]+) s, (\d+) idles: pytest ([\d.]+) s, children ([\d.]+) s)?")
 START = re.compile(r"lane: start \[(\d+)/(\d+)\] (\S+) \(guest ([\d.]+) s\)")
 
 
@@ -46,13 +50,14 @@ def main() -> int:
         return 2
     ready = next((w for w, m in rows if m.startswith("vcan-guest:") and "running the command" in m), None)
     starts: dict[str, float] = {}
-    tests = []  # (nodeid, outcome, guest s, wall s)
+    tests = []  # (nodeid, outcome, guest s, wall s, (busy s, idles, pytest s, children s) or None)
     for wall, message in rows:
         if m := START.search(message):
             starts[m.group(3)] = wall
         elif m := END.search(message):
             nodeid = m.group(4)
-            tests.append((nodeid, m.group(3), float(m.group(5)), wall - starts.get(nodeid, wall)))
+            cpu = tuple(float(v) for v in m.group(7, 8, 9, 10)) if m.group(7) else None
+            tests.append((nodeid, m.group(3), float(m.group(5)), wall - starts.get(nodeid, wall), cpu))
     end = rows[-1][0]
     first = min(starts.values(), default=end)
     total_guest = sum(t[2] for t in tests)
@@ -61,20 +66,30 @@ def main() -> int:
           f"to the first test: {first:.1f} s (Python and pytest start-up, collection); "
           f"last line: {end:.1f} s")
     print(f"{len(tests)} tests: {total_guest:.1f} s of guest time, {total_wall:.1f} s of wall time\n")
-    print("| module | tests | guest s | share | wall s | share |")
-    print("|---|---:|---:|---:|---:|---:|")
-    modules: dict[str, list[tuple[str, str, float, float]]] = collections.defaultdict(list)
+    with_cpu = all(t[4] is not None for t in tests)
+
+    def cpu_cells(items: list) -> str:
+        if not with_cpu:
+            return ""
+        busy, idles, own, children = (sum(t[4][i] for t in items) for i in range(4))
+        return f" {busy:.1f} | {idles:.0f} | {own:.1f} | {children:.1f} |"
+
+    cpu_head, cpu_rule = ((" cpu s | idles | pytest s | children s |", "---:|---:|---:|---:|") if with_cpu
+                          else ("", ""))
+    print(f"| module | tests | guest s | share | wall s | share |{cpu_head}")
+    print(f"|---|---:|---:|---:|---:|---:|{cpu_rule}")
+    modules: dict[str, list] = collections.defaultdict(list)
     for t in tests:
         modules[t[0].split("::")[0]].append(t)
     for module, items in sorted(modules.items(), key=lambda kv: -sum(t[3] for t in kv[1])):
         guest, wall = sum(t[2] for t in items), sum(t[3] for t in items)
         print(f"| `{module}` | {len(items)} | {guest:.1f} | {guest / total_guest:.0%} | {wall:.1f} | "
-              f"{wall / max(end, 1e-9):.0%} |")
+              f"{wall / max(end, 1e-9):.0%} |{cpu_cells(items)}")
     if args.tests:
-        print("\n| test | outcome | guest s | wall s |")
-        print("|---|---|---:|---:|")
-        for nodeid, outcome, guest, wall in tests:
-            print(f"| `{nodeid}` | {outcome} | {guest:.1f} | {wall:.1f} |")
+        print(f"\n| test | outcome | guest s | wall s |{cpu_head}")
+        print(f"|---|---|---:|---:|{cpu_rule}")
+        for t in tests:
+            print(f"| `{t[0]}` | {t[1]} | {t[2]:.1f} | {t[3]:.1f} |{cpu_cells([t])}")
     return 0
 
 

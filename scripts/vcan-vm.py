@@ -34,6 +34,8 @@ import shlex
 import shutil
 import signal
 import socket
+import stat
+import struct
 import subprocess
 import sys
 import tempfile
@@ -43,6 +45,13 @@ import time
 # 9p shares on virtio-pci, the overlay, vcan, CAN_RAW and CAN_BCM (python-can's periodic sends)
 # sockets.
 MODULES = ["virtio_pci", "9pnet_virtio", "9p", "overlay", "vcan", "can_raw", "can_bcm"]
+# The host's programs the lane runs (tests/ and scripts/vcan-guest.sh), in the guest's memory
+# with the libraries they load.
+LANE_TOOLS = ["bash", "candump", "cansend", "canplayer", "ip", "chrt", "tmux", "dmesg", "kill"]
+# The emulated CPU: QEMU's every feature, but for the fast string copies (ERMS, FSRM). With them
+# the guest's kernel and C library copy with `rep movsb`, which QEMU's software emulation runs a
+# byte at a time: unpacking the lane's trees (300 MiB) took 18 s of wall time, 7 s without.
+CPU_MODEL = "max,-erms,-fsrm"
 # How long the guest gets to print its dump after the time-out's SysRq keys.
 DUMP_GRACE_S = 15.0
 
@@ -125,9 +134,7 @@ def newc(entries: list[tuple[str, int, bytes]]) -> bytes:
     out = bytearray()
 
     def add(name: str, mode: int, data: bytes, ino: int) -> None:
-        fields = [ino, mode, 0, 0, 1, 0, len(data), 0, 0, 0, 0, len(name) + 1, 0]
-        out.extend(b"070701" + b"".join(b"%08X" % f for f in fields) + name.encode() + b"\0")
-        out.extend(b"\0" * (-len(out) % 4))
+        out.extend(newc_header(name, mode, len(data), 0, ino))
         out.extend(data)
         out.extend(b"\0" * (-len(out) % 4))
 
@@ -174,31 +181,155 @@ def build_image(kernel: pathlib.Path, kver: str, init: pathlib.Path, guest_dir: 
     return (vmlinux if elf is not None else kernel), initramfs
 
 
-def ram_plan(root: pathlib.Path, lane: pathlib.Path, binaries: list[pathlib.Path]) -> list[str]:
-    """The lines of the guest's /ram.list (scripts/vcan-init.sh says what each kind means):
-    the repository, but for .git and, under target/, all but `binaries` (the lane's runner,
-    plant and codec) and the lane's own directory; and the Python the repository's .venv was
-    made from, but for its tests, its own site-packages (the venv has its own) and its static
-    libraries."""
-    lines = [f"tree {root}", f"skip {root / '.git'}", f"empty {lane}"]
-    target = root / "target"
-    keep = [b for b in binaries if b.is_file() and target in b.parents] + [lane]
-    # Every directory on the way from target/ to what is kept lists its other entries as skipped.
-    ancestors = {a for k in keep for a in k.parents if target == a or target in a.parents}
-    for directory in sorted(ancestors):
-        for entry in directory.iterdir():
-            if entry not in keep and entry not in ancestors:
-                lines.append(f"skip {entry}")
-    cfg = root / ".venv" / "pyvenv.cfg"
-    home = next((line.split("=", 1)[1].strip() for line in cfg.read_text().splitlines()
-                 if line.split("=", 1)[0].strip() == "home"), None) if cfg.is_file() else None
-    if home:
-        prefix = pathlib.Path(home).parent
-        if prefix != pathlib.Path("/") and root not in prefix.parents and prefix != root:
-            lines.append(f"tree {prefix}")
-            for pattern in ("lib/python3*/test", "lib/python3*/site-packages", "lib/python3*/config-*", "lib/*.a"):
-                lines += [f"skip {entry}" for entry in sorted(prefix.glob(pattern))]
-    return lines
+def newc_header(name: str, mode: int, size: int, mtime: int, ino: int) -> bytes:
+    """One `newc` entry's header and name, padded: the entry's data (`size` bytes) follows,
+    then padding to 4 bytes."""
+    fields = [ino, mode, 0, 0, 1, mtime, size, 0, 0, 0, 0, len(name) + 1, 0]
+    head = b"070701" + b"".join(b"%08X" % f for f in fields) + name.encode() + b"\0"
+    return head + b"\0" * (-len(head) % 4)
+
+
+def elf_needed(path: pathlib.Path) -> list[str]:
+    """The DT_NEEDED names of a 64-bit little-endian ELF file; [] for anything else. (Read here,
+    not by ldd: that runs the loader once per file, 11 s for the .venv's 600 libraries.)"""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(64)
+            if head[:6] != b"\x7fELF\x02\x01":
+                return []
+            phoff, = struct.unpack_from("<Q", head, 0x20)
+            phentsize, phnum = struct.unpack_from("<HH", head, 0x36)
+            f.seek(phoff)
+            table = f.read(phentsize * phnum)
+            segments = [struct.unpack_from("<IIQQQQ", table, i * phentsize) for i in range(phnum)]
+            loads = [(vaddr, offset, filesz) for kind, _, offset, vaddr, _, filesz in segments if kind == 1]
+            dynamic = next(((offset, filesz) for kind, _, offset, _, _, filesz in segments if kind == 2), None)
+            if dynamic is None:
+                return []
+            f.seek(dynamic[0])
+            raw = f.read(dynamic[1])
+            tags = [struct.unpack_from("<QQ", raw, i) for i in range(0, len(raw) - 15, 16)]
+            strtab = next((v for t, v in tags if t == 5), None)
+            strsz = next((v for t, v in tags if t == 10), 0)
+            at = next((offset + strtab - vaddr for vaddr, offset, filesz in loads
+                       if strtab is not None and vaddr <= strtab < vaddr + filesz), None)
+            if at is None:
+                return []
+            f.seek(at)
+            strings = f.read(strsz)
+    except (OSError, struct.error):
+        return []
+    return [strings[v:strings.index(b"\0", v)].decode(errors="replace") for t, v in tags if t == 1 and v < len(strings)]
+
+
+def with_libraries(elves: list[pathlib.Path]) -> list[pathlib.Path]:
+    """`elves` and the system libraries they load, transitively (by the loader's cache,
+    `ldconfig -p`; a library a file carries beside itself is in the trees already)."""
+    listing = subprocess.run(["ldconfig", "-p"], capture_output=True, text=True, check=False).stdout
+    cache: dict[str, pathlib.Path] = {}
+    for line in listing.splitlines():
+        name, _, path = line.strip().partition(" => ")
+        if path and "x86-64" in name:
+            cache.setdefault(name.split(" (")[0], pathlib.Path(path))
+    found, todo = set(elves), list(elves)
+    while todo:
+        for name in elf_needed(todo.pop()):
+            library = cache.get(name)
+            if library is not None and library not in found:
+                found.add(library)
+                todo.append(library)
+                if library.is_symlink():  # the loader opens it by this name, reads its target
+                    found.add(library.resolve())
+    return sorted(found)
+
+
+def tree_files(root: pathlib.Path, binaries: list[pathlib.Path]) -> list[pathlib.Path]:
+    """What the lane runs from, to be in the guest's memory: the repository's tracked files,
+    its Python bytecode (pytest's rewritten test modules among it) and `binaries`; its .venv
+    whole; the interpreter the .venv was made from and its standard library (without its own
+    tests, site-packages, build configuration and -O bytecode); the programs of LANE_TOOLS, and
+    the system libraries all of those load. Everything else stays the host's, read through 9p
+    when asked for."""
+    files: list[pathlib.Path] = []
+    tracked = subprocess.run(["git", "-C", str(root), "ls-files", "-z"], capture_output=True, check=False)
+    if tracked.returncode == 0:
+        files += [root / name for name in tracked.stdout.decode(errors="surrogateescape").split("\0") if name]
+    for sub in ("tests", "python", "scripts"):
+        files += (root / sub).rglob("__pycache__/*.pyc")
+    files += binaries
+
+    def walk(top: pathlib.Path, skip: tuple[str, ...] = ()) -> None:
+        for dirpath, dirnames, filenames in os.walk(top):
+            here = pathlib.Path(dirpath)
+            dirnames[:] = [d for d in dirnames if not any((here / d).match(pattern) for pattern in skip)]
+            files.extend(here / f for f in filenames if ".opt-" not in f)
+
+    venv = root / ".venv"
+    walk(venv)
+    python = (venv / "bin" / "python").resolve()
+    if python.is_file() and venv not in python.parents:
+        prefix = python.parent.parent
+        files.append(python)
+        files += prefix.glob("lib/libpython3*.so*")
+        for stdlib in prefix.glob("lib/python3.*"):
+            walk(stdlib, ("*/lib/python3.*/test", "*/lib/python3.*/site-packages", "*/lib/python3.*/dist-packages",
+                          "*/lib/python3.*/config-*"))
+    tools = [pathlib.Path(p) for p in map(shutil.which, LANE_TOOLS) if p]
+    elves = [f for f in files + tools if f.suffix in ("", ".so") or ".so." in f.name]
+    return files + tools + [p.resolve() for p in tools if p.is_symlink()] + with_libraries(elves)
+
+
+def trees_archive(root: pathlib.Path, binaries: list[pathlib.Path], out: pathlib.Path) -> tuple[int, int]:
+    """Writes `tree_files` as a `newc` archive whose entries sit under /trees (the guest's
+    /init lays it over the host's root), with their modes and modification times (Python
+    checks its bytecode against its source's); (files, bytes). Rebuilt only when a file's
+    size or time changed."""
+    entries: dict[str, os.stat_result] = {}
+    for listed in tree_files(root, binaries):
+        # At the path with no link on its way (/lib/x/libc.so.6 is /usr/lib/x/libc.so.6 where
+        # /lib links to usr/lib): a directory of the trees where the host has a link would
+        # hide the link's target in the guest.
+        path = listed.parent.resolve() / listed.name
+        try:
+            st = path.lstat()
+        except OSError:
+            continue
+        if stat.S_ISREG(st.st_mode) or stat.S_ISLNK(st.st_mode):
+            entries[str(path)] = st
+    stamp = hashlib.sha256()
+    for name in sorted(entries):
+        st = entries[name]
+        stamp.update(f"{name}:{st.st_mode}:{st.st_size}:{st.st_mtime_ns}\n".encode())
+    key = out.with_name(out.name + ".key")
+    size = sum(st.st_size for st in entries.values())
+    if out.is_file() and key.is_file() and key.read_text() == stamp.hexdigest():
+        return len(entries), size
+    part = out.with_name(out.name + ".part")
+    made: set[str] = set()
+    ino = 0
+    with open(part, "wb") as f:
+        for name in sorted(entries):
+            st = entries[name]
+            parents = pathlib.PurePosixPath("trees" + name).parents
+            for directory in reversed(parents[:-1]):  # the archive's own directories, outermost first
+                if str(directory) not in made:
+                    made.add(str(directory))
+                    ino += 1
+                    f.write(newc_header(str(directory), 0o40755, 0, 0, ino))
+            if stat.S_ISLNK(st.st_mode):
+                data = os.readlink(name).encode()
+            else:
+                try:
+                    data = pathlib.Path(name).read_bytes()
+                except OSError:
+                    continue
+            ino += 1
+            f.write(newc_header("trees" + name, st.st_mode, len(data), int(st.st_mtime), ino))
+            f.write(data + b"\0" * (-len(data) % 4))
+        f.write(newc_header("TRAILER!!!", 0, 0, 0, 0))
+    part.rename(out)
+    key.write_text(stamp.hexdigest())
+    return len(entries), size
 
 
 # --- the run -------------------------------------------------------------------------------------
@@ -281,6 +412,8 @@ def main() -> int:
     ap.add_argument("--memory", default="4G")
     ap.add_argument("--clock", choices=["icount", "host"], default="icount")
     ap.add_argument("--cpus", type=int, default=1)
+    ap.add_argument("--cpu-model", default=os.environ.get("VCAN_VM_CPU", CPU_MODEL),
+                    help=f"QEMU's -cpu (default {CPU_MODEL}, or VCAN_VM_CPU)")
     ap.add_argument("--timeout", type=float, required=True, help="wall seconds for the whole VM")
     ap.add_argument("--test-timeout", type=float, default=0.0,
                     help="wall seconds for one test (its `lane: start` to its `lane: end`); 0: none")
@@ -301,14 +434,19 @@ def main() -> int:
                   (("ROOT", root), ("LANE", lane), ("IFACE", args.iface), ("TXQUEUELEN", args.txqueuelen)))
     binaries = [pathlib.Path(os.environ[v]).resolve() for v in ("HOSTSIM", "MECANUM_RUNNER", "MECANUM_CODEC")
                 if os.environ.get(v)]
-    # Opt-in (VCAN_VM_RAM=1) until it costs less: the copy through 9p took 139 s of wall time
-    # with the host busy (docs/reliability.md, "Where the suite's time goes").
-    plan = ram_plan(root, lane, binaries) if os.environ.get("VCAN_VM_RAM") == "1" else []
-    ram = "".join(line + "\n" for line in plan)
-    write_whole(lane / "ram.list", ram.encode())  # for a look after a run
+    # The trees the lane runs from, in the guest's memory from its boot: the kernel unpacks
+    # them from the initramfs, so no file the tests read waits on the host (scripts/vcan-init.sh).
+    started = time.monotonic()
+    trees = lane / "trees.cpio"
+    count, size = trees_archive(root, binaries, trees)
+    log(f"the lane's trees in the guest's memory: {count} files, {size >> 20} MiB "
+        f"(archive ready in {time.monotonic() - started:.1f} s)")
     initrd = lane / "initrd.cpio"
-    write_whole(initrd, initramfs.read_bytes() + newc([("lane.env", 0o100644, env.encode()),
-                                                       ("ram.list", 0o100644, ram.encode())]))
+    with open(initrd.with_name(initrd.name + ".part"), "wb") as f:
+        f.write(initramfs.read_bytes() + newc([("lane.env", 0o100644, env.encode())]))
+        with open(trees, "rb") as src:
+            shutil.copyfileobj(src, f, 1 << 20)
+    initrd.with_name(initrd.name + ".part").rename(initrd)
 
     def share(tag: str, path: pathlib.Path, readonly: bool) -> list[str]:
         quoted = str(path).replace(",", ",,")  # QEMU doubles a comma in an option's value
@@ -328,7 +466,7 @@ def main() -> int:
     # voluntary preemption point (Debian's default).
     cmdline = (f"console=ttyS0 quiet panic=-1 no_timer_check clocksource=tsc tsc=reliable preempt=full "
                f"{args.append}").strip()
-    cmd = ["qemu-system-x86_64", "-machine", "pc", "-cpu", "max", "-smp", str(args.cpus), "-m", args.memory,
+    cmd = ["qemu-system-x86_64", "-machine", "pc", "-cpu", args.cpu_model, "-smp", str(args.cpus), "-m", args.memory,
            "-nodefaults", "-no-user-config", "-display", "none", "-no-reboot",
            "-serial", "stdio", "-qmp", f"unix:{qmp},server=on,wait=off",
            "-kernel", str(boot), "-initrd", str(initrd), "-append", cmdline,
@@ -340,8 +478,17 @@ def main() -> int:
     console = Console(lane, t0)
     # stdin: /dev/null (QEMU would take over a terminal). Its own process group: a Ctrl-C at
     # the terminal reaches this script, which stops QEMU.
+    # One vCPU under -icount runs on one host thread, but every wake-up of the guest from idle
+    # (its 1 kHz loops make thousands a second) passes between that thread and QEMU's main loop:
+    # on one host CPU that is a switch, across two a wake-up of the other CPU, a fifth of the
+    # wall time of the 8,000 frames/s test. So QEMU keeps to the last CPU this script may use.
+    allowed = sorted(os.sched_getaffinity(0))
+    pin = {allowed[-1]} if args.cpus == 1 and len(allowed) > 1 else None
     proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            start_new_session=True)
+                            start_new_session=True,
+                            preexec_fn=(lambda: os.sched_setaffinity(0, pin)) if pin else None)
+    if pin:
+        log(f"QEMU kept to host CPU {allowed[-1]} of {len(allowed)}")
     stop = {"signal": 0}
 
     def on_signal(signum: int, _frame: object) -> None:

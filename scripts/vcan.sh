@@ -33,9 +33,11 @@ How $IFACE comes up, first that works:
      created gets txqueuelen $TXQUEUELEN and is deleted afterwards.
   2. vm: the kernel has no vcan (\`ip link add ... type vcan\` says "Unknown device type").
      A QEMU micro-VM (software emulation; scripts/vcan-vm.py) boots Debian's kernel, which has
-     vcan, on the host's file system: COMMAND runs there as root, on the same repository
-     (shared read-write) and the same .venv, toolchains and host-built binaries (read-only,
-     the guest's writes elsewhere stay in its memory). Needs Debian ${DEB_PACKAGES[*]}
+     vcan, on the host's file system: COMMAND runs there as root, on the same repository,
+     .venv, toolchains and host-built binaries (read-only but for $LANE; the guest's writes
+     elsewhere stay in its memory). What the lane runs from (the repository's tracked files
+     and bytecode, the binaries, the .venv and its Python) is in the guest's memory from its
+     boot, unpacked from the initramfs; every other file is read through 9p when asked for. Needs Debian ${DEB_PACKAGES[*]}
      (installed with apt-get when run as root and missing) and python3. The guest boots its
      kernel's ELF image straight into an initramfs of busybox and the modules vcan needs
      (scripts/vcan-init.sh), built once per kernel into $LANE/guest: vcan0 is up some 15 s
@@ -48,7 +50,8 @@ How $IFACE comes up, first that works:
      them, are the same on an idle and a busy host. One vCPU (QEMU runs icount guests on one
      host thread in any case, and this QEMU hangs bringing up a second vCPU under icount), so
      the lane takes one host core and leaves the rest free. Guest time also runs on while
-     the guest waits on the host (a first read of a file through 9p). VCAN_VM_CLOCK=host:
+     the guest waits on the host (a first read of a file through 9p, which the trees in
+     memory keep out of the tests). VCAN_VM_CLOCK=host:
      the guest's clock follows the host's wall clock (a vCPU per host CPU, up to 4), as the
      lane ran before; for comparisons.
      The environment variables the tools need are passed on (paths, locale, toolchains,
@@ -78,9 +81,9 @@ VCAN_VM_MEMORY (default 4G), VCAN_VM_CLOCK (icount or host; see above),
 VCAN_VM_CPUS (default 1 with icount, else host CPUs up to 4), VCAN_KERNEL (a vmlinuz to boot
 instead of the one linux-image-amd64 installed; its modules must be in /lib/modules),
 VCAN_NO_INSTALL=1 (install nothing: what is missing makes the lane unavailable),
-VCAN_VM_APPEND (more kernel command-line arguments for the VM), VCAN_VM_RAM=1 (copy the
-repository, its .venv and its Python into the guest's memory at boot, so that no test waits on
-9p: slow for now, see docs/reliability.md).
+VCAN_VM_APPEND (more kernel command-line arguments for the VM), VCAN_VM_CPU (QEMU's -cpu;
+default max,-erms,-fsrm: scripts/vcan-vm.py says why). With one vCPU, QEMU is kept to one host
+CPU (the last this script may use): the guest's every wake-up then stays on that CPU.
 EOF
 }
 
