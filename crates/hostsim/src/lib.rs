@@ -9,6 +9,7 @@ pub mod bringup;
 pub mod bus;
 pub mod calibrate;
 pub mod canopen_drive;
+pub mod cmd;
 pub mod drives;
 pub mod host;
 pub mod imu;

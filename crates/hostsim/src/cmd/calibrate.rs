@@ -47,7 +47,7 @@ pub struct Args {
     /// A log (MCAP) of `hostsim run`, `mecanum-runner --log` or `hostsim plant --log`.
     pub log: PathBuf,
     /// The reference pose topic.
-    #[arg(long, value_name = "TOPIC", default_value = hostsim::calibrate::GROUND_TRUTH)]
+    #[arg(long, value_name = "TOPIC", default_value = crate::calibrate::GROUND_TRUTH)]
     pub reference: String,
     /// Window length, s.
     #[arg(long, value_name = "SECONDS", default_value_t = 0.1)]
@@ -79,7 +79,7 @@ fn calibrate(
     write: Option<&Path>,
     json: bool,
 ) -> Result<ExitCode> {
-    let options = hostsim::calibrate::Options {
+    let options = crate::calibrate::Options {
         reference,
         window_s,
     };
@@ -88,7 +88,7 @@ fn calibrate(
         // file only: the last calibration there stays until the new one is whole.)
         drivelog::Staged::create(file).context("cannot write the calibration")?;
     }
-    let c = hostsim::calibrate::calibrate(path, &options)
+    let c = crate::calibrate::calibrate(path, &options)
         .with_context(|| format!("cannot calibrate from {}", path.display()))?;
     warn_if_damaged(path, &c.read, "the fit used its complete part");
     if let Some(file) = write {

@@ -25,6 +25,7 @@ pub struct Args {
     /// Default: the built-in DJI example.
     #[arg(long, value_name = "FILE")]
     pub config: Option<PathBuf>,
+    /// `--flip` and `--swap` (flattened: clap takes the help from their own docs).
     #[command(flatten)]
     pub wiring: WiringArgs,
     /// Wheel speed of each test, rad/s at the wheel (robot-forward; |speed| <= 10).
@@ -38,10 +39,22 @@ pub struct Args {
     pub json: bool,
 }
 
-/// `check`: the bring-up check on a simulated robot on blocks.
-/// `hostsim check`.
-pub fn execute(args: &Args) -> Result<ExitCode> {
-    use hostsim::bringup::{Wiring, diagnose, report, run_check};
+/// What `check` starts from: the configuration, its description and the robot's wiring.
+pub struct Prepared {
+    /// The drive configuration.
+    pub config: firmware::Config,
+    /// Where it came from, for the report.
+    pub source: String,
+    /// The simulated robot's wiring (`--flip`, `--swap`).
+    pub spec: crate::scenario::PlantSpec,
+}
+
+/// `hostsim check`'s checks before the first test: `--speed` and `--duration-ms` in range,
+/// the configuration loads.
+///
+/// # Errors
+/// The first of those that fails, naming the option or the file.
+pub fn prepare(args: &Args) -> Result<Prepared> {
     if !(args.speed.is_finite() && args.speed.abs() <= 10.0 && args.speed != 0.0) {
         bail!(
             "--speed {}: expected a wheel speed in [-10, 10] rad/s, not 0",
@@ -53,6 +66,21 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
     }
     let (config, source) = load_config(args.config.as_deref())?;
     let spec = args.wiring.spec();
+    Ok(Prepared {
+        config,
+        source,
+        spec,
+    })
+}
+
+/// `hostsim check`: the bring-up check on a simulated robot on blocks.
+pub fn execute(args: &Args) -> Result<ExitCode> {
+    use crate::bringup::{Wiring, diagnose, report, run_check};
+    let Prepared {
+        config,
+        source,
+        spec,
+    } = prepare(args)?;
     let runs = run_check(&config, &spec, args.speed, args.duration_ms)
         .with_context(|| format!("configuration {source}"))?;
     let configured = Wiring::of(&config);
@@ -63,12 +91,12 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
             .zip(d.verdicts)
             .map(|(r, v)| {
                 serde_json::json!({
-                    "wheel": hostsim::bringup::WHEEL_NAMES[r.wheel],
+                    "wheel": crate::bringup::WHEEL_NAMES[r.wheel],
                     "id": configured.ids[r.wheel],
-                    "turned": r.seen.map(|s| hostsim::bringup::WHEEL_NAMES[s.wheel]),
+                    "turned": r.seen.map(|s| crate::bringup::WHEEL_NAMES[s.wheel]),
                     "forward": r.seen.map(|s| s.forward),
                     "angles_rad": r.turned,
-                    "verdict": hostsim::bringup::verdict_text(r.wheel, v),
+                    "verdict": crate::bringup::verdict_text(r.wheel, v),
                     "firmware": r.result.map(|t| serde_json::json!({
                         "outcome": t.outcome.as_str(),
                         "angle_rad": t.angle,

@@ -1,6 +1,19 @@
-//! The subcommands of `hostsim`, one module each: its arguments (`Args`, whose doc is the
-//! subcommand's `--help`), `execute`, and what it prints. `main.rs` parses and dispatches;
-//! the exit statuses are the constants here.
+//! The command line of `hostsim`: [`Cli`], one module per subcommand with its arguments
+//! (`Args`, whose doc is the subcommand's `--help`), its `execute` and what it prints; the
+//! exit statuses are the constants here. `main.rs` parses, dispatches ([`Cmd::execute`]) and
+//! maps an error to [`EXIT_ERROR`].
+//!
+//! A library module so that a fuzz target reaches it (`fuzz/fuzz_targets/hostsim_args.rs`):
+//! [`Cmd::prepare`] runs every check a subcommand makes of its arguments before any work,
+//! and nothing else. It reads the files named (configurations, scenarios) but writes none,
+//! opens no socket or CAN interface, installs no signal handler, reads no log and no stdin,
+//! and runs no simulation; a sweep's plan is counted there and built later
+//! ([`sweep::Plan::runs`]). Each `execute` with checks (run, sweep, check, plant, replay)
+//! begins with its `prepare`, so the two cannot disagree.
+//!
+//! The doc comments of the `Args` are terminal text, not Markdown: `[geometry]` names a TOML
+//! table, not a link, and `<name>` a placeholder, not a tag. Rustdoc's lints on them are off.
+#![allow(rustdoc::broken_intra_doc_links, rustdoc::invalid_html_tags)]
 
 pub mod calibrate;
 pub mod check;
@@ -13,11 +26,101 @@ pub mod summary;
 pub mod sweep;
 
 use std::path::Path;
+use std::process::ExitCode;
 
 use anyhow::Result;
-use hostsim::scenario::Scenario;
+use clap::{Parser, Subcommand};
+
+use crate::scenario::Scenario;
 
 pub use mecanum_linux::parse_seconds;
+
+/// Host simulator of the mecanum drive stack.
+///
+/// The real firmware core runs in lockstep with a simulated plant (DJI C620/M3508 or ODrive
+/// drives, a 20 kg chassis on mecanum rollers with friction-limited slip) over a simulated
+/// 1 Mbit/s CAN bus, in simulated time. Runs are deterministic: the same scenario and seed
+/// give the same frames, bit for bit.
+#[derive(Debug, Parser)]
+#[command(name = "hostsim", version, about, long_about)]
+pub struct Cli {
+    #[command(subcommand)]
+    #[allow(missing_docs)] // A doc comment here would be help text.
+    pub command: Cmd,
+}
+
+/// The subcommands. Each one's help is its `Args`' doc comment: a doc comment on a variant
+/// would replace it, so they have none.
+#[derive(Debug, Subcommand)]
+#[allow(missing_docs)]
+pub enum Cmd {
+    Run(run::Args),
+    Replay(replay::Args),
+    Plant(plant::Args),
+    Check(check::Args),
+    Sweep(sweep::Args),
+    Summary(summary::Args),
+    Calibrate(calibrate::Args),
+    Plot(plot::Args),
+    Kin(kin::Args),
+}
+
+/// What [`Cmd::prepare`] made of a subcommand's arguments.
+pub enum Prepared {
+    /// The scenario with `--config`, `--seed` and `--set` applied, and its plant.
+    Run(run::Prepared),
+    /// The base scenario, the seeds and parameters, the count of runs (not yet built).
+    Sweep(sweep::Plan),
+    /// The configuration and the robot's wiring.
+    Check(check::Prepared),
+    /// The configuration and the drives, IMU and pods built from it.
+    Plant(Box<plant::Prepared>),
+    /// Replay or play, with the checked tolerances or speed.
+    Replay(replay::Mode),
+    /// `summary`, `calibrate`, `plot`, `kin`: nothing to check beyond what clap parses
+    /// before their work (reading a log or stdin) starts.
+    Unchecked,
+}
+
+impl Cmd {
+    /// Runs the subcommand: its `prepare`, then its work. The exit status, or an error for
+    /// `main` to print (exit status [`EXIT_ERROR`]).
+    ///
+    /// # Errors
+    /// Bad arguments, files, interfaces: whatever stops the command before or instead of
+    /// its work.
+    pub fn execute(&self) -> Result<ExitCode> {
+        match self {
+            Self::Run(a) => run::execute(a),
+            Self::Replay(a) => replay::execute(a),
+            Self::Plant(a) => plant::execute(a),
+            Self::Check(a) => check::execute(a),
+            Self::Sweep(a) => sweep::execute(a),
+            Self::Summary(a) => summary::execute(a),
+            Self::Calibrate(a) => calibrate::execute(a),
+            Self::Plot(a) => plot::execute(a),
+            Self::Kin(a) => kin::execute(a),
+        }
+    }
+
+    /// Every check the subcommand makes before its work, and nothing else: the error
+    /// `execute` would give before starting, or what it would start from.
+    ///
+    /// # Errors
+    /// As [`Self::execute`] before its work.
+    pub fn prepare(&self) -> Result<Prepared> {
+        Ok(match self {
+            Self::Run(a) => Prepared::Run(run::prepare(a)?),
+            Self::Replay(a) => Prepared::Replay(replay::prepare(a)?),
+            Self::Plant(a) => Prepared::Plant(Box::new(plant::prepare(a)?)),
+            Self::Check(a) => Prepared::Check(check::prepare(a)?),
+            Self::Sweep(a) => Prepared::Sweep(sweep::prepare(a)?),
+            Self::Summary(_) | Self::Calibrate(_) | Self::Plot(_) | Self::Kin(_) => {
+                Prepared::Unchecked
+            }
+        })
+    }
+}
 
 /// Exit status of a command that ran and found a failure: frames that differ, a frame that
 /// could not be sent, a run that did not pass.
@@ -37,7 +140,7 @@ pub const EXIT_DAMAGED: u8 = 3;
 pub const SIGPIPE_STATUS: u8 = 128 + 13;
 
 /// Warns on stderr that the log at `path` is damaged, if it is: where, what, what was read.
-pub fn warn_if_damaged(path: &Path, read: &hostsim::log::ReadReport, doing: &str) {
+pub fn warn_if_damaged(path: &Path, read: &crate::log::ReadReport, doing: &str) {
     if !read.is_complete() {
         eprintln!("warning: {} is {read}; {doing}", path.display());
     }
@@ -47,7 +150,7 @@ pub fn warn_if_damaged(path: &Path, read: &hostsim::log::ReadReport, doing: &str
 /// about them; whether there were any.
 pub fn warn_if_undecodable(
     path: &Path,
-    undecodable: &hostsim::log::Undecodable,
+    undecodable: &crate::log::Undecodable,
     doing: &str,
 ) -> bool {
     let any = undecodable.total() > 0;
@@ -93,11 +196,11 @@ pub struct WiringArgs {
 
 impl WiringArgs {
     /// The plant's wiring as a scenario's `[plant]` table would give it.
-    pub fn spec(&self) -> hostsim::scenario::PlantSpec {
-        hostsim::scenario::PlantSpec {
+    pub fn spec(&self) -> crate::scenario::PlantSpec {
+        crate::scenario::PlantSpec {
             flip: self.flip.clone(),
             swap: self.swap.clone(),
-            ..hostsim::scenario::PlantSpec::default()
+            ..crate::scenario::PlantSpec::default()
         }
     }
 }
@@ -105,7 +208,7 @@ impl WiringArgs {
 /// A wheel by name (FL, FR, RL, RR, any case) or index 0-3.
 pub fn parse_wheel(s: &str) -> Result<usize, String> {
     let t = s.trim();
-    hostsim::bringup::WHEEL_NAMES
+    crate::bringup::WHEEL_NAMES
         .iter()
         .position(|n| n.eq_ignore_ascii_case(t))
         .or_else(|| t.parse::<usize>().ok().filter(|&i| i < 4))
@@ -122,4 +225,106 @@ pub fn parse_wheel_pair(s: &str) -> Result<[usize; 2], String> {
         return Err(format!("{s:?}: a wheel cannot swap with itself"));
     }
     Ok([a, b])
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::CommandFactory as _;
+
+    use super::*;
+
+    fn parse(args: &[&str]) -> Cmd {
+        Cli::try_parse_from(std::iter::once("hostsim").chain(args.iter().copied()))
+            .expect("parses")
+            .command
+    }
+
+    #[test]
+    fn the_command_line_is_well_formed() {
+        Cli::command().debug_assert();
+    }
+
+    #[test]
+    fn prepare_writes_nothing_and_binds_nothing() {
+        let dir = std::env::temp_dir().join(format!("hostsim-prepare-{}", std::process::id()));
+        let out = dir.join("out");
+        let out = out.to_str().expect("UTF-8");
+        // What `prepare` returns holds no server or file (its types have none); no output is
+        // made either.
+        for args in [
+            &[
+                "run",
+                "--out",
+                out,
+                "--live",
+                "127.0.0.1:9",
+                "--set",
+                "gains.kp=1.1",
+            ][..],
+            &["sweep", "square", "--out", out, "--seeds", "1..3"],
+            &[
+                "plant",
+                "--iface",
+                "nosuch0",
+                "--log",
+                out,
+                "--live",
+                "9",
+                "--stats-json",
+                out,
+            ],
+        ] {
+            let prepared = parse(args).prepare();
+            assert!(prepared.is_ok(), "{args:?}: {:?}", prepared.err());
+        }
+        assert!(!dir.exists(), "prepare made {}", dir.display());
+    }
+
+    #[test]
+    fn a_sweep_is_counted_before_it_is_built() {
+        let Ok(Prepared::Sweep(plan)) =
+            parse(&["sweep", "square", "--seeds", "0..999999"]).prepare()
+        else {
+            panic!("a million runs is within the cap");
+        };
+        assert_eq!(plan.count, crate::sweep::MAX_RUNS);
+        let refused = parse(&[
+            "sweep",
+            "square",
+            "--seeds",
+            "0..999999",
+            "--set",
+            "gains.kp=1,2",
+        ])
+        .prepare()
+        .err()
+        .expect("two million runs are past the cap")
+        .to_string();
+        assert!(refused.contains("2000000 runs"), "{refused}");
+    }
+
+    #[test]
+    fn replay_options_are_checked_before_the_log_is_read() {
+        let mode = |args: &[&str]| match parse(args).prepare() {
+            Ok(Prepared::Replay(mode)) => Ok(mode),
+            Ok(_) => unreachable!("a replay"),
+            Err(e) => Err(e.to_string()),
+        };
+        assert_eq!(
+            mode(&["replay", "nosuch.mcap", "--iface", "vcan0", "--speed", "2"]),
+            Ok(replay::Mode::Play {
+                iface: "vcan0".into(),
+                speed: 2.0,
+                only: replay::Only::Rx
+            })
+        );
+        assert!(
+            mode(&["replay", "nosuch.mcap", "--speed", "2"])
+                .is_err_and(|e| e.contains("need --iface"))
+        );
+        assert!(
+            mode(&["replay", "nosuch.mcap", "--position-tolerance", "inf"])
+                .is_err_and(|e| e.contains("--position-tolerance"))
+        );
+    }
 }

@@ -4,10 +4,10 @@ use std::io::Write as _;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::log::McapLog;
+use crate::realtime::{PlantLog, PlantOptions, run_plant, run_plant_observed};
+use crate::replay::PLANT_PROGRAM;
 use anyhow::{Context, Result, bail};
-use hostsim::log::McapLog;
-use hostsim::realtime::{PlantLog, PlantOptions, run_plant, run_plant_observed};
-use hostsim::replay::PLANT_PROGRAM;
 use mecanum_linux::{MonotonicClock, SocketCanBus};
 
 use super::*;
@@ -74,33 +74,51 @@ pub struct Args {
     /// (with "pods2_gyro", give --imu too).
     #[arg(long)]
     pub pods: bool,
+    /// `--flip` and `--swap` (flattened: clap takes the help from their own docs).
     #[command(flatten)]
     pub wiring: WiringArgs,
     /// The robot on blocks: no wheel touches the ground (for `mecanum-drive check`).
     #[arg(long)]
     pub lifted: bool,
+    /// `--live` and its caps (flattened: clap takes the help from their own docs).
     #[command(flatten)]
     pub live: live::LiveArgs,
 }
 
-/// `plant --iface IFACE`: the simulated drives on the interface in real time.
-/// `hostsim plant`.
-pub fn execute(args: &Args) -> Result<ExitCode> {
-    let (iface, quiet) = (args.iface.as_str(), args.quiet);
-    let (stats_json, log) = (args.stats_json.as_deref(), args.log.as_deref());
-    if args.live.live.is_some() && log.is_none() {
+/// What `plant` starts from: the configuration and the nodes built from it.
+pub struct Prepared {
+    /// The drive configuration.
+    pub config: firmware::Config,
+    /// Where it came from, for the messages.
+    pub source: String,
+    /// The simulated drives and chassis, wired and lifted as asked.
+    pub drives: crate::drives::SimDrives,
+    /// The IMU node's parameters (`--imu`).
+    pub imu: Option<crate::imu::ImuParams>,
+    /// The tracking pods' node (`--pods`).
+    pub pods: Option<crate::pods::PodNode>,
+}
+
+/// `hostsim plant`'s checks before it touches the interface: `--live` has a log to serve,
+/// the configuration loads and the plant models it, the IMU's bias is in range, `--pods`
+/// has pods to count.
+///
+/// # Errors
+/// The first of those that fails, naming the option or the file.
+pub fn prepare(args: &Args) -> Result<Prepared> {
+    if args.live.live.is_some() && args.log.is_none() {
         bail!("--live serves the log as it is written: give --log FILE too");
     }
     let (config, source) = load_config(args.config.as_deref())?;
-    let spec = hostsim::scenario::PlantSpec {
+    let spec = crate::scenario::PlantSpec {
         lifted: args.lifted,
         ..args.wiring.spec()
     };
-    let mut drives = hostsim::drives::SimDrives::with_spec(&config, &spec)
+    let drives = crate::drives::SimDrives::with_spec(&config, &spec)
         .with_context(|| format!("configuration {source}: the plant cannot model it"))?;
-    let imu = args.imu.then(|| hostsim::imu::ImuParams {
+    let imu = args.imu.then(|| crate::imu::ImuParams {
         bias_deg_s: args.imu_bias_deg_s.unwrap_or(0.1),
-        ..hostsim::imu::ImuParams::default()
+        ..crate::imu::ImuParams::default()
     });
     if let Some((key, value, expected)) = imu.as_ref().and_then(|i| i.invalid()) {
         bail!(
@@ -116,10 +134,30 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
         );
     }
     let pods = args.pods.then(|| {
-        hostsim::pods::PodNode::new(&hostsim::pods::PodsParams::default(), nominal.as_slice(), 0)
+        crate::pods::PodNode::new(&crate::pods::PodsParams::default(), nominal.as_slice(), 0)
     });
-    let mut drives = hostsim::imu::WithImu::new(&mut drives, imu.as_ref(), 0);
-    let mut drives = hostsim::pods::WithPods::new(&mut drives, pods);
+    Ok(Prepared {
+        config,
+        source,
+        drives,
+        imu,
+        pods,
+    })
+}
+
+/// `hostsim plant`: the simulated drives on the interface in real time.
+pub fn execute(args: &Args) -> Result<ExitCode> {
+    let (iface, quiet) = (args.iface.as_str(), args.quiet);
+    let (stats_json, log) = (args.stats_json.as_deref(), args.log.as_deref());
+    let Prepared {
+        config,
+        source,
+        mut drives,
+        imu,
+        pods,
+    } = prepare(args)?;
+    let mut drives = crate::imu::WithImu::new(&mut drives, imu.as_ref(), 0);
+    let mut drives = crate::pods::WithPods::new(&mut drives, pods);
     let stop = mecanum_linux::stop_on_signals()?;
     let mut bus = SocketCanBus::open(iface)?;
     // Created before the loop starts, so a bad path fails now and not after a long run.

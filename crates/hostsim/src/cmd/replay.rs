@@ -3,13 +3,13 @@
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-use anyhow::{Context, Result, bail};
-use hostsim::realtime::{PlayOptions, play_frames};
-use hostsim::replay::{
+use crate::realtime::{PlayOptions, play_frames};
+use crate::replay::{
     CandumpReplayError, LogFormat, OdometryTolerance, detect_format, mcap_playback, replay_candump,
     replay_mcap, split_candump,
 };
-use hostsim::whatif::{OPEN_LOOP_NOTE, what_if_mcap};
+use crate::whatif::{OPEN_LOOP_NOTE, what_if_mcap};
+use anyhow::{Context, Result, bail};
 use mecanum_linux::{MonotonicClock, SocketCanBus};
 
 use super::*;
@@ -112,20 +112,68 @@ pub enum Only {
     All,
 }
 
-/// `hostsim replay`.
-pub fn execute(a: &Args) -> Result<ExitCode> {
-    let tolerance = OdometryTolerance {
-        position_m: a.position_tolerance,
-        heading_rad: a.heading_tolerance,
-    };
+/// What `replay` does with its log, its options checked.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Mode {
+    /// Through a fresh core (or a what-if), with these odometry tolerances (candump logs).
+    Replay(OdometryTolerance),
+    /// Onto a CAN interface.
+    Play {
+        /// The interface.
+        iface: String,
+        /// The time scale, finite and > 0.
+        speed: f64,
+        /// Which frames.
+        only: Only,
+    },
+}
+
+/// `hostsim replay`'s checks before it reads the log: `--speed` and `--only` only with
+/// `--iface`, the speed or the tolerances in range.
+///
+/// # Errors
+/// The first option out of place or out of range, naming it.
+pub fn prepare(a: &Args) -> Result<Mode> {
     match &a.iface {
-        Some(iface) => play(&a.log, a.config.as_deref(), iface, a.speed, a.only, a.json),
+        Some(iface) => {
+            let speed = a.speed.unwrap_or(1.0);
+            if !(speed.is_finite() && speed > 0.0) {
+                bail!("--speed must be a finite number > 0, got {speed}");
+            }
+            Ok(Mode::Play {
+                iface: iface.clone(),
+                speed,
+                only: a.only.unwrap_or(Only::Rx),
+            })
+        }
         None => {
             if a.speed.is_some() || a.only.is_some() {
                 bail!("--speed and --only need --iface (they control the playback)");
             }
-            replay(&a.log, a.config.as_deref(), tolerance, a.json)
+            let tolerance = OdometryTolerance {
+                position_m: a.position_tolerance,
+                heading_rad: a.heading_tolerance,
+            };
+            for (name, value) in [
+                ("--position-tolerance", tolerance.position_m),
+                ("--heading-tolerance", tolerance.heading_rad),
+            ] {
+                if !(value.is_finite() && value >= 0.0) {
+                    bail!("{name} must be a finite number >= 0, got {value}");
+                }
+            }
+            Ok(Mode::Replay(tolerance))
         }
+    }
+}
+
+/// `hostsim replay`.
+pub fn execute(a: &Args) -> Result<ExitCode> {
+    match prepare(a)? {
+        Mode::Play { iface, speed, only } => {
+            play(&a.log, a.config.as_deref(), &iface, speed, only, a.json)
+        }
+        Mode::Replay(tolerance) => replay(&a.log, a.config.as_deref(), tolerance, a.json),
     }
 }
 
@@ -135,14 +183,6 @@ fn replay(
     tolerance: OdometryTolerance,
     json: bool,
 ) -> Result<ExitCode> {
-    for (name, value) in [
-        ("--position-tolerance", tolerance.position_m),
-        ("--heading-tolerance", tolerance.heading_rad),
-    ] {
-        if !(value.is_finite() && value >= 0.0) {
-            bail!("{name} must be a finite number >= 0, got {value}");
-        }
-    }
     match detect_format(path)? {
         LogFormat::Mcap => match config {
             Some(config) => what_if_log(path, config, json),
@@ -162,7 +202,7 @@ fn replay_mcap_log(path: &Path, json: bool) -> Result<ExitCode> {
             "replaying its complete part, up to the last message read",
         );
     }
-    let show = |f: &Option<hostsim::replay::TimedFrame>| {
+    let show = |f: &Option<crate::replay::TimedFrame>| {
         f.map_or_else(
             || "nothing".to_string(),
             |f| format!("{} at {:.6} s", f.frame, f.t_ns as f64 * 1e-9),
@@ -176,7 +216,7 @@ fn replay_mcap_log(path: &Path, json: bool) -> Result<ExitCode> {
         ExitCode::SUCCESS
     };
     if json {
-        let frame = |f: &Option<hostsim::replay::TimedFrame>| {
+        let frame = |f: &Option<crate::replay::TimedFrame>| {
             f.map(|f| {
                 serde_json::json!({
                     "t_s": format!("{:.6}", f.t_ns as f64 * 1e-9),
@@ -289,7 +329,7 @@ fn what_if_log(path: &Path, config: &Path, json: bool) -> Result<ExitCode> {
         ),
         Some(d) => {
             // A frame's own time only where it is not the step's.
-            let show = |f: &Option<hostsim::replay::ReportFrame>| match f {
+            let show = |f: &Option<crate::replay::ReportFrame>| match f {
                 None => "nothing".to_string(),
                 Some(f) if f.t_s == d.t_s => f.frame.clone(),
                 Some(f) => format!("{} at {} s", f.frame, f.t_s),
@@ -340,7 +380,7 @@ fn what_if_log(path: &Path, config: &Path, json: bool) -> Result<ExitCode> {
             );
         }
     }
-    let list = |changes: &[hostsim::whatif::StateChange]| {
+    let list = |changes: &[crate::whatif::StateChange]| {
         if changes.is_empty() {
             "none".to_string()
         } else {
@@ -404,7 +444,7 @@ fn replay_candump_log(
     match &r.first_difference {
         None => println!("outbound frames are identical (time ignored)"),
         Some(d) => {
-            let show = |f: &Option<hostsim::replay::ReportFrame>| {
+            let show = |f: &Option<crate::replay::ReportFrame>| {
                 f.as_ref().map_or_else(
                     || "nothing".to_string(),
                     |f| format!("{} at {} s", f.frame, f.t_s),
@@ -423,7 +463,7 @@ fn replay_candump_log(
     match &r.odometry {
         None => println!("odometry: the log has no ODOM_POSITION frame to compare"),
         Some(o) => {
-            let pose = |p: &hostsim::replay::OdometryReading| {
+            let pose = |p: &crate::replay::OdometryReading| {
                 format!(
                     "x {:+.4} m  y {:+.4} m  heading {:+.2}° at {:.3} s",
                     p.x,
@@ -461,15 +501,10 @@ fn play(
     path: &Path,
     config: Option<&Path>,
     iface: &str,
-    speed: Option<f64>,
-    only: Option<Only>,
+    speed: f64,
+    only: Only,
     json: bool,
 ) -> Result<ExitCode> {
-    let speed = speed.unwrap_or(1.0);
-    if !(speed.is_finite() && speed > 0.0) {
-        bail!("--speed must be a finite number > 0, got {speed}");
-    }
-    let only = only.unwrap_or(Only::Rx);
     let (rx, tx) = match only {
         Only::Rx => (true, false),
         Only::Tx => (false, true),
@@ -485,7 +520,7 @@ fn play(
                     path.display()
                 );
             }
-            let content = hostsim::replay::read_log(path)?;
+            let content = crate::replay::read_log(path)?;
             warn_if_damaged(path, &content.read, "playing its complete part");
             if content.undecodable.total() > 0 {
                 bail!("{}: {}: not played", path.display(), content.undecodable);
@@ -505,7 +540,7 @@ fn play(
         }
     };
     // A corrupt timestamp would make the playback sleep for years.
-    hostsim::replay::check_time_gaps(&frames)
+    crate::replay::check_time_gaps(&frames)
         .with_context(|| format!("{}: cannot play", path.display()))?;
     let stop = mecanum_linux::stop_on_signals()?;
     let mut bus = SocketCanBus::open(iface)?;

@@ -8,10 +8,10 @@ use std::process::ExitCode;
 use std::sync::atomic::Ordering;
 use std::time::Duration;
 
+use crate::log::McapLog;
+use crate::plot::plot_run;
+use crate::sim::{LogOptions, RunSummary, run_metadata};
 use anyhow::{Context, Result, bail};
-use hostsim::log::McapLog;
-use hostsim::plot::plot_run;
-use hostsim::sim::{LogOptions, RunSummary, run_metadata};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use super::*;
@@ -62,6 +62,7 @@ pub struct Args {
     /// run (the progress bar is drawn only on a terminal).
     #[arg(long)]
     pub progress_lines: bool,
+    /// `--live` and its caps (flattened: clap takes the help from their own docs).
     #[command(flatten)]
     pub live: live::LiveArgs,
     /// With --live: simulated seconds per wall-clock second (1: real time, 0.5: half speed,
@@ -87,14 +88,53 @@ struct LiveArgs {
     rate: f64,
 }
 
+/// What `run` starts from: the scenario with `--config`, `--seed` and `--set` applied, and
+/// its plant.
+pub struct Prepared {
+    /// The scenario to run.
+    pub scenario: crate::scenario::Scenario,
+    /// Its simulated drives and chassis.
+    pub plant: crate::drives::SimDrives,
+}
+
+/// `hostsim run`'s checks before any output: the configuration and scenario load, each
+/// `--set` is one value the scenario takes, the plant can model the result.
+///
+/// # Errors
+/// The first of those that fails, naming the file, key or value.
+pub fn prepare(a: &Args) -> Result<Prepared> {
+    let config = a
+        .config
+        .as_deref()
+        .map(firmware::Config::from_toml_file)
+        .transpose()?;
+    let mut scenario = load_scenario(a.scenario.as_deref(), config)?;
+    if let Some(seed) = a.seed {
+        scenario.seed = seed;
+    }
+    if !a.set.is_empty() {
+        let mut values = Vec::new();
+        for arg in &a.set {
+            let p = crate::sweep::Param::parse(arg)?;
+            match p.values {
+                crate::sweep::Values::List(v) if v.len() == 1 => values.push((p.key, v[0])),
+                _ => bail!(
+                    "--set {arg}: expected one value, KEY=VALUE (grids and ranges are for sweep)"
+                ),
+            }
+        }
+        scenario = crate::sweep::apply(&scenario, scenario.seed, &values)?;
+    }
+    // The plant before any output: a scenario it refuses makes no file.
+    let plant = crate::drives::SimDrives::for_scenario(&scenario)?;
+    Ok(Prepared { scenario, plant })
+}
+
 /// `hostsim run`.
 pub fn execute(a: &Args) -> Result<ExitCode> {
     run(
-        a.scenario.as_deref(),
+        prepare(a)?,
         &a.out,
-        a.config.clone(),
-        a.seed,
-        &a.set,
         RunOutputs {
             log: !a.no_log,
             plot: !a.no_plot,
@@ -118,11 +158,8 @@ struct RunOutputs {
 }
 
 fn run(
-    scenario: Option<&str>,
+    prepared: Prepared,
     out: &Path,
-    config: Option<PathBuf>,
-    seed: Option<u64>,
-    set: &[String],
     outputs: RunOutputs,
     live_args: Option<LiveArgs>,
 ) -> Result<ExitCode> {
@@ -132,28 +169,10 @@ fn run(
         json,
         progress_lines,
     } = outputs;
-    let config = config
-        .map(|path| firmware::Config::from_toml_file(&path))
-        .transpose()?;
-    let mut scenario = load_scenario(scenario, config)?;
-    if let Some(seed) = seed {
-        scenario.seed = seed;
-    }
-    if !set.is_empty() {
-        let mut values = Vec::new();
-        for arg in set {
-            let p = hostsim::sweep::Param::parse(arg)?;
-            match p.values {
-                hostsim::sweep::Values::List(v) if v.len() == 1 => values.push((p.key, v[0])),
-                _ => bail!(
-                    "--set {arg}: expected one value, KEY=VALUE (grids and ranges are for sweep)"
-                ),
-            }
-        }
-        scenario = hostsim::sweep::apply(&scenario, scenario.seed, &values)?;
-    }
-    // The plant before any output: a scenario it refuses makes no file.
-    let mut plant = hostsim::drives::SimDrives::for_scenario(&scenario)?;
+    let Prepared {
+        scenario,
+        mut plant,
+    } = prepared;
     std::fs::create_dir_all(out)
         .with_context(|| format!("cannot create the output folder {}", out.display()))?;
     let stem = drivelog::file_stem(&scenario.name);
@@ -184,7 +203,7 @@ fn run(
     bar.set_message(scenario.name.clone());
     let wall = std::time::Instant::now();
     let partial = log.as_ref().and_then(|l| l.part()).map(Path::to_path_buf);
-    let summary = hostsim::sim::run_until(
+    let summary = crate::sim::run_until(
         &scenario,
         &mut plant,
         log.as_mut(),

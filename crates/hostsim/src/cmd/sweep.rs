@@ -4,10 +4,10 @@ use std::io::{BufWriter, Write as _};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::log::McapLog;
+use crate::sim::{LogOptions, run_metadata};
 use anyhow::{Context, Result};
 use drivelog::Staged;
-use hostsim::log::McapLog;
-use hostsim::sim::{LogOptions, run_metadata};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use super::*;
@@ -61,10 +61,42 @@ pub struct Args {
     pub no_plot: bool,
 }
 
-/// `sweep SCENARIO`: many runs at once.
-/// `hostsim sweep`.
-pub fn execute(args: &Args) -> Result<ExitCode> {
-    use hostsim::sweep::{self as sw, Param};
+/// A sweep before its runs are built: the base scenario, the seeds, the parameters, and how
+/// many runs they make (at most [`crate::sweep::MAX_RUNS`]).
+pub struct Plan {
+    /// The scenario, with `--config`.
+    pub base: Scenario,
+    /// The seeds of `--seeds`, or the scenario's own.
+    pub seeds: Vec<u64>,
+    /// The `--set` parameters, in the order given.
+    pub params: Vec<crate::sweep::Param>,
+    /// The runs they make, counted without building them.
+    pub count: u64,
+}
+
+impl Plan {
+    /// The runs, built, with every name and value (and both ends of each range) checked on
+    /// the base scenario: the last check before the first run. Its time and memory grow
+    /// with [`Self::count`].
+    ///
+    /// # Errors
+    /// The first value the scenario refuses.
+    pub fn runs(&self) -> Result<Vec<crate::sweep::RunSpec>> {
+        use crate::sweep as sw;
+        let runs = sw::expand(&self.seeds, &self.params)?;
+        // Every name and value (and both ends of each range), before the first run.
+        sw::check(&self.base, &runs, &self.params)?;
+        Ok(runs)
+    }
+}
+
+/// `hostsim sweep`'s checks before its plan is built: the configuration and scenario load,
+/// `--seeds` and each `--set` parse, and the runs they make are counted against the cap.
+///
+/// # Errors
+/// The first of those that fails, naming the argument.
+pub fn prepare(args: &Args) -> Result<Plan> {
+    use crate::sweep::{self as sw, Param};
     let config = args
         .config
         .as_deref()
@@ -80,9 +112,26 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
         .iter()
         .map(|a| Param::parse(a))
         .collect::<Result<_, _>>()?;
-    let runs = sw::expand(&seeds, &params)?;
-    // Every name and value (and both ends of each range), before the first run.
-    sw::check(&base, &runs, &params)?;
+    let count = sw::count_runs(seeds.len(), &params)?;
+    Ok(Plan {
+        base,
+        seeds,
+        params,
+        count,
+    })
+}
+
+/// `hostsim sweep`: many runs at once.
+pub fn execute(args: &Args) -> Result<ExitCode> {
+    use crate::sweep as sw;
+    let plan = prepare(args)?;
+    let runs = plan.runs()?;
+    let Plan {
+        base,
+        seeds,
+        params,
+        count: _,
+    } = plan;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create the output folder {}", args.out.display()))?;
     let csv_path = args.out.join("sweep.csv");
@@ -205,8 +254,8 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
         let s = sw::apply(&base, r.seed, &r.values)?;
         let path = args.out.join(format!("sweep-{}.mcap", r.index));
         let mut log = McapLog::create(&path, &run_metadata(&s))?;
-        let mut plant = hostsim::drives::SimDrives::for_scenario(&s)?;
-        hostsim::sim::run(
+        let mut plant = crate::drives::SimDrives::for_scenario(&s)?;
+        crate::sim::run(
             &s,
             &mut plant,
             Some(&mut log),
@@ -223,7 +272,7 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
             None => ("seed".into(), rows.iter().map(|r| r.seed as f64).collect()),
         };
         let ys = column(|r| r.drift_max_m);
-        hostsim::plot::scatter(
+        crate::plot::scatter(
             &png_path,
             &format!("sweep of {}", base.name),
             &label,
