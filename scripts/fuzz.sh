@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Fuzz the frame decoders, the control core, the configuration loader, the candump parser and
-# the MCAP reading path with cargo-fuzz (libFuzzer, nightly toolchain). See docs/reliability.md.
+# Fuzz the frame decoders, the control core, the configuration and scenario loaders, the candump
+# parser, the MCAP reading path and hostsim's command line with cargo-fuzz (libFuzzer, nightly
+# toolchain). See docs/reliability.md.
 #
 # usage: scripts/fuzz.sh [--runs N] [SECONDS_PER_TARGET] [TARGET...]
 #
@@ -15,7 +16,8 @@
 #
 # Corpora live in fuzz/corpus/<target>/ (git-ignored); seeds are regenerated on every run
 # (a real hostsim MCAP log and truncations of it, the example configurations, candump lines
-# of the codec's golden frames). Crash inputs land in fuzz/artifacts/<target>/; libFuzzer
+# of the codec's golden frames, a hostsim argument vector per subcommand; hostsim_args gets a
+# dictionary of its options too). Crash inputs land in fuzz/artifacts/<target>/; libFuzzer
 # logs in fuzz/target/fuzz-logs/. Exits non-zero if any target crashed, panicked, timed out
 # or ran out of memory.
 set -euo pipefail
@@ -40,7 +42,7 @@ while (($#)); do
         shift
         ;;
     -h | --help)
-        sed -n '2,20p' "$0" | sed 's/^# \{0,1\}//'
+        sed -n '2,22p' "$0" | sed 's/^# \{0,1\}//'
         exit 0
         ;;
     *)
@@ -101,6 +103,37 @@ if wants sweep_args; then
     printf '1..200\0gains.kp=0.8,1.0,1.2' >"$d/seed-grid"
     printf '1,5,9\0plant.mass_kg=18..24\0gains.ki=20,30' >"$d/seed-draw"
     printf '0..18446744073709551615\0pods.scale=0.99..1.01' >"$d/seed-huge"
+fi
+if wants hostsim_args; then
+    d=$(seed_dir hostsim_args)
+    # Argument vectors after `hostsim`, NUL-separated, as a user types them; paths are the
+    # repository's (the target runs in it).
+    seed() { local name=$1; shift; printf '%s\0' "$@" | head -c -1 >"$d/seed-$name"; }
+    seed run run
+    seed run-file run scenarios/faults.toml --config config/odrive.toml --seed 3 \
+        --set gains.kp=1.2 --set plant.mass_kg=22 --no-plot --json --progress-lines
+    seed run-live run circle --live 127.0.0.1:0 --rate 0.5 --live-can-hz 100 \
+        --live-max-clients 4 --live-max-subscriptions 16 --out out/fuzz
+    seed sweep sweep square --seeds 1..200 --set gains.kp=0.8,1.0,1.2 \
+        --set plant.mass_kg=18..24 --jobs 2 --worst 3 --log-worst 1 --no-plot --out out/sweep
+    seed sweep-file sweep scenarios/square_60s.toml --config config/dji_m3508.toml --seeds 1,5,9
+    seed sweep-huge sweep spin --seeds 0..=999999 --set gains.ki=20,30
+    seed check check --config config/odrive.toml --flip FL --swap FR,RL --speed -3 \
+        --duration-ms 500 --json
+    seed plant plant --iface vcan0 --config config/dji_m3508_pods3.toml --pods --imu \
+        --imu-bias-deg-s 0.2 --duration 2.5 --spin-us 200 --log out/plant.mcap --live 8765 \
+        --lifted --stats-json out/stats.json -q
+    seed replay replay out/square.mcap --json
+    seed replay-candump replay tests/bad_input/files/garbage.candump --config config/odrive.toml \
+        --position-tolerance 0.02 --heading-tolerance 0.05
+    seed replay-play replay out/square.mcap --iface vcan0 --speed 2 --only all
+    seed summary summary out/square.mcap
+    seed calibrate calibrate out/calibration.mcap --reference /tracker/pose --window 0.2 \
+        --write cal.toml --json
+    seed plot plot out/calibration.mcap recal/calibration.mcap --out cmp.png
+    seed kin kin
+    seed help help sweep
+    seed version --version
 fi
 if wants config_toml; then
     d=$(seed_dir config_toml)
@@ -188,6 +221,23 @@ max_len_for() {
     esac
 }
 
+# Dictionaries: hostsim's options and names (fuzz/hostsim_args.dict, kept up to date from its
+# clap definition by a unit test), with the repository's configuration and scenario files.
+dict_for() {
+    case "$1" in
+    hostsim_args)
+        local dict="$fuzz/target/hostsim_args.dict"
+        {
+            cat "$fuzz/hostsim_args.dict"
+            for f in "$root"/config/*.toml "$root"/scenarios/*.toml; do
+                printf '"%s"\n' "${f#"$root"/}"
+            done
+        } >"$dict"
+        echo "$dict"
+        ;;
+    esac
+}
+
 failed=0
 rows=()
 for t in "${targets[@]}"; do
@@ -197,6 +247,8 @@ for t in "${targets[@]}"; do
     before=$(find "$artifacts" -type f | wc -l)
     args=(-print_final_stats=1 -timeout=10 -max_len="$(max_len_for "$t")"
         -artifact_prefix="$artifacts/")
+    dict=$(dict_for "$t")
+    [[ -n "$dict" ]] && args+=(-dict="$dict")
     [[ -n "$seconds" ]] && args+=(-max_total_time="$seconds")
     [[ -n "$runs" ]] && args+=(-runs="$runs")
     # shellcheck disable=SC2206

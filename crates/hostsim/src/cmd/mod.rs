@@ -327,4 +327,68 @@ mod tests {
                 .is_err_and(|e| e.contains("--position-tolerance"))
         );
     }
+
+    /// The dictionary of the fuzz target `hostsim_args` (libFuzzer's format): every
+    /// subcommand, option and possible value clap knows, and the names their values take
+    /// (built-in scenarios, wheels, the fields `--set` takes). scripts/fuzz.sh adds the
+    /// repository's configuration and scenario files.
+    fn fuzz_dictionary() -> String {
+        let mut words = std::collections::BTreeSet::new();
+        let mut cli = Cli::command();
+        cli.build();
+        let mut commands = vec![&cli];
+        commands.extend(cli.get_subcommands());
+        for c in commands {
+            words.insert(c.get_name().to_string());
+            for a in c.get_arguments() {
+                words.extend(a.get_long().map(|l| format!("--{l}")));
+                words.extend(a.get_short().map(|s| format!("-{s}")));
+                words.extend(
+                    a.get_possible_values()
+                        .iter()
+                        .map(|v| v.get_name().to_string()),
+                );
+            }
+        }
+        words.extend(Scenario::BUILTINS.map(String::from));
+        words.extend(crate::bringup::WHEEL_NAMES.map(String::from));
+        let plant = crate::scenario::PLANT_FIELDS.map(|f| format!("plant.{f}"));
+        words.extend(plant);
+        let config = firmware::Config::dji_m3508_example().to_toml_string();
+        let config: toml::Table = toml::from_str(&config).expect("the example's TOML");
+        for (table, fields) in &config {
+            for (key, value) in fields.as_table().into_iter().flatten() {
+                if value.is_float() || value.is_integer() {
+                    words.insert(format!("{table}.{key}"));
+                }
+            }
+        }
+        let mut text = String::from(
+            "# The dictionary of fuzz/fuzz_targets/hostsim_args.rs (scripts/fuzz.sh passes it),\n\
+             # from hostsim's clap definition: checked by hostsim's unit test\n\
+             # cmd::tests::the_fuzz_dictionary_is_up_to_date; UPDATE_FUZZ_DICT=1 rewrites it.\n\
+             \"\\x00\"\n",
+        );
+        for w in words {
+            text.push_str(&format!("{w:?}\n"));
+        }
+        text
+    }
+
+    #[test]
+    fn the_fuzz_dictionary_is_up_to_date() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fuzz/hostsim_args.dict");
+        let now = fuzz_dictionary();
+        if std::fs::read_to_string(&path).ok().as_deref() == Some(now.as_str()) {
+            return;
+        }
+        if std::env::var_os("UPDATE_FUZZ_DICT").is_some() {
+            std::fs::write(&path, now).expect("the dictionary written");
+        } else {
+            panic!(
+                "{} is out of date; rerun with UPDATE_FUZZ_DICT=1 to rewrite it. Now:\n{now}",
+                path.display()
+            );
+        }
+    }
 }
