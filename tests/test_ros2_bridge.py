@@ -321,8 +321,12 @@ def test_diagnostics_carry_the_odometry_source_and_the_slip(make_rig: Any) -> No
                                              "gyro silent too", since=time.time())
     rig.fake.heading_source = 0
     rig.fake.set_odometry_source("PODS3", (-2.5, 0.001, -0.0))
-    seen["pods back"] = rig.peer.wait_diag(lambda d: d.values["odometry_source"] == "PODS3", 5, "PODS3",
-                                           since=time.time())
+    # Both changes: the heading source comes in STATUS and the odometry source in ODOM_SLIP, two
+    # frames the robot sends at their own times (a loaded machine once showed PODS3 beside the
+    # older STATUS's silent gyro).
+    seen["pods back"] = rig.peer.wait_diag(
+        lambda d: d.values["odometry_source"] == "PODS3" and d.values["heading_source"] == "WHEELS", 5,
+        "PODS3 with the gyro back", since=time.time())
     for k, d in seen.items():
         slip = tuple(d.values.get(key) for key in ("slip_vx", "slip_vy", "slip_wz"))
         print(f"/diagnostics {k}: level {d.level} {d.message!r}, odometry_source {d.values['odometry_source']}, "
