@@ -4,11 +4,12 @@ use std::io::Write as _;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use anyhow::{Context, Result, bail};
+use mecanum_linux::{MonotonicClock, SocketCanBus};
+
 use crate::log::McapLog;
 use crate::realtime::{PlantLog, PlantOptions, run_plant, run_plant_observed};
 use crate::replay::PLANT_PROGRAM;
-use anyhow::{Context, Result, bail};
-use mecanum_linux::{MonotonicClock, SocketCanBus};
 
 use super::*;
 

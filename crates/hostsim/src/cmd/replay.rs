@@ -3,14 +3,15 @@
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
+use anyhow::{Context, Result, bail};
+use mecanum_linux::{MonotonicClock, SocketCanBus};
+
 use crate::realtime::{PlayOptions, play_frames};
 use crate::replay::{
     CandumpReplayError, LogFormat, OdometryTolerance, detect_format, mcap_playback, replay_candump,
     replay_mcap, split_candump,
 };
 use crate::whatif::{OPEN_LOOP_NOTE, what_if_mcap};
-use anyhow::{Context, Result, bail};
-use mecanum_linux::{MonotonicClock, SocketCanBus};
 
 use super::*;
 

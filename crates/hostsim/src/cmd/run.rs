@@ -8,11 +8,12 @@ use std::process::ExitCode;
 use std::sync::atomic::Ordering;
 use std::time::Duration;
 
+use anyhow::{Context, Result, bail};
+use indicatif::{ProgressBar, ProgressStyle};
+
 use crate::log::McapLog;
 use crate::plot::plot_run;
 use crate::sim::{LogOptions, RunSummary, run_metadata};
-use anyhow::{Context, Result, bail};
-use indicatif::{ProgressBar, ProgressStyle};
 
 use super::*;
 

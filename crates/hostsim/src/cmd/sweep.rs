@@ -4,11 +4,12 @@ use std::io::{BufWriter, Write as _};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use crate::log::McapLog;
-use crate::sim::{LogOptions, run_metadata};
 use anyhow::{Context, Result};
 use drivelog::Staged;
 use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::log::McapLog;
+use crate::sim::{LogOptions, run_metadata};
 
 use super::*;
 
