@@ -45,7 +45,7 @@ ENUM_VALUES = {
     "magic": [0xE5],
     "request": [0, 1, 2],
     "state": [0, 1, 2, 3, 4],
-    "fault": list(range(13)),
+    "fault": list(range(14)),
     "wheel": [0, 1, 2, 3],
     "outcome": [0, 1, 2, 3],
     "heading_source": [0, 1, 2],
@@ -337,7 +337,7 @@ def test_dbc_version_line_is_the_firmwares_protocol_version(golden):
     m = re.fullmatch(r"Mecanum robot CAN protocol, version (\d+) \(.+?\)\. .*", comments[0])
     assert m, comments[0][:120]
     version = int(m.group(1))
-    assert version == 7
+    assert version == 8
     beats = [g for g in golden if g.get("message") == "HEARTBEAT"]
     assert beats and all(g["fields"]["protocol_version"] == version for g in beats), beats
     assert f'protocol_version "Protocol version: {version} for this file.' in text
@@ -633,7 +633,8 @@ def test_dbc_value_tables_match_rust_enums_and_rust_rejects_others(run_codec, db
     table = {int(k): str(v) for k, v in status.get_signal_by_name("fault").choices.items()}
     assert table == {0: "NONE", 1: "MOTOR_STALE", 2: "MOTOR_MISSING", 3: "DRIVE_ERROR",
                      4: "WATCHDOG", 5: "CONFIG", 6: "ENCODER_STUCK", 7: "WHEEL_RUNAWAY", 8: "WHEEL_FIGHT",
-                     9: "DRIVE_SILENT", 10: "DRIVE_REBOOTED", 11: "DRIVE_SETUP", 12: "DRIVE_TRANSITION"}
+                     9: "DRIVE_SILENT", 10: "DRIVE_REBOOTED", 11: "DRIVE_SETUP", 12: "DRIVE_TRANSITION",
+                     13: "DRIVE_NMT"}
     request = robot.get_message_by_name("MODE_CMD").get_signal_by_name("request")
     assert set(request.choices) == set(ENUM_VALUES["request"])
     odrive = dbs["odrive"]
@@ -647,7 +648,7 @@ def test_dbc_value_tables_match_rust_enums_and_rust_rejects_others(run_codec, db
     for message in ("STATUS", "HEARTBEAT"):
         robot_state = robot.get_message_by_name(message).get_signal_by_name("state")
         assert set(robot_state.choices) == set(ENUM_VALUES["state"]), message
-    out = run_codec("decode", lines=[candump(0x312, bytes([0, 13, 0, 0, 0, 0, 0, 0]))])
+    out = run_codec("decode", lines=[candump(0x312, bytes([0, 14, 0, 0, 0, 0, 0, 0]))])
     assert out[0]["error"]["kind"] == "out_of_range"
 
 
@@ -770,7 +771,7 @@ MALFORMED = [
     ("300#E4", "out_of_range", {"field": "magic", "value": 0xE4}),
     ("302#03", "out_of_range", {"field": "request", "value": 3}),
     ("312#0500000000000000", "out_of_range", {"field": "state", "value": 5}),
-    ("312#000D000000000000", "out_of_range", {"field": "fault", "value": 13}),
+    ("312#000E000000000000", "out_of_range", {"field": "fault", "value": 14}),
     ("305#0400000100000000", "out_of_range", {"field": "wheel", "value": 4}),
     ("305#0011270100000000", "out_of_range", {"field": "speed", "value": 10001}),
     ("305#0010270000000000", "out_of_range", {"field": "duration_ms", "value": 0}),

@@ -761,6 +761,7 @@ fn golden_set() -> Vec<(AnyMessage, Decoded)> {
             Fault::DriveTransition,
             HeadingSource::Wheels,
         ),
+        (RobotState::Fault, Fault::DriveNmt, HeadingSource::Wheels),
     ] {
         v.push(AnyMessage::Robot(robot::Message::Telemetry(RT::Status(
             robot::Status {

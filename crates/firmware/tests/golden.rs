@@ -315,6 +315,7 @@ fn robot_status() {
         Fault::DriveRebooted,
         Fault::DriveSetup,
         Fault::DriveTransition,
+        Fault::DriveNmt,
     ];
     for (raw, fault) in faults.into_iter().enumerate() {
         let f = frame(0x312, &[2, raw as u8, 0, 0, 0, 0, 0, 0]);
@@ -325,7 +326,7 @@ fn robot_status() {
     }
     for (data, field, value) in [
         ([5u8, 0, 0, 0, 0, 0, 0, 0], "state", 5),
-        ([0, 13, 0, 0, 0, 0, 0, 0], "fault", 13),
+        ([0, 14, 0, 0, 0, 0, 0, 0], "fault", 14),
         ([0, 0, 0, 0, 0, 0, 0x3F, 0], "heading_source", 3),
         ([0, 0, 0, 0, 0, 0, 0xF0, 0], "heading_source", 15),
     ] {
@@ -376,9 +377,9 @@ fn robot_status_counters() {
 
 #[test]
 fn robot_heartbeat() {
-    // uptime 0x12345678 ms, state 3 (e-stop), protocol version 7, configuration 0xC0DE.
-    let f = frame(0x31F, &[0x78, 0x56, 0x34, 0x12, 0x03, 0x07, 0xDE, 0xC0]);
-    assert_eq!(robot::PROTOCOL_VERSION, 7);
+    // uptime 0x12345678 ms, state 3 (e-stop), protocol version 8, configuration 0xC0DE.
+    let f = frame(0x31F, &[0x78, 0x56, 0x34, 0x12, 0x03, 0x08, 0xDE, 0xC0]);
+    assert_eq!(robot::PROTOCOL_VERSION, 8);
     let h = Heartbeat {
         uptime_ms: 0x1234_5678,
         state: RobotState::Estop,

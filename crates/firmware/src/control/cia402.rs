@@ -4,9 +4,11 @@
 //! both ways (`docs/protocol.md`, "CANopen CiA 402"; `docs/control.md`, "Faults").
 //!
 //! Nodes are configured in parallel, one SDO transfer in flight per node. A node's state is
-//! its [`Phase`] (waiting for boot-up, configuring, started) and its [`Command`] (what its
-//! controlword asks); anything that faults the robot is kept as the node's [`DriveIssue`]
-//! until the host's reset, and [`Cia402::issue`] gives the latest for logs.
+//! its [`Phase`] (reset owed, waiting for boot-up, configuring, started) and its [`Command`]
+//! (what its controlword asks); anything that faults the robot is kept as the node's
+//! [`DriveIssue`] until the host's reset, and [`Cia402::issue`] gives the latest for logs.
+//! A started node's heartbeat must say operational; the host's reset starts again a node
+//! that left it (or resets and configures it again if its heartbeat was lost meanwhile).
 
 use core::fmt;
 
@@ -31,6 +33,9 @@ pub const CIA402_TRANSITION_TIMEOUT_US: u64 = 250_000;
 /// CiA 402: statuswords received until this long after a fault reset was sent may predate
 /// it: their fault bit is ignored, µs.
 pub const CIA402_RESET_GRACE_US: u64 = 20_000;
+/// CANopen: heartbeats received until this long after NMT start was sent may predate it: a
+/// state other than operational in them is ignored, µs.
+pub const CANOPEN_NMT_GRACE_US: u64 = 20_000;
 
 /// The device type's profile (object 0x1000, low 16 bits) of a CiA 402 drive.
 const DEVICE_PROFILE_402: u32 = 402;
@@ -83,6 +88,13 @@ pub enum DriveIssue {
         /// The node.
         node: u8,
     },
+    /// A started node's heartbeat reports a state other than operational.
+    NotOperational {
+        /// The node.
+        node: u8,
+        /// The NMT state it reports.
+        state: NmtState,
+    },
     /// The statusword shows a fault, or (enabled) a state other than operation enabled.
     DriveFault {
         /// The node.
@@ -105,6 +117,7 @@ impl DriveIssue {
             Self::TransitionTimeout { .. } => Fault::DriveTransition,
             Self::HeartbeatLost { .. } => Fault::DriveSilent,
             Self::Rebooted { .. } => Fault::DriveRebooted,
+            Self::NotOperational { .. } => Fault::DriveNmt,
             Self::DriveFault { .. } => Fault::DriveError,
         }
     }
@@ -156,6 +169,9 @@ impl fmt::Display for DriveIssue {
             }
             Self::HeartbeatLost { node } => write!(f, "node {node}: heartbeat lost"),
             Self::Rebooted { node } => write!(f, "node {node}: booted again, configured anew"),
+            Self::NotOperational { node, state } => {
+                write!(f, "node {node}: NMT {}", state.as_str())
+            }
             Self::DriveFault {
                 node,
                 statusword,
@@ -176,6 +192,8 @@ fn state_name(sw: u16) -> &'static str {
 /// Where a node is in its life on the bus.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Phase {
+    /// NMT reset communication owed (the master's first step, or a recovery).
+    Reset,
     /// Waiting for its boot-up (after the master's NMT reset).
     Boot,
     /// Being configured: transfer `step` of its sequence, sent at `sent` (`None`: owed).
@@ -222,6 +240,15 @@ struct Node {
     last_emcy: u16,
     /// What faults the robot, until the host's reset.
     issue: Option<DriveIssue>,
+    /// The NMT state of its last heartbeat since it was started (`None`: none yet, or only
+    /// ones that may predate the start).
+    nmt: Option<NmtState>,
+    /// When NMT start was last sent.
+    started_at: Option<Instant>,
+    /// Started once at least: a reset and configuration after that is a recovery.
+    was_started: bool,
+    /// Its heartbeat was never lost since its start: its configuration is intact.
+    heard: bool,
 }
 
 impl Node {
@@ -229,7 +256,7 @@ impl Node {
         Self {
             id,
             dual,
-            phase: Phase::Boot,
+            phase: Phase::Reset,
             command: Command::Shutdown,
             statusword: None,
             last_heartbeat: None,
@@ -237,6 +264,10 @@ impl Node {
             reset_at: None,
             last_emcy: 0,
             issue: None,
+            nmt: None,
+            started_at: None,
+            was_started: false,
+            heard: false,
         }
     }
 
@@ -298,8 +329,6 @@ pub(super) struct Cia402 {
     heartbeat_ms: u16,
     heartbeat_timeout_ms: u16,
     heartbeat_clock: Every,
-    /// The NMT resets are owed (the first step).
-    reset_owed: bool,
     /// The time of the step being run.
     now: Instant,
     emcy_count: u32,
@@ -333,7 +362,6 @@ impl Cia402 {
             heartbeat_timeout_ms: p.heartbeat_timeout_ms,
             // Validated: a whole number of control periods.
             heartbeat_clock: Every::new(p.control_hz * u32::from(p.heartbeat_ms) / 1000),
-            reset_owed: true,
             now: Instant::default(),
             emcy_count: 0,
             latest: None,
@@ -386,31 +414,33 @@ impl Cia402 {
                 let n = self.node_of(node).ok_or_else(|| super::unknown(frame))?;
                 n.last_heartbeat = Some(now.mark(n.last_heartbeat));
                 let booted = state == NmtState::BootUp;
+                let setup = Phase::Setup {
+                    step: 0,
+                    sent: None,
+                };
                 match n.phase {
+                    // The reset is owed: what the node says now predates it.
+                    Phase::Reset => {}
                     // A boot-up, or a heartbeat of a node whose boot-up was missed.
-                    Phase::Boot => {
-                        n.phase = Phase::Setup {
-                            step: 0,
-                            sent: None,
-                        }
-                    }
-                    _ if !booted => {}
-                    Phase::Setup { .. } | Phase::Failed => {
-                        n.phase = Phase::Setup {
-                            step: 0,
-                            sent: None,
-                        };
-                    }
-                    Phase::Started { .. } => {
+                    Phase::Boot => n.phase = setup,
+                    Phase::Setup { .. } | Phase::Failed if booted => n.phase = setup,
+                    Phase::Started { .. } if booted => {
                         let issue = DriveIssue::Rebooted { node: node.get() };
                         n.raise(issue);
-                        n.phase = Phase::Setup {
-                            step: 0,
-                            sent: None,
-                        };
+                        n.phase = setup;
                         n.statusword = None;
+                        n.nmt = None;
                         self.latest = Some(issue);
                     }
+                    Phase::Started { start_owed: false } => {
+                        let predates_start = n
+                            .started_at
+                            .is_some_and(|t| now.micros_since(t) <= CANOPEN_NMT_GRACE_US);
+                        if state == NmtState::Operational || !predates_start {
+                            n.nmt = Some(state);
+                        }
+                    }
+                    Phase::Setup { .. } | Phase::Failed | Phase::Started { .. } => {}
                 }
                 return Ok(());
             }
@@ -559,11 +589,25 @@ impl Cia402 {
     }
 
     /// The host's reset: forgets the issues, owes a fault reset to a node whose statusword
-    /// shows a fault, and configures again a node whose configuration failed.
+    /// shows a fault, configures again a node whose configuration failed, and recovers a
+    /// started node whose heartbeat says it is not operational: NMT start if its heartbeat
+    /// was never lost (its configuration is intact), else reset communication and the whole
+    /// configuration; either way a fault reset with its first cycle (a drive's reaction to
+    /// the communication error may have been a fault, which no TPDO could show).
     pub(super) fn clear_errors(&mut self, now: Instant) {
         for n in &mut self.nodes {
             n.issue = None;
-            if n.statusword.is_some_and(|sw| sw & STATUSWORD_FAULT != 0) {
+            let left_operational = n.phase == Phase::Started { start_owed: false }
+                && n.nmt.is_some_and(|s| s != NmtState::Operational);
+            if left_operational {
+                n.phase = if n.heard {
+                    Phase::Started { start_owed: true }
+                } else {
+                    Phase::Reset
+                };
+                n.nmt = None;
+            }
+            if left_operational || n.statusword.is_some_and(|sw| sw & STATUSWORD_FAULT != 0) {
                 n.fault_reset = true;
                 n.reset_at = Some(now);
                 n.statusword = None;
@@ -604,11 +648,19 @@ impl Cia402 {
                     n.phase = Phase::Failed;
                     Some(DriveIssue::SdoTimeout { node, object })
                 }
-                (Phase::Started { .. }, _)
-                    if n.last_heartbeat
-                        .is_some_and(|t| now.micros_since(t) > heartbeat_timeout_us) =>
+                (phase, _)
+                    if watched(phase, n.was_started)
+                        && n.last_heartbeat
+                            .is_some_and(|t| now.micros_since(t) > heartbeat_timeout_us) =>
                 {
+                    n.heard = false;
                     Some(DriveIssue::HeartbeatLost { node })
+                }
+                (Phase::Started { start_owed: false }, _)
+                    if n.nmt.is_some_and(|s| s != NmtState::Operational) =>
+                {
+                    n.nmt
+                        .map(|state| DriveIssue::NotOperational { node, state })
                 }
                 (
                     _,
@@ -657,23 +709,23 @@ impl Cia402 {
             .map_or(Fault::None, |issue| issue.fault())
     }
 
-    /// Wheel `i`'s node is being configured (its feedback is not expected yet).
+    /// Wheel `i`'s node is being configured (its feedback is not expected yet): also while
+    /// it is reset and configured again after it was started (a recovery).
     #[inline]
     pub(super) fn wheel_configuring(&self, i: usize) -> bool {
         self.wheel_node
             .get(i)
             .and_then(|&(n, _)| self.nodes.get(n))
-            .is_some_and(|n| {
-                matches!(
-                    n.phase,
-                    Phase::Setup { .. } | Phase::Started { start_owed: true }
-                )
+            .is_some_and(|n| match n.phase {
+                Phase::Setup { .. } | Phase::Started { start_owed: true } => true,
+                Phase::Reset | Phase::Boot | Phase::Failed => n.was_started,
+                Phase::Started { start_owed: false } => false,
             })
     }
 
-    /// The frames owed this step: the NMT resets (first step), the next SDO transfer of each
-    /// node being configured, NMT start, and (`cycle_due`) SYNC and every started node's
-    /// RPDOs; the master's heartbeat at its period.
+    /// The frames owed this step: the NMT resets owed (each node's at the first step), the
+    /// next SDO transfer of each node being configured, NMT start, and (`cycle_due`) SYNC and
+    /// every started node's RPDOs; the master's heartbeat at its period.
     pub(super) fn emit(
         &mut self,
         out: &mut Outbox,
@@ -682,19 +734,21 @@ impl Cia402 {
         cycle_due: bool,
     ) {
         let now = self.now;
-        if core::mem::take(&mut self.reset_owed) {
-            for n in &self.nodes {
-                let reset = Message::Nmt {
-                    command: NmtCommand::ResetCommunication,
-                    node: Some(n.id),
-                };
-                push(out, reset.to_can_frame());
-            }
-        }
         let (heartbeat_ms, timeout_ms, master) =
             (self.heartbeat_ms, self.heartbeat_timeout_ms, self.master);
         for (index, n) in self.nodes.iter_mut().enumerate() {
             match n.phase {
+                Phase::Reset => {
+                    let reset = Message::Nmt {
+                        command: NmtCommand::ResetCommunication,
+                        node: Some(n.id),
+                    };
+                    push(out, reset.to_can_frame());
+                    n.phase = Phase::Boot;
+                    n.statusword = None;
+                    // A recovered node's boot-up is due within the consumer time.
+                    n.last_heartbeat = Some(now);
+                }
                 Phase::Setup { step, sent: None } => {
                     let sequence = setup_sequence(n, heartbeat_ms, timeout_ms, master);
                     if let Some(&request) = sequence.get(usize::from(step)) {
@@ -716,6 +770,10 @@ impl Cia402 {
                     };
                     push(out, start.to_can_frame());
                     n.phase = Phase::Started { start_owed: false };
+                    n.started_at = Some(now);
+                    n.nmt = None;
+                    n.was_started = true;
+                    n.heard = true;
                     // Feedback is expected from now on.
                     for (w, &(i, _)) in wheels.iter_mut().zip(&self.wheel_node) {
                         if i == index {
@@ -871,3 +929,13 @@ fn setup_sequence(
 
 /// COB-ID bit 31: the PDO is off.
 const COB_INVALID: u32 = 0x8000_0000;
+
+/// Whether a node in `phase` has its heartbeat watched: once started, and while it is reset
+/// again in a recovery (its boot-up is then due within the consumer time).
+const fn watched(phase: Phase, was_started: bool) -> bool {
+    match phase {
+        Phase::Started { .. } => true,
+        Phase::Reset | Phase::Boot => was_started,
+        Phase::Setup { .. } | Phase::Failed => false,
+    }
+}

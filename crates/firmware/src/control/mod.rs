@@ -39,7 +39,8 @@ use embedded_can::Frame;
 use kinematics::{ChassisVelocity, MecanumKinematics, Odometry, Pose2, WheelSpeeds};
 
 pub use self::cia402::{
-    CANOPEN_SDO_TIMEOUT_US, CIA402_RESET_GRACE_US, CIA402_TRANSITION_TIMEOUT_US, DriveIssue,
+    CANOPEN_NMT_GRACE_US, CANOPEN_SDO_TIMEOUT_US, CIA402_RESET_GRACE_US,
+    CIA402_TRANSITION_TIMEOUT_US, DriveIssue,
 };
 pub use self::current_loop::{
     FIGHT_COMBINED_MIN, FIGHT_CURRENT_FRACTION, FIGHT_WINDOW_US, RUNAWAY_GROWTH, RUNAWAY_MIN_SPEED,

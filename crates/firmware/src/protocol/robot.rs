@@ -25,6 +25,8 @@ use crate::frame::CanFrame;
 
 /// The protocol version this module implements, sent in [`Heartbeat::protocol_version`].
 ///
+/// Version 8 added `STATUS.fault` 13 (`DRIVE_NMT`): a CANopen drive's heartbeat reports an
+/// NMT state other than operational; a version 7 receiver rejects it.
 /// Version 7 added the optional `POD_COUNTS` (a tracking-pod node's counts) and
 /// `ODOM_SLIP` (the odometry source and the slip estimate); a robot configured without pods
 /// neither expects nor sends either.
@@ -39,7 +41,7 @@ use crate::frame::CanFrame;
 /// added `STATUS_COUNTERS`; a version 2 host that sends one `seq` forever stops the robot
 /// after one command timeout. Version 2 added `STATUS.fault` 6 (`ENCODER_STUCK`); a version
 /// 1 receiver rejects it.
-pub const PROTOCOL_VERSION: u8 = 7;
+pub const PROTOCOL_VERSION: u8 = 8;
 
 /// The frame layout: the Rust mirror of `dbc/mecanum_robot.dbc`. Every id, DLC, offset,
 /// scale and range the codec uses is here.
@@ -267,7 +269,7 @@ pub mod layout {
     /// `STATUS.state`: 0 disabled, 1 enabled, 2 fault, 3 estop, 4 wheel test.
     pub const STATUS_STATE: Field = Field::int("state", 0, U8, Little).range(0, 4);
     /// `STATUS.fault`: 0 none .. 6 encoder stuck, 7 wheel runaway.
-    pub const STATUS_FAULT: Field = Field::int("fault", 1, U8, Little).range(0, 12);
+    pub const STATUS_FAULT: Field = Field::int("fault", 1, U8, Little).range(0, 13);
     /// `STATUS.rx_errors`: rejected frames, saturating.
     pub const STATUS_RX_ERRORS: Field = Field::int("rx_errors", 2, U16, Little);
     /// `STATUS.unknown_ids`: frames with unknown ids, saturating.
@@ -334,7 +336,7 @@ pub enum RobotState {
     WheelTest = 4,
 }
 
-/// The latest fault (`STATUS.fault`). Raw values 13..=255 are reserved for later versions.
+/// The latest fault (`STATUS.fault`). Raw values 14..=255 are reserved for later versions.
 ///
 /// How each is detected, and how fast: [`crate::control`].
 #[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
@@ -372,6 +374,10 @@ pub enum Fault {
     DriveSetup = 11,
     /// A CANopen drive did not reach the state an enable step asked for in time.
     DriveTransition = 12,
+    /// A started CANopen drive's heartbeat reports an NMT state other than operational
+    /// (pre-operational after a communication error, stopped): it takes no targets; the
+    /// host's reset starts it again.
+    DriveNmt = 13,
 }
 
 /// Where the odometry's heading comes from (`STATUS.heading_source`).
@@ -427,6 +433,7 @@ u8_enum!(Fault {
     DriveRebooted = 10 => "DRIVE_REBOOTED",
     DriveSetup = 11 => "DRIVE_SETUP",
     DriveTransition = 12 => "DRIVE_TRANSITION",
+    DriveNmt = 13 => "DRIVE_NMT",
 });
 
 /// Where the odometry comes from (`ODOM_SLIP.source`, version 7).

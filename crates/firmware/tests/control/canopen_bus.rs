@@ -24,7 +24,8 @@ pub mod sw {
 #[derive(Debug, Clone)]
 pub struct ScriptedNode {
     pub id: NodeId,
-    pub operational: bool,
+    /// Its NMT state (its heartbeat says it at the next multiple of the period).
+    pub nmt: NmtState,
     pub statusword: u16,
     pub mode: i8,
     last_controlword: u16,
@@ -73,7 +74,7 @@ impl ScriptedBus {
             if nodes.iter().all(|n| n.id.get() != id) {
                 nodes.push(ScriptedNode {
                     id: NodeId::new(id).unwrap(),
-                    operational: false,
+                    nmt: NmtState::PreOperational,
                     statusword: sw::SWITCH_ON_DISABLED,
                     mode: 0,
                     last_controlword: 0,
@@ -111,11 +112,7 @@ impl ScriptedBus {
             }
             out.extend(pending);
             if !n.heartbeat_silent && now_us.is_multiple_of(self.heartbeat_us) && now_us > 0 {
-                let state = if n.operational {
-                    NmtState::Operational
-                } else {
-                    NmtState::PreOperational
-                };
+                let state = n.nmt;
                 out.push(Message::Heartbeat { node: n.id, state }.to_can_frame());
             }
         }
@@ -144,7 +141,7 @@ impl ScriptedBus {
                 Message::Sync { .. } => {
                     let k = self.actual_per_target;
                     for n in &mut self.nodes {
-                        if !n.operational {
+                        if !n.operational() {
                             continue;
                         }
                         let moving = n.statusword == sw::OPERATION_ENABLED;
@@ -177,14 +174,22 @@ impl ScriptedBus {
                     controlword,
                     target,
                 } => {
-                    if let Some(n) = self.nodes.iter_mut().find(|n| n.id == node) {
+                    if let Some(n) = self
+                        .nodes
+                        .iter_mut()
+                        .find(|n| n.id == node && n.operational())
+                    {
                         n.controlwords.push((now_us, controlword));
                         n.control(controlword);
                         n.targets[0] = target;
                     }
                 }
                 Message::Rpdo3 { node, target } => {
-                    if let Some(n) = self.nodes.iter_mut().find(|n| n.id == node) {
+                    if let Some(n) = self
+                        .nodes
+                        .iter_mut()
+                        .find(|n| n.id == node && n.operational())
+                    {
                         n.targets[1] = target;
                     }
                 }
@@ -195,9 +200,27 @@ impl ScriptedBus {
 }
 
 impl ScriptedNode {
+    /// Operational: PDOs flow.
+    pub fn operational(&self) -> bool {
+        self.nmt == NmtState::Operational
+    }
+
+    /// The node enters `state` by itself (CiA 301's error behaviour: pre-operational on a
+    /// communication error) and says so in a heartbeat at once.
+    pub fn enter(&mut self, state: NmtState) {
+        self.nmt = state;
+        self.pending.push(
+            Message::Heartbeat {
+                node: self.id,
+                state,
+            }
+            .to_can_frame(),
+        );
+    }
+
     /// A boot-up: pre-operational, switch on disabled, the mode forgotten.
     pub fn reboot(&mut self) {
-        self.operational = false;
+        self.nmt = NmtState::PreOperational;
         self.statusword = sw::SWITCH_ON_DISABLED;
         self.mode = 0;
         self.targets = [0; 2];
@@ -228,8 +251,9 @@ impl ScriptedNode {
 
     fn nmt(&mut self, command: NmtCommand) {
         match command {
-            NmtCommand::Start => self.operational = true,
-            NmtCommand::Stop | NmtCommand::EnterPreOperational => self.operational = false,
+            NmtCommand::Start => self.nmt = NmtState::Operational,
+            NmtCommand::Stop => self.nmt = NmtState::Stopped,
+            NmtCommand::EnterPreOperational => self.nmt = NmtState::PreOperational,
             NmtCommand::ResetNode | NmtCommand::ResetCommunication => self.reboot(),
         }
     }

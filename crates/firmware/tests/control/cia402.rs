@@ -1,8 +1,10 @@
 //! CiA 402 drives: configuration by SDO, the enable sequence, the cycle, odometry from the
 //! actual velocities, and each fault with what it keeps for the log.
 
-use firmware::control::{CANOPEN_SDO_TIMEOUT_US, CIA402_TRANSITION_TIMEOUT_US, DriveIssue};
-use firmware::protocol::canopen::{self, Message, NmtCommand, SdoRequest};
+use firmware::control::{
+    CANOPEN_NMT_GRACE_US, CANOPEN_SDO_TIMEOUT_US, CIA402_TRANSITION_TIMEOUT_US, DriveIssue,
+};
+use firmware::protocol::canopen::{self, Message, NmtCommand, NmtState, NodeId, SdoRequest};
 
 use crate::rig::*;
 
@@ -285,7 +287,7 @@ fn a_node_that_reboots_is_configured_again_and_needs_the_hosts_reset_and_enable(
         .expect("the boot-up faults the robot");
     assert_eq!(rig.ctl.fault(), Fault::DriveRebooted);
     rig.run_until(200, |r, _| {
-        r.canopen.nodes[0].sdo_log.len() == 2 * before && r.canopen.nodes[0].operational
+        r.canopen.nodes[0].sdo_log.len() == 2 * before && r.canopen.nodes[0].operational()
     })
     .expect("node 1 is configured again and started");
     assert_eq!(rig.canopen.node(1).mode, 3);
@@ -426,4 +428,261 @@ fn a_node_left_in_quick_stop_is_sent_disable_voltage_until_it_leaves_it() {
     rig.run_ms(8);
     assert_eq!(last_rpdo(&rig, 1).0, 0x06, "then shutdown");
     assert_eq!(rig.canopen.node(1).statusword, sw::READY_TO_SWITCH_ON);
+}
+
+/// The NMT commands in the log from `from_us` on: (time, command, node).
+fn nmt_commands(rig: &Rig, from_us: u64) -> Vec<(u64, NmtCommand, u8)> {
+    rig.log
+        .iter()
+        .filter(|(t, _)| *t >= from_us)
+        .filter_map(|(t, f)| match canopen::decode(f) {
+            Ok(Message::Nmt {
+                command,
+                node: Some(node),
+            }) => Some((*t, command, node.get())),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Whether any RPDO sent from `from_us` on carries a target other than zero.
+fn moved_since(rig: &Rig, from_us: u64) -> bool {
+    rig.log.iter().filter(|(t, _)| *t >= from_us).any(|(_, f)| {
+        matches!(
+            canopen::decode(f),
+            Ok(Message::Rpdo1 { target, .. } | Message::Rpdo3 { target, .. }) if target != 0
+        )
+    })
+}
+
+/// Drives at 0.5 m/s for `ms` milliseconds.
+fn drive(rig: &mut Rig, ms: u64) {
+    for _ in 0..ms {
+        rig.twist(0.5, 0.0, 0.0);
+        rig.tick();
+    }
+}
+
+#[test]
+fn a_started_node_that_turns_pre_operational_faults_naming_it_and_the_reset_starts_it() {
+    let mut rig = enabled();
+    drive(&mut rig, 100);
+    assert!(moved_since(&rig, 0));
+    // A communication error (a consumer time-out, a bus-off): CiA 301's default behaviour.
+    rig.canopen.node(1).enter(NmtState::PreOperational);
+    let t0 = rig.now_us;
+    let t = rig
+        .run_until(5, |r, _| r.ctl.state() == RobotState::Fault)
+        .expect("the heartbeat faults the robot");
+    // Its heartbeat comes in with the next step's frames.
+    assert_eq!(t, t0);
+    assert_eq!(rig.ctl.fault(), Fault::DriveNmt);
+    let issue = rig.ctl.drive_issue().unwrap();
+    assert_eq!(
+        issue,
+        DriveIssue::NotOperational {
+            node: 1,
+            state: NmtState::PreOperational
+        }
+    );
+    assert_eq!(issue.to_string(), "node 1: NMT PRE_OPERATIONAL");
+    // Quick stop and zero targets to every node; nothing else until the host's reset.
+    rig.run_ms(100);
+    assert_eq!(last_rpdo(&rig, 1), (0x02, 0, 0));
+    assert_eq!(last_rpdo(&rig, 2), (0x02, 0, 0));
+    assert!(!moved_since(&rig, t + 5_000));
+    assert_eq!(nmt_commands(&rig, t0), []);
+    assert_eq!(rig.ctl.state(), RobotState::Fault);
+
+    // The reset starts node 1 again (its configuration is intact: no SDO), with a fault
+    // reset in its first cycle; node 2 is left alone.
+    let sdo_before = rig.canopen.node(1).sdo_log.len();
+    let t_reset = rig.now_us;
+    rig.send(Command::Mode(ModeRequest::Reset));
+    rig.run_ms(20);
+    assert_eq!(
+        nmt_commands(&rig, t_reset),
+        [(t_reset, NmtCommand::Start, 1)]
+    );
+    assert_eq!(rig.canopen.node(1).sdo_log.len(), sdo_before);
+    assert!(rig.canopen.node(1).operational());
+    let words: Vec<u16> = rig
+        .canopen
+        .node(1)
+        .controlwords
+        .iter()
+        .filter(|(t, _)| *t >= t_reset)
+        .map(|(_, cw)| *cw)
+        .collect();
+    assert_eq!(words[0], 0x80, "{words:?}");
+    assert!(
+        rig.canopen
+            .node(2)
+            .controlwords
+            .iter()
+            .all(|(_, cw)| cw & 0x80 == 0)
+    );
+    assert_eq!(
+        (rig.ctl.state(), rig.ctl.fault()),
+        (RobotState::Disabled, Fault::None)
+    );
+    // Enabled again, it drives.
+    let t_enable = rig.now_us;
+    rig.enable();
+    wait_enabled(&mut rig).expect("enabled again");
+    drive(&mut rig, 200);
+    assert_eq!(rig.ctl.state(), RobotState::Enabled);
+    assert_eq!(last_rpdo(&rig, 1), (0x0F, 48, -48));
+    assert!(moved_since(&rig, t_enable));
+}
+
+#[test]
+fn a_stopped_node_faults_as_well_and_the_reset_starts_it() {
+    let mut rig = enabled();
+    // Past the grace after the start.
+    rig.run_ms(30);
+    rig.canopen.node(2).enter(NmtState::Stopped);
+    rig.run_until(5, |r, _| r.ctl.state() == RobotState::Fault)
+        .expect("the heartbeat faults the robot");
+    assert_eq!(rig.ctl.fault(), Fault::DriveNmt);
+    assert_eq!(
+        rig.ctl.drive_issue().map(|i| i.to_string()),
+        Some("node 2: NMT STOPPED".into())
+    );
+    let t_reset = rig.now_us;
+    rig.send(Command::Mode(ModeRequest::Reset));
+    rig.run_ms(100);
+    assert_eq!(
+        nmt_commands(&rig, t_reset),
+        [(t_reset, NmtCommand::Start, 2)]
+    );
+    assert_eq!(
+        (rig.ctl.state(), rig.ctl.fault()),
+        (RobotState::Disabled, Fault::None)
+    );
+}
+
+#[test]
+fn a_heartbeat_that_may_predate_the_start_is_not_judged() {
+    let mut rig = rig();
+    let start = rig
+        .run_until(200, |_, out| {
+            messages(out).iter().any(|m| {
+                matches!(
+                    m,
+                    Message::Nmt {
+                        command: NmtCommand::Start,
+                        ..
+                    }
+                )
+            })
+        })
+        .expect("started");
+    // A pre-operational heartbeat queued before the start reached the node.
+    let node = NodeId::new(1).unwrap();
+    let stale = Message::Heartbeat {
+        node,
+        state: NmtState::PreOperational,
+    };
+    rig.run_ms(5);
+    rig.raw(stale.to_can_frame());
+    rig.run_ms(30);
+    assert_eq!(rig.ctl.state(), RobotState::Disabled, "within the grace");
+    assert!(rig.now_us - start > CANOPEN_NMT_GRACE_US);
+    rig.raw(stale.to_can_frame());
+    rig.tick();
+    assert_eq!(
+        (rig.ctl.state(), rig.ctl.fault()),
+        (RobotState::Fault, Fault::DriveNmt)
+    );
+}
+
+#[test]
+fn a_late_heartbeat_after_the_stale_fault_still_names_the_nmt_state_and_the_reset_recovers() {
+    let mut rig = enabled();
+    drive(&mut rig, 20);
+    // Pre-operational, said only by the next periodic heartbeat: the TPDOs stop first.
+    rig.canopen.node(2).nmt = NmtState::PreOperational;
+    rig.run_until(20, |r, _| r.ctl.state() == RobotState::Fault)
+        .expect("stale");
+    assert_eq!(rig.ctl.fault(), Fault::MotorStale);
+    rig.run_ms(60);
+    assert_eq!(
+        rig.ctl.drive_issue().map(|i| i.to_string()),
+        Some("node 2: NMT PRE_OPERATIONAL".into())
+    );
+    let t_reset = rig.now_us;
+    rig.send(Command::Mode(ModeRequest::Reset));
+    rig.run_ms(20);
+    assert_eq!(
+        nmt_commands(&rig, t_reset),
+        [(t_reset, NmtCommand::Start, 2)]
+    );
+    assert_eq!(rig.ctl.state(), RobotState::Disabled);
+    rig.enable();
+    wait_enabled(&mut rig).expect("enabled again");
+    drive(&mut rig, 200);
+    assert_eq!(rig.ctl.state(), RobotState::Enabled);
+    assert_eq!(last_rpdo(&rig, 2), (0x0F, 48, -48));
+}
+
+#[test]
+fn a_node_back_pre_operational_after_its_heartbeat_was_lost_is_reset_and_configured_again() {
+    let mut rig = enabled();
+    rig.canopen.node(2).heartbeat_silent = true;
+    rig.run_until(400, |r, _| r.ctl.state() == RobotState::Fault)
+        .expect("the silence faults the robot");
+    assert_eq!(rig.ctl.fault(), Fault::DriveSilent);
+    // Back, pre-operational: whether it booted meanwhile no one can tell.
+    rig.canopen.node(2).heartbeat_silent = false;
+    rig.canopen.node(2).enter(NmtState::PreOperational);
+    rig.run_ms(10);
+    // The first issue is kept until the reset.
+    assert_eq!(
+        rig.ctl.drive_issue().map(|i| i.to_string()),
+        Some("node 2: heartbeat lost".into())
+    );
+    let sdo_before = rig.canopen.node(2).sdo_log.len();
+    let t_reset = rig.now_us;
+    rig.send(Command::Mode(ModeRequest::Reset));
+    rig.run_until(200, |r, _| r.canopen.nodes[1].operational())
+        .expect("node 2 reset, configured again and started");
+    let nmt = nmt_commands(&rig, t_reset);
+    assert_eq!(
+        nmt.iter().map(|&(_, c, n)| (c, n)).collect::<Vec<_>>(),
+        [(NmtCommand::ResetCommunication, 2), (NmtCommand::Start, 2)]
+    );
+    assert_eq!(nmt[0].0, t_reset);
+    assert_eq!(rig.canopen.node(2).sdo_log.len(), 2 * sdo_before);
+    // No feedback fault while it was configured again.
+    rig.run_ms(20);
+    assert_eq!(
+        (rig.ctl.state(), rig.ctl.fault()),
+        (RobotState::Disabled, Fault::None)
+    );
+    rig.enable();
+    wait_enabled(&mut rig).expect("enabled again");
+    drive(&mut rig, 200);
+    assert_eq!(rig.ctl.state(), RobotState::Enabled);
+    assert_eq!(last_rpdo(&rig, 2), (0x0F, 48, -48));
+}
+
+#[test]
+fn a_node_that_does_not_boot_after_a_recovery_reset_is_silent_after_the_consumer_time() {
+    let mut rig = enabled();
+    rig.canopen.node(2).heartbeat_silent = true;
+    rig.run_until(400, |r, _| r.ctl.state() == RobotState::Fault)
+        .expect("the silence faults the robot");
+    rig.canopen.node(2).heartbeat_silent = false;
+    rig.canopen.node(2).enter(NmtState::PreOperational);
+    rig.run_ms(10);
+    rig.canopen.node(2).mute = true;
+    let t_reset = rig.now_us;
+    rig.send(Command::Mode(ModeRequest::Reset));
+    let t = rig
+        .run_until(400, |r, _| r.ctl.state() == RobotState::Fault)
+        .expect("faults again");
+    assert_eq!(rig.ctl.fault(), Fault::DriveSilent);
+    let waited = t - t_reset;
+    assert!((150_000..=152_000).contains(&waited), "{waited} µs");
 }

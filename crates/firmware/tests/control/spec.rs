@@ -57,6 +57,7 @@ fn the_specifications_constants_are_the_codes() {
             CIA402_TRANSITION_TIMEOUT_US as f64,
         ),
         ("CIA402_RESET_GRACE_US", CIA402_RESET_GRACE_US as f64),
+        ("CANOPEN_NMT_GRACE_US", CANOPEN_NMT_GRACE_US as f64),
         ("SLIP_TIME_CONSTANT_S", f64::from(SLIP_TIME_CONSTANT_S)),
     ];
     assert_eq!(
