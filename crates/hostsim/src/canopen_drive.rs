@@ -6,8 +6,10 @@
 //! PDOs are packed and unpacked from the mapping the master wrote (`0x1600..`/`0x1A00..`),
 //! not from the firmware codec's fixed layout: a master that maps wrong gets what a drive
 //! would give it. A mapping or COB-ID written out of the disable → map → enable order is
-//! refused with the abort code a drive gives. The model is specified in
-//! `docs/simulator.md`, section "CiA 402 drive".
+//! refused with the abort code a drive gives. A communication error (the master's heartbeat
+//! lost, a bus-off) takes an operational node to pre-operational, CiA 301's default error
+//! behaviour (`0x1029:01` = 0). The model is specified in `docs/simulator.md`, section
+//! "CiA 402 drive".
 
 use std::collections::BTreeMap;
 
@@ -27,6 +29,9 @@ pub const BOOT_NS: u64 = 2_000_000;
 pub const EMCY_DRIVE_FAULT: u16 = 0x2310;
 /// EMCY error code of a heartbeat consumer timeout (CiA 301: life guard / heartbeat error).
 pub const EMCY_HEARTBEAT: u16 = 0x8130;
+/// EMCY error code a node sends when it is back from bus-off (CiA 301: recovered from bus
+/// off).
+pub const EMCY_BUS_OFF_RECOVERED: u16 = 0x8140;
 /// A quick stop ends once every axis of the node turns slower than this, rad/s (motor side).
 pub const QUICK_STOP_REST_RAD_S: f64 = 0.1;
 /// The device type (0x1000) the nodes report: CiA 402, servo drive.
@@ -83,6 +88,8 @@ struct Node {
     faults: NodeFaults,
     /// The scenario's faults last set (for their rising edges).
     scenario: crate::sim::DriveFaults,
+    /// Its CAN controller is bus-off: it sends and receives nothing.
+    bus_off: bool,
 }
 
 /// The CiA 402 nodes of a configuration.
@@ -92,8 +99,8 @@ pub struct CanopenDrives {
     /// Motor rev/s per raw unit of 0x60FF, motor rpm per raw unit of 0x606C.
     target_rev_s_per_unit: f64,
     actual_rpm_per_unit: f64,
-    /// Frames owed, with their send time (ns), in time order per node.
-    queue: Vec<(u64, CanFrame)>,
+    /// Frames owed: send time (ns), node (index), frame; in time order per node.
+    queue: Vec<(u64, usize, CanFrame)>,
     emcy_sent: u32,
 }
 
@@ -172,7 +179,7 @@ impl CanopenDrives {
 
     /// The scenario's faults of each wheel's node from `at_ns` on: heartbeat, enable and SDO
     /// faults as they say; a rising `reboot` reboots the node, a rising `fault` faults it
-    /// (EMCY 0x2310).
+    /// (EMCY 0x2310); `bus_off` holds it off the bus, and it comes back pre-operational.
     pub fn set_wheel_faults(
         &mut self,
         at_ns: u64,
@@ -188,6 +195,7 @@ impl CanopenDrives {
                     f.fault |= wf.fault;
                     f.refuses_enable |= wf.refuses_enable;
                     f.sdo_abort |= wf.sdo_abort;
+                    f.bus_off |= wf.bus_off;
                 }
             }
             let before = self.nodes[i].scenario;
@@ -204,6 +212,68 @@ impl CanopenDrives {
             if f.fault && !before.fault {
                 self.enter_fault(i, at_ns, EMCY_DRIVE_FAULT, plant);
             }
+            if f.bus_off && !before.bus_off {
+                self.go_bus_off(i, plant);
+            }
+            if !f.bus_off && before.bus_off {
+                self.recover_bus_off(i, at_ns);
+            }
+        }
+    }
+
+    /// Node `i`'s controller goes bus-off: what it had queued is lost; the drive reacts to
+    /// the communication error (abort connection: fault, no torque) and leaves operational.
+    fn go_bus_off(&mut self, i: usize, plant: &mut Plant<Cia402Axis>) {
+        self.nodes[i].bus_off = true;
+        self.queue.retain(|&(_, n, _)| n != i);
+        let n = &mut self.nodes[i];
+        n.statusword = sw::FAULT;
+        if n.nmt == NmtState::Operational {
+            n.nmt = NmtState::PreOperational;
+        }
+        self.power(i, plant);
+    }
+
+    /// Node `i` is back on the bus at `t_ns`: its EMCY (recovered from bus-off), then its
+    /// heartbeat with the state it is in now.
+    fn recover_bus_off(&mut self, i: usize, t_ns: u64) {
+        self.nodes[i].bus_off = false;
+        let id = self.nodes[i].id;
+        self.emcy_sent += 1;
+        self.send(
+            i,
+            t_ns,
+            Message::Emcy {
+                node: id,
+                emcy: Emcy {
+                    error_code: EMCY_BUS_OFF_RECOVERED,
+                    error_register: 0x11,
+                    manufacturer: [0; 5],
+                },
+            },
+        );
+        self.heartbeat_now(i, t_ns);
+    }
+
+    /// Node `i`'s NMT state becomes `state` at `t_ns`: if it changes, the heartbeat says so
+    /// at once and the producer's period starts again from there (as CANopenNode does).
+    fn set_nmt(&mut self, i: usize, state: NmtState, t_ns: u64) {
+        if self.nodes[i].nmt != state {
+            self.nodes[i].nmt = state;
+            self.heartbeat_now(i, t_ns);
+        }
+    }
+
+    /// Node `i`'s heartbeat at `t_ns` (if it produces one), the next a period later.
+    fn heartbeat_now(&mut self, i: usize, t_ns: u64) {
+        let n = &mut self.nodes[i];
+        let Some(period) = n.heartbeat_period_ns() else {
+            return;
+        };
+        n.next_heartbeat_ns = t_ns + period;
+        if !n.faults.heartbeat_silent {
+            let (node, state) = (n.id, n.nmt);
+            self.send(i, t_ns, Message::Heartbeat { node, state });
         }
     }
 
@@ -222,20 +292,23 @@ impl CanopenDrives {
             .map(|n| n.statusword)
     }
 
-    fn send(&mut self, t_ns: u64, msg: Message) {
-        self.queue.push((t_ns, msg.to_can_frame()));
+    fn send(&mut self, i: usize, t_ns: u64, msg: Message) {
+        if !self.nodes[i].bus_off {
+            self.queue.push((t_ns, i, msg.to_can_frame()));
+        }
     }
 
     /// Node `i` (re)boots at `t_ns`: its dictionary at its defaults, pre-operational, switch
     /// on disabled; the boot-up goes out [`BOOT_NS`] later.
     fn boot(&mut self, i: usize, t_ns: u64) {
         let n = &mut self.nodes[i];
-        let (axes, faults, scenario) = (n.axes, n.faults, n.scenario);
+        let (axes, faults, scenario, bus_off) = (n.axes, n.faults, n.scenario, n.bus_off);
         *n = Node::new(n.id);
-        (n.axes, n.faults, n.scenario) = (axes, faults, scenario);
+        (n.axes, n.faults, n.scenario, n.bus_off) = (axes, faults, scenario, bus_off);
         let id = n.id;
         // The heartbeat producer starts with the boot-up, at its default period (0: off).
         self.send(
+            i,
             t_ns + BOOT_NS,
             Message::Heartbeat {
                 node: id,
@@ -251,8 +324,10 @@ impl CanopenDrives {
         }
         n.statusword = sw::FAULT;
         let id = n.id;
-        self.emcy_sent += 1;
+        // A node off the bus sends nothing.
+        self.emcy_sent += u32::from(!n.bus_off);
         self.send(
+            i,
             t_ns,
             Message::Emcy {
                 node: id,
@@ -296,6 +371,7 @@ impl CanopenDrives {
         // PDOs first: their ids are whatever the master mapped.
         for i in 0..self.nodes.len() {
             if self.nodes[i].nmt == NmtState::Operational
+                && !self.nodes[i].bus_off
                 && let Some(k) = self.nodes[i].rpdo_with(raw)
             {
                 self.on_rpdo(i, k, frame.data(), plant);
@@ -305,14 +381,14 @@ impl CanopenDrives {
         match canopen::decode(frame) {
             Ok(Message::Nmt { command, node }) => {
                 for i in 0..self.nodes.len() {
-                    if node.is_none_or(|id| id == self.nodes[i].id) {
+                    if node.is_none_or(|id| id == self.nodes[i].id) && !self.nodes[i].bus_off {
                         self.on_nmt(i, command, t_ns, plant);
                     }
                 }
             }
             Ok(Message::Sync { .. }) => self.on_sync(t_ns, plant),
             Ok(Message::SdoRequest { node, request }) => {
-                if let Some(i) = self.nodes.iter().position(|n| n.id == node) {
+                if let Some(i) = self.nodes.iter().position(|n| n.id == node && !n.bus_off) {
                     let response = self.nodes[i].sdo(request);
                     let n = &mut self.nodes[i];
                     if response
@@ -326,12 +402,12 @@ impl CanopenDrives {
                         n.next_heartbeat_ns =
                             n.heartbeat_period_ns().map_or(u64::MAX, |p| start + p);
                     }
-                    self.send(t_ns + ANSWER_NS, Message::SdoResponse { node, response });
+                    self.send(i, t_ns + ANSWER_NS, Message::SdoResponse { node, response });
                 }
             }
             Ok(Message::Heartbeat { node, .. }) => {
                 for n in &mut self.nodes {
-                    if n.consumer().is_some_and(|(master, _)| master == node.get()) {
+                    if !n.bus_off && n.consumer().is_some_and(|(master, _)| master == node.get()) {
                         n.last_master_heartbeat_ns = Some(t_ns);
                     }
                 }
@@ -341,15 +417,15 @@ impl CanopenDrives {
     }
 
     fn on_nmt(&mut self, i: usize, command: NmtCommand, t_ns: u64, plant: &mut Plant<Cia402Axis>) {
+        let answer = t_ns + ANSWER_NS;
         match command {
             NmtCommand::Start => {
-                let n = &mut self.nodes[i];
-                n.nmt = NmtState::Operational;
                 // The master's heartbeat is watched from the start.
-                n.last_master_heartbeat_ns = Some(t_ns);
+                self.nodes[i].last_master_heartbeat_ns = Some(t_ns);
+                self.set_nmt(i, NmtState::Operational, answer);
             }
-            NmtCommand::Stop => self.nodes[i].nmt = NmtState::Stopped,
-            NmtCommand::EnterPreOperational => self.nodes[i].nmt = NmtState::PreOperational,
+            NmtCommand::Stop => self.set_nmt(i, NmtState::Stopped, answer),
+            NmtCommand::EnterPreOperational => self.set_nmt(i, NmtState::PreOperational, answer),
             NmtCommand::ResetNode | NmtCommand::ResetCommunication => {
                 self.boot(i, t_ns);
                 self.power(i, plant);
@@ -372,8 +448,8 @@ impl CanopenDrives {
             }
         }
         let mut frames = Vec::new();
-        for n in &self.nodes {
-            if n.nmt != NmtState::Operational {
+        for (i, n) in self.nodes.iter().enumerate() {
+            if n.nmt != NmtState::Operational || n.bus_off {
                 continue;
             }
             let actual = n.axes.map(|w| {
@@ -406,7 +482,7 @@ impl CanopenDrives {
                 if let Some(id) = StandardId::new(cob)
                     && let Some(frame) = CanFrame::standard(id, &data[..at])
                 {
-                    frames.push((t_ns + ANSWER_NS, frame));
+                    frames.push((t_ns + ANSWER_NS, i, frame));
                 }
             }
         }
@@ -454,7 +530,8 @@ impl CanopenDrives {
         out: &mut Vec<(u64, CanFrame)>,
     ) {
         for i in 0..self.nodes.len() {
-            // The heartbeat consumer.
+            // The heartbeat consumer: a time-out is a communication error (the drive's abort
+            // connection: fault), and an operational node goes pre-operational.
             if let Some((_, timeout_ms)) = self.nodes[i].consumer()
                 && self.nodes[i].nmt == NmtState::Operational
                 && let Some(last) = self.nodes[i].last_master_heartbeat_ns
@@ -463,6 +540,7 @@ impl CanopenDrives {
                 if deadline <= until_ns {
                     self.nodes[i].last_master_heartbeat_ns = None;
                     self.enter_fault(i, deadline, EMCY_HEARTBEAT, plant);
+                    self.set_nmt(i, NmtState::PreOperational, deadline);
                 }
             }
             // The heartbeat producer.
@@ -475,12 +553,12 @@ impl CanopenDrives {
                 n.next_heartbeat_ns = n.heartbeat_period_ns().map_or(u64::MAX, |p| t + p);
                 if !n.faults.heartbeat_silent {
                     let (node, state) = (n.id, n.nmt);
-                    self.send(t, Message::Heartbeat { node, state });
+                    self.send(i, t, Message::Heartbeat { node, state });
                 }
             }
         }
         let mut due = Vec::new();
-        self.queue.retain(|&(t, f)| {
+        self.queue.retain(|&(t, _, f)| {
             if t <= until_ns {
                 due.push((t, f));
                 false
@@ -506,7 +584,12 @@ impl CanopenDrives {
     /// When the next frame is due, ns.
     #[must_use]
     pub fn next_feedback_ns(&self) -> u64 {
-        let queued = self.queue.iter().map(|(t, _)| *t).min().unwrap_or(u64::MAX);
+        let queued = self
+            .queue
+            .iter()
+            .map(|(t, _, _)| *t)
+            .min()
+            .unwrap_or(u64::MAX);
         let beats = self
             .nodes
             .iter()
@@ -550,6 +633,7 @@ impl Node {
             last_master_heartbeat_ns: None,
             faults: NodeFaults::default(),
             scenario: crate::sim::DriveFaults::default(),
+            bus_off: false,
         }
     }
 

@@ -94,8 +94,8 @@ impl SimDrives {
                 "faults[].kind",
                 f64::NAN,
                 "stuck_encoder or motor_offline: drive_silent, drive_reboot, drive_fault, \
-                 enable_refused and sdo_abort act on CANopen nodes, a protocol = \"cia402\" \
-                 configuration",
+                 enable_refused, sdo_abort and drive_bus_off act on CANopen nodes, a \
+                 protocol = \"cia402\" configuration",
             ));
         }
         Self::with_spec(&scenario.config, &scenario.plant)

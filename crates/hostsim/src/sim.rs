@@ -84,6 +84,8 @@ pub struct DriveFaults {
     pub refuses_enable: bool,
     /// `sdo_abort`: the write of 0x6060 is aborted.
     pub sdo_abort: bool,
+    /// `drive_bus_off`: its CAN controller is bus-off (it comes back when this ends).
+    pub bus_off: bool,
 }
 
 /// What to log.
@@ -212,6 +214,9 @@ pub struct StepView<'a> {
     pub delivered: &'a [Transmission],
     /// The frames the firmware sent at this step.
     pub sent: &'a [CanFrame],
+    /// The firmware is not running (a `runner_restart` fault's window): `controller` is the
+    /// core as it stopped, it received nothing and `sent` is empty.
+    pub down: bool,
     /// Ground-truth pose `[x, y, heading]` at the step.
     pub truth: [f64; 3],
 }
@@ -316,6 +321,14 @@ pub fn run_until<P: SimPlant>(
     let plant = &mut crate::imu::WithImu::new(plant, scenario.imu.as_ref(), scenario.seed);
     let plant = &mut crate::pods::WithPods::for_scenario(plant, scenario);
     let mut ctl = Controller::new(&scenario.config)?;
+    // The runner's deaths: from, until (µs); a fresh core starts at `until`.
+    let restarts: Vec<(u64, u64)> = scenario
+        .node_faults
+        .iter()
+        .filter(|f| f.kind == crate::scenario::FaultName::RunnerRestart)
+        .map(|f| (f.from_us, f.until_us))
+        .collect();
+    let mut was_down = false;
     let period_us = ctl.period_micros();
     let period_ns = period_us * 1000;
     let mut bus = Bus::new(1_000_000, scenario.bus_faults.clone(), scenario.seed);
@@ -347,6 +360,13 @@ pub fn run_until<P: SimPlant>(
     let mut out = Outbox::new();
     while t_us <= duration_us {
         let t_ns = t_us * 1000;
+        let down = restarts
+            .iter()
+            .any(|&(from, until)| from <= t_us && t_us < until);
+        if was_down && !down {
+            ctl = Controller::new(&scenario.config)?;
+        }
+        was_down = down;
         twists_to_log.clear();
         // 1. Host.
         host_frames.clear();
@@ -367,6 +387,10 @@ pub fn run_until<P: SimPlant>(
         delivered.extend(in_flight.drain(..due));
         let mut twists_logged = 0;
         for tx in &delivered {
+            // A dead runner receives (and logs) nothing.
+            if down && tx.from != Node::Controller {
+                continue;
+            }
             if let Some(l) = log.as_deref_mut() {
                 // The host's setpoint changes in time order with the deliveries.
                 while let Some(&(at_ns, twist)) = twists_to_log.get(twists_logged)
@@ -390,7 +414,11 @@ pub fn run_until<P: SimPlant>(
         }
 
         // 5. Firmware step.
-        ctl.step_into(Instant::from_micros(t_us), &mut out);
+        if down {
+            out.clear();
+        } else {
+            ctl.step_into(Instant::from_micros(t_us), &mut out);
+        }
         for f in &out {
             bus.send(t_ns, Node::Controller, *f);
             hash.add(t_us, f);
@@ -408,7 +436,11 @@ pub fn run_until<P: SimPlant>(
             });
         }
         let truth_now = || (truth, plant.truth_velocity());
-        let changes = core_log.step(log.as_deref_mut(), t_ns, &ctl, Some(&truth_now))?;
+        let changes = if down {
+            crate::log::Changes::default()
+        } else {
+            core_log.step(log.as_deref_mut(), t_ns, &ctl, Some(&truth_now))?
+        };
         if changes.state {
             let (state, fault) = (ctl.state().to_string(), ctl.fault().to_string());
             transitions.push((t_us as f64 * 1e-6, state, fault));
@@ -426,6 +458,7 @@ pub fn run_until<P: SimPlant>(
             delivered: &delivered,
             sent: &out,
             truth,
+            down,
         });
         if flow.is_break() {
             stopped_at_us = Some(t_us);
@@ -561,12 +594,13 @@ pub fn set_wheel_faults<P: SimPlant>(s: &Scenario, plant: &mut P, t_us: u64) {
     plant.set_faults(t_us * 1000, stuck, offline);
     if s.wheel_faults.iter().any(|f| f.kind.cia402_only()) {
         use crate::scenario::FaultName as F;
-        let [silent, reboot, fault, refuses_enable, sdo_abort] = [
+        let [silent, reboot, fault, refuses_enable, sdo_abort, bus_off] = [
             F::DriveSilent,
             F::DriveReboot,
             F::DriveFault,
             F::EnableRefused,
             F::SdoAbort,
+            F::DriveBusOff,
         ]
         .map(|kind| wheel_flags(s, t_us, kind));
         let faults = core::array::from_fn(|i| DriveFaults {
@@ -575,6 +609,7 @@ pub fn set_wheel_faults<P: SimPlant>(s: &Scenario, plant: &mut P, t_us: u64) {
             fault: fault[i],
             refuses_enable: refuses_enable[i],
             sdo_abort: sdo_abort[i],
+            bus_off: bus_off[i],
         });
         plant.set_drive_faults(t_us * 1000, faults);
     }

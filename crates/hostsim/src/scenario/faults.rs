@@ -11,8 +11,9 @@ use crate::scenario::ScenarioError;
 #[serde(deny_unknown_fields)]
 pub struct FaultSpec {
     /// `drop`, `burst`, `delay`, `corrupt`, `stuck_encoder`, `motor_offline`,
-    /// `non_finite_twist`, `repeated_twist`, `pods_silent`, or for CiA 402 drives
-    /// `drive_silent`, `drive_reboot`, `drive_fault`, `enable_refused`, `sdo_abort`.
+    /// `non_finite_twist`, `repeated_twist`, `pods_silent`, `runner_restart`, or for CiA 402
+    /// drives `drive_silent`, `drive_reboot`, `drive_fault`, `enable_refused`, `sdo_abort`,
+    /// `drive_bus_off`.
     pub kind: FaultName,
     /// Start, s.
     pub from_s: f64,
@@ -65,6 +66,9 @@ pub enum FaultName {
     /// CiA 402: the wheel's drive aborts the master's write of the mode (0x6060) with
     /// 0x06090030 (invalid value).
     SdoAbort,
+    /// CiA 402: the wheel's drive is bus-off from `from_s` (it sends and takes nothing; its
+    /// axes lose torque) and back at `until_s`, pre-operational, with EMCY 0x8140.
+    DriveBusOff,
     /// The host's stream stops incrementing `TWIST_CMD.seq`: each frame it sends is its last
     /// one before the fault, unchanged (a stuck host, USB adapter or gateway repeating one
     /// frame), whatever its setpoint; afterwards it sends fresh frames again.
@@ -72,6 +76,9 @@ pub enum FaultName {
     /// The tracking-pod node (`[pods]`) sends nothing: its pods roll and count on, its `seq`
     /// counts on, its frames stay off the bus (a disconnected node; `crate::pods`).
     PodsSilent,
+    /// The runner is killed at `from_s` (the firmware core sends and takes nothing) and
+    /// started again at `until_s`: a fresh core, as a restarted runner or a rebooted board.
+    RunnerRestart,
 }
 
 impl FaultName {
@@ -85,6 +92,7 @@ impl FaultName {
                 | Self::DriveFault
                 | Self::EnableRefused
                 | Self::SdoAbort
+                | Self::DriveBusOff
         )
     }
 
@@ -105,7 +113,9 @@ impl FaultName {
             Self::DriveFault => "drive_fault",
             Self::EnableRefused => "enable_refused",
             Self::SdoAbort => "sdo_abort",
+            Self::DriveBusOff => "drive_bus_off",
             Self::PodsSilent => "pods_silent",
+            Self::RunnerRestart => "runner_restart",
         }
     }
 }
@@ -178,10 +188,11 @@ impl HostFault {
     }
 }
 
-/// A fault of a sensor node on the plant (`pods_silent`): what, when.
+/// A fault of a node other than the drives and the host: a sensor node on the plant
+/// (`pods_silent`) or the firmware's own (`runner_restart`); what, when.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct NodeFault {
-    /// What it does (`PodsSilent`).
+    /// What it does (`PodsSilent`, `RunnerRestart`).
     pub kind: FaultName,
     /// Start, µs.
     pub from_us: u64,
@@ -241,10 +252,12 @@ pub(super) fn build(
             | FaultName::DriveReboot
             | FaultName::DriveFault
             | FaultName::EnableRefused
-            | FaultName::SdoAbort => (false, false, false, true, "wheel"),
-            FaultName::NonFiniteTwist | FaultName::RepeatedTwist | FaultName::PodsSilent => {
-                (false, false, false, false, "no other field")
-            }
+            | FaultName::SdoAbort
+            | FaultName::DriveBusOff => (false, false, false, true, "wheel"),
+            FaultName::NonFiniteTwist
+            | FaultName::RepeatedTwist
+            | FaultName::PodsSilent
+            | FaultName::RunnerRestart => (false, false, false, false, "no other field"),
         };
         for (field, given, used) in [
             ("rate", f.rate.map(|x| x.to_string()), rate_used),
@@ -298,9 +311,11 @@ pub(super) fn build(
             | FaultName::DriveFault
             | FaultName::EnableRefused
             | FaultName::SdoAbort
-            | FaultName::PodsSilent => None,
+            | FaultName::DriveBusOff
+            | FaultName::PodsSilent
+            | FaultName::RunnerRestart => None,
         };
-        if f.kind == FaultName::PodsSilent {
+        if matches!(f.kind, FaultName::PodsSilent | FaultName::RunnerRestart) {
             node_faults.push(NodeFault {
                 kind: f.kind,
                 from_us,

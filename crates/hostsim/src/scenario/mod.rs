@@ -315,8 +315,8 @@ impl Scenario {
                 &format!("faults[{i}].kind"),
                 format!("{:?}", f.kind.as_str()),
                 "a fault of this configuration's drives (stuck_encoder, motor_offline): \
-                 drive_silent, drive_reboot, drive_fault, enable_refused and sdo_abort act on \
-                 CANopen nodes, a protocol = \"cia402\" configuration",
+                 drive_silent, drive_reboot, drive_fault, enable_refused, sdo_abort and \
+                 drive_bus_off act on CANopen nodes, a protocol = \"cia402\" configuration",
             ));
         }
         if let Some((field, value, expected)) = file.plant.first_invalid() {

@@ -297,6 +297,9 @@ fn fault_names_are_the_ones_a_file_uses() {
         DriveFault,
         EnableRefused,
         SdoAbort,
+        DriveBusOff,
+        PodsSilent,
+        RunnerRestart,
     ] {
         let parsed: FaultName =
             serde::de::Deserialize::deserialize(serde::de::value::StrDeserializer::<

@@ -2,17 +2,20 @@
 //! a 250 Hz cycle), injected into the simulated node while the robot drives. A stop is the
 //! fault's state with quick stop (`0x02`) and zero targets delivered to every node; latencies
 //! run from what the firmware could first have known, read from the bus deliveries (the
-//! node's last heartbeat, the enable step sent).
+//! node's last heartbeat, the enable step sent). The rows of a communication error (the
+//! runner killed, a bus-off) go on to the host's reset and enable, and show the robot
+//! driving again.
 
 use firmware::control::{CIA402_TRANSITION_TIMEOUT_US, Fault};
+use firmware::protocol::canopen::DriveState402;
 use firmware::protocol::canopen::{self, Message, NmtCommand, NmtState};
 use firmware::protocol::robot::RobotState;
 use hostsim::bus::{Fate, Node};
 use hostsim::drives::SimDrives;
-use hostsim::scenario::{FaultName, Scenario, WheelFault};
+use hostsim::scenario::{Action, FaultName, NodeFault, Scenario, WheelFault};
 use hostsim::sim::{LogOptions, run_observed};
 
-use super::{MOMENTS, MS, Row, drive, moment, ms, us};
+use super::{MOMENTS, MS, Row, add_action, drive, moment, ms, us};
 
 /// What a CiA 402 run shows.
 #[derive(Debug, Default)]
@@ -21,11 +24,19 @@ struct Record {
     steps: Vec<(u64, RobotState, Fault)>,
     /// Heartbeats delivered from the drives: time, node, state.
     heartbeats: Vec<(u64, u8, NmtState)>,
+    /// The master's heartbeats delivered: time.
+    heartbeat_master: Vec<u64>,
     /// RPDO1s delivered from the firmware: time, node, controlword, target; RPDO3 targets
     /// as controlword `None`.
     rpdos: Vec<(u64, u8, Option<u16>, i32)>,
     /// NMT starts sent: time, node.
     starts: Vec<(u64, u8)>,
+    /// Every NMT command sent to one node: time, command, node.
+    nmt: Vec<(u64, NmtCommand, u8)>,
+    /// EMCY frames delivered from the drives: time, node, error code.
+    emcys: Vec<(u64, u8, u16)>,
+    /// Statuswords delivered from the drives (TPDO1): time, node, statusword.
+    statuswords: Vec<(u64, u8, u16)>,
     /// SDO requests delivered: time, node, object.
     sdo: Vec<(u64, u8, (u16, u8))>,
     /// The firmware's drive issue and EMCY count at the end.
@@ -39,6 +50,48 @@ impl Record {
             .iter()
             .find(|(t, st, f)| *t >= from_us && (*st, *f) == want)
             .map(|s| s.0)
+    }
+
+    /// The first heartbeat of `node` from `from_us` on that says `state`.
+    fn heartbeat(&self, from_us: u64, node: u8, state: NmtState) -> Option<u64> {
+        self.heartbeats
+            .iter()
+            .find(|h| h.0 >= from_us && (h.1, h.2) == (node, state))
+            .map(|h| h.0)
+    }
+
+    /// The first target other than zero sent from `from_us` on.
+    fn first_target(&self, from_us: u64) -> Option<u64> {
+        self.rpdos
+            .iter()
+            .find(|r| r.0 >= from_us && r.3 != 0)
+            .map(|r| r.0)
+    }
+
+    /// The first time from `from_us` by which every node's statusword shows operation
+    /// enabled.
+    fn operation_enabled(&self, from_us: u64) -> Option<u64> {
+        [1, 2]
+            .iter()
+            .map(|&node| {
+                self.statuswords
+                    .iter()
+                    .find(|(t, n, sw)| {
+                        *t >= from_us
+                            && *n == node
+                            && DriveState402::from_statusword(*sw)
+                                == Some(DriveState402::OperationEnabled)
+                    })
+                    .map(|s| s.0)
+            })
+            .try_fold(0, |m, t| t.map(|t| t.max(m)))
+    }
+
+    /// The state and fault at the last step.
+    fn last(&self) -> (RobotState, Fault) {
+        self.steps
+            .last()
+            .map_or((RobotState::Fault, Fault::None), |s| (s.1, s.2))
     }
 
     /// The first time from `from_us` by which each of `nodes` has been sent quick stop with
@@ -70,6 +123,18 @@ fn run(s: &Scenario) -> Record {
                 (Node::Drives, Ok(Message::Heartbeat { node, state })) => {
                     rec.heartbeats.push((t, node.get(), state));
                 }
+                (Node::Controller, Ok(Message::Heartbeat { .. })) => {
+                    rec.heartbeat_master.push(t);
+                }
+                (Node::Drives, Ok(Message::Emcy { node, emcy })) => {
+                    rec.emcys.push((t, node.get(), emcy.error_code));
+                }
+                (
+                    Node::Drives,
+                    Ok(Message::Tpdo1 {
+                        node, statusword, ..
+                    }),
+                ) => rec.statuswords.push((t, node.get(), statusword)),
                 (
                     Node::Controller,
                     Ok(Message::Rpdo1 {
@@ -84,15 +149,24 @@ fn run(s: &Scenario) -> Record {
                 (
                     Node::Controller,
                     Ok(Message::Nmt {
-                        command: NmtCommand::Start,
+                        command,
                         node: Some(node),
                     }),
-                ) => rec.starts.push((t, node.get())),
+                ) => {
+                    rec.nmt.push((t, command, node.get()));
+                    if command == NmtCommand::Start {
+                        rec.starts.push((t, node.get()));
+                    }
+                }
                 (Node::Controller, Ok(Message::SdoRequest { node, request })) => {
                     rec.sdo.push((t, node.get(), request.object()));
                 }
                 _ => {}
             }
+        }
+        if v.down {
+            // The runner is dead: no state.
+            return;
         }
         let snap = v.controller.snapshot();
         rec.steps.push((v.t_us, snap.state, snap.fault));
@@ -292,5 +366,180 @@ pub(super) fn rows() -> Vec<Row> {
             format!("from the first 0x0F sent, the robot never moved; \"{issue}\""),
         ),
     ));
+    rows.push(runner_restart_row(cruising, consumer_us));
+    rows.push(bus_off_row(cruising));
     rows
+}
+
+/// The host's reset and enable of the recovery rows: a reset at `reset_s`, an enable 50 ms
+/// later.
+fn reset_and_enable(s: &mut Scenario, reset_s: f64) {
+    add_action(
+        s,
+        Action {
+            reset: true,
+            ..Action::at(reset_s)
+        },
+    );
+    add_action(
+        s,
+        Action {
+            enable: true,
+            ..Action::at(reset_s + 0.05)
+        },
+    );
+}
+
+/// The runner killed while the robot drives, started again 0.3 s later: the drives' consumer
+/// times out on the master's heartbeat, they fault and go pre-operational; the new core
+/// resets, configures and starts them; after the host's reset and enable the robot drives.
+fn runner_restart_row(onset: (f64, &str), consumer_us: u64) -> Row {
+    let (killed_s, restarted_s, reset_s) = (onset.0, onset.0 + 0.30, onset.0 + 0.40);
+    let mut s = drive(super::TURN, reset_s + 0.35);
+    s.config = firmware::Config::cia402_example();
+    s.node_faults.push(NodeFault {
+        kind: FaultName::RunnerRestart,
+        from_us: us(killed_s),
+        until_us: us(restarted_s),
+    });
+    reset_and_enable(&mut s, reset_s);
+    let rec = run(&s);
+    let (killed, restarted, enable) = (us(killed_s), us(restarted_s), us(reset_s + 0.05));
+    // The master's last heartbeat the drives heard, and their pre-operational heartbeats.
+    let master_beat = rec
+        .heartbeat_master
+        .iter()
+        .copied()
+        .rfind(|&t| t < killed + MS);
+    let pre_op = [1, 2].map(|n| rec.heartbeat(killed, n, NmtState::PreOperational));
+    let latency = master_beat
+        .zip(pre_op[0].zip(pre_op[1]))
+        .map(|(m, (a, b))| a.max(b) - m);
+    let timeouts = rec
+        .emcys
+        .iter()
+        .filter(|e| e.0 >= killed && e.0 < restarted && e.2 == 0x8130)
+        .count();
+    // The new core: its NMT commands, SDO transfers and start.
+    let commands: Vec<(NmtCommand, u8)> = rec
+        .nmt
+        .iter()
+        .filter(|n| n.0 >= restarted)
+        .map(|&(_, c, n)| (c, n))
+        .collect();
+    let sdo = rec
+        .sdo
+        .iter()
+        .filter(|r| r.0 >= restarted && r.1 == 1)
+        .count();
+    let started = rec
+        .starts
+        .iter()
+        .filter(|r| r.0 >= restarted)
+        .map(|r| r.0)
+        .max();
+    let operation = rec.operation_enabled(enable);
+    let moving = rec.first_target(enable);
+    let frames_dead = rec
+        .rpdos
+        .iter()
+        .filter(|r| r.0 > killed + MS && r.0 < restarted)
+        .count();
+    let want_commands = [
+        (NmtCommand::ResetCommunication, 1),
+        (NmtCommand::ResetCommunication, 2),
+        (NmtCommand::Start, 1),
+        (NmtCommand::Start, 2),
+    ];
+    let pass = latency.is_some_and(|l| (consumer_us..=consumer_us + MS).contains(&l))
+        && timeouts == 2
+        && frames_dead == 0
+        && commands.len() == 4
+        && want_commands.iter().all(|c| commands.contains(c))
+        && sdo == 34
+        && operation.is_some()
+        && moving.is_some()
+        && rec.last() == (RobotState::Enabled, Fault::None);
+    let after = |t: Option<u64>, from: u64| t.map_or("never".into(), |t| ms(t - from));
+    Row {
+        fault: "CiA 402: the runner killed and restarted 0.30 s later".into(),
+        onset: moment(onset),
+        expected: "both drives PRE_OPERATIONAL after the consumer time; the new core resets, \
+                   configures and starts them; ENABLED and driving after the host's reset and \
+                   enable"
+            .into(),
+        budget: format!("{} to {}", ms(consumer_us), ms(consumer_us + MS)),
+        measured: latency.map_or("-".into(), ms),
+        detail: format!(
+            "from the master's last heartbeat to both drives' 0x7F ({timeouts} EMCY 0x8130); \
+             the new core at +{}: reset communication, {sdo} SDO transfers a node, started \
+             {} after its first step; reset {} later, enable 50 ms after it: operation enabled \
+             in {}, targets in {}",
+            ms(restarted - killed),
+            after(started, restarted),
+            ms(us(reset_s) - restarted),
+            after(operation, enable),
+            after(moving, enable)
+        ),
+        pass,
+    }
+}
+
+/// Node 2 bus-off for 2 ms (128 x 11 recessive bits at 1 Mbit/s take 1.4 ms): back
+/// pre-operational with EMCY 0x8140; the robot faults `DRIVE_NMT`; the host's reset starts
+/// the node (its configuration is intact) and the robot drives again after the enable.
+fn bus_off_row(onset: (f64, &str)) -> Row {
+    let (off_s, back_s, reset_s) = (onset.0, onset.0 + 0.002, onset.0 + 0.15);
+    let mut s = scenario(off_s, FaultName::DriveBusOff, 2, Some(back_s));
+    reset_and_enable(&mut s, reset_s);
+    let rec = run(&s);
+    let (back, reset, enable) = (us(back_s), us(reset_s), us(reset_s + 0.05));
+    let pre_op = rec.heartbeat(us(off_s), 2, NmtState::PreOperational);
+    let emcy = rec
+        .emcys
+        .iter()
+        .find(|e| e.0 >= us(off_s) && e.1 == 2)
+        .map(|e| e.2);
+    let issue = rec.issue.clone().unwrap_or_default();
+    let commands: Vec<_> = rec
+        .nmt
+        .iter()
+        .filter(|n| n.0 >= reset)
+        .map(|&(_, c, n)| (c, n))
+        .collect();
+    let sdo = rec.sdo.iter().filter(|r| r.0 >= us(off_s)).count();
+    let operation = rec.operation_enabled(enable);
+    let moving = rec.first_target(enable);
+    let after = |t: Option<u64>, from: u64| t.map_or("never".into(), |t| ms(t - from));
+    let mut row = stop_row(
+        "CiA 402: a drive bus-off for 2 ms (node 2)",
+        onset,
+        &rec,
+        Fault::DriveNmt,
+        Some(back),
+        (0, 2 * MS),
+        &[1, 2],
+        (
+            emcy == Some(0x8140)
+                && pre_op.is_some_and(|t| t >= back)
+                && issue == "node 2: NMT PRE_OPERATIONAL"
+                && commands == [(NmtCommand::Start, 2)]
+                && sdo == 0
+                && operation.is_some()
+                && moving.is_some()
+                && rec.last() == (RobotState::Enabled, Fault::None),
+            format!(
+                "from its return (EMCY 0x{:04X}, heartbeat 0x7F {} after it); \"{issue}\"; \
+                 reset 0.15 s after the bus-off: NMT start to node 2 only, {sdo} SDO \
+                 transfers; enable 50 ms later: operation enabled in {}, targets in {}",
+                emcy.unwrap_or(0),
+                after(pre_op, back),
+                after(operation, enable),
+                after(moving, enable)
+            ),
+        ),
+    );
+    row.expected
+        .push_str("; ENABLED and driving after the host's reset and enable");
+    row
 }
