@@ -574,6 +574,8 @@ def main() -> int:
     rc = proc.wait()
     if fence is not None:
         fence.lift(set(allowed))
+    # QEMU has read it; trees.cpio, the bulk of it, stays for the next run.
+    initrd.unlink(missing_ok=True)
     shutil.rmtree(qmp_dir, ignore_errors=True)
     console.close()
     if console.setup_failed:
