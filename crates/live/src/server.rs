@@ -387,6 +387,21 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 impl Client {
+    /// A client just connected: nothing subscribed, nothing queued.
+    fn new(addr: SocketAddr, subprotocol: &'static str) -> Self {
+        Self {
+            addr,
+            subprotocol,
+            since: Instant::now(),
+            subscriptions: Mutex::default(),
+            queue: Mutex::default(),
+            wake: Notify::new(),
+            queued: AtomicU64::new(0),
+            sent: AtomicU64::new(0),
+            dropped: AtomicU64::new(0),
+        }
+    }
+
     /// Queues a control message; a client that lets [`MAX_CONTROL`] pile up is cut off.
     /// Whether it was cut off now.
     fn push_control(&self, text: String) -> bool {
@@ -628,17 +643,7 @@ impl Shared {
             self.refused.fetch_add(1, Ordering::Relaxed);
             return None;
         }
-        let client = Arc::new(Client {
-            addr,
-            subprotocol,
-            since: Instant::now(),
-            subscriptions: Mutex::default(),
-            queue: Mutex::default(),
-            wake: Notify::new(),
-            queued: AtomicU64::new(0),
-            sent: AtomicU64::new(0),
-            dropped: AtomicU64::new(0),
-        });
+        let client = Arc::new(Client::new(addr, subprotocol));
         let info = ServerInfo::new(self.options.name.clone()).with_session_id(&self.session_id);
         client.push_control(info.to_string());
         if !state.channels.is_empty() {
@@ -978,17 +983,7 @@ mod tests {
     use super::*;
 
     fn client() -> Client {
-        Client {
-            addr: "127.0.0.1:1".parse().unwrap(),
-            subprotocol: SUBPROTOCOL,
-            since: Instant::now(),
-            subscriptions: Mutex::default(),
-            queue: Mutex::default(),
-            wake: Notify::new(),
-            queued: AtomicU64::new(0),
-            sent: AtomicU64::new(0),
-            dropped: AtomicU64::new(0),
-        }
+        Client::new("127.0.0.1:1".parse().unwrap(), SUBPROTOCOL)
     }
 
     fn queued(c: &Client) -> (usize, usize) {
