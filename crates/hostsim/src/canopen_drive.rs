@@ -238,20 +238,7 @@ impl CanopenDrives {
     /// heartbeat with the state it is in now.
     fn recover_bus_off(&mut self, i: usize, t_ns: u64) {
         self.nodes[i].bus_off = false;
-        let id = self.nodes[i].id;
-        self.emcy_sent += 1;
-        self.send(
-            i,
-            t_ns,
-            Message::Emcy {
-                node: id,
-                emcy: Emcy {
-                    error_code: EMCY_BUS_OFF_RECOVERED,
-                    error_register: 0x11,
-                    manufacturer: [0; 5],
-                },
-            },
-        );
+        self.emcy(i, t_ns, EMCY_BUS_OFF_RECOVERED, 0x11);
         self.heartbeat_now(i, t_ns);
     }
 
@@ -292,6 +279,25 @@ impl CanopenDrives {
             .map(|n| n.statusword)
     }
 
+    /// Node `i`'s EMCY `code` with `error_register`, counted when it goes out (a node off the
+    /// bus sends nothing).
+    fn emcy(&mut self, i: usize, t_ns: u64, code: u16, error_register: u8) {
+        self.emcy_sent += u32::from(!self.nodes[i].bus_off);
+        let emcy = Emcy {
+            error_code: code,
+            error_register,
+            manufacturer: [0; 5],
+        };
+        self.send(
+            i,
+            t_ns,
+            Message::Emcy {
+                node: self.nodes[i].id,
+                emcy,
+            },
+        );
+    }
+
     fn send(&mut self, i: usize, t_ns: u64, msg: Message) {
         if !self.nodes[i].bus_off {
             self.queue.push((t_ns, i, msg.to_can_frame()));
@@ -323,21 +329,7 @@ impl CanopenDrives {
             return;
         }
         n.statusword = sw::FAULT;
-        let id = n.id;
-        // A node off the bus sends nothing.
-        self.emcy_sent += u32::from(!n.bus_off);
-        self.send(
-            i,
-            t_ns,
-            Message::Emcy {
-                node: id,
-                emcy: Emcy {
-                    error_code: code,
-                    error_register: 0x01,
-                    manufacturer: [0; 5],
-                },
-            },
-        );
+        self.emcy(i, t_ns, code, 0x01);
         self.power(i, plant);
     }
 
