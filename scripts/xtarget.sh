@@ -8,6 +8,8 @@
 # execution trace.
 #
 # Installs qemu-system-arm with apt-get when it is missing and the script runs as root.
+# RUSTC_WORKSPACE_WRAPPER, when set, applies to the board's crates in every build: scripts/test.sh
+# sets Clippy's (scripts/clippy-rustc.sh), so the three builds are also the lint check.
 #
 # usage: scripts/xtarget.sh [--no-icount]
 #   --no-icount   skip the instruction count (the determinism check only)
@@ -22,7 +24,7 @@ icount=1
 case "${1:-}" in
     "") ;;
     --no-icount) icount=0 ;;
-    -h | --help) sed -n '2,15p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    -h | --help) sed -n '2,17p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
     *) echo "usage: $0 [--no-icount] (see --help)" >&2; exit 2 ;;
 esac
 
