@@ -8,8 +8,9 @@
 //! would give it. A mapping or COB-ID written out of the disable → map → enable order is
 //! refused with the abort code a drive gives. A communication error (the master's heartbeat
 //! lost, a bus-off) takes an operational node to pre-operational, CiA 301's default error
-//! behaviour (`0x1029:01` = 0). The model is specified in `docs/simulator.md`, section
-//! "CiA 402 drive".
+//! behaviour (`0x1029:01` = 0). Reset communication resets the communication area
+//! (0x1000-0x1FFF) only; reset node and a power cycle the whole dictionary and the drive. The
+//! model is specified in `docs/simulator.md`, section "CiA 402 drive".
 
 use std::collections::BTreeMap;
 
@@ -17,6 +18,7 @@ use embedded_can::{Frame, Id, StandardId};
 use firmware::CanFrame;
 use firmware::protocol::canopen::{
     self, DriveState402, Emcy, Message, NmtCommand, NmtState, NodeId, SdoRequest, SdoResponse,
+    controlword,
 };
 
 use crate::plant::{Cia402Axis, Plant, Wheel};
@@ -36,6 +38,34 @@ pub const EMCY_BUS_OFF_RECOVERED: u16 = 0x8140;
 pub const QUICK_STOP_REST_RAD_S: f64 = 0.1;
 /// The device type (0x1000) the nodes report: CiA 402, servo drive.
 pub const DEVICE_TYPE: u32 = 0x0002_0192;
+/// EMCY error code of a successful fault reset (CiA 301: error reset or no error).
+pub const EMCY_ERROR_RESET: u16 = 0x0000;
+/// The communication area of the object dictionary (CiA 301): what reset communication sets
+/// back to its defaults.
+const COMMUNICATION_AREA: core::ops::RangeInclusive<u16> = 0x1000..=0x1FFF;
+/// The error register (0x1001): a state of the node, not a parameter, so kept by reset
+/// communication.
+const ERROR_REGISTER: (u16, u8) = (0x1001, 0);
+
+/// The error register (0x1001) bits of an EMCY error code (CiA 301 table "error register"):
+/// bit 0 (generic) with any error, and the class bit of its code: current (0x2xxx) bit 1,
+/// voltage (0x3xxx) bit 2, temperature (0x4xxx) bit 3, communication (0x81xx) and protocol
+/// (0x82xx) errors bit 4; 0 for error reset (0x0000).
+#[must_use]
+pub const fn error_register(code: u16) -> u8 {
+    let class = match code >> 12 {
+        0x2 => 0x02,
+        0x3 => 0x04,
+        0x4 => 0x08,
+        0x8 if matches!(code >> 8, 0x81 | 0x82) => 0x10,
+        _ => 0,
+    };
+    if code == EMCY_ERROR_RESET {
+        0
+    } else {
+        0x01 | class
+    }
+}
 
 /// Statuswords (the codec's: bit 4 voltage enabled, bit 9 remote).
 mod sw {
@@ -70,6 +100,15 @@ pub struct NodeFaults {
 
 /// A PDO mapping entry: object index, sub-index, length in bits.
 type Entry = (u16, u8, u8);
+
+/// What an NMT reset resets (CiA 301's two reset states).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Reset {
+    /// Reset node (reset application), as a power cycle: everything.
+    Node,
+    /// Reset communication: the communication area (0x1000-0x1FFF) only.
+    Communication,
+}
 
 /// One simulated node.
 #[derive(Debug, Clone)]
@@ -140,7 +179,7 @@ impl CanopenDrives {
             emcy_sent: 0,
         };
         for i in 0..drives.nodes.len() {
-            drives.boot(i, 0);
+            drives.reset(i, 0, Reset::Node);
         }
         drives
     }
@@ -165,7 +204,7 @@ impl CanopenDrives {
     /// Node `id` reboots at `t_ns`: its axes lose power and it boots (boot-up, defaults).
     pub fn reboot(&mut self, id: u8, t_ns: u64, plant: &mut Plant<Cia402Axis>) {
         if let Some(i) = self.nodes.iter().position(|n| n.id.get() == id) {
-            self.boot(i, t_ns);
+            self.reset(i, t_ns, Reset::Node);
             self.power(i, plant);
         }
     }
@@ -206,7 +245,7 @@ impl CanopenDrives {
                 abort: f.sdo_abort.then_some(((0x6060, 0), abort::INVALID_VALUE)),
             };
             if f.reboot && !before.reboot {
-                self.boot(i, at_ns);
+                self.reset(i, at_ns, Reset::Node);
                 self.power(i, plant);
             }
             if f.fault && !before.fault {
@@ -228,6 +267,7 @@ impl CanopenDrives {
         self.queue.retain(|&(_, n, _)| n != i);
         let n = &mut self.nodes[i];
         n.statusword = sw::FAULT;
+        n.raise_error(EMCY_BUS_OFF_RECOVERED);
         if n.nmt == NmtState::Operational {
             n.nmt = NmtState::PreOperational;
         }
@@ -238,7 +278,9 @@ impl CanopenDrives {
     /// heartbeat with the state it is in now.
     fn recover_bus_off(&mut self, i: usize, t_ns: u64) {
         self.nodes[i].bus_off = false;
-        self.emcy(i, t_ns, EMCY_BUS_OFF_RECOVERED, 0x11);
+        let register = self.nodes[i].get(ERROR_REGISTER.0, ERROR_REGISTER.1);
+        #[allow(clippy::cast_possible_truncation)] // 0x1001 holds a byte.
+        self.emcy(i, t_ns, EMCY_BUS_OFF_RECOVERED, register as u8);
         self.heartbeat_now(i, t_ns);
     }
 
@@ -304,13 +346,23 @@ impl CanopenDrives {
         }
     }
 
-    /// Node `i` (re)boots at `t_ns`: its dictionary at its defaults, pre-operational, switch
-    /// on disabled; the boot-up goes out [`BOOT_NS`] later.
-    fn boot(&mut self, i: usize, t_ns: u64) {
+    /// Node `i` resets at `t_ns`: [`Reset::Node`] (or a power cycle) sets its dictionary at
+    /// its defaults and its drive switch on disabled, [`Reset::Communication`] only the
+    /// communication area (the drive, its mode and targets are kept); pre-operational, its
+    /// heartbeat consumer idle until the master's next heartbeat. What it had queued (a
+    /// boot-up still owed, answers) is lost with the reset; the boot-up goes out [`BOOT_NS`]
+    /// later.
+    fn reset(&mut self, i: usize, t_ns: u64, what: Reset) {
+        self.queue.retain(|&(_, n, _)| n != i);
         let n = &mut self.nodes[i];
-        let (axes, faults, scenario, bus_off) = (n.axes, n.faults, n.scenario, n.bus_off);
-        *n = Node::new(n.id);
-        (n.axes, n.faults, n.scenario, n.bus_off) = (axes, faults, scenario, bus_off);
+        match what {
+            Reset::Node => {
+                let (axes, faults, scenario, bus_off) = (n.axes, n.faults, n.scenario, n.bus_off);
+                *n = Node::new(n.id);
+                (n.axes, n.faults, n.scenario, n.bus_off) = (axes, faults, scenario, bus_off);
+            }
+            Reset::Communication => n.reset_communication(),
+        }
         let id = n.id;
         // The heartbeat producer starts with the boot-up, at its default period (0: off).
         self.send(
@@ -329,7 +381,8 @@ impl CanopenDrives {
             return;
         }
         n.statusword = sw::FAULT;
-        self.emcy(i, t_ns, code, 0x01);
+        let register = n.raise_error(code);
+        self.emcy(i, t_ns, code, register);
         self.power(i, plant);
     }
 
@@ -366,7 +419,7 @@ impl CanopenDrives {
                 && !self.nodes[i].bus_off
                 && let Some(k) = self.nodes[i].rpdo_with(raw)
             {
-                self.on_rpdo(i, k, frame.data(), plant);
+                self.on_rpdo(i, k, t_ns + ANSWER_NS, frame.data(), plant);
                 return;
             }
         }
@@ -383,16 +436,24 @@ impl CanopenDrives {
                 if let Some(i) = self.nodes.iter().position(|n| n.id == node && !n.bus_off) {
                     let response = self.nodes[i].sdo(request);
                     let n = &mut self.nodes[i];
-                    if response
-                        == (SdoResponse::Downloaded {
+                    match response {
+                        SdoResponse::Downloaded {
                             index: 0x1017,
                             sub: 0,
-                        })
-                    {
-                        // The producer runs from the write on, at the new period.
-                        let start = t_ns + ANSWER_NS;
-                        n.next_heartbeat_ns =
-                            n.heartbeat_period_ns().map_or(u64::MAX, |p| start + p);
+                        } => {
+                            // The producer runs from the write on, at the new period.
+                            let start = t_ns + ANSWER_NS;
+                            n.next_heartbeat_ns =
+                                n.heartbeat_period_ns().map_or(u64::MAX, |p| start + p);
+                        }
+                        SdoResponse::Downloaded {
+                            index: 0x1016,
+                            sub: 1,
+                        } => {
+                            // The consumer (re)starts at the producer's next heartbeat.
+                            n.last_master_heartbeat_ns = None;
+                        }
+                        _ => {}
                     }
                     self.send(i, t_ns + ANSWER_NS, Message::SdoResponse { node, response });
                 }
@@ -411,17 +472,14 @@ impl CanopenDrives {
     fn on_nmt(&mut self, i: usize, command: NmtCommand, t_ns: u64, plant: &mut Plant<Cia402Axis>) {
         let answer = t_ns + ANSWER_NS;
         match command {
-            NmtCommand::Start => {
-                // The master's heartbeat is watched from the start.
-                self.nodes[i].last_master_heartbeat_ns = Some(t_ns);
-                self.set_nmt(i, NmtState::Operational, answer);
-            }
+            NmtCommand::Start => self.set_nmt(i, NmtState::Operational, answer),
             NmtCommand::Stop => self.set_nmt(i, NmtState::Stopped, answer),
             NmtCommand::EnterPreOperational => self.set_nmt(i, NmtState::PreOperational, answer),
-            NmtCommand::ResetNode | NmtCommand::ResetCommunication => {
-                self.boot(i, t_ns);
+            NmtCommand::ResetNode => {
+                self.reset(i, t_ns, Reset::Node);
                 self.power(i, plant);
             }
+            NmtCommand::ResetCommunication => self.reset(i, t_ns, Reset::Communication),
         }
     }
 
@@ -481,7 +539,7 @@ impl CanopenDrives {
         self.queue.extend(frames);
     }
 
-    fn on_rpdo(&mut self, i: usize, k: u16, data: &[u8], plant: &mut Plant<Cia402Axis>) {
+    fn on_rpdo(&mut self, i: usize, k: u16, t_ns: u64, data: &[u8], plant: &mut Plant<Cia402Axis>) {
         let Some(entries) = self.nodes[i].mapping(0x1600 + k) else {
             return;
         };
@@ -507,8 +565,10 @@ impl CanopenDrives {
                 _ => {}
             }
         }
-        if let Some(cw) = controlword {
-            self.nodes[i].control(cw);
+        if let Some(cw) = controlword
+            && self.nodes[i].control(cw)
+        {
+            self.emcy(i, t_ns, EMCY_ERROR_RESET, 0);
         }
         self.power(i, plant);
     }
@@ -522,32 +582,24 @@ impl CanopenDrives {
         out: &mut Vec<(u64, CanFrame)>,
     ) {
         for i in 0..self.nodes.len() {
-            // The heartbeat consumer: a time-out is a communication error (the drive's abort
+            // The heartbeat consumer, from the master's first heartbeat on: a time-out is a
+            // communication error (once until the master is heard again; the drive's abort
             // connection: fault), and an operational node goes pre-operational.
             if let Some((_, timeout_ms)) = self.nodes[i].consumer()
-                && self.nodes[i].nmt == NmtState::Operational
                 && let Some(last) = self.nodes[i].last_master_heartbeat_ns
             {
                 let deadline = last + u64::from(timeout_ms) * 1_000_000;
                 if deadline <= until_ns {
+                    // The heartbeats owed before it, in the state before it.
+                    self.produce_heartbeats(i, deadline - 1);
                     self.nodes[i].last_master_heartbeat_ns = None;
                     self.enter_fault(i, deadline, EMCY_HEARTBEAT, plant);
-                    self.set_nmt(i, NmtState::PreOperational, deadline);
+                    if self.nodes[i].nmt == NmtState::Operational {
+                        self.set_nmt(i, NmtState::PreOperational, deadline);
+                    }
                 }
             }
-            // The heartbeat producer.
-            loop {
-                let n = &mut self.nodes[i];
-                if n.next_heartbeat_ns > until_ns {
-                    break;
-                }
-                let t = n.next_heartbeat_ns;
-                n.next_heartbeat_ns = n.heartbeat_period_ns().map_or(u64::MAX, |p| t + p);
-                if !n.faults.heartbeat_silent {
-                    let (node, state) = (n.id, n.nmt);
-                    self.send(i, t, Message::Heartbeat { node, state });
-                }
-            }
+            self.produce_heartbeats(i, until_ns);
         }
         let mut due = Vec::new();
         self.queue.retain(|&(t, _, f)| {
@@ -571,6 +623,22 @@ impl CanopenDrives {
         }
         due.sort_by_key(|(t, _)| *t);
         out.extend(due);
+    }
+
+    /// Node `i`'s periodic heartbeats up to `until_ns`.
+    fn produce_heartbeats(&mut self, i: usize, until_ns: u64) {
+        loop {
+            let n = &mut self.nodes[i];
+            if n.next_heartbeat_ns > until_ns {
+                break;
+            }
+            let t = n.next_heartbeat_ns;
+            n.next_heartbeat_ns = n.heartbeat_period_ns().map_or(u64::MAX, |p| t + p);
+            if !n.faults.heartbeat_silent {
+                let (node, state) = (n.id, n.nmt);
+                self.send(i, t, Message::Heartbeat { node, state });
+            }
+        }
     }
 
     /// When the next frame is due, ns.
@@ -597,9 +665,12 @@ impl Node {
         let node = u32::from(id.get());
         let mut od = BTreeMap::new();
         od.insert((0x1000, 0), DEVICE_TYPE);
+        od.insert(ERROR_REGISTER, 0);
         od.insert((0x1017, 0), 0);
         od.insert((0x1016, 1), 0);
         od.insert((0x6060, 0), 0);
+        // The mode of operation display: the mode in effect (at once here).
+        od.insert((0x6061, 0), 0);
         // The predefined connection set, PDOs valid as a drive ships them.
         for k in 0..4u32 {
             let k16 = u16::try_from(k).unwrap_or(0);
@@ -631,6 +702,30 @@ impl Node {
 
     fn get(&self, index: u16, sub: u8) -> u32 {
         self.od.get(&(index, sub)).copied().unwrap_or(0)
+    }
+
+    /// Reset communication: the communication area at its defaults (but the error register,
+    /// the node's state), pre-operational, no heartbeat produced or watched. The application
+    /// (the drive's state, 0x6000 and up) is kept.
+    fn reset_communication(&mut self) {
+        let fresh = Node::new(self.id);
+        for (&key, &value) in &fresh.od {
+            if COMMUNICATION_AREA.contains(&key.0) && key != ERROR_REGISTER {
+                self.od.insert(key, value);
+            }
+        }
+        self.nmt = fresh.nmt;
+        self.next_heartbeat_ns = fresh.next_heartbeat_ns;
+        self.last_master_heartbeat_ns = fresh.last_master_heartbeat_ns;
+    }
+
+    /// An error with EMCY `code` is present: its bits set in the error register; returns the
+    /// register.
+    fn raise_error(&mut self, code: u16) -> u8 {
+        #[allow(clippy::cast_possible_truncation)] // 0x1001 holds a byte.
+        let register = self.get(ERROR_REGISTER.0, ERROR_REGISTER.1) as u8 | error_register(code);
+        self.od.insert(ERROR_REGISTER, u32::from(register));
+        register
     }
 
     fn heartbeat_period_ns(&self) -> Option<u64> {
@@ -727,6 +822,9 @@ impl Node {
                 match self.check_write(index, sub, value) {
                     Ok(()) => {
                         self.od.insert((index, sub), value);
+                        if (index, sub) == (0x6060, 0) {
+                            self.od.insert((0x6061, 0), value);
+                        }
                         SdoResponse::Downloaded { index, sub }
                     }
                     Err(code) => refuse(code),
@@ -745,7 +843,7 @@ impl Node {
             });
         }
         match index {
-            0x1000 => Err(abort::READ_ONLY),
+            0x1000 | 0x1001 | 0x6061 => Err(abort::READ_ONLY),
             0x6060 if value != 3 => Err(abort::INVALID_VALUE),
             // Mapping: only while the PDO is off; entries only while the count is 0.
             0x1600..=0x1603 | 0x1A00..=0x1A03 => {
@@ -789,21 +887,396 @@ impl Node {
         }
     }
 
-    /// The 402 state machine (the codec's drive side), on a controlword.
-    fn control(&mut self, cw: u16) {
+    /// The 402 state machine (the codec's drive side, [`command`]'s commands), on a
+    /// controlword: true if it reset a fault (the error register is then cleared).
+    fn control(&mut self, cw: u16) -> bool {
         let state = DriveState402::from_statusword(self.statusword)
             .unwrap_or(DriveState402::SwitchOnDisabled);
         let may_enable = self.get(0x6060, 0) == 3 && !self.faults.refuses_enable;
-        self.statusword = state
-            .on_controlword(cw, self.last_controlword, may_enable)
-            .statusword();
+        let (cw, previous) = (command(cw), command(self.last_controlword));
+        let next = if state == DriveState402::ReadyToSwitchOn && cw == controlword::ENABLE_OPERATION
+        {
+            // Switch on + enable operation: transition 3, then 4 at once (CiA 402's command
+            // table: "3 + 4").
+            state
+                .on_controlword(controlword::SWITCH_ON, previous, may_enable)
+                .on_controlword(cw, controlword::SWITCH_ON, may_enable)
+        } else {
+            state.on_controlword(cw, previous, may_enable)
+        };
+        self.statusword = next.statusword();
         self.last_controlword = cw;
+        let reset = state == DriveState402::Fault && next != state;
+        if reset {
+            self.od.insert(ERROR_REGISTER, 0);
+        }
+        reset
     }
+}
+
+/// A controlword as the command CiA 402's command table makes of it (bits 0-3 and 7, the
+/// rest and the table's "x" bits ignored), in the codec's spelling: disable voltage (bit 1
+/// clear) 0x00, quick stop (bit 2 clear) 0x02, shutdown (bit 0 clear) 0x06, switch on and
+/// disable operation (bit 3 clear) 0x07, enable operation (and switch on + enable
+/// operation) 0x0F; bit 7 (fault reset) kept.
+const fn command(cw: u16) -> u16 {
+    let c = if cw & 0x02 == 0 {
+        controlword::DISABLE_VOLTAGE
+    } else if cw & 0x04 == 0 {
+        controlword::QUICK_STOP
+    } else if cw & 0x01 == 0 {
+        controlword::SHUTDOWN
+    } else if cw & 0x08 == 0 {
+        controlword::SWITCH_ON
+    } else {
+        controlword::ENABLE_OPERATION
+    };
+    (cw & controlword::FAULT_RESET) | c
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    const MS: u64 = 1_000_000;
+
+    /// The example's nodes 1 and 2 (dual-axis) and their plant, booted: what each test
+    /// starts from.
+    struct Bench {
+        drives: CanopenDrives,
+        plant: Plant<Cia402Axis>,
+        /// Every frame the nodes sent: time (ns), frame.
+        sent: Vec<(u64, CanFrame)>,
+    }
+
+    impl Bench {
+        fn new() -> Self {
+            let config = firmware::Config::cia402_example();
+            Self {
+                drives: CanopenDrives::new(&config),
+                plant: Plant::cia402_from_config(&config).unwrap(),
+                sent: Vec::new(),
+            }
+        }
+
+        /// The nodes' frames up to `t_ns`.
+        fn run_to(&mut self, t_ns: u64) {
+            self.drives.feedback(t_ns, &mut self.plant, &mut self.sent);
+        }
+
+        /// `msg` on the bus at `t_ns` (after the nodes' frames up to then).
+        fn put(&mut self, t_ns: u64, msg: Message) {
+            self.run_to(t_ns);
+            let frame = msg.to_can_frame();
+            self.drives.on_frame(t_ns, &frame, &mut self.plant);
+        }
+
+        fn nmt(&mut self, t_ns: u64, command: NmtCommand) {
+            let node = Some(node1());
+            self.put(t_ns, Message::Nmt { command, node });
+        }
+
+        /// An SDO request to node 1 at `t_ns`; its answer.
+        fn sdo(&mut self, t_ns: u64, request: SdoRequest) -> SdoResponse {
+            let from = self.sent.len();
+            self.put(
+                t_ns,
+                Message::SdoRequest {
+                    node: node1(),
+                    request,
+                },
+            );
+            self.run_to(t_ns + ANSWER_NS);
+            self.sent[from..]
+                .iter()
+                .find_map(|(_, f)| match canopen::decode(f) {
+                    Ok(Message::SdoResponse { node, response }) if node == node1() => {
+                        Some(response)
+                    }
+                    _ => None,
+                })
+                .expect("an SDO answer")
+        }
+
+        fn download(&mut self, t_ns: u64, index: u16, sub: u8, value: u32) {
+            let request = SdoRequest::Download {
+                index,
+                sub,
+                value,
+                size: 4,
+            };
+            assert_eq!(
+                self.sdo(t_ns, request),
+                SdoResponse::Downloaded { index, sub },
+                "{index:04X}:{sub:02X} = {value:#x}"
+            );
+        }
+
+        fn upload(&mut self, t_ns: u64, index: u16, sub: u8) -> u32 {
+            match self.sdo(t_ns, SdoRequest::Upload { index, sub }) {
+                SdoResponse::Uploaded { value, .. } => value,
+                other => panic!("{index:04X}:{sub:02X}: {other:?}"),
+            }
+        }
+
+        /// Node 1's RPDO1 carries its controlword (disable, map, enable), mode 3, started.
+        fn started_with_controlword(&mut self, t_ns: u64) {
+            for (k, (index, sub, value)) in [
+                (0x1400, 1, 0x8000_0201),
+                (0x1600, 0, 0),
+                (0x1600, 1, 0x6040_0010),
+                (0x1600, 0, 1),
+                (0x1400, 1, 0x201),
+                (0x6060, 0, 3),
+            ]
+            .into_iter()
+            .enumerate()
+            {
+                self.download(t_ns + k as u64 * MS, index, sub, value);
+            }
+            self.nmt(t_ns + 10 * MS, NmtCommand::Start);
+        }
+
+        fn controlword(&mut self, t_ns: u64, cw: u16) {
+            let frame = CanFrame::standard(StandardId::new(0x201).unwrap(), &cw.to_le_bytes());
+            self.run_to(t_ns);
+            self.drives.on_frame(t_ns, &frame.unwrap(), &mut self.plant);
+        }
+
+        /// Node 1's EMCY frames so far: time, error code, error register.
+        fn emcys(&self) -> Vec<(u64, u16, u8)> {
+            self.messages()
+                .filter_map(|(t, m)| match m {
+                    Message::Emcy { node, emcy } if node == node1() => {
+                        Some((t, emcy.error_code, emcy.error_register))
+                    }
+                    _ => None,
+                })
+                .collect()
+        }
+
+        /// Node 1's heartbeats (and boot-ups) so far: time, state.
+        fn heartbeats(&self) -> Vec<(u64, NmtState)> {
+            self.messages()
+                .filter_map(|(t, m)| match m {
+                    Message::Heartbeat { node, state } if node == node1() => Some((t, state)),
+                    _ => None,
+                })
+                .collect()
+        }
+
+        fn messages(&self) -> impl Iterator<Item = (u64, Message)> + '_ {
+            self.sent
+                .iter()
+                .filter_map(|(t, f)| canopen::decode(f).ok().map(|m| (*t, m)))
+        }
+
+        fn state(&self) -> DriveState402 {
+            DriveState402::from_statusword(self.drives.statusword(1).unwrap()).unwrap()
+        }
+    }
+
+    fn node1() -> NodeId {
+        NodeId::new(1).unwrap()
+    }
+
+    #[test]
+    fn reset_communication_resets_the_communication_area_only_reset_node_everything() {
+        let mut b = Bench::new();
+        b.started_with_controlword(3 * MS);
+        b.download(20 * MS, 0x1017, 0, 50);
+        for cw in [0x06, 0x07, 0x0F] {
+            b.controlword(30 * MS, cw);
+        }
+        assert_eq!(b.state(), DriveState402::OperationEnabled);
+        b.nmt(40 * MS, NmtCommand::ResetCommunication);
+        b.run_to(40 * MS + BOOT_NS);
+        assert_eq!(
+            b.heartbeats().last(),
+            Some(&(40 * MS + BOOT_NS, NmtState::BootUp))
+        );
+        // The communication area at its defaults: no heartbeat, the predefined RPDO1 (its
+        // mapping empty, as the node ships), RPDO2 valid on 0x301.
+        let t = 50 * MS;
+        assert_eq!(b.upload(t, 0x1017, 0), 0);
+        assert_eq!(b.upload(t, 0x1600, 0), 0);
+        assert_eq!(b.upload(t, 0x1401, 1), 0x301);
+        // The application kept: the mode (and its display), the drive's state.
+        assert_eq!(b.upload(t, 0x6060, 0), 3);
+        assert_eq!(b.upload(t, 0x6061, 0), 3);
+        assert_eq!(b.state(), DriveState402::OperationEnabled);
+        // Reset node: everything, the drive switch on disabled.
+        b.nmt(60 * MS, NmtCommand::ResetNode);
+        b.run_to(60 * MS + BOOT_NS);
+        assert_eq!(b.upload(70 * MS, 0x6060, 0), 0);
+        assert_eq!(b.state(), DriveState402::SwitchOnDisabled);
+    }
+
+    #[test]
+    fn a_reset_before_the_power_on_boot_up_leaves_one_boot_up_its_own() {
+        let mut b = Bench::new();
+        // Powered at 0 (boot-up owed at BOOT_NS); the master's reset at 1 ms.
+        b.nmt(MS, NmtCommand::ResetCommunication);
+        b.run_to(20 * MS);
+        assert_eq!(b.heartbeats(), [(MS + BOOT_NS, NmtState::BootUp)]);
+        // Node 2, not reset, sent its power-on boot-up.
+        let node2 = b
+            .messages()
+            .filter(|(_, m)| matches!(m, Message::Heartbeat { node, .. } if node.get() == 2))
+            .count();
+        assert_eq!(node2, 1);
+    }
+
+    #[test]
+    fn emcy_error_register_carries_the_class_of_the_error() {
+        for (code, register) in [
+            (0x2310, 0x03), // over-current: current
+            (0x3210, 0x05), // over-voltage: voltage
+            (0x4210, 0x09), // temperature
+            (0x8130, 0x11), // heartbeat / life guard: communication
+            (0x8140, 0x11), // recovered from bus-off
+            (0x8210, 0x11), // PDO length: protocol, communication
+            (0x8611, 0x01), // following error: generic only
+            (0x1000, 0x01), // generic
+            (0x0000, 0x00), // error reset
+        ] {
+            assert_eq!(error_register(code), register, "{code:#06x}");
+        }
+        let mut b = Bench::new();
+        b.run_to(3 * MS);
+        b.drives.fault(1, 4 * MS, EMCY_DRIVE_FAULT, &mut b.plant);
+        b.run_to(5 * MS);
+        assert_eq!(b.emcys(), [(4 * MS, 0x2310, 0x03)]);
+        assert_eq!(b.upload(6 * MS, 0x1001, 0), 0x03);
+        // Read-only.
+        assert_eq!(
+            b.sdo(
+                7 * MS,
+                SdoRequest::Download {
+                    index: 0x1001,
+                    sub: 0,
+                    value: 0,
+                    size: 1
+                }
+            ),
+            SdoResponse::Abort {
+                index: 0x1001,
+                sub: 0,
+                code: abort::READ_ONLY
+            }
+        );
+    }
+
+    #[test]
+    fn a_fault_reset_sends_emcy_error_reset_and_clears_the_register() {
+        let mut b = Bench::new();
+        b.started_with_controlword(3 * MS);
+        b.controlword(20 * MS, 0x06);
+        b.drives.fault(1, 21 * MS, EMCY_DRIVE_FAULT, &mut b.plant);
+        // No edge of bit 7 yet: nothing.
+        b.controlword(22 * MS, 0x06);
+        assert_eq!(b.state(), DriveState402::Fault);
+        b.controlword(23 * MS, 0x80);
+        b.controlword(24 * MS, 0x80);
+        b.run_to(30 * MS);
+        assert_eq!(b.state(), DriveState402::SwitchOnDisabled);
+        assert_eq!(
+            b.emcys(),
+            [(21 * MS, 0x2310, 0x03), (23 * MS + ANSWER_NS, 0x0000, 0x00)]
+        );
+        assert_eq!(b.upload(31 * MS, 0x1001, 0), 0);
+    }
+
+    #[test]
+    fn the_heartbeat_consumer_starts_at_the_masters_first_heartbeat() {
+        let mut b = Bench::new();
+        b.started_with_controlword(3 * MS);
+        b.download(20 * MS, 0x1017, 0, 50);
+        b.download(21 * MS, 0x1016, 1, 127 << 16 | 150);
+        // Started, the consumer set, and no heartbeat of the master for a second: nothing.
+        b.run_to(1_000 * MS);
+        assert!(b.emcys().is_empty());
+        let master = NodeId::new(127).unwrap();
+        let beat = Message::Heartbeat {
+            node: master,
+            state: NmtState::Operational,
+        };
+        b.put(1_000 * MS, beat);
+        b.put(1_050 * MS, beat);
+        b.run_to(2_000 * MS);
+        // The time-out 150 ms after the last one: EMCY 0x8130, pre-operational at once.
+        assert_eq!(b.emcys(), [(1_200 * MS, 0x8130, 0x11)]);
+        let states: Vec<_> = b
+            .heartbeats()
+            .into_iter()
+            .filter(|(t, _)| (1_100 * MS..1_300 * MS).contains(t))
+            .collect();
+        assert_eq!(
+            states.iter().map(|h| h.1).collect::<Vec<_>>(),
+            [
+                NmtState::Operational,
+                NmtState::Operational,
+                NmtState::PreOperational,
+                NmtState::PreOperational
+            ],
+            "{states:?}"
+        );
+        assert!(
+            states.contains(&(1_200 * MS, NmtState::PreOperational)),
+            "{states:?}"
+        );
+    }
+
+    #[derive(serde::Deserialize)]
+    struct TransitionTable {
+        statusword: BTreeMap<String, u16>,
+        table: Rows,
+    }
+
+    #[derive(serde::Deserialize)]
+    struct Rows {
+        rows: Vec<(String, u16, u16, u8, String, String)>,
+    }
+
+    /// CiA 402's state table (tests/cia402_transitions.toml, which the Python peer's test
+    /// reads too): each row from its state, its controlword after the one before it, in its
+    /// mode of operation.
+    #[test]
+    fn both_drive_models_follow_the_transition_table() {
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../tests/cia402_transitions.toml"
+        );
+        let text = std::fs::read_to_string(path).unwrap();
+        let t: TransitionTable = toml::from_str(&text).unwrap();
+        let states = [
+            DriveState402::SwitchOnDisabled,
+            DriveState402::ReadyToSwitchOn,
+            DriveState402::SwitchedOn,
+            DriveState402::OperationEnabled,
+            DriveState402::QuickStopActive,
+            DriveState402::Fault,
+        ];
+        let named = |name: &str| *states.iter().find(|s| s.as_str() == name).unwrap();
+        assert!(t.table.rows.len() >= 60);
+        for (from, cw, previous, mode, to, transition) in &t.table.rows {
+            let mut n = Node::new(node1());
+            n.statusword = named(from).statusword();
+            n.last_controlword = *previous;
+            n.od.insert((0x6060, 0), u32::from(*mode));
+            let reset = n.control(*cw);
+            let row = format!(
+                "{from} {cw:#04x} (after {previous:#04x}, mode {mode}) -> {to} ({transition})"
+            );
+            assert_eq!(
+                DriveState402::from_statusword(n.statusword).map(DriveState402::as_str),
+                Some(to.as_str()),
+                "{row}"
+            );
+            assert_eq!(n.statusword & 0x6F, t.statusword[to], "{row}");
+            assert_eq!(reset, from == "FAULT" && to != "FAULT", "{row}");
+        }
+    }
 
     fn write(n: &mut Node, index: u16, sub: u8, value: u32) -> SdoResponse {
         n.sdo(SdoRequest::Download {
