@@ -100,10 +100,10 @@ fn each_node_is_configured_started_and_enabled_in_simulated_milliseconds() {
             start as f64 / 1e3,
             enabled as f64 / 1e3
         );
-        // 34 SDO transfers, one per 1 ms step; then three enable steps, each answered by the
+        // 37 SDO transfers, one per 1 ms step; then three enable steps, each answered by the
         // next SYNC (4 ms).
         assert!(
-            (34_000..=40_000).contains(&start),
+            (37_000..=43_000).contains(&start),
             "node {}: {start} µs",
             i + 1
         );

@@ -20,7 +20,7 @@ use super::{Instant, Outbox, Wheel, push};
 use crate::protocol::DecodeError;
 use crate::protocol::canopen::{
     self, DriveState402, Message, NmtCommand, NmtState, NodeId, STATUSWORD_FAULT, SdoRequest,
-    SdoResponse, controlword,
+    SdoResponse, abort_code, controlword,
 };
 use crate::protocol::robot::{Fault, RobotState};
 use crate::protocol::wire;
@@ -37,10 +37,24 @@ pub const CIA402_RESET_GRACE_US: u64 = 20_000;
 /// state other than operational in them is ignored, µs.
 pub const CANOPEN_NMT_GRACE_US: u64 = 20_000;
 
+/// CiA 402: the mode of operation display (0x6061) is read again this long after it did not
+/// show profile velocity yet, µs.
+pub const CIA402_MODE_POLL_US: u64 = 10_000;
+/// CiA 402: reads of the mode of operation display (0x6061) before a node that does not show
+/// profile velocity fails its configuration (`CIA402_MODE_POLL_US` apart: half a second).
+pub const CIA402_MODE_POLLS: u8 = 50;
+
 /// The device type's profile (object 0x1000, low 16 bits) of a CiA 402 drive.
 const DEVICE_PROFILE_402: u32 = 402;
-/// Most SDO transfers of one node's configuration (a dual-axis node's 33).
+/// Most SDO transfers of one node's configuration (a dual-axis node's 37).
 const SETUP_MAX: usize = 40;
+/// The predefined RPDO2 of node N is `0x300 + N` (CiA 301), the robot protocol's block.
+const RPDO2_FUNCTION: u16 = 0x300;
+/// Profile velocity mode (objects 0x6060 and 0x6061).
+const MODE_PROFILE_VELOCITY: u32 = 3;
+/// Shutdown (0x605B) and disable operation (0x605C) option code 1: slow down on the slow
+/// down ramp, then disable the drive function.
+const OPTION_SLOW_DOWN: u32 = 1;
 
 /// Why a CiA 402 drive faulted the robot, with what the bus said: for logs and the runner's
 /// report (`STATUS.fault` carries only the [`Fault`]).
@@ -95,6 +109,20 @@ pub enum DriveIssue {
         /// The NMT state it reports.
         state: NmtState,
     },
+    /// A node reported itself operational (heartbeat or TPDO) after its boot-up, before the
+    /// master started it: a self-starting drive, whose predefined RPDO2 (`0x300 + node`)
+    /// takes the robot protocol's frames from its every power-on.
+    SelfStarted {
+        /// The node.
+        node: u8,
+    },
+    /// The mode of operation display (0x6061) did not show profile velocity (3).
+    ModeNotShown {
+        /// The node.
+        node: u8,
+        /// The last mode read.
+        mode: i8,
+    },
     /// The statusword shows a fault, or (enabled) a state other than operation enabled.
     DriveFault {
         /// The node.
@@ -111,13 +139,14 @@ impl DriveIssue {
     #[must_use]
     pub const fn fault(&self) -> Fault {
         match self {
-            Self::SdoAbort { .. } | Self::SdoTimeout { .. } | Self::NotADrive { .. } => {
-                Fault::DriveSetup
-            }
+            Self::SdoAbort { .. }
+            | Self::SdoTimeout { .. }
+            | Self::NotADrive { .. }
+            | Self::ModeNotShown { .. } => Fault::DriveSetup,
             Self::TransitionTimeout { .. } => Fault::DriveTransition,
             Self::HeartbeatLost { .. } => Fault::DriveSilent,
             Self::Rebooted { .. } => Fault::DriveRebooted,
-            Self::NotOperational { .. } => Fault::DriveNmt,
+            Self::NotOperational { .. } | Self::SelfStarted { .. } => Fault::DriveNmt,
             Self::DriveFault { .. } => Fault::DriveError,
         }
     }
@@ -172,6 +201,18 @@ impl fmt::Display for DriveIssue {
             Self::NotOperational { node, state } => {
                 write!(f, "node {node}: NMT {}", state.as_str())
             }
+            Self::SelfStarted { node } => write!(
+                f,
+                "node {node}: NMT OPERATIONAL before NMT start (a self-starting drive: its \
+                 RPDO2 0x{:03X} is in the robot's block)",
+                RPDO2_FUNCTION + u16::from(node)
+            ),
+            Self::ModeNotShown { node, mode } => write!(
+                f,
+                "node {node}: mode of operation display 0x6061 = {mode}, not 3 (profile \
+                 velocity), after {} reads",
+                CIA402_MODE_POLLS
+            ),
             Self::DriveFault {
                 node,
                 statusword,
@@ -249,6 +290,18 @@ struct Node {
     was_started: bool,
     /// Its heartbeat was never lost since its start: its configuration is intact.
     heard: bool,
+    /// Its RPDO2 is known off (its write acknowledged) since its last reset or boot-up.
+    rpdo2_off: bool,
+    /// Booted since the master's last reset and not started since: a node that says it is
+    /// operational now started itself.
+    fresh: bool,
+    /// NMT enter pre-operational owed (a self-started node).
+    preop_owed: bool,
+    /// An SDO abort (timeout) owed, on this object.
+    abort_owed: Option<(u16, u8)>,
+    /// Reads of 0x6061 that did not show profile velocity; the next not before `poll_at`.
+    polls: u8,
+    poll_at: Option<Instant>,
 }
 
 impl Node {
@@ -268,6 +321,12 @@ impl Node {
             started_at: None,
             was_started: false,
             heard: false,
+            rpdo2_off: false,
+            fresh: false,
+            preop_owed: false,
+            abort_owed: None,
+            polls: 0,
+            poll_at: None,
         }
     }
 
@@ -278,6 +337,26 @@ impl Node {
         }
     }
 
+    /// The node showed it is operational (a TPDO, an operational heartbeat): if it booted
+    /// and was not started since, it started itself; it is refused (the issue, once a
+    /// boot) and sent to pre-operational.
+    fn started_itself(&mut self) -> Option<DriveIssue> {
+        let unstarted = matches!(
+            self.phase,
+            Phase::Setup { .. } | Phase::Started { start_owed: true }
+        );
+        if !(self.fresh && unstarted) {
+            return None;
+        }
+        self.fresh = false;
+        self.preop_owed = true;
+        let issue = DriveIssue::SelfStarted {
+            node: self.id.get(),
+        };
+        self.raise(issue);
+        Some(issue)
+    }
+
     /// The controlword of this cycle (a fault reset is sent once).
     fn controlword(&mut self) -> u16 {
         if core::mem::take(&mut self.fault_reset) {
@@ -286,10 +365,13 @@ impl Node {
         let state = self.statusword.and_then(DriveState402::from_statusword);
         match self.command {
             // A drive whose quick stop option (0x605A, 5-8) keeps it in quick stop active
-            // leaves it only by disable voltage; 0x06 is no transition there.
-            Command::Shutdown if state == Some(DriveState402::QuickStopActive) => {
-                controlword::DISABLE_VOLTAGE
-            }
+            // leaves it only by disable voltage (transition 12); 0x06 is no transition
+            // there, whether shutting down or starting an enable.
+            Command::Shutdown
+            | Command::Enabling {
+                controlword: controlword::SHUTDOWN,
+                ..
+            } if state == Some(DriveState402::QuickStopActive) => controlword::DISABLE_VOLTAGE,
             Command::Shutdown => controlword::SHUTDOWN,
             Command::QuickStop => controlword::QUICK_STOP,
             Command::Enabling { controlword, .. } => controlword,
@@ -334,6 +416,8 @@ pub(super) struct Cia402 {
     emcy_count: u32,
     /// The latest issue of any node (kept after the reset, for the report).
     latest: Option<DriveIssue>,
+    /// The master's boot-up was sent (at its first step).
+    booted: bool,
 }
 
 impl Cia402 {
@@ -365,12 +449,38 @@ impl Cia402 {
             now: Instant::default(),
             emcy_count: 0,
             latest: None,
+            booted: false,
         }
     }
 
     /// The latest issue of any node since the start: what a log says of a CiA 402 fault.
     pub(super) const fn issue(&self) -> Option<DriveIssue> {
         self.latest
+    }
+
+    /// Some node's RPDO2 may be on (from the start, and from each reset or boot-up of the
+    /// node until its RPDO2-off write is acknowledged) while it is brought up: the robot's
+    /// own frames in `0x300..=0x31F` are held (`docs/protocol.md`, "The RPDO2 window").
+    /// The hold ends when the node fails its configuration (its SDO time-out bounds it) or,
+    /// before its boot-up, when the robot is `faulted` (a node that never boots): a robot
+    /// with a fault to report speaks.
+    pub(super) fn rpdo2_pending(&self, faulted: bool) -> bool {
+        self.nodes.iter().any(|n| {
+            !n.rpdo2_off
+                && match n.phase {
+                    Phase::Setup { .. } => true,
+                    Phase::Reset | Phase::Boot => !faulted,
+                    Phase::Started { .. } | Phase::Failed => false,
+                }
+        })
+    }
+
+    /// A frame with standard id `id` would be a node's RPDO2 now (`0x300 + node`, its RPDO2
+    /// not known off): it is not sent.
+    pub(super) fn is_open_rpdo2(&self, id: u16) -> bool {
+        self.nodes
+            .iter()
+            .any(|n| !n.rpdo2_off && RPDO2_FUNCTION + u16::from(n.id.get()) == id)
     }
 
     /// EMCY frames received since the start (saturating).
@@ -403,17 +513,33 @@ impl Cia402 {
                 velocity,
             } => {
                 let i = self.index_of(node).ok_or_else(|| super::unknown(frame))?;
+                if self.pdo_from_unstarted(i) {
+                    return Ok(());
+                }
                 self.on_statusword(i, now, statusword);
                 (i, false, velocity)
             }
             Message::Tpdo2 { node, velocity } => {
                 let i = self.index_of(node).ok_or_else(|| super::unknown(frame))?;
+                if self.pdo_from_unstarted(i) {
+                    return Ok(());
+                }
                 (i, true, velocity)
             }
             Message::Heartbeat { node, state } => {
                 let n = self.node_of(node).ok_or_else(|| super::unknown(frame))?;
                 n.last_heartbeat = Some(now.mark(n.last_heartbeat));
                 let booted = state == NmtState::BootUp;
+                let self_started = if state == NmtState::Operational {
+                    n.started_itself()
+                } else {
+                    None
+                };
+                if booted {
+                    // A boot-up restores the communication objects: RPDO2 is on again.
+                    n.rpdo2_off = false;
+                    n.fresh = n.phase != Phase::Reset;
+                }
                 let setup = Phase::Setup {
                     step: 0,
                     sent: None,
@@ -442,6 +568,9 @@ impl Cia402 {
                     }
                     Phase::Setup { .. } | Phase::Failed | Phase::Started { .. } => {}
                 }
+                if self_started.is_some() {
+                    self.latest = self_started;
+                }
                 return Ok(());
             }
             Message::Emcy { node, emcy } => {
@@ -469,6 +598,21 @@ impl Cia402 {
 
     fn index_of(&self, id: NodeId) -> Option<usize> {
         self.nodes.iter().position(|n| n.id == id)
+    }
+
+    /// A TPDO from node `i`, which is not started: not feedback (it predates a reset, or
+    /// the node started itself, which refuses it).
+    fn pdo_from_unstarted(&mut self, i: usize) -> bool {
+        let Some(n) = self.nodes.get_mut(i) else {
+            return true;
+        };
+        if n.phase == (Phase::Started { start_owed: false }) {
+            return false;
+        }
+        if let Some(issue) = n.started_itself() {
+            self.latest = Some(issue);
+        }
+        true
     }
 
     fn on_statusword(&mut self, i: usize, now: Instant, sw: u16) {
@@ -523,23 +667,42 @@ impl Cia402 {
         let Some(request) = sequence.get(usize::from(step)) else {
             return;
         };
-        if response.object() != request.object() {
-            // A late answer to an earlier transfer: not this one's.
+        if !response.answers(request) {
+            // Not this transfer's answer (a late one to an earlier transfer, or another
+            // command on the same object).
             return;
         }
         let node = n.id.get();
+        let object = request.object();
         let failure = match response {
-            SdoResponse::Abort { code, .. } => Some(DriveIssue::SdoAbort {
-                node,
-                object: request.object(),
-                code,
-            }),
+            // An optional object the drive does not have (or whose value it does not take):
+            // the configuration goes on without it (`optional`).
+            SdoResponse::Abort { code, .. } if optional(object) && tolerated(code) => None,
+            SdoResponse::Abort { code, .. } => Some(DriveIssue::SdoAbort { node, object, code }),
             SdoResponse::Uploaded { value, .. }
-                if request.object() == (0x1000, 0) && value & 0xFFFF != DEVICE_PROFILE_402 =>
+                if object == (0x1000, 0) && value & 0xFFFF != DEVICE_PROFILE_402 =>
             {
                 Some(DriveIssue::NotADrive {
                     node,
                     device_type: value,
+                })
+            }
+            SdoResponse::Uploaded { value, .. }
+                if object == (0x6061, 0) && value & 0xFF != MODE_PROFILE_VELOCITY =>
+            {
+                // The drive has not switched yet: read again, up to the limit.
+                n.polls = n.polls.saturating_add(1);
+                if n.polls < CIA402_MODE_POLLS {
+                    n.phase = Phase::Setup { step, sent: None };
+                    n.poll_at = Some(Instant::from_micros(
+                        now.as_micros().saturating_add(CIA402_MODE_POLL_US),
+                    ));
+                    return;
+                }
+                Some(DriveIssue::ModeNotShown {
+                    node,
+                    // The low byte is the INTEGER8 read.
+                    mode: (value & 0xFF) as u8 as i8,
                 })
             }
             _ => None,
@@ -549,6 +712,13 @@ impl Cia402 {
             n.phase = Phase::Failed;
             self.latest = Some(issue);
             return;
+        }
+        if object == (0x1401, 1) {
+            // RPDO2 off: the robot's frames are no controlword of this node any more. A
+            // configuration (anew) begins.
+            n.rpdo2_off = true;
+            n.polls = 0;
+            n.poll_at = None;
         }
         n.phase = if usize::from(step) + 1 < sequence.len() {
             Phase::Setup {
@@ -646,6 +816,8 @@ impl Cia402 {
                         .get(usize::from(step))
                         .map_or((0, 0), SdoRequest::object);
                     n.phase = Phase::Failed;
+                    // The client gives the transfer up and says so (CiA 301).
+                    n.abort_owed = Some(object);
                     Some(DriveIssue::SdoTimeout { node, object })
                 }
                 (phase, _)
@@ -736,7 +908,42 @@ impl Cia402 {
         let now = self.now;
         let (heartbeat_ms, timeout_ms, master) =
             (self.heartbeat_ms, self.heartbeat_timeout_ms, self.master);
+        let first = !self.booted;
+        if first {
+            // The master's own boot-up (CiA 301), its first frame; its heartbeat follows
+            // at its period.
+            self.booted = true;
+            if let Some(node) = self.master {
+                let boot_up = Message::Heartbeat {
+                    node,
+                    state: NmtState::BootUp,
+                };
+                push(out, boot_up.to_can_frame());
+            }
+        }
         for (index, n) in self.nodes.iter_mut().enumerate() {
+            if let Some((index, sub)) = n.abort_owed.take() {
+                let request = SdoRequest::Abort {
+                    index,
+                    sub,
+                    code: abort_code::TIMEOUT,
+                };
+                push(
+                    out,
+                    Message::SdoRequest {
+                        node: n.id,
+                        request,
+                    }
+                    .to_can_frame(),
+                );
+            }
+            if core::mem::take(&mut n.preop_owed) {
+                let preop = Message::Nmt {
+                    command: NmtCommand::EnterPreOperational,
+                    node: Some(n.id),
+                };
+                push(out, preop.to_can_frame());
+            }
             match n.phase {
                 Phase::Reset => {
                     let reset = Message::Nmt {
@@ -746,10 +953,16 @@ impl Cia402 {
                     push(out, reset.to_can_frame());
                     n.phase = Phase::Boot;
                     n.statusword = None;
+                    // Reset communication restores the predefined PDOs: RPDO2 is on.
+                    n.rpdo2_off = false;
+                    n.fresh = false;
                     // A recovered node's boot-up is due within the consumer time.
                     n.last_heartbeat = Some(now);
                 }
-                Phase::Setup { step, sent: None } => {
+                Phase::Setup { step, sent: None }
+                    if n.poll_at.is_none_or(|t| now.as_micros() >= t.as_micros()) =>
+                {
+                    n.poll_at = None;
                     let sequence = setup_sequence(n, heartbeat_ms, timeout_ms, master);
                     if let Some(&request) = sequence.get(usize::from(step)) {
                         let msg = Message::SdoRequest {
@@ -774,6 +987,7 @@ impl Cia402 {
                     n.nmt = None;
                     n.was_started = true;
                     n.heard = true;
+                    n.fresh = false;
                     // Feedback is expected from now on.
                     for (w, &(i, _)) in wheels.iter_mut().zip(&self.wheel_node) {
                         if i == index {
@@ -839,7 +1053,9 @@ impl Cia402 {
                 }
             }
         }
+        // The heartbeat's first tick is the boot-up's step: the boot-up stands for it.
         if self.heartbeat_clock.tick()
+            && !first
             && let Some(node) = self.master
         {
             let heartbeat = Message::Heartbeat {
@@ -859,13 +1075,9 @@ fn setup_sequence(
     master: Option<NodeId>,
 ) -> heapless::Vec<SdoRequest, SETUP_MAX> {
     let mut out = heapless::Vec::new();
-    // The device type first: a node that is not a 402 drive is told nothing.
-    let _ = out.push(SdoRequest::Upload {
-        index: 0x1000,
-        sub: 0,
-    });
-    let mut write = |index: u16, sub: u8, value: u32, size: u8| {
-        // SETUP_MAX covers the longest sequence.
+    let node = u32::from(n.id.get());
+    // SETUP_MAX covers the longest sequence.
+    let write = |out: &mut heapless::Vec<SdoRequest, SETUP_MAX>, index, sub, value, size| {
         let _ = out.push(SdoRequest::Download {
             index,
             sub,
@@ -873,12 +1085,33 @@ fn setup_sequence(
             size,
         });
     };
-    let node = u32::from(n.id.get());
+    // RPDO2 off first, before anything else, even the device type: from the boot-up until
+    // this write its predefined COB-ID, 0x300 + node, is a robot protocol frame
+    // ("The RPDO2 window"). 0x1401 is CiA 301's, on any node.
+    write(
+        &mut out,
+        0x1401,
+        1,
+        (u32::from(RPDO2_FUNCTION) + node) | COB_INVALID,
+        4,
+    );
+    // The device type: a node that is not a 402 drive is told nothing more.
+    let _ = out.push(SdoRequest::Upload {
+        index: 0x1000,
+        sub: 0,
+    });
+    let mut write = |index: u16, sub: u8, value: u32, size: u8| {
+        write(&mut out, index, sub, value, size);
+    };
     // Profile velocity mode, the heartbeat produced and the master's consumed.
-    write(0x6060, 0, 3, 1);
+    write(0x6060, 0, MODE_PROFILE_VELOCITY, 1);
     write(0x1017, 0, heartbeat_ms.into(), 2);
     let master = u32::from(master.map_or(0, NodeId::get));
     write(0x1016, 1, master << 16 | u32::from(heartbeat_timeout_ms), 4);
+    // A disable (0x06 from operation enabled, transition 8) and a disable operation (0x07,
+    // transition 5) slow down on the drive's ramp before the torque goes; optional objects.
+    write(0x605B, 0, OPTION_SLOW_DOWN, 2);
+    write(0x605C, 0, OPTION_SLOW_DOWN, 2);
     // (comm index, mapping index, COB-ID, transmission type, entries); entries are
     // index << 16 | sub << 8 | bits.
     let (sub1, sub2) = if n.dual { (1, 2) } else { (0, 0) };
@@ -910,9 +1143,8 @@ fn setup_sequence(
         write(comm, 2, kind.into(), 1);
         write(comm, 1, cob, 4);
     }
-    // Every PDO not used off, at its predefined COB-ID.
+    // Every other PDO not used off, at its predefined COB-ID (RPDO2 was the first).
     for (comm, function) in [
-        (0x1401, 0x300),
         (0x1402, 0x400),
         (0x1403, 0x500),
         (0x1801, 0x280),
@@ -924,7 +1156,27 @@ fn setup_sequence(
             write(comm, 1, (function + node) | COB_INVALID, 4);
         }
     }
+    // Last, the mode of operation display: read until it shows profile velocity (the mode
+    // may take effect some time after 0x6060 is written), before NMT start and any enable.
+    let _ = out.push(SdoRequest::Upload {
+        index: 0x6061,
+        sub: 0,
+    });
     out
+}
+
+/// Optional objects of the configuration: a drive without them (or without the value
+/// written) is configured without them.
+const fn optional((index, sub): (u16, u8)) -> bool {
+    matches!(index, 0x605B | 0x605C) && sub == 0
+}
+
+/// The abort codes that say an optional object is absent or does not take the value.
+const fn tolerated(code: u32) -> bool {
+    matches!(
+        code,
+        abort_code::NO_OBJECT | abort_code::NO_SUBINDEX | abort_code::INVALID_VALUE
+    )
 }
 
 /// COB-ID bit 31: the PDO is off.

@@ -246,6 +246,11 @@ pub struct Controller {
     gyro: odometry::Gyro,
     pods: pods::Pods,
 
+    /// Odometry and status frames due while the robot held its block (CiA 402: a drive's
+    /// RPDO2 may be on), sent at the first step it may speak again.
+    held_odom: bool,
+    held_status: bool,
+
     boot: Option<Instant>,
     steps: u64,
     status_requested: bool,
@@ -366,6 +371,8 @@ impl Controller {
             rx_errors: RxErrorCounters::new(),
             gyro: odometry::Gyro::default(),
             pods: pods::Pods::new(&config.odometry),
+            held_odom: false,
+            held_status: false,
             boot: None,
             steps: 0,
             status_requested: false,
@@ -502,7 +509,7 @@ impl Controller {
         };
         self.emit_drive(out, mask, setpoint_due);
         self.note_test_current();
-        self.emit_telemetry(out, now, boot, odom_due, status_due);
+        self.emit_robot_block(out, now, boot, odom_due, status_due);
         self.steps += 1;
     }
 
@@ -536,6 +543,46 @@ impl Controller {
                 self.currents = [0.0; 4];
                 c.emit(out, &mut self.wheels, self.setpoints, setpoints_due);
             }
+        }
+    }
+
+    /// The robot's own frames (`0x300..=0x31F`) of this step. With CiA 402 drives, while
+    /// some drive being brought up may have its RPDO2 (`0x300 + node`) on, the robot holds
+    /// them all (the due ones go out at the first step it may speak; its first `HEARTBEAT`
+    /// tells a host the block is safe), and in any state a frame with an id that is such
+    /// an RPDO2 is not sent (`docs/protocol.md`, "The RPDO2 window").
+    fn emit_robot_block(
+        &mut self,
+        out: &mut Outbox,
+        now: Instant,
+        boot: Instant,
+        odom_due: bool,
+        status_due: bool,
+    ) {
+        let DriveState::Cia402(c) = &self.drive else {
+            self.emit_telemetry(out, now, boot, odom_due, status_due);
+            return;
+        };
+        let faulted = matches!(self.state, RobotState::Fault | RobotState::Estop);
+        if c.rpdo2_pending(faulted) {
+            self.held_odom |= odom_due;
+            self.held_status |= status_due;
+            return;
+        }
+        let odom_due = odom_due || core::mem::take(&mut self.held_odom);
+        let status_due = status_due || core::mem::take(&mut self.held_status);
+        let first = out.len();
+        self.emit_telemetry(out, now, boot, odom_due, status_due);
+        if let DriveState::Cia402(c) = &self.drive {
+            let mut i = 0;
+            out.retain(|f| {
+                i += 1;
+                let id = match f.id() {
+                    embedded_can::Id::Standard(id) => id.as_raw(),
+                    embedded_can::Id::Extended(_) => return true,
+                };
+                i <= first || !c.is_open_rpdo2(id)
+            });
         }
     }
 

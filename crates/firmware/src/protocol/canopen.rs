@@ -435,6 +435,37 @@ impl SdoResponse {
             | Self::Abort { index, sub, .. } => (index, sub),
         }
     }
+
+    /// Whether this is the answer to `request`: the same index and sub-index, and the
+    /// server command that answers the client's (an upload by an upload response, a
+    /// download by a download response; either by an abort). A response to another
+    /// transfer on the same object, late or misrouted, is not.
+    #[must_use]
+    pub const fn answers(&self, request: &SdoRequest) -> bool {
+        let (index, sub) = self.object();
+        let (r_index, r_sub) = request.object();
+        let command_fits = matches!(
+            (self, request),
+            (
+                Self::Abort { .. },
+                SdoRequest::Upload { .. } | SdoRequest::Download { .. }
+            ) | (Self::Uploaded { .. }, SdoRequest::Upload { .. })
+                | (Self::Downloaded { .. }, SdoRequest::Download { .. })
+        );
+        index == r_index && sub == r_sub && command_fits
+    }
+}
+
+/// SDO abort codes (CiA 301 table 22) the master sends or acts on.
+pub mod abort_code {
+    /// SDO protocol timed out: the client gives a transfer up.
+    pub const TIMEOUT: u32 = 0x0504_0000;
+    /// Object does not exist in the object dictionary.
+    pub const NO_OBJECT: u32 = 0x0602_0000;
+    /// Sub-index does not exist.
+    pub const NO_SUBINDEX: u32 = 0x0609_0011;
+    /// Invalid value for parameter (value range exceeded).
+    pub const INVALID_VALUE: u32 = 0x0609_0030;
 }
 
 /// A short description of an SDO abort code (CiA 301 table 22), for logs; `None` for codes
@@ -1139,5 +1170,50 @@ mod tests {
         for m in messages {
             assert_eq!(decode(&m.to_can_frame()), Ok(m), "{m:?}");
         }
+    }
+
+    #[test]
+    fn an_sdo_answer_matches_index_subindex_and_command() {
+        let up = SdoRequest::Upload {
+            index: 0x6061,
+            sub: 0,
+        };
+        let down = SdoRequest::Download {
+            index: 0x6061,
+            sub: 0,
+            value: 3,
+            size: 1,
+        };
+        let uploaded = |index, sub| SdoResponse::Uploaded {
+            index,
+            sub,
+            value: 3,
+            size: 1,
+        };
+        let downloaded = SdoResponse::Downloaded {
+            index: 0x6061,
+            sub: 0,
+        };
+        let abort = SdoResponse::Abort {
+            index: 0x6061,
+            sub: 0,
+            code: abort_code::NO_OBJECT,
+        };
+        assert!(uploaded(0x6061, 0).answers(&up));
+        assert!(abort.answers(&up) && abort.answers(&down));
+        assert!(downloaded.answers(&down));
+        // The same object, the wrong command: the answer to another transfer.
+        assert!(!downloaded.answers(&up));
+        assert!(!uploaded(0x6061, 0).answers(&down));
+        // The right command, another index or sub-index.
+        assert!(!uploaded(0x6060, 0).answers(&up));
+        assert!(!uploaded(0x6061, 1).answers(&up));
+        // A client's abort is answered by nothing.
+        let client_abort = SdoRequest::Abort {
+            index: 0x6061,
+            sub: 0,
+            code: abort_code::TIMEOUT,
+        };
+        assert!(!abort.answers(&client_abort) && !downloaded.answers(&client_abort));
     }
 }

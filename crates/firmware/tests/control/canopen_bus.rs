@@ -45,8 +45,37 @@ pub struct ScriptedNode {
     pub sdo_log: Vec<SdoRequest>,
     /// Every controlword received, with its time (µs).
     pub controlwords: Vec<(u64, u16)>,
+    /// After a boot-up the node enters operational by itself (a vendor auto-start, CiA
+    /// 302's "self-starting" NMT slave) and says so in a heartbeat at once, as CANopenNode
+    /// does on a state change.
+    pub self_starting: bool,
+    /// RPDO2's COB-ID (0x1401:01; bit 31: off); reset by a boot-up to the predefined
+    /// `0x300 + node`, on.
+    pub rpdo2: u32,
+    /// Every frame taken by RPDO2 (mapped, as the predefined set of a 402 drive, to the
+    /// controlword in bytes 0-1) while operational: (time µs, controlword).
+    pub rpdo2_taken: Vec<(u64, u16)>,
+    /// When the RPDO2-off write was answered, µs.
+    pub rpdo2_off_at: Option<u64>,
+    /// Reads of 0x6061 that still show the previous mode (the mode takes effect late).
+    pub mode_lag_reads: u32,
+    /// The mode 0x6061 shows until `mode_lag_reads` reads are done.
+    pub mode_shown_before: i8,
+    /// A download to this object is answered with an upload response (the wrong command).
+    pub wrong_answer: Option<(u16, u8)>,
+    /// The node has no 0x605B / 0x605C (aborted "object does not exist").
+    pub lacks_options: bool,
+    /// 0x605B, the shutdown option code (1: slow down on the ramp, then disable).
+    pub shutdown_option: u32,
+    /// The actual velocities of its axes, raw (what the TPDOs report).
+    pub actual: [i32; 2],
+    /// Slowing down after a shutdown with option code 1 (`SLOW_DOWN_PER_CYCLE`).
+    pub slowing: bool,
     pending: Vec<CanFrame>,
 }
+
+/// How much a scripted drive's actual velocity falls a cycle on its slow down ramp, raw.
+pub const SLOW_DOWN_PER_CYCLE: i32 = 40;
 
 /// The scripted nodes of a CiA 402 configuration.
 #[derive(Debug, Clone, Default)]
@@ -86,6 +115,17 @@ impl ScriptedBus {
                     sdo_silent: false,
                     sdo_log: Vec::new(),
                     controlwords: Vec::new(),
+                    self_starting: false,
+                    rpdo2: 0x300 + u32::from(id),
+                    rpdo2_taken: Vec::new(),
+                    rpdo2_off_at: None,
+                    mode_lag_reads: 0,
+                    mode_shown_before: 0,
+                    wrong_answer: None,
+                    lacks_options: false,
+                    shutdown_option: 0,
+                    actual: [0; 2],
+                    slowing: false,
                     pending: Vec::new(),
                 });
             }
@@ -119,9 +159,21 @@ impl ScriptedBus {
         out
     }
 
-    /// Takes the master's frames of one step.
+    /// Takes the frames of one step (the master's, or a host's).
     pub fn take(&mut self, now_us: u64, frames: &[CanFrame]) {
         for f in frames {
+            if let embedded_can::Id::Standard(id) = embedded_can::Frame::id(f) {
+                for n in &mut self.nodes {
+                    if n.operational() && n.rpdo2 == u32::from(id.as_raw()) {
+                        let data = embedded_can::Frame::data(f);
+                        let cw = u16::from_le_bytes([
+                            data.first().copied().unwrap_or(0),
+                            data.get(1).copied().unwrap_or(0),
+                        ]);
+                        n.rpdo2_taken.push((now_us, cw));
+                    }
+                }
+            }
             let Ok(msg) = canopen::decode(f) else {
                 continue;
             };
@@ -135,7 +187,7 @@ impl ScriptedBus {
                 }
                 Message::SdoRequest { node, request } => {
                     if let Some(n) = self.nodes.iter_mut().find(|n| n.id == node) {
-                        n.sdo(request);
+                        n.sdo(now_us, request);
                     }
                 }
                 Message::Sync { .. } => {
@@ -145,13 +197,24 @@ impl ScriptedBus {
                             continue;
                         }
                         let moving = n.statusword == sw::OPERATION_ENABLED;
-                        let actual = n.targets.map(|t| {
-                            if moving {
-                                (t as f32 * k).round() as i32
-                            } else {
-                                0
+                        if n.slowing {
+                            n.actual = n
+                                .actual
+                                .map(|v| v.signum() * (v.abs() - SLOW_DOWN_PER_CYCLE).max(0));
+                            if n.actual == [0; 2] {
+                                n.slowing = false;
+                                n.statusword = sw::READY_TO_SWITCH_ON;
                             }
-                        });
+                        } else {
+                            n.actual = n.targets.map(|t| {
+                                if moving {
+                                    (t as f32 * k).round() as i32
+                                } else {
+                                    0
+                                }
+                            });
+                        }
+                        let actual = n.actual;
                         n.pending.push(
                             Message::Tpdo1 {
                                 node: n.id,
@@ -218,12 +281,17 @@ impl ScriptedNode {
         );
     }
 
-    /// A boot-up: pre-operational, switch on disabled, the mode forgotten.
+    /// A boot-up: pre-operational, switch on disabled, the mode forgotten, the PDOs
+    /// predefined (a self-starting node then enters operational at once).
     pub fn reboot(&mut self) {
         self.nmt = NmtState::PreOperational;
         self.statusword = sw::SWITCH_ON_DISABLED;
         self.mode = 0;
         self.targets = [0; 2];
+        self.actual = [0; 2];
+        self.slowing = false;
+        self.rpdo2 = 0x300 + u32::from(self.id.get());
+        self.rpdo2_off_at = None;
         self.pending.push(
             Message::Heartbeat {
                 node: self.id,
@@ -231,6 +299,9 @@ impl ScriptedNode {
             }
             .to_can_frame(),
         );
+        if self.self_starting {
+            self.enter(NmtState::Operational);
+        }
     }
 
     /// A drive fault with its EMCY.
@@ -258,7 +329,7 @@ impl ScriptedNode {
         }
     }
 
-    fn sdo(&mut self, request: SdoRequest) {
+    fn sdo(&mut self, now_us: u64, request: SdoRequest) {
         self.sdo_log.push(request);
         if self.sdo_silent {
             return;
@@ -267,6 +338,38 @@ impl ScriptedNode {
         let response = match (self.abort, request) {
             (Some((object, code)), _) if object == (index, sub) => {
                 SdoResponse::Abort { index, sub, code }
+            }
+            (_, SdoRequest::Abort { .. }) => return,
+            (_, SdoRequest::Download { .. }) if self.wrong_answer == Some((index, sub)) => {
+                SdoResponse::Uploaded {
+                    index,
+                    sub,
+                    value: 0,
+                    size: 4,
+                }
+            }
+            (_, SdoRequest::Download { .. })
+                if self.lacks_options && matches!(index, 0x605B | 0x605C) =>
+            {
+                SdoResponse::Abort {
+                    index,
+                    sub,
+                    code: 0x0602_0000,
+                }
+            }
+            (_, SdoRequest::Upload { .. }) if (index, sub) == (0x6061, 0) => {
+                let shown = if self.mode_lag_reads > 0 {
+                    self.mode_lag_reads -= 1;
+                    self.mode_shown_before
+                } else {
+                    self.mode
+                };
+                SdoResponse::Uploaded {
+                    index,
+                    sub,
+                    value: u32::from(shown as u8),
+                    size: 1,
+                }
             }
             (_, SdoRequest::Upload { .. }) if (index, sub) == (0x1000, 0) => {
                 SdoResponse::Uploaded {
@@ -279,6 +382,15 @@ impl ScriptedNode {
             (_, SdoRequest::Download { value, .. }) => {
                 if (index, sub) == (0x6060, 0) {
                     self.mode = value as i8;
+                }
+                if (index, sub) == (0x605B, 0) {
+                    self.shutdown_option = value;
+                }
+                if (index, sub) == (0x1401, 1) {
+                    self.rpdo2 = value;
+                    if value & 0x8000_0000 != 0 {
+                        self.rpdo2_off_at = Some(now_us);
+                    }
                 }
                 SdoResponse::Downloaded { index, sub }
             }
@@ -301,6 +413,20 @@ impl ScriptedNode {
     fn control(&mut self, cw: u16) {
         let state = DriveState402::from_statusword(self.statusword)
             .unwrap_or(DriveState402::SwitchOnDisabled);
+        if state == DriveState402::OperationEnabled
+            && cw & 0x8F == 0x06
+            && self.shutdown_option == 1
+        {
+            // Transition 8 with option code 1: slow down on the ramp (still operation
+            // enabled), then ready to switch on.
+            self.slowing = true;
+            self.last_controlword = cw;
+            return;
+        }
+        if self.slowing {
+            self.last_controlword = cw;
+            return;
+        }
         let may_enable = self.mode == 3 && !self.refuses_enable;
         self.statusword = state
             .on_controlword(cw, self.last_controlword, may_enable)

@@ -74,9 +74,11 @@ impl Rig {
         Instant::from_micros(self.now_us)
     }
 
+    /// A host's frame: to the controller, and seen by the scripted CiA 402 nodes.
     pub fn send(&mut self, cmd: Command) {
         let frame = cmd.to_can_frame();
         self.ctl.on_frame(self.now(), &frame);
+        self.canopen.take(self.now_us, &[frame]);
     }
 
     pub fn raw(&mut self, frame: CanFrame) {

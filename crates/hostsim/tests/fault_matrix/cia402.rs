@@ -17,6 +17,10 @@ use hostsim::sim::{LogOptions, run_observed};
 
 use super::{MOMENTS, MS, Row, add_action, drive, moment, ms, us};
 
+/// SDO transfers of a dual-axis node's configuration (`docs/protocol.md`, "Configuration of
+/// a node"): RPDO2 off, the device type, 33 writes, the mode of operation display.
+const SDO_TRANSFERS: usize = 37;
+
 /// What a CiA 402 run shows.
 #[derive(Debug, Default)]
 struct Record {
@@ -294,7 +298,7 @@ pub(super) fn rows() -> Vec<Row> {
         // Node 1 lost its power and its configuration in the reboot: no PDOs until started.
         &[2],
         (
-            restarted && !moved && sdo_again == 34,
+            restarted && !moved && sdo_again == SDO_TRANSFERS,
             format!(
                 "boot-up 2 ms after the reboot; configured again ({sdo_again} SDO transfers, \
                  started: {restarted}), no target until the host's reset (none after: {})",
@@ -456,7 +460,7 @@ fn runner_restart_row(onset: (f64, &str), consumer_us: u64) -> Row {
         && frames_dead == 0
         && commands.len() == 4
         && want_commands.iter().all(|c| commands.contains(c))
-        && sdo == 34
+        && sdo == SDO_TRANSFERS
         && operation.is_some()
         && moving.is_some()
         && rec.last() == (RobotState::Enabled, Fault::None);
