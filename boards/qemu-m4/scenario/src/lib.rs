@@ -313,6 +313,13 @@ impl Node402 {
                 value: DEVICE_TYPE_402,
                 size: 4,
             },
+            // The mode of operation display shows the mode written at once.
+            SdoRequest::Upload { .. } if (index, sub) == (0x6061, 0) => SdoResponse::Uploaded {
+                index,
+                sub,
+                value: u32::from(self.mode as u8),
+                size: 1,
+            },
             SdoRequest::Download { value, .. } => {
                 if (index, sub) == (0x6060, 0) {
                     self.mode = value as i8;
