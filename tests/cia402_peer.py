@@ -12,7 +12,11 @@ Choices, as a real drive makes them: the statusword carries bit 9 (remote) alway
 mask (0x6F). Quick stop behaves as option code 2: the motor slows with the model's time
 constant and the drive goes to switch on disabled once stopped. Enabling is refused unless
 0x6060 == 3. A silent heartbeat producer (monitored from its first heartbeat after 0x1016:01
-is written) sends EMCY 0x8130 and faults the drive. PDO parameters are checked when written
+is written) sends EMCY 0x8130 and faults the drive; a bus-off (`enter_bus_off`) faults it too.
+Both are communication errors, and with CiA 301's default error behaviour (0x1029 = 0) they
+take an operational node to pre-operational; only NMT start (or a reset) brings it back. Each
+change of the NMT state goes out in a heartbeat at once (as CANopenNode does and hostsim's
+drives do). PDO parameters are checked when written
 (CiA 301 order disable, map, enable; aborts 0x08000022, 0x06040041-43, 0x06090030); TPDO
 types 1-240 (every n-th SYNC) and RPDO types 0-240 (applied at the next SYNC), 0xFE and 0xFF
 (on receipt). SDO and PDOs stop in NMT stopped. Frames are received by a python-can listener
@@ -46,6 +50,7 @@ PROFILE_VELOCITY = 3
 REMOTE = 0x0200  # statusword bit 9
 FAULT_RESET = 0x80  # controlword bit 7
 EMCY_HEARTBEAT = 0x8130  # life guard / heartbeat error
+EMCY_BUS_OFF_RECOVERED = 0x8140  # recovered from bus off
 EMCY_PDO_LENGTH = 0x8210  # PDO not processed due to length error
 DEFAULT_FAULT = 0x2310  # continuous over current (device output side)
 # SDO abort codes (CiA 301) the peer answers PDO parameter writes with.
@@ -114,6 +119,17 @@ def next_state(state: State, controlword: int, previous: int, mode: int) -> Stat
     return State.OPERATION_ENABLED if mode == PROFILE_VELOCITY else State.SWITCHED_ON
 
 
+def error_register(code: int) -> int:
+    """The error register (0x1001) bits of an EMCY error code (CiA 301): bit 0 (generic) with
+    any error and the class bit of its code: current (0x2xxx) bit 1, voltage (0x3xxx) bit 2,
+    temperature (0x4xxx) bit 3, communication (0x81xx) and protocol (0x82xx) errors bit 4; 0
+    for error reset (0x0000). hostsim's drives use the same (canopen_drive::error_register)."""
+    if code == 0:
+        return 0
+    classes = {0x2: 0x02, 0x3: 0x04, 0x4: 0x08}
+    return 0x01 | classes.get(code >> 12, 0) | (0x10 if code >> 8 in (0x81, 0x82) else 0)
+
+
 def _restricted(cob_id: int) -> bool:
     """CiA 301's restricted COB-IDs (NMT, SYNC/EMCY, TIME, SDO, LSS, heartbeat)."""
     return (cob_id <= 0x7F or 0x101 <= cob_id <= 0x180 or 0x581 <= cob_id <= 0x5FF
@@ -165,6 +181,7 @@ class Cia402Peer:
         self._trace: list[Transition] = []
         self._sdo_aborts: dict[tuple[int, int], int] = {}
         self._heartbeat_paused = False
+        self._bus_off = False
         self._errors: list[BaseException] = []
         self._nmt = BOOTUP  # until the boot-up is sent: every frame is ignored
         self._heartbeat_next = 0.0
@@ -251,6 +268,26 @@ class Cia402Peer:
         with self._lock:
             self._heartbeat_paused = False
             self._heartbeat_next = time.monotonic()
+        self._wake.set()
+
+    def enter_bus_off(self) -> None:
+        """The drive's CAN controller goes bus-off: it sends and takes nothing until
+        `leave_bus_off`. The drive reacts to the communication error: fault (abort connection;
+        the EMCY cannot go out), and pre-operational if it was operational."""
+        with self._lock:
+            self._bus_off = True
+            self._error_register |= error_register(EMCY_BUS_OFF_RECOVERED)
+            self._set_state(State.FAULT)
+            if self._nmt == OPERATIONAL:
+                self._set_nmt(PRE_OPERATIONAL)
+
+    def leave_bus_off(self) -> None:
+        """Back on the bus: EMCY 0x8140 (recovered from bus off), then a heartbeat with the
+        NMT state it is in."""
+        with self._lock:
+            self._bus_off = False
+            self._emcy(EMCY_BUS_OFF_RECOVERED)
+            self._heartbeat_now()
         self._wake.set()
 
     def reboot(self) -> None:
@@ -354,10 +391,23 @@ class Cia402Peer:
             self._errors.append(exc)
 
     def _fault(self, code: int) -> None:
-        category = {0x2: 0x02, 0x3: 0x04, 0x4: 0x08, 0x8: 0x10}.get(code >> 12, 0)
-        self._error_register = 0x01 | category
+        self._error_register = error_register(code)
         self._set_state(State.FAULT)
         self._emcy(code)
+
+    def _set_nmt(self, state: int) -> None:
+        """The NMT state becomes `state`; a change goes out in a heartbeat at once."""
+        if state != self._nmt:
+            self._nmt = state
+            self._heartbeat_now()
+
+    def _heartbeat_now(self) -> None:
+        """A heartbeat now (if the producer runs), the next a period later."""
+        if self._heartbeat_ms:
+            if not self._heartbeat_paused:
+                self._send(0x700 + self.node_id, bytes([self._nmt]))
+            self._heartbeat_next = time.monotonic() + self._heartbeat_ms / 1000
+            self._wake.set()
 
     def _emcy(self, code: int, register: int = 0) -> None:
         """An EMCY with the error register, or'ed with `register` for a passing error."""
@@ -365,7 +415,8 @@ class Cia402Peer:
             self._send(0x80 + self.node_id, struct.pack("<HB5x", code, self._error_register | register))
 
     def _send(self, can_id: int, data: bytes) -> None:
-        self.network.send_message(can_id, data)
+        if not self._bus_off:
+            self.network.send_message(can_id, data)
 
     # --- the motor ------------------------------------------------------------------------
 
@@ -517,7 +568,7 @@ class Cia402Peer:
 
     def _on_sdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         with self._lock:
-            if self._closing or self._nmt in (BOOTUP, STOPPED):
+            if self._closing or self._bus_off or self._nmt in (BOOTUP, STOPPED):
                 return
             if len(data) == 8 and data[0] & 0xE0 in (0x20, 0x40):  # initiate download / upload
                 index, subindex = struct.unpack_from("<HB", data, 1)
@@ -529,7 +580,7 @@ class Cia402Peer:
 
     def _on_frame(self, can_id: int, data: bytes) -> None:
         with self._lock:
-            if self._closing or self._nmt == BOOTUP:
+            if self._closing or self._bus_off or self._nmt == BOOTUP:
                 return
             if can_id == 0 and len(data) >= 2:
                 self._on_nmt(data[0], data[1])
@@ -559,11 +610,11 @@ class Cia402Peer:
             self._pdos()
             self._sync_count = 0
             self._pending_rpdos.clear()
-            self._nmt = OPERATIONAL
+            self._set_nmt(OPERATIONAL)
         elif command == NMT_STOP:
-            self._nmt = STOPPED
+            self._set_nmt(STOPPED)
         elif command == NMT_PRE_OPERATIONAL:
-            self._nmt = PRE_OPERATIONAL
+            self._set_nmt(PRE_OPERATIONAL)
         elif command in (NMT_RESET_NODE, NMT_RESET_COMMUNICATION):
             if command == NMT_RESET_NODE:
                 self._reset_application()
@@ -613,6 +664,8 @@ class Cia402Peer:
                     self._consumer_deadline = None  # once, until the producer is heard again
                     if self._state is not State.FAULT:
                         self._fault(EMCY_HEARTBEAT)
+                    if self._nmt == OPERATIONAL:  # 0x1029:01 = 0
+                        self._set_nmt(PRE_OPERATIONAL)
                 if self._state is State.QUICK_STOP_ACTIVE:
                     self._advance()
                 deadlines = [now + (0.005 if self._state is State.QUICK_STOP_ACTIVE else 0.1)]

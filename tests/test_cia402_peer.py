@@ -17,10 +17,12 @@ import configparser
 import contextlib
 import dataclasses
 import math
+import pathlib
 import re
 import struct
 import threading
 import time
+import tomllib
 from collections.abc import Callable, Iterator
 
 import can
@@ -30,11 +32,14 @@ from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 
 from cia402_peer import (
     DUAL_EDS,
+    EMCY_BUS_OFF_RECOVERED,
     EMCY_HEARTBEAT,
     EMCY_PDO_LENGTH,
+    REMOTE,
     SINGLE_EDS,
     Cia402Peer,
     State,
+    error_register,
     next_state,
 )
 
@@ -110,25 +115,30 @@ def test_eds_is_consistent_and_loads_with_canopen(path: str, axes: int) -> None:
         assert var(0x60FF, s).pdo_mappable and var(0x606C, s).pdo_mappable
 
 
-SOD, RTSO, SO, OE, QSA, FAULT = (State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON, State.SWITCHED_ON,
-                                 State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE, State.FAULT)
+#: CiA 402's state table, the one hostsim's drive is held to as well (its test
+#: `both_drive_models_follow_the_transition_table` reads the same file).
+TRANSITIONS = tomllib.loads((pathlib.Path(__file__).resolve().parent / "cia402_transitions.toml").read_text())
 
 
-@pytest.mark.parametrize("state, controlword, previous, mode, want", [
-    (SOD, 0x06, 0x00, 3, RTSO), (RTSO, 0x07, 0x06, 3, SO), (SO, 0x0F, 0x07, 3, OE),  # 2, 3, 4
-    (RTSO, 0x0F, 0x06, 3, OE),  # 3 + 4
-    (SO, 0x0F, 0x07, 0, SO), (RTSO, 0x0F, 0x06, 1, SO),  # enabling refused outside mode 3
-    (SOD, 0x07, 0x00, 3, SOD), (SOD, 0x0F, 0x00, 3, SOD),  # switch on needs shutdown first
-    (OE, 0x07, 0x0F, 3, SO), (OE, 0x06, 0x0F, 3, RTSO), (SO, 0x06, 0x07, 3, RTSO),  # 5, 8, 6
-    (OE, 0x02, 0x0F, 3, QSA), (SO, 0x02, 0x07, 3, SOD), (RTSO, 0x0B, 0x06, 3, SOD),  # 11, 10, 7
-    (QSA, 0x0F, 0x02, 3, QSA), (QSA, 0x06, 0x02, 3, QSA), (QSA, 0x00, 0x02, 3, SOD),  # 12
-    (OE, 0x00, 0x0F, 3, SOD), (OE, 0x0D, 0x0F, 3, SOD),  # 9: disable voltage
-    (FAULT, 0x80, 0x00, 3, SOD), (FAULT, 0x80, 0x80, 3, FAULT), (FAULT, 0x8F, 0x0F, 3, SOD),  # 15
-    (FAULT, 0x06, 0x80, 3, FAULT), (FAULT, 0x0F, 0x00, 3, FAULT),
-    (OE, 0x8F, 0x0F, 3, OE), (SOD, 0x86, 0x00, 3, SOD),  # bit 7 outside fault: no command
+@pytest.mark.parametrize("state, controlword, previous, mode, want, transition", TRANSITIONS["table"]["rows"],
+                         ids=lambda v: f"{v:#04x}" if isinstance(v, int) and v > 9 else str(v))
+def test_state_machine_table(state: str, controlword: int, previous: int, mode: int, want: str,
+                             transition: str) -> None:
+    """Each row of tests/cia402_transitions.toml: the state the peer goes to, and its
+    statusword under 0x6F."""
+    got = next_state(State[state], controlword, previous, mode)
+    assert got is State[want], f"{state} {controlword:#04x} -> {got.name}, the table says {want} ({transition})"
+    assert (got | REMOTE) & 0x6F == TRANSITIONS["statusword"][want]
+
+
+@pytest.mark.parametrize("code, register", [
+    (0x2310, 0x03), (0x3210, 0x05), (0x4210, 0x09), (0x8130, 0x11), (0x8140, 0x11), (0x8210, 0x11),
+    (0x8611, 0x01), (0x1000, 0x01), (0x0000, 0x00),
 ])
-def test_state_machine_table(state: State, controlword: int, previous: int, mode: int, want: State) -> None:
-    assert next_state(state, controlword, previous, mode) is want
+def test_error_register_of_an_emcy_code(code: int, register: int) -> None:
+    """CiA 301's error register bits (generic, and current, voltage, temperature,
+    communication by the code's class), as hostsim's drive sets them."""
+    assert error_register(code) == register
 
 
 # --- on vcan0: the recorder and the master --------------------------------------------------
@@ -495,7 +505,9 @@ def test_heartbeat_producer_follows_1017_and_the_hooks(vcan: str) -> None:
 @pytest.mark.vcan
 def test_heartbeat_consumer_trips_within_its_time(vcan: str) -> None:
     """0x1016:01 = 127 << 16 | 150: the drive watches the master's heartbeat from the first
-    one on; 150 ms of silence (up to one period more) faults it with EMCY 0x8130."""
+    one on; 150 ms of silence (up to one period more) faults it with EMCY 0x8130 and, as
+    0x1029 = 0 says, takes it from operational to pre-operational (its heartbeat says so at
+    once): no PDOs until the master starts it again."""
     with bench(vcan, {DUAL: True}) as b:
         b.boot()  # without the master's heartbeat: monitoring has not started
         mark = b.recorder.mark()
@@ -512,13 +524,61 @@ def test_heartbeat_consumer_trips_within_its_time(vcan: str) -> None:
         trip_ms = (frame.t - last.t) * 1000
         assert HEARTBEAT_TIMEOUT_MS <= trip_ms <= HEARTBEAT_TIMEOUT_MS + HEARTBEAT_MS, trip_ms
         assert emcy(frame) == (EMCY_HEARTBEAT, 0x11) and len(frame.data) == 8
-        assert b.until(0x0F, 0x08, mask=0x4F) <= 2
-        assert b.master.read(DUAL, 0x1001) == 0x11
+        pre_op = b.recorder.wait(stop, 0x700 + DUAL, lambda f: f.data == b"\x7f")
+        # The heartbeat right after the EMCY (the same pass of the peer's timing thread).
+        assert 0 <= pre_op.t - frame.t < HEARTBEAT_MS / 1000, (pre_op.t - frame.t)
+        assert {f.data for f in b.recorder.since(stop, 0x700 + DUAL) if f.t < frame.t} <= {b"\x05"}
+        # Pre-operational: SYNC is not answered; the state by SDO.
+        unanswered = b.recorder.mark()
+        b.run(0x0F, 3)
+        assert b.recorder.since(unanswered, 0x180 + DUAL) == []
+        assert b.master.read(DUAL, 0x6041) & 0x4F == 0x08 and b.master.read(DUAL, 0x1001) == 0x11
         # Once per silence: no second EMCY while still silent.
         time.sleep(2 * HEARTBEAT_TIMEOUT_MS / 1000)
         assert len(b.recorder.since(stop, 0x80 + DUAL)) == 1
+        assert b.peers[DUAL].nmt_state == 0x7F
+        # NMT start brings it back: operational, in fault until a fault reset.
+        b.master.nmt(0x01, DUAL)
+        assert b.until(0x0F, 0x08, mask=0x4F) <= 2
         print(f"\nheartbeat consumer: tripped {trip_ms:.1f} ms after the master's last heartbeat "
-              f"(limit {HEARTBEAT_TIMEOUT_MS} + {HEARTBEAT_MS} ms)")
+              f"(limit {HEARTBEAT_TIMEOUT_MS} + {HEARTBEAT_MS} ms); heartbeat 0x7F "
+              f"{(pre_op.t - frame.t) * 1e3:.2f} ms after the EMCY")
+
+
+@pytest.mark.vcan
+def test_bus_off_faults_and_leaves_operational_until_started(vcan: str) -> None:
+    """A bus-off while operation enabled: nothing from the drive while off; it faults (abort
+    connection) and, 0x1029 = 0, goes pre-operational. Back on the bus: EMCY 0x8140
+    (recovered from bus off, register generic + communication) and a 0x7F heartbeat at once;
+    SYNC unanswered until NMT start; then a fault reset (EMCY 0x0000) and it enables again."""
+    with bench(vcan, {DUAL: True}) as b:
+        b.master.start_heartbeat()
+        b.boot()
+        b.enable()
+        b.run(0x0F, 5, {DUAL: (300, 300)})
+        peer = b.peers[DUAL]
+        off = b.recorder.mark()
+        peer.enter_bus_off()
+        b.run(0x0F, 10, {DUAL: (300, 300)})
+        assert [f for f in b.recorder.since(off) if f.id & 0x7F == DUAL and f.id != 0x200 + DUAL
+                and f.id != 0x400 + DUAL] == []  # nothing from node 1 (the master's RPDOs only)
+        assert peer.state is State.FAULT and peer.nmt_state == 0x7F
+        back = b.recorder.mark()
+        peer.leave_bus_off()
+        frame = b.recorder.wait(back, 0x80 + DUAL)
+        assert emcy(frame) == (EMCY_BUS_OFF_RECOVERED, 0x11)
+        beat = b.recorder.wait(back, 0x700 + DUAL)
+        assert beat.data == b"\x7f" and 0 <= beat.t - frame.t < HEARTBEAT_MS / 1000
+        mark = b.recorder.mark()
+        b.run(0x0F, 3)
+        assert b.recorder.since(mark, 0x180 + DUAL) == []
+        b.master.nmt(0x01, DUAL)
+        b.recorder.wait(mark, 0x700 + DUAL, lambda f: f.data == b"\x05")
+        assert b.until(0x0F, 0x08, mask=0x4F) <= 2
+        reset = b.recorder.mark()
+        assert b.until(0x80, 0x40, mask=0x4F) <= 2
+        assert emcy(b.recorder.wait(reset, 0x80 + DUAL)) == (0, 0)
+        b.enable()
 
 
 @pytest.mark.vcan
