@@ -14,7 +14,9 @@ below is one run of the runner; the tests check what crossed the bus:
 - a drive's heartbeat lost: FAULT DRIVE_SILENT, quick stop within the consumer time and a
   cycle;
 - the runner killed: each drive's heartbeat consumer trips (EMCY 0x8130) within its 0x1016
-  time;
+  time and the drive goes pre-operational (CiA 301's 0x1029 = 0); the runner started again
+  resets, configures and starts them, and the robot drives again after the host's reset and
+  enable, with no power cycle of the drives;
 - a drive rebooted: FAULT DRIVE_REBOOTED, configured again, no motion until the host's reset
   and enable, then driving again;
 - the package's square on this robot (issue item 7: the host package needs no change);
@@ -46,6 +48,7 @@ from vcan_cia402 import (
     ENABLE_OPERATION,
     HEARTBEAT_ID,
     MASTER_NODE,
+    NMT_RESET_COMMUNICATION,
     NMT_START,
     NODES,
     OPERATION_ENABLED,
@@ -598,7 +601,9 @@ def test_a_lost_drive_heartbeat_faults_drive_silent_and_quick_stops(silent: Cia4
 
 @pytest.fixture(scope="module")
 def killed(cia402_factory: Callable[..., Cia402Robot], vcan: str) -> Iterator[Cia402Robot]:
-    """Driving forward, the runner is SIGKILLed: no shutdown frames, its heartbeat stops."""
+    """Driving forward, the runner is SIGKILLed: no shutdown frames, its heartbeat stops.
+    Then the same runner is started again (the drives left as they are, no power cycle); the
+    host resets, enables and drives forward for RESTART_DRIVE_S."""
     with cia402_factory("killed") as session:
         with open_api(vcan) as api:
             api.wait_state("DISABLED", timeout=ANSWER_S)
@@ -609,6 +614,17 @@ def killed(cia402_factory: Callable[..., Cia402Robot], vcan: str) -> Iterator[Ci
             session.marks["kill"] = session.kill("runner")
             time.sleep(4 * CONSUMER_S)
             session.notes["states"] = {n: p.state for n, p in session.peers.items()}
+            session.notes["nmt"] = {n: p.nmt_state for n, p in session.peers.items()}
+        session.marks["restart"] = time.time()
+        session.notes["restart_status"] = session.restart_runner()
+        with open_api(vcan) as api:
+            reset_and_wait_disabled(api, session)
+            session.marks["enable"] = time.time()
+            api.enable()
+            api.drive(0.3, 0.0, 0.0)
+            api.wait_state("ENABLED", timeout=ANSWER_S)
+            time.sleep(RESTART_DRIVE_S)
+            session.marks["end"] = time.time()
     yield session
 
 
@@ -616,15 +632,16 @@ def test_each_drive_faults_on_the_killed_masters_silence(killed: Cia402Robot) ->
     """Each drive's heartbeat consumer (0x1016:01 = 127 << 16 | 150) trips: EMCY 0x8130 on the
     bus within its 0x1016 time after the master's last heartbeat frame, plus the peer's timer
     resolution (PEER_TIMER_RESOLUTION_S); never before; and the drive is in fault."""
-    master_hb = killed.of(HEARTBEAT_ID + MASTER_NODE)
+    t_restart = restart_frame(killed)
+    master_hb = killed.of(HEARTBEAT_ID + MASTER_NODE, t1=t_restart)
     t_last = master_hb[-1].t
     assert t_last <= killed.marks["kill"] + 0.01, "the master's heartbeat went on after the kill"
-    assert not killed.of(SYNC, killed.marks["kill"] + 0.01), "the master's cycle went on after the kill"
+    assert not killed.of(SYNC, killed.marks["kill"] + 0.01, t_restart), "the master's cycle went on after the kill"
     budget = CONSUMER_S + PEER_TIMER_RESOLUTION_S + TIMING_SLACK_S
     latencies = []
     for node in NODES:
         assert killed.rpdos(node, t_last - 0.1, t_last)[-1][1] == ENABLE_OPERATION, f"node {node} was not enabled"
-        emcys = killed.emcys(node, t_last)
+        emcys = killed.emcys(node, t_last, t_restart)
         assert [(code, register) for _, code, register in emcys] == [(EMCY_HEARTBEAT, 0x11)], emcys
         latencies.append(emcys[0][0] - t_last)
         assert killed.notes["states"][node].name == "FAULT"
@@ -632,6 +649,100 @@ def test_each_drive_faults_on_the_killed_masters_silence(killed: Cia402Robot) ->
           f"after the master's last heartbeat (0x1016 time {CONSUMER_S * 1e3:.0f} ms + the peer's timer "
           f"resolution {PEER_TIMER_RESOLUTION_S * 1e3:.0f} ms)")
     assert all(CONSUMER_S <= l <= budget for l in latencies), latencies
+
+
+#: How long the host drives after the restarted runner's enable: SETTLE_S and 0.3 s settled.
+RESTART_DRIVE_S = 1.2
+
+
+def restart_frame(session: Cia402Robot) -> float:
+    """The candump time of the restarted runner's first frame: its NMT reset communication
+    (to node 1, the first it sends) after the kill."""
+    resets = [t for t, cmd, node in session.nmt(session.marks["kill"]) if (cmd, node) == (NMT_RESET_COMMUNICATION, 1)]
+    return float(first(resets, "the restarted runner's NMT reset communication"))
+
+
+def nmt_runs(session: Cia402Robot, node: int, t0: float, t1: float) -> list[int]:
+    """The NMT states `node`'s heartbeats (and boot-ups) said in [t0, t1), repeats folded."""
+    return [state for state, _ in itertools.groupby(f.data[0] for f in session.of(HEARTBEAT_ID + node, t0, t1))]
+
+
+def test_a_killed_runner_restarted_drives_again_after_reset_and_enable(killed: Cia402Robot) -> None:
+    """The runner killed while driving, then started again; the drives are not power cycled:
+
+    - each drive leaves operational on its consumer's time-out: its 0x7F heartbeat right
+      after its EMCY 0x8130 (the same pass of the peer's timing thread), and stays
+      pre-operational (CiA 301's 0x1029 = 0) until the restarted runner's NMT reset
+      communication: the NMT state sequence operational, pre-operational, boot-up,
+      (pre-operational,) operational;
+    - the restarted runner configures each node with the same SDO requests as the first did
+      and starts it; the drives kept their fault (reset communication leaves the drive's
+      state alone), so the robot reports FAULT and sends no target until the host's reset;
+    - the host's reset and enable: a fault reset (EMCY 0x0000 from each node), then 0x06,
+      0x07, 0x0F and operation enabled; the wheels follow their targets (the peers' velocity
+      actual settled at ten times the target) and the odometry shows the twist.
+    Times on candump's clock."""
+    t_kill = killed.marks["kill"]
+    t_restart = restart_frame(killed)
+    t_enable = enable_frame(killed, killed.marks["enable"])
+    t_reset = first([f.t for f in killed.of(MODE_CMD, t_restart) if f.data == bytes([MODE_RESET])], "reset")
+    end = killed.marks["end"]
+    assert t_kill < t_restart < t_reset < t_enable < end
+    assert killed.notes["nmt"] == {1: 0x7F, 2: 0x7F}, killed.notes["nmt"]
+    report = []
+    for node in NODES:
+        (t_emcy, code, _), = killed.emcys(node, t_kill - 0.2, t_restart)
+        assert code == EMCY_HEARTBEAT
+        pre_op = first([f.t for f in killed.of(HEARTBEAT_ID + node, t_emcy, t_restart) if f.data == b"\x7f"],
+                       f"node {node}: a 0x7F heartbeat after its EMCY")
+        assert pre_op - t_emcy <= PEER_TIMER_RESOLUTION_S + TIMING_SLACK_S, (node, pre_op - t_emcy)
+        runs = nmt_runs(killed, node, t_kill - 0.2, end)
+        assert runs in ([0x05, 0x7F, BOOT_UP, 0x05], [0x05, 0x7F, BOOT_UP, 0x7F, 0x05]), (node, runs)
+        # The configuration again, request for request, every transfer answered; NMT start.
+        node_starts = [t for t, cmd, n in killed.nmt() if (cmd, n) == (NMT_START, node)]
+        assert len(node_starts) == 2 and t_restart < node_starts[1] < t_reset, node_starts
+        first_setup = [f.data for f in killed.of(SDO_REQUEST + node, t1=node_starts[0])]
+        again = killed.of(SDO_REQUEST + node, t_restart, node_starts[1])
+        assert [f.data for f in again] == first_setup, (node, len(again), len(first_setup))
+        answers = killed.of(SDO_RESPONSE + node, t_restart, node_starts[1])
+        assert len(answers) == len(again) and all(a.data[0] != 0x80 for a in answers)
+        # Still in fault (statusword 0x0208 under 0x4F) from its start to the reset; no target.
+        words = {sw & 0x4F for _, sw, _ in killed.tpdos(node, node_starts[1], t_reset)}
+        assert words == {0x08}, (node, {hex(w) for w in words})
+        assert all(r[2] == r[3] == 0 for r in killed.rpdos(node, t_restart, t_enable)), f"node {node}: a target"
+        # The reset: fault reset (bit 7) to the node, its EMCY 0x0000; then the enable.
+        resets = [r[0] for r in killed.rpdos(node, t_reset, end) if r[1] & 0x80]
+        t_fault_reset = first(resets, f"node {node}: a fault reset")
+        assert [(c, reg) for _, c, reg in killed.emcys(node, t_fault_reset, end)] == [(0x0000, 0x00)]
+        t_oe = first([t for t, sw, _ in killed.tpdos(node, t_enable, end) if sw & STATE_MASK == OPERATION_ENABLED],
+                     f"node {node}: operation enabled")
+        report.append(f"node {node}: NMT {'-'.join(f'0x{s:02X}' for s in runs)}, 0x7F "
+                      f"{(pre_op - t_emcy) * 1e3:.2f} ms after EMCY 0x8130; started {(node_starts[1] - t_restart) * 1e3:.1f} ms "
+                      f"after the restart ({len(again)} SDO transfers), operation enabled {(t_oe - t_restart) * 1e3:.0f} ms "
+                      f"after the restart, {(t_oe - t_enable) * 1e3:.1f} ms after the enable")
+    # Driving: from SETTLE_S after the enable, each wheel's velocity actual at ten times its
+    # target (raw 0.1 rpm against rpm, within a unit), the targets those of 0.3 m/s forward.
+    settled = t_enable + SETTLE_S
+    assert end - settled >= 0.2, end - settled
+    want = exact_targets(0.3, 0.0, 0.0)
+    follow = []
+    for wheel, (node, axis) in WHEEL_AXES.items():
+        targets = {r[2 + axis] for r in killed.rpdos(node, settled, end)}
+        assert len(targets) == 1, (wheel, targets)
+        target = targets.pop()
+        assert abs(target - want[wheel]) <= 0.5 + 1e-3, (wheel, target, want[wheel])
+        actuals = [v for t, v in killed.wheel_actuals()[wheel] if settled <= t < end]
+        assert actuals and all(abs(v - ACTUAL_PER_TARGET * target) <= 1 for v in actuals), (wheel, target, actuals[:3])
+        follow.append(f"{target} rpm -> {actuals[-1] / ACTUAL_PER_TARGET:.1f}")
+    vel = killed.decoded(ODOM_VELOCITY, settled, end)
+    assert vel and all(abs(v["vx"] - 0.3) < 0.01 for _, v in vel), vel[-3:]
+    statuses = killed.decoded(STATUS, t_enable + 0.1, end)
+    assert statuses and all(s["state"] == STATE_ENABLED for _, s in statuses)
+    restart_status = killed.notes["restart_status"]
+    print(f"runner restarted {(t_restart - t_kill) * 1e3:.0f} ms after the kill, first STATUS state "
+          f"{restart_status['state']} fault {restart_status['fault']}; {'; '.join(report)}; wheels (target -> "
+          f"actual) {', '.join(follow)}; odometry vx {vel[-1][1]['vx']:.3f} m/s; the restart to the end took "
+          f"{end - killed.marks['restart']:.2f} s of the session")
 
 
 # --- session 4: a drive rebooted ------------------------------------------------------------

@@ -48,7 +48,7 @@ MASTER_NODE = 127
 NMT, SYNC = 0x000, 0x080
 EMCY, TPDO1, TPDO2, RPDO1, RPDO3 = 0x080, 0x180, 0x280, 0x200, 0x400
 SDO_RESPONSE, SDO_REQUEST, HEARTBEAT_ID = 0x580, 0x600, 0x700
-NMT_START = 0x01
+NMT_START, NMT_RESET_COMMUNICATION = 0x01, 0x82
 BOOT_UP = 0x00
 EMCY_HEARTBEAT = 0x8130
 
@@ -204,11 +204,27 @@ class Cia402Robot(Robot):
         for node in NODES:
             self.peers[node] = Cia402Peer(self.iface, node, DUAL_EDS, actual_per_target=ACTUAL_PER_TARGET,
                                           own_frames_only=True)
-        self._spawn("runner", self._cmds["runner"])
-        # Ready: both nodes configured and started, every wheel's TPDOs arriving, no fault.
-        status = self.wait_status(lambda s: s["motors_online"] == 0x0F or s["state"] == STATE_FAULT,
-                                  READY_TIMEOUT_S, "ready")
+        status = self._start_runner("ready")
         assert status["state"] == STATE_DISABLED, f"the robot faulted while its drives came up: {status}"
+
+    def _start_runner(self, what: str) -> dict:
+        """Starts the runner; returns its first STATUS with both nodes configured and started
+        and every wheel's TPDOs arriving, or FAULT."""
+        self._spawn("runner", self._cmds["runner"])
+        return self.wait_status(lambda s: s["motors_online"] == 0x0F or s["state"] == STATE_FAULT,
+                                READY_TIMEOUT_S, what)
+
+    def restart_runner(self) -> dict:
+        """Starts the runner again after `kill("runner")`, with the same command line (its
+        output and `--stats-json` written anew; the session's end expects it to exit cleanly).
+        The drives are left as they are: no power cycle. Returns its first STATUS as
+        `_start_runner` says (STATUS frames of the killed runner still queued are dropped)."""
+        assert "runner" in self.killed, "restart_runner follows kill(\"runner\")"
+        assert self._status_rx is not None
+        while self._status_rx.recv(timeout=0) is not None:
+            pass
+        self.killed.discard("runner")
+        return self._start_runner("ready after the restart")
 
     def _close_peers(self) -> None:
         for node, peer in list(self.peers.items()):
