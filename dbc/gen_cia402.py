@@ -3,7 +3,7 @@
 
 CANopen ids are a function code plus a node id (1..127), so a DBC spells every frame out per
 node. This script holds the frames once, as the Rust codec's `layout` table has them
-(crates/firmware/src/protocol/canopen.rs; the signal names are its `Field` names), and writes
+(crates/firmware/src/protocol/canopen/layout.rs; the signal names are its `Field` names), and writes
 them for nodes 1 and 2 (DRIVE_1, DRIVE_2) and the master's heartbeat (node 127). The file it
 writes must load with cantools, strictly, and decode to the same frames; the script checks that
 before writing.
