@@ -4,13 +4,13 @@
 //!
 //! ```text
 //! on_frame ─► decode (typed; errors counted) ─► command.rs (robot commands)
-//!                                            └► dji.rs │ odrive.rs │ cia402.rs (drives)
+//!                                            └► dji.rs │ odrive.rs │ cia402/ (drives)
 //! step(now) ─► health.rs (missing / stale / drive error, the drive's watches → fault)
 //!           ─► command.rs (watchdog, acceleration limits), wheel_test.rs
 //!           ─► odometry.rs (wheel increments, the gyro's rotation → SE(2) pose)
 //!           ─► inverse kinematics ─► desaturation
 //!           ─► dji.rs (current_loop.rs: velocity PI → currents) │ odrive.rs (setpoints)
-//!              │ cia402.rs (configuration, SYNC, controlword and targets)
+//!              │ cia402/ (setup, enable, cycle; watch)
 //!           ─► telemetry.rs (odometry, status, heartbeat at their rates)
 //! ```
 //!
