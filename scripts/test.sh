@@ -236,10 +236,15 @@ if wanted prepare; then
     # The binaries the Python stages run, built while pip installs (one is CPU, the other the
     # network): once, in the profile every Rust stage below shares (`ci`, Cargo.toml),
     # optimised, as the vcan lane's runner and plant must be (a 1 kHz loop on an emulated
-    # CPU); `cargo test` reuses these crates instead of compiling them again.
+    # CPU); `cargo test` reuses these crates instead of compiling them again. For that their
+    # features must be the test build's: the whole workspace is resolved (boardsim's
+    # defmt-decoder adds features to serde_json and log) with the dev-dependencies (tempfile,
+    # criterion and proptest add some to rustix and either), which resolver 2 brings in only
+    # for a target that needs them, as the kinematics example does. Built with three packages'
+    # features, nearly every crate under the binaries was compiled again: 200 s of CPU.
     RUSTC_WORKSPACE_WRAPPER=$LINT_WRAPPER \
-        cargo build --profile ci --locked --all-features -p hostsim --bin hostsim \
-        -p mecanum-runner --bin mecanum-runner -p mecanum-codec --bin mecanum-codec \
+        cargo build --profile ci --locked --all-features --workspace --bin hostsim \
+        --bin mecanum-runner --bin mecanum-codec --example drive \
         >"$LOGS/prepare-build.log" 2>&1 &
     BUILD_PID=$!
     # A venv left broken (python3 without ensurepip makes one with no pip) is made anew;
