@@ -221,7 +221,7 @@ pub fn run_scenario(
     // The plant's time, ns; the bus and the board run ahead of it up to `horizon`.
     let mut plant_ns = 0u64;
     let mut received = 0u64;
-    let mut bus_hash = hostsim::sim::StreamHash::default();
+    let mut bus_hash = firmware::StreamHash::new();
     let mut next_progress = 0u64;
     let mut lines = Vec::new();
     let mut track = Vec::new();

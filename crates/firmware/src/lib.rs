@@ -52,8 +52,10 @@ pub mod frame;
 #[cfg(feature = "std")]
 pub mod input;
 pub mod protocol;
+pub mod stream_hash;
 
 pub use config::Config;
 pub use control::{Controller, Instant, Outbox};
 
 pub use frame::CanFrame;
+pub use stream_hash::StreamHash;

@@ -16,9 +16,9 @@
 use std::collections::BTreeMap;
 use std::ops::ControlFlow;
 
-use firmware::CanFrame;
 use firmware::control::{Controller, Instant, Outbox, Snapshot};
 use firmware::protocol::robot::{self};
+use firmware::{CanFrame, StreamHash};
 
 use crate::bus::{Bus, BusStats, Fate, Node, Transmission};
 use crate::host::HostNode;
@@ -140,7 +140,7 @@ pub struct RunSummary {
     pub last: Snapshot,
     /// State changes `(time s, state, fault)`.
     pub transitions: Vec<(f64, String, String)>,
-    /// FNV-1a hash of every frame the firmware sent, with its step time: equal hashes, equal
+    /// [`StreamHash`] of every frame the firmware sent, with its step time: equal hashes, equal
     /// streams.
     pub tx_hash: u64,
     /// Changes of the firmware's heading source `(time s, source)` (gyro heading only: a
@@ -148,47 +148,6 @@ pub struct RunSummary {
     pub heading_changes: Vec<(f64, String)>,
     /// Ground truth and odometry every 10 ms, for plots.
     pub track: Vec<crate::plot::TrackPoint>,
-}
-
-/// Hash of a frame stream, for quick bit-identity checks.
-#[derive(Debug, Clone, Copy)]
-pub struct StreamHash(u64);
-
-impl Default for StreamHash {
-    fn default() -> Self {
-        Self(0xcbf2_9ce4_8422_2325)
-    }
-}
-
-impl StreamHash {
-    /// Adds a frame sent at `t_us`.
-    pub fn add(&mut self, t_us: u64, frame: &CanFrame) {
-        use embedded_can::Frame;
-        let mut eat = |b: u8| {
-            self.0 ^= u64::from(b);
-            self.0 = self.0.wrapping_mul(0x0000_0100_0000_01B3);
-        };
-        for b in t_us.to_le_bytes() {
-            eat(b);
-        }
-        let id = match frame.id() {
-            embedded_can::Id::Standard(id) => u32::from(id.as_raw()),
-            embedded_can::Id::Extended(id) => id.as_raw() | 0x8000_0000,
-        };
-        for b in id.to_le_bytes() {
-            eat(b);
-        }
-        eat(frame.dlc() as u8);
-        for &b in frame.data() {
-            eat(b);
-        }
-    }
-
-    /// The hash value.
-    #[must_use]
-    pub const fn value(self) -> u64 {
-        self.0
-    }
 }
 
 /// Why a run failed.

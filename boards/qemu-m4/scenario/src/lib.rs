@@ -1,8 +1,8 @@
 //! A fixed, deterministic scenario for the firmware control core: scripted host commands, a
 //! scripted plant answering the motor commands, 3,000 control steps at 1 kHz, for the DJI, the
 //! ODrive and the CiA 402 example configurations, and the DJI one with its odometry from three
-//! tracking pods. It reports the outbound frame stream as
-//! text: a rolling FNV-1a 64 hash, checkpoints every 100 steps, every n-th frame, and the final
+//! tracking pods. It reports the outbound frame stream as text: a rolling FNV-1a 64 hash
+//! (`firmware::StreamHash`), checkpoints every 100 steps, every n-th frame, and the final
 //! state.
 //!
 //! The same code runs on the host (`xtarget-host`) and on an emulated Cortex-M4
@@ -57,7 +57,7 @@
 use core::f32::consts::TAU;
 use core::fmt::{self, Write};
 
-use embedded_can::{ExtendedId, Frame, Id, StandardId};
+use embedded_can::{ExtendedId, Frame, StandardId};
 use firmware::config::{Drive, OdometryMode, PodConfig, Pods};
 use firmware::protocol::canopen::{
     self, DriveState402, Message, NmtCommand, NmtState, NodeId as CoNode, SdoRequest, SdoResponse,
@@ -65,7 +65,7 @@ use firmware::protocol::canopen::{
 use firmware::protocol::dji::{self, EscId, EscModel};
 use firmware::protocol::odrive::{self, AxisState, NodeId};
 use firmware::protocol::robot::{self, Command, ModeRequest, TwistCmd};
-use firmware::{CanFrame, Config, Controller, Instant};
+use firmware::{CanFrame, Config, Controller, Instant, StreamHash};
 use kinematics::{MecanumKinematics, PodGeometry, Twist2, WheelSpeeds};
 
 /// Control steps of the full scenario (3 s at 1 kHz).
@@ -176,48 +176,9 @@ impl Default for Options {
 pub struct Digest {
     /// Outbound frames.
     pub frames: u64,
-    /// FNV-1a 64 over every frame's time (u64 LE), id (u32 LE), dlc and data.
+    /// [`StreamHash`] of the outbound frames, each with its time in µs (`run_all`'s: of the
+    /// setups' hashes, each as 8 bytes LE).
     pub hash: u64,
-}
-
-/// FNV-1a, 64 bits.
-#[derive(Clone, Copy, Debug)]
-pub struct Fnv1a64(u64);
-
-impl Default for Fnv1a64 {
-    fn default() -> Self {
-        Self(0xcbf2_9ce4_8422_2325)
-    }
-}
-
-impl Fnv1a64 {
-    /// Feeds bytes.
-    pub fn write(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.0 ^= u64::from(b);
-            self.0 = self.0.wrapping_mul(0x0000_0100_0000_01b3);
-        }
-    }
-
-    /// Feeds one outbound frame sent at `t_us`.
-    pub fn frame(&mut self, t_us: u64, frame: &CanFrame) {
-        let (id, ext) = match frame.id() {
-            Id::Standard(id) => (u32::from(id.as_raw()), 0u8),
-            Id::Extended(id) => (id.as_raw(), 1u8),
-        };
-        self.write(&t_us.to_le_bytes());
-        self.write(&id.to_le_bytes());
-        // dlc <= 8: the flags fit in the high bits.
-        let dlc = frame.dlc() as u8 | (ext << 6) | (u8::from(frame.is_remote_frame()) << 7);
-        self.write(&[dlc]);
-        self.write(frame.data());
-    }
-
-    /// The hash so far.
-    #[must_use]
-    pub const fn get(&self) -> u64 {
-        self.0
-    }
 }
 
 /// xorshift32: the plant's encoder jitter. Integer only.
@@ -923,7 +884,7 @@ pub fn run<W: Write, P: Probe>(
     let dt = ctl.period();
     let name = setup.name();
     let mut plant = Plant::new(setup, &config);
-    let mut hash = Fnv1a64::default();
+    let mut hash = StreamHash::new();
     let mut frames = 0u64;
     let mut seq = 0u8;
     let mut inbox: Inbox = [None; 8];
@@ -942,7 +903,7 @@ pub fn run<W: Write, P: Probe>(
         probe.core_end(setup, k);
 
         for f in &outbox {
-            hash.frame(now.as_micros(), f);
+            hash.add(now.as_micros(), f);
             if opts.frame_every != 0 && frames.is_multiple_of(u64::from(opts.frame_every)) {
                 writeln!(out, "f {name} {frames} {} {f}", now.as_micros())?;
             }
@@ -955,7 +916,7 @@ pub fn run<W: Write, P: Probe>(
                 out,
                 "ck {name} step={} frames={frames} hash={:016x}",
                 k + 1,
-                hash.get()
+                hash.value()
             )?;
         }
     }
@@ -963,7 +924,7 @@ pub fn run<W: Write, P: Probe>(
     writeln!(
         out,
         "end {name} frames={frames} hash={:016x} state={:?} fault={:?} pose={},{},{} rx_errors={}",
-        hash.get(),
+        hash.value(),
         s.state,
         s.fault,
         Bits(s.pose.x),
@@ -973,7 +934,7 @@ pub fn run<W: Write, P: Probe>(
     )?;
     Ok(Digest {
         frames,
-        hash: hash.get(),
+        hash: hash.value(),
     })
 }
 
@@ -988,13 +949,13 @@ pub fn run_all<W: Write, P: Probe>(
     probe: &mut P,
 ) -> Result<Digest, fmt::Error> {
     let mut total = Digest { frames: 0, hash: 0 };
-    let mut h = Fnv1a64::default();
+    let mut h = StreamHash::new();
     for setup in Setup::ALL {
         let d = run(setup, opts, out, probe)?;
         total.frames += d.frames;
         h.write(&d.hash.to_le_bytes());
     }
-    total.hash = h.get();
+    total.hash = h.value();
     writeln!(
         out,
         "total frames={} hash={:016x}",
