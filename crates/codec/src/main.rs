@@ -1,13 +1,19 @@
 //! `mecanum-codec`: the firmware's CAN codecs on the command line, for logs and for the Python
 //! cross-check against the DBC files (see `--help`).
+//!
+//! The doc comments of [`Cli`] and its commands are its `--help`, terminal text and not
+//! Markdown: `<id>#<data>` is a placeholder, not a tag. Rustdoc's lint on them is off.
+#![allow(rustdoc::invalid_html_tags)]
 
 mod canopen;
 
 use std::fmt::Write as _;
 use std::io::{self, BufRead, Write};
+use std::path::PathBuf;
 use std::process::ExitCode;
 
 use canopen::CanopenFrame;
+use clap::{Parser, Subcommand};
 use drivelog::candump;
 use embedded_can::{Frame, Id};
 use firmware::CanFrame;
@@ -19,88 +25,119 @@ use firmware::protocol::{DecodeError, non_finite_name};
 use serde::Serialize;
 use serde_json::Value;
 
-const HELP: &str = "\
-mecanum-codec: decode CAN frames with the mecanum firmware's codecs, or print golden frames.
+/// Decode CAN frames with the mecanum firmware's codecs, or print golden frames.
+///
+/// The codecs are the firmware's own: the robot protocol (dbc/mecanum_robot.dbc), DJI
+/// C620/C610 (dbc/dji_c620.dbc), ODrive CAN Simple (dbc/odrive_cansimple.dbc) and, with
+/// `decode --canopen`, CANopen CiA 301/402 (dbc/cia402.dbc). `decode` reads candump lines and
+/// prints JSON lines; `golden` prints frames built by the encoders, for the Python tests to
+/// decode with cantools and the DBC files; `config-id` names the configuration a robot runs.
+/// `mecanum-codec help <COMMAND>` explains each.
+#[derive(Debug, Parser)]
+#[command(
+    name = "mecanum-codec",
+    version,
+    about = "Decode CAN frames with the mecanum firmware's codecs, or print golden frames.",
+    long_about,
+    arg_required_else_help = true,
+    after_help = "Exit status: 0; 1 for a configuration that does not load (the error names the \
+                  file and the line or field); 2 for bad arguments."
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
 
-USAGE:
-    mecanum-codec decode [--dji-model c620|c610] [--canopen]
-    mecanum-codec golden
-    mecanum-codec config-id FILE...
-    mecanum-codec --help
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Decode candump lines on stdin, one JSON line per input line.
+    ///
+    /// Reads candump lines on stdin, one frame per line, in the log format
+    ///     (1700000000.123456) vcan0 123#DEADBEEF
+    /// or bare (123#DEADBEEF, 123#R, 123#R8 for remote frames; 3 hex digits = standard id,
+    /// 8 = extended id; bytes may be separated by '.' between bytes): the line's <id>#<data>
+    /// token, read by the same candump grammar as `hostsim replay`. Prints one JSON line per
+    /// input line:
+    ///     {"id":769,"protocol":"robot","message":"TWIST_CMD","fields":{"vx":0.5,...}}
+    /// or, for a frame the codecs reject or a line that does not parse,
+    ///     {"id":769,"error":{"kind":"wrong_dlc","message":"...","expected":8,"got":7}}
+    /// and carries on with the next line. Field names are the DBC signal names, values are
+    /// physical (SI) values as the DBC scales them; enums are their numbers. `message` is the
+    /// DBC message name (ODrive and CANopen messages carry a `node`, DJI feedback an `esc`).
+    /// Routing by id: 0x300-0x31F robot protocol, 0x1FF-0x208 DJI (C620 scale unless
+    /// --dji-model c610), 0x000-0x07F ODrive CAN Simple nodes 0-3; anything else is
+    /// unknown_id (--canopen routes otherwise).
+    /// Error kinds: unknown_id, extended_id, remote, wrong_dlc, non_finite, out_of_range, parse.
+    #[command(verbatim_doc_comment)]
+    Decode(DecodeArgs),
+    /// Print the golden frames: one JSON line each, for the DBC cross-check.
+    ///
+    /// Prints a fixed set of frames built by the Rust encoders, one JSON line each, with the
+    /// candump text of the frame, the values given to the encoder ("input") and the values the
+    /// Rust decoder reads back ("fields"), CANopen frames (protocol "canopen") included,
+    /// each read back as `decode --canopen` does. The Python tests decode the candump text with
+    /// cantools and the DBC files and compare.
+    #[command(verbatim_doc_comment)]
+    Golden,
+    /// Print the id of each drive configuration, `0x1a2b  robot.toml`.
+    ///
+    /// Reads each drive configuration (TOML, validated as mecanum-runner reads it) and prints
+    /// its id and path, `0x1a2b  robot.toml`: the id a robot running that configuration sends
+    /// in HEARTBEAT.config_id (and a board image logs at boot), so you can tell what is flashed.
+    /// Exit status 1 at the first file that does not load.
+    #[command(verbatim_doc_comment)]
+    ConfigId {
+        /// Drive configurations (TOML, as config/dji_m3508.toml).
+        #[arg(required = true, value_name = "FILE")]
+        files: Vec<PathBuf>,
+    },
+}
 
-decode
-    Reads candump lines on stdin, one frame per line, in the log format
-        (1700000000.123456) vcan0 123#DEADBEEF
-    or bare (123#DEADBEEF, 123#R, 123#R8 for remote frames; 3 hex digits = standard id,
-    8 = extended id; bytes may be separated by '.' between bytes): the line's <id>#<data>
-    token, read by the same candump grammar as `hostsim replay`. Prints one JSON line per
-    input line:
-        {\"id\":769,\"protocol\":\"robot\",\"message\":\"TWIST_CMD\",\"fields\":{\"vx\":0.5,...}}
-    or, for a frame the codecs reject or a line that does not parse,
-        {\"id\":769,\"error\":{\"kind\":\"wrong_dlc\",\"message\":\"...\",\"expected\":8,\"got\":7}}
-    and carries on with the next line. Field names are the DBC signal names, values are
-    physical (SI) values as the DBC scales them; enums are their numbers. `message` is the
-    DBC message name (ODrive and CANopen messages carry a `node`, DJI feedback an `esc`).
-    Routing by id: 0x300-0x31F robot protocol, 0x1FF-0x208 DJI (C620 scale unless
-    --dji-model c610), 0x000-0x07F ODrive CAN Simple nodes 0-3; anything else is unknown_id.
-    --canopen: CANopen's ids overlap the DJI and ODrive ones (a bus carries one drive
-    protocol), so with it 0x300-0x31F is the robot protocol and every other id CANopen
-    (CiA 301/402, dbc/cia402.dbc), for any node 1-127: messages are named as in the DBC with
-    the node's number (TPDO1_1, SDO_REQUEST_2, HEARTBEAT_127; NMT, SYNC). SDO frames give
-    `command` as received and `data` as the decoder reads it: the transfer's bytes (and its
-    `size`, 1-4) for expedited data, the abort code of an abort, 0 for an upload request or
-    a download response. A SYNC with a counter (DLC 1) gives it as `counter`. RPDO2's ids
-    (0x300 + node) are the robot protocol's, or unknown_id beyond its block.
-    Error kinds: unknown_id, extended_id, remote, wrong_dlc, non_finite, out_of_range, parse.
+/// `decode`'s options: which codecs read the ids outside the robot block.
+#[derive(Debug, Clone, Copy, clap::Args)]
+struct DecodeArgs {
+    /// The DJI ESC model, whose current scale the DJI frames are read with.
+    #[arg(long, value_name = "MODEL", value_enum, default_value_t = DjiModel::C620)]
+    dji_model: DjiModel,
+    /// Route every id outside the robot block (0x300-0x31F) to CANopen (CiA 301/402,
+    /// dbc/cia402.dbc) instead of DJI and ODrive, whose ids CANopen's overlap (a bus carries
+    /// one drive protocol), for any node 1-127: messages are named as in the DBC with the
+    /// node's number (TPDO1_1, SDO_REQUEST_2, HEARTBEAT_127; NMT, SYNC). SDO frames give
+    /// `command` as received and `data` as the decoder reads it: the transfer's bytes (and
+    /// its `size`, 1-4) for expedited data, the abort code of an abort, 0 for an upload
+    /// request or a download response. A SYNC with a counter (DLC 1) gives it as `counter`.
+    /// RPDO2's ids (0x300 + node) are the robot protocol's, or unknown_id beyond its block.
+    #[arg(long)]
+    canopen: bool,
+}
 
-golden
-    Prints a fixed set of frames built by the Rust encoders, one JSON line each, with the
-    candump text of the frame, the values given to the encoder (\"input\") and the values the
-    Rust decoder reads back (\"fields\"), CANopen frames (protocol \"canopen\") included,
-    each read back as `decode --canopen` does. The Python tests decode the candump text with
-    cantools and the DBC files and compare.
+/// `--dji-model`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum DjiModel {
+    /// C620 (M3508 motors): 20 A full scale.
+    C620,
+    /// C610 (M2006 motors): 10 A full scale.
+    C610,
+}
 
-config-id FILE...
-    Reads each drive configuration (TOML, validated as mecanum-runner reads it) and prints
-    its id and path, `0x1a2b  robot.toml`: the id a robot running that configuration sends
-    in HEARTBEAT.config_id (and a board image logs at boot), so you can tell what is flashed.
-
-Exit status: 0; 1 for a configuration that does not load (the error names the file and the
-line or field); 2 for bad arguments.
-";
-
-fn main() -> ExitCode {
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    let mut routing = Routing::default();
-    let mut command = None;
-    let mut files = Vec::new();
-    let mut it = args.iter();
-    while let Some(arg) = it.next() {
-        match arg.as_str() {
-            "-h" | "--help" | "help" => {
-                print!("{HELP}");
-                return ExitCode::SUCCESS;
-            }
-            "--dji-model" => match it.next().map(String::as_str) {
-                Some("c620") => routing.model = EscModel::C620,
-                Some("c610") => routing.model = EscModel::C610,
-                Some(other) => {
-                    return usage(&format!("--dji-model takes c620 or c610, got {other:?}"));
-                }
-                None => return usage("--dji-model takes c620 or c610, got nothing"),
+impl DecodeArgs {
+    fn routing(self) -> Routing {
+        Routing {
+            model: match self.dji_model {
+                DjiModel::C620 => EscModel::C620,
+                DjiModel::C610 => EscModel::C610,
             },
-            "--canopen" => routing.canopen = true,
-            "decode" | "golden" | "config-id" if command.is_none() => command = Some(arg.clone()),
-            file if command.as_deref() == Some("config-id") => files.push(file.to_owned()),
-            other => return usage(&format!("unexpected argument {other:?}")),
+            canopen: self.canopen,
         }
     }
-    let result = match command.as_deref() {
-        Some("decode") => decode_stdin(routing),
-        Some("golden") => golden(),
-        Some("config-id") if files.is_empty() => return usage("config-id takes FILE..."),
-        Some("config-id") => return config_ids(&files),
-        _ => return usage("missing command"),
+}
+
+fn main() -> ExitCode {
+    // Bad arguments: clap's message naming the argument, exit status 2.
+    let result = match Cli::parse().command {
+        Command::Decode(args) => decode_stdin(args.routing()),
+        Command::Golden => golden(),
+        Command::ConfigId { files } => return config_ids(&files),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -114,10 +151,10 @@ fn main() -> ExitCode {
 }
 
 /// `config-id`: the id of each configuration file.
-fn config_ids(files: &[String]) -> ExitCode {
+fn config_ids(files: &[PathBuf]) -> ExitCode {
     for file in files {
-        match firmware::Config::from_toml_file(std::path::Path::new(file)) {
-            Ok(config) => println!("0x{:04x}  {file}", config.id()),
+        match firmware::Config::from_toml_file(file) {
+            Ok(config) => println!("0x{:04x}  {}", config.id(), file.display()),
             Err(e) => {
                 eprintln!("mecanum-codec: {e}");
                 return ExitCode::FAILURE;
@@ -125,11 +162,6 @@ fn config_ids(files: &[String]) -> ExitCode {
         }
     }
     ExitCode::SUCCESS
-}
-
-fn usage(msg: &str) -> ExitCode {
-    eprintln!("mecanum-codec: {msg}\n\n{HELP}");
-    ExitCode::from(2)
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -880,7 +912,81 @@ fn golden() -> io::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use clap::CommandFactory as _;
     use firmware::protocol::ErrorKind;
+
+    fn parse(args: &[&str]) -> Result<Command, clap::Error> {
+        Cli::try_parse_from(std::iter::once("mecanum-codec").chain(args.iter().copied()))
+            .map(|cli| cli.command)
+    }
+
+    /// The error of a bad command line: clap's kind, and its text (which exits 2).
+    fn refused(args: &[&str]) -> (clap::error::ErrorKind, String) {
+        let e = parse(args).expect_err("refused");
+        assert_eq!(e.exit_code(), 2, "{args:?}: {e}");
+        (e.kind(), e.to_string())
+    }
+
+    #[test]
+    fn the_command_line_is_well_formed() {
+        Cli::command().debug_assert();
+    }
+
+    #[test]
+    fn good_command_lines_parse() {
+        let routing = |args: &[&str]| match parse(args) {
+            Ok(Command::Decode(a)) => a.routing(),
+            other => panic!("{args:?}: {other:?}"),
+        };
+        let r = routing(&["decode"]);
+        assert!(r.model == EscModel::C620 && !r.canopen);
+        let r = routing(&["decode", "--dji-model", "c610", "--canopen"]);
+        assert!(r.model == EscModel::C610 && r.canopen);
+        let r = routing(&["decode", "--canopen", "--dji-model=c620"]);
+        assert!(r.model == EscModel::C620 && r.canopen);
+        assert!(matches!(parse(&["golden"]), Ok(Command::Golden)));
+        match parse(&["config-id", "a.toml", "b.toml"]) {
+            Ok(Command::ConfigId { files }) => {
+                assert_eq!(files, [PathBuf::from("a.toml"), PathBuf::from("b.toml")]);
+            }
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn bad_command_lines_are_refused_naming_the_argument() {
+        use clap::error::ErrorKind as K;
+        for (args, kind, names) in [
+            (
+                &["decode", "--dji-model", "c999"][..],
+                K::InvalidValue,
+                &["c999", "--dji-model", "c620, c610"][..],
+            ),
+            (
+                &["decode", "--dji-model"],
+                K::InvalidValue,
+                &["--dji-model"],
+            ),
+            (&["decode", "--turbo"], K::UnknownArgument, &["--turbo"]),
+            (&["decode", "extra"], K::UnknownArgument, &["extra"]),
+            (&["golden", "--canopen"], K::UnknownArgument, &["--canopen"]),
+            (&["encode"], K::InvalidSubcommand, &["encode"]),
+            (&["config-id"], K::MissingRequiredArgument, &["<FILE>"]),
+        ] {
+            let (got, text) = refused(args);
+            assert_eq!(got, kind, "{args:?}: {text}");
+            for name in names {
+                assert!(text.contains(name), "{args:?} does not name {name}: {text}");
+            }
+        }
+        // No command: the help, on stderr, exit status 2.
+        let (kind, text) = refused(&[]);
+        assert_eq!(kind, K::DisplayHelpOnMissingArgumentOrSubcommand);
+        assert!(
+            text.contains("decode") && text.contains("config-id"),
+            "{text}"
+        );
+    }
 
     #[test]
     fn parses_candump_forms() {
