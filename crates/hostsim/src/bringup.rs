@@ -16,11 +16,10 @@
 //! `i` if `d` is forward, the other way if backward. The Python package's check computes the
 //! same rule (`mecanum_drive.check`); the Python tests hold the two to the same answers.
 
-use std::fmt::Write as _;
-
 use firmware::config::{Config, Drive};
 use firmware::control::Fault;
 use firmware::protocol::robot::{self, RobotState, WheelTestResult};
+use serde::Serialize;
 
 use crate::drives::SimDrives;
 use crate::plant::ParamError;
@@ -309,48 +308,145 @@ pub fn run_check(
         .unwrap_or_else(|_| unreachable!("four runs")))
 }
 
-/// The check's report as a person reads it: per wheel what turned, the verdict, and the
-/// configuration lines that fix the wiring.
-#[must_use]
-pub fn report(configured: &Wiring, runs: &[WheelRun; 4], d: &Diagnosis) -> String {
-    let mut s = String::new();
-    for (run, verdict) in runs.iter().zip(d.verdicts) {
-        let name = WHEEL_NAMES[run.wheel];
-        let id = configured.ids[run.wheel];
-        let firmware = match run.result {
-            Some(r) => format!(
-                "firmware: {} turned {:+.2} rad, peak {:+.2} A, {}",
-                name,
-                r.angle,
-                r.peak_current,
-                r.outcome.as_str()
-            ),
-            None => "firmware: no result".to_string(),
-        };
-        let fault = if run.fault == Fault::None {
-            String::new()
-        } else {
-            format!(", fault {}", run.fault)
-        };
-        let _ = writeln!(
-            s,
-            "{name} ({} {id}): {}  [{firmware}{fault}]",
-            configured.ids_key().trim_end_matches('s'),
-            verdict_text(run.wheel, verdict)
-        );
-    }
-    let lines = d.fix_lines(configured);
-    if d.is_right() {
-        s.push_str("wiring: as configured\n");
-    } else if let Some(why) = &d.unresolved {
-        let _ = writeln!(s, "wiring: cannot be fixed from these observations: {why}");
-    } else {
-        s.push_str("wiring: wrong; fix the configuration's [drive] section:\n");
-        for l in lines {
-            let _ = writeln!(s, "    {l}");
+/// The check's report: per wheel what turned and the verdict, and the configuration lines
+/// that fix the wiring; printed as a person reads it (`Display`) or as JSON (`hostsim check
+/// --json`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Report {
+    /// Where the configuration came from.
+    pub configuration: String,
+    /// Every wheel turned as configured.
+    pub right: bool,
+    /// Per configured wheel, FL, FR, RL, RR.
+    pub wheels: Vec<WheelReport>,
+    /// The `[drive]` lines that fix the wiring ([`Diagnosis::fix_lines`]).
+    pub fix: Vec<String>,
+    /// Why there is no fix, if there is none.
+    pub unresolved: Option<String>,
+    /// The test's wheel speed, rad/s: text only.
+    #[serde(skip)]
+    pub speed: f32,
+    /// The test's length, ms: text only.
+    #[serde(skip)]
+    pub duration_ms: u16,
+    /// The key of the drive ids, singular (`esc_id`, `node_id`): text only.
+    #[serde(skip)]
+    pub id_key: &'static str,
+}
+
+/// One wheel's test in a [`Report`].
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct WheelReport {
+    /// The configured wheel tested.
+    pub wheel: &'static str,
+    /// Its configured drive id.
+    pub id: u8,
+    /// The wheel that turned, if one did.
+    pub turned: Option<&'static str>,
+    /// Whether it turned robot-forward, if one did.
+    pub forward: Option<bool>,
+    /// How far each physical wheel turned, rad, robot-forward positive.
+    pub angles_rad: [f64; 4],
+    /// The verdict ([`verdict_text`]).
+    pub verdict: String,
+    /// The firmware's `WHEEL_TEST_RESULT`, if it sent one.
+    pub firmware: Option<FirmwareResult>,
+    /// The firmware's fault at the end.
+    pub fault: &'static str,
+}
+
+/// The firmware's own result of a wheel's test.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct FirmwareResult {
+    /// `DONE`, `STOPPED`, `FAULT` or `REFUSED`.
+    pub outcome: &'static str,
+    /// The angle it measured, rad.
+    pub angle_rad: f32,
+    /// The peak current, A.
+    pub peak_current_a: f32,
+}
+
+impl Report {
+    /// The report of the check of the configuration from `source` (`configured`), whose
+    /// tests at `speed` rad/s for `duration_ms` gave `runs` and the diagnosis `d`.
+    #[must_use]
+    pub fn new(
+        source: String,
+        (speed, duration_ms): (f32, u16),
+        configured: &Wiring,
+        runs: &[WheelRun; 4],
+        d: &Diagnosis,
+    ) -> Self {
+        let wheels = runs
+            .iter()
+            .zip(d.verdicts)
+            .map(|(r, v)| WheelReport {
+                wheel: WHEEL_NAMES[r.wheel],
+                id: configured.ids[r.wheel],
+                turned: r.seen.map(|s| WHEEL_NAMES[s.wheel]),
+                forward: r.seen.map(|s| s.forward),
+                angles_rad: r.turned,
+                verdict: verdict_text(r.wheel, v),
+                firmware: r.result.map(|t| FirmwareResult {
+                    outcome: t.outcome.as_str(),
+                    angle_rad: t.angle,
+                    peak_current_a: t.peak_current,
+                }),
+                fault: r.fault.as_str(),
+            })
+            .collect();
+        Self {
+            configuration: source,
+            right: d.is_right(),
+            wheels,
+            fix: d.fix_lines(configured),
+            unresolved: d.unresolved.clone(),
+            speed,
+            duration_ms,
+            id_key: configured.ids_key().trim_end_matches('s'),
         }
     }
-    s
+}
+
+impl core::fmt::Display for Report {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        writeln!(
+            f,
+            "bring-up check of {} on a simulated robot on blocks, each wheel at {} rad/s for {} \
+             ms:",
+            self.configuration, self.speed, self.duration_ms
+        )?;
+        for w in &self.wheels {
+            let firmware = match w.firmware {
+                Some(r) => format!(
+                    "firmware: {} turned {:+.2} rad, peak {:+.2} A, {}",
+                    w.wheel, r.angle_rad, r.peak_current_a, r.outcome
+                ),
+                None => "firmware: no result".to_string(),
+            };
+            let fault = if w.fault == Fault::None.as_str() {
+                String::new()
+            } else {
+                format!(", fault {}", w.fault)
+            };
+            writeln!(
+                f,
+                "{} ({} {}): {}  [{firmware}{fault}]",
+                w.wheel, self.id_key, w.id, w.verdict
+            )?;
+        }
+        if self.right {
+            write!(f, "wiring: as configured")
+        } else if let Some(why) = &self.unresolved {
+            write!(f, "wiring: cannot be fixed from these observations: {why}")
+        } else {
+            write!(f, "wiring: wrong; fix the configuration's [drive] section:")?;
+            for l in &self.fix {
+                write!(f, "\n    {l}")?;
+            }
+            Ok(())
+        }
+    }
 }
 
 /// One line on a verdict.

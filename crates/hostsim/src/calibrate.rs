@@ -340,20 +340,6 @@ impl Calibration {
     pub fn pod_lines(&self) -> String {
         pods::lines(&self.pods)
     }
-
-    /// The report as JSON (SI units; directions in degrees).
-    #[must_use]
-    pub fn to_json(&self) -> serde_json::Value {
-        let mut v = serde_json::to_value(self).unwrap_or_default();
-        if let Some(o) = v.as_object_mut() {
-            o.insert("geometry_lines".into(), self.geometry_lines().into());
-            if !self.pods.is_empty() {
-                o.insert("pod_lines".into(), self.pod_lines().into());
-            }
-            o.insert("complete".into(), self.read.is_complete().into());
-        }
-        v
-    }
 }
 
 impl fmt::Display for Calibration {
@@ -421,7 +407,8 @@ impl fmt::Display for Calibration {
             pods::report(&self.pods, f)?;
         }
         writeln!(f, "paste into the configuration:")?;
-        write!(f, "{}{}", self.geometry_lines(), self.pod_lines())
+        let lines = self.geometry_lines() + &self.pod_lines();
+        f.write_str(lines.trim_end_matches('\n'))
     }
 }
 

@@ -180,7 +180,8 @@ fn check_names_the_fix(config: &Config, name: &str, spec: &PlantSpec) -> Wiring 
     let runs = bringup::run_check(config, spec, 3.0, 1000).unwrap();
     let configured = Wiring::of(config);
     let d = diagnose(&configured, runs.map(|r| r.seen));
-    print!("{name}:\n{}", bringup::report(&configured, &runs, &d));
+    let report = bringup::Report::new(name.to_string(), (3.0, 1000), &configured, &runs, &d);
+    println!("{report}");
     let truth = true_wiring(config, spec);
     assert_eq!(d.fixed, Some(truth), "{name}: {runs:#?}");
     assert_eq!(d.is_right(), spec.is_empty(), "{name}");

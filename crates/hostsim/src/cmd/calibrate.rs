@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::{Context, Result};
+use serde::Serialize;
 
 use super::*;
 
@@ -107,18 +108,51 @@ fn calibrate(
         drivelog::output::write_whole(file, text.as_bytes())
             .context("cannot write the calibration")?;
     }
-    if json {
-        println!("{}", c.to_json());
-    } else {
-        println!("calibration from {}", path.display());
-        print!("{c}");
-        if let Some(file) = write {
-            println!("written: {}", file.display());
-        }
-    }
+    let report = Report {
+        geometry_lines: c.geometry_lines(),
+        pod_lines: (!c.pods.is_empty()).then(|| c.pod_lines()),
+        complete: c.read.is_complete(),
+        calibration: &c,
+        log: path,
+        written: write,
+    };
+    print_report(&report, json)?;
     Ok(if c.read.is_complete() {
         ExitCode::SUCCESS
     } else {
         ExitCode::from(EXIT_DAMAGED)
     })
+}
+
+/// What `calibrate` reports: the fit (SI units; directions in degrees) with the lines to
+/// paste, as text or (`--json`) as one JSON object.
+#[derive(Debug, Serialize)]
+struct Report<'a> {
+    /// The fit.
+    #[serde(flatten)]
+    calibration: &'a crate::calibrate::Calibration,
+    /// The `[geometry]` lines to paste.
+    geometry_lines: String,
+    /// The `[[odometry.pods]]` tables to paste, with pods.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pod_lines: Option<String>,
+    /// The log was read whole (else the fit used its complete part).
+    complete: bool,
+    /// The log: text only.
+    #[serde(skip)]
+    log: &'a Path,
+    /// The file `--write` wrote: text only.
+    #[serde(skip)]
+    written: Option<&'a Path>,
+}
+
+impl std::fmt::Display for Report<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(f, "calibration from {}", self.log.display())?;
+        write!(f, "{}", self.calibration)?;
+        if let Some(file) = self.written {
+            write!(f, "\nwritten: {}", file.display())?;
+        }
+        Ok(())
+    }
 }

@@ -75,7 +75,7 @@ pub fn prepare(args: &Args) -> Result<Prepared> {
 
 /// `hostsim check`: the bring-up check on a simulated robot on blocks.
 pub fn execute(args: &Args) -> Result<ExitCode> {
-    use crate::bringup::{Wiring, diagnose, report, run_check};
+    use crate::bringup::{Report, Wiring, diagnose, run_check};
     let Prepared {
         config,
         source,
@@ -85,43 +85,14 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
         .with_context(|| format!("configuration {source}"))?;
     let configured = Wiring::of(&config);
     let d = diagnose(&configured, runs.map(|r| r.seen));
-    if args.json {
-        let wheels: Vec<serde_json::Value> = runs
-            .iter()
-            .zip(d.verdicts)
-            .map(|(r, v)| {
-                serde_json::json!({
-                    "wheel": crate::bringup::WHEEL_NAMES[r.wheel],
-                    "id": configured.ids[r.wheel],
-                    "turned": r.seen.map(|s| crate::bringup::WHEEL_NAMES[s.wheel]),
-                    "forward": r.seen.map(|s| s.forward),
-                    "angles_rad": r.turned,
-                    "verdict": crate::bringup::verdict_text(r.wheel, v),
-                    "firmware": r.result.map(|t| serde_json::json!({
-                        "outcome": t.outcome.as_str(),
-                        "angle_rad": t.angle,
-                        "peak_current_a": t.peak_current,
-                    })),
-                    "fault": r.fault.as_str(),
-                })
-            })
-            .collect();
-        let out = serde_json::json!({
-            "configuration": source,
-            "right": d.is_right(),
-            "wheels": wheels,
-            "fix": d.fix_lines(&configured),
-            "unresolved": d.unresolved,
-        });
-        println!("{out}");
-    } else {
-        println!(
-            "bring-up check of {source} on a simulated robot on blocks, each wheel at {} rad/s \
-             for {} ms:",
-            args.speed, args.duration_ms
-        );
-        print!("{}", report(&configured, &runs, &d));
-    }
+    let report = Report::new(
+        source,
+        (args.speed, args.duration_ms),
+        &configured,
+        &runs,
+        &d,
+    );
+    print_report(&report, args.json)?;
     Ok(if d.is_right() {
         ExitCode::SUCCESS
     } else {

@@ -11,6 +11,9 @@
 //! ([`sweep::Plan::runs`]). Each `execute` with checks (run, sweep, check, plant, replay)
 //! begins with its `prepare`, so the two cannot disagree.
 //!
+//! A command's result is one report, a `Serialize` struct with one human rendering
+//! (`Display`); [`print_report`] prints it, as text or as `--json`.
+//!
 //! The doc comments of the `Args` are terminal text, not Markdown: `[geometry]` names a TOML
 //! table, not a link, and `<name>` a placeholder, not a tag. Rustdoc's lints on them are off.
 #![allow(rustdoc::broken_intra_doc_links, rustdoc::invalid_html_tags)]
@@ -138,6 +141,24 @@ pub const EXIT_DAMAGED: u8 = 3;
 
 /// The exit status of a process killed by SIGPIPE, as a shell reports it.
 pub const SIGPIPE_STATUS: u8 = 128 + 13;
+
+/// Prints a command's report on stdout: its JSON object on one line with `--json`, else its
+/// text. The JSON goes through a [`serde_json::Value`], whose objects list their keys sorted
+/// by name (serde_json without `preserve_order`), as every `--json` has.
+///
+/// # Errors
+/// The report does not serialise (a map with keys that are not strings).
+pub fn print_report(
+    report: &(impl serde::Serialize + std::fmt::Display),
+    json: bool,
+) -> Result<()> {
+    if json {
+        println!("{}", serde_json::to_value(report)?);
+    } else {
+        println!("{report}");
+    }
+    Ok(())
+}
 
 /// Warns on stderr that the log at `path` is damaged, if it is: where, what, what was read.
 pub fn warn_if_damaged(path: &Path, read: &crate::log::ReadReport, doing: &str) {

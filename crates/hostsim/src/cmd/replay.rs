@@ -5,11 +5,12 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result, bail};
 use mecanum_linux::{MonotonicClock, SocketCanBus};
+use serde::Serialize;
 
 use crate::realtime::{PlayOptions, play_frames};
 use crate::replay::{
-    CandumpReplayError, LogFormat, OdometryTolerance, detect_format, mcap_playback, replay_candump,
-    replay_mcap, split_candump,
+    CandumpReplayError, LogFormat, OdometryTolerance, ReportFrame, detect_format, mcap_playback,
+    replay_candump, replay_mcap, split_candump,
 };
 use crate::whatif::{OPEN_LOOP_NOTE, what_if_mcap};
 
@@ -203,12 +204,6 @@ fn replay_mcap_log(path: &Path, json: bool) -> Result<ExitCode> {
             "replaying its complete part, up to the last message read",
         );
     }
-    let show = |f: &Option<crate::replay::TimedFrame>| {
-        f.map_or_else(
-            || "nothing".to_string(),
-            |f| format!("{} at {:.6} s", f.frame, f.t_ns as f64 * 1e-9),
-        )
-    };
     let code = if !report.identical() {
         ExitCode::from(EXIT_FAILED)
     } else if damaged.is_some() {
@@ -216,54 +211,91 @@ fn replay_mcap_log(path: &Path, json: bool) -> Result<ExitCode> {
     } else {
         ExitCode::SUCCESS
     };
-    if json {
-        let frame = |f: &Option<crate::replay::TimedFrame>| {
-            f.map(|f| {
-                serde_json::json!({
-                    "t_s": format!("{:.6}", f.t_ns as f64 * 1e-9),
-                    "frame": f.frame.to_string(),
-                })
-            })
-        };
-        let difference = report.difference.as_ref().map(|d| {
-            serde_json::json!({
-                "index": d.index,
-                "t_s": format!("{:.6}", d.t_ns as f64 * 1e-9),
-                "logged": frame(&d.logged),
-                "replayed": frame(&d.replayed),
-            })
-        });
-        let v = serde_json::json!({
-            "log": path.display().to_string(),
-            "format": LogFormat::Mcap,
-            "steps": report.steps,
-            "fed": report.fed,
-            "compared": report.compared,
-            "identical": report.identical(),
-            "verdict": if report.identical() { "identical" } else { "differs" },
-            "first_difference": difference,
-            "complete": damaged.is_none(),
-            "damage": damaged.map(ToString::to_string),
-            "damage_offset": damaged.and_then(|r| r.damage.as_ref()).map(|d| d.offset),
-        });
-        println!("{v}");
-        return Ok(code);
-    }
-    println!(
-        "replayed {} steps, fed {} inbound frames, compared {} outbound frames",
-        report.steps, report.fed, report.compared
-    );
-    match &report.difference {
-        None => println!("outbound frames are bit-identical"),
-        Some(d) => println!(
-            "first difference at outbound frame {} ({:.6} s): log has {}, replay sent {}",
-            d.index,
-            d.t_ns as f64 * 1e-9,
-            show(&d.logged),
-            show(&d.replayed)
-        ),
-    }
+    let frame = |f: &Option<crate::replay::TimedFrame>| {
+        f.map(|f| ReportFrame {
+            t_s: format!("{:.6}", f.t_ns as f64 * 1e-9),
+            frame: f.frame.to_string(),
+        })
+    };
+    let report = McapReplay {
+        log: path.display().to_string(),
+        format: LogFormat::Mcap,
+        steps: report.steps,
+        fed: report.fed,
+        compared: report.compared,
+        identical: report.identical(),
+        verdict: if report.identical() {
+            "identical"
+        } else {
+            "differs"
+        },
+        first_difference: report.difference.as_ref().map(|d| McapDifference {
+            index: d.index,
+            t_s: format!("{:.6}", d.t_ns as f64 * 1e-9),
+            logged: frame(&d.logged),
+            replayed: frame(&d.replayed),
+        }),
+        complete: damaged.is_none(),
+        damage: damaged.map(ToString::to_string),
+        damage_offset: damaged.and_then(|r| r.damage.as_ref()).map(|d| d.offset),
+    };
+    print_report(&report, json)?;
     Ok(code)
+}
+
+/// What the replay of an MCAP log reports: the comparison, and the damage if the log is
+/// damaged.
+#[derive(Debug, Serialize)]
+struct McapReplay {
+    log: String,
+    format: LogFormat,
+    steps: u64,
+    fed: usize,
+    compared: usize,
+    identical: bool,
+    /// `identical` or `differs`.
+    verdict: &'static str,
+    first_difference: Option<McapDifference>,
+    complete: bool,
+    damage: Option<String>,
+    /// The byte offset of the damage.
+    damage_offset: Option<u64>,
+}
+
+/// The first outbound frame that differs: its index, the step's time, both frames.
+#[derive(Debug, Serialize)]
+struct McapDifference {
+    index: usize,
+    t_s: String,
+    logged: Option<ReportFrame>,
+    replayed: Option<ReportFrame>,
+}
+
+impl std::fmt::Display for McapReplay {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(
+            f,
+            "replayed {} steps, fed {} inbound frames, compared {} outbound frames",
+            self.steps, self.fed, self.compared
+        )?;
+        let show = |f: &Option<ReportFrame>| {
+            f.as_ref().map_or_else(
+                || "nothing".to_string(),
+                |f| format!("{} at {} s", f.frame, f.t_s),
+            )
+        };
+        match &self.first_difference {
+            None => write!(f, "outbound frames are bit-identical"),
+            Some(d) => write!(
+                f,
+                "first difference at outbound frame {} ({} s): log has {}, replay sent {}",
+                d.index,
+                d.t_s,
+                show(&d.logged),
+                show(&d.replayed)
+            ),
+        }
+    }
 }
 
 /// `replay LOG.mcap --config FILE`: the what-if of another configuration on a logged session.
@@ -283,124 +315,152 @@ fn what_if_log(path: &Path, config: &Path, json: bool) -> Result<ExitCode> {
     } else {
         ExitCode::SUCCESS
     };
-    let verdict = if r.identical {
-        "no_difference"
-    } else {
-        "differs"
-    };
-    if json {
-        let mut v = serde_json::to_value(&r)?;
-        if let Some(o) = v.as_object_mut() {
-            o.insert("note".into(), OPEN_LOOP_NOTE.into());
-            o.insert("log".into(), path.display().to_string().into());
-            o.insert("format".into(), serde_json::to_value(LogFormat::Mcap)?);
-            o.insert("config".into(), config.display().to_string().into());
-            o.insert("verdict".into(), verdict.into());
-            o.insert("complete".into(), damaged.is_none().into());
-            o.insert("damage".into(), damaged.map(ToString::to_string).into());
-        }
-        println!("{v}");
-        return Ok(code);
-    }
-    println!("{OPEN_LOOP_NOTE}");
-    println!(
-        "log {}, what-if configuration {}",
-        path.display(),
-        config.display()
-    );
-    if r.changes.is_empty() {
-        println!("changes: none (the what-if configuration equals the logged one)");
-    } else {
-        let show = |v: &Option<String>| v.as_deref().unwrap_or("(absent)").to_string();
-        let changes: Vec<String> = r
-            .changes
-            .iter()
-            .map(|c| format!("{} {} -> {}", c.field, show(&c.logged), show(&c.what_if)))
-            .collect();
-        println!("changes: {}", changes.join(", "));
-    }
-    println!(
-        "replayed {} steps, fed {} inbound frames; the log has {} outbound frames, the what-if \
-         core sent {}",
-        r.steps, r.fed, r.logged_frames, r.what_if_frames
-    );
-    match &r.first_difference {
-        None => println!(
-            "outbound frames are bit-identical: the change makes no difference on this log"
-        ),
-        Some(d) => {
-            // A frame's own time only where it is not the step's.
-            let show = |f: &Option<crate::replay::ReportFrame>| match f {
-                None => "nothing".to_string(),
-                Some(f) if f.t_s == d.t_s => f.frame.clone(),
-                Some(f) => format!("{} at {} s", f.frame, f.t_s),
-            };
-            println!(
-                "first difference at {} s (outbound frame {}): log has {}, what-if sent {}",
-                d.t_s,
-                d.index,
-                show(&d.logged),
-                show(&d.what_if)
-            );
-        }
-    }
-    println!("outbound frames by arbitration id:");
-    println!(
-        "  {:<10} {:<28} {:>8} {:>8} {:>8}",
-        "id", "message", "logged", "what-if", "differ"
-    );
-    for c in &r.by_id {
-        println!(
-            "  {:<10} {:<28} {:>8} {:>8} {:>8}",
-            c.id,
-            c.message,
-            c.logged,
-            c.what_if,
-            c.differ()
-        );
-    }
-    for q in &r.setpoints {
-        println!(
-            "{} setpoints, {} (difference = what-if - logged, each held between its commands):",
-            q.quantity, q.unit
-        );
-        println!(
-            "  {:<5} {:>11} {:>12} {:>11} {:>10} {:>11}",
-            "wheel", "max|logged|", "max|what-if|", "max|diff|", "at (s)", "rms diff"
-        );
-        for w in &q.wheels {
-            let d = &w.difference;
-            println!(
-                "  {:<5} {:>11.4} {:>12.4} {:>11.4} {:>10} {:>11.4}",
-                w.wheel,
-                w.max_abs_logged,
-                w.max_abs_what_if,
-                d.max_abs_difference,
-                d.t_max_difference_s.as_deref().unwrap_or("-"),
-                d.rms_difference
-            );
-        }
-    }
-    let list = |changes: &[crate::whatif::StateChange]| {
-        if changes.is_empty() {
-            "none".to_string()
+    let report = WhatIf {
+        note: OPEN_LOOP_NOTE,
+        log: path.display().to_string(),
+        format: LogFormat::Mcap,
+        config: config.display().to_string(),
+        verdict: if r.identical {
+            "no_difference"
         } else {
-            changes
-                .iter()
-                .map(ToString::to_string)
-                .collect::<Vec<_>>()
-                .join(", ")
-        }
+            "differs"
+        },
+        complete: damaged.is_none(),
+        damage: damaged.map(ToString::to_string),
+        report: &r,
     };
-    let s = &r.states;
-    println!("state changes in the STATUS frames:");
-    println!("  logged:               {}", list(&s.logged));
-    println!("  what-if:              {}", list(&s.what_if));
-    println!("  only in the log:      {}", list(&s.only_logged));
-    println!("  only in the what-if:  {}", list(&s.only_what_if));
-    println!("  what-if core (exact): {}", list(&s.what_if_core));
-    println!("verdict: {verdict}");
+    print_report(&report, json)?;
     Ok(code)
+}
+
+/// What a what-if reports: the comparison of [`crate::whatif::WhatIfReport`], the log and
+/// the configuration.
+#[derive(Debug, Serialize)]
+struct WhatIf<'a> {
+    #[serde(flatten)]
+    report: &'a crate::whatif::WhatIfReport,
+    /// [`OPEN_LOOP_NOTE`].
+    note: &'static str,
+    log: String,
+    format: LogFormat,
+    /// The what-if configuration's file.
+    config: String,
+    /// `no_difference` or `differs`.
+    verdict: &'static str,
+    complete: bool,
+    damage: Option<String>,
+}
+
+impl std::fmt::Display for WhatIf<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let r = self.report;
+        writeln!(f, "{}", self.note)?;
+        writeln!(f, "log {}, what-if configuration {}", self.log, self.config)?;
+        if r.changes.is_empty() {
+            writeln!(
+                f,
+                "changes: none (the what-if configuration equals the logged one)"
+            )?;
+        } else {
+            let show = |v: &Option<String>| v.as_deref().unwrap_or("(absent)").to_string();
+            let changes: Vec<String> = r
+                .changes
+                .iter()
+                .map(|c| format!("{} {} -> {}", c.field, show(&c.logged), show(&c.what_if)))
+                .collect();
+            writeln!(f, "changes: {}", changes.join(", "))?;
+        }
+        writeln!(
+            f,
+            "replayed {} steps, fed {} inbound frames; the log has {} outbound frames, the \
+             what-if core sent {}",
+            r.steps, r.fed, r.logged_frames, r.what_if_frames
+        )?;
+        match &r.first_difference {
+            None => writeln!(
+                f,
+                "outbound frames are bit-identical: the change makes no difference on this log"
+            )?,
+            Some(d) => {
+                // A frame's own time only where it is not the step's.
+                let show = |f: &Option<ReportFrame>| match f {
+                    None => "nothing".to_string(),
+                    Some(f) if f.t_s == d.t_s => f.frame.clone(),
+                    Some(f) => format!("{} at {} s", f.frame, f.t_s),
+                };
+                writeln!(
+                    f,
+                    "first difference at {} s (outbound frame {}): log has {}, what-if sent {}",
+                    d.t_s,
+                    d.index,
+                    show(&d.logged),
+                    show(&d.what_if)
+                )?;
+            }
+        }
+        writeln!(f, "outbound frames by arbitration id:")?;
+        writeln!(
+            f,
+            "  {:<10} {:<28} {:>8} {:>8} {:>8}",
+            "id", "message", "logged", "what-if", "differ"
+        )?;
+        for c in &r.by_id {
+            writeln!(
+                f,
+                "  {:<10} {:<28} {:>8} {:>8} {:>8}",
+                c.id,
+                c.message,
+                c.logged,
+                c.what_if,
+                c.differ()
+            )?;
+        }
+        for q in &r.setpoints {
+            writeln!(
+                f,
+                "{} setpoints, {} (difference = what-if - logged, each held between its \
+                 commands):",
+                q.quantity, q.unit
+            )?;
+            writeln!(
+                f,
+                "  {:<5} {:>11} {:>12} {:>11} {:>10} {:>11}",
+                "wheel", "max|logged|", "max|what-if|", "max|diff|", "at (s)", "rms diff"
+            )?;
+            for w in &q.wheels {
+                let d = &w.difference;
+                writeln!(
+                    f,
+                    "  {:<5} {:>11.4} {:>12.4} {:>11.4} {:>10} {:>11.4}",
+                    w.wheel,
+                    w.max_abs_logged,
+                    w.max_abs_what_if,
+                    d.max_abs_difference,
+                    d.t_max_difference_s.as_deref().unwrap_or("-"),
+                    d.rms_difference
+                )?;
+            }
+        }
+        let list = |changes: &[crate::whatif::StateChange]| {
+            if changes.is_empty() {
+                "none".to_string()
+            } else {
+                changes
+                    .iter()
+                    .map(ToString::to_string)
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            }
+        };
+        let s = &r.states;
+        writeln!(f, "state changes in the STATUS frames:")?;
+        writeln!(f, "  logged:               {}", list(&s.logged))?;
+        writeln!(f, "  what-if:              {}", list(&s.what_if))?;
+        writeln!(f, "  only in the log:      {}", list(&s.only_logged))?;
+        writeln!(f, "  only in the what-if:  {}", list(&s.only_what_if))?;
+        writeln!(f, "  what-if core (exact): {}", list(&s.what_if_core))?;
+        write!(f, "verdict: {}", self.verdict)
+    }
 }
 
 fn replay_candump_log(
@@ -419,82 +479,104 @@ fn replay_candump_log(
     } else {
         ExitCode::from(EXIT_FAILED)
     };
-    if json {
-        let mut v = serde_json::to_value(&r)?;
-        if let Some(o) = v.as_object_mut() {
-            o.insert("log".into(), path.display().to_string().into());
-            o.insert("format".into(), serde_json::to_value(LogFormat::Candump)?);
-            o.insert("config".into(), source.into());
-            o.insert("verdict".into(), r.verdict().into());
-        }
-        println!("{v}");
-        return Ok(code);
-    }
-    println!(
-        "candump log {}: {} frames on {} over {:.3} s; configuration: {source}",
-        path.display(),
-        r.frames,
-        r.interfaces.join(", "),
-        r.duration_s
-    );
-    println!(
-        "firmware received {} frames (fed), sent {} (compared); replay ran {} steps of {} µs \
-         and sent {}",
-        r.received, r.sent, r.steps, r.period_us, r.replayed
-    );
-    match &r.first_difference {
-        None => println!("outbound frames are identical (time ignored)"),
-        Some(d) => {
-            let show = |f: &Option<crate::replay::ReportFrame>| {
-                f.as_ref().map_or_else(
-                    || "nothing".to_string(),
-                    |f| format!("{} at {} s", f.frame, f.t_s),
-                )
-            };
-            println!(
-                "outbound frames differ (time ignored) at frame {} ({} matched): log has {}, \
-                 replay sent {}",
-                d.index,
-                r.matching_prefix,
-                show(&d.logged),
-                show(&d.replayed)
-            );
-        }
-    }
-    match &r.odometry {
-        None => println!("odometry: the log has no ODOM_POSITION frame to compare"),
-        Some(o) => {
-            let pose = |p: &crate::replay::OdometryReading| {
-                format!(
-                    "x {:+.4} m  y {:+.4} m  heading {:+.2}° at {:.3} s",
-                    p.x,
-                    p.y,
-                    p.heading.to_degrees(),
-                    p.t_s
-                )
-            };
-            println!("odometry logged   {}", pose(&o.logged));
-            println!("odometry replayed {}", pose(&o.replayed));
-            println!(
-                "odometry {}: position {:.1} mm (tolerance {:.1} mm), heading {:.4} rad \
-                 (tolerance {:.4} rad), velocity {:.4}",
-                if o.agrees { "agrees" } else { "DIFFERS" },
-                o.position_error_m * 1000.0,
-                o.tolerance.position_m * 1000.0,
-                o.heading_error_rad,
-                o.tolerance.heading_rad,
-                o.velocity_error
-            );
-        }
-    }
-    let e = &r.rejected;
-    let rejected = e.extended_id + e.remote + e.wrong_dlc + e.non_finite + e.out_of_range;
-    println!(
-        "replayed core rejected {rejected} received frames, ignored {} with unknown ids",
-        e.unknown_id
-    );
-    println!("verdict: {}", r.verdict());
+    let report = CandumpReport {
+        log: path.display().to_string(),
+        format: LogFormat::Candump,
+        config: source,
+        verdict: r.verdict(),
+        report: &r,
+    };
+    print_report(&report, json)?;
     Ok(code)
+}
+
+/// What the replay of a candump log reports: [`crate::replay::CandumpReplay`], the log and
+/// the configuration.
+#[derive(Debug, Serialize)]
+struct CandumpReport<'a> {
+    #[serde(flatten)]
+    report: &'a crate::replay::CandumpReplay,
+    log: String,
+    format: LogFormat,
+    /// Where the configuration came from.
+    config: String,
+    verdict: &'static str,
+}
+
+impl std::fmt::Display for CandumpReport<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let r = self.report;
+        writeln!(
+            f,
+            "candump log {}: {} frames on {} over {:.3} s; configuration: {}",
+            self.log,
+            r.frames,
+            r.interfaces.join(", "),
+            r.duration_s,
+            self.config
+        )?;
+        writeln!(
+            f,
+            "firmware received {} frames (fed), sent {} (compared); replay ran {} steps of {} \
+             µs and sent {}",
+            r.received, r.sent, r.steps, r.period_us, r.replayed
+        )?;
+        match &r.first_difference {
+            None => writeln!(f, "outbound frames are identical (time ignored)")?,
+            Some(d) => {
+                let show = |f: &Option<ReportFrame>| {
+                    f.as_ref().map_or_else(
+                        || "nothing".to_string(),
+                        |f| format!("{} at {} s", f.frame, f.t_s),
+                    )
+                };
+                writeln!(
+                    f,
+                    "outbound frames differ (time ignored) at frame {} ({} matched): log has \
+                     {}, replay sent {}",
+                    d.index,
+                    r.matching_prefix,
+                    show(&d.logged),
+                    show(&d.replayed)
+                )?;
+            }
+        }
+        match &r.odometry {
+            None => writeln!(f, "odometry: the log has no ODOM_POSITION frame to compare")?,
+            Some(o) => {
+                let pose = |p: &crate::replay::OdometryReading| {
+                    format!(
+                        "x {:+.4} m  y {:+.4} m  heading {:+.2}° at {:.3} s",
+                        p.x,
+                        p.y,
+                        p.heading.to_degrees(),
+                        p.t_s
+                    )
+                };
+                writeln!(f, "odometry logged   {}", pose(&o.logged))?;
+                writeln!(f, "odometry replayed {}", pose(&o.replayed))?;
+                writeln!(
+                    f,
+                    "odometry {}: position {:.1} mm (tolerance {:.1} mm), heading {:.4} rad \
+                     (tolerance {:.4} rad), velocity {:.4}",
+                    if o.agrees { "agrees" } else { "DIFFERS" },
+                    o.position_error_m * 1000.0,
+                    o.tolerance.position_m * 1000.0,
+                    o.heading_error_rad,
+                    o.tolerance.heading_rad,
+                    o.velocity_error
+                )?;
+            }
+        }
+        let e = &r.rejected;
+        let rejected = e.extended_id + e.remote + e.wrong_dlc + e.non_finite + e.out_of_range;
+        writeln!(
+            f,
+            "replayed core rejected {rejected} received frames, ignored {} with unknown ids",
+            e.unknown_id
+        )?;
+        write!(f, "verdict: {}", self.verdict)
+    }
 }
 
 /// `replay LOG --iface IFACE`: plays the log's frames onto the interface in real time.
@@ -558,11 +640,7 @@ fn play(
         ..PlayOptions::default()
     };
     let report = play_frames(&frames, &mut bus, &clock, &options, &stop);
-    if json {
-        println!("{}", serde_json::to_string(&report)?);
-    } else {
-        println!("{report}");
-    }
+    print_report(&report, json)?;
     Ok(if report.failed > 0 {
         ExitCode::from(EXIT_FAILED)
     } else if damaged {

@@ -10,6 +10,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
+use serde::Serialize;
 
 use crate::log::McapLog;
 use crate::plot::plot_run;
@@ -243,22 +244,14 @@ fn run(
         plot_run(&png_path, &scenario.name, &summary.track)?;
     }
     let interrupted = live.as_ref().is_some_and(|l| l.interrupted);
-    if json {
-        let mut value = summary_json(&summary, wall_s);
-        if let Some(l) = &live {
-            value["live"] = l.json();
-            value["interrupted"] = serde_json::Value::Bool(l.interrupted);
-        }
-        println!("{value}");
-    } else {
-        print_summary(&summary, wall_s);
-        if write_log {
-            println!("log:   {}", log_path.display());
-        }
-        if draw_plot {
-            println!("plot:  {}", png_path.display());
-        }
-    }
+    let report = Report::new(
+        &summary,
+        wall_s,
+        live.as_ref(),
+        write_log.then_some(log_path.as_path()),
+        draw_plot.then_some(png_path.as_path()),
+    );
+    print_report(&report, json)?;
     if let Some(l) = &live {
         eprintln!("live: {}", l.report);
         eprintln!("live: {}", l.pacing);
@@ -352,6 +345,7 @@ impl Live {
 }
 
 impl LiveEnd {
+    /// The live server's report with the pacing's figures.
     fn json(&self) -> serde_json::Value {
         let p = &self.pacing;
         let mut value = self.report.to_json();
@@ -364,89 +358,188 @@ impl LiveEnd {
     }
 }
 
-fn print_summary(s: &RunSummary, wall_s: f64) {
-    println!(
-        "scenario {:?}: {:.2} s simulated in {:.3} s ({:.0}x real time)",
-        s.scenario,
-        s.duration_s,
-        wall_s,
-        s.duration_s / wall_s.max(1e-9)
-    );
-    println!(
-        "ground truth  x {:+.4} m  y {:+.4} m  heading {:+.2}°",
-        s.truth[0],
-        s.truth[1],
-        s.truth[2].to_degrees()
-    );
-    println!(
-        "odometry      x {:+.4} m  y {:+.4} m  heading {:+.2}°",
-        s.odometry[0],
-        s.odometry[1],
-        s.odometry[2].to_degrees()
-    );
-    println!(
-        "odometry drift: final {:.1} mm, max {:.1} mm, heading {:.2}°",
-        s.final_position_error * 1000.0,
-        s.max_position_error * 1000.0,
-        s.final_heading_error.to_degrees()
-    );
-    println!(
-        "bus: {} frames, load {:.1} %, {} dropped, {} corrupted; firmware sent {}, received {}",
-        s.bus.frames,
-        s.bus_load * 100.0,
-        s.bus.dropped,
-        s.bus.corrupted,
-        s.tx_frames,
-        s.rx_frames
-    );
-    let e = s.last.rx_errors;
-    println!(
-        "firmware: final state {} (fault {}); rejected frames {}, unknown ids {}, repeated twists {}",
-        s.last.state,
-        s.last.fault,
-        e.total() - e.unknown_id,
-        e.unknown_id,
-        s.last.repeated_seq
-    );
-    for (t, state, fault) in &s.transitions {
-        println!("  {t:8.3} s  {state} ({fault})");
-    }
-    if s.last.heading_source != firmware::protocol::robot::HeadingSource::Wheels {
-        println!(
-            "gyro heading: final source {}, bias estimate {:+.4} °/s from {} standstill \
-             samples; heading source changes:",
-            s.last.heading_source,
-            f64::from(s.last.gyro_bias).to_degrees(),
-            s.last.gyro_bias_samples
-        );
-        for (t, source) in &s.heading_changes {
-            println!("  {t:8.3} s  {source}");
-        }
-    }
-    println!("outbound stream hash {:016x}", s.tx_hash);
+/// What `hostsim run` reports: the run's figures, printed as text or (`--json`) as one JSON
+/// object. The text also gives the firmware's counters and gyro estimate and the files
+/// written, which the JSON leaves out.
+#[derive(Debug, Serialize)]
+pub struct Report<'a> {
+    /// Scenario name.
+    scenario: &'a str,
+    /// Simulated time, s.
+    duration_s: f64,
+    /// Wall-clock time of the run, s.
+    wall_s: f64,
+    /// Control steps run.
+    steps: u64,
+    /// Frames the firmware sent.
+    tx_frames: u64,
+    /// Frames the firmware received.
+    rx_frames: u64,
+    /// Frames on the bus.
+    bus_frames: u64,
+    /// Bus load over the run (0..1).
+    bus_load: f64,
+    /// Frames the bus dropped.
+    dropped: u64,
+    /// Frames the bus corrupted.
+    corrupted: u64,
+    /// Ground-truth pose `[x m, y m, heading rad]` at the last step.
+    truth: [f64; 3],
+    /// Final odometry pose, as `truth`.
+    odometry: [f64; 3],
+    /// Final position error of odometry against ground truth, m.
+    final_position_error: f64,
+    /// Largest position error during the run, m.
+    max_position_error: f64,
+    /// Final heading error, rad.
+    final_heading_error: f64,
+    /// The firmware's final state.
+    state: &'static str,
+    /// Its fault.
+    fault: &'static str,
+    /// State changes `(time s, state, fault)`.
+    transitions: &'a [(f64, String, String)],
+    /// Heading source changes `(time s, source)`.
+    heading_changes: &'a [(f64, String)],
+    /// The outbound stream hash, 16 hex digits.
+    #[serde(serialize_with = "hex16")]
+    tx_hash: u64,
+    /// With `--live`: the server's and the pacing's figures.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    live: Option<serde_json::Value>,
+    /// With `--live`: whether Ctrl-C stopped the run.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    interrupted: Option<bool>,
+    /// The firmware's last snapshot (its counters and gyro estimate): text only.
+    #[serde(skip)]
+    last: &'a firmware::control::Snapshot,
+    /// The log written: text only.
+    #[serde(skip)]
+    log: Option<&'a Path>,
+    /// The plot drawn: text only.
+    #[serde(skip)]
+    plot: Option<&'a Path>,
 }
 
-fn summary_json(s: &RunSummary, wall_s: f64) -> serde_json::Value {
-    serde_json::json!({
-        "scenario": s.scenario,
-        "duration_s": s.duration_s,
-        "wall_s": wall_s,
-        "steps": s.steps,
-        "tx_frames": s.tx_frames,
-        "rx_frames": s.rx_frames,
-        "bus_frames": s.bus.frames,
-        "bus_load": s.bus_load,
-        "dropped": s.bus.dropped,
-        "corrupted": s.bus.corrupted,
-        "truth": s.truth,
-        "odometry": s.odometry,
-        "final_position_error": s.final_position_error,
-        "max_position_error": s.max_position_error,
-        "final_heading_error": s.final_heading_error,
-        "state": s.last.state.as_str(),
-        "fault": s.last.fault.as_str(),
-        "transitions": s.transitions,
-        "heading_changes": s.heading_changes,
-        "tx_hash": format!("{:016x}", s.tx_hash),
-    })
+fn hex16<S: serde::Serializer>(hash: &u64, s: S) -> Result<S::Ok, S::Error> {
+    s.collect_str(&format_args!("{hash:016x}"))
+}
+
+impl<'a> Report<'a> {
+    fn new(
+        s: &'a RunSummary,
+        wall_s: f64,
+        live: Option<&LiveEnd>,
+        log: Option<&'a Path>,
+        plot: Option<&'a Path>,
+    ) -> Self {
+        Self {
+            scenario: &s.scenario,
+            duration_s: s.duration_s,
+            wall_s,
+            steps: s.steps,
+            tx_frames: s.tx_frames,
+            rx_frames: s.rx_frames,
+            bus_frames: s.bus.frames,
+            bus_load: s.bus_load,
+            dropped: s.bus.dropped,
+            corrupted: s.bus.corrupted,
+            truth: s.truth,
+            odometry: s.odometry,
+            final_position_error: s.final_position_error,
+            max_position_error: s.max_position_error,
+            final_heading_error: s.final_heading_error,
+            state: s.last.state.as_str(),
+            fault: s.last.fault.as_str(),
+            transitions: &s.transitions,
+            heading_changes: &s.heading_changes,
+            tx_hash: s.tx_hash,
+            live: live.map(LiveEnd::json),
+            interrupted: live.map(|l| l.interrupted),
+            last: &s.last,
+            log,
+            plot,
+        }
+    }
+}
+
+impl std::fmt::Display for Report<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(
+            f,
+            "scenario {:?}: {:.2} s simulated in {:.3} s ({:.0}x real time)",
+            self.scenario,
+            self.duration_s,
+            self.wall_s,
+            self.duration_s / self.wall_s.max(1e-9)
+        )?;
+        let (t, o) = (self.truth, self.odometry);
+        writeln!(
+            f,
+            "ground truth  x {:+.4} m  y {:+.4} m  heading {:+.2}°",
+            t[0],
+            t[1],
+            t[2].to_degrees()
+        )?;
+        writeln!(
+            f,
+            "odometry      x {:+.4} m  y {:+.4} m  heading {:+.2}°",
+            o[0],
+            o[1],
+            o[2].to_degrees()
+        )?;
+        writeln!(
+            f,
+            "odometry drift: final {:.1} mm, max {:.1} mm, heading {:.2}°",
+            self.final_position_error * 1000.0,
+            self.max_position_error * 1000.0,
+            self.final_heading_error.to_degrees()
+        )?;
+        writeln!(
+            f,
+            "bus: {} frames, load {:.1} %, {} dropped, {} corrupted; firmware sent {}, received {}",
+            self.bus_frames,
+            self.bus_load * 100.0,
+            self.dropped,
+            self.corrupted,
+            self.tx_frames,
+            self.rx_frames
+        )?;
+        let last = self.last;
+        let e = last.rx_errors;
+        writeln!(
+            f,
+            "firmware: final state {} (fault {}); rejected frames {}, unknown ids {}, repeated \
+             twists {}",
+            last.state,
+            last.fault,
+            e.total() - e.unknown_id,
+            e.unknown_id,
+            last.repeated_seq
+        )?;
+        for (t, state, fault) in self.transitions {
+            writeln!(f, "  {t:8.3} s  {state} ({fault})")?;
+        }
+        if last.heading_source != firmware::protocol::robot::HeadingSource::Wheels {
+            writeln!(
+                f,
+                "gyro heading: final source {}, bias estimate {:+.4} °/s from {} standstill \
+                 samples; heading source changes:",
+                last.heading_source,
+                f64::from(last.gyro_bias).to_degrees(),
+                last.gyro_bias_samples
+            )?;
+            for (t, source) in self.heading_changes {
+                writeln!(f, "  {t:8.3} s  {source}")?;
+            }
+        }
+        write!(f, "outbound stream hash {:016x}", self.tx_hash)?;
+        if let Some(log) = self.log {
+            write!(f, "\nlog:   {}", log.display())?;
+        }
+        if let Some(plot) = self.plot {
+            write!(f, "\nplot:  {}", plot.display())?;
+        }
+        Ok(())
+    }
 }
