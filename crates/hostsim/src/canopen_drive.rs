@@ -18,7 +18,6 @@ use embedded_can::{Frame, Id, StandardId};
 use firmware::CanFrame;
 use firmware::protocol::canopen::{
     self, DriveState402, Emcy, Message, NmtCommand, NmtState, NodeId, SdoRequest, SdoResponse,
-    controlword,
 };
 
 use crate::plant::{Cia402Axis, Plant, Wheel};
@@ -887,23 +886,13 @@ impl Node {
         }
     }
 
-    /// The 402 state machine (the codec's drive side, [`command`]'s commands), on a
-    /// controlword: true if it reset a fault (the error register is then cleared).
+    /// The 402 state machine (the codec's drive side), on a controlword: true if it reset a
+    /// fault (the error register is then cleared).
     fn control(&mut self, cw: u16) -> bool {
         let state = DriveState402::from_statusword(self.statusword)
             .unwrap_or(DriveState402::SwitchOnDisabled);
         let may_enable = self.get(0x6060, 0) == 3 && !self.faults.refuses_enable;
-        let (cw, previous) = (command(cw), command(self.last_controlword));
-        let next = if state == DriveState402::ReadyToSwitchOn && cw == controlword::ENABLE_OPERATION
-        {
-            // Switch on + enable operation: transition 3, then 4 at once (CiA 402's command
-            // table: "3 + 4").
-            state
-                .on_controlword(controlword::SWITCH_ON, previous, may_enable)
-                .on_controlword(cw, controlword::SWITCH_ON, may_enable)
-        } else {
-            state.on_controlword(cw, previous, may_enable)
-        };
+        let next = state.on_controlword(cw, self.last_controlword, may_enable);
         self.statusword = next.statusword();
         self.last_controlword = cw;
         let reset = state == DriveState402::Fault && next != state;
@@ -912,26 +901,6 @@ impl Node {
         }
         reset
     }
-}
-
-/// A controlword as the command CiA 402's command table makes of it (bits 0-3 and 7, the
-/// rest and the table's "x" bits ignored), in the codec's spelling: disable voltage (bit 1
-/// clear) 0x00, quick stop (bit 2 clear) 0x02, shutdown (bit 0 clear) 0x06, switch on and
-/// disable operation (bit 3 clear) 0x07, enable operation (and switch on + enable
-/// operation) 0x0F; bit 7 (fault reset) kept.
-const fn command(cw: u16) -> u16 {
-    let c = if cw & 0x02 == 0 {
-        controlword::DISABLE_VOLTAGE
-    } else if cw & 0x04 == 0 {
-        controlword::QUICK_STOP
-    } else if cw & 0x01 == 0 {
-        controlword::SHUTDOWN
-    } else if cw & 0x08 == 0 {
-        controlword::SWITCH_ON
-    } else {
-        controlword::ENABLE_OPERATION
-    };
-    (cw & controlword::FAULT_RESET) | c
 }
 
 #[cfg(test)]

@@ -41,9 +41,12 @@ impl DriveState402 {
 
     /// The state a drive goes to on `controlword` (CiA 402's device control, the drive's
     /// side), `previous` the controlword before it: a fault leaves only on a rising edge of
-    /// bit 7; shutdown, switch on, enable operation, disable voltage and quick stop as the
-    /// profile's transitions 2-12 say; operation enabled only if `may_enable` (the drive's
-    /// mode and its own conditions allow it). For the simulated and scripted drives: the
+    /// bit 7; otherwise the profile's command table on bits 0-3, its "x" bits ignored:
+    /// disable voltage (bit 1 clear: 7, 9, 10, 12), quick stop (bit 2 clear: 11 from
+    /// operation enabled, 7 and 10 otherwise), shutdown (bit 0 clear: 2, 6, 8), switch on and
+    /// disable operation (bit 3 clear: 3, 5), enable operation (4, and "3 + 4" from ready to
+    /// switch on). Operation enabled only if `may_enable` (the drive's mode and its own
+    /// conditions allow it; else switch on alone). For the simulated and scripted drives: the
     /// master only reads states ([`Self::from_statusword`]).
     #[must_use]
     pub const fn on_controlword(self, cw: u16, previous: u16, may_enable: bool) -> Self {
@@ -60,18 +63,22 @@ impl DriveState402 {
             // Fault reset outside a fault: no transition.
             return self;
         }
-        match (self, cw & 0x0F) {
-            // Disable voltage (bit 1 clear): transitions 7, 9, 10, 12.
-            (_, c) if c & 0x02 == 0 => S::SwitchOnDisabled,
-            // Quick stop (bit 2 clear): 11 from operation enabled, 7 and 10 otherwise.
-            (S::OperationEnabled | S::QuickStopActive, c) if c & 0x04 == 0 => S::QuickStopActive,
-            (_, c) if c & 0x04 == 0 => S::SwitchOnDisabled,
-            // Shutdown: 2, 6, 8.
-            (S::SwitchOnDisabled | S::SwitchedOn | S::OperationEnabled, 0x06) => S::ReadyToSwitchOn,
-            // Switch on (3) and disable operation (5).
-            (S::ReadyToSwitchOn | S::OperationEnabled, 0x07) => S::SwitchedOn,
-            // Enable operation: 4.
-            (S::SwitchedOn, 0x0F) if may_enable => S::OperationEnabled,
+        if cw & 0x02 == 0 {
+            return S::SwitchOnDisabled;
+        }
+        if cw & 0x04 == 0 {
+            return match self {
+                S::OperationEnabled | S::QuickStopActive => S::QuickStopActive,
+                _ => S::SwitchOnDisabled,
+            };
+        }
+        match (self, cw & 0x01 != 0, cw & 0x08 != 0) {
+            (S::SwitchOnDisabled | S::SwitchedOn | S::OperationEnabled, false, _) => {
+                S::ReadyToSwitchOn
+            }
+            (S::ReadyToSwitchOn | S::OperationEnabled, true, false) => S::SwitchedOn,
+            (S::ReadyToSwitchOn | S::SwitchedOn, true, true) if may_enable => S::OperationEnabled,
+            (S::ReadyToSwitchOn, true, true) => S::SwitchedOn,
             _ => self,
         }
     }
@@ -174,6 +181,16 @@ mod tests {
         );
         assert_eq!(walk(&[0x06, 0x07, 0x0F, 0x06], true), S::ReadyToSwitchOn);
         assert_eq!(walk(&[0x06, 0x07, 0x0F, 0x07], true), S::SwitchedOn);
+        // Switch on + enable operation from ready to switch on: "3 + 4" (switch on alone
+        // where the drive may not enable).
+        assert_eq!(walk(&[0x06, 0x0F], true), S::OperationEnabled);
+        assert_eq!(walk(&[0x06, 0x0F], false), S::SwitchedOn);
+        // The command table's "x" bits are ignored: 0x0E is shutdown, 0x0B quick stop,
+        // 0x0D disable voltage; bits 4-6 and 8-15 are the mode's and the maker's.
+        assert_eq!(walk(&[0x0E], true), S::ReadyToSwitchOn);
+        assert_eq!(walk(&[0x06, 0x07, 0x0F, 0x0B], true), S::QuickStopActive);
+        assert_eq!(walk(&[0x06, 0x07, 0x0F, 0x0D], true), S::SwitchOnDisabled);
+        assert_eq!(walk(&[0x06, 0x07, 0x7F0F], true), S::OperationEnabled);
         // A fault leaves on the rising edge of bit 7 only.
         assert_eq!(S::Fault.on_controlword(0x80, 0x80, true), S::Fault);
         assert_eq!(S::Fault.on_controlword(0x06, 0x80, true), S::Fault);
