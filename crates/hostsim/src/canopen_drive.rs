@@ -128,6 +128,10 @@ struct Node {
     scenario: crate::sim::DriveFaults,
     /// Its CAN controller is bus-off: it sends and receives nothing.
     bus_off: bool,
+    /// A shutdown (transition 8) or disable operation (5) under way on the slow down ramp
+    /// (0x605B / 0x605C = 1): the state it enters once the axes are at rest. Operation
+    /// enabled meanwhile, its targets zero.
+    slowing_to: Option<DriveState402>,
 }
 
 /// The CiA 402 nodes of a configuration.
@@ -380,6 +384,7 @@ impl CanopenDrives {
             return;
         }
         n.statusword = sw::FAULT;
+        n.slowing_to = None;
         let register = n.raise_error(code);
         self.emcy(i, t_ns, code, register);
         self.power(i, plant);
@@ -392,11 +397,11 @@ impl CanopenDrives {
             let Some(wheel) = wheel else { continue };
             let axis = plant.drive_mut(*wheel);
             match n.statusword {
-                sw::OPERATION_ENABLED => {
+                sw::OPERATION_ENABLED if n.slowing_to.is_none() => {
                     axis.set_powered(true);
                     axis.set_target(f64::from(n.targets[sub]) * self.target_rev_s_per_unit);
                 }
-                sw::QUICK_STOP_ACTIVE => {
+                sw::OPERATION_ENABLED | sw::QUICK_STOP_ACTIVE => {
                     axis.set_powered(true);
                     axis.set_target(0.0);
                 }
@@ -483,7 +488,8 @@ impl CanopenDrives {
     }
 
     fn on_sync(&mut self, t_ns: u64, plant: &mut Plant<Cia402Axis>) {
-        // A quick stop ends when the axes are at rest: switch on disabled, no power.
+        // A quick stop ends when the axes are at rest: switch on disabled, no power; so does
+        // a shutdown or disable operation on the slow down ramp, in its own next state.
         for i in 0..self.nodes.len() {
             let n = &self.nodes[i];
             let at_rest = n
@@ -491,8 +497,16 @@ impl CanopenDrives {
                 .iter()
                 .flatten()
                 .all(|w| plant.shaft(*w).speed.abs() < QUICK_STOP_REST_RAD_S);
-            if n.statusword == sw::QUICK_STOP_ACTIVE && at_rest {
-                self.nodes[i].statusword = sw::SWITCH_ON_DISABLED;
+            let done = match (n.statusword, n.slowing_to) {
+                (sw::QUICK_STOP_ACTIVE, _) => Some(DriveState402::SwitchOnDisabled),
+                (sw::OPERATION_ENABLED, Some(next)) => Some(next),
+                _ => None,
+            };
+            if let Some(next) = done
+                && at_rest
+            {
+                self.nodes[i].statusword = next.statusword();
+                self.nodes[i].slowing_to = None;
                 self.power(i, plant);
             }
         }
@@ -668,6 +682,10 @@ impl Node {
         od.insert((0x1017, 0), 0);
         od.insert((0x1016, 1), 0);
         od.insert((0x6060, 0), 0);
+        // Shutdown and disable operation option codes: 0 (disable the drive function at once,
+        // the axes coast) or 1 (slow down on the slow down ramp first).
+        od.insert((0x605B, 0), 0);
+        od.insert((0x605C, 0), 0);
         // The mode of operation display: the mode in effect (at once here).
         od.insert((0x6061, 0), 0);
         // The predefined connection set, PDOs valid as a drive ships them.
@@ -696,6 +714,7 @@ impl Node {
             faults: NodeFaults::default(),
             scenario: crate::sim::DriveFaults::default(),
             bus_off: false,
+            slowing_to: None,
         }
     }
 
@@ -844,6 +863,7 @@ impl Node {
         match index {
             0x1000 | 0x1001 | 0x6061 => Err(abort::READ_ONLY),
             0x6060 if value != 3 => Err(abort::INVALID_VALUE),
+            0x605B | 0x605C if value > 1 => Err(abort::INVALID_VALUE),
             // Mapping: only while the PDO is off; entries only while the count is 0.
             0x1600..=0x1603 | 0x1A00..=0x1A03 => {
                 let comm = index - 0x200;
@@ -893,7 +913,16 @@ impl Node {
             .unwrap_or(DriveState402::SwitchOnDisabled);
         let may_enable = self.get(0x6060, 0) == 3 && !self.faults.refuses_enable;
         let next = state.on_controlword(cw, self.last_controlword, may_enable);
-        self.statusword = next.statusword();
+        // Transitions 8 and 5 with option code 1 (0x605B, 0x605C): the drive slows down
+        // first, still operation enabled.
+        let option = match next {
+            DriveState402::ReadyToSwitchOn => self.get(0x605B, 0),
+            DriveState402::SwitchedOn => self.get(0x605C, 0),
+            _ => 0,
+        };
+        let slows = state == DriveState402::OperationEnabled && option == 1;
+        self.slowing_to = slows.then_some(next);
+        self.statusword = if slows { state } else { next }.statusword();
         self.last_controlword = cw;
         let reset = state == DriveState402::Fault && next != state;
         if reset {

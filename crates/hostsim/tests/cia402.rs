@@ -198,3 +198,77 @@ fn canopen_faults_are_refused_for_other_drives() {
         assert!(e.contains(says), "{says}: {e}");
     }
 }
+
+/// A disable while driving at 0.4 m/s: the master's configuration sets 0x605B = 1 (shutdown
+/// option code: slow down on the slow down ramp), so each drive keeps its axes powered at a
+/// zero target and reports operation enabled until they are at rest, and only then ready to
+/// switch on; the torque goes when the wheels have stopped, not at the shutdown.
+#[test]
+fn a_disable_while_driving_slows_down_powered_before_the_drive_function_goes() {
+    let text = r#"
+name = "disable_while_driving"
+duration_s = 1.2
+seed = 1
+command_hz = 50.0
+[[actions]]
+at_s = 0.1
+enable = true
+[[actions]]
+at_s = 0.15
+twist = [0.4, 0.0, 0.0]
+[[actions]]
+at_s = 0.7
+disable = true
+"#;
+    let s = Scenario::from_toml_with_config(
+        text,
+        std::path::Path::new("disable_while_driving.toml"),
+        Some(cia402()),
+    )
+    .unwrap();
+    let mut plant = SimDrives::new(&s.config).unwrap();
+    // Node 1, axis 1, from its TPDO1s after the shutdown: (µs, statusword, velocity actual).
+    let mut shutdown = None;
+    let mut after = Vec::new();
+    run_observed(&s, &mut plant, None, LogOptions::default(), |step| {
+        for tx in step.delivered {
+            let t = tx.delivered_ns / 1000;
+            match canopen::decode(&tx.frame) {
+                Ok(Message::Rpdo1 {
+                    node, controlword, ..
+                }) if node.get() == 1 && controlword == 0x06 && t > 600_000 => {
+                    shutdown.get_or_insert(t);
+                }
+                Ok(Message::Tpdo1 {
+                    node,
+                    statusword,
+                    velocity,
+                }) if node.get() == 1 && shutdown.is_some() => {
+                    after.push((t, statusword, velocity));
+                }
+                _ => {}
+            }
+        }
+    })
+    .unwrap();
+    let shutdown = shutdown.expect("the master shut node 1 down");
+    let moving = after[0].2.unsigned_abs();
+    let rest = after
+        .iter()
+        .position(|&(_, sw, _)| sw & 0x6F == 0x21)
+        .expect("ready to switch on in the end");
+    let (t_rest, _, v_rest) = after[rest];
+    eprintln!(
+        "node 1: {moving} raw at the shutdown, ready to switch on {:.1} ms later at {v_rest} raw",
+        (t_rest - shutdown) as f64 / 1e3
+    );
+    assert!(moving > 100, "moving at the shutdown: {after:?}");
+    // Operation enabled (powered) all the way down, the speed falling.
+    assert!(
+        after[..rest].iter().all(|&(_, sw, _)| sw & 0x6F == 0x27),
+        "{after:?}"
+    );
+    assert!(rest >= 3, "the slow down took {rest} cycles: {after:?}");
+    assert!(v_rest.unsigned_abs() * 10 < moving, "{after:?}");
+    assert!(t_rest - shutdown < 200_000, "{} µs", t_rest - shutdown);
+}
