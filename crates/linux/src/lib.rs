@@ -28,7 +28,7 @@ pub mod testing;
 mod tests;
 
 pub use bus::{Bus, BusErrorFrame, ErrorKind, classify, is_bus_error_frame, is_busy};
-pub use cli::{error_line, parse_seconds};
+pub use cli::{error_line, parse_seconds, write_stats_json};
 pub use clock::{Clock, MAX_SPIN_US, MonotonicClock};
 pub use report::{
     ControllerReport, ErrorCounts, ErrorLog, LatencyHistogram, LatencySummary, LinkReport, Report,

@@ -355,6 +355,27 @@ fn startup(args: &Args) -> Result<Setup> {
     })
 }
 
+/// What `--stats-json` holds: the loop's report, the live server's and the log's figures.
+#[derive(serde::Serialize)]
+struct Stats<'a> {
+    #[serde(flatten)]
+    report: &'a Report,
+    /// With `--live`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    live: Option<serde_json::Value>,
+    /// With `--log`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    log: Option<LogStats>,
+}
+
+/// The log's figures in [`Stats`].
+#[derive(serde::Serialize)]
+struct LogStats {
+    path: Option<String>,
+    messages: u64,
+    dropped: u64,
+}
+
 fn write_stats(
     path: &Path,
     mut file: drivelog::Staged,
@@ -363,24 +384,55 @@ fn write_stats(
     log_path: Option<&Path>,
     live: Option<&live::LiveReport>,
 ) -> Result<()> {
-    let mut json = serde_json::to_value(report)?;
-    if let (Some(live), Some(object)) = (live, json.as_object_mut()) {
-        object.insert("live".to_string(), live.to_json());
-    }
-    if let (Some((messages, dropped)), Some(object)) = (log, json.as_object_mut()) {
-        object.insert(
-            "log".to_string(),
-            serde_json::json!({
-                "path": log_path.map(|p| p.display().to_string()),
-                "messages": messages,
-                "dropped": dropped,
-            }),
-        );
-    }
-    serde_json::to_writer_pretty(&mut file, &json)
+    let stats = Stats {
+        report,
+        live: live.map(live::LiveReport::to_json),
+        log: log.map(|(messages, dropped)| LogStats {
+            path: log_path.map(|p| p.display().to_string()),
+            messages,
+            dropped,
+        }),
+    };
+    linux::write_stats_json(&mut file, &stats)
         .map_err(anyhow::Error::from)
-        .and_then(|()| Ok(file.write_all(b"\n")?))
         .and_then(|()| Ok(file.commit()?))
         .with_context(|| format!("cannot write --stats-json file {}", path.display()))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use linux::testing::{ScriptedBus, ScriptedClock};
+
+    use super::*;
+
+    /// `--stats-json` is the report's JSON with the log's figures added: the report's keys
+    /// at the top level, sorted by name, pretty-printed, a newline at the end.
+    #[test]
+    fn the_statistics_are_the_report_with_the_log() {
+        let clock = ScriptedClock::new(7_000_000, [], 0);
+        let mut bus = ScriptedBus::new(&clock, []);
+        let mut controller = Controller::new(&Config::dji_m3508_example()).unwrap();
+        let options = RunOptions {
+            duration_us: Some(10_000),
+            ..RunOptions::default()
+        };
+        let stop = AtomicUsize::new(0);
+        let report = linux::run(&mut controller, &mut bus, &*clock, &options, &stop);
+        let stats = Stats {
+            report: &report,
+            live: None,
+            log: Some(LogStats {
+                path: Some("run.mcap".into()),
+                messages: 12,
+                dropped: 3,
+            }),
+        };
+        let mut out = Vec::new();
+        linux::write_stats_json(&mut out, &stats).unwrap();
+        let mut expected = serde_json::to_value(&report).unwrap();
+        expected["log"] = serde_json::json!({"path": "run.mcap", "messages": 12, "dropped": 3});
+        let expected = serde_json::to_string_pretty(&expected).unwrap() + "\n";
+        assert_eq!(String::from_utf8(out).unwrap(), expected);
+    }
 }

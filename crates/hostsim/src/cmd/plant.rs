@@ -1,6 +1,5 @@
 //! `hostsim plant`: the simulated drives on a real SocketCAN interface, in real time.
 
-use std::io::Write as _;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -258,13 +257,12 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
         eprintln!("hostsim plant: {report}");
     }
     if let Some((path, mut file)) = stats {
-        let mut json = serde_json::to_value(&report)?;
-        if let (Some(report), Some(object)) = (&live, json.as_object_mut()) {
-            object.insert("live".to_string(), report.to_json());
-        }
-        let written = serde_json::to_writer_pretty(&mut file, &json)
+        let stats = Stats {
+            report: &report,
+            live: live.as_ref().map(live::LiveReport::to_json),
+        };
+        let written = mecanum_linux::write_stats_json(&mut file, &stats)
             .map_err(anyhow::Error::from)
-            .and_then(|()| Ok(file.write_all(b"\n")?))
             .and_then(|()| Ok(file.commit()?));
         if let Err(e) = written {
             eprintln!(
@@ -275,4 +273,13 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
         }
     }
     Ok(status)
+}
+
+/// What `--stats-json` holds: the plant's report and, with `--live`, the live server's.
+#[derive(serde::Serialize)]
+struct Stats<'a> {
+    #[serde(flatten)]
+    report: &'a crate::realtime::PlantReport,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    live: Option<serde_json::Value>,
 }

@@ -262,6 +262,14 @@ struct McapReplay {
     damage_offset: Option<u64>,
 }
 
+/// A frame of a difference with its time, or `nothing` where the stream had ended.
+fn shown(f: Option<&ReportFrame>) -> String {
+    f.map_or_else(
+        || "nothing".to_string(),
+        |f| format!("{} at {} s", f.frame, f.t_s),
+    )
+}
+
 /// The first outbound frame that differs: its index, the step's time, both frames.
 #[derive(Debug, Serialize)]
 struct McapDifference {
@@ -278,12 +286,6 @@ impl std::fmt::Display for McapReplay {
             "replayed {} steps, fed {} inbound frames, compared {} outbound frames",
             self.steps, self.fed, self.compared
         )?;
-        let show = |f: &Option<ReportFrame>| {
-            f.as_ref().map_or_else(
-                || "nothing".to_string(),
-                |f| format!("{} at {} s", f.frame, f.t_s),
-            )
-        };
         match &self.first_difference {
             None => write!(f, "outbound frames are bit-identical"),
             Some(d) => write!(
@@ -291,8 +293,8 @@ impl std::fmt::Display for McapReplay {
                 "first difference at outbound frame {} ({} s): log has {}, replay sent {}",
                 d.index,
                 d.t_s,
-                show(&d.logged),
-                show(&d.replayed)
+                shown(d.logged.as_ref()),
+                shown(d.replayed.as_ref())
             ),
         }
     }
@@ -524,20 +526,14 @@ impl std::fmt::Display for CandumpReport<'_> {
         match &r.first_difference {
             None => writeln!(f, "outbound frames are identical (time ignored)")?,
             Some(d) => {
-                let show = |f: &Option<ReportFrame>| {
-                    f.as_ref().map_or_else(
-                        || "nothing".to_string(),
-                        |f| format!("{} at {} s", f.frame, f.t_s),
-                    )
-                };
                 writeln!(
                     f,
                     "outbound frames differ (time ignored) at frame {} ({} matched): log has \
                      {}, replay sent {}",
                     d.index,
                     r.matching_prefix,
-                    show(&d.logged),
-                    show(&d.replayed)
+                    shown(d.logged.as_ref()),
+                    shown(d.replayed.as_ref())
                 )?;
             }
         }
