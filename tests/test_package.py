@@ -231,6 +231,30 @@ def test_a_silent_robot_is_not_responding(channel: str) -> None:
             robot.enable()
 
 
+def test_nothing_but_estop_and_disable_goes_out_before_the_first_heartbeat(channel: str) -> None:
+    """The robot's first HEARTBEAT says its CiA 402 drives no longer take the protocol's block
+    as their RPDO2 (docs/protocol.md, "The RPDO2 window"): until it comes, the keep-alive
+    stream sends no twist and `enable` waits; DISABLE goes out at once. Counted in this
+    process (`twists_sent`, the waiting call's thread), not from the fake's receive times."""
+    fake = ScriptedRobot(channel)
+    fake.heartbeats = False
+    with fake, Robot(host_bus(channel), owns_bus=True) as robot:
+        robot.stop()  # starts the stream, at zero
+        robot.disable()
+        enabling = threading.Thread(target=robot.enable)
+        enabling.start()
+        time.sleep(0.3)
+        assert robot.twists_sent == 0
+        assert enabling.is_alive(), "enable() did not wait for the first HEARTBEAT"
+        assert [r.signals for r in fake.frames("MODE_CMD")] == [{"request": 0}]
+        fake.heartbeats = True
+        enabling.join(timeout=1.0)
+        assert not enabling.is_alive()
+        robot.wait_state("ENABLED", timeout=1.0)
+        assert robot.twists_sent > 0
+        assert [r.signals for r in fake.frames("MODE_CMD")] == [{"request": 0}, {"request": 1}]
+
+
 def test_a_process_that_reads_late_is_not_taken_for_a_silent_robot(channel: str) -> None:
     """The receiving thread stalls for 0.6 s (a busy computer, a long garbage collection) while
     the robot's HEARTBEATs wait on the bus: the robot responded all along, and `check` says

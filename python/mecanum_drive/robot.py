@@ -16,7 +16,8 @@ A `Robot` owns three things on any python-can bus:
 
 Commands that change the robot's mode (`enable`, `disable`, `reset`, `estop`) are sent at
 once from the caller's thread; sends are serialised by a lock, so an e-stop waits for at most
-one twist frame already being written, never for a queue.
+one twist frame already being written, never for a queue. Before the robot's first HEARTBEAT
+only ESTOP and DISABLE go out (docs/protocol.md, "The RPDO2 window").
 
 Problems the robot reports are raised from the next call that depends on the robot
 (`drive`, `enable`, `wait_state`, `check`): `NotResponding` when no HEARTBEAT arrived for three
@@ -451,6 +452,7 @@ class Robot:
         `drive` set one), since the robot's watchdog stops it again within its command timeout
         when no twist arrives; the robot then follows the stream's twists."""
         self._check_open()
+        self._wait_first_heartbeat()
         self.check()
         self._ensure_stream()
         self._send("MODE_CMD", request=self._mode("ENABLE"))
@@ -463,6 +465,7 @@ class Robot:
     def reset(self) -> None:
         """MODE_CMD reset: clears a fault or the e-stop latch; the robot stays disabled."""
         self._check_open()
+        self._wait_first_heartbeat()
         with self._lock:
             self._status = None  # a fault reported before the reset no longer counts
             self._reset_sent = time.time()
@@ -492,6 +495,7 @@ class Robot:
             raise ValueError(f"speed = {speed!r}: expected a wheel speed in [-10, 10] rad/s, not 0")
         if not (math.isfinite(duration_s) and 0.001 <= duration_s <= 3.0):
             raise ValueError(f"duration_s = {duration_s!r}: expected 0.001-3 s")
+        self._wait_first_heartbeat()
         self.check()
         with self._lock:
             self._wheel_test = None
@@ -511,6 +515,7 @@ class Robot:
     def request_status(self) -> None:
         """STATUS_REQ: the robot answers with a STATUS at once."""
         self._check_open()
+        self._wait_first_heartbeat()
         self._send("STATUS_REQ")
 
     def drive(self, vx: float, vy: float, wz: float) -> None:
@@ -522,6 +527,7 @@ class Robot:
         """
         self._check_open()
         twist = (_check_speed("vx", vx, "m/s"), _check_speed("vy", vy, "m/s"), _check_speed("wz", wz, "rad/s"))
+        self._wait_first_heartbeat()
         self.check()
         with self._lock:
             self._setpoint = twist
@@ -544,6 +550,20 @@ class Robot:
         """TWIST_CMD frames sent so far."""
         return self._twists_sent
 
+    def _wait_first_heartbeat(self) -> None:
+        """Before the robot's first HEARTBEAT, waits for it (until FIRST_HEARTBEAT_S after this
+        robot's creation; `check` then says the robot is not responding). The robot sends
+        nothing in its protocol's block until its CiA 402 drives no longer take 0x300 + node as
+        their RPDO2, and its first HEARTBEAT says so (docs/protocol.md, "The RPDO2 window"):
+        what this package sends, but ESTOP and DISABLE, waits for it."""
+        deadline = self._started + FIRST_HEARTBEAT_S
+        with self._lock:
+            while self._heartbeat is None:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return
+                self._lock.wait(min(left, 0.05))
+
     def _ensure_stream(self) -> None:
         if self._stream is None or not self._stream.is_alive():
             self._stop_stream.clear()
@@ -555,8 +575,10 @@ class Robot:
         while not self._stop_stream.is_set():
             with self._lock:
                 twist = self._setpoint if self._mismatch is None else (0.0, 0.0, 0.0)
+                heard = self._heartbeat is not None  # none before the robot's first HEARTBEAT
             try:
-                self._send_twist(twist)
+                if heard:
+                    self._send_twist(twist)
             except can.CanError:
                 pass  # a full queue or a bus error: the next period tries again
             next_t += self.period_s
