@@ -241,7 +241,7 @@ if wanted prepare; then
     # defmt-decoder adds features to serde_json and log) with the dev-dependencies (tempfile,
     # criterion and proptest add some to rustix and either), which resolver 2 brings in only
     # for a target that needs them, as the kinematics example does. Built with three packages'
-    # features, nearly every crate under the binaries was compiled again: 200 s of CPU.
+    # features, nearly every crate under the binaries was compiled again: 187 s of CPU.
     RUSTC_WORKSPACE_WRAPPER=$LINT_WRAPPER \
         cargo build --profile ci --locked --all-features --workspace --bin hostsim \
         --bin mecanum-runner --bin mecanum-codec --example drive \
