@@ -1,4 +1,5 @@
-"""Shared fixtures: the `mecanum-codec` binary (built on demand) and the project's DBC files."""
+"""Shared fixtures: the `mecanum-codec` binary (built on demand), the project's DBC files, and
+the vcan lane's (vcan0, can-utils, the runner and the plant as processes)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from typing import Any, NoReturn
 
 import cantools
 import pytest
+import vcan_robot
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 DBC_DIR = ROOT / "dbc"
@@ -199,6 +201,67 @@ def can_utils() -> Callable[[str], str]:
         return path
 
     return find
+
+
+# --- vcan: the runner and the plant as processes (tests/vcan_robot.py) ----------------------
+# Module-scoped, as each module's sessions are: a module gets its own configurations and
+# temporary directories.
+
+
+@pytest.fixture(scope="module")
+def runner_bin() -> pathlib.Path:
+    """`mecanum-runner`: $MECANUM_RUNNER, else the release build (vcan_robot.binary)."""
+    return vcan_robot.binary("MECANUM_RUNNER", ROOT / "target" / "release" / "mecanum-runner")
+
+
+@pytest.fixture(scope="module")
+def plant_bin() -> pathlib.Path:
+    """`hostsim` (its `plant` subcommand): $HOSTSIM, else the release build."""
+    return vcan_robot.binary("HOSTSIM", ROOT / "target" / "release" / "hostsim")
+
+
+@pytest.fixture(scope="module")
+def configs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, pathlib.Path]:
+    """The example configurations, by protocol, but stopping at once when the watchdog
+    expires (no deceleration ramp), so the stop budget is the timeout plus two periods."""
+    work = tmp_path_factory.mktemp("config")
+    return {
+        protocol: vcan_robot.write_config(
+            work / f"{protocol}.toml",
+            ROOT / "config" / example,
+            stop_linear_decel="inf",
+            stop_angular_decel="inf",
+            **vcan_robot.VM_TIMING,
+        )
+        for protocol, example in (("dji", "dji_m3508.toml"), ("odrive", "odrive.toml"))
+    }
+
+
+@pytest.fixture(scope="module")
+def config(configs: dict[str, pathlib.Path]) -> pathlib.Path:
+    """The DJI configuration of `configs`: what a `robot_factory` session runs by default."""
+    return configs["dji"]
+
+
+@pytest.fixture(scope="module")
+def robot_factory(runner_bin: pathlib.Path, plant_bin: pathlib.Path, can_utils: Callable[[str], str],
+                  vcan: str, config: pathlib.Path,
+                  tmp_path_factory: pytest.TempPathFactory) -> Callable[..., vcan_robot.Robot]:
+    """`make(name, **kw)`: a `vcan_robot.Robot` on vcan0 with `config` (or `config=`), its
+    files in a fresh directory `name`; `kw` as `Robot` takes them."""
+
+    def make(name: str, **kw: Any) -> vcan_robot.Robot:
+        return vcan_robot.Robot(
+            runner=runner_bin,
+            hostsim=plant_bin,
+            candump=can_utils("candump"),
+            iface=vcan,
+            config=kw.pop("config", config),
+            workdir=tmp_path_factory.mktemp(name),
+            **kw,
+        )
+
+    return make
 
 
 def pytest_terminal_summary(terminalreporter: Any) -> None:

@@ -74,22 +74,23 @@ from vcan_cia402 import (
     step_lateness,
 )
 from vcan_robot import (
+    ANSWER_S,
     ESTOP,
-    HOST_STALLS,
+    MISSED_HEARTBEATS,
     MODE_CMD,
     MODE_ENABLE,
     MODE_RESET,
+    MOTIONS,
     ODOM_POSITION,
     ODOM_VELOCITY,
     ROOT,
-    SLOW_CPU,
     STATE_DISABLED,
     STATE_ENABLED,
     STATE_ESTOP,
     STATE_FAULT,
     STATUS,
+    TIMING_SLACK_S,
     TWIST_CMD,
-    binary,
 )
 
 import mecanum_drive
@@ -119,15 +120,7 @@ RADIUS = float(_CFG["geometry"]["wheel_radius"])
 MAX_LINEAR_ACCEL = float(_CFG["limits"]["max_linear_accel"])
 RPM = 2 * math.pi / 60  # rad/s per rpm
 
-#: The lane's convention (tests/test_vcan_runner.py): where the micro-VM's clock follows the
-#: host's wall clock (VCAN_VM_CLOCK=host) its timeline stalls with the host, and every
-#: real-time budget gets this much on top; natively and with the default clock (icount) none.
-TIMING_SLACK_S = 0.050 if HOST_STALLS else 0.0
-#: Waits for the robot's answers (process start, the package's threads): the emulated machine
-#: is slow to start. Never a budget a measured latency is held to.
-ANSWER_S = 10.0 if SLOW_CPU else 2.0
-#: The package's heartbeat watch (as tests/test_vcan_drive.py sets it).
-MISSED_HEARTBEATS = 20 if HOST_STALLS else 3
+# TIMING_SLACK_S, ANSWER_S and MISSED_HEARTBEATS: the lane's conventions (tests/vcan_robot.py).
 
 #: The peer's heartbeat consumer is a Python timer: the deadline is set when the peer's
 #: notifier thread has taken the master's heartbeat off its socket, and checked when its
@@ -142,13 +135,8 @@ PEER_TIMER_RESOLUTION_S = 2 * sys.getswitchinterval()
 POSE_TOL = 0.00005 + 0.00005
 HEADING_TOL = 0.00005 + 0.00001
 
-#: (name, vx m/s, vy m/s, wz rad/s), each held for PHASE_S; the first is set before the enable.
-MOTIONS = [
-    ("forward", 0.5, 0.0, 0.0),
-    ("strafe", 0.0, 0.4, 0.0),
-    ("rotation", 0.0, 0.0, 1.0),
-    ("mix", 0.3, -0.2, 0.6),
-]
+#: Each twist of MOTIONS (tests/vcan_robot.py) is held for PHASE_S; the first is set before
+#: the enable.
 PHASE_S = 1.5
 #: From a phase's first TWIST_CMD until its targets and the drives' velocities have settled:
 #: the acceleration limits (at most |dv| 0.64 m/s at 4 m/s², 1 rad/s at 12 rad/s²: 0.16 s),
@@ -189,11 +177,6 @@ def actual_to_wheel(raw: int, wheel: int) -> float:
 
 
 # --- fixtures ---------------------------------------------------------------------------------
-
-@pytest.fixture(scope="module")
-def runner_bin() -> pathlib.Path:
-    return binary("MECANUM_RUNNER", ROOT / "target" / "release" / "mecanum-runner")
-
 
 @pytest.fixture(scope="module")
 def cia402_factory(runner_bin: pathlib.Path, can_utils: Callable[[str], str], vcan: str,
@@ -799,11 +782,12 @@ def test_a_rebooted_drive_is_configured_again_and_waits_for_the_host(rebooted: C
     first_setup = [f.data for f in rebooted.of(SDO_REQUEST + 1, t1=starts[0])]
     again = rebooted.of(SDO_REQUEST + 1, t_boot, starts[1])
     assert [f.data for f in again] == first_setup, (len(again), len(first_setup))
-    # The device type read (an upload), then 33 downloads (docs/protocol.md's steps 2-5 for a
-    # dual-axis node: 3 objects, 7 + 6 for RPDO1 and RPDO3, 7 + 6 for TPDO1 and TPDO2, 4
-    # PDOs off).
-    assert [f.data[0] & 0xE0 for f in again] == [0x40] + [0x20] * 33
-    assert struct.unpack_from("<HB", again[0].data, 1) == (0x1000, 0)
+    # RPDO2 off first (a download), the device type read (an upload), 34 downloads
+    # (docs/protocol.md's steps 2-5 for a dual-axis node: 3 objects, 2 option codes, 7 + 6 for
+    # RPDO1 and RPDO3, 7 + 6 for TPDO1 and TPDO2, 3 PDOs off), the mode display read last.
+    assert [f.data[0] & 0xE0 for f in again] == [0x20, 0x40] + [0x20] * 34 + [0x40]
+    assert [struct.unpack_from("<HB", again[i].data, 1) for i in (0, 1, -1)] == [
+        (0x1401, 1), (0x1000, 0), (0x6061, 0)]
     answers = rebooted.of(SDO_RESPONSE + 1, t_boot, starts[1])
     assert len(answers) == len(again) and all(a.data[0] != 0x80 for a in answers)
     # No motion from the step that took the boot-up to the new enable: zero targets to every

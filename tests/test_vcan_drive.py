@@ -25,18 +25,21 @@ import time
 
 import pytest
 from conftest import vcan_unavailable
-from test_vcan_runner import (  # noqa: F401 - fixtures, used by name
+from vcan_robot import (
+    ANSWER_S,
+    DJI_CMD_1_4,
+    HOST_STALLS,
+    MISSED_HEARTBEATS,
+    MODE_CMD,
+    ODOM_POSITION,
+    ODOM_VELOCITY,
+    ROOT,
+    SLOW_CPU,
     STOP_BUDGET_S,
     TIMING_SLACK_S,
-    HOST_STALLS,
-    SLOW_CPU,
-    config,
-    configs,
-    plant_bin,
-    robot_factory,
-    runner_bin,
+    TWIST_CMD,
+    dji_currents,
 )
-from vcan_robot import DJI_CMD_1_4, MODE_CMD, ODOM_POSITION, ODOM_VELOCITY, ROOT, TWIST_CMD, dji_currents
 
 import mecanum_drive
 
@@ -52,12 +55,6 @@ END_POS_TOL_M = 0.35 if HOST_STALLS else 0.12
 END_HEADING_TOL_RAD = math.radians(15 if HOST_STALLS else 5)
 #: How the odometry's corners may differ from the commanded legs (0.6 m each).
 CORNER_TOL_M = 0.25 if HOST_STALLS else 0.06
-#: Waits for the robot's answers: the emulated machine is slow to start.
-ANSWER_S = 10.0 if SLOW_CPU else 2.0
-#: Heartbeat periods (0.1 s) without one before the package calls the robot not responding:
-#: the emulated machine stalls the runner or this process for a few hundred milliseconds at
-#: times when its host is busy (a CI run saw 0.34 s); natively the package's default, 3.
-MISSED_HEARTBEATS = 20 if HOST_STALLS else 3
 #: How late a key typed through tmux may act: it goes through the tmux server and the pane's
 #: terminal to the teleop process, which the emulated machine may stall for a good part of a
 #: second when it is busy.

@@ -30,13 +30,6 @@ import pytest
 from foxglove_client import SUBPROTOCOL, FoxgloveClient, MessageData, StalledClient
 from mcap.reader import make_reader
 from rosbags.typesys import Stores, get_typestore
-from test_vcan_runner import (  # noqa: F401 (the fixtures of the runner's lane)
-    config,
-    configs,
-    plant_bin,
-    robot_factory,
-    runner_bin,
-)
 from vcan_robot import HOST_STALLS, MODE_ENABLE, READY_TIMEOUT_S, Robot
 
 pytestmark = pytest.mark.vcan

@@ -16,15 +16,7 @@ import time
 
 import cantools
 import pytest
-from test_vcan_runner import (  # noqa: F401 (the fixtures of the runner's lane)
-    VM_TIMING,
-    config,
-    configs,
-    plant_bin,
-    robot_factory,
-    runner_bin,
-)
-from vcan_robot import MODE_ENABLE, ODOM_POSITION, ODOM_VELOCITY, ROBOT_DBC, ROOT, Robot, write_config
+from vcan_robot import MODE_ENABLE, ODOM_POSITION, ODOM_VELOCITY, ROBOT_DBC, ROOT, VM_TIMING, Robot, write_config
 
 pytestmark = pytest.mark.vcan
 

@@ -15,8 +15,6 @@ from __future__ import annotations
 import collections
 import json
 import math
-import os
-import pathlib
 import re
 import signal
 import struct
@@ -27,15 +25,20 @@ import time
 
 import pytest
 from vcan_robot import (
+    COMMAND_TIMEOUT_S,
+    CONTROL_PERIOD_S,
     DJI_CMD_1_4,
     FAULT_NONE,
     FAULT_WATCHDOG,
     HOST_STALLS,
+    MIN_STEP_RATIO,
     MODE_ENABLE,
     MODE_RESET,
+    MOTIONS,
     ODOM_POSITION,
     ODOM_VELOCITY,
-    ROOT,
+    PATH_TOL,
+    SETTLE_S,
     SLOW_CPU,
     STATE_DISABLED,
     STATE_ENABLED,
@@ -43,115 +46,26 @@ from vcan_robot import (
     STATUS,
     STATUS_COUNTERS,
     STATUS_REQ,
+    STOP_BUDGET_S,
+    TIMING_SLACK_S,
     TWIST_CMD,
+    VEL_TOL,
+    WZ_TOL,
     Robot,
-    binary,
     dji_currents,
     mean,
     run_cangen,
+    timing_note,
     wait_until_quiet,
-    write_config,
 )
 
 pytestmark = pytest.mark.vcan
 
-# Where the guest's clock follows the host's (HOST_STALLS: the micro-VM with
-# VCAN_VM_CLOCK=host), its 1 kHz loops wake up late by milliseconds at the 99th percentile and
-# stall for tens of milliseconds at times. No real-time budget holds there as written; that
-# lane allows this much on top of each and prints it. Natively, and in the micro-VM with its
-# default clock (icount), the budgets hold as written (slack 0).
-TIMING_SLACK_S = 0.050 if HOST_STALLS else 0.0
-
-# The share of its 1 kHz steps a runner must make, and so of any stream it sends per step. An
-# overrun re-anchors the schedule instead of catching up, so late steps are lost; the emulated
-# machine is late often, and how often depends on the host's load (25-90 % of the steps were
-# measured there in CI runs), a real one seldom. There the bound only catches a loop that
-# stalls.
-MIN_STEP_RATIO = 0.2 if HOST_STALLS else 0.95
-
-
-# ... and the motor feedback, due every 1 ms, can arrive 100 ms late there: the stale-feedback
-# fault (3 periods natively) would trip on emulation stalls, so the VM allows 200 periods.
-VM_TIMING = {"stale_periods": 200} if HOST_STALLS else {}
-
-
-def timing_note() -> str:
-    return f" + {TIMING_SLACK_S * 1e3:.0f} ms emulation slack" if TIMING_SLACK_S else ""
-
-
-CONTROL_PERIOD_S = 0.001  # timing.control_hz = 1000
-COMMAND_TIMEOUT_S = 0.100  # timing.command_timeout_ms = 100
-# The stop budget of the issue: zero setpoints within the command timeout plus two periods.
-STOP_BUDGET_S = COMMAND_TIMEOUT_S + 2 * CONTROL_PERIOD_S
-
-
-@pytest.fixture(scope="module")
-def runner_bin() -> pathlib.Path:
-    return binary("MECANUM_RUNNER", ROOT / "target" / "release" / "mecanum-runner")
-
-
-@pytest.fixture(scope="module")
-def plant_bin() -> pathlib.Path:
-    return binary("HOSTSIM", ROOT / "target" / "release" / "hostsim")
-
-
-@pytest.fixture(scope="module")
-def configs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, pathlib.Path]:
-    """The example configurations, by protocol, but stopping at once when the watchdog
-    expires (no deceleration ramp), so the stop budget is the timeout plus two periods."""
-    work = tmp_path_factory.mktemp("config")
-    return {
-        protocol: write_config(
-            work / f"{protocol}.toml",
-            ROOT / "config" / example,
-            stop_linear_decel="inf",
-            stop_angular_decel="inf",
-            **VM_TIMING,
-        )
-        for protocol, example in (("dji", "dji_m3508.toml"), ("odrive", "odrive.toml"))
-    }
-
-
-@pytest.fixture(scope="module")
-def config(configs) -> pathlib.Path:
-    return configs["dji"]
-
-
-@pytest.fixture(scope="module")
-def robot_factory(runner_bin, plant_bin, can_utils, vcan, config, tmp_path_factory):
-    def make(name: str, **kw) -> Robot:
-        return Robot(
-            runner=runner_bin,
-            hostsim=plant_bin,
-            candump=can_utils("candump"),
-            iface=vcan,
-            config=kw.pop("config", config),
-            workdir=tmp_path_factory.mktemp(name),
-            **kw,
-        )
-
-    return make
-
-
 # --- motion -------------------------------------------------------------------------------
 
-# (name, vx m/s, vy m/s, wz rad/s), each held for PHASE_S.
-MOTIONS = [
-    ("forward", 0.5, 0.0, 0.0),
-    ("strafe", 0.0, 0.4, 0.0),
-    ("rotation", 0.0, 0.0, 1.0),
-    ("mix", 0.3, -0.2, 0.6),
-]
+# Each twist of MOTIONS is held for PHASE_S; SETTLE_S, VEL_TOL, WZ_TOL and PATH_TOL
+# (tests/vcan_robot.py) bound the odometry in the settled part of each phase.
 PHASE_S = 2.0
-# Settling after each change (acceleration limits 4 m/s², 12 rad/s², plus the wheel loops).
-SETTLE_S = 0.6
-# Tolerances of the odometry against the command, in the settled part of each phase.
-VEL_TOL = 0.02  # m/s, mean body velocity
-WZ_TOL = 0.03  # rad/s, mean yaw rate
-# Relative, path length and heading change over the window against command x wall time. The
-# emulated machine's runner loses steps to overruns, and its odometry lags wall time with
-# them: there the check is a coarse one.
-PATH_TOL = 0.30 if HOST_STALLS else 0.04
 
 
 @pytest.fixture(scope="module", params=["dji", "odrive"])
