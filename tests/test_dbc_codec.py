@@ -19,6 +19,7 @@ import re
 import struct
 import subprocess
 import sys
+from collections.abc import Callable
 
 import pytest
 
@@ -795,27 +796,41 @@ MALFORMED = [
 ]
 
 
-def test_malformed_frames_are_rejected_with_the_right_kind(run_codec, dbs):
-    good = "301#F40106FFE8030700"
-    # Interleave a valid frame after every bad one: a rejected line must not stop the stream.
-    lines = []
-    for line, _, _ in MALFORMED:
-        lines += [line, good]
-    lines += ["hello", "123#ABC", "123##0011", good]
-    out = run_codec("decode", lines=lines)
-    assert len(out) == len(lines)
-    for i, (line, kind, extra) in enumerate(MALFORMED):
+def assert_rejected(out: list[dict], table: list[tuple[str, str | None, dict]], good: str,
+                    dbc_length: Callable[[int], int]) -> None:
+    """`out` decoded each line of `table`, each followed by a valid frame (`interleaved`): every
+    bad line is rejected with its kind (None: a parse error) and extra fields, a wrong DLC
+    expects the DBC's length (`dbc_length(frame_id)`), and the valid frame after it decodes
+    as `good` (a rejected line must not stop the stream)."""
+    for i, (line, kind, extra) in enumerate(table):
         rust, after = out[2 * i], out[2 * i + 1]
-        assert after.get("message") == "TWIST_CMD", f"line after {line}: {after}"
+        assert after.get("message") == good, f"line after {line}: {after}"
         assert "error" in rust, f"{line}: accepted as {rust}"
         err = rust["error"]
         assert err["kind"] == (kind or "parse"), f"{line}: {err}"
         for key, want in extra.items():
             assert err.get(key) == want, f"{line}: {key} = {err.get(key)!r}, want {want!r}"
         if kind == "wrong_dlc":
-            frame_id, data, _ = parse_candump(line)
-            proto = next(p for p, db in dbs.items() if _has_id(db, frame_id))
-            assert dbs[proto].get_message_by_frame_id(frame_id).length == err["expected"], line
+            frame_id, _, _ = parse_candump(line)
+            assert dbc_length(frame_id) == err["expected"], line
+
+
+def interleaved(table: list[tuple[str, str | None, dict]], good: str) -> list[str]:
+    """The lines of `table`, each followed by the valid frame `good`."""
+    return [line for bad, _, _ in table for line in (bad, good)]
+
+
+def test_malformed_frames_are_rejected_with_the_right_kind(run_codec, dbs):
+    lines = interleaved(MALFORMED, "301#F40106FFE8030700") + ["hello", "123#ABC", "123##0011",
+                                                              "301#F40106FFE8030700"]
+    out = run_codec("decode", lines=lines)
+    assert len(out) == len(lines)
+
+    def dbc_length(frame_id: int) -> int:
+        proto = next(p for p, db in dbs.items() if _has_id(db, frame_id))
+        return dbs[proto].get_message_by_frame_id(frame_id).length
+
+    assert_rejected(out, MALFORMED, "TWIST_CMD", dbc_length)
     assert [o["error"]["kind"] for o in out[-4:-1]] == ["parse"] * 3
     assert out[-1]["fields"]["vx"] == 0.5
 
@@ -879,24 +894,13 @@ CANOPEN_MALFORMED = [
 
 
 def test_malformed_canopen_frames_are_rejected_with_the_right_kind(run_codec, dbs):
-    good = "181#3706FEFFFFFF"
-    lines = []
-    for line, _, _ in CANOPEN_MALFORMED:
-        lines += [line, good]
+    lines = interleaved(CANOPEN_MALFORMED, "181#3706FEFFFFFF")
     out = run_codec("decode", "--canopen", lines=lines)
     assert len(out) == len(lines)
-    for i, (line, kind, extra) in enumerate(CANOPEN_MALFORMED):
-        rust, after = out[2 * i], out[2 * i + 1]
-        assert after.get("message") == "TPDO1_1", f"line after {line}: {after}"
+    assert_rejected(out, CANOPEN_MALFORMED, "TPDO1_1",
+                    lambda frame_id: dbs["canopen"].get_message_by_frame_id(frame_id).length)
+    for after in out[1::2]:
         assert after["fields"] == {"statusword": 0x0637, "velocity_actual": -2}, after
-        assert "error" in rust, f"{line}: accepted as {rust}"
-        err = rust["error"]
-        assert err["kind"] == (kind or "parse"), f"{line}: {err}"
-        for key, want in extra.items():
-            assert err.get(key) == want, f"{line}: {key} = {err.get(key)!r}, want {want!r}"
-        if kind == "wrong_dlc":
-            frame_id, _, _ = parse_candump(line)
-            assert dbs["canopen"].get_message_by_frame_id(frame_id).length == err["expected"], line
 
 
 def test_malformed_canopen_frames_are_malformed_for_the_dbc_too(dbs):
