@@ -76,7 +76,6 @@ from vcan_cia402 import (
 from vcan_robot import (
     ANSWER_S,
     ESTOP,
-    MISSED_HEARTBEATS,
     MODE_CMD,
     MODE_ENABLE,
     MODE_RESET,
@@ -87,10 +86,13 @@ from vcan_robot import (
     STATE_DISABLED,
     STATE_ENABLED,
     STATE_ESTOP,
+    SQUARE,
     STATE_FAULT,
     STATUS,
     TIMING_SLACK_S,
     TWIST_CMD,
+    drive_square,
+    open_api,
 )
 
 import mecanum_drive
@@ -186,10 +188,6 @@ def cia402_factory(runner_bin: pathlib.Path, can_utils: Callable[[str], str], vc
                            workdir=tmp_path_factory.mktemp(name), **kw)
 
     return make
-
-
-def open_api(channel: str) -> mecanum_drive.Robot:
-    return mecanum_drive.Robot.open(channel=channel, interface="socketcan", missed_heartbeats=MISSED_HEARTBEATS)
 
 
 def reset_and_wait_disabled(api: mecanum_drive.Robot, session: Cia402Robot) -> None:
@@ -823,9 +821,7 @@ def test_a_rebooted_drive_is_configured_again_and_waits_for_the_host(rebooted: C
 
 # --- session 5: the package's square (issue item 7) -------------------------------------------
 
-#: The square of tests/test_vcan_drive.py: (vx, vy) for LEG_S seconds each, then a stop.
-SQUARE = [(0.4, 0.0), (0.0, 0.4), (-0.4, 0.0), (0.0, -0.4)]
-LEG_S = 1.5
+# SQUARE, LEG_S and drive_square: tests/test_vcan_drive.py's square (tests/vcan_robot.py).
 
 
 @pytest.fixture(scope="module")
@@ -834,18 +830,7 @@ def square(cia402_factory: Callable[..., Cia402Robot], vcan: str) -> Iterator[Ci
     with cia402_factory("square", runner_log=True) as session:
         with open_api(vcan) as robot:
             session.marks["enable"] = time.time()
-            robot.enable()
-            robot.wait_state("ENABLED", timeout=ANSWER_S)
-            corners = []
-            for vx, vy in SQUARE:
-                robot.drive(vx, vy, 0.0)
-                time.sleep(LEG_S)
-                odom = robot.odometry
-                assert odom is not None
-                corners.append((odom.x, odom.y))
-            robot.stop()
-            time.sleep(0.6)
-            session.notes["final"] = robot.odometry
+            corners, session.notes["final"] = drive_square(robot)
             session.notes["status"] = robot.status
             session.notes["corners"] = corners
             session.notes["tau"] = {n: p.time_constant_s for n, p in session.peers.items()}

@@ -29,25 +29,25 @@ from vcan_robot import (
     ANSWER_S,
     DJI_CMD_1_4,
     HOST_STALLS,
+    LEG_S,
     MISSED_HEARTBEATS,
     MODE_CMD,
     ODOM_POSITION,
     ODOM_VELOCITY,
     ROOT,
     SLOW_CPU,
+    SQUARE,
     STOP_BUDGET_S,
     TIMING_SLACK_S,
     TWIST_CMD,
     dji_currents,
+    drive_square,
+    open_api,
 )
-
-import mecanum_drive
 
 pytestmark = pytest.mark.vcan
 
-#: The square: (vx, vy) for LEG_S seconds each, then a stop.
-SQUARE = [(0.4, 0.0), (0.0, 0.4), (-0.4, 0.0), (0.0, -0.4)]
-LEG_S = 1.5
+# The square: SQUARE, each leg for LEG_S (tests/vcan_robot.py).
 #: How far the odometry may end from the chassis's true pose. The rollers slip (a strafe
 #: makes about 75 % of its commanded travel, which the odometry cannot see), and the emulated
 #: machine's runner loses steps to overruns: there the bound is coarse.
@@ -79,20 +79,8 @@ def test_a_square_through_the_api_ends_where_the_odometry_says(robot_factory, vc
     odometry is the robot's last ODOM frames, the odometry's corners are the legs', and the
     chassis ended where the odometry says (within END_POS_TOL_M / END_HEADING_TOL_RAD)."""
     with robot_factory("api-square") as session:
-        with mecanum_drive.Robot.open(
-            channel=vcan, interface="socketcan", missed_heartbeats=MISSED_HEARTBEATS
-        ) as robot:
-            robot.enable()
-            robot.wait_state("ENABLED", timeout=ANSWER_S)
-            corners = []
-            for vx, vy in SQUARE:
-                robot.drive(vx, vy, 0.0)
-                time.sleep(LEG_S)
-                odom = robot.odometry
-                corners.append((odom.x, odom.y))
-            robot.stop()
-            time.sleep(0.6)
-            final = robot.odometry
+        with open_api(vcan) as robot:
+            corners, final = drive_square(robot)
             time.sleep(0.3)
         time.sleep(0.3)
     truth = session.plant_stats["truth"]

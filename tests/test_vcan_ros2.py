@@ -273,21 +273,6 @@ def session(robot_factory, private_net: str, tester: RosPeer, tmp_path_factory: 
 # --- helpers on the record -------------------------------------------------------------------
 
 
-def _zero_currents_from(robot: Robot, t0: float, t1: float) -> float:
-    """Time of the first 0x200 frame in [t0, t1) from which on every one commands zero current;
-    fails if the motors were not driven just before t0 or are not at zero by t1."""
-    before = robot.of(DJI_CMD_1_4, t0 - 0.3, t0)
-    assert any(dji_currents(f) != (0, 0, 0, 0) for f in before), "the motors were not driven before"
-    zero_at = None
-    for f in robot.of(DJI_CMD_1_4, t0, t1):
-        if dji_currents(f) == (0, 0, 0, 0):
-            zero_at = f.t if zero_at is None else zero_at
-        else:
-            zero_at = None
-    assert zero_at is not None, f"currents not zero by {t1}"
-    return zero_at
-
-
 def _on_bus(session: Session, twist: tuple[float, float, float], since: float) -> float:
     """Time of the first TWIST_CMD from `since` on that carries `twist` (to the protocol's mm/s)."""
     for t, v in session.robot.decoded(TWIST_CMD, since):
@@ -460,7 +445,7 @@ def test_estop_service_latches_and_enable_does_not_clear_it(session: Session) ->
     assert estop.success and estop.message == "state ESTOP, fault NONE", estop
     frames = robot.of(ESTOP, estop.sent, estop.answered)
     assert len(frames) == 1, "one ESTOP frame during the call"
-    zero = _zero_currents_from(robot, frames[0].t, reset.sent)
+    zero = robot.zero_currents_from(frames[0].t, reset.sent, driven_s=0.3)
     print(f"~/estop: zero currents {(zero - frames[0].t) * 1e3:.1f} ms after the ESTOP frame (budget "
           f"{2 * CONTROL_PERIOD_S * 1e3:.0f} ms + {TIMING_SLACK_S * 1e3:.0f} ms)")
     assert zero - frames[0].t <= 2 * CONTROL_PERIOD_S + TIMING_SLACK_S
@@ -495,7 +480,7 @@ def test_sigterm_leaves_the_robot_disabled(session: Session) -> None:
     assert host[-2].id == TWIST_CMD and robot.db.decode_message(TWIST_CMD, host[-2].data)["vx"] == 0
     assert robot.db.decode_message(TWIST_CMD, host[-3].data)["vx"] == pytest.approx(0.4), "it was driving"
     off = host[-1].t
-    zero = _zero_currents_from(robot, off, session.marks["bridge2"])
+    zero = robot.zero_currents_from(off, session.marks["bridge2"], driven_s=0.3)
     print(f"SIGTERM: MODE_CMD disable {(off - sigterm) * 1e3:.0f} ms after the signal; zero currents "
           f"{(zero - off) * 1e3:.1f} ms after it (budget {2 * CONTROL_PERIOD_S * 1e3:.0f} ms + "
           f"{TIMING_SLACK_S * 1e3:.0f} ms)")
@@ -539,7 +524,7 @@ def test_sigkill_stops_the_robot_within_the_watchdog_budget(session: Session) ->
     assert session.bridges["bridge2"]["rc"] == -signal.SIGKILL
     last = robot.of(TWIST_CMD, session.marks["too_fast"], kill + 1.0)[-1]
     assert kill - 0.1 - ROS_SLACK_S < last.t < kill + 0.05, (kill, last.t)
-    zero = _zero_currents_from(robot, last.t, kill + SESSION_COMMAND_TIMEOUT_S + 0.4)
+    zero = robot.zero_currents_from(last.t, kill + SESSION_COMMAND_TIMEOUT_S + 0.4, driven_s=0.3)
     latency = zero - last.t
     budget = SESSION_COMMAND_TIMEOUT_S + 2 * CONTROL_PERIOD_S
     print(f"SIGKILL: zero currents {latency * 1e3:.1f} ms after the bridge's last TWIST_CMD (budget "

@@ -22,6 +22,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterable, Sequence
 
 import pytest
 from vcan_robot import (
@@ -188,21 +189,8 @@ def _last_before(robot: Robot, ident: int, t: float) -> float:
 
 
 def _zero_from(robot: Robot, t0: float, t1: float) -> float:
-    """Time of the first DJI command frame after t0 from which on every one up to t1 commands
-    zero current in all four wheels; fails if the last frame before t1 is not zero."""
-    cmds = robot.of(DJI_CMD_1_4, t0, t1)
-    assert cmds, "no motor commands"
-    assert any(dji_currents(c) != (0, 0, 0, 0) for c in robot.of(DJI_CMD_1_4, t0 - HOLD_S / 2, t0)), (
-        "the motors were not driven before the stop"
-    )
-    zero_at = None
-    for c in cmds:
-        if dji_currents(c) == (0, 0, 0, 0):
-            zero_at = c.t if zero_at is None else zero_at
-        else:
-            zero_at = None
-    assert zero_at is not None, f"currents not zero by {t1}: {dji_currents(cmds[-1])}"
-    return zero_at
+    """`Robot.zero_currents_from`, the motors driven in the half of HOLD_S before t0."""
+    return robot.zero_currents_from(t0, t1, driven_s=HOLD_S / 2)
 
 
 def _next_mode(robot: Robot, t: float, request: int | None = None) -> float:
@@ -365,26 +353,33 @@ MALFORMED = [
 ]
 
 
+def _drive_through(robot: Robot, twist: tuple[float, float, float], name: str, cangen: str,
+                   arg_sets: Iterable[Sequence[str]], after_s: float) -> None:
+    """Enables and streams `twist`; after 1 s runs `cangen` with each of `arg_sets`
+    (`run_cangen`) between the marks `name` and `{name}_end`; drives on for `after_s`, then
+    stops (mark "end")."""
+    robot.mode(MODE_ENABLE)
+    robot.twist(*twist)
+    robot.start_stream()
+    time.sleep(1.0)
+    robot.marks[name] = time.time()
+    run_cangen(cangen, robot.iface, arg_sets)
+    robot.marks[f"{name}_end"] = time.time()
+    time.sleep(after_s)
+    robot.stop_stream(mark="end")
+    time.sleep(0.2)
+
+
 @pytest.fixture(scope="module")
 def malformed(robot_factory, can_utils) -> Robot:
     """Driving at 0.4 m/s while a flood of malformed frames arrives for FLOOD_S seconds."""
     cangen = can_utils("cangen")
+    count = str(int(FLOOD_RATE * FLOOD_S))
+    gap_ms = f"{1000.0 / FLOOD_RATE:g}"
     with robot_factory("malformed", runner_log=True) as robot:
-        robot.mode(MODE_ENABLE)
-        robot.twist(0.4, 0.0, 0.0)
-        robot.start_stream()
-        time.sleep(1.0)
-        robot.marks["flood"] = time.time()
-        count = str(int(FLOOD_RATE * FLOOD_S))
-        gap_ms = f"{1000.0 / FLOOD_RATE:g}"
         # -p 10: on a full queue (ENOBUFS) wait and retry, so every frame goes out.
-        run_cangen(
-            cangen, robot.iface, (["-g", gap_ms, "-n", count, "-p", "10", *args] for _, args, _ in MALFORMED)
-        )
-        robot.marks["flood_end"] = time.time()
-        time.sleep(1.0)
-        robot.stop_stream(mark="end")
-        time.sleep(0.2)
+        _drive_through(robot, (0.4, 0.0, 0.0), "flood", cangen,
+                       (["-g", gap_ms, "-n", count, "-p", "10", *args] for _, args, _ in MALFORMED), 1.0)
     return robot
 
 
@@ -439,29 +434,16 @@ NON_FINITE = 200
 @pytest.fixture(scope="module")
 def odrive(robot_factory, configs, can_utils) -> Robot:
     cangen = can_utils("cangen")
+    # Get_Encoder_Estimates (command 0x09) of node 0 with a NaN position and of node 1 with an
+    # infinite velocity, every 4 ms between the drives' real ones (cangen: the twist stream
+    # keeps the Python interpreter to itself).
+    nan_pos = struct.pack("<ff", math.nan, 0.0).hex().upper()
+    inf_vel = struct.pack("<ff", 0.0, math.inf).hex().upper()
     with robot_factory("odrive", config=configs["odrive"]) as robot:
-        robot.mode(MODE_ENABLE)
-        robot.twist(0.3, 0.0, 0.4)
-        robot.start_stream()
-        time.sleep(1.0)
-        robot.marks["nan"] = time.time()
-        # Get_Encoder_Estimates (command 0x09) of node 0 with a NaN position and of node 1
-        # with an infinite velocity, every 4 ms between the drives' real ones (cangen: the
-        # twist stream keeps the Python interpreter to itself).
-        nan_pos = struct.pack("<ff", math.nan, 0.0).hex().upper()
-        inf_vel = struct.pack("<ff", 0.0, math.inf).hex().upper()
-        run_cangen(
-            cangen,
-            robot.iface,
-            (
-                ["-I", f"{ident:03X}", "-L", "8", "-D", data, "-g", "4", "-n", str(NON_FINITE // 2), "-p", "10"]
-                for ident, data in ((0 << 5 | 0x09, nan_pos), (1 << 5 | 0x09, inf_vel))
-            ),
-        )
-        robot.marks["nan_end"] = time.time()
-        time.sleep(0.8)
-        robot.stop_stream(mark="end")
-        time.sleep(0.2)
+        _drive_through(robot, (0.3, 0.0, 0.4), "nan", cangen, (
+            ["-I", f"{ident:03X}", "-L", "8", "-D", data, "-g", "4", "-n", str(NON_FINITE // 2), "-p", "10"]
+            for ident, data in ((0 << 5 | 0x09, nan_pos), (1 << 5 | 0x09, inf_vel))
+        ), 0.8)
     return robot
 
 

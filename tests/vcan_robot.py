@@ -26,9 +26,13 @@ import subprocess
 import threading
 import time
 from collections.abc import Iterable, Sequence
+from typing import TYPE_CHECKING
 
 import can
 import cantools
+
+if TYPE_CHECKING:
+    import mecanum_drive
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 ROBOT_DBC = ROOT / "dbc" / "mecanum_robot.dbc"
@@ -128,6 +132,37 @@ WZ_TOL = 0.03  # rad/s, mean yaw rate
 #: emulated machine's runner loses steps to overruns, and its odometry lags wall time with
 #: them: there the check is a coarse one.
 PATH_TOL = 0.30 if HOST_STALLS else 0.04
+
+#: The square the Python package drives (tests/test_vcan_drive.py on DJI drives,
+#: tests/test_vcan_cia402.py on CiA 402 ones): (vx, vy) for LEG_S seconds each, then a stop.
+SQUARE = [(0.4, 0.0), (0.0, 0.4), (-0.4, 0.0), (0.0, -0.4)]
+LEG_S = 1.5
+
+
+def open_api(channel: str) -> mecanum_drive.Robot:
+    """The Python package's `Robot` on `channel` (SocketCAN), with the lane's heartbeat watch."""
+    import mecanum_drive
+
+    return mecanum_drive.Robot.open(channel=channel, interface="socketcan", missed_heartbeats=MISSED_HEARTBEATS)
+
+
+def drive_square(robot: mecanum_drive.Robot) -> tuple[list[tuple[float, float]], mecanum_drive.Odometry]:
+    """Enables `robot`, drives SQUARE leg by leg through `Robot.drive`, stops, and lets it
+    settle for 0.6 s. Returns the odometry's (x, y) after each leg and its last reading."""
+    robot.enable()
+    robot.wait_state("ENABLED", timeout=ANSWER_S)
+    corners = []
+    for vx, vy in SQUARE:
+        robot.drive(vx, vy, 0.0)
+        time.sleep(LEG_S)
+        odom = robot.odometry
+        assert odom is not None
+        corners.append((odom.x, odom.y))
+    robot.stop()
+    time.sleep(0.6)
+    final = robot.odometry
+    assert final is not None
+    return corners, final
 
 
 @dataclasses.dataclass(frozen=True)
@@ -496,6 +531,24 @@ class Robot:
         within = self.decoded(STATUS, t0, t1)
         assert within, f"no STATUS in [{t0}, {t1})"
         return within[0][1]
+
+    def zero_currents_from(self, t0: float, t1: float, *, driven_s: float) -> float:
+        """Time of the first DJI command frame in [t0, t1) from which on every one up to t1
+        commands zero current in all four wheels; fails if there is none, if the motors were
+        not driven in the `driven_s` before t0, or if the last frame before t1 is not zero."""
+        cmds = self.of(DJI_CMD_1_4, t0, t1)
+        assert cmds, "no motor commands"
+        assert any(dji_currents(c) != (0, 0, 0, 0) for c in self.of(DJI_CMD_1_4, t0 - driven_s, t0)), (
+            "the motors were not driven before the stop"
+        )
+        zero_at = None
+        for c in cmds:
+            if dji_currents(c) == (0, 0, 0, 0):
+                zero_at = c.t if zero_at is None else zero_at
+            else:
+                zero_at = None
+        assert zero_at is not None, f"currents not zero by {t1}: {dji_currents(cmds[-1])}"
+        return zero_at
 
 
 def run_cangen(cangen: str, iface: str, arg_sets: Iterable[Sequence[str]], timeout: float = 300.0) -> None:
