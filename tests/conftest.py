@@ -33,23 +33,24 @@ def _target_dir() -> pathlib.Path:
     return path if path.is_absolute() else ROOT / path
 
 
+def _prebuilt_or_cargo(env: str, name: str, cargo_args: list[str], timeout: float) -> pathlib.Path:
+    """Path of the binary `name`: $`env` if set (it must exist), else built with
+    `cargo build --quiet --locked CARGO_ARGS` (debug profile) within `timeout` seconds."""
+    prebuilt = os.environ.get(env)
+    if prebuilt:
+        path = pathlib.Path(prebuilt)
+        assert path.is_file(), f"{env}={prebuilt} does not exist"
+        return path
+    subprocess.run(["cargo", "build", "--quiet", "--locked", *cargo_args], cwd=ROOT, check=True, timeout=timeout)
+    path = _target_dir() / "debug" / (name + (".exe" if os.name == "nt" else ""))
+    assert path.is_file(), f"cargo build did not produce {path}"
+    return path
+
+
 @pytest.fixture(scope="session")
 def codec_bin() -> pathlib.Path:
     """Path of `mecanum-codec`: $MECANUM_CODEC if set, else built with cargo (debug profile)."""
-    prebuilt = os.environ.get("MECANUM_CODEC")
-    if prebuilt:
-        path = pathlib.Path(prebuilt)
-        assert path.is_file(), f"MECANUM_CODEC={prebuilt} does not exist"
-        return path
-    subprocess.run(
-        ["cargo", "build", "--quiet", "--locked", "-p", "mecanum-codec"],
-        cwd=ROOT,
-        check=True,
-        timeout=900,
-    )
-    path = _target_dir() / "debug" / ("mecanum-codec" + (".exe" if os.name == "nt" else ""))
-    assert path.is_file(), f"cargo build did not produce {path}"
-    return path
+    return _prebuilt_or_cargo("MECANUM_CODEC", "mecanum-codec", ["-p", "mecanum-codec"], timeout=900)
 
 
 @pytest.fixture(scope="session")
@@ -100,20 +101,7 @@ def dbs() -> dict[str, cantools.database.can.Database]:
 def hostsim_bin() -> pathlib.Path:
     """Path of `hostsim`: $HOSTSIM if set, else built with cargo (debug: `cargo test` has built
     it already, so this costs nothing after the Rust tests, and the runs here are short)."""
-    prebuilt = os.environ.get("HOSTSIM")
-    if prebuilt:
-        path = pathlib.Path(prebuilt)
-        assert path.is_file(), f"HOSTSIM={prebuilt} does not exist"
-        return path
-    subprocess.run(
-        ["cargo", "build", "--quiet", "--locked", "-p", "hostsim", "--bin", "hostsim"],
-        cwd=ROOT,
-        check=True,
-        timeout=1800,
-    )
-    path = _target_dir() / "debug" / ("hostsim" + (".exe" if os.name == "nt" else ""))
-    assert path.is_file(), f"cargo build did not produce {path}"
-    return path
+    return _prebuilt_or_cargo("HOSTSIM", "hostsim", ["-p", "hostsim", "--bin", "hostsim"], timeout=1800)
 
 
 # --- vcan: a real SocketCAN interface ------------------------------------------------------

@@ -216,6 +216,16 @@ def reset_and_wait_disabled(api: mecanum_drive.Robot, session: Cia402Robot) -> N
         time.sleep(0.005)
 
 
+def drive_forward(api: mecanum_drive.Robot) -> None:
+    """From DISABLED: the enable, then forward at 0.3 m/s for a second (the sessions that
+    then break something: a drive's heartbeat, the runner, a drive's power)."""
+    api.wait_state("DISABLED", timeout=ANSWER_S)
+    api.enable()
+    api.wait_state("ENABLED", timeout=ANSWER_S)
+    api.drive(0.3, 0.0, 0.0)
+    time.sleep(1.0)
+
+
 def first(frames: list[Any], what: str) -> Any:
     assert frames, f"no {what}"
     return frames[0]
@@ -509,11 +519,7 @@ def silent(cia402_factory: Callable[..., Cia402Robot], vcan: str) -> Iterator[Ci
     """Driving forward, node 2 stops its heartbeat (it still answers SYNC)."""
     with cia402_factory("silent", runner_log=True) as session:
         with open_api(vcan) as api:
-            api.wait_state("DISABLED", timeout=ANSWER_S)
-            api.enable()
-            api.wait_state("ENABLED", timeout=ANSWER_S)
-            api.drive(0.3, 0.0, 0.0)
-            time.sleep(1.0)
+            drive_forward(api)
             session.marks["silent"] = time.time()
             session.peers[2].stop_heartbeat()
             api.wait_state("FAULT", timeout=ANSWER_S)
@@ -587,11 +593,7 @@ def killed(cia402_factory: Callable[..., Cia402Robot], vcan: str) -> Iterator[Ci
     host resets, enables and drives forward for RESTART_DRIVE_S."""
     with cia402_factory("killed") as session:
         with open_api(vcan) as api:
-            api.wait_state("DISABLED", timeout=ANSWER_S)
-            api.enable()
-            api.wait_state("ENABLED", timeout=ANSWER_S)
-            api.drive(0.3, 0.0, 0.0)
-            time.sleep(1.0)
+            drive_forward(api)
             session.marks["kill"] = session.kill("runner")
             time.sleep(4 * CONSUMER_S)
             session.notes["states"] = {n: p.state for n, p in session.peers.items()}
@@ -734,11 +736,7 @@ def rebooted(cia402_factory: Callable[..., Cia402Robot], vcan: str) -> Iterator[
     then resets and enables again and drives on."""
     with cia402_factory("rebooted") as session:
         with open_api(vcan) as api:
-            api.wait_state("DISABLED", timeout=ANSWER_S)
-            api.enable()
-            api.wait_state("ENABLED", timeout=ANSWER_S)
-            api.drive(0.3, 0.0, 0.0)
-            time.sleep(1.0)
+            drive_forward(api)
             session.marks["reboot"] = time.time()
             session.peers[1].reboot()
             api.wait_state("FAULT", timeout=ANSWER_S)

@@ -35,8 +35,6 @@ import pytest
 from conftest import VCAN_CHANNEL, vcan_unavailable
 from ros2_peer import Call, NoNamespace, RosPeer, in_ci, ros2_network
 from vcan_robot import (
-    COMMAND_TIMEOUT_S,
-    CONTROL_PERIOD_S,
     DJI_CMD_1_4,
     ESTOP,
     FAULT_NONE,
@@ -48,25 +46,21 @@ from vcan_robot import (
     MODE_RESET,
     ODOM_POSITION,
     ODOM_VELOCITY,
-    PATH_TOL,
-    SETTLE_S,
     SLOW_CPU,
     STATE_DISABLED,
     STATE_ENABLED,
     STATE_ESTOP,
     STATUS,
-    STOP_BUDGET_S,
-    TIMING_SLACK_S,
     TWIST_CMD,
-    VEL_TOL,
-    VM_TIMING,
-    WZ_TOL,
     ROOT,
     Robot,
     dji_currents,
     mean,
     write_config,
 )
+# The lane's budgets; the odometry's tolerances against the command.
+from vcan_robot import COMMAND_TIMEOUT_S, CONTROL_PERIOD_S, STOP_BUDGET_S, TIMING_SLACK_S, VM_TIMING
+from vcan_robot import PATH_TOL, SETTLE_S, VEL_TOL, WZ_TOL
 
 pytestmark = pytest.mark.vcan
 

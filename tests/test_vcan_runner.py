@@ -26,20 +26,14 @@ from collections.abc import Iterable, Sequence
 
 import pytest
 from vcan_robot import (
-    COMMAND_TIMEOUT_S,
-    CONTROL_PERIOD_S,
     DJI_CMD_1_4,
     FAULT_NONE,
     FAULT_WATCHDOG,
     HOST_STALLS,
-    MIN_STEP_RATIO,
     MODE_ENABLE,
     MODE_RESET,
-    MOTIONS,
     ODOM_POSITION,
     ODOM_VELOCITY,
-    PATH_TOL,
-    SETTLE_S,
     SLOW_CPU,
     STATE_DISABLED,
     STATE_ENABLED,
@@ -47,18 +41,16 @@ from vcan_robot import (
     STATUS,
     STATUS_COUNTERS,
     STATUS_REQ,
-    STOP_BUDGET_S,
-    TIMING_SLACK_S,
     TWIST_CMD,
-    VEL_TOL,
-    WZ_TOL,
     Robot,
     dji_currents,
     mean,
     run_cangen,
-    timing_note,
     wait_until_quiet,
 )
+# The lane's budgets; the odometry's tolerances against the command.
+from vcan_robot import COMMAND_TIMEOUT_S, CONTROL_PERIOD_S, MIN_STEP_RATIO, STOP_BUDGET_S, TIMING_SLACK_S, timing_note
+from vcan_robot import MOTIONS, PATH_TOL, SETTLE_S, VEL_TOL, WZ_TOL
 
 pytestmark = pytest.mark.vcan
 
