@@ -35,28 +35,9 @@ import pytest
 from conftest import VCAN_CHANNEL, vcan_unavailable
 from ros2_peer import Call, NoNamespace, RosPeer, in_ci, ros2_network
 from vcan_robot import (
-    DJI_CMD_1_4,
-    ESTOP,
-    FAULT_NONE,
-    FAULT_WATCHDOG,
-    HOST_STALLS,
-    MODE_CMD,
-    MODE_DISABLE,
-    MODE_ENABLE,
-    MODE_RESET,
-    ODOM_POSITION,
-    ODOM_VELOCITY,
-    SLOW_CPU,
-    STATE_DISABLED,
-    STATE_ENABLED,
-    STATE_ESTOP,
-    STATUS,
-    TWIST_CMD,
-    ROOT,
-    Robot,
-    dji_currents,
-    mean,
-    write_config,
+    DJI_CMD_1_4, ESTOP, FAULT_NONE, FAULT_WATCHDOG, HOST_STALLS, MODE_CMD, MODE_DISABLE,
+    MODE_ENABLE, MODE_RESET, ODOM_POSITION, ODOM_VELOCITY, SLOW_CPU, STATE_DISABLED, STATE_ENABLED,
+    STATE_ESTOP, STATUS, TWIST_CMD, ROOT, Robot, dji_currents, mean, write_config,
 )
 # The lane's budgets; the odometry's tolerances against the command.
 from vcan_robot import COMMAND_TIMEOUT_S, CONTROL_PERIOD_S, STOP_BUDGET_S, TIMING_SLACK_S, VM_TIMING

@@ -26,27 +26,9 @@ from collections.abc import Iterable, Sequence
 
 import pytest
 from vcan_robot import (
-    DJI_CMD_1_4,
-    FAULT_NONE,
-    FAULT_WATCHDOG,
-    HOST_STALLS,
-    MODE_ENABLE,
-    MODE_RESET,
-    ODOM_POSITION,
-    ODOM_VELOCITY,
-    SLOW_CPU,
-    STATE_DISABLED,
-    STATE_ENABLED,
-    STATE_ESTOP,
-    STATUS,
-    STATUS_COUNTERS,
-    STATUS_REQ,
-    TWIST_CMD,
-    Robot,
-    dji_currents,
-    mean,
-    run_cangen,
-    wait_until_quiet,
+    DJI_CMD_1_4, FAULT_NONE, FAULT_WATCHDOG, HOST_STALLS, MODE_ENABLE, MODE_RESET, ODOM_POSITION,
+    ODOM_VELOCITY, SLOW_CPU, STATE_DISABLED, STATE_ENABLED, STATE_ESTOP, STATUS, STATUS_COUNTERS,
+    STATUS_REQ, TWIST_CMD, Robot, dji_currents, mean, run_cangen, wait_until_quiet,
 )
 # The lane's budgets; the odometry's tolerances against the command.
 from vcan_robot import COMMAND_TIMEOUT_S, CONTROL_PERIOD_S, MIN_STEP_RATIO, STOP_BUDGET_S, TIMING_SLACK_S, timing_note
