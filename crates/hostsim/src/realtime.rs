@@ -19,12 +19,12 @@
 //! in `docs/simulator.md`, section "Real time" ("The plant loop", "The frame player").
 
 use std::fmt;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::AtomicUsize;
 
 use firmware::CanFrame;
 use mecanum_linux::{
-    Bus, Clock, ErrorLog, LatencyHistogram, LatencySummary, Schedule, StopReason, id_text,
-    send_with_retry,
+    self as linux, Bus, Clock, ErrorLog, LatencyHistogram, LatencySummary, LoopReport, RunOptions,
+    StopReason, id_text, send_with_retry, stop_requested,
 };
 use serde::Serialize;
 
@@ -34,16 +34,6 @@ use crate::bus::Node;
 use crate::log::{CoreLog, Direction, LogError, McapLog};
 use crate::replay::TimedFrame;
 use crate::sim::SimPlant;
-
-// ---------------------------------------------------------------------------------------------
-// Shared helpers
-
-fn stop_requested(stop: &AtomicUsize) -> Option<usize> {
-    match stop.load(Ordering::Relaxed) {
-        0 => None,
-        n => Some(n),
-    }
-}
 
 // ---------------------------------------------------------------------------------------------
 // The plant loop
@@ -98,79 +88,32 @@ pub struct Velocity {
     pub wz: f64,
 }
 
-/// What [`run_plant`] did. Serialises to the JSON of `hostsim plant --stats-json`.
+/// What [`run_plant`] did: the loop's figures (as `mecanum-runner`'s) and the plant's.
+/// Serialises to the JSON of `hostsim plant --stats-json`.
+pub type PlantReport = LoopReport<PlantFigures>;
+
+/// The plant's figures in a [`PlantReport`]: its simulated time and its ground truth at the
+/// end.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct PlantReport {
-    /// Why the loop stopped.
-    pub stop: StopReason,
-    /// The tick period, µs.
-    pub period_us: u64,
-    /// From the first deadline to the end, µs of the clock.
-    pub elapsed_us: u64,
-    /// Ticks run.
-    pub ticks: u64,
-    /// Ticks that started more than one period late (the schedule was re-anchored).
-    pub overruns: u64,
+pub struct PlantFigures {
     /// Simulated time of the plant at the end, s.
     pub simulated_s: f64,
-    /// Time not simulated because a tick was later than [`PlantOptions::max_catch_up`]
+    /// Time not simulated because a step was later than [`PlantOptions::max_catch_up`]
     /// periods, µs.
     pub skipped_us: u64,
-    /// Frames read from the bus (all of them; the drives use the ones addressed to them).
-    pub frames_received: u64,
-    /// Receive errors: reads that failed (the drain stops for the tick).
-    pub rx_errors: u64,
-    /// Error frames of the CAN controller on a real interface (bus errors, error-passive,
-    /// bus-off, missing ACKs; [`mecanum_linux::BusErrorFrame`]); the drain goes on after
-    /// each. Counted as `mecanum-runner` counts them.
-    pub bus_error_frames: u64,
-    /// Ticks that left frames waiting because [`PlantOptions::max_rx_per_tick`] was reached.
-    pub rx_capped_ticks: u64,
-    /// Feedback frames sent.
-    pub frames_sent: u64,
-    /// Send attempts repeated because the bus was busy (`ENOBUFS`, `EAGAIN`).
-    pub send_retries: u64,
-    /// Feedback frames that could not be sent (dropped).
-    pub send_errors: u64,
-    /// The first and the last bus error (`first_error`, `last_error`).
-    #[serde(flatten)]
-    pub errors: ErrorLog,
-    /// Lateness of each tick after its deadline, µs.
-    pub jitter: LatencySummary,
     /// Ground-truth pose at the end (world frame).
     pub truth: Pose,
     /// Ground-truth body velocity at the end.
     pub velocity: Velocity,
 }
 
-impl fmt::Display for PlantReport {
+impl fmt::Display for PlantFigures {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         writeln!(
             f,
-            "stopped: {} after {:.3} s; {} ticks of {} µs, {} overruns; {:.3} s simulated \
-             ({} µs skipped)",
-            self.stop,
-            self.elapsed_us as f64 / 1e6,
-            self.ticks,
-            self.period_us,
-            self.overruns,
-            self.simulated_s,
-            self.skipped_us
+            "simulated: {:.3} s ({} µs skipped)",
+            self.simulated_s, self.skipped_us
         )?;
-        writeln!(f, "jitter (tick start - deadline): {}", self.jitter)?;
-        writeln!(
-            f,
-            "bus: {} frames received, {} feedback frames sent, {} send retries, {} send \
-             errors, {} receive errors, {} bus error frames, {} capped drains",
-            self.frames_received,
-            self.frames_sent,
-            self.send_retries,
-            self.send_errors,
-            self.rx_errors,
-            self.bus_error_frames,
-            self.rx_capped_ticks
-        )?;
-        self.errors.write_lines(f)?;
         writeln!(
             f,
             "ground truth: x {:+.4} m  y {:+.4} m  heading {:+.2}°",
@@ -226,129 +169,94 @@ pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
     stop: &AtomicUsize,
     observer: &mut O,
 ) -> PlantReport {
-    let period = options.period_us.max(1);
-    let dt = period as f64 * 1e-6;
-    let mut errors = ErrorLog::default();
-    let mut jitter = LatencyHistogram::new();
-    let (mut ticks, mut received, mut rx_errors, mut capped) = (0, 0, 0, 0);
-    let mut bus_error_frames = 0;
-    let (mut sent, mut retries, mut send_errors) = (0, 0, 0);
-    // Simulated time of the plant, and wall time that was not simulated (catch-up cap).
-    let mut sim_us: u64 = 0;
-    let mut skipped_us: u64 = 0;
-    let mut feedback = Vec::with_capacity(16);
+    let node = PlantNode {
+        plant,
+        observer,
+        period: options.period_us.max(1),
+        max_catch_up: options.max_catch_up,
+        sim_us: 0,
+        skipped_us: 0,
+        feedback: Vec::with_capacity(16),
+    };
+    let loop_options = RunOptions {
+        duration_us: options.duration_us,
+        max_rx_per_step: options.max_rx_per_tick,
+        retry_backoff_us: options.retry_backoff_us,
+        // A link loss is counted as any error and the plant goes on sending: its peers' tests
+        // see its sends fail while the link is down.
+        watch_link: false,
+        ..RunOptions::default()
+    };
+    linux::run_node(node, bus, clock, &loop_options, stop)
+}
 
-    let start = clock.now_micros();
-    let mut schedule = Schedule::new(start, period);
-    let stop_reason = loop {
-        let deadline = schedule.deadline();
-        if let Some(n) = stop_requested(stop) {
-            break StopReason::Signal(n);
-        }
-        if let Some(d) = options.duration_us
-            && deadline - start >= d
-        {
-            break StopReason::Duration;
-        }
-        clock.sleep_until(deadline);
-        if let Some(n) = stop_requested(stop) {
-            break StopReason::Signal(n);
-        }
-        let woke = clock.now_micros();
-        jitter.record(schedule.woke(woke));
+/// The plant as a node of the fixed-rate loop ([`linux::run_node`]), shown to an observer.
+struct PlantNode<'a, P, O> {
+    plant: &'a mut P,
+    observer: &'a mut O,
+    period: u64,
+    max_catch_up: u32,
+    /// Simulated time of the plant.
+    sim_us: u64,
+    /// Wall time that was not simulated (the catch-up cap).
+    skipped_us: u64,
+    feedback: Vec<(u64, CanFrame)>,
+}
 
-        // 1. Commands.
-        let mut drained = 0;
-        while drained < options.max_rx_per_tick {
-            match bus.try_recv() {
-                Ok(Some(frame)) => {
-                    plant.on_frame(sim_us, &frame);
-                    observer.frame(woke.saturating_sub(start), &frame, false);
-                    received += 1;
-                    drained += 1;
-                }
-                Ok(None) => break,
-                Err(e) => {
-                    errors.record(format_args!("receive"), &e);
-                    // A controller's error frame is a bus event; the frames behind it are due.
-                    if !mecanum_linux::is_bus_error_frame(&e) {
-                        rx_errors += 1;
-                        break;
-                    }
-                    bus_error_frames += 1;
-                    drained += 1;
-                }
-            }
-        }
-        if drained == options.max_rx_per_tick {
-            capped += 1;
-        }
+impl<P: SimPlant, O: PlantObserver<P>> linux::Node for PlantNode<'_, P, O> {
+    type Figures = PlantFigures;
 
-        // 2. Physics up to the elapsed time.
-        let elapsed = woke.saturating_sub(start).saturating_sub(skipped_us);
+    fn period_micros(&self) -> u64 {
+        self.period
+    }
+
+    fn on_frame(&mut self, t_us: u64, frame: &CanFrame) {
+        self.plant.on_frame(self.sim_us, frame);
+        self.observer.frame(t_us, frame, false);
+    }
+
+    /// The physics up to the elapsed time, then the feedback due.
+    fn step(&mut self, t_us: u64, out: &mut Vec<CanFrame>) {
+        let period = self.period;
+        let elapsed = t_us.saturating_sub(self.skipped_us);
         let target = elapsed - elapsed % period;
         let mut steps = 0;
-        while sim_us < target {
-            if steps == options.max_catch_up {
-                skipped_us += target - sim_us;
+        while self.sim_us < target {
+            if steps == self.max_catch_up {
+                self.skipped_us += target - self.sim_us;
                 break;
             }
-            plant.advance(dt);
-            sim_us += period;
+            self.plant.advance(period as f64 * 1e-6);
+            self.sim_us += period;
             steps += 1;
         }
-
-        // 3. Feedback.
+        let (feedback, until_ns) = (&mut self.feedback, self.sim_us * 1000);
         feedback.clear();
-        plant.feedback(sim_us * 1000, &mut feedback);
-        plant.node_frames(Node::Imu, sim_us * 1000, &mut feedback);
-        plant.node_frames(Node::Pods, sim_us * 1000, &mut feedback);
-        let give_up = deadline.max(woke).saturating_add(period / 2);
-        for (_, frame) in &feedback {
-            match send_with_retry(
-                bus,
-                clock,
-                frame,
-                give_up,
-                options.retry_backoff_us,
-                &mut retries,
-            ) {
-                Ok(()) => {
-                    sent += 1;
-                    observer.frame(woke.saturating_sub(start), frame, true);
-                }
-                Err(e) => {
-                    send_errors += 1;
-                    errors.record(format_args!("send {}", id_text(frame)), &e);
-                }
-            }
-        }
-        observer.tick(sim_us, plant);
-        ticks += 1;
-        schedule.advance();
-    };
+        self.plant.feedback(until_ns, feedback);
+        self.plant.node_frames(Node::Imu, until_ns, feedback);
+        self.plant.node_frames(Node::Pods, until_ns, feedback);
+        out.extend(feedback.iter().map(|(_, frame)| *frame));
+    }
 
-    let [x, y, heading] = plant.truth();
-    let [vx, vy, wz] = plant.truth_velocity();
-    PlantReport {
-        stop: stop_reason,
-        period_us: period,
-        elapsed_us: clock.now_micros().saturating_sub(start),
-        ticks,
-        overruns: schedule.overruns(),
-        simulated_s: sim_us as f64 * 1e-6,
-        skipped_us,
-        frames_received: received,
-        rx_errors,
-        bus_error_frames,
-        rx_capped_ticks: capped,
-        frames_sent: sent,
-        send_retries: retries,
-        send_errors,
-        errors,
-        jitter: jitter.summary(),
-        truth: Pose { x, y, heading },
-        velocity: Velocity { vx, vy, wz },
+    fn sent(&mut self, step_us: u64, _sent_us: u64, frame: &CanFrame, sent: bool) {
+        if sent {
+            self.observer.frame(step_us, frame, true);
+        }
+    }
+
+    fn step_done(&mut self) {
+        self.observer.tick(self.sim_us, self.plant);
+    }
+
+    fn finish(self) -> PlantFigures {
+        let [x, y, heading] = self.plant.truth();
+        let [vx, vy, wz] = self.plant.truth_velocity();
+        PlantFigures {
+            simulated_s: self.sim_us as f64 * 1e-6,
+            skipped_us: self.skipped_us,
+            truth: Pose { x, y, heading },
+            velocity: Velocity { vx, vy, wz },
+        }
     }
 }
 
@@ -363,7 +271,7 @@ pub fn run_plant_observed<P: SimPlant, B: Bus, C: Clock, O: PlantObserver<P>>(
 /// its `ODOM_*` frames, `/odom`) and the plant's ground truth (`/ground_truth/odom`, `/tf`).
 /// Log time counts from the plant's start: a frame is stamped with the clock at the tick
 /// that received or sent it, a pose with the plant's simulated time, which follows the clock
-/// except for time skipped after a stall ([`PlantReport::skipped_us`]). A log with a tap (a
+/// except for time skipped after a stall ([`PlantFigures::skipped_us`]). A log with a tap (a
 /// live view, [`McapLog::set_tap`]) has its status on `/diagnostics` every second.
 ///
 /// A write error stops the logging (the run goes on) and is kept for [`PlantLog::finish`].
@@ -631,6 +539,7 @@ mod tests {
     use embedded_can::StandardId;
     use mecanum_linux::testing::{VirtualClock, VirtualClockHandle};
     use std::io;
+    use std::sync::atomic::Ordering;
 
     fn frame(id: u16) -> CanFrame {
         CanFrame::standard(StandardId::new(id).unwrap(), &[id as u8]).unwrap()

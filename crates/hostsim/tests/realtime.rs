@@ -117,15 +117,15 @@ fn the_firmware_runner_drives_the_real_time_plant_forward() {
     // The firmware ran 2000 steps, on time, enabled, with all four motors online.
     assert_eq!(fw_report.stop, StopReason::Duration);
     assert_eq!((fw_report.steps, fw_report.overruns), (2000, 0));
-    assert_eq!(fw_report.controller.state_at_stop, "ENABLED");
-    assert_eq!(fw_report.controller.motors_online, 0b1111);
+    assert_eq!(fw_report.node.controller.state_at_stop, "ENABLED");
+    assert_eq!(fw_report.node.controller.motors_online, 0b1111);
     assert_eq!(fw_report.send_errors, 0);
     // The plant: 2000 ticks, no lateness in virtual time, 4 feedback frames a millisecond.
     assert_eq!(plant_report.stop, StopReason::Duration);
-    assert_eq!((plant_report.ticks, plant_report.overruns), (2000, 0));
+    assert_eq!((plant_report.steps, plant_report.overruns), (2000, 0));
     assert_eq!(plant_report.jitter.max_us, Some(0));
     assert!(
-        (1.998..=2.0).contains(&plant_report.simulated_s),
+        (1.998..=2.0).contains(&plant_report.node.simulated_s),
         "{plant_report:?}"
     );
     assert!(
@@ -137,20 +137,20 @@ fn the_firmware_runner_drives_the_real_time_plant_forward() {
 
     eprintln!(
         "truth {:?}, velocity {:?}, firmware odometry x {}",
-        plant_report.truth, plant_report.velocity, snapshot.pose.x
+        plant_report.node.truth, plant_report.node.velocity, snapshot.pose.x
     );
     // Driving forward from 0.1 s: truth x ≈ vx · 1.9 s within 20 %.
     let expected = f64::from(vx) * 1.9;
-    let x = plant_report.truth.x;
+    let x = plant_report.node.truth.x;
     assert!(
         (x - expected).abs() <= 0.2 * expected,
         "truth x {x:.3} m, expected {expected:.3} m ± 20 %: {plant_report}"
     );
-    assert!(plant_report.truth.y.abs() < 0.02 && plant_report.truth.heading.abs() < 0.02);
+    assert!(plant_report.node.truth.y.abs() < 0.02 && plant_report.node.truth.heading.abs() < 0.02);
     assert!(
-        (plant_report.velocity.vx - f64::from(vx)).abs() < 0.1,
+        (plant_report.node.velocity.vx - f64::from(vx)).abs() < 0.1,
         "{:?}",
-        plant_report.velocity
+        plant_report.node.velocity
     );
     // The firmware's odometry follows the truth, and the host saw it.
     let odom_x = f64::from(snapshot.pose.x);
@@ -201,7 +201,7 @@ fn the_plant_stops_on_the_flag_and_reports_json() {
     assert_eq!(r.stop, StopReason::Signal(15));
     assert_eq!(r.stop.to_string(), "SIGTERM");
     // Ticks at 0..=10 ms; the flag is seen at the top of the next one.
-    assert_eq!(r.ticks, 11);
+    assert_eq!(r.steps, 11);
     // DJI feedback from 1 ms: ten ticks of four frames.
     assert_eq!(r.frames_sent, 40);
     assert_eq!(tap.pending(), 40);
@@ -212,7 +212,7 @@ fn the_plant_stops_on_the_flag_and_reports_json() {
     );
     let v = serde_json::to_value(&r).unwrap();
     assert_eq!(v["stop"], serde_json::json!({ "signal": 15 }));
-    assert_eq!(v["ticks"], 11);
+    assert_eq!(v["steps"], 11);
     assert_eq!(v["frames_sent"], 40);
     assert_eq!(v["truth"]["x"], 0.0);
     assert!(v["velocity"]["vx"].is_number());
@@ -295,13 +295,13 @@ fn late_ticks_catch_up_and_overruns_re_anchor() {
     // Simulated time follows the clock up to the cap: tick 5 was due at 7.5 ms (6.5 ms after
     // the re-anchoring) and woke at 307.5 ms with the plant at 6 ms; it caught up 100 steps
     // to 106 ms and skipped the remaining 201 ms.
-    let elapsed_sim = r.elapsed_us - r.skipped_us;
-    assert_eq!(r.skipped_us, 201_000);
+    let elapsed_sim = r.elapsed_us - r.node.skipped_us;
+    assert_eq!(r.node.skipped_us, 201_000);
     assert!(
-        (r.simulated_s * 1e6 - elapsed_sim as f64).abs() <= 1000.0,
+        (r.node.simulated_s * 1e6 - elapsed_sim as f64).abs() <= 1000.0,
         "{r:?}"
     );
-    assert_eq!(plant.steps as f64, (r.simulated_s * 1000.0).round());
+    assert_eq!(plant.steps as f64, (r.node.simulated_s * 1000.0).round());
 }
 
 #[test]
@@ -442,7 +442,7 @@ fn the_real_time_plant_can_carry_the_imu_for_a_gyro_runner() {
         "{}",
         plant_report.frames_sent
     );
-    assert_eq!(fw_report.controller.state_at_stop, "ENABLED");
+    assert_eq!(fw_report.node.controller.state_at_stop, "ENABLED");
     assert_eq!(
         snapshot.heading_source,
         firmware::control::HeadingSource::Gyro
@@ -458,8 +458,8 @@ fn the_real_time_plant_can_carry_the_imu_for_a_gyro_runner() {
     // Driving straight: the gyro heading stays with the truth's.
     let heading = f64::from(snapshot.pose.heading);
     assert!(
-        (heading - plant_report.truth.heading).abs() < 0.005,
+        (heading - plant_report.node.truth.heading).abs() < 0.005,
         "heading {heading}, truth {}",
-        plant_report.truth.heading
+        plant_report.node.truth.heading
     );
 }

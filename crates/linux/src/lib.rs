@@ -13,11 +13,13 @@
 //! a command line, signal handling ([`stop_on_signals`]) and its log (a [`Recorder`]);
 //! `hostsim plant` and `hostsim replay --iface` use the same bus and clock. How the loop
 //! schedules, sends, handles a lost link, stops and measures its jitter is on
-//! [`run_recorded`]; what it reports, on [`Report`].
+//! [`run_recorded`]; what it reports, on [`Report`]. The loop itself is [`run_node`], over
+//! one [`Node`]: the core here, the simulated drives in `hostsim plant`.
 
 mod bus;
 mod cli;
 mod clock;
+mod node;
 mod report;
 mod run;
 mod schedule;
@@ -30,11 +32,12 @@ mod tests;
 pub use bus::{Bus, BusErrorFrame, ErrorKind, classify, is_bus_error_frame, is_busy};
 pub use cli::{error_line, parse_seconds, write_stats_json};
 pub use clock::{Clock, MAX_SPIN_US, MonotonicClock};
+pub use node::{Node, run_node};
 pub use report::{
-    ControllerReport, ErrorCounts, ErrorLog, LatencyHistogram, LatencySummary, LinkReport, Report,
-    ShutdownReport, StopReason,
+    ControllerReport, CoreFigures, ErrorCounts, ErrorLog, LatencyHistogram, LatencySummary,
+    LinkReport, LoopReport, Report, ShutdownReport, StopReason,
 };
 pub use run::{LinkEvent, Recorder, RunOptions, id_text, run, run_recorded, send_with_retry};
 pub use schedule::Schedule;
-pub use signals::stop_on_signals;
+pub use signals::{stop_on_signals, stop_requested};
 pub use socketcan::{OpenError, SocketCanBus};

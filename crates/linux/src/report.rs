@@ -1,5 +1,5 @@
 //! What a run reports: counts, the step-start lateness histogram, the link's gaps, and the
-//! [`Report`] the runner prints and writes as JSON.
+//! [`LoopReport`] the runner and `hostsim plant` print and write as JSON.
 
 use core::fmt;
 use std::io;
@@ -282,20 +282,22 @@ pub struct ShutdownReport {
     pub failed: usize,
 }
 
-/// What [`run`](crate::run) did. Serialises to the JSON of the binary's `--stats-json`.
+/// What the fixed-rate loop ([`run_node`](crate::run_node)) did, with the node's own figures
+/// in [`Self::node`]. Serialises to the JSON of `--stats-json`, the node's figures flattened
+/// in; [`Display`](fmt::Display) is the summary the binaries print on exit.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct Report {
+pub struct LoopReport<F> {
     /// Why the loop stopped.
     pub stop: StopReason,
-    /// The control period, µs.
+    /// The loop's period, µs.
     pub period_us: u64,
     /// From the first deadline to the end of the shutdown, µs.
     pub elapsed_us: u64,
-    /// Steps run.
+    /// Periods run (steps of the node).
     pub steps: u64,
     /// Steps that started more than one period late (the schedule was re-anchored).
     pub overruns: u64,
-    /// Frames read from the bus and passed to the controller.
+    /// Frames read from the bus and passed to the node.
     pub frames_received: u64,
     /// Receive errors (reading the bus failed); the drain stops for that step.
     pub rx_errors: u64,
@@ -327,17 +329,26 @@ pub struct Report {
     pub jitter: LatencySummary,
     /// Time from a step's start to its last frame sent, µs.
     pub step_time: LatencySummary,
+    /// The node's own figures: its lines of the summary, its keys of the JSON.
+    #[serde(flatten)]
+    pub node: F,
+}
+
+/// What [`run`](crate::run) did: the loop's figures and the core's.
+pub type Report = LoopReport<CoreFigures>;
+
+/// The control core's figures in a [`Report`]: the shutdown and the controller.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct CoreFigures {
     /// The shutdown frames.
     pub shutdown: ShutdownReport,
     /// The controller.
     pub controller: ControllerReport,
 }
 
-impl fmt::Display for Report {
-    /// The human-readable summary the binary prints on exit.
+impl<F: fmt::Display> fmt::Display for LoopReport<F> {
+    /// The loop's lines, then the node's.
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let c = &self.controller;
-        let e = &c.rx_errors;
         writeln!(
             f,
             "stopped: {} after {:.3} s; {} steps of {} µs, {} overruns",
@@ -384,6 +395,14 @@ impl fmt::Display for Report {
             )?;
         }
         self.errors.write_lines(f)?;
+        write!(f, "{}", self.node)
+    }
+}
+
+impl fmt::Display for CoreFigures {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let c = &self.controller;
+        let e = &c.rx_errors;
         writeln!(
             f,
             "controller: {} (fault {}) at stop, {} after shutdown; {} steps; motors online {:04b} (bit 0 = FL)",

@@ -1,20 +1,18 @@
-//! The fixed-rate loop ([`run`], [`run_recorded`]) and what it tells a [`Recorder`].
+//! The control core in the fixed-rate loop ([`run`], [`run_recorded`]) and what it tells a
+//! [`Recorder`].
 
-use core::sync::atomic::{AtomicUsize, Ordering};
+use core::sync::atomic::AtomicUsize;
 use std::io;
 
 use embedded_can::Frame as _;
 
 use firmware::CanFrame;
-use firmware::control::{Controller, Instant};
+use firmware::control::{Controller, Instant, Snapshot};
 
-use crate::bus::{Bus, ErrorKind, classify, is_bus_error_frame, is_busy};
+use crate::bus::{Bus, is_busy};
 use crate::clock::Clock;
-use crate::report::{
-    ControllerReport, ErrorCounts, ErrorLog, LatencyHistogram, LinkReport, Report, ShutdownReport,
-    StopReason,
-};
-use crate::schedule::Schedule;
+use crate::node::{Node, run_node};
+use crate::report::{ControllerReport, CoreFigures, Report, ShutdownReport};
 
 /// A change of the link, as [`run_recorded`] tells its [`Recorder`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -54,9 +52,13 @@ pub struct RunOptions {
     /// Longest pause between two [`Bus::reopen`] attempts: a link that comes back is in use
     /// again at most this long after. Default 200 ms.
     pub link_retry_max_us: u64,
-    /// Stop the loop on a link loss ([`StopReason::LinkLost`]) instead of waiting for the
-    /// link to come back. Default `false`.
+    /// Stop the loop on a link loss ([`StopReason::LinkLost`](crate::StopReason::LinkLost))
+    /// instead of waiting for the link to come back. Default `false`.
     pub exit_on_link_loss: bool,
+    /// Treat `ENETDOWN`, `ENODEV` and `ENXIO` as a link loss (see
+    /// [The link](crate::run_recorded#the-link)). `false`: count them as any other error and
+    /// go on reading and sending every period, as `hostsim plant` does. Default `true`.
+    pub watch_link: bool,
 }
 
 impl Default for RunOptions {
@@ -69,23 +71,9 @@ impl Default for RunOptions {
             link_retry_min_us: 10_000,
             link_retry_max_us: 200_000,
             exit_on_link_loss: false,
+            watch_link: true,
         }
     }
-}
-
-/// Counters the loop keeps.
-#[derive(Default)]
-struct Counters {
-    frames_received: u64,
-    rx_errors: u64,
-    bus_error_frames: u64,
-    rx_capped_steps: u64,
-    frames_sent: u64,
-    send_retries: u64,
-    send_errors: u64,
-    send_kinds: ErrorCounts,
-    rx_kinds: ErrorCounts,
-    errors: ErrorLog,
 }
 
 /// The id of a frame for a log line: `0x200` (standard), `0x12345678` (extended).
@@ -190,7 +178,7 @@ pub fn run<B: Bus, C: Clock>(
 /// # Scheduling
 ///
 /// Steps are due at absolute deadlines `start + k · period` (`period` from
-/// [`Controller::period_micros`]; the [`Schedule`]). A deadline is never computed from the previous wake-up,
+/// [`Controller::period_micros`]; the [`Schedule`](crate::Schedule)). A deadline is never computed from the previous wake-up,
 /// so lateness does not accumulate (no drift). For each step the loop:
 ///
 /// 1. sleeps until the deadline, then reads the clock once: `now`;
@@ -210,7 +198,7 @@ pub fn run<B: Bus, C: Clock>(
 /// interface queue is full) or `EAGAIN` (the socket buffer is full, non-blocking socket).
 /// Those are retried every [`RunOptions::retry_backoff_us`] until half a period after the
 /// step's deadline; a frame still not sent then is dropped and counted in
-/// [`Report::send_errors`]. Any other error (interface down, ...) is counted at once. Nothing
+/// [`Report::send_errors`](crate::LoopReport::send_errors). Any other error (interface down, ...) is counted at once. Nothing
 /// on the bus ever stops the loop.
 ///
 /// # The link
@@ -218,16 +206,16 @@ pub fn run<B: Bus, C: Clock>(
 /// On a robot the interface itself fails: a USB adapter is unplugged, a cable breaks, the
 /// link is set down. SocketCAN then reports `ENETDOWN` (the link is down: every send, and
 /// one receive) or `ENODEV`/`ENXIO` (the device is gone: the socket stays dead even when a
-/// device of the same name comes back). Either is a **link loss** ([`classify`]). The loop
+/// device of the same name comes back). Either is a **link loss** ([`classify`](crate::classify)). The loop
 /// keeps stepping the core at its rate, so the watchdog and the state machine see the silence
 /// as it is (no motor feedback: the core faults and stays faulted until a reset and a new
 /// enable, as for any other loss of its motors); it stops reading and sending, counts the
-/// frames it did not send ([`LinkReport::frames_not_sent`]) and tries [`Bus::reopen`] with an
+/// frames it did not send ([`LinkReport::frames_not_sent`](crate::LinkReport::frames_not_sent)) and tries [`Bus::reopen`] with an
 /// exponential back-off ([`RunOptions::link_retry_min_us`] doubling up to
 /// [`RunOptions::link_retry_max_us`]). The first reopen that succeeds resumes reading and
-/// sending; the gap is in [`Report::link`] and told to the [`Recorder`] ([`LinkEvent`]) as
+/// sending; the gap is in [`Report::link`](crate::LoopReport::link) and told to the [`Recorder`] ([`LinkEvent`]) as
 /// it happens. With [`RunOptions::exit_on_link_loss`] the loop stops instead
-/// ([`StopReason::LinkLost`]). Errors are counted by kind ([`ErrorCounts`]) for sends and
+/// ([`StopReason::LinkLost`](crate::StopReason::LinkLost)). Errors are counted by kind ([`ErrorCounts`](crate::ErrorCounts)) for sends and
 /// receives.
 ///
 /// # Stopping
@@ -242,10 +230,10 @@ pub fn run<B: Bus, C: Clock>(
 ///
 /// Jitter is measured as the **lateness of each step's start**: the clock reading after the
 /// sleep minus the step's deadline (never negative: a sleep never ends early). It is recorded
-/// in a fixed-size [`LatencyHistogram`] (exact below 2048 µs, within 0.1 % above), so a run
-/// of any length uses the same memory; [`Report::jitter`] has its p50, p99 and maximum. The
+/// in a fixed-size [`LatencyHistogram`](crate::LatencyHistogram) (exact below 2048 µs, within 0.1 % above), so a run
+/// of any length uses the same memory; [`Report::jitter`](crate::LoopReport::jitter) has its p50, p99 and maximum. The
 /// time from wake-up to the last frame sent is recorded the same way
-/// ([`Report::step_time`]).
+/// ([`Report::step_time`](crate::LoopReport::step_time)).
 pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
     controller: &mut Controller,
     bus: &mut B,
@@ -254,306 +242,90 @@ pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
     stop: &AtomicUsize,
     recorder: &mut R,
 ) -> Report {
-    let period = controller.period_micros().max(1);
-    let mut counters = Counters::default();
-    let mut jitter = LatencyHistogram::new();
-    let mut step_time = LatencyHistogram::new();
-    let mut steps = 0;
-
-    let start = clock.now_micros();
-    let mut last_step_us = None;
-    let mut schedule = Schedule::new(start, period);
-    let mut link = Link::new(options);
-    let stop_reason = loop {
-        let deadline = schedule.deadline();
-        if link.stop {
-            break StopReason::LinkLost;
-        }
-        if let Some(reason) = stop_requested(stop) {
-            break reason;
-        }
-        if let Some(d) = options.duration_us
-            && deadline - start >= d
-        {
-            break StopReason::Duration;
-        }
-        clock.sleep_until(deadline);
-        // A signal that arrived during the sleep stops the loop now, not one step later.
-        if let Some(reason) = stop_requested(stop) {
-            break reason;
-        }
-        let woke = clock.now_micros();
-        jitter.record(schedule.woke(woke));
-        let now_us = woke - start;
-        let now = Instant::from_micros(now_us);
-        link.maybe_reopen(bus, woke, now_us, recorder);
-
-        let mut drained = 0;
-        while link.up() && drained < options.max_rx_per_step {
-            match bus.try_recv() {
-                Ok(Some(frame)) => {
-                    controller.on_frame(now, &frame);
-                    recorder.received(now_us, &frame);
-                    counters.frames_received += 1;
-                    drained += 1;
-                }
-                Ok(None) => break,
-                Err(e) if is_bus_error_frame(&e) => {
-                    // A bus event, not a failed read: the frames behind it are due too.
-                    counters.bus_error_frames += 1;
-                    counters.errors.record(format_args!("receive"), &e);
-                    drained += 1;
-                }
-                Err(e) => {
-                    counters.rx_errors += 1;
-                    let kind = classify(&e);
-                    counters.rx_kinds.count(kind);
-                    counters.errors.record(format_args!("receive"), &e);
-                    link.on_error(kind, woke, now_us, &counters.errors, recorder);
-                    break;
-                }
-            }
-        }
-        if drained == options.max_rx_per_step {
-            counters.rx_capped_steps += 1;
-        }
-
-        let out = controller.step(now);
-        recorder.stepped(now_us, controller);
-        last_step_us = Some(now_us);
-        steps += 1;
-        let give_up = deadline.max(woke).saturating_add(period / 2);
-        for frame in &out {
-            if !link.up() {
-                link.report.frames_not_sent += 1;
-                recorder.sent(now_us, clock.now_micros() - start, frame, false);
-                continue;
-            }
-            match send_with_retry(
-                bus,
-                clock,
-                frame,
-                give_up,
-                options.retry_backoff_us,
-                &mut counters.send_retries,
-            ) {
-                Ok(()) => {
-                    counters.frames_sent += 1;
-                    recorder.sent(now_us, clock.now_micros() - start, frame, true);
-                }
-                Err(e) => {
-                    counters.send_errors += 1;
-                    let kind = classify(&e);
-                    counters.send_kinds.count(kind);
-                    counters
-                        .errors
-                        .record(format_args!("send {}", id_text(frame)), &e);
-                    let t = clock.now_micros();
-                    recorder.sent(now_us, t - start, frame, false);
-                    link.on_error(kind, t, now_us, &counters.errors, recorder);
-                }
-            }
-        }
-        step_time.record(clock.now_micros().saturating_sub(woke));
-        recorder.step_done();
-        schedule.advance();
-    };
-
-    let at_stop = controller.snapshot();
-    let frames = controller.shutdown();
-    let shutdown_us = (clock.now_micros() - start).max(last_step_us.map_or(0, |t| t + 1));
-    // One more try of a lost link: the shutdown frames are the ones that matter most.
-    if !link.up() {
-        link.next_try = 0;
-        link.maybe_reopen(bus, clock.now_micros(), shutdown_us, recorder);
-    }
-    recorder.shut_down(shutdown_us, controller);
-    let give_up = clock
-        .now_micros()
-        .saturating_add(options.shutdown_budget_us);
-    let mut sent = 0;
-    for frame in &frames {
-        match send_with_retry(
-            bus,
-            clock,
-            frame,
-            give_up,
-            options.retry_backoff_us,
-            &mut counters.send_retries,
-        ) {
-            Ok(()) => {
-                sent += 1;
-                recorder.sent(shutdown_us, clock.now_micros() - start, frame, true);
-            }
-            Err(e) => {
-                counters.send_kinds.count(classify(&e));
-                counters
-                    .errors
-                    .record(format_args!("shutdown send {}", id_text(frame)), &e);
-                recorder.sent(shutdown_us, clock.now_micros() - start, frame, false);
-            }
-        }
-    }
-    recorder.step_done();
-    let (link, link_error) = link.finish(clock.now_micros());
-    let after = controller.snapshot();
-    let (state_at_stop, fault_at_stop) = (at_stop.state.as_str(), at_stop.fault.as_str());
-
-    Report {
-        stop: stop_reason,
-        period_us: period,
-        elapsed_us: clock.now_micros().saturating_sub(start),
-        steps,
-        overruns: schedule.overruns(),
-        frames_received: counters.frames_received,
-        rx_errors: counters.rx_errors,
-        bus_error_frames: counters.bus_error_frames,
-        rx_capped_steps: counters.rx_capped_steps,
-        frames_sent: counters.frames_sent,
-        send_retries: counters.send_retries,
-        send_errors: counters.send_errors,
-        send_errors_by_kind: counters.send_kinds,
-        rx_errors_by_kind: counters.rx_kinds,
-        link,
-        link_error,
-        errors: counters.errors,
-        jitter: jitter.summary(),
-        step_time: step_time.summary(),
+    let core = Core {
+        controller,
+        recorder,
+        at_stop: None,
         shutdown: ShutdownReport {
-            frames: frames.len(),
-            sent,
-            failed: frames.len() - sent,
+            frames: 0,
+            sent: 0,
+            failed: 0,
         },
-        controller: ControllerReport {
-            state_at_stop,
-            fault_at_stop,
+    };
+    run_node(core, bus, clock, options, stop)
+}
+
+/// The control core as a [`Node`] of the loop, telling its [`Recorder`].
+struct Core<'a, R: ?Sized> {
+    controller: &'a mut Controller,
+    recorder: &'a mut R,
+    /// The controller when the loop stopped, before its shutdown.
+    at_stop: Option<Snapshot>,
+    shutdown: ShutdownReport,
+}
+
+impl<R: Recorder + ?Sized> Node for Core<'_, R> {
+    type Figures = CoreFigures;
+
+    fn period_micros(&self) -> u64 {
+        self.controller.period_micros()
+    }
+
+    fn on_frame(&mut self, t_us: u64, frame: &CanFrame) {
+        self.controller.on_frame(Instant::from_micros(t_us), frame);
+        self.recorder.received(t_us, frame);
+    }
+
+    fn step(&mut self, t_us: u64, out: &mut Vec<CanFrame>) {
+        out.extend(self.controller.step(Instant::from_micros(t_us)));
+        self.recorder.stepped(t_us, self.controller);
+    }
+
+    fn sent(&mut self, step_us: u64, sent_us: u64, frame: &CanFrame, sent: bool) {
+        if self.at_stop.is_some() && sent {
+            self.shutdown.sent += 1;
+        }
+        self.recorder.sent(step_us, sent_us, frame, sent);
+    }
+
+    fn step_done(&mut self) {
+        self.recorder.step_done();
+    }
+
+    fn link(&mut self, t_us: u64, event: LinkEvent<'_>) {
+        self.recorder.link(t_us, event);
+    }
+
+    fn shutdown(&mut self, t_us: u64, out: &mut Vec<CanFrame>) {
+        self.at_stop = Some(self.controller.snapshot());
+        out.extend(self.controller.shutdown());
+        self.shutdown.frames = out.len();
+        self.recorder.shut_down(t_us, self.controller);
+    }
+
+    fn finish(self) -> CoreFigures {
+        self.recorder.step_done();
+        let c = self.controller;
+        let at_stop = self.at_stop.unwrap_or_else(|| c.snapshot());
+        let after = c.snapshot();
+        let shutdown = ShutdownReport {
+            failed: self.shutdown.frames - self.shutdown.sent,
+            ..self.shutdown
+        };
+        let controller = ControllerReport {
+            state_at_stop: at_stop.state.as_str(),
+            fault_at_stop: at_stop.fault.as_str(),
             state_after_shutdown: after.state.as_str(),
             steps: after.steps,
             motors_online: at_stop.motors_online,
             rx_errors: at_stop.rx_errors,
             repeated_seq: at_stop.repeated_seq,
-            drive_issue: controller.drive_issue().map(|i| i.to_string()),
-            drive_emcy: controller.drive_emcy_count(),
-        },
-    }
-}
-
-/// The link as the loop sees it (see [The link](crate::run_recorded#the-link)).
-struct Link {
-    /// When the link was lost (clock µs), while it is down.
-    since: Option<u64>,
-    /// Clock time of the next [`Bus::reopen`] attempt.
-    next_try: u64,
-    /// The pause before that attempt.
-    backoff: u64,
-    /// Attempts since the loss.
-    attempts: u64,
-    min_us: u64,
-    max_us: u64,
-    exit_on_loss: bool,
-    /// The error of the last loss.
-    error: Option<String>,
-    /// Stop at the next step ([`RunOptions::exit_on_link_loss`]).
-    stop: bool,
-    report: LinkReport,
-}
-
-impl Link {
-    fn new(options: &RunOptions) -> Self {
-        Self {
-            since: None,
-            next_try: 0,
-            backoff: 0,
-            attempts: 0,
-            min_us: options.link_retry_min_us.max(1),
-            max_us: options
-                .link_retry_max_us
-                .max(options.link_retry_min_us.max(1)),
-            exit_on_loss: options.exit_on_link_loss,
-            error: None,
-            stop: false,
-            report: LinkReport::default(),
+            drive_issue: c.drive_issue().map(|i| i.to_string()),
+            drive_emcy: c.drive_emcy_count(),
+        };
+        CoreFigures {
+            shutdown,
+            controller,
         }
-    }
-
-    fn up(&self) -> bool {
-        self.since.is_none()
-    }
-
-    /// A bus error of `kind` at clock time `t` (core time `t_us`); `errors.last` describes it.
-    fn on_error<R: Recorder + ?Sized>(
-        &mut self,
-        kind: ErrorKind,
-        t: u64,
-        t_us: u64,
-        errors: &ErrorLog,
-        recorder: &mut R,
-    ) {
-        if !matches!(kind, ErrorKind::LinkDown | ErrorKind::NoDevice) || !self.up() {
-            return;
-        }
-        self.since = Some(t);
-        self.backoff = self.min_us;
-        self.next_try = t.saturating_add(self.backoff);
-        self.attempts = 0;
-        self.report.losses += 1;
-        self.stop = self.exit_on_loss;
-        let error = errors.last.as_deref().unwrap_or("link lost");
-        recorder.link(t_us, LinkEvent::Lost { error });
-        self.error = Some(error.to_string());
-    }
-
-    /// While the link is down, tries [`Bus::reopen`] when the back-off allows (clock time
-    /// `t`, core time `t_us`).
-    fn maybe_reopen<B: Bus + ?Sized, R: Recorder + ?Sized>(
-        &mut self,
-        bus: &mut B,
-        t: u64,
-        t_us: u64,
-        recorder: &mut R,
-    ) {
-        let Some(since) = self.since else { return };
-        if t < self.next_try {
-            return;
-        }
-        self.attempts += 1;
-        self.report.reopen_attempts += 1;
-        if bus.reopen().is_ok() {
-            let down_us = t.saturating_sub(since);
-            self.close_gap(down_us);
-            self.report.recoveries += 1;
-            self.since = None;
-            recorder.link(
-                t_us,
-                LinkEvent::Restored {
-                    down_us,
-                    attempts: self.attempts,
-                },
-            );
-        } else {
-            self.backoff = self.backoff.saturating_mul(2).min(self.max_us);
-            self.next_try = t.saturating_add(self.backoff);
-        }
-    }
-
-    fn close_gap(&mut self, down_us: u64) {
-        self.report.down_us += down_us;
-        self.report.longest_down_us = self.report.longest_down_us.max(down_us);
-    }
-
-    /// The report and the last loss's error, a gap still open counted up to clock time `t`.
-    fn finish(mut self, t: u64) -> (LinkReport, Option<String>) {
-        if let Some(since) = self.since {
-            self.close_gap(t.saturating_sub(since));
-            self.report.down_at_stop = true;
-        }
-        (self.report, self.error)
-    }
-}
-
-fn stop_requested(stop: &AtomicUsize) -> Option<StopReason> {
-    match stop.load(Ordering::Relaxed) {
-        0 => None,
-        n => Some(StopReason::Signal(n)),
     }
 }

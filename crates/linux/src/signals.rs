@@ -1,7 +1,16 @@
 //! SIGINT and SIGTERM as a flag the loop polls.
 
-use core::sync::atomic::AtomicUsize;
+use core::sync::atomic::{AtomicUsize, Ordering};
 use std::io;
+
+/// The value [`stop_on_signals`] stored in `stop` (the signal's number), `None` while it is 0.
+#[must_use]
+pub fn stop_requested(stop: &AtomicUsize) -> Option<usize> {
+    match stop.load(Ordering::Relaxed) {
+        0 => None,
+        n => Some(n),
+    }
+}
 
 /// Installs the stop signals a runner honours and returns the flag [`run`](crate::run) polls:
 ///

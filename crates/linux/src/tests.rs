@@ -65,7 +65,7 @@ fn steps_at_absolute_deadlines() {
     assert_eq!(r.stop, StopReason::Duration);
     assert_eq!(r.period_us, 1000);
     assert_eq!(r.steps, 10);
-    assert_eq!(r.controller.steps, 10);
+    assert_eq!(r.node.controller.steps, 10);
     assert_eq!(r.overruns, 0);
     // 10 steps + the shutdown frame.
     let expected: Vec<u64> = (0..10).map(|k| T0 + k * 1000).chain([T0 + 9000]).collect();
@@ -78,7 +78,7 @@ fn steps_at_absolute_deadlines() {
     let first: Vec<u16> = sent_ids(&bus).iter().take(6).map(|x| x.1).collect();
     assert_eq!(first, [0x200, 0x310, 0x311, 0x312, 0x313, 0x31F]);
     assert_eq!(r.send_errors, 0);
-    assert_eq!(r.shutdown.sent, 1);
+    assert_eq!(r.node.shutdown.sent, 1);
 }
 
 #[test]
@@ -200,7 +200,7 @@ fn every_waiting_frame_is_drained_up_to_the_cap() {
         &AtomicUsize::new(0),
     );
     assert_eq!(r.frames_received, 10);
-    assert_eq!(r.controller.rx_errors.unknown_id, 10);
+    assert_eq!(r.node.controller.rx_errors.unknown_id, 10);
     // Steps 1 and 2 took 4 frames each, step 3 the last 2.
     assert_eq!(r.rx_capped_steps, 2);
 }
@@ -233,8 +233,8 @@ fn a_stop_sends_the_shutdown_frames() {
     assert_eq!(r.stop, StopReason::Signal(15));
     assert_eq!(r.stop.to_string(), "SIGTERM");
     assert_eq!(r.steps, 6);
-    assert_eq!(r.controller.state_at_stop, "ENABLED");
-    assert_eq!(r.controller.state_after_shutdown, "DISABLED");
+    assert_eq!(r.node.controller.state_at_stop, "ENABLED");
+    assert_eq!(r.node.controller.state_after_shutdown, "DISABLED");
     let motor: Vec<&CanFrame> = bus
         .sent
         .iter()
@@ -247,7 +247,7 @@ fn a_stop_sends_the_shutdown_frames() {
     assert_eq!(motor[6].data(), &[0; 8]);
     assert_eq!(bus.sent.last().map(|(_, f)| *f), Some(*motor[6]));
     assert_eq!(
-        r.shutdown,
+        r.node.shutdown,
         ShutdownReport {
             frames: 1,
             sent: 1,
@@ -268,7 +268,7 @@ fn odrive_shutdown_is_zero_velocity_then_idle_per_axis() {
         &for_ms(3),
         &AtomicUsize::new(0),
     );
-    assert_eq!(r.shutdown.frames, 8);
+    assert_eq!(r.node.shutdown.frames, 8);
     let tail: Vec<u16> = sent_ids(&bus)[bus.sent.len() - 8..]
         .iter()
         .map(|x| x.1)
@@ -315,7 +315,7 @@ fn a_bus_that_stays_busy_drops_frames_and_keeps_the_schedule() {
     assert_eq!(r.send_errors, 6 + 3);
     // Retries end half a period after the deadline.
     assert!(r.jitter.max_us.unwrap() < 1000, "{r:?}");
-    assert_eq!(r.shutdown.failed, 1);
+    assert_eq!(r.node.shutdown.failed, 1);
     let e = r.errors.first.as_deref().unwrap();
     assert!(e.starts_with("send 0x200: "), "{e}");
     // The shutdown was retried for its whole budget.
@@ -347,7 +347,7 @@ fn other_send_errors_are_counted_without_retry() {
     assert_eq!(r.rx_errors, 2);
     assert!(r.errors.first.unwrap().starts_with("receive: "));
     assert!(r.errors.last.unwrap().starts_with("shutdown send 0x200: "));
-    assert_eq!(r.shutdown.failed, 1);
+    assert_eq!(r.node.shutdown.failed, 1);
     // The shutdown frame too.
     assert_eq!(r.send_errors_by_kind.other, 7 + 1);
     assert_eq!(r.rx_errors_by_kind.other, 2);
@@ -423,7 +423,7 @@ fn a_lost_link_keeps_the_core_stepping_and_resumes_when_it_is_back() {
     );
     assert_eq!(r.rx_errors_by_kind.link_down, 1);
     assert_eq!(r.send_errors, 0, "no send was tried while down");
-    assert_eq!(r.shutdown.failed, 0);
+    assert_eq!(r.node.shutdown.failed, 0);
     let text = r.to_string();
     assert!(
         text.contains("link: lost 1 time(s), back 1 time(s); down 0.030 s in total"),
@@ -459,7 +459,7 @@ fn a_link_lost_on_a_send_backs_off_up_to_the_limit() {
     assert_eq!(r.send_errors_by_kind.link_down, 1 + 1);
     assert!(r.link.down_at_stop);
     assert_eq!(r.link.down_us, 199_000 - 2_000);
-    assert_eq!(r.shutdown.failed, 1);
+    assert_eq!(r.node.shutdown.failed, 1);
 }
 
 #[test]
@@ -489,7 +489,7 @@ fn exit_on_link_loss_stops_the_loop_with_the_reason() {
         r.link_error.as_deref(),
         Some("receive: Network is down (os error 100)")
     );
-    assert_eq!(r.shutdown.failed, 1);
+    assert_eq!(r.node.shutdown.failed, 1);
     assert_eq!(
         serde_json::to_value(r.stop).unwrap(),
         serde_json::json!("link_lost")
@@ -572,7 +572,7 @@ fn a_stop_before_the_first_step_still_shuts_down() {
     assert_eq!(r.stop.to_string(), "SIGINT");
     assert_eq!(r.jitter.p99_us, None);
     assert_eq!(sent_ids(&bus), [(T0, 0x200)]);
-    assert_eq!(r.controller.rx_errors.unknown_id, 0);
+    assert_eq!(r.node.controller.rx_errors.unknown_id, 0);
     let text = r.to_string();
     assert!(
         text.contains("jitter (step start - deadline): no samples"),

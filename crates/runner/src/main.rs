@@ -262,11 +262,11 @@ fn main() -> ExitCode {
         ));
         return ExitCode::from(EXIT_LINK_LOST);
     }
-    if report.shutdown.failed > 0 {
+    if report.node.shutdown.failed > 0 {
         say(format_args!(
             "{} of {} shutdown frames NOT sent ({}): the motors may still be commanded",
-            report.shutdown.failed,
-            report.shutdown.frames,
+            report.node.shutdown.failed,
+            report.node.shutdown.frames,
             report.errors.last.as_deref().unwrap_or("no error recorded")
         ));
         status = ExitCode::FAILURE;

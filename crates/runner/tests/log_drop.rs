@@ -139,7 +139,7 @@ fn a_stalled_disk_costs_dropped_messages_never_a_late_step() {
         report.steps
     );
     assert_eq!(report.steps, STEPS);
-    assert_eq!(report.controller.state_at_stop, "ENABLED");
+    assert_eq!(report.node.controller.state_at_stop, "ENABLED");
     assert!(slowest < Duration::from_millis(100), "{slowest:?}");
     // 10 s of a 1 kHz run is some 65,000 messages: the first hand-over's batch went to the
     // stalled writer, the next batch filled up to the limit, the rest was dropped.

@@ -50,8 +50,8 @@ fn a_runner_log_replays_bit_for_bit_at_its_recorded_steps() {
         &mut recorder,
     );
     assert_eq!(report.overruns, 1);
-    assert_eq!(report.controller.state_at_stop, "ESTOP");
-    assert_eq!(report.controller.rx_errors.wrong_dlc, 1);
+    assert_eq!(report.node.controller.state_at_stop, "ESTOP");
+    assert_eq!(report.node.controller.rx_errors.wrong_dlc, 1);
     assert_eq!(recorder.dropped(), 0);
     recorder.finish().unwrap();
 

@@ -246,12 +246,12 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
     println!(
         "ground truth: x {:+.4} m  y {:+.4} m  heading {:+.2}°  (vx {:+.4} m/s  vy {:+.4} m/s  \
          wz {:+.4} rad/s)",
-        report.truth.x,
-        report.truth.y,
-        report.truth.heading.to_degrees(),
-        report.velocity.vx,
-        report.velocity.vy,
-        report.velocity.wz
+        report.node.truth.x,
+        report.node.truth.y,
+        report.node.truth.heading.to_degrees(),
+        report.node.velocity.vx,
+        report.node.velocity.vy,
+        report.node.velocity.wz
     );
     if !quiet {
         eprintln!("hostsim plant: {report}");
