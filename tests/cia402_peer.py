@@ -331,6 +331,7 @@ class Cia402Peer:
         """Power-on state of the drive and the 0x6000 area."""
         self.node.data_store = {i: s for i, s in self.node.data_store.items() if i in _COMM_AREA}
         self._state = State.SWITCH_ON_DISABLED
+        self._slowing_to: State | None = None
         self._controlword = 0
         self._mode = int(self._default(0x6060, 0))
         self._target = [0] * self.axes
@@ -382,6 +383,7 @@ class Cia402Peer:
     def _set_state(self, state: State) -> None:
         """A state change from inside the drive (fault), traced without a controlword."""
         self._advance()
+        self._slowing_to = None
         if state is not self._state:
             self._state = state
             self._record(None)
@@ -422,17 +424,23 @@ class Cia402Peer:
 
     def _advance(self) -> None:
         """Each axis's velocity to now: first order towards the target in operation enabled
-        (profile velocity), towards 0 otherwise; a finished quick stop ends in switch on disabled."""
+        (profile velocity), towards 0 otherwise; a finished quick stop ends in switch on disabled,
+        a finished slow down (0x605B / 0x605C = 1) in the state it was for."""
         now = time.monotonic()
         decay = math.exp(-(now - self._model_t) / self.time_constant_s)
         self._model_t = now
-        driving = self._state is State.OPERATION_ENABLED and self._mode == PROFILE_VELOCITY
+        driving = (self._state is State.OPERATION_ENABLED and self._mode == PROFILE_VELOCITY
+                   and self._slowing_to is None)
         for axis, v in enumerate(self._velocity):
             goal = self._target[axis] if driving else 0
             v = goal + (v - goal) * decay
             self._velocity[axis] = 0.0 if goal == 0 and abs(v) < 1e-3 else v
-        if self._state is State.QUICK_STOP_ACTIVE and all(abs(v) < _QUICK_STOP_DONE for v in self._velocity):
+        at_rest = all(abs(v) < _QUICK_STOP_DONE for v in self._velocity)
+        if self._state is State.QUICK_STOP_ACTIVE and at_rest:
             self._state = State.SWITCH_ON_DISABLED
+            self._record(None)
+        if self._slowing_to is not None and at_rest:
+            self._state, self._slowing_to = self._slowing_to, None
             self._record(None)
 
     # --- objects: SDO and PDO access ------------------------------------------------------
@@ -487,6 +495,13 @@ class Cia402Peer:
         self._advance()
         previous, self._controlword = self._controlword, controlword
         state = next_state(self._state, controlword, previous, self._mode)
+        # Shutdown (8) and disable operation (5) with option code 1 (0x605B, 0x605C): slow
+        # down first, still operation enabled, as hostsim's drives do.
+        option = {State.READY_TO_SWITCH_ON: 0x605B, State.SWITCHED_ON: 0x605C}.get(state)
+        slows = self._state is State.OPERATION_ENABLED and option is not None and self._value(option, 0) == 1
+        self._slowing_to = state if slows else None
+        if slows:
+            state = State.OPERATION_ENABLED
         if state is State.SWITCH_ON_DISABLED and self._state is State.FAULT:
             self._error_register = 0
             self._emcy(0x0000)  # error reset

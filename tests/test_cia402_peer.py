@@ -467,6 +467,38 @@ def test_quick_stop_slows_down_then_switch_on_disabled(vcan: str) -> None:
 
 
 @pytest.mark.vcan
+def test_shutdown_with_option_code_1_slows_down_before_the_drive_function_goes(vcan: str) -> None:
+    """0x605B = 1, as the robot's master writes it: a shutdown from operation enabled keeps the
+    statusword at operation enabled while the axis slows down, then ready to switch on; the
+    default 0 shuts down at once (hostsim's drives do the same)."""
+    with bench(vcan, {SINGLE: False}) as b:
+        b.master.start_heartbeat()
+        b.boot()
+        b.master.write(SINGLE, 0x605B, 0, 1)
+        b.enable()
+        b.run(0x0F, 30, {SINGLE: (2000,)})
+        mark = b.recorder.mark()
+        cycles = b.until(0x06, 0x21, max_cycles=200)
+        frames = b.recorder.since(mark, 0x180 + SINGLE)
+        velocities = [struct.unpack_from("<i", f.data, 2)[0] for f in frames]
+        words = [struct.unpack_from("<H", f.data)[0] & 0x6F for f in frames]
+        assert velocities[0] > 1900 and abs(velocities[-1]) < 1, velocities
+        assert set(words[:-1]) == {0x27} and words[-1] == 0x21, words
+        slowing = [f.t for f, w in zip(frames, words) if w == 0x27]
+        # From ~2000 to below 0.5 at 50 ms: ln(4000) * 0.05 = 0.41 s, as the quick stop's.
+        assert 0.3 < slowing[-1] - slowing[0] < 0.6 and cycles > 10, (slowing[-1] - slowing[0], cycles)
+        # The shutdown taken in operation enabled, ready to switch on from inside the drive.
+        assert [(e.controlword, e.statusword) for e in b.peers[SINGLE].trace[-2:]] == [
+            (0x06, 0x0237), (None, 0x0231)]
+        b.master.write(SINGLE, 0x605B, 0, 0)
+        b.enable()
+        b.run(0x0F, 30, {SINGLE: (2000,)})
+        b.until(0x06, 0x21)
+        assert [(e.controlword, e.statusword) for e in b.peers[SINGLE].trace[-2:]] == [
+            (0x0F, 0x0237), (0x06, 0x0231)]
+
+
+@pytest.mark.vcan
 def test_heartbeat_producer_follows_1017_and_the_hooks(vcan: str) -> None:
     with bench(vcan, {DUAL: True}) as b:
         hb = 0x700 + DUAL

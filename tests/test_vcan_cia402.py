@@ -48,7 +48,6 @@ from vcan_cia402 import (
     ENABLE_OPERATION,
     HEARTBEAT_ID,
     MASTER_NODE,
-    NMT_RESET_COMMUNICATION,
     NMT_START,
     NODES,
     OPERATION_ENABLED,
@@ -639,10 +638,10 @@ RESTART_DRIVE_S = 1.2
 
 
 def restart_frame(session: Cia402Robot) -> float:
-    """The candump time of the restarted runner's first frame: its NMT reset communication
-    (to node 1, the first it sends) after the kill."""
-    resets = [t for t, cmd, node in session.nmt(session.marks["kill"]) if (cmd, node) == (NMT_RESET_COMMUNICATION, 1)]
-    return float(first(resets, "the restarted runner's NMT reset communication"))
+    """The candump time of the restarted runner's first frame: the master's own boot-up
+    (0x700 + its node id, 0x00; docs/protocol.md), after the kill."""
+    boots = [f.t for f in session.of(HEARTBEAT_ID + MASTER_NODE, session.marks["kill"]) if f.data == bytes([BOOT_UP])]
+    return float(first(boots, "the restarted runner's boot-up"))
 
 
 def nmt_runs(session: Cia402Robot, node: int, t0: float, t1: float) -> list[int]:
