@@ -2,11 +2,12 @@
 //! boards, the Linux runner and the simulator share.
 //!
 //! This crate is `no_std`, allocation-free and free of `unsafe`; it builds for
-//! `thumbv7em-none-eabihf`. It talks three CAN protocols, each in its own module under
+//! `thumbv7em-none-eabihf`. It talks four CAN protocols, each in its own module under
 //! [`protocol`]:
 //!
 //! - [`protocol::dji`]: DJI RoboMaster C620/C610 ESCs (current commands, rotor feedback);
 //! - [`protocol::odrive`]: ODrive CAN Simple, firmware 0.6 (velocity setpoints, estimates);
+//! - [`protocol::canopen`]: CANopen (CiA 301) and the CiA 402 drive profile, as the master;
 //! - [`protocol::robot`]: the robot's own protocol (twist in; odometry, status out).
 //!
 //! The frame layouts are specified by the DBC files in the repository's `dbc/` folder; each
