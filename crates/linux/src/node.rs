@@ -206,36 +206,47 @@ impl<B: Bus, C: Clock> Io<'_, B, C> {
         }
     }
 
+    /// Sends one frame, busy errors retried until `give_up`; a failure is counted by kind
+    /// and recorded as `what`.
+    fn send(&mut self, frame: &CanFrame, give_up: u64, what: &str) -> Result<(), ErrorKind> {
+        let (backoff, c) = (self.options.retry_backoff_us, &mut self.counters);
+        let sent = send_with_retry(
+            self.bus,
+            self.clock,
+            frame,
+            give_up,
+            backoff,
+            &mut c.send_retries,
+        );
+        sent.map_err(|e| {
+            let kind = classify(&e);
+            c.send_kinds.count(kind);
+            c.errors
+                .record(format_args!("{what} {}", id_text(frame)), &e);
+            kind
+        })
+    }
+
     /// Sends the frames of the period at `now_us`, busy ones retried until `give_up`.
     fn send_step<N: Node>(&mut self, node: &mut N, out: &[CanFrame], now_us: u64, give_up: u64) {
-        let (clock, start, c) = (self.clock, self.start, &mut self.counters);
+        let (clock, start) = (self.clock, self.start);
         for frame in out {
             if !self.link.up() {
                 self.link.report.frames_not_sent += 1;
                 node.sent(now_us, clock.now_micros() - start, frame, false);
                 continue;
             }
-            let backoff = self.options.retry_backoff_us;
-            match send_with_retry(
-                self.bus,
-                clock,
-                frame,
-                give_up,
-                backoff,
-                &mut c.send_retries,
-            ) {
+            match self.send(frame, give_up, "send") {
                 Ok(()) => {
-                    c.frames_sent += 1;
+                    self.counters.frames_sent += 1;
                     node.sent(now_us, clock.now_micros() - start, frame, true);
                 }
-                Err(e) => {
-                    c.send_errors += 1;
-                    let kind = classify(&e);
-                    c.send_kinds.count(kind);
-                    c.errors.record(format_args!("send {}", id_text(frame)), &e);
+                Err(kind) => {
+                    self.counters.send_errors += 1;
                     let t = clock.now_micros();
                     node.sent(now_us, t - start, frame, false);
-                    self.link.on_error(kind, t, now_us, &c.errors, node);
+                    self.link
+                        .on_error(kind, t, now_us, &self.counters.errors, node);
                 }
             }
         }
@@ -244,7 +255,7 @@ impl<B: Bus, C: Clock> Io<'_, B, C> {
     /// One more try of a lost link (the shutdown frames are the ones that matter most), then
     /// the node's shutdown frames, busy ones retried for [`RunOptions::shutdown_budget_us`].
     fn shut_down<N: Node>(&mut self, node: &mut N, out: &mut Vec<CanFrame>, t_us: u64) {
-        let (clock, start, c) = (self.clock, self.start, &mut self.counters);
+        let (clock, start) = (self.clock, self.start);
         if !self.link.up() {
             self.link.next_try = 0;
             self.link
@@ -255,22 +266,9 @@ impl<B: Bus, C: Clock> Io<'_, B, C> {
         let give_up = clock
             .now_micros()
             .saturating_add(self.options.shutdown_budget_us);
-        let backoff = self.options.retry_backoff_us;
         for frame in out.iter() {
-            let sent = send_with_retry(
-                self.bus,
-                clock,
-                frame,
-                give_up,
-                backoff,
-                &mut c.send_retries,
-            );
-            if let Err(e) = &sent {
-                c.send_kinds.count(classify(e));
-                let what = format_args!("shutdown send {}", id_text(frame));
-                c.errors.record(what, e);
-            }
-            node.sent(t_us, clock.now_micros() - start, frame, sent.is_ok());
+            let sent = self.send(frame, give_up, "shutdown send").is_ok();
+            node.sent(t_us, clock.now_micros() - start, frame, sent);
         }
     }
 }
