@@ -71,7 +71,7 @@ fn check_outbox(config: &Config, out: &Outbox) {
             || match config.drive {
                 Drive::Dji { model, .. } => dji::CurrentCommand::decode(f, model).is_ok(),
                 Drive::Odrive { .. } => odrive::Command::decode(f).is_ok(),
-                Drive::Cia402 { .. } => canopen::decode(f).is_ok(),
+                Drive::Cia402(_) => canopen::decode(f).is_ok(),
             };
         assert!(ok, "the core sent a frame its own codecs reject: {f}");
     }

@@ -18,15 +18,16 @@ use core::fmt;
 
 use kinematics::{Effectiveness, GeometryError, MecanumKinematics, WheelGeometry};
 
-use crate::protocol::canopen::NodeId as Cia402Node;
 use crate::protocol::dji::{EscId, EscModel};
 use crate::protocol::odrive::NodeId;
 use crate::protocol::robot;
 
+mod cia402;
 mod encoding;
 mod pods;
 #[cfg(feature = "serde")]
 mod tagged;
+pub use cia402::{Cia402Drive, defaults as cia402_defaults};
 pub use encoding::ENCODED_LEN;
 pub use pods::{OdometryMode, PODS_MAX, PodConfig, Pods};
 pub(crate) use pods::{PodSolve, localizer as pod_localizer};
@@ -191,51 +192,7 @@ pub enum Drive {
     },
     /// CANopen CiA 402 drives in profile velocity mode; the drive runs the velocity loop and
     /// the core is the CANopen master (`docs/protocol.md`, section "CANopen CiA 402").
-    Cia402 {
-        /// Node id (1..=127) of each wheel's drive; a dual-axis drive's node appears twice.
-        node_ids: [u8; 4],
-        /// Each wheel's axis on its node: 0 for a single-axis drive (objects at sub-index
-        /// 0), 1 or 2 for an axis of a dual-axis drive (sub-indices 1 and 2).
-        axes: [u8; 4],
-        /// Motor turns per wheel turn (1 for a hub motor).
-        gear_ratio: f32,
-        /// `true` where a positive motor velocity rolls the robot backward.
-        inverted: [bool; 4],
-        /// Motor rpm per raw unit of target velocity (0x60FF): 1 for drives that take rpm.
-        target_rpm_per_unit: f32,
-        /// Motor rpm per raw unit of actual velocity (0x606C): 0.1 for drives that report
-        /// 0.1 rpm.
-        actual_rpm_per_unit: f32,
-        /// The master's own node id (1..=127), whose heartbeat (`0x700 + master_node`) the
-        /// drives watch. Default 127.
-        master_node: u8,
-        /// The drives' and the master's heartbeat period, ms (object 0x1017). Default 50.
-        heartbeat_ms: u16,
-        /// A heartbeat silent this long is lost, ms: the master's limit for each drive's, and
-        /// the drives' for the master's (object 0x1016). Default 150.
-        heartbeat_timeout_ms: u16,
-    },
-}
-
-/// The defaults of the `[drive]` keys of a CiA 402 configuration.
-pub mod cia402_defaults {
-    /// `drive.master_node`.
-    #[must_use]
-    pub const fn master_node() -> u8 {
-        127
-    }
-
-    /// `drive.heartbeat_ms`.
-    #[must_use]
-    pub const fn heartbeat_ms() -> u16 {
-        50
-    }
-
-    /// `drive.heartbeat_timeout_ms`.
-    #[must_use]
-    pub const fn heartbeat_timeout_ms() -> u16 {
-        150
-    }
+    Cia402(Cia402Drive),
 }
 
 #[cfg(feature = "serde")]
@@ -497,52 +454,6 @@ fn check_gear_ratio(value: f32) -> Result<(), ConfigError> {
     }
 }
 
-/// The nodes of a CiA 402 configuration: ids in 1..=127, axes 0 (single-axis node, one
-/// wheel) or 1 and 2 (dual-axis node, a wheel each), the master's id not a drive's.
-fn check_cia402_nodes(node_ids: [u8; 4], axes: [u8; 4], master: u8) -> Result<(), ConfigError> {
-    for (i, (&id, &axis)) in node_ids.iter().zip(&axes).enumerate() {
-        if Cia402Node::new(id).is_none() {
-            return Err(ConfigError {
-                field: field_at("drive.node_ids", i),
-                value: f64::from(id),
-                expected: "a CANopen node id in 1..=127",
-            });
-        }
-        if axis > 2 {
-            return Err(ConfigError {
-                field: field_at("drive.axes", i),
-                value: f64::from(axis),
-                expected: "0 (a single-axis drive) or 1, 2 (an axis of a dual-axis drive)",
-            });
-        }
-        for (&other_id, &other_axis) in node_ids[..i].iter().zip(&axes[..i]) {
-            if other_id == id && (axis == 0 || other_axis == 0 || other_axis == axis) {
-                return Err(ConfigError {
-                    field: field_at("drive.axes", i),
-                    value: f64::from(axis),
-                    expected: "a different axis (1 or 2) of a node that drives two wheels; \
-                               0 only on a node that drives one",
-                });
-            }
-        }
-        if id == master {
-            return Err(ConfigError {
-                field: "drive.master_node",
-                value: f64::from(master),
-                expected: "a node id in 1..=127 that no drive has",
-            });
-        }
-    }
-    if Cia402Node::new(master).is_none() {
-        return Err(ConfigError {
-            field: "drive.master_node",
-            value: f64::from(master),
-            expected: "a node id in 1..=127 that no drive has",
-        });
-    }
-    Ok(())
-}
-
 /// The gear ratios a configuration may give: from a 100:1 step-up to a 1000:1 reduction.
 pub const GEAR_RATIO_RANGE: core::ops::RangeInclusive<f32> = 0.01..=1000.0;
 
@@ -664,7 +575,7 @@ impl Config {
                 lateral_effectiveness: 1.0,
                 yaw_effectiveness: 1.0,
             },
-            drive: Drive::Cia402 {
+            drive: Drive::Cia402(Cia402Drive {
                 node_ids: [1, 1, 2, 2],
                 axes: [1, 2, 1, 2],
                 gear_ratio: 1.0,
@@ -674,7 +585,7 @@ impl Config {
                 master_node: cia402_defaults::master_node(),
                 heartbeat_ms: cia402_defaults::heartbeat_ms(),
                 heartbeat_timeout_ms: cia402_defaults::heartbeat_timeout_ms(),
-            },
+            }),
             limits: Limits {
                 max_linear_speed: 1.5,
                 max_angular_speed: 3.0,
@@ -825,38 +736,7 @@ impl Config {
                 }
                 check_gear_ratio(gear_ratio)?;
             }
-            Drive::Cia402 {
-                node_ids,
-                axes,
-                gear_ratio,
-                target_rpm_per_unit,
-                actual_rpm_per_unit,
-                master_node,
-                heartbeat_ms,
-                heartbeat_timeout_ms,
-                ..
-            } => {
-                check_cia402_nodes(node_ids, axes, master_node)?;
-                check_gear_ratio(gear_ratio)?;
-                positive("drive.target_rpm_per_unit", target_rpm_per_unit)?;
-                positive("drive.actual_rpm_per_unit", actual_rpm_per_unit)?;
-                let control_hz = self.timing.control_hz;
-                if heartbeat_ms == 0 || !(u32::from(heartbeat_ms) * control_hz).is_multiple_of(1000)
-                {
-                    return Err(ConfigError {
-                        field: "drive.heartbeat_ms",
-                        value: f64::from(heartbeat_ms),
-                        expected: "a period > 0 ms that is a whole number of control periods",
-                    });
-                }
-                if heartbeat_timeout_ms <= heartbeat_ms {
-                    return Err(ConfigError {
-                        field: "drive.heartbeat_timeout_ms",
-                        value: f64::from(heartbeat_timeout_ms),
-                        expected: "a time longer than drive.heartbeat_ms",
-                    });
-                }
-            }
+            Drive::Cia402(ref drive) => drive.check(self.timing.control_hz)?,
         }
 
         let l = &self.limits;

@@ -16,7 +16,7 @@
 //! `i` if `d` is forward, the other way if backward. The Python package's check computes the
 //! same rule (`mecanum_drive.check`); the Python tests hold the two to the same answers.
 
-use firmware::config::{Config, Drive};
+use firmware::config::{Cia402Drive, Config, Drive};
 use firmware::control::Fault;
 use firmware::protocol::robot::{self, RobotState, WheelTestResult};
 use serde::Serialize;
@@ -74,9 +74,9 @@ impl Wiring {
             Drive::Odrive {
                 node_ids, inverted, ..
             }
-            | Drive::Cia402 {
+            | Drive::Cia402(Cia402Drive {
                 node_ids, inverted, ..
-            } => Self {
+            }) => Self {
                 ids: node_ids,
                 inverted,
                 odrive: true,
@@ -101,9 +101,9 @@ impl Wiring {
             Drive::Odrive {
                 node_ids, inverted, ..
             }
-            | Drive::Cia402 {
+            | Drive::Cia402(Cia402Drive {
                 node_ids, inverted, ..
-            } => (*node_ids, *inverted) = (self.ids, self.inverted),
+            }) => (*node_ids, *inverted) = (self.ids, self.inverted),
         }
         c
     }

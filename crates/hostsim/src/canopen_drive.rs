@@ -150,13 +150,13 @@ impl CanopenDrives {
     /// The nodes of a `Drive::Cia402` configuration, booting at time 0.
     #[must_use]
     pub fn new(config: &firmware::Config) -> Self {
-        let firmware::config::Drive::Cia402 {
+        let firmware::config::Drive::Cia402(firmware::config::Cia402Drive {
             node_ids,
             axes,
             target_rpm_per_unit,
             actual_rpm_per_unit,
             ..
-        } = config.drive
+        }) = config.drive
         else {
             return Self::empty();
         };

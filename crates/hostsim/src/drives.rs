@@ -73,7 +73,7 @@ impl SimDrives {
                     node,
                 })
             }
-            DriveConfig::Cia402 { .. } => Ok(Self::Cia402 {
+            DriveConfig::Cia402(_) => Ok(Self::Cia402 {
                 plant: Box::new(Plant::cia402_from_config(config)?),
                 nodes: Box::new(CanopenDrives::new(config)),
             }),
@@ -87,7 +87,7 @@ impl SimDrives {
     /// # Errors
     /// As [`Self::with_spec`].
     pub fn for_scenario(scenario: &crate::scenario::Scenario) -> Result<Self, ParamError> {
-        if !matches!(scenario.config.drive, DriveConfig::Cia402 { .. })
+        if !matches!(scenario.config.drive, DriveConfig::Cia402(_))
             && scenario.wheel_faults.iter().any(|f| f.kind.cia402_only())
         {
             return Err(ParamError::new(

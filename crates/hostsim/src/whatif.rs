@@ -16,7 +16,7 @@ use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
 
 use firmware::CanFrame;
-use firmware::config::{Config, ConfigError, Drive, LoadError};
+use firmware::config::{Cia402Drive, Config, ConfigError, Drive, LoadError};
 use firmware::control::Controller;
 use firmware::protocol::robot::{Fault, RobotState, Telemetry};
 use firmware::protocol::{canopen, dji, odrive};
@@ -102,16 +102,16 @@ pub fn check_compatible(logged: &Config, what_if: &Config) -> Result<(), Incompa
             }
         }
         (
-            Drive::Cia402 {
+            Drive::Cia402(Cia402Drive {
                 node_ids: i0,
                 axes: a0,
                 ..
-            },
-            Drive::Cia402 {
+            }),
+            Drive::Cia402(Cia402Drive {
                 node_ids: i1,
                 axes: a1,
                 ..
-            },
+            }),
         ) => {
             if (i0, a0) != (i1, a1) {
                 let field = if i0 == i1 {
@@ -144,7 +144,7 @@ fn protocol_name(drive: &Drive) -> &'static str {
     match drive {
         Drive::Dji { .. } => "dji",
         Drive::Odrive { .. } => "odrive",
-        Drive::Cia402 { .. } => "cia402",
+        Drive::Cia402(_) => "cia402",
     }
 }
 
@@ -639,7 +639,7 @@ fn message_name(config: &Config, frame: &CanFrame) -> String {
             |_| "not a firmware frame".to_string(),
             |c| format!("{} node {}", c.msg.def().name, c.node.get()),
         ),
-        Drive::Cia402 { .. } => canopen::decode(frame).map_or_else(
+        Drive::Cia402(_) => canopen::decode(frame).map_or_else(
             |_| "not a firmware frame".to_string(),
             |m| match m.node() {
                 Some(node) => format!("{} node {}", m.def().name, node.get()),
@@ -704,7 +704,7 @@ fn quantities(config: &Config) -> &'static [(&'static str, &'static str)] {
     match config.drive {
         Drive::Dji { .. } => &[("motor current", "A")],
         Drive::Odrive { .. } => &[("motor velocity", "rev/s"), ("torque feed-forward", "Nm")],
-        Drive::Cia402 { .. } => &[("target velocity", "drive units")],
+        Drive::Cia402(_) => &[("target velocity", "drive units")],
     }
 }
 
@@ -746,7 +746,7 @@ fn setpoint_series(config: &Config, stream: &[TimedFrame]) -> Series {
                 }
             }
         }
-        Drive::Cia402 { node_ids, axes, .. } => {
+        Drive::Cia402(Cia402Drive { node_ids, axes, .. }) => {
             for f in stream {
                 // RPDO1 carries axis 0 or 1, RPDO3 axis 2.
                 let (node, second, target) = match canopen::decode(&f.frame) {

@@ -333,8 +333,8 @@ fn startup(args: &Args) -> Result<Setup> {
     let drive = match config.drive {
         Drive::Dji { model, esc_ids, .. } => format!("DJI {model:?} ESCs {esc_ids:?}"),
         Drive::Odrive { node_ids, .. } => format!("ODrive nodes {node_ids:?}"),
-        Drive::Cia402 { node_ids, axes, .. } => {
-            format!("CiA 402 nodes {node_ids:?} axes {axes:?}")
+        Drive::Cia402(cia402) => {
+            format!("CiA 402 nodes {:?} axes {:?}", cia402.node_ids, cia402.axes)
         }
     };
     let summary = format!(

@@ -58,7 +58,7 @@ use core::f32::consts::TAU;
 use core::fmt::{self, Write};
 
 use embedded_can::{ExtendedId, Frame, StandardId};
-use firmware::config::{Drive, OdometryMode, PodConfig, Pods};
+use firmware::config::{Cia402Drive, Drive, OdometryMode, PodConfig, Pods};
 use firmware::protocol::canopen::{
     self, DriveState402, Message, NmtCommand, NmtState, NodeId as CoNode, SdoRequest, SdoResponse,
 };
@@ -325,13 +325,13 @@ struct Canopen {
 
 impl Canopen {
     fn new(config: &Config) -> Option<Self> {
-        let Drive::Cia402 {
+        let Drive::Cia402(Cia402Drive {
             node_ids,
             axes,
             target_rpm_per_unit,
             actual_rpm_per_unit,
             ..
-        } = config.drive
+        }) = config.drive
         else {
             return None;
         };

@@ -16,8 +16,8 @@
 use crc::{CRC_16_IBM_3740, Crc};
 
 use super::{
-    Config, ConfigError, Drive, Gains, Geometry, HeadingMode, Limits, OdometryConfig, OdometryMode,
-    PODS_MAX, PodConfig, Pods, Timing, WheelConfig,
+    Cia402Drive, Config, ConfigError, Drive, Gains, Geometry, HeadingMode, Limits, OdometryConfig,
+    OdometryMode, PODS_MAX, PodConfig, Pods, Timing, WheelConfig,
 };
 use crate::protocol::dji::EscModel;
 
@@ -114,12 +114,12 @@ impl Config {
                 inverted,
                 vel_ramp,
             } => (1, 0, node_ids, gear_ratio, inverted, vel_ramp),
-            Drive::Cia402 {
+            Drive::Cia402(Cia402Drive {
                 node_ids,
                 gear_ratio,
                 inverted,
                 ..
-            } => (2, 0, node_ids, gear_ratio, inverted, false),
+            }) => (2, 0, node_ids, gear_ratio, inverted, false),
         };
         w.u8(protocol);
         w.u8(model);
@@ -127,7 +127,7 @@ impl Config {
         w.f32s(&[gear_ratio]);
         w.u8(bits(inverted));
         w.u8(u8::from(vel_ramp));
-        if let Drive::Cia402 {
+        if let Drive::Cia402(Cia402Drive {
             axes,
             target_rpm_per_unit,
             actual_rpm_per_unit,
@@ -135,7 +135,7 @@ impl Config {
             heartbeat_ms,
             heartbeat_timeout_ms,
             ..
-        } = drive
+        }) = drive
         {
             w.bytes(&axes);
             w.f32s(&[target_rpm_per_unit, actual_rpm_per_unit]);
@@ -310,7 +310,7 @@ impl Config {
             },
             2 => {
                 r.at += 1;
-                Drive::Cia402 {
+                Drive::Cia402(Cia402Drive {
                     node_ids: ids,
                     axes: [r.u8(), r.u8(), r.u8(), r.u8()],
                     gear_ratio,
@@ -320,7 +320,7 @@ impl Config {
                     master_node: r.u8(),
                     heartbeat_ms: r.u16(),
                     heartbeat_timeout_ms: r.u16(),
-                }
+                })
             }
             other => {
                 return Err(tag(

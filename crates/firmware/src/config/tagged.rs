@@ -13,7 +13,7 @@ use core::marker::PhantomData;
 use serde::de::{self, DeserializeSeed, MapAccess, Visitor};
 use serde::{Deserialize, Deserializer};
 
-use super::{Drive, Geometry, cia402_defaults, esc_model_serde, unit};
+use super::{Cia402Drive, Drive, Geometry, cia402_defaults, esc_model_serde, unit};
 
 /// A tag's value: a variant, which takes its own keys.
 trait Tag: for<'de> Deserialize<'de> + Copy {
@@ -303,7 +303,7 @@ impl<'de> Deserialize<'de> for Drive {
                         inverted: required(inverted, "inverted")?,
                         vel_ramp: vel_ramp.unwrap_or_default(),
                     },
-                    Protocol::Cia402 => Drive::Cia402 {
+                    Protocol::Cia402 => Drive::Cia402(Cia402Drive {
                         node_ids: required(node_ids, "node_ids")?,
                         axes: required(axes, "axes")?,
                         gear_ratio: required(gear_ratio, "gear_ratio")?,
@@ -314,7 +314,7 @@ impl<'de> Deserialize<'de> for Drive {
                         heartbeat_ms: heartbeat_ms.unwrap_or_else(cia402_defaults::heartbeat_ms),
                         heartbeat_timeout_ms: heartbeat_timeout_ms
                             .unwrap_or_else(cia402_defaults::heartbeat_timeout_ms),
-                    },
+                    }),
                 })
             }
         }

@@ -299,32 +299,11 @@ impl Controller {
                     config.limits.max_wheel_speed,
                 )),
             ),
-            Drive::Cia402 {
-                node_ids,
-                axes,
-                gear_ratio,
-                inverted,
-                target_rpm_per_unit,
-                actual_rpm_per_unit,
-                master_node,
-                heartbeat_ms,
-                heartbeat_timeout_ms,
-            } => (
-                node_ids,
-                inverted,
+            Drive::Cia402(ref drive) => (
+                drive.node_ids,
+                drive.inverted,
                 1_000_000 / u64::from(t.setpoint_hz),
-                DriveState::Cia402(cia402::Cia402::new(&cia402::Params {
-                    node_ids,
-                    axes,
-                    gear_ratio,
-                    target_rpm_per_unit,
-                    actual_rpm_per_unit,
-                    master_node,
-                    heartbeat_ms,
-                    heartbeat_timeout_ms,
-                    control_hz: t.control_hz,
-                    cycle_hz: t.setpoint_hz,
-                })),
+                DriveState::Cia402(cia402::Cia402::new(drive, t.control_hz, t.setpoint_hz)),
             ),
         };
         // Ids are validated (in range, one per wheel), so every wheel lands in the table

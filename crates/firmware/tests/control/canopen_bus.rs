@@ -4,7 +4,7 @@
 //! model and the Python `canopen` peer are the real peers.
 
 use firmware::CanFrame;
-use firmware::config::{Config, Drive};
+use firmware::config::{Cia402Drive, Config, Drive};
 use firmware::protocol::canopen::{
     self, DriveState402, Emcy, Message, NmtCommand, NmtState, NodeId, SdoRequest, SdoResponse,
 };
@@ -88,13 +88,13 @@ pub struct ScriptedBus {
 
 impl ScriptedBus {
     pub fn new(config: &Config) -> Self {
-        let Drive::Cia402 {
+        let Drive::Cia402(Cia402Drive {
             node_ids,
             target_rpm_per_unit,
             actual_rpm_per_unit,
             heartbeat_ms,
             ..
-        } = config.drive
+        }) = config.drive
         else {
             return Self::default();
         };

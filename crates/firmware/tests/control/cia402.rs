@@ -751,8 +751,8 @@ fn a_node_that_does_not_boot_after_a_recovery_reset_is_silent_after_the_consumer
 /// themselves after their boot-up.
 fn self_starting() -> Rig {
     let mut c = Config::cia402_example();
-    if let Drive::Cia402 { node_ids, .. } = &mut c.drive {
-        *node_ids = [1, 1, 31, 31];
+    if let Drive::Cia402(drive) = &mut c.drive {
+        drive.node_ids = [1, 1, 31, 31];
     }
     let mut rig = Rig::new(c);
     for n in &mut rig.canopen.nodes {

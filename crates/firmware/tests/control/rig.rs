@@ -155,7 +155,7 @@ impl Rig {
                     }
                 }
             }
-            Drive::Cia402 { .. } => {
+            Drive::Cia402(_) => {
                 for frame in self.canopen.feed(self.now_us) {
                     self.raw(frame);
                 }

@@ -250,16 +250,11 @@ impl Plant<Cia402Axis> {
     /// geometry or gear ratio is refused.
     pub fn cia402_from_config(config: &firmware::Config) -> Result<Self, ParamError> {
         use firmware::config::Drive as D;
-        let D::Cia402 {
-            gear_ratio,
-            inverted,
-            ..
-        } = config.drive
-        else {
+        let D::Cia402(drive) = config.drive else {
             return Err(ParamError::new("drive", f64::NAN, "a CiA 402 drive"));
         };
         let axis = Cia402Axis::new(Cia402Params {
-            gear_ratio: f64::from(gear_ratio),
+            gear_ratio: f64::from(drive.gear_ratio),
             ..Cia402Params::default()
         })?;
         let mut chassis = ChassisParams::from_config(config);
@@ -267,7 +262,11 @@ impl Plant<Cia402Axis> {
         chassis.mass = 40.0;
         chassis.yaw_inertia = 2.0;
         chassis.wheel_inertia = [7.5e-3; WHEELS];
-        Self::new(chassis, core::array::from_fn(|_| axis.clone()), inverted)
+        Self::new(
+            chassis,
+            core::array::from_fn(|_| axis.clone()),
+            drive.inverted,
+        )
     }
 }
 

@@ -440,7 +440,7 @@ pub fn detect_format(path: &Path) -> Result<LogFormat, ReplayError> {
 /// firmware receives.
 #[must_use]
 pub fn firmware_sends(config: &Config, frame: &CanFrame) -> bool {
-    use firmware::config::Drive;
+    use firmware::config::{Cia402Drive, Drive};
     use firmware::protocol::{canopen, dji, odrive, robot};
     if robot::Telemetry::decode(frame).is_ok() {
         return true;
@@ -461,11 +461,11 @@ pub fn firmware_sends(config: &Config, frame: &CanFrame) -> bool {
         }
         // The master's frames: NMT, SYNC and its heartbeat, and the SDO requests and RPDOs
         // to this robot's nodes.
-        Drive::Cia402 {
+        Drive::Cia402(Cia402Drive {
             node_ids,
             master_node,
             ..
-        } => match canopen::decode(frame) {
+        }) => match canopen::decode(frame) {
             Ok(canopen::Message::Nmt { .. } | canopen::Message::Sync { .. }) => true,
             Ok(canopen::Message::Heartbeat { node, .. }) => node.get() == master_node,
             Ok(

@@ -304,7 +304,7 @@ impl Scenario {
         let (bus_faults, wheel_faults, host_faults, node_faults) =
             faults::build(&file.faults, file.duration_s, &invalid)?;
         check_pods(file.pods.as_ref(), &config, &file.faults, &invalid)?;
-        if !matches!(config.drive, firmware::config::Drive::Cia402 { .. })
+        if !matches!(config.drive, firmware::config::Drive::Cia402(_))
             && let Some((i, f)) = file
                 .faults
                 .iter()

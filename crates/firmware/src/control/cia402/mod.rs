@@ -19,6 +19,7 @@ use kinematics::WheelSpeeds;
 
 use super::time::Every;
 use super::{Instant, Outbox, Wheel};
+use crate::config::Cia402Drive;
 use crate::protocol::DecodeError;
 use crate::protocol::canopen::{self, Message, NmtState, NodeId};
 
@@ -122,21 +123,6 @@ impl Node {
     }
 }
 
-/// The parameters of a [`Cia402`] (from `Drive::Cia402` and the timing).
-#[derive(Debug, Clone, Copy)]
-pub(super) struct Params {
-    pub node_ids: [u8; 4],
-    pub axes: [u8; 4],
-    pub gear_ratio: f32,
-    pub target_rpm_per_unit: f32,
-    pub actual_rpm_per_unit: f32,
-    pub master_node: u8,
-    pub heartbeat_ms: u16,
-    pub heartbeat_timeout_ms: u16,
-    pub control_hz: u32,
-    pub cycle_hz: u32,
-}
-
 /// The drives of the four wheels.
 #[derive(Debug, Clone)]
 pub(super) struct Cia402 {
@@ -163,8 +149,9 @@ pub(super) struct Cia402 {
 }
 
 impl Cia402 {
-    /// The nodes of a validated configuration.
-    pub(super) fn new(p: &Params) -> Self {
+    /// The nodes of a validated configuration, run at `control_hz` with a setpoint cycle of
+    /// `cycle_hz` (`Timing::setpoint_hz`).
+    pub(super) fn new(p: &Cia402Drive, control_hz: u32, cycle_hz: u32) -> Self {
         let mut nodes = heapless::Vec::<Node, 4>::new();
         let mut wheel_node = [(0, false); 4];
         for ((slot, &id), &axis) in wheel_node.iter_mut().zip(&p.node_ids).zip(&p.axes) {
@@ -182,12 +169,12 @@ impl Cia402 {
             wheel_node,
             target_scale: f64::from(p.target_rpm_per_unit) * rpm_to_wheel,
             actual_scale: (f64::from(p.actual_rpm_per_unit) * rpm_to_wheel) as f32,
-            cycle_s: 1.0 / p.cycle_hz as f32,
+            cycle_s: 1.0 / cycle_hz as f32,
             master: NodeId::new(p.master_node),
             heartbeat_ms: p.heartbeat_ms,
             heartbeat_timeout_ms: p.heartbeat_timeout_ms,
             // Validated: a whole number of control periods.
-            heartbeat_clock: Every::new(p.control_hz * u32::from(p.heartbeat_ms) / 1000),
+            heartbeat_clock: Every::new(control_hz * u32::from(p.heartbeat_ms) / 1000),
             now: Instant::default(),
             emcy_count: 0,
             latest: None,
