@@ -66,6 +66,7 @@ for ((i = 1; i <= runs; i++)); do
     if [ -n "$fresh" ]; then
         rm -rf "$fresh"
         git clone -q "$PWD" "$fresh"
+        commit=$(git -C "$fresh" rev-parse --short HEAD)  # HEAD here may move during the run
         (cd "$fresh" && CI=true ./scripts/test.sh "$@") || run_rc=$?
         times=$fresh/target/test-stages/times.txt
     else
@@ -74,7 +75,7 @@ for ((i = 1; i <= runs; i++)); do
     fi
     took=$(($(date +%s) - start))
     stop_stress
-    results+=("run $i of $runs${fresh:+ (fresh clone of $(git rev-parse --short HEAD))}, $cpus core(s) busy: exit $run_rc after $took s; $(
+    results+=("run $i of $runs${fresh:+ (fresh clone of $commit)}, $cpus core(s) busy: exit $run_rc after $took s; $(
         grep -E '^ +[0-9]+ s' "$times" 2>/dev/null | awk '{printf "%s%s %s", sep, $3, $1; sep=", "}')")
     printf '\n==> test-busy: %s\n' "${results[-1]}"
     if [ "$run_rc" != 0 ]; then
