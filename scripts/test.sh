@@ -310,7 +310,7 @@ if wanted stm32f407; then
     stage stm32f407 "$BOARD: clippy (-D warnings), release builds for config/odrive.toml, config/cia402.toml and config/dji_m3508.toml (the default), flash and RAM (256 KiB, 32 KiB)"
     # Clippy's lints in a release build of the board crate (the wrapper applies to it only; its
     # dependencies build with rustc, as the images below reuse them): `cargo clippy --release`
-    # type-checked every dependency a second time, 75 of the stage's 107 s of CPU. That build's
+    # type-checked every dependency a second time, 75 of the stage's 114 s of CPU. That build's
     # image differs from a user's in its symbols' hashes, so it is not kept: every image below
     # is built as a user builds it, and only the board crate rebuilds between them.
     (cd "$BOARD" && RUSTC_WORKSPACE_WRAPPER=$LINT_WRAPPER cargo build --release --locked)
