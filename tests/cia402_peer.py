@@ -467,6 +467,8 @@ class Cia402Peer:
         """Every write (SDO download or RPDO) before it is stored; raising aborts it."""
         with self._lock:
             value = int(od.decode_raw(data))
+            if (od.min is not None and value < od.min) or (od.max is not None and value > od.max):
+                raise canopen.SdoAbortedError(ABORT_VALUE_RANGE)  # the EDS's LowLimit / HighLimit
             if index == 0x6040:
                 self._controlword_received(value)
             elif index == 0x60FF and subindex in self._subs:

@@ -31,6 +31,7 @@ import pytest
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 
 from cia402_peer import (
+    ABORT_VALUE_RANGE,
     DUAL_EDS,
     EMCY_BUS_OFF_RECOVERED,
     EMCY_HEARTBEAT,
@@ -474,6 +475,11 @@ def test_shutdown_with_option_code_1_slows_down_before_the_drive_function_goes(v
     with bench(vcan, {SINGLE: False}) as b:
         b.master.start_heartbeat()
         b.boot()
+        # Only 0 and 1 (the EDS's limits; hostsim's drives refuse the same).
+        for bad in (2, -1):
+            with pytest.raises(canopen.SdoAbortedError) as aborted:
+                b.master.write(SINGLE, 0x605B, 0, bad)
+            assert aborted.value.code == ABORT_VALUE_RANGE, (bad, hex(aborted.value.code))
         b.master.write(SINGLE, 0x605B, 0, 1)
         b.enable()
         b.run(0x0F, 30, {SINGLE: (2000,)})
