@@ -36,23 +36,11 @@ pub mod layout {
     use crate::protocol::wire::{ByteOrder::Big, Field, MessageDef, WireType::*};
 
     /// Current command for ESC 1-4.
-    pub const CURRENT_CMD_1_4: MessageDef = MessageDef {
-        name: "CURRENT_CMD_1_4",
-        id: 0x200,
-        dlc: 8,
-    };
+    pub const CURRENT_CMD_1_4: MessageDef = MessageDef::new("CURRENT_CMD_1_4", 0x200, 8);
     /// Current command for ESC 5-8.
-    pub const CURRENT_CMD_5_8: MessageDef = MessageDef {
-        name: "CURRENT_CMD_5_8",
-        id: 0x1FF,
-        dlc: 8,
-    };
+    pub const CURRENT_CMD_5_8: MessageDef = MessageDef::new("CURRENT_CMD_5_8", 0x1FF, 8);
     /// Feedback of ESC n has id `FEEDBACK.id + n`.
-    pub const FEEDBACK: MessageDef = MessageDef {
-        name: "FEEDBACK",
-        id: 0x200,
-        dlc: 8,
-    };
+    pub const FEEDBACK: MessageDef = MessageDef::new("FEEDBACK", 0x200, 8);
 
     /// Current setpoints of `CURRENT_CMD_1_4`, ESC 1 first; raw range and scale are set per
     /// model ([`super::EscModel`]) at run time.
@@ -171,28 +159,12 @@ impl EscModel {
     }
 }
 
-/// A DJI ESC id, `1..=8` (the number set on the ESC).
-#[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Debug)]
-pub struct EscId(u8);
+u8_id!(
+    /// A DJI ESC id, `1..=8` (the number set on the ESC).
+    EscId(1..=8)
+);
 
 impl EscId {
-    /// An ESC id; `None` outside 1..=8.
-    #[must_use]
-    #[inline]
-    pub const fn new(raw: u8) -> Option<Self> {
-        if raw >= 1 && raw <= 8 {
-            Some(Self(raw))
-        } else {
-            None
-        }
-    }
-
-    /// The raw id, 1..=8.
-    #[must_use]
-    pub const fn get(self) -> u8 {
-        self.0
-    }
-
     /// The command frame that carries this ESC's current.
     #[must_use]
     #[inline]

@@ -14,10 +14,24 @@
 //! Decoders return [`DecodeError`] for anything they do not accept; encoders always succeed,
 //! saturating values that do not fit.
 
-/// `from_raw`, `raw`, `as_str` and `Display` for a `#[repr(u8)]` enum whose values are a
-/// DBC value table: `u8_enum!(Fault { None = 0 => "NONE", ... })`.
+/// Declares a `#[repr(u8)]` enum whose values are a DBC value table, each variant with its raw
+/// value and its name in the table written once (`Fault { None = 0 => "NONE", ... }`, docs and
+/// attributes before the type and each variant), and gives it `from_raw`, `raw`, `as_str`
+/// and `Display`.
 macro_rules! u8_enum {
-    ($ty:ident { $($variant:ident = $raw:literal => $name:literal),+ $(,)? }) => {
+    (
+        $(#[$meta:meta])*
+        $ty:ident {
+            $($(#[$vmeta:meta])* $variant:ident = $raw:literal => $name:literal),+ $(,)?
+        }
+    ) => {
+        $(#[$meta])*
+        #[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+        #[repr(u8)]
+        pub enum $ty {
+            $($(#[$vmeta])* $variant = $raw,)+
+        }
+
         impl $ty {
             /// The enum value for a raw byte; `None` for values not defined.
             #[must_use]
@@ -47,6 +61,35 @@ macro_rules! u8_enum {
         impl core::fmt::Display for $ty {
             fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
                 f.write_str(self.as_str())
+            }
+        }
+    };
+}
+
+/// Declares a validated `u8` id: `new` accepts exactly the raw values that match the pattern
+/// given (`EscId(1..=8)`), `get` returns the raw value.
+macro_rules! u8_id {
+    ($(#[$meta:meta])* $ty:ident($valid:pat)) => {
+        $(#[$meta])*
+        #[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Debug)]
+        pub struct $ty(u8);
+
+        impl $ty {
+            /// The id `raw`; `None` outside the range the type's doc gives.
+            #[must_use]
+            #[inline]
+            pub const fn new(raw: u8) -> Option<Self> {
+                if matches!(raw, $valid) {
+                    Some(Self(raw))
+                } else {
+                    None
+                }
+            }
+
+            /// The raw id.
+            #[must_use]
+            pub const fn get(self) -> u8 {
+                self.0
             }
         }
     };

@@ -18,7 +18,7 @@
 use embedded_can::{Frame, StandardId};
 
 use super::error::DecodeError;
-use super::wire::{self, Payload, saturate_f32};
+use super::wire::{self, Field, Payload, saturate_f32};
 use crate::frame::CanFrame;
 
 /// The frame layout: the Rust mirror of the official ODrive DBC (0.6.10) for the messages
@@ -34,53 +34,21 @@ pub mod layout {
     pub const NODE_MAX: u8 = 63;
 
     /// `Heartbeat` (cmd 0x01).
-    pub const HEARTBEAT: MessageDef = MessageDef {
-        name: "Heartbeat",
-        id: 0x01,
-        dlc: 8,
-    };
+    pub const HEARTBEAT: MessageDef = MessageDef::new("Heartbeat", 0x01, 8);
     /// `Estop` (cmd 0x02).
-    pub const ESTOP: MessageDef = MessageDef {
-        name: "Estop",
-        id: 0x02,
-        dlc: 0,
-    };
+    pub const ESTOP: MessageDef = MessageDef::new("Estop", 0x02, 0);
     /// `Get_Error` (cmd 0x03): RTR request, DLC 8 response.
-    pub const GET_ERROR: MessageDef = MessageDef {
-        name: "Get_Error",
-        id: 0x03,
-        dlc: 8,
-    };
+    pub const GET_ERROR: MessageDef = MessageDef::new("Get_Error", 0x03, 8);
     /// `Set_Axis_State` (cmd 0x07).
-    pub const SET_AXIS_STATE: MessageDef = MessageDef {
-        name: "Set_Axis_State",
-        id: 0x07,
-        dlc: 8,
-    };
+    pub const SET_AXIS_STATE: MessageDef = MessageDef::new("Set_Axis_State", 0x07, 8);
     /// `Get_Encoder_Estimates` (cmd 0x09).
-    pub const GET_ENCODER_ESTIMATES: MessageDef = MessageDef {
-        name: "Get_Encoder_Estimates",
-        id: 0x09,
-        dlc: 8,
-    };
+    pub const GET_ENCODER_ESTIMATES: MessageDef = MessageDef::new("Get_Encoder_Estimates", 0x09, 8);
     /// `Set_Controller_Mode` (cmd 0x0B).
-    pub const SET_CONTROLLER_MODE: MessageDef = MessageDef {
-        name: "Set_Controller_Mode",
-        id: 0x0B,
-        dlc: 8,
-    };
+    pub const SET_CONTROLLER_MODE: MessageDef = MessageDef::new("Set_Controller_Mode", 0x0B, 8);
     /// `Set_Input_Vel` (cmd 0x0D).
-    pub const SET_INPUT_VEL: MessageDef = MessageDef {
-        name: "Set_Input_Vel",
-        id: 0x0D,
-        dlc: 8,
-    };
+    pub const SET_INPUT_VEL: MessageDef = MessageDef::new("Set_Input_Vel", 0x0D, 8);
     /// `Clear_Errors` (cmd 0x18).
-    pub const CLEAR_ERRORS: MessageDef = MessageDef {
-        name: "Clear_Errors",
-        id: 0x18,
-        dlc: 1,
-    };
+    pub const CLEAR_ERRORS: MessageDef = MessageDef::new("Clear_Errors", 0x18, 1);
     /// DLCs accepted for `Clear_Errors` (the 0.5 DBC had no payload).
     pub const CLEAR_ERRORS_DLCS: [u8; 2] = [1, 0];
 
@@ -121,27 +89,12 @@ pub mod layout {
     pub const IDENTIFY: Field = Field::int("Identify", 0, U8, Little);
 }
 
-/// An ODrive CAN node id, `0..=63`.
-#[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Debug)]
-pub struct NodeId(u8);
+u8_id!(
+    /// An ODrive CAN node id, `0..=63`.
+    NodeId(0..=layout::NODE_MAX)
+);
 
 impl NodeId {
-    /// A node id; `None` above 63.
-    #[must_use]
-    pub const fn new(raw: u8) -> Option<Self> {
-        if raw <= layout::NODE_MAX {
-            Some(Self(raw))
-        } else {
-            None
-        }
-    }
-
-    /// The raw node id.
-    #[must_use]
-    pub const fn get(self) -> u8 {
-        self.0
-    }
-
     /// The 11-bit id of command `cmd` (masked to 5 bits) to or from this node.
     #[must_use]
     pub const fn can_id(self, cmd: u16) -> StandardId {
@@ -375,10 +328,11 @@ pub enum Message {
     Feedback(Addressed<Feedback>),
 }
 
-fn split<F: Frame>(frame: &F) -> Result<(u16, NodeId, u8), DecodeError> {
+/// The raw id, node id and command id of `frame`.
+fn split<F: Frame>(frame: &F) -> Result<(u16, NodeId, u16), DecodeError> {
     let raw = wire::standard_id(frame)?;
     let (node, cmd) = split_id(StandardId::new(raw).unwrap_or(StandardId::ZERO));
-    Ok((raw, node, cmd))
+    Ok((raw, node, u16::from(cmd)))
 }
 
 impl Command {
@@ -404,7 +358,6 @@ impl Command {
     /// (a `Get_Error` data frame is a [`Feedback`]).
     pub fn decode<F: Frame>(frame: &F) -> Result<Addressed<Self>, DecodeError> {
         let (id, node, cmd) = split(frame)?;
-        let cmd = u16::from(cmd);
         let msg = if cmd == layout::ESTOP.id {
             wire::data_payload(frame, id, &[layout::ESTOP.dlc])?;
             Self::Estop
@@ -418,27 +371,12 @@ impl Command {
             }
         } else if cmd == layout::SET_AXIS_STATE.id {
             let p = wire::data_payload(frame, id, &[layout::SET_AXIS_STATE.dlc])?;
-            let raw = layout::REQUESTED_STATE.checked(&p)?;
-            Self::SetAxisState(axis_state(raw, layout::REQUESTED_STATE.name)?)
+            Self::SetAxisState(read_enum(&p, layout::REQUESTED_STATE, AxisState::from_raw)?)
         } else if cmd == layout::SET_CONTROLLER_MODE.id {
             let p = wire::data_payload(frame, id, &[layout::SET_CONTROLLER_MODE.dlc])?;
-            let control = layout::CONTROL_MODE.checked(&p)?;
-            let input = layout::INPUT_MODE.checked(&p)?;
             Self::SetControllerMode {
-                control_mode: u32::try_from(control)
-                    .ok()
-                    .and_then(ControlMode::from_raw)
-                    .ok_or(DecodeError::OutOfRange {
-                        field: layout::CONTROL_MODE.name,
-                        value: control,
-                    })?,
-                input_mode: u32::try_from(input)
-                    .ok()
-                    .and_then(InputMode::from_raw)
-                    .ok_or(DecodeError::OutOfRange {
-                        field: layout::INPUT_MODE.name,
-                        value: input,
-                    })?,
+                control_mode: read_enum(&p, layout::CONTROL_MODE, ControlMode::from_raw)?,
+                input_mode: read_enum(&p, layout::INPUT_MODE, InputMode::from_raw)?,
             }
         } else if cmd == layout::SET_INPUT_VEL.id {
             let p = wire::data_payload(frame, id, &[layout::SET_INPUT_VEL.dlc])?;
@@ -493,11 +431,21 @@ impl Command {
     }
 }
 
-fn axis_state(raw: i64, field: &'static str) -> Result<AxisState, DecodeError> {
+/// `field` of `p` as the enum value `from_raw` gives; `OutOfRange` for a raw value outside the
+/// field's range or one the enum does not define.
+fn read_enum<T>(
+    p: &Payload,
+    field: Field,
+    from_raw: fn(u32) -> Option<T>,
+) -> Result<T, DecodeError> {
+    let raw = field.checked(p)?;
     u32::try_from(raw)
         .ok()
-        .and_then(AxisState::from_raw)
-        .ok_or(DecodeError::OutOfRange { field, value: raw })
+        .and_then(from_raw)
+        .ok_or(DecodeError::OutOfRange {
+            field: field.name,
+            value: raw,
+        })
 }
 
 impl Feedback {
@@ -518,13 +466,11 @@ impl Feedback {
     /// host.
     pub fn decode<F: Frame>(frame: &F) -> Result<Addressed<Self>, DecodeError> {
         let (id, node, cmd) = split(frame)?;
-        let cmd = u16::from(cmd);
         let msg = if cmd == layout::HEARTBEAT.id {
             let p = wire::data_payload(frame, id, &[layout::HEARTBEAT.dlc])?;
-            let state = layout::HB_AXIS_STATE.checked(&p)?;
             Self::Heartbeat(Heartbeat {
                 axis_error: layout::HB_AXIS_ERROR.raw(&p) as u32,
-                axis_state: axis_state(state, layout::HB_AXIS_STATE.name)?,
+                axis_state: read_enum(&p, layout::HB_AXIS_STATE, AxisState::from_raw)?,
                 procedure_result: layout::HB_PROCEDURE_RESULT.raw(&p) as u8,
                 trajectory_done: layout::HB_TRAJECTORY_DONE.raw(&p) != 0,
             })
@@ -549,7 +495,6 @@ impl Feedback {
     /// Encodes from `node` into a [`CanFrame`] (what a simulated drive sends).
     #[must_use]
     pub fn to_can_frame(&self, node: NodeId) -> CanFrame {
-        let def = self.def();
         let mut p = Payload::new();
         match *self {
             Self::Heartbeat(h) => {
@@ -570,6 +515,7 @@ impl Feedback {
                 layout::VEL_ESTIMATE.put_f32(&mut p, saturate_f32(vel));
             }
         }
+        let def = self.def();
         CanFrame::from_buffer(node.can_id(def.id), p.0, def.dlc)
     }
 

@@ -54,89 +54,33 @@ pub mod layout {
     pub const ID_LAST: u16 = 0x31F;
 
     /// `ESTOP`, host → robot.
-    pub const ESTOP: MessageDef = MessageDef {
-        name: "ESTOP",
-        id: 0x300,
-        dlc: 1,
-    };
+    pub const ESTOP: MessageDef = MessageDef::new("ESTOP", 0x300, 1);
     /// `TWIST_CMD`, host → robot.
-    pub const TWIST_CMD: MessageDef = MessageDef {
-        name: "TWIST_CMD",
-        id: 0x301,
-        dlc: 8,
-    };
+    pub const TWIST_CMD: MessageDef = MessageDef::new("TWIST_CMD", 0x301, 8);
     /// `MODE_CMD`, host → robot.
-    pub const MODE_CMD: MessageDef = MessageDef {
-        name: "MODE_CMD",
-        id: 0x302,
-        dlc: 1,
-    };
+    pub const MODE_CMD: MessageDef = MessageDef::new("MODE_CMD", 0x302, 1);
     /// `STATUS_REQ`, host → robot.
-    pub const STATUS_REQ: MessageDef = MessageDef {
-        name: "STATUS_REQ",
-        id: 0x303,
-        dlc: 0,
-    };
+    pub const STATUS_REQ: MessageDef = MessageDef::new("STATUS_REQ", 0x303, 0);
     /// `IMU_YAW_RATE`, IMU node → robot.
-    pub const IMU_YAW_RATE: MessageDef = MessageDef {
-        name: "IMU_YAW_RATE",
-        id: 0x304,
-        dlc: 8,
-    };
+    pub const IMU_YAW_RATE: MessageDef = MessageDef::new("IMU_YAW_RATE", 0x304, 8);
     /// `WHEEL_TEST`, host → robot.
-    pub const WHEEL_TEST: MessageDef = MessageDef {
-        name: "WHEEL_TEST",
-        id: 0x305,
-        dlc: 8,
-    };
+    pub const WHEEL_TEST: MessageDef = MessageDef::new("WHEEL_TEST", 0x305, 8);
     /// `POD_COUNTS`, pod node → robot (version 7).
-    pub const POD_COUNTS: MessageDef = MessageDef {
-        name: "POD_COUNTS",
-        id: 0x306,
-        dlc: 8,
-    };
+    pub const POD_COUNTS: MessageDef = MessageDef::new("POD_COUNTS", 0x306, 8);
     /// `ODOM_POSITION`, robot → host.
-    pub const ODOM_POSITION: MessageDef = MessageDef {
-        name: "ODOM_POSITION",
-        id: 0x310,
-        dlc: 8,
-    };
+    pub const ODOM_POSITION: MessageDef = MessageDef::new("ODOM_POSITION", 0x310, 8);
     /// `ODOM_VELOCITY`, robot → host.
-    pub const ODOM_VELOCITY: MessageDef = MessageDef {
-        name: "ODOM_VELOCITY",
-        id: 0x311,
-        dlc: 8,
-    };
+    pub const ODOM_VELOCITY: MessageDef = MessageDef::new("ODOM_VELOCITY", 0x311, 8);
     /// `STATUS`, robot → host.
-    pub const STATUS: MessageDef = MessageDef {
-        name: "STATUS",
-        id: 0x312,
-        dlc: 8,
-    };
+    pub const STATUS: MessageDef = MessageDef::new("STATUS", 0x312, 8);
     /// `STATUS_COUNTERS`, robot → host (sent with every `STATUS`).
-    pub const STATUS_COUNTERS: MessageDef = MessageDef {
-        name: "STATUS_COUNTERS",
-        id: 0x313,
-        dlc: 8,
-    };
+    pub const STATUS_COUNTERS: MessageDef = MessageDef::new("STATUS_COUNTERS", 0x313, 8);
     /// `WHEEL_TEST_RESULT`, robot → host.
-    pub const WHEEL_TEST_RESULT: MessageDef = MessageDef {
-        name: "WHEEL_TEST_RESULT",
-        id: 0x314,
-        dlc: 8,
-    };
+    pub const WHEEL_TEST_RESULT: MessageDef = MessageDef::new("WHEEL_TEST_RESULT", 0x314, 8);
     /// `ODOM_SLIP`, robot → host (version 7, only with pods configured).
-    pub const ODOM_SLIP: MessageDef = MessageDef {
-        name: "ODOM_SLIP",
-        id: 0x315,
-        dlc: 8,
-    };
+    pub const ODOM_SLIP: MessageDef = MessageDef::new("ODOM_SLIP", 0x315, 8);
     /// `HEARTBEAT`, robot → host.
-    pub const HEARTBEAT: MessageDef = MessageDef {
-        name: "HEARTBEAT",
-        id: 0x31F,
-        dlc: 8,
-    };
+    pub const HEARTBEAT: MessageDef = MessageDef::new("HEARTBEAT", 0x31F, 8);
 
     /// The e-stop magic byte.
     pub const ESTOP_MAGIC_VALUE: u8 = 0xE5;
@@ -307,151 +251,113 @@ pub mod layout {
     pub const HEARTBEAT_CONFIG_ID: Field = Field::int("config_id", 6, U16, Little);
 }
 
-/// What the host asks the robot to do with its enable latch (`MODE_CMD.request`).
-#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
-#[repr(u8)]
-pub enum ModeRequest {
-    /// Stop and disable.
-    Disable = 0,
-    /// Enable (motion needs a fresh twist command afterwards).
-    Enable = 1,
-    /// Clear a fault or the e-stop latch; the robot ends up disabled.
-    Reset = 2,
-}
+u8_enum!(
+    /// What the host asks the robot to do with its enable latch (`MODE_CMD.request`).
+    ModeRequest {
+        /// Stop and disable.
+        Disable = 0 => "DISABLE",
+        /// Enable (motion needs a fresh twist command afterwards).
+        Enable = 1 => "ENABLE",
+        /// Clear a fault or the e-stop latch; the robot ends up disabled.
+        Reset = 2 => "RESET",
+    }
+);
 
-/// The robot's state (`STATUS.state`, `HEARTBEAT.state`).
-#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
-#[repr(u8)]
-pub enum RobotState {
-    /// Motors off; waiting for an enable.
-    Disabled = 0,
-    /// Following twist commands.
-    Enabled = 1,
-    /// Stopped by a fault (see [`Fault`]); needs a reset.
-    Fault = 2,
-    /// Stopped by an e-stop; needs a reset.
-    Estop = 3,
-    /// Driving one wheel for the bring-up check (`WHEEL_TEST`); back to `Disabled` when it
-    /// ends.
-    WheelTest = 4,
-}
+u8_enum!(
+    /// The robot's state (`STATUS.state`, `HEARTBEAT.state`).
+    RobotState {
+        /// Motors off; waiting for an enable.
+        Disabled = 0 => "DISABLED",
+        /// Following twist commands.
+        Enabled = 1 => "ENABLED",
+        /// Stopped by a fault (see [`Fault`]); needs a reset.
+        Fault = 2 => "FAULT",
+        /// Stopped by an e-stop; needs a reset.
+        Estop = 3 => "ESTOP",
+        /// Driving one wheel for the bring-up check (`WHEEL_TEST`); back to `Disabled` when it
+        /// ends.
+        WheelTest = 4 => "WHEEL_TEST",
+    }
+);
 
-/// The latest fault (`STATUS.fault`). Raw values 14..=255 are reserved for later versions.
-///
-/// How each is detected, and how fast: [`crate::control`].
-#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
-#[repr(u8)]
-pub enum Fault {
-    /// No fault.
-    None = 0,
-    /// A motor's feedback stopped arriving in time.
-    MotorStale = 1,
-    /// A motor never reported.
-    MotorMissing = 2,
-    /// A drive reported an error.
-    DriveError = 3,
-    /// Informational: the command watchdog expired and the robot stopped.
-    Watchdog = 4,
-    /// The configuration was rejected.
-    Config = 5,
-    /// A motor's feedback keeps arriving but its rotor angle does not move while the motor
-    /// reports speed, or while it is driven hard and the other wheels say it turns.
-    EncoderStuck = 6,
-    /// A wheel driven at its current limit towards its setpoint turned the other way, or
-    /// further from it, for a window: a motor mounted the other way than configured, or
-    /// drives wired to the wrong wheels.
-    WheelRunaway = 7,
-    /// The wheels pushed against each other for a window: the currents had a part that no
-    /// body motion explains, as when a motor is mounted the other way than configured.
-    WheelFight = 8,
-    /// A CANopen drive's heartbeat was silent for its consumer time.
-    DriveSilent = 9,
-    /// A CANopen drive booted again after it was configured: it is configured again, and
-    /// the robot does not move until the host resets and enables it.
-    DriveRebooted = 10,
-    /// A CANopen drive refused (SDO abort) or did not answer (timeout) its configuration,
-    /// or is not a CiA 402 drive.
-    DriveSetup = 11,
-    /// A CANopen drive did not reach the state an enable step asked for in time.
-    DriveTransition = 12,
-    /// A started CANopen drive's heartbeat reports an NMT state other than operational
-    /// (pre-operational after a communication error, stopped): it takes no targets; the
-    /// host's reset starts it again.
-    DriveNmt = 13,
-}
+u8_enum!(
+    /// The latest fault (`STATUS.fault`). Raw values 14..=255 are reserved for later versions.
+    ///
+    /// How each is detected, and how fast: [`crate::control`].
+    Fault {
+        /// No fault.
+        None = 0 => "NONE",
+        /// A motor's feedback stopped arriving in time.
+        MotorStale = 1 => "MOTOR_STALE",
+        /// A motor never reported.
+        MotorMissing = 2 => "MOTOR_MISSING",
+        /// A drive reported an error.
+        DriveError = 3 => "DRIVE_ERROR",
+        /// Informational: the command watchdog expired and the robot stopped.
+        Watchdog = 4 => "WATCHDOG",
+        /// The configuration was rejected.
+        Config = 5 => "CONFIG",
+        /// A motor's feedback keeps arriving but its rotor angle does not move while the motor
+        /// reports speed, or while it is driven hard and the other wheels say it turns.
+        EncoderStuck = 6 => "ENCODER_STUCK",
+        /// A wheel driven at its current limit towards its setpoint turned the other way, or
+        /// further from it, for a window: a motor mounted the other way than configured, or
+        /// drives wired to the wrong wheels.
+        WheelRunaway = 7 => "WHEEL_RUNAWAY",
+        /// The wheels pushed against each other for a window: the currents had a part that no
+        /// body motion explains, as when a motor is mounted the other way than configured.
+        WheelFight = 8 => "WHEEL_FIGHT",
+        /// A CANopen drive's heartbeat was silent for its consumer time.
+        DriveSilent = 9 => "DRIVE_SILENT",
+        /// A CANopen drive booted again after it was configured: it is configured again, and
+        /// the robot does not move until the host resets and enables it.
+        DriveRebooted = 10 => "DRIVE_REBOOTED",
+        /// A CANopen drive refused (SDO abort) or did not answer (timeout) its configuration,
+        /// or is not a CiA 402 drive.
+        DriveSetup = 11 => "DRIVE_SETUP",
+        /// A CANopen drive did not reach the state an enable step asked for in time.
+        DriveTransition = 12 => "DRIVE_TRANSITION",
+        /// A started CANopen drive's heartbeat reports an NMT state other than operational
+        /// (pre-operational after a communication error, stopped): it takes no targets; the
+        /// host's reset starts it again.
+        DriveNmt = 13 => "DRIVE_NMT",
+    }
+);
 
-/// Where the odometry's heading comes from (`STATUS.heading_source`).
-#[derive(Clone, Copy, PartialEq, Eq, Debug, Default)]
-pub enum HeadingSource {
-    /// The wheels: the robot is configured without a gyro (`heading_source = "wheels"`).
-    #[default]
-    Wheels = 0,
-    /// The gyro (`IMU_YAW_RATE`), less its estimated bias.
-    Gyro = 1,
-    /// The wheels, although the robot is configured for the gyro: no valid `IMU_YAW_RATE`
-    /// within the gyro timeout (or none yet). A warning, not a fault: the robot keeps
-    /// driving, and takes the gyro again as soon as a valid frame arrives.
-    WheelsGyroSilent = 2,
-}
+u8_enum!(
+    /// Where the odometry's heading comes from (`STATUS.heading_source`).
+    #[derive(Default)]
+    HeadingSource {
+        /// The wheels: the robot is configured without a gyro (`heading_source = "wheels"`).
+        #[default]
+        Wheels = 0 => "WHEELS",
+        /// The gyro (`IMU_YAW_RATE`), less its estimated bias.
+        Gyro = 1 => "GYRO",
+        /// The wheels, although the robot is configured for the gyro: no valid `IMU_YAW_RATE`
+        /// within the gyro timeout (or none yet). A warning, not a fault: the robot keeps
+        /// driving, and takes the gyro again as soon as a valid frame arrives.
+        WheelsGyroSilent = 2 => "WHEELS_GYRO_SILENT",
+    }
+);
 
-u8_enum!(ModeRequest { Disable = 0 => "DISABLE", Enable = 1 => "ENABLE", Reset = 2 => "RESET" });
-u8_enum!(RobotState {
-    Disabled = 0 => "DISABLED",
-    Enabled = 1 => "ENABLED",
-    Fault = 2 => "FAULT",
-    Estop = 3 => "ESTOP",
-    WheelTest = 4 => "WHEEL_TEST",
-});
-u8_enum!(TestOutcome {
-    Done = 0 => "DONE",
-    Stopped = 1 => "STOPPED",
-    Fault = 2 => "FAULT",
-    Refused = 3 => "REFUSED",
-});
-u8_enum!(HeadingSource {
-    Wheels = 0 => "WHEELS",
-    Gyro = 1 => "GYRO",
-    WheelsGyroSilent = 2 => "WHEELS_GYRO_SILENT",
-});
-u8_enum!(OdometrySource {
-    Wheels = 0 => "WHEELS",
-    Pods2Gyro = 1 => "PODS2_GYRO",
-    Pods3 = 2 => "PODS3",
-    WheelsPodsSilent = 3 => "WHEELS_PODS_SILENT",
-});
-u8_enum!(Fault {
-    None = 0 => "NONE",
-    MotorStale = 1 => "MOTOR_STALE",
-    MotorMissing = 2 => "MOTOR_MISSING",
-    DriveError = 3 => "DRIVE_ERROR",
-    Watchdog = 4 => "WATCHDOG",
-    Config = 5 => "CONFIG",
-    EncoderStuck = 6 => "ENCODER_STUCK",
-    WheelRunaway = 7 => "WHEEL_RUNAWAY",
-    WheelFight = 8 => "WHEEL_FIGHT",
-    DriveSilent = 9 => "DRIVE_SILENT",
-    DriveRebooted = 10 => "DRIVE_REBOOTED",
-    DriveSetup = 11 => "DRIVE_SETUP",
-    DriveTransition = 12 => "DRIVE_TRANSITION",
-    DriveNmt = 13 => "DRIVE_NMT",
-});
-
-/// Where the odometry comes from (`ODOM_SLIP.source`, version 7).
-#[derive(Clone, Copy, PartialEq, Eq, Debug, Default)]
-pub enum OdometrySource {
-    /// The wheels (and the gyro's rotation, as `STATUS.heading_source` says): the robot is
-    /// configured without pods. Never sent: such a robot sends no `ODOM_SLIP`.
-    #[default]
-    Wheels = 0,
-    /// Two pods' translation, the gyro's rotation (the wheels' while the gyro is silent).
-    Pods2Gyro = 1,
-    /// Three pods: translation and rotation.
-    Pods3 = 2,
-    /// The wheels, although the robot is configured for pods: no valid `POD_COUNTS` within
-    /// the pod timeout (or none yet). A warning, not a fault; the pods take over again from
-    /// the second valid frame (the first sets their baseline).
-    WheelsPodsSilent = 3,
-}
+u8_enum!(
+    /// Where the odometry comes from (`ODOM_SLIP.source`, version 7).
+    #[derive(Default)]
+    OdometrySource {
+        /// The wheels (and the gyro's rotation, as `STATUS.heading_source` says): the robot is
+        /// configured without pods. Never sent: such a robot sends no `ODOM_SLIP`.
+        #[default]
+        Wheels = 0 => "WHEELS",
+        /// Two pods' translation, the gyro's rotation (the wheels' while the gyro is silent).
+        Pods2Gyro = 1 => "PODS2_GYRO",
+        /// Three pods: translation and rotation.
+        Pods3 = 2 => "PODS3",
+        /// The wheels, although the robot is configured for pods: no valid `POD_COUNTS` within
+        /// the pod timeout (or none yet). A warning, not a fault; the pods take over again from
+        /// the second valid frame (the first sets their baseline).
+        WheelsPodsSilent = 3 => "WHEELS_PODS_SILENT",
+    }
+);
 
 /// A twist setpoint (`TWIST_CMD`), body frame.
 #[derive(Clone, Copy, PartialEq, Debug, Default)]
@@ -500,19 +406,19 @@ pub struct WheelTest {
     pub duration_ms: u16,
 }
 
-/// How a wheel test ended (`WHEEL_TEST_RESULT.outcome`).
-#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
-#[repr(u8)]
-pub enum TestOutcome {
-    /// It ran for its duration.
-    Done = 0,
-    /// `MODE_CMD` disable or `ESTOP` ended it early.
-    Stopped = 1,
-    /// A fault ended it (`STATUS.fault` says which).
-    Fault = 2,
-    /// Not run: the robot was not disabled.
-    Refused = 3,
-}
+u8_enum!(
+    /// How a wheel test ended (`WHEEL_TEST_RESULT.outcome`).
+    TestOutcome {
+        /// It ran for its duration.
+        Done = 0 => "DONE",
+        /// `MODE_CMD` disable or `ESTOP` ended it early.
+        Stopped = 1 => "STOPPED",
+        /// A fault ended it (`STATUS.fault` says which).
+        Fault = 2 => "FAULT",
+        /// Not run: the robot was not disabled.
+        Refused = 3 => "REFUSED",
+    }
+);
 
 /// The end of a wheel test (`WHEEL_TEST_RESULT`).
 #[derive(Clone, Copy, PartialEq, Debug)]

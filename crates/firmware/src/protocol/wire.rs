@@ -19,6 +19,14 @@ pub struct MessageDef {
     pub dlc: u8,
 }
 
+impl MessageDef {
+    /// The message `name` with base id `id`, sent with `dlc` bytes.
+    #[must_use]
+    pub const fn new(name: &'static str, id: u16, dlc: u8) -> Self {
+        Self { name, id, dlc }
+    }
+}
+
 /// Byte order of a multi-byte field.
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
 pub enum ByteOrder {

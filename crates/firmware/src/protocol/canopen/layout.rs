@@ -7,68 +7,28 @@ use crate::protocol::wire::{ByteOrder::Little, Field, MessageDef, WireType::*};
 pub const NODE_MAX: u8 = 127;
 
 /// NMT node control (id 0x000, master → all).
-pub const NMT: MessageDef = MessageDef {
-    name: "NMT",
-    id: 0x000,
-    dlc: 2,
-};
+pub const NMT: MessageDef = MessageDef::new("NMT", 0x000, 2);
 /// SYNC (id 0x080, master → all); DLC 0, or 1 with a counter.
-pub const SYNC: MessageDef = MessageDef {
-    name: "SYNC",
-    id: 0x080,
-    dlc: 0,
-};
+pub const SYNC: MessageDef = MessageDef::new("SYNC", 0x080, 0);
 /// DLCs accepted for SYNC.
 pub const SYNC_DLCS: [u8; 2] = [0, 1];
 /// EMCY (0x080 + node).
-pub const EMCY: MessageDef = MessageDef {
-    name: "EMCY",
-    id: 0x080,
-    dlc: 8,
-};
+pub const EMCY: MessageDef = MessageDef::new("EMCY", 0x080, 8);
 /// TPDO1 (0x180 + node): statusword and the (first) axis's actual velocity.
-pub const TPDO1: MessageDef = MessageDef {
-    name: "TPDO1",
-    id: 0x180,
-    dlc: 6,
-};
+pub const TPDO1: MessageDef = MessageDef::new("TPDO1", 0x180, 6);
 /// TPDO2 (0x280 + node): the second axis's actual velocity (dual-axis nodes).
-pub const TPDO2: MessageDef = MessageDef {
-    name: "TPDO2",
-    id: 0x280,
-    dlc: 4,
-};
+pub const TPDO2: MessageDef = MessageDef::new("TPDO2", 0x280, 4);
 /// RPDO1 (0x200 + node): controlword and the (first) axis's target velocity.
-pub const RPDO1: MessageDef = MessageDef {
-    name: "RPDO1",
-    id: 0x200,
-    dlc: 6,
-};
+pub const RPDO1: MessageDef = MessageDef::new("RPDO1", 0x200, 6);
 /// RPDO3 (0x400 + node): the second axis's target velocity (dual-axis nodes). RPDO2's
 /// predefined id, 0x300 + node, is the robot protocol's block.
-pub const RPDO3: MessageDef = MessageDef {
-    name: "RPDO3",
-    id: 0x400,
-    dlc: 4,
-};
+pub const RPDO3: MessageDef = MessageDef::new("RPDO3", 0x400, 4);
 /// SDO server → client (0x580 + node).
-pub const SDO_RESPONSE: MessageDef = MessageDef {
-    name: "SDO_RESPONSE",
-    id: 0x580,
-    dlc: 8,
-};
+pub const SDO_RESPONSE: MessageDef = MessageDef::new("SDO_RESPONSE", 0x580, 8);
 /// SDO client → server (0x600 + node).
-pub const SDO_REQUEST: MessageDef = MessageDef {
-    name: "SDO_REQUEST",
-    id: 0x600,
-    dlc: 8,
-};
+pub const SDO_REQUEST: MessageDef = MessageDef::new("SDO_REQUEST", 0x600, 8);
 /// Heartbeat and boot-up (0x700 + node).
-pub const HEARTBEAT: MessageDef = MessageDef {
-    name: "HEARTBEAT",
-    id: 0x700,
-    dlc: 1,
-};
+pub const HEARTBEAT: MessageDef = MessageDef::new("HEARTBEAT", 0x700, 1);
 
 /// `NMT.command` (see [`super::NmtCommand`]).
 pub const NMT_COMMAND: Field = Field::int("command", 0, U8, Little);

@@ -6,49 +6,35 @@ use super::{Message, NodeId, layout};
 use crate::protocol::error::DecodeError;
 use crate::protocol::wire::{self, Payload};
 
-/// An NMT command (`NMT.command`).
-#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
-#[repr(u8)]
-pub enum NmtCommand {
-    /// Enter operational: PDOs flow.
-    Start = 0x01,
-    /// Enter stopped.
-    Stop = 0x02,
-    /// Enter pre-operational: SDOs only.
-    EnterPreOperational = 0x80,
-    /// Reset the application (and the communication).
-    ResetNode = 0x81,
-    /// Reset the communication objects (PDO configuration) to their defaults.
-    ResetCommunication = 0x82,
-}
+u8_enum!(
+    /// An NMT command (`NMT.command`).
+    NmtCommand {
+        /// Enter operational: PDOs flow.
+        Start = 0x01 => "START",
+        /// Enter stopped.
+        Stop = 0x02 => "STOP",
+        /// Enter pre-operational: SDOs only.
+        EnterPreOperational = 0x80 => "PRE_OPERATIONAL",
+        /// Reset the application (and the communication).
+        ResetNode = 0x81 => "RESET_NODE",
+        /// Reset the communication objects (PDO configuration) to their defaults.
+        ResetCommunication = 0x82 => "RESET_COMMUNICATION",
+    }
+);
 
-/// A node's NMT state, as its heartbeat reports it.
-#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
-#[repr(u8)]
-pub enum NmtState {
-    /// The boot-up message: the node has (re)started and is pre-operational.
-    BootUp = 0x00,
-    /// Stopped.
-    Stopped = 0x04,
-    /// Operational.
-    Operational = 0x05,
-    /// Pre-operational.
-    PreOperational = 0x7F,
-}
-
-u8_enum!(NmtCommand {
-    Start = 0x01 => "START",
-    Stop = 0x02 => "STOP",
-    EnterPreOperational = 0x80 => "PRE_OPERATIONAL",
-    ResetNode = 0x81 => "RESET_NODE",
-    ResetCommunication = 0x82 => "RESET_COMMUNICATION",
-});
-u8_enum!(NmtState {
-    BootUp = 0x00 => "BOOT_UP",
-    Stopped = 0x04 => "STOPPED",
-    Operational = 0x05 => "OPERATIONAL",
-    PreOperational = 0x7F => "PRE_OPERATIONAL",
-});
+u8_enum!(
+    /// A node's NMT state, as its heartbeat reports it.
+    NmtState {
+        /// The boot-up message: the node has (re)started and is pre-operational.
+        BootUp = 0x00 => "BOOT_UP",
+        /// Stopped.
+        Stopped = 0x04 => "STOPPED",
+        /// Operational.
+        Operational = 0x05 => "OPERATIONAL",
+        /// Pre-operational.
+        PreOperational = 0x7F => "PRE_OPERATIONAL",
+    }
+);
 
 /// Writes an NMT command for `node` (`None`: every node).
 pub(super) fn put(p: &mut Payload, command: NmtCommand, node: Option<NodeId>) {

@@ -158,40 +158,26 @@ pub const fn abort_text(code: u32) -> Option<&'static str> {
 impl SdoRequest {
     /// Writes the request's payload.
     pub(super) fn put(&self, p: &mut Payload) {
-        let (command, data) = match *self {
-            Self::Upload { .. } => (layout::SDO_UPLOAD, 0),
-            Self::Download { value, size, .. } => {
-                let size = size.clamp(1, 4);
-                (layout::SDO_DOWNLOAD | (4 - size) << 2, mask(value, size))
-            }
-            Self::Abort { code, .. } => (layout::SDO_ABORT, code),
+        let transfer = match *self {
+            Self::Upload { .. } => Transfer::Plain,
+            Self::Download { value, size, .. } => Transfer::Expedited { value, size },
+            Self::Abort { code, .. } => Transfer::Abort(code),
         };
-        put_sdo(p, command, self.object(), data);
+        transfer.put(p, REQUEST, self.object());
     }
 
     /// Reads a request's payload.
     pub(super) fn read(p: &Payload) -> Result<Self, DecodeError> {
-        let command = layout::SDO_COMMAND.raw(p) as u8;
-        let (index, sub) = sdo_object(p);
-        let data = layout::SDO_DATA.raw(p) as u32;
-        Ok(match command {
-            layout::SDO_UPLOAD => Self::Upload { index, sub },
-            layout::SDO_ABORT => Self::Abort {
+        let ((index, sub), transfer) = Transfer::read(p, REQUEST)?;
+        Ok(match transfer {
+            Transfer::Plain => Self::Upload { index, sub },
+            Transfer::Expedited { value, size } => Self::Download {
                 index,
                 sub,
-                code: data,
+                value,
+                size,
             },
-            // ccs 1, expedited (bit 1), bit 4 clear.
-            c if c & 0xF2 == 0x22 => {
-                let size = expedited_size(c);
-                Self::Download {
-                    index,
-                    sub,
-                    value: mask(data, size),
-                    size,
-                }
-            }
-            c => return Err(bad_command(c)),
+            Transfer::Abort(code) => Self::Abort { index, sub, code },
         })
     }
 }
@@ -199,41 +185,102 @@ impl SdoRequest {
 impl SdoResponse {
     /// Writes the response's payload.
     pub(super) fn put(&self, p: &mut Payload) {
-        let (command, data) = match *self {
-            Self::Uploaded { value, size, .. } => {
-                let size = size.clamp(1, 4);
-                (layout::SDO_UPLOADED | (4 - size) << 2, mask(value, size))
-            }
-            Self::Downloaded { .. } => (layout::SDO_DOWNLOADED, 0),
-            Self::Abort { code, .. } => (layout::SDO_ABORT, code),
+        let transfer = match *self {
+            Self::Uploaded { value, size, .. } => Transfer::Expedited { value, size },
+            Self::Downloaded { .. } => Transfer::Plain,
+            Self::Abort { code, .. } => Transfer::Abort(code),
         };
-        put_sdo(p, command, self.object(), data);
+        transfer.put(p, RESPONSE, self.object());
     }
 
     /// Reads a response's payload.
     pub(super) fn read(p: &Payload) -> Result<Self, DecodeError> {
-        let command = layout::SDO_COMMAND.raw(p) as u8;
-        let (index, sub) = sdo_object(p);
-        let data = layout::SDO_DATA.raw(p) as u32;
-        Ok(match command {
-            layout::SDO_DOWNLOADED => Self::Downloaded { index, sub },
-            layout::SDO_ABORT => Self::Abort {
+        let ((index, sub), transfer) = Transfer::read(p, RESPONSE)?;
+        Ok(match transfer {
+            Transfer::Plain => Self::Downloaded { index, sub },
+            Transfer::Expedited { value, size } => Self::Uploaded {
                 index,
                 sub,
-                code: data,
+                value,
+                size,
             },
-            // scs 2, expedited (bit 1), bit 4 clear.
-            c if c & 0xF2 == 0x42 => {
+            Transfer::Abort(code) => Self::Abort { index, sub, code },
+        })
+    }
+}
+
+/// The command bytes of one direction: the one without data (an upload request, a download
+/// response) and the expedited transfer's (a download request, an upload response), whose
+/// size bits [`Transfer::put`] sets.
+struct Commands {
+    plain: u8,
+    expedited: u8,
+}
+
+/// Client → server: ccs 2 (upload) and 1 (download).
+const REQUEST: Commands = Commands {
+    plain: layout::SDO_UPLOAD,
+    expedited: layout::SDO_DOWNLOAD,
+};
+/// Server → client: scs 3 (download done) and 2 (upload).
+const RESPONSE: Commands = Commands {
+    plain: layout::SDO_DOWNLOADED,
+    expedited: layout::SDO_UPLOADED,
+};
+
+/// What an SDO payload carries besides the object, in either direction.
+enum Transfer {
+    /// The command alone.
+    Plain,
+    /// An expedited value of `size` bytes (1..=4).
+    Expedited { value: u32, size: u8 },
+    /// An abort code.
+    Abort(u32),
+}
+
+impl Transfer {
+    fn put(self, p: &mut Payload, commands: Commands, (index, sub): (u16, u8)) {
+        let (command, data) = match self {
+            Self::Plain => (commands.plain, 0),
+            Self::Expedited { value, size } => {
+                let size = size.clamp(1, 4);
+                (commands.expedited | (4 - size) << 2, mask(value, size))
+            }
+            Self::Abort(code) => (layout::SDO_ABORT, code),
+        };
+        layout::SDO_COMMAND.put_raw(p, command.into());
+        layout::SDO_INDEX.put_raw(p, index.into());
+        layout::SDO_SUBINDEX.put_raw(p, sub.into());
+        layout::SDO_DATA.put_raw(p, data.into());
+    }
+
+    fn read(p: &Payload, commands: Commands) -> Result<((u16, u8), Self), DecodeError> {
+        let command = layout::SDO_COMMAND.raw(p) as u8;
+        // The fields are 16 and 8 bits wide.
+        let object = (
+            layout::SDO_INDEX.raw(p) as u16,
+            layout::SDO_SUBINDEX.raw(p) as u8,
+        );
+        let data = layout::SDO_DATA.raw(p) as u32;
+        let transfer = match command {
+            c if c == commands.plain => Self::Plain,
+            layout::SDO_ABORT => Self::Abort(data),
+            // The expedited command specifier with bit 4 clear, whatever the size bits.
+            c if c & 0xF2 == commands.expedited & 0xF2 => {
                 let size = expedited_size(c);
-                Self::Uploaded {
-                    index,
-                    sub,
+                Self::Expedited {
                     value: mask(data, size),
                     size,
                 }
             }
-            c => return Err(bad_command(c)),
-        })
+            c => {
+                return Err(DecodeError::OutOfRange {
+                    field: layout::SDO_COMMAND.name,
+                    value: c.into(),
+                });
+            }
+        };
+        Ok((object, transfer))
     }
 }
 
@@ -247,22 +294,6 @@ const fn mask(value: u32, size: u8) -> u32 {
     }
 }
 
-fn put_sdo(p: &mut Payload, command: u8, (index, sub): (u16, u8), data: u32) {
-    layout::SDO_COMMAND.put_raw(p, command.into());
-    layout::SDO_INDEX.put_raw(p, index.into());
-    layout::SDO_SUBINDEX.put_raw(p, sub.into());
-    layout::SDO_DATA.put_raw(p, data.into());
-}
-
-/// The object of an SDO frame's payload.
-fn sdo_object(p: &Payload) -> (u16, u8) {
-    // The fields are 16 and 8 bits wide.
-    (
-        layout::SDO_INDEX.raw(p) as u16,
-        layout::SDO_SUBINDEX.raw(p) as u8,
-    )
-}
-
 /// The data size of an expedited transfer's command byte: `n` in bits 2-3 counts the unused
 /// bytes when bit 0 (size indicated) is set; without it the size is 4.
 const fn expedited_size(command: u8) -> u8 {
@@ -270,13 +301,6 @@ const fn expedited_size(command: u8) -> u8 {
         4 - ((command >> 2) & 0x03)
     } else {
         4
-    }
-}
-
-fn bad_command(command: u8) -> DecodeError {
-    DecodeError::OutOfRange {
-        field: layout::SDO_COMMAND.name,
-        value: command.into(),
     }
 }
 
