@@ -293,11 +293,12 @@ impl Config {
         let inverted = [0, 1, 2, 3].map(|i| inverted_bits & (1 << i) != 0);
         let drive = match protocol {
             0 => Drive::Dji {
-                model: match model {
-                    0 => EscModel::C620,
-                    1 => EscModel::C610,
-                    other => return Err(tag("drive.model", other, "0 (C620) or 1 (C610)")),
-                },
+                model: pick(
+                    "drive.model",
+                    model,
+                    [EscModel::C620, EscModel::C610],
+                    "0 (C620) or 1 (C610)",
+                )?,
                 esc_ids: ids,
                 gear_ratio,
                 inverted,
@@ -355,32 +356,25 @@ impl Config {
             boot_timeout_ms: r.u32(),
             stale_periods: r.u32(),
         };
-        let heading_source = match r.u8() {
-            0 => HeadingMode::Wheels,
-            1 => HeadingMode::Gyro,
-            other => {
-                return Err(tag(
-                    "odometry.heading_source",
-                    other,
-                    "0 (wheels) or 1 (gyro)",
-                ));
-            }
-        };
+        let heading_source = pick(
+            "odometry.heading_source",
+            r.u8(),
+            [HeadingMode::Wheels, HeadingMode::Gyro],
+            "0 (wheels) or 1 (gyro)",
+        )?;
         let gyro_timeout_ms = r.u32();
         let gyro_standstill_ms = r.u32();
         let gyro_bias_estimation = r.flag("odometry.gyro_bias_estimation")?;
-        let source = match r.u8() {
-            0 => OdometryMode::Wheels,
-            1 => OdometryMode::Pods2Gyro,
-            2 => OdometryMode::Pods3,
-            other => {
-                return Err(tag(
-                    "odometry.source",
-                    other,
-                    "0 (wheels), 1 (pods2_gyro) or 2 (pods3)",
-                ));
-            }
-        };
+        let source = pick(
+            "odometry.source",
+            r.u8(),
+            [
+                OdometryMode::Wheels,
+                OdometryMode::Pods2Gyro,
+                OdometryMode::Pods3,
+            ],
+            "0 (wheels), 1 (pods2_gyro) or 2 (pods3)",
+        )?;
         let pod_timeout_ms = r.u32();
         let count = r.u8();
         let mut list = [PodConfig::default(); PODS_MAX];
@@ -442,6 +436,21 @@ fn tag(field: &'static str, value: u8, expected: &'static str) -> ConfigError {
     }
 }
 
+/// The value of a unit-like enum (or a flag) whose tag is `raw`: tags are the indices in
+/// `values`, in the order [`Config::encode`] writes them; any other is an error naming `field`
+/// and the `expected` tags.
+fn pick<T: Copy, const N: usize>(
+    field: &'static str,
+    raw: u8,
+    values: [T; N],
+    expected: &'static str,
+) -> Result<T, ConfigError> {
+    values
+        .get(usize::from(raw))
+        .copied()
+        .ok_or_else(|| tag(field, raw, expected))
+}
+
 struct Writer {
     out: [u8; ENCODED_LEN],
     at: usize,
@@ -495,11 +504,7 @@ impl Reader<'_> {
     }
 
     fn flag(&mut self, field: &'static str) -> Result<bool, ConfigError> {
-        match self.u8() {
-            0 => Ok(false),
-            1 => Ok(true),
-            other => Err(tag(field, other, "0 or 1")),
-        }
+        pick(field, self.u8(), [false, true], "0 or 1")
     }
 }
 

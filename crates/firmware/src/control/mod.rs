@@ -59,6 +59,7 @@ pub use self::wheel_test::WHEEL_TEST_CURRENT_FRACTION;
 pub use crate::protocol::robot::{Fault, HeadingSource, OdometrySource};
 
 use self::current_loop::WatchInputs;
+use self::telemetry::Due;
 use self::time::Every;
 use crate::config::{Config, ConfigError, Drive};
 use crate::frame::CanFrame;
@@ -248,8 +249,7 @@ pub struct Controller {
 
     /// Odometry and status frames due while the robot held its block (CiA 402: a drive's
     /// RPDO2 may be on), sent at the first step it may speak again.
-    held_odom: bool,
-    held_status: bool,
+    held: Due,
 
     boot: Option<Instant>,
     steps: u64,
@@ -350,8 +350,7 @@ impl Controller {
             rx_errors: RxErrorCounters::new(),
             gyro: odometry::Gyro::default(),
             pods: pods::Pods::new(&config.odometry),
-            held_odom: false,
-            held_status: false,
+            held: Due::default(),
             boot: None,
             steps: 0,
             status_requested: false,
@@ -465,8 +464,10 @@ impl Controller {
         self.update_pods(now);
         self.integrate_odometry();
         // One tick of every rate divider per step, whether or not its frames go out.
-        let odom_due = self.odom_clock.tick();
-        let status_due = self.status_clock.tick();
+        let due = Due {
+            odom: self.odom_clock.tick(),
+            status: self.status_clock.tick(),
+        };
         let setpoint_due = self.setpoint_clock.tick();
 
         // The wheels driven (bit i: wheel i) and their setpoints.
@@ -488,7 +489,7 @@ impl Controller {
         };
         self.emit_drive(out, mask, setpoint_due);
         self.note_test_current();
-        self.emit_robot_block(out, now, boot, odom_due, status_due);
+        self.emit_robot_block(out, now, boot, due);
         self.steps += 1;
     }
 
@@ -530,28 +531,19 @@ impl Controller {
     /// them all (the due ones go out at the first step it may speak; its first `HEARTBEAT`
     /// tells a host the block is safe), and in any state a frame with an id that is such
     /// an RPDO2 is not sent (`docs/protocol.md`, "The RPDO2 window").
-    fn emit_robot_block(
-        &mut self,
-        out: &mut Outbox,
-        now: Instant,
-        boot: Instant,
-        odom_due: bool,
-        status_due: bool,
-    ) {
+    fn emit_robot_block(&mut self, out: &mut Outbox, now: Instant, boot: Instant, due: Due) {
         let DriveState::Cia402(c) = &self.drive else {
-            self.emit_telemetry(out, now, boot, odom_due, status_due);
+            self.emit_telemetry(out, now, boot, due);
             return;
         };
         let faulted = matches!(self.state, RobotState::Fault | RobotState::Estop);
         if c.rpdo2_pending(faulted) {
-            self.held_odom |= odom_due;
-            self.held_status |= status_due;
+            self.held = self.held.or(due);
             return;
         }
-        let odom_due = odom_due || core::mem::take(&mut self.held_odom);
-        let status_due = status_due || core::mem::take(&mut self.held_status);
+        let due = due.or(core::mem::take(&mut self.held));
         let first = out.len();
-        self.emit_telemetry(out, now, boot, odom_due, status_due);
+        self.emit_telemetry(out, now, boot, due);
         if let DriveState::Cia402(c) = &self.drive {
             let mut i = 0;
             out.retain(|f| {

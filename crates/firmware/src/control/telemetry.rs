@@ -7,6 +7,25 @@ use super::{Controller, Instant, Outbox, push};
 use crate::protocol::RxErrorCounters;
 use crate::protocol::robot::{self, Fault, HeadingSource, OdometrySource, RobotState};
 
+/// Which of the robot's frames at their own rates a step owes.
+#[derive(Debug, Clone, Copy, Default)]
+pub(super) struct Due {
+    /// Odometry (and the slip, with pods).
+    pub(super) odom: bool,
+    /// Status, its counters and the heartbeat.
+    pub(super) status: bool,
+}
+
+impl Due {
+    /// What either owes.
+    pub(super) fn or(self, other: Self) -> Self {
+        Self {
+            odom: self.odom || other.odom,
+            status: self.status || other.status,
+        }
+    }
+}
+
 /// Snapshot of the controller for logs and tests.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Snapshot {
@@ -89,17 +108,16 @@ impl Controller {
         }
     }
 
-    /// The robot's frames due at step `now`: odometry (`odom_due`), status and its counters
-    /// (`status_due`, or asked for), a wheel test's result, the heartbeat (`status_due`).
+    /// The robot's frames due at step `now`: odometry (`due.odom`), status and its counters
+    /// (`due.status`, or asked for), a wheel test's result, the heartbeat (`due.status`).
     pub(super) fn emit_telemetry(
         &mut self,
         out: &mut Outbox,
         now: Instant,
         boot: Instant,
-        odom_due: bool,
-        status_due: bool,
+        due: Due,
     ) {
-        if odom_due {
+        if due.odom {
             let p = self.odometry.pose();
             let v = self.pods.velocity(self.measured);
             push(
@@ -131,7 +149,7 @@ impl Controller {
                 );
             }
         }
-        if status_due || self.status_requested {
+        if due.status || self.status_requested {
             self.status_requested = false;
             let e = &self.rx_errors;
             let sat = |n: u32| u16::try_from(n).unwrap_or(u16::MAX);
@@ -164,7 +182,7 @@ impl Controller {
         if let Some(r) = self.test_result.take() {
             push(out, robot::Telemetry::WheelTestResult(r).to_can_frame());
         }
-        if status_due {
+        if due.status {
             let uptime_ms = now.micros_since(boot) / 1000;
             push(
                 out,
