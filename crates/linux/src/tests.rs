@@ -32,6 +32,18 @@ fn dji() -> Controller {
     Controller::new(&Config::dji_m3508_example()).unwrap()
 }
 
+/// A clock at [`T0`] and an empty bus on it.
+fn scripted() -> (Rc<ScriptedClock>, ScriptedBus) {
+    let clock = ScriptedClock::new(T0, [], 0);
+    let bus = ScriptedBus::new(&clock, []);
+    (clock, bus)
+}
+
+/// [`run`] of the DJI example's core on `bus`, with no stop signal.
+fn run_dji<B: Bus>(bus: &mut B, clock: &ScriptedClock, options: &RunOptions) -> Report {
+    run(&mut dji(), bus, clock, options, &AtomicUsize::new(0))
+}
+
 fn for_ms(ms: u64) -> RunOptions {
     RunOptions {
         duration_us: Some(ms * 1000),
@@ -52,16 +64,8 @@ fn motor_times(bus: &ScriptedBus) -> Vec<u64> {
 
 #[test]
 fn steps_at_absolute_deadlines() {
-    let clock = ScriptedClock::new(T0, [], 0);
-    let mut bus = ScriptedBus::new(&clock, []);
-    let mut ctl = dji();
-    let r = run(
-        &mut ctl,
-        &mut bus,
-        &*clock,
-        &for_ms(10),
-        &AtomicUsize::new(0),
-    );
+    let (clock, mut bus) = scripted();
+    let r = run_dji(&mut bus, &clock, &for_ms(10));
     assert_eq!(r.stop, StopReason::Duration);
     assert_eq!(r.period_us, 1000);
     assert_eq!(r.steps, 10);
@@ -83,16 +87,9 @@ fn steps_at_absolute_deadlines() {
 
 #[test]
 fn a_late_wake_up_does_not_shift_the_schedule() {
-    let clock = ScriptedClock::new(T0, [], 0);
+    let (clock, mut bus) = scripted();
     clock.push_lateness([0, 300, 0, 999, 0]);
-    let mut bus = ScriptedBus::new(&clock, []);
-    let r = run(
-        &mut dji(),
-        &mut bus,
-        &*clock,
-        &for_ms(5),
-        &AtomicUsize::new(0),
-    );
+    let r = run_dji(&mut bus, &clock, &for_ms(5));
     let t = motor_times(&bus);
     assert_eq!(&t[..5], &[T0, T0 + 1300, T0 + 2000, T0 + 3999, T0 + 4000]);
     assert_eq!(r.overruns, 0);
@@ -102,16 +99,9 @@ fn a_late_wake_up_does_not_shift_the_schedule() {
 
 #[test]
 fn an_overrun_is_counted_and_re_anchors() {
-    let clock = ScriptedClock::new(T0, [], 0);
+    let (clock, mut bus) = scripted();
     clock.push_lateness([0, 0, 2500, 0, 0]);
-    let mut bus = ScriptedBus::new(&clock, []);
-    let r = run(
-        &mut dji(),
-        &mut bus,
-        &*clock,
-        &for_ms(7),
-        &AtomicUsize::new(0),
-    );
+    let r = run_dji(&mut bus, &clock, &for_ms(7));
     let t = motor_times(&bus);
     // Step 2 was due at +2000 and ran at +4500; the next steps follow it by one period,
     // with no catch-up burst.
@@ -139,13 +129,7 @@ fn slow_steps_within_one_period_are_not_overruns() {
         }
     }
     let mut slow = Slow(ScriptedBus::new(&clock, []));
-    let r = run(
-        &mut dji(),
-        &mut slow,
-        &*clock,
-        &for_ms(8),
-        &AtomicUsize::new(0),
-    );
+    let r = run_dji(&mut slow, &clock, &for_ms(8));
     assert_eq!(r.steps, 7);
     assert_eq!(r.overruns, 1);
     assert_eq!(r.jitter.max_us, Some(1200));
@@ -157,17 +141,10 @@ fn slow_steps_within_one_period_are_not_overruns() {
 
 #[test]
 fn frames_received_before_a_step_are_fed_to_it() {
-    let clock = ScriptedClock::new(T0, [], 0);
-    let mut bus = ScriptedBus::new(&clock, []);
+    let (clock, mut bus) = scripted();
     let status_req = Command::StatusRequest.to_can_frame();
     bus.incoming.push_back((T0 + 2500, status_req));
-    let r = run(
-        &mut dji(),
-        &mut bus,
-        &*clock,
-        &for_ms(5),
-        &AtomicUsize::new(0),
-    );
+    let r = run_dji(&mut bus, &clock, &for_ms(5));
     let status: Vec<u64> = sent_ids(&bus)
         .into_iter()
         .filter(|&(_, id)| id == 0x312)
@@ -181,8 +158,7 @@ fn frames_received_before_a_step_are_fed_to_it() {
 
 #[test]
 fn every_waiting_frame_is_drained_up_to_the_cap() {
-    let clock = ScriptedClock::new(T0, [], 0);
-    let mut bus = ScriptedBus::new(&clock, []);
+    let (clock, mut bus) = scripted();
     // Unknown ids: counted by the controller as rejected.
     let junk = CanFrame::standard(embedded_can::StandardId::new(0x123).unwrap(), &[1]).unwrap();
     for _ in 0..10 {
@@ -192,13 +168,7 @@ fn every_waiting_frame_is_drained_up_to_the_cap() {
         max_rx_per_step: 4,
         ..for_ms(5)
     };
-    let r = run(
-        &mut dji(),
-        &mut bus,
-        &*clock,
-        &options,
-        &AtomicUsize::new(0),
-    );
+    let r = run_dji(&mut bus, &clock, &options);
     assert_eq!(r.frames_received, 10);
     assert_eq!(r.node.controller.rx_errors.unknown_id, 10);
     // Steps 1 and 2 took 4 frames each, step 3 the last 2.
@@ -223,8 +193,7 @@ fn drive_frames(t: u64) -> [(u64, CanFrame); 2] {
 
 #[test]
 fn a_stop_sends_the_shutdown_frames() {
-    let clock = ScriptedClock::new(T0, [], 0);
-    let mut bus = ScriptedBus::new(&clock, []);
+    let (clock, mut bus) = scripted();
     bus.incoming.extend(drive_frames(T0 + 100));
     let stop = Rc::new(AtomicUsize::new(0));
     bus.stop_at = Some((T0 + 5000, Rc::clone(&stop)));
@@ -258,8 +227,7 @@ fn a_stop_sends_the_shutdown_frames() {
 
 #[test]
 fn odrive_shutdown_is_zero_velocity_then_idle_per_axis() {
-    let clock = ScriptedClock::new(T0, [], 0);
-    let mut bus = ScriptedBus::new(&clock, []);
+    let (clock, mut bus) = scripted();
     let mut ctl = Controller::new(&Config::odrive_example()).unwrap();
     let r = run(
         &mut ctl,
@@ -279,16 +247,9 @@ fn odrive_shutdown_is_zero_velocity_then_idle_per_axis() {
 
 #[test]
 fn busy_sends_are_retried() {
-    let clock = ScriptedClock::new(T0, [], 0);
-    let mut bus = ScriptedBus::new(&clock, []);
+    let (clock, mut bus) = scripted();
     bus.busy = 3;
-    let r = run(
-        &mut dji(),
-        &mut bus,
-        &*clock,
-        &for_ms(3),
-        &AtomicUsize::new(0),
-    );
+    let r = run_dji(&mut bus, &clock, &for_ms(3));
     assert_eq!(r.send_retries, 3);
     assert_eq!(r.send_errors, 0);
     assert_eq!(r.frames_sent, 6 + 2);
@@ -299,16 +260,9 @@ fn busy_sends_are_retried() {
 
 #[test]
 fn a_bus_that_stays_busy_drops_frames_and_keeps_the_schedule() {
-    let clock = ScriptedClock::new(T0, [], 0);
-    let mut bus = ScriptedBus::new(&clock, []);
+    let (clock, mut bus) = scripted();
     bus.busy = u64::MAX;
-    let r = run(
-        &mut dji(),
-        &mut bus,
-        &*clock,
-        &for_ms(4),
-        &AtomicUsize::new(0),
-    );
+    let r = run_dji(&mut bus, &clock, &for_ms(4));
     assert_eq!(r.steps, 4);
     assert_eq!(r.overruns, 0);
     assert_eq!(r.frames_sent, 0);
@@ -334,13 +288,7 @@ fn other_send_errors_are_counted_without_retry() {
         }
     }
     let clock = ScriptedClock::new(T0, [], 0);
-    let r = run(
-        &mut dji(),
-        &mut Down,
-        &*clock,
-        &for_ms(2),
-        &AtomicUsize::new(0),
-    );
+    let r = run_dji(&mut Down, &clock, &for_ms(2));
     assert_eq!(r.steps, 2);
     assert_eq!(r.send_retries, 0);
     assert_eq!(r.send_errors, 6 + 1);
@@ -372,8 +320,7 @@ impl Recorder for LinkLog {
 
 #[test]
 fn a_lost_link_keeps_the_core_stepping_and_resumes_when_it_is_back() {
-    let clock = ScriptedClock::new(T0, [], 0);
-    let mut bus = ScriptedBus::new(&clock, []);
+    let (clock, mut bus) = scripted();
     // Down from 5 ms to 25 ms.
     bus.down = Some((T0 + 5_000, T0 + 25_000));
     let mut events = LinkLog::default();
@@ -433,8 +380,7 @@ fn a_lost_link_keeps_the_core_stepping_and_resumes_when_it_is_back() {
 
 #[test]
 fn a_link_lost_on_a_send_backs_off_up_to_the_limit() {
-    let clock = ScriptedClock::new(T0, [], 0);
-    let mut bus = ScriptedBus::new(&clock, []);
+    let (clock, mut bus) = scripted();
     // The receive of the first down step already happened: the send sees it first.
     bus.down = Some((T0 + 2_000, T0 + 1_000_000));
     bus.down_reported = true;
@@ -443,13 +389,7 @@ fn a_link_lost_on_a_send_backs_off_up_to_the_limit() {
         link_retry_max_us: 40_000,
         ..for_ms(200)
     };
-    let r = run(
-        &mut dji(),
-        &mut bus,
-        &*clock,
-        &options,
-        &AtomicUsize::new(0),
-    );
+    let r = run_dji(&mut bus, &clock, &options);
     let tries: Vec<u64> = bus.reopens.iter().map(|&(t, _)| t - T0).collect();
     // 10, 20, 40, 40, 40 ms apart; then the one try before the shutdown.
     assert_eq!(
@@ -464,20 +404,13 @@ fn a_link_lost_on_a_send_backs_off_up_to_the_limit() {
 
 #[test]
 fn exit_on_link_loss_stops_the_loop_with_the_reason() {
-    let clock = ScriptedClock::new(T0, [], 0);
-    let mut bus = ScriptedBus::new(&clock, []);
+    let (clock, mut bus) = scripted();
     bus.down = Some((T0 + 3_000, u64::MAX));
     let options = RunOptions {
         exit_on_link_loss: true,
         ..for_ms(50)
     };
-    let r = run(
-        &mut dji(),
-        &mut bus,
-        &*clock,
-        &options,
-        &AtomicUsize::new(0),
-    );
+    let r = run_dji(&mut bus, &clock, &options);
     // The step that saw the loss ran (the core is never skipped); the next one stops.
     assert_eq!((r.stop, r.steps), (StopReason::LinkLost, 4));
     assert_eq!(r.stop.to_string(), "link lost (exit on link loss)");
@@ -539,13 +472,7 @@ fn bus_error_frames_are_counted_and_the_frames_behind_them_still_read() {
         Ok(Some(twist(1))),
     ]));
     let clock = ScriptedClock::new(T0, [], 0);
-    let r = run(
-        &mut dji(),
-        &mut bus,
-        &*clock,
-        &for_ms(2),
-        &AtomicUsize::new(0),
-    );
+    let r = run_dji(&mut bus, &clock, &for_ms(2));
     assert_eq!(
         (r.frames_received, r.bus_error_frames, r.rx_errors),
         (2, 1, 0)
@@ -559,8 +486,7 @@ fn bus_error_frames_are_counted_and_the_frames_behind_them_still_read() {
 
 #[test]
 fn a_stop_before_the_first_step_still_shuts_down() {
-    let clock = ScriptedClock::new(T0, [], 0);
-    let mut bus = ScriptedBus::new(&clock, []);
+    let (clock, mut bus) = scripted();
     let r = run(
         &mut dji(),
         &mut bus,
@@ -583,15 +509,8 @@ fn a_stop_before_the_first_step_still_shuts_down() {
 
 #[test]
 fn the_report_serialises_to_json() {
-    let clock = ScriptedClock::new(T0, [], 0);
-    let mut bus = ScriptedBus::new(&clock, []);
-    let r = run(
-        &mut dji(),
-        &mut bus,
-        &*clock,
-        &for_ms(2),
-        &AtomicUsize::new(0),
-    );
+    let (clock, mut bus) = scripted();
+    let r = run_dji(&mut bus, &clock, &for_ms(2));
     let v: serde_json::Value = serde_json::to_value(&r).unwrap();
     assert_eq!(v["stop"], "duration");
     assert_eq!(v["steps"], 2);
