@@ -10,11 +10,22 @@ use std::time::{Duration, Instant as WallInstant};
 
 use drivelog::write::DIAGNOSTIC_NAME;
 use drivelog::{
-    CHUNK_SIZE, Channel, Direction, LogError, METADATA_NAME, McapLog, MessageTap, OdometrySource,
-    WHEEL_NAMES, for_each_message, msg,
+    CHUNK_SIZE, Channel, Direction, LogError, METADATA_NAME, McapLog, Message, MessageTap,
+    OdometrySource, WHEEL_NAMES, for_each_message, msg,
 };
 use embedded_can::{Frame as _, StandardId};
 use firmware::CanFrame;
+
+/// A message read back, as the `mcap` crate's index gives it too: (topic, log time, publish
+/// time, data).
+fn owned(m: &Message<'_>) -> (String, u64, u64, Vec<u8>) {
+    (
+        m.topic.to_string(),
+        m.log_time,
+        m.publish_time,
+        m.data.to_vec(),
+    )
+}
 
 /// A file of its own for a test, removed when dropped.
 struct TempFile(PathBuf);
@@ -91,14 +102,7 @@ fn a_log_reads_back_through_the_crates_index_and_our_reader_alike() {
     let mut meta = Vec::new();
     let report = for_each_message(
         &bytes,
-        |m| {
-            read.push((
-                m.topic.to_string(),
-                m.log_time,
-                m.publish_time,
-                m.data.to_vec(),
-            ));
-        },
+        |m| read.push(owned(m)),
         |name, kv| meta.push((name.to_string(), kv.clone())),
     )
     .unwrap();
@@ -300,19 +304,7 @@ fn a_tap_sees_every_message_as_the_file_has_it() {
     log.finish().unwrap();
     let bytes = std::fs::read(&file.0).unwrap();
     let mut read = Vec::new();
-    let report = for_each_message(
-        &bytes,
-        |m| {
-            read.push((
-                m.topic.to_string(),
-                m.log_time,
-                m.publish_time,
-                m.data.to_vec(),
-            ))
-        },
-        |_, _| {},
-    )
-    .unwrap();
+    let report = for_each_message(&bytes, |m| read.push(owned(m)), |_, _| {}).unwrap();
     assert!(report.is_complete(), "{report}");
     let seen = seen.lock().unwrap();
     assert_eq!(seen.channels, vec![Channel::ALL.to_vec()]);
@@ -399,6 +391,18 @@ struct Full {
     panic: bool,
 }
 
+impl Full {
+    /// A disk with `room` bytes free.
+    fn disk(room: usize) -> Self {
+        Self { room, panic: false }
+    }
+
+    /// A writer that panics once `room` bytes are written.
+    fn panicking(room: usize) -> Self {
+        Self { room, panic: true }
+    }
+}
+
 impl Write for Full {
     fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
         if self.room == 0 {
@@ -422,13 +426,7 @@ fn log_on(path: &Path, out: Full) -> McapLog {
 #[test]
 fn a_full_disk_comes_back_as_an_error_naming_the_file() {
     let path = Path::new("/nowhere/full.mcap");
-    let mut log = log_on(
-        path,
-        Full {
-            room: 100_000,
-            panic: false,
-        },
-    );
+    let mut log = log_on(path, Full::disk(100_000));
     let err = log_steps(&mut log, 0..10_000).unwrap_err();
     let LogError::Io { path: p, source } = &err;
     assert_eq!(p, path);
@@ -450,13 +448,7 @@ fn a_full_disk_comes_back_as_an_error_naming_the_file() {
 fn a_writer_thread_that_panics_is_an_error_not_a_panic() {
     let path = Path::new("/nowhere/panic.mcap");
     // Room for the header, schemas and metadata; the first batch's chunk panics.
-    let mut log = log_on(
-        path,
-        Full {
-            room: 20_000,
-            panic: true,
-        },
-    );
+    let mut log = log_on(path, Full::panicking(20_000));
     let err = log_steps(&mut log, 0..10_000).unwrap_err();
     assert!(
         err.to_string().contains("writer thread has stopped"),
@@ -464,13 +456,7 @@ fn a_writer_thread_that_panics_is_an_error_not_a_panic() {
     );
     assert!(log.finish().is_err());
     // Dropped without finishing: no panic either.
-    let mut log = log_on(
-        path,
-        Full {
-            room: 20_000,
-            panic: true,
-        },
-    );
+    let mut log = log_on(path, Full::panicking(20_000));
     let _ = log_steps(&mut log, 0..1000);
     drop(log);
 }
