@@ -4,35 +4,15 @@
 
 use kinematics::{
     Axis, ChassisVelocity, Effectiveness, GeometryError, MAX_EFFECTIVENESS, MecanumKinematics,
-    Odometry, Pose2, WheelDeltas, WheelGeometry, WheelSpeeds,
+    Odometry, Pose2, WheelDeltas, WheelSpeeds,
 };
 
-const LX: f64 = 0.2;
-const LY: f64 = 0.15;
-const R: f64 = 0.05;
-const K: f64 = LX + LY;
-const TOL: f64 = 1e-12;
-
-fn ideal() -> MecanumKinematics<f64, 4> {
-    MecanumKinematics::standard(LX, LY, R).unwrap()
-}
+mod common;
+use common::{K, LX, LY, R, TOL, assert_close, assert_twist, standard, standard_wheels};
 
 fn with(kx: f64, ky: f64, kw: f64) -> MecanumKinematics<f64, 4> {
     MecanumKinematics::standard_with_effectiveness(LX, LY, R, Effectiveness::new(kx, ky, kw))
         .unwrap()
-}
-
-fn assert_close(got: f64, want: f64, tol: f64, what: &str) {
-    assert!(
-        (got - want).abs() <= tol,
-        "{what}: got {got}, want {want} (tol {tol})"
-    );
-}
-
-fn assert_twist(got: ChassisVelocity<f64>, want: ChassisVelocity<f64>, tol: f64, what: &str) {
-    assert_close(got.vx, want.vx, tol, &format!("{what} vx"));
-    assert_close(got.vy, want.vy, tol, &format!("{what} vy"));
-    assert_close(got.wz, want.wz, tol, &format!("{what} wz"));
 }
 
 #[test]
@@ -83,7 +63,7 @@ fn forward_reports_k_times_the_wheel_twist_on_every_axis() {
 fn odometry_of_a_strafe_is_k_y_of_what_the_wheels_say() {
     // One metre of ideal strafe in 1000 steps: the ideal odometry says 1 m, the slip-aware
     // one 0.72 m, same heading (none) and no forward motion.
-    let deltas = ideal()
+    let deltas = standard()
         .inverse(ChassisVelocity::new(0.0, 1.0, 0.0))
         .times(1e-3);
     let (mut a, mut b) = (
@@ -92,7 +72,7 @@ fn odometry_of_a_strafe_is_k_y_of_what_the_wheels_say() {
     );
     let slip = with(1.0, 0.72, 1.0);
     for _ in 0..1000 {
-        a.update(&ideal(), &deltas);
+        a.update(&standard(), &deltas);
         b.update(&slip, &deltas);
     }
     assert_close(a.pose().y, 1.0, 1e-12, "ideal y");
@@ -106,13 +86,13 @@ fn the_residual_and_the_implied_speeds_do_not_depend_on_k() {
     // Slip between the wheels is a wheel-space quantity: the same wheels give the same
     // residual whatever the body-axis factors.
     let measured = WheelSpeeds::new(3.0, 11.5, -2.0, 7.0);
-    let (_, r0) = ideal().forward_with_residual(&measured);
+    let (_, r0) = standard().forward_with_residual(&measured);
     let (_, r1) = with(0.9, 0.7, 0.8).forward_with_residual(&measured);
     for (a, b) in r0.0.iter().zip(r1.0) {
         assert_close(b, *a, 1e-12, "residual");
     }
     assert!(r0.rms() > 1.0, "the pattern has a residual: {r0:?}");
-    let i0 = ideal().implied_by_others(&measured);
+    let i0 = standard().implied_by_others(&measured);
     let i1 = with(0.9, 0.7, 0.8).implied_by_others(&measured);
     for (a, b) in i0.iter().zip(i1) {
         assert_close(b.unwrap(), a.unwrap(), 1e-12, "implied");
@@ -140,7 +120,7 @@ fn desaturation_keeps_the_direction_of_the_command() {
 
 #[test]
 fn default_factors_are_the_ideal_map_bit_for_bit() {
-    let k = ideal();
+    let k = standard();
     assert_eq!(k.effectiveness(), Effectiveness::ideal());
     assert_eq!(
         Effectiveness::<f64>::default(),
@@ -220,14 +200,7 @@ fn factors_out_of_range_are_refused_naming_the_axis_and_value() {
     .to_string();
     assert!(msg.contains("lateral") && msg.contains("1.6"), "{msg}");
     // The general constructor checks them too (the first bad axis is named).
-    let q = core::f64::consts::FRAC_PI_4;
-    let a = core::f64::consts::FRAC_PI_2;
-    let wheels = [
-        WheelGeometry::new(LX, LY, a, q, R),
-        WheelGeometry::new(LX, -LY, a, -q, R),
-        WheelGeometry::new(-LX, LY, a, -q, R),
-        WheelGeometry::new(-LX, -LY, a, q, R),
-    ];
+    let wheels = standard_wheels();
     assert_eq!(
         MecanumKinematics::with_effectiveness(wheels, Effectiveness::new(1.0, 0.7, -2.0)),
         Err(GeometryError::Effectiveness {
@@ -239,26 +212,19 @@ fn factors_out_of_range_are_refused_naming_the_axis_and_value() {
 
 #[test]
 fn general_layouts_take_the_factors_too() {
-    let q = core::f64::consts::FRAC_PI_4;
-    let a = core::f64::consts::FRAC_PI_2;
-    let wheels = [
-        WheelGeometry::new(LX, LY, a, q, R),
-        WheelGeometry::new(LX, -LY, a, -q, R),
-        WheelGeometry::new(-LX, LY, a, -q, R),
-        WheelGeometry::new(-LX, -LY, a, q, R),
-    ];
+    let wheels = standard_wheels();
     let e = Effectiveness::new(0.9, 0.72, 0.8);
     let general = MecanumKinematics::with_effectiveness(wheels, e).unwrap();
-    let standard = with(0.9, 0.72, 0.8);
+    let standard_k = with(0.9, 0.72, 0.8);
     assert_eq!(general.effectiveness(), e);
-    let diff = general.inverse_matrix() - standard.inverse_matrix();
+    let diff = general.inverse_matrix() - standard_k.inverse_matrix();
     assert!(diff.amax() < 1e-12, "J differs by {}", diff.amax());
-    let diff = general.forward_matrix() - standard.forward_matrix();
+    let diff = general.forward_matrix() - standard_k.forward_matrix();
     assert!(diff.amax() < 1e-12, "J+ differs by {}", diff.amax());
     // The conditioning is the layout's, not the factors'.
     assert_close(
         general.condition_number(),
-        ideal().condition_number(),
+        standard().condition_number(),
         1e-12,
         "condition",
     );

@@ -8,34 +8,10 @@ use kinematics::{
     ChassisVelocity, GeometryError, MecanumKinematics, WheelDeltas, WheelGeometry, WheelSpeeds,
 };
 
-const LX: f64 = 0.2;
-const LY: f64 = 0.15;
-const R: f64 = 0.05;
-const K: f64 = LX + LY;
-const TOL: f64 = 1e-12;
-
-fn kin() -> MecanumKinematics<f64, 4> {
-    MecanumKinematics::standard(LX, LY, R).expect("standard layout is valid")
-}
-
-fn assert_close(got: f64, want: f64, tol: f64, what: &str) {
-    assert!(
-        (got - want).abs() <= tol,
-        "{what}: got {got}, want {want} (tol {tol})"
-    );
-}
-
-fn assert_wheels(got: &WheelSpeeds<f64, 4>, want: [f64; 4], tol: f64, what: &str) {
-    for (i, name) in ["FL", "FR", "RL", "RR"].iter().enumerate() {
-        assert_close(got.0[i], want[i], tol, &format!("{what} {name}"));
-    }
-}
-
-fn assert_twist(got: ChassisVelocity<f64>, want: ChassisVelocity<f64>, tol: f64, what: &str) {
-    assert_close(got.vx, want.vx, tol, &format!("{what} vx"));
-    assert_close(got.vy, want.vy, tol, &format!("{what} vy"));
-    assert_close(got.wz, want.wz, tol, &format!("{what} wz"));
-}
+mod common;
+use common::{
+    K, LX, LY, R, TOL, assert_close, assert_twist, assert_wheels, standard, standard_wheels,
+};
 
 /// (name, twist, expected wheel speeds written out from the standard rows)
 fn scenarios() -> Vec<(&'static str, ChassisVelocity<f64>, [f64; 4])> {
@@ -75,7 +51,7 @@ fn scenarios() -> Vec<(&'static str, ChassisVelocity<f64>, [f64; 4])> {
 
 #[test]
 fn inverse_matrix() {
-    let kin = kin();
+    let kin = standard();
     for (name, twist, want) in scenarios() {
         assert_wheels(&kin.inverse(twist), want, TOL, name);
     }
@@ -83,7 +59,7 @@ fn inverse_matrix() {
 
 #[test]
 fn forward_matrix() {
-    let kin = kin();
+    let kin = standard();
     for (name, twist, wheels) in scenarios() {
         let (got, residual) = kin.forward_with_residual(&WheelSpeeds(wheels));
         assert_twist(got, twist, TOL, name);
@@ -93,7 +69,7 @@ fn forward_matrix() {
 
 #[test]
 fn forward_of_increments_matrix() {
-    let kin = kin();
+    let kin = standard();
     let dt = 0.01;
     for (name, twist, wheels) in scenarios() {
         let d = kin.displacement(&WheelDeltas(wheels.map(|w| w * dt)));
@@ -105,7 +81,7 @@ fn forward_of_increments_matrix() {
 
 #[test]
 fn rotation_about_a_wheel_leaves_that_wheel_still() {
-    let kin = kin();
+    let kin = standard();
     // About the front-left wheel centre: FL's rollers are at rest over the ground.
     let w = kin.inverse_about(ChassisVelocity::new(0.0, 0.0, 1.5), LX, LY);
     assert_close(w.fl(), 0.0, TOL, "FL about FL");
@@ -129,7 +105,7 @@ fn rotation_about_a_wheel_leaves_that_wheel_still() {
 
 #[test]
 fn off_centre_rotation_matrix() {
-    let kin = kin();
+    let kin = standard();
     // Spinning about a point 1 m ahead: the origin moves sideways (to the right for ccw).
     let w = kin.inverse_about(ChassisVelocity::new(0.0, 0.0, 1.0), 1.0, 0.0);
     let want = [
@@ -143,7 +119,7 @@ fn off_centre_rotation_matrix() {
 
 #[test]
 fn residual_measures_wheel_disagreement() {
-    let kin = kin();
+    let kin = standard();
     // The one pattern the standard layout cannot produce: front wheels against rear wheels,
     // (+1, +1, -1, -1). It is orthogonal to every column of J, so forward kinematics ignores
     // it and the residual is all of it.
@@ -161,7 +137,7 @@ fn residual_measures_wheel_disagreement() {
 
 #[test]
 fn each_wheel_as_the_other_three_imply_it() {
-    let kin = kin();
+    let kin = standard();
     for (name, _, wheels) in scenarios() {
         // Agreeing wheels: every wheel is what the others say.
         let implied = kin.implied_by_others(&WheelSpeeds(wheels));
@@ -191,16 +167,8 @@ fn each_wheel_as_the_other_three_imply_it() {
 
 #[test]
 fn general_model_equals_standard_rows() {
-    let q = core::f64::consts::FRAC_PI_4;
-    let a = core::f64::consts::FRAC_PI_2;
-    let general = MecanumKinematics::new([
-        WheelGeometry::new(LX, LY, a, q, R),
-        WheelGeometry::new(LX, -LY, a, -q, R),
-        WheelGeometry::new(-LX, LY, a, -q, R),
-        WheelGeometry::new(-LX, -LY, a, q, R),
-    ])
-    .unwrap();
-    let standard = kin();
+    let general = MecanumKinematics::new(standard_wheels()).unwrap();
+    let standard = standard();
     let diff = general.inverse_matrix() - standard.inverse_matrix();
     assert!(diff.amax() < 1e-12, "J differs by {}", diff.amax());
     let diff = general.forward_matrix() - standard.forward_matrix();
