@@ -203,6 +203,19 @@ impl Rig {
         self.send(Command::Mode(ModeRequest::Enable));
     }
 
+    /// Enables after 20 ms, commands `[vx, vy, wz]` every 10 ms for 300 ms and once more,
+    /// then the host falls silent; returns the time of that last command, µs.
+    pub fn drive_then_fall_silent(&mut self, [vx, vy, wz]: [f32; 3]) -> u64 {
+        self.run_ms(20);
+        self.enable();
+        for _ in 0..30 {
+            self.twist(vx, vy, wz);
+            self.run_ms(10);
+        }
+        self.twist(vx, vy, wz);
+        self.now_us
+    }
+
     pub fn status(&self) -> robot::Status {
         self.log
             .iter()
@@ -260,14 +273,7 @@ pub fn all_zero(v: [f32; 4]) -> bool {
 /// Drives forward, stops commanding at `t_last`, and returns the time zero setpoints first
 /// appear and the last nonzero one before that.
 pub fn watchdog_zero_time(rig: &mut Rig, with_status_polls: bool) -> (u64, u64) {
-    rig.run_ms(20);
-    rig.enable();
-    for _ in 0..30 {
-        rig.twist(0.3, 0.1, 0.2);
-        rig.run_ms(10);
-    }
-    rig.twist(0.3, 0.1, 0.2);
-    let t_last = rig.now_us;
+    let t_last = rig.drive_then_fall_silent([0.3, 0.1, 0.2]);
     let mut zero_at = None;
     for ms in 0..400u32 {
         if with_status_polls && ms.is_multiple_of(5) {

@@ -303,14 +303,7 @@ fn finite_stop_deceleration_ramps_down_at_the_configured_limit() {
     let mut c = Config::odrive_example();
     c.limits.stop_linear_decel = 5.0; // m/s²: 0.5 m/s -> 0 in 100 ms
     let mut rig = Rig::new(c);
-    rig.run_ms(20);
-    rig.enable();
-    for _ in 0..30 {
-        rig.twist(0.5, 0.0, 0.0);
-        rig.run_ms(10);
-    }
-    rig.twist(0.5, 0.0, 0.0);
-    let t_last = rig.now_us;
+    let t_last = rig.drive_then_fall_silent([0.5, 0.0, 0.0]);
     let t_zero = rig
         .run_until(500, |r, o| odrive_vels(&r.config, o).is_some_and(all_zero))
         .unwrap();
