@@ -332,6 +332,12 @@ class Bench:
         for controlword, want in ((0x06, 0x21), (0x07, 0x23), (0x0F, 0x27)):
             self.until(controlword, want)
 
+    def start(self) -> None:
+        """The master's heartbeat on, then `boot` and `enable`: every node operation enabled."""
+        self.master.start_heartbeat()
+        self.boot()
+        self.enable()
+
 
 @contextlib.contextmanager
 def bench(channel: str, nodes: dict[int, bool]) -> Iterator[Bench]:
@@ -449,9 +455,7 @@ def test_enable_refused_outside_profile_velocity(vcan: str) -> None:
 @pytest.mark.vcan
 def test_quick_stop_slows_down_then_switch_on_disabled(vcan: str) -> None:
     with bench(vcan, {SINGLE: False}) as b:
-        b.master.start_heartbeat()
-        b.boot()
-        b.enable()
+        b.start()
         b.run(0x0F, 30, {SINGLE: (2000,)})
         mark = b.recorder.mark()
         b.until(0x02, 0x07, targets={SINGLE: (2000,)})
@@ -590,9 +594,7 @@ def test_bus_off_faults_and_leaves_operational_until_started(vcan: str) -> None:
     (recovered from bus off, register generic + communication) and a 0x7F heartbeat at once;
     SYNC unanswered until NMT start; then a fault reset (EMCY 0x0000) and it enables again."""
     with bench(vcan, {DUAL: True}) as b:
-        b.master.start_heartbeat()
-        b.boot()
-        b.enable()
+        b.start()
         b.run(0x0F, 5, {DUAL: (300, 300)})
         peer = b.peers[DUAL]
         off = b.recorder.mark()
@@ -622,9 +624,7 @@ def test_bus_off_faults_and_leaves_operational_until_started(vcan: str) -> None:
 @pytest.mark.vcan
 def test_fault_reset_only_on_the_rising_edge_of_bit_7(vcan: str) -> None:
     with bench(vcan, {DUAL: True}) as b:
-        b.master.start_heartbeat()
-        b.boot()
-        b.enable()
+        b.start()
         peer = b.peers[DUAL]
         mark = b.recorder.mark()
         peer.inject_fault()
@@ -652,9 +652,7 @@ def test_fault_reset_only_on_the_rising_edge_of_bit_7(vcan: str) -> None:
 @pytest.mark.vcan
 def test_reboot_sends_boot_up_and_resets_the_pdo_configuration(vcan: str) -> None:
     with bench(vcan, {DUAL: True}) as b:
-        b.master.start_heartbeat()
-        b.boot()
-        b.enable()
+        b.start()
         b.run(0x0F, 20, {DUAL: (800, 800)})
         peer = b.peers[DUAL]
         mark = b.recorder.mark()
