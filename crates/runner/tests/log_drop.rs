@@ -5,17 +5,17 @@
 use std::collections::VecDeque;
 use std::io::{self, Write};
 use std::path::Path;
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant as WallInstant};
 
 use drivelog::read::for_each_message;
 use drivelog::{CHUNK_SIZE, McapLog, msg};
 use firmware::{CanFrame, Config, Controller};
-use mecanum_linux::{LinkEvent, Recorder, RunOptions, run_recorded};
+use mecanum_linux::{LinkEvent, Recorder};
 
 mod common;
-use common::{bus, clock, enable_at, esc_feedback};
+use common::{bus, clock, enable_at, esc_feedback, run_for};
 use mecanum_runner::{MAX_PENDING_EVENTS, McapRecorder, metadata};
 
 /// A file whose writes wait while `stalled` is set (a disk that stops answering), in memory.
@@ -113,24 +113,12 @@ fn a_stalled_disk_costs_dropped_messages_never_a_late_step() {
 
     let clock = clock([], 0);
     let mut bus = bus(&clock, session());
-    let mut controller = Controller::new(&config).unwrap();
-    let options = RunOptions {
-        duration_us: Some(STEPS * 1000),
-        ..RunOptions::default()
-    };
     let mut timed = Timed {
         log: &mut recorder,
         slowest: Duration::ZERO,
     };
     let began = WallInstant::now();
-    let report = run_recorded(
-        &mut controller,
-        &mut bus,
-        &*clock,
-        &options,
-        &AtomicUsize::new(0),
-        &mut timed,
-    );
+    let report = run_for(&config, &clock, &mut bus, STEPS * 1000, &mut timed);
     let (wall, slowest) = (began.elapsed(), timed.slowest);
     let (messages, dropped) = (recorder.messages(), recorder.dropped());
     println!(

@@ -2,14 +2,12 @@
 //! overrun), then `hostsim`'s replay of that log: bit-identical outbound frames.
 
 use std::collections::VecDeque;
-use std::sync::atomic::AtomicUsize;
 
 use firmware::protocol::robot::Command;
-use firmware::{CanFrame, Config, Controller};
-use mecanum_linux::{RunOptions, run_recorded};
+use firmware::{CanFrame, Config};
 
 mod common;
-use common::{T0, bus, clock, enable_at, esc_feedback, std_frame, twists};
+use common::{T0, bus, clock, enable_at, esc_feedback, run_for, std_frame, twists};
 use mecanum_runner::McapRecorder;
 
 /// 600 ms: the four ESCs report every millisecond (wheels turning); the host enables at
@@ -35,20 +33,8 @@ fn a_runner_log_replays_bit_for_bit_at_its_recorded_steps() {
         0,
     );
     let mut bus = bus(&clock, session());
-    let mut controller = Controller::new(&config).unwrap();
     let mut recorder = McapRecorder::create(&path, &config).unwrap();
-    let options = RunOptions {
-        duration_us: Some(600_000),
-        ..RunOptions::default()
-    };
-    let report = run_recorded(
-        &mut controller,
-        &mut bus,
-        &*clock,
-        &options,
-        &AtomicUsize::new(0),
-        &mut recorder,
-    );
+    let report = run_for(&config, &clock, &mut bus, 600_000, &mut recorder);
     assert_eq!(report.overruns, 1);
     assert_eq!(report.node.controller.state_at_stop, "ESTOP");
     assert_eq!(report.node.controller.rx_errors.wrong_dlc, 1);

@@ -4,14 +4,13 @@
 
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::AtomicUsize;
 use std::sync::{Arc, Mutex};
 
 use firmware::{CanFrame, Config, Controller};
-use mecanum_linux::{LinkEvent, Recorder, RunOptions, run_recorded};
+use mecanum_linux::{LinkEvent, Recorder};
 
 mod common;
-use common::{bus, clock, enable_at, esc_feedback, twists};
+use common::{bus, clock, enable_at, esc_feedback, run_for, twists};
 use mecanum_runner::{McapRecorder, TapMaker, rotated_path};
 
 /// Run length: 3 s, 3000 steps.
@@ -93,27 +92,15 @@ fn run(dir: &Path, max_bytes: u64, keep: usize, tap: Option<TapMaker>) -> Run {
     // files instead of 5+.)
     let clock = clock((0..RUN_MS).map(|k| (k * 53) % 300), 0);
     let mut bus = bus(&clock, session());
-    let mut controller = Controller::new(&config).unwrap();
     let mut recorder = McapRecorder::rotating(dir, &config, max_bytes, keep).unwrap();
     if let Some(tap) = tap {
         recorder.serve(tap, std::time::Duration::from_millis(50));
     }
-    let options = RunOptions {
-        duration_us: Some(RUN_MS * 1000),
-        ..RunOptions::default()
-    };
     let mut settled = Settled {
         recorder: &mut recorder,
         slowest_rotation: std::time::Duration::ZERO,
     };
-    let report = run_recorded(
-        &mut controller,
-        &mut bus,
-        &*clock,
-        &options,
-        &AtomicUsize::new(0),
-        &mut settled,
-    );
+    let report = run_for(&config, &clock, &mut bus, RUN_MS * 1000, &mut settled);
     let slowest_rotation = settled.slowest_rotation;
     assert_eq!(recorder.dropped(), 0);
     let result = Run {

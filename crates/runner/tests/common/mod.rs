@@ -5,11 +5,13 @@
 
 use std::collections::VecDeque;
 use std::rc::Rc;
+use std::sync::atomic::AtomicUsize;
 
 use embedded_can::StandardId;
-use firmware::CanFrame;
 use firmware::protocol::robot::{Command, ModeRequest, TwistCmd};
+use firmware::{CanFrame, Config, Controller};
 use mecanum_linux::testing::{ScriptedBus, ScriptedClock};
+use mecanum_linux::{Recorder, Report, RunOptions, run_recorded};
 
 /// Where simulated time starts, µs.
 pub const T0: u64 = 5_000_000;
@@ -26,6 +28,24 @@ pub fn bus(clock: &Rc<ScriptedClock>, incoming: VecDeque<(u64, CanFrame)>) -> Sc
     let mut bus = ScriptedBus::new(clock, incoming);
     bus.send_cost_us = 7;
     bus
+}
+
+/// Runs the core of `config` on `bus` for `duration_us` of `clock` time (no stop signal),
+/// telling `recorder` what the loop does.
+pub fn run_for(
+    config: &Config,
+    clock: &ScriptedClock,
+    bus: &mut ScriptedBus,
+    duration_us: u64,
+    recorder: &mut impl Recorder,
+) -> Report {
+    let mut controller = Controller::new(config).unwrap();
+    let options = RunOptions {
+        duration_us: Some(duration_us),
+        ..RunOptions::default()
+    };
+    let stop = AtomicUsize::new(0);
+    run_recorded(&mut controller, bus, clock, &options, &stop, recorder)
 }
 
 /// A standard data frame.
