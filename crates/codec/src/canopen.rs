@@ -12,7 +12,7 @@ use firmware::protocol::canopen::{
 };
 use firmware::protocol::wire::Payload;
 
-use crate::Decoded;
+use crate::json::Decoded;
 
 /// A CANopen frame as decoded: the message and the SDO command byte that was on the wire (the
 /// message keeps what the byte means; several bytes mean the same, `0x42` and `0x43` for one).
@@ -135,8 +135,21 @@ fn manufacturer(emcy: &Emcy) -> i64 {
 /// (the nodes of `dbc/cia402.dbc`) and the master's heartbeat (node 127); SDO uploads and
 /// downloads of 1, 2 and 4 bytes and aborts both ways.
 pub fn golden_set() -> Vec<CanopenFrame> {
-    let node = |n| NodeId::new(n).unwrap_or_else(|| unreachable!("node ids 1..=127"));
-    let mut v = vec![
+    let mut v = network_messages();
+    for n in [1, 2] {
+        v.extend(node_messages(node_id(n)));
+    }
+    v.into_iter().map(CanopenFrame::encoded).collect()
+}
+
+fn node_id(n: u8) -> NodeId {
+    NodeId::new(n).unwrap_or_else(|| unreachable!("node ids 1..=127"))
+}
+
+/// NMT to one node and to all, SYNC, and the master's heartbeat.
+fn network_messages() -> Vec<Message> {
+    let node = node_id;
+    vec![
         Message::Nmt {
             command: NmtCommand::ResetCommunication,
             node: None,
@@ -162,155 +175,172 @@ pub fn golden_set() -> Vec<CanopenFrame> {
             node: node(127),
             state: NmtState::Operational,
         },
-    ];
-    for n in [1, 2] {
-        let node = node(n);
-        let k = i32::from(n);
-        v.extend([
-            Message::Emcy {
-                node,
-                emcy: Emcy {
-                    error_code: 0x8130,
-                    error_register: 0x11,
-                    manufacturer: [1, 2, 3, 4, n],
-                },
-            },
-            Message::Emcy {
-                node,
-                emcy: Emcy {
-                    error_code: 0,
-                    error_register: 0,
-                    manufacturer: [0; 5],
-                },
-            },
-            Message::Emcy {
-                node,
-                emcy: Emcy {
-                    error_code: 0xFFFF,
-                    error_register: 0xFF,
-                    manufacturer: [0xFF; 5],
-                },
-            },
-            Message::Tpdo1 {
-                node,
-                statusword: 0x0637,
-                velocity: -123_456 * k,
-            },
-            Message::Tpdo1 {
-                node,
-                statusword: 0xFFFF,
-                velocity: i32::MIN,
-            },
-            Message::Tpdo2 {
-                node,
-                velocity: 98_765 * k,
-            },
-            Message::Tpdo2 {
-                node,
-                velocity: i32::MAX,
-            },
-            Message::Rpdo3 { node, target: -1 },
-            Message::Rpdo3 {
-                node,
-                target: i32::MIN,
-            },
-        ]);
-        for (cw, target) in [
-            (controlword::SHUTDOWN, 0),
-            (controlword::SWITCH_ON, 0),
-            (controlword::ENABLE_OPERATION, 2_000 * k),
-            (controlword::QUICK_STOP, i32::MAX),
-            (controlword::FAULT_RESET, i32::MIN),
-        ] {
-            v.push(Message::Rpdo1 {
-                node,
-                controlword: cw,
-                target,
-            });
-        }
-        for request in [
-            SdoRequest::Upload {
-                index: 0x1000,
-                sub: 0,
-            },
-            SdoRequest::Download {
-                index: 0x6060,
-                sub: 0,
-                value: 3,
-                size: 1,
-            },
-            SdoRequest::Download {
-                index: 0x1017,
-                sub: 0,
-                value: 50,
-                size: 2,
-            },
-            SdoRequest::Download {
-                index: 0x1016,
-                sub: 1,
-                value: 127 << 16 | 150,
-                size: 4,
-            },
-            SdoRequest::Download {
-                index: 0x1A00,
-                sub: 1,
-                value: 0x6041_0010,
-                size: 4,
-            },
-            SdoRequest::Abort {
-                index: 0x6060,
-                sub: 0,
-                code: 0x0504_0000,
-            },
-        ] {
-            v.push(Message::SdoRequest { node, request });
-        }
-        for response in [
-            SdoResponse::Uploaded {
-                index: 0x6061,
-                sub: 0,
-                value: 3,
-                size: 1,
-            },
-            SdoResponse::Uploaded {
-                index: 0x6041,
-                sub: 0,
-                value: 0x0637,
-                size: 2,
-            },
-            SdoResponse::Uploaded {
-                index: 0x1000,
-                sub: 0,
-                value: 0x0002_0192,
-                size: 4,
-            },
-            SdoResponse::Downloaded {
-                index: 0x1A00,
-                sub: 2,
-            },
-            SdoResponse::Abort {
-                index: 0x6060,
-                sub: 0,
-                code: 0x0609_0011,
-            },
-            SdoResponse::Abort {
-                index: 0x1400,
-                sub: 1,
-                code: 0x0800_0022,
-            },
-        ] {
-            v.push(Message::SdoResponse { node, response });
-        }
-        for state in [
-            NmtState::BootUp,
-            NmtState::Stopped,
-            NmtState::Operational,
-            NmtState::PreOperational,
-        ] {
-            v.push(Message::Heartbeat { node, state });
-        }
+    ]
+}
+
+/// One node's messages: EMCY, the PDOs with every controlword, SDO both ways, and its
+/// heartbeat in every state.
+fn node_messages(node: NodeId) -> Vec<Message> {
+    let k = i32::from(node.get());
+    let mut v = emcy_and_pdos(node);
+    for (cw, target) in [
+        (controlword::SHUTDOWN, 0),
+        (controlword::SWITCH_ON, 0),
+        (controlword::ENABLE_OPERATION, 2_000 * k),
+        (controlword::QUICK_STOP, i32::MAX),
+        (controlword::FAULT_RESET, i32::MIN),
+    ] {
+        v.push(Message::Rpdo1 {
+            node,
+            controlword: cw,
+            target,
+        });
     }
-    v.into_iter().map(CanopenFrame::encoded).collect()
+    v.extend(sdo_messages(node));
+    for state in [
+        NmtState::BootUp,
+        NmtState::Stopped,
+        NmtState::Operational,
+        NmtState::PreOperational,
+    ] {
+        v.push(Message::Heartbeat { node, state });
+    }
+    v
+}
+
+/// SDO requests (upload, downloads of 1, 2 and 4 bytes, abort) and responses (uploads of 1, 2
+/// and 4 bytes, a download's answer, aborts).
+fn sdo_messages(node: NodeId) -> Vec<Message> {
+    let mut v = Vec::new();
+    for request in [
+        SdoRequest::Upload {
+            index: 0x1000,
+            sub: 0,
+        },
+        SdoRequest::Download {
+            index: 0x6060,
+            sub: 0,
+            value: 3,
+            size: 1,
+        },
+        SdoRequest::Download {
+            index: 0x1017,
+            sub: 0,
+            value: 50,
+            size: 2,
+        },
+        SdoRequest::Download {
+            index: 0x1016,
+            sub: 1,
+            value: 127 << 16 | 150,
+            size: 4,
+        },
+        SdoRequest::Download {
+            index: 0x1A00,
+            sub: 1,
+            value: 0x6041_0010,
+            size: 4,
+        },
+        SdoRequest::Abort {
+            index: 0x6060,
+            sub: 0,
+            code: 0x0504_0000,
+        },
+    ] {
+        v.push(Message::SdoRequest { node, request });
+    }
+    for response in [
+        SdoResponse::Uploaded {
+            index: 0x6061,
+            sub: 0,
+            value: 3,
+            size: 1,
+        },
+        SdoResponse::Uploaded {
+            index: 0x6041,
+            sub: 0,
+            value: 0x0637,
+            size: 2,
+        },
+        SdoResponse::Uploaded {
+            index: 0x1000,
+            sub: 0,
+            value: 0x0002_0192,
+            size: 4,
+        },
+        SdoResponse::Downloaded {
+            index: 0x1A00,
+            sub: 2,
+        },
+        SdoResponse::Abort {
+            index: 0x6060,
+            sub: 0,
+            code: 0x0609_0011,
+        },
+        SdoResponse::Abort {
+            index: 0x1400,
+            sub: 1,
+            code: 0x0800_0022,
+        },
+    ] {
+        v.push(Message::SdoResponse { node, response });
+    }
+    v
+}
+
+/// EMCY (typical, all zeros, all ones), the TPDOs and RPDO3, extremes included.
+fn emcy_and_pdos(node: NodeId) -> Vec<Message> {
+    let n = node.get();
+    let k = i32::from(n);
+    vec![
+        Message::Emcy {
+            node,
+            emcy: Emcy {
+                error_code: 0x8130,
+                error_register: 0x11,
+                manufacturer: [1, 2, 3, 4, n],
+            },
+        },
+        Message::Emcy {
+            node,
+            emcy: Emcy {
+                error_code: 0,
+                error_register: 0,
+                manufacturer: [0; 5],
+            },
+        },
+        Message::Emcy {
+            node,
+            emcy: Emcy {
+                error_code: 0xFFFF,
+                error_register: 0xFF,
+                manufacturer: [0xFF; 5],
+            },
+        },
+        Message::Tpdo1 {
+            node,
+            statusword: 0x0637,
+            velocity: -123_456 * k,
+        },
+        Message::Tpdo1 {
+            node,
+            statusword: 0xFFFF,
+            velocity: i32::MIN,
+        },
+        Message::Tpdo2 {
+            node,
+            velocity: 98_765 * k,
+        },
+        Message::Tpdo2 {
+            node,
+            velocity: i32::MAX,
+        },
+        Message::Rpdo3 { node, target: -1 },
+        Message::Rpdo3 {
+            node,
+            target: i32::MIN,
+        },
+    ]
 }
 
 #[cfg(test)]
