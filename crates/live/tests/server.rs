@@ -136,6 +136,57 @@ async fn the_handshake_names_the_protocol_and_refuses_other_ones() {
     assert_eq!(report.clients.len(), 3);
 }
 
+/// The `advertise` a client gets as soon as the tap is installed, before any message: every
+/// channel, as the file's Channel and Schema records have it. The channel ids by topic.
+async fn advertised_channels(ws: &mut Ws) -> HashMap<&'static str, u64> {
+    let advertise = next_json(ws).await;
+    assert_eq!(advertise["op"], "advertise");
+    let channels = advertise["channels"].as_array().unwrap();
+    assert_eq!(channels.len(), Channel::ALL.len());
+    let mut ids = HashMap::new();
+    for (c, expected) in channels.iter().zip(Channel::ALL) {
+        assert_eq!(c["id"], u64::from(expected.id()));
+        assert_eq!(c["topic"], expected.topic());
+        assert_eq!(c["encoding"], "cdr");
+        assert_eq!(c["schemaName"], expected.def().name);
+        assert_eq!(c["schemaEncoding"], "ros2msg");
+        assert_eq!(c["schema"], expected.def().schema_text());
+        ids.insert(expected.topic(), c["id"].as_u64().unwrap());
+    }
+    ids
+}
+
+/// A `messageData`: (topic, log time, bytes), the topic from its subscription id (10 + the
+/// topic's index in `topics`).
+fn message_data(b: &[u8], topics: &[&str]) -> (String, u64, Vec<u8>) {
+    assert_eq!(b[0], 1, "messageData");
+    let sub = u32::from_le_bytes(b[1..5].try_into().unwrap());
+    let log_time = u64::from_le_bytes(b[5..13].try_into().unwrap());
+    (
+        topics[sub as usize - 10].to_string(),
+        log_time,
+        b[13..].to_vec(),
+    )
+}
+
+/// Every message received is one of the file's, at its log time, with its bytes.
+fn assert_the_files_bytes(received: &[(String, u64, Vec<u8>)], in_file: &[(String, u64, Vec<u8>)]) {
+    let by_key: HashMap<(&str, u64), Vec<&Vec<u8>>> =
+        in_file.iter().fold(HashMap::new(), |mut m, (t, l, d)| {
+            m.entry((t.as_str(), *l)).or_default().push(d);
+            m
+        });
+    for (topic, log_time, data) in received {
+        let same = by_key
+            .get(&(topic.as_str(), *log_time))
+            .unwrap_or_else(|| panic!("{topic} at {log_time} is not in the file"));
+        assert!(
+            same.contains(&data),
+            "{topic} at {log_time}: other bytes than the file's"
+        );
+    }
+}
+
 #[tokio::test]
 async fn subscribed_messages_are_the_files_bytes_at_their_log_times() {
     let file = TempFile::new("subscribed");
@@ -151,21 +202,7 @@ async fn subscribed_messages_are_the_files_bytes_at_their_log_times() {
     let info = next_json(&mut ws).await;
     assert_eq!(info["op"], "serverInfo");
     assert_eq!(info["name"], "test run");
-    // The channels are advertised as soon as the tap is installed, before any message.
-    let advertise = next_json(&mut ws).await;
-    assert_eq!(advertise["op"], "advertise");
-    let channels = advertise["channels"].as_array().unwrap();
-    assert_eq!(channels.len(), Channel::ALL.len());
-    let mut ids = HashMap::new();
-    for (c, expected) in channels.iter().zip(Channel::ALL) {
-        assert_eq!(c["id"], u64::from(expected.id()));
-        assert_eq!(c["topic"], expected.topic());
-        assert_eq!(c["encoding"], "cdr");
-        assert_eq!(c["schemaName"], expected.def().name);
-        assert_eq!(c["schemaEncoding"], "ros2msg");
-        assert_eq!(c["schema"], expected.def().schema_text());
-        ids.insert(expected.topic(), c["id"].as_u64().unwrap());
-    }
+    let ids = advertised_channels(&mut ws).await;
     let topics = ["/odom", "/diagnostics", "/can/rx", "/can/tx"];
     let subscriptions: Vec<Value> = topics
         .iter()
@@ -189,11 +226,7 @@ async fn subscribed_messages_are_the_files_bytes_at_their_log_times() {
         let Some(Ok(m)) = m else { break };
         match m {
             Message::Binary(b) => {
-                assert_eq!(b[0], 1, "messageData");
-                let sub = u32::from_le_bytes(b[1..5].try_into().unwrap());
-                let log_time = u64::from_le_bytes(b[5..13].try_into().unwrap());
-                let topic = topics[sub as usize - 10].to_string();
-                received.push((topic, log_time, b[13..].to_vec()));
+                received.push(message_data(&b, &topics));
                 if received.iter().filter(|r| r.0 == "/odom").count() == 100 {
                     // The whole run: stop the server now that the log is finished.
                     break;
@@ -209,30 +242,11 @@ async fn subscribed_messages_are_the_files_bytes_at_their_log_times() {
     while let Ok(Some(Ok(Message::Binary(b)))) =
         tokio::time::timeout(Duration::from_secs(1), ws.next()).await
     {
-        let sub = u32::from_le_bytes(b[1..5].try_into().unwrap());
-        let log_time = u64::from_le_bytes(b[5..13].try_into().unwrap());
-        received.push((
-            topics[sub as usize - 10].to_string(),
-            log_time,
-            b[13..].to_vec(),
-        ));
+        received.push(message_data(&b, &topics));
     }
 
     let in_file = read_file(&file.0);
-    let by_key: HashMap<(&str, u64), Vec<&Vec<u8>>> =
-        in_file.iter().fold(HashMap::new(), |mut m, (t, l, d)| {
-            m.entry((t.as_str(), *l)).or_default().push(d);
-            m
-        });
-    for (topic, log_time, data) in &received {
-        let same = by_key
-            .get(&(topic.as_str(), *log_time))
-            .unwrap_or_else(|| panic!("{topic} at {log_time} is not in the file"));
-        assert!(
-            same.contains(&data),
-            "{topic} at {log_time}: other bytes than the file's"
-        );
-    }
+    assert_the_files_bytes(&received, &in_file);
     let count = |list: &[(String, u64, Vec<u8>)], topic: &str, after: u64| {
         list.iter().filter(|r| r.0 == topic && r.1 >= after).count()
     };
