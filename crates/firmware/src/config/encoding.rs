@@ -244,94 +244,8 @@ impl Config {
                 expected: "the format version of this firmware's encoding",
             });
         }
-        let start = r.at;
-        let layout = r.u8();
-        let geometry_fields = |r: &mut Reader<'_>| {
-            r.at = start + GEOMETRY_LEN - 3 * 4;
-            [r.f32(), r.f32(), r.f32()]
-        };
-        let geometry = match layout {
-            0 => {
-                let [lx, ly, wheel_radius] = [r.f32(), r.f32(), r.f32()];
-                let [forward, lateral, yaw] = geometry_fields(&mut r);
-                Geometry::Standard {
-                    lx,
-                    ly,
-                    wheel_radius,
-                    forward_effectiveness: forward,
-                    lateral_effectiveness: lateral,
-                    yaw_effectiveness: yaw,
-                }
-            }
-            1 => {
-                let wheels = [(); 4].map(|()| WheelConfig {
-                    x: r.f32(),
-                    y: r.f32(),
-                    axle_angle: r.f32(),
-                    roller_angle: r.f32(),
-                    radius: r.f32(),
-                });
-                let [forward, lateral, yaw] = geometry_fields(&mut r);
-                Geometry::General {
-                    wheels,
-                    forward_effectiveness: forward,
-                    lateral_effectiveness: lateral,
-                    yaw_effectiveness: yaw,
-                }
-            }
-            other => return Err(tag("geometry.layout", other, "0 (standard) or 1 (general)")),
-        };
-        let start = r.at;
-        let protocol = r.u8();
-        let model = r.u8();
-        let ids = [r.u8(), r.u8(), r.u8(), r.u8()];
-        let gear_ratio = r.f32();
-        let inverted_bits = r.u8();
-        if inverted_bits > 0x0F {
-            return Err(tag("drive.inverted", inverted_bits, "4 bits, FL FR RL RR"));
-        }
-        let inverted = [0, 1, 2, 3].map(|i| inverted_bits & (1 << i) != 0);
-        let drive = match protocol {
-            0 => Drive::Dji {
-                model: pick(
-                    "drive.model",
-                    model,
-                    [EscModel::C620, EscModel::C610],
-                    "0 (C620) or 1 (C610)",
-                )?,
-                esc_ids: ids,
-                gear_ratio,
-                inverted,
-            },
-            1 => Drive::Odrive {
-                node_ids: ids,
-                gear_ratio,
-                inverted,
-                vel_ramp: r.flag("drive.vel_ramp")?,
-            },
-            2 => {
-                r.at += 1;
-                Drive::Cia402(Cia402Drive {
-                    node_ids: ids,
-                    axes: [r.u8(), r.u8(), r.u8(), r.u8()],
-                    gear_ratio,
-                    inverted,
-                    target_rpm_per_unit: r.f32(),
-                    actual_rpm_per_unit: r.f32(),
-                    master_node: r.u8(),
-                    heartbeat_ms: r.u16(),
-                    heartbeat_timeout_ms: r.u16(),
-                })
-            }
-            other => {
-                return Err(tag(
-                    "drive.protocol",
-                    other,
-                    "0 (dji), 1 (odrive) or 2 (cia402)",
-                ));
-            }
-        };
-        r.at = start + DRIVE_LEN;
+        let geometry = read_geometry(&mut r)?;
+        let drive = read_drive(&mut r)?;
         let limits = Limits {
             max_linear_speed: r.f32(),
             max_angular_speed: r.f32(),
@@ -356,50 +270,7 @@ impl Config {
             boot_timeout_ms: r.u32(),
             stale_periods: r.u32(),
         };
-        let heading_source = pick(
-            "odometry.heading_source",
-            r.u8(),
-            [HeadingMode::Wheels, HeadingMode::Gyro],
-            "0 (wheels) or 1 (gyro)",
-        )?;
-        let gyro_timeout_ms = r.u32();
-        let gyro_standstill_ms = r.u32();
-        let gyro_bias_estimation = r.flag("odometry.gyro_bias_estimation")?;
-        let source = pick(
-            "odometry.source",
-            r.u8(),
-            [
-                OdometryMode::Wheels,
-                OdometryMode::Pods2Gyro,
-                OdometryMode::Pods3,
-            ],
-            "0 (wheels), 1 (pods2_gyro) or 2 (pods3)",
-        )?;
-        let pod_timeout_ms = r.u32();
-        let count = r.u8();
-        let mut list = [PodConfig::default(); PODS_MAX];
-        for pod in &mut list {
-            *pod = PodConfig {
-                x: r.f32(),
-                y: r.f32(),
-                direction_deg: r.f32(),
-                radius: r.f32(),
-                counts_per_turn: r.u32(),
-            };
-        }
-        let pods = list
-            .get(..usize::from(count))
-            .and_then(Pods::new)
-            .ok_or_else(|| tag("odometry.pods", count, "at most 3 pods"))?;
-        let odometry = OdometryConfig {
-            heading_source,
-            gyro_timeout_ms,
-            gyro_standstill_ms,
-            gyro_bias_estimation,
-            source,
-            pod_timeout_ms,
-            pods,
-        };
+        let odometry = read_odometry(&mut r)?;
         let config = Self {
             geometry,
             drive,
@@ -419,6 +290,153 @@ impl Config {
     pub fn id(&self) -> u16 {
         CRC.checksum(&self.encode())
     }
+}
+
+/// The geometry: its layout's fields, the effectiveness factors at the block's end.
+fn read_geometry(r: &mut Reader<'_>) -> Result<Geometry, ConfigError> {
+    let start = r.at;
+    let layout = r.u8();
+    let geometry_fields = |r: &mut Reader<'_>| {
+        r.at = start + GEOMETRY_LEN - 3 * 4;
+        [r.f32(), r.f32(), r.f32()]
+    };
+    let geometry = match layout {
+        0 => {
+            let [lx, ly, wheel_radius] = [r.f32(), r.f32(), r.f32()];
+            let [forward, lateral, yaw] = geometry_fields(r);
+            Geometry::Standard {
+                lx,
+                ly,
+                wheel_radius,
+                forward_effectiveness: forward,
+                lateral_effectiveness: lateral,
+                yaw_effectiveness: yaw,
+            }
+        }
+        1 => {
+            let wheels = [(); 4].map(|()| WheelConfig {
+                x: r.f32(),
+                y: r.f32(),
+                axle_angle: r.f32(),
+                roller_angle: r.f32(),
+                radius: r.f32(),
+            });
+            let [forward, lateral, yaw] = geometry_fields(r);
+            Geometry::General {
+                wheels,
+                forward_effectiveness: forward,
+                lateral_effectiveness: lateral,
+                yaw_effectiveness: yaw,
+            }
+        }
+        other => return Err(tag("geometry.layout", other, "0 (standard) or 1 (general)")),
+    };
+    Ok(geometry)
+}
+
+/// The drive: protocol, ids, gear ratio and inversion, then the protocol's own fields.
+fn read_drive(r: &mut Reader<'_>) -> Result<Drive, ConfigError> {
+    let start = r.at;
+    let protocol = r.u8();
+    let model = r.u8();
+    let ids = [r.u8(), r.u8(), r.u8(), r.u8()];
+    let gear_ratio = r.f32();
+    let inverted_bits = r.u8();
+    if inverted_bits > 0x0F {
+        return Err(tag("drive.inverted", inverted_bits, "4 bits, FL FR RL RR"));
+    }
+    let inverted = [0, 1, 2, 3].map(|i| inverted_bits & (1 << i) != 0);
+    let drive = match protocol {
+        0 => Drive::Dji {
+            model: pick(
+                "drive.model",
+                model,
+                [EscModel::C620, EscModel::C610],
+                "0 (C620) or 1 (C610)",
+            )?,
+            esc_ids: ids,
+            gear_ratio,
+            inverted,
+        },
+        1 => Drive::Odrive {
+            node_ids: ids,
+            gear_ratio,
+            inverted,
+            vel_ramp: r.flag("drive.vel_ramp")?,
+        },
+        2 => {
+            r.at += 1;
+            Drive::Cia402(Cia402Drive {
+                node_ids: ids,
+                axes: [r.u8(), r.u8(), r.u8(), r.u8()],
+                gear_ratio,
+                inverted,
+                target_rpm_per_unit: r.f32(),
+                actual_rpm_per_unit: r.f32(),
+                master_node: r.u8(),
+                heartbeat_ms: r.u16(),
+                heartbeat_timeout_ms: r.u16(),
+            })
+        }
+        other => {
+            return Err(tag(
+                "drive.protocol",
+                other,
+                "0 (dji), 1 (odrive) or 2 (cia402)",
+            ));
+        }
+    };
+    r.at = start + DRIVE_LEN;
+    Ok(drive)
+}
+
+/// The odometry's section: heading source, the gyro's settings, the source and the pods.
+fn read_odometry(r: &mut Reader<'_>) -> Result<OdometryConfig, ConfigError> {
+    let heading_source = pick(
+        "odometry.heading_source",
+        r.u8(),
+        [HeadingMode::Wheels, HeadingMode::Gyro],
+        "0 (wheels) or 1 (gyro)",
+    )?;
+    let gyro_timeout_ms = r.u32();
+    let gyro_standstill_ms = r.u32();
+    let gyro_bias_estimation = r.flag("odometry.gyro_bias_estimation")?;
+    let source = pick(
+        "odometry.source",
+        r.u8(),
+        [
+            OdometryMode::Wheels,
+            OdometryMode::Pods2Gyro,
+            OdometryMode::Pods3,
+        ],
+        "0 (wheels), 1 (pods2_gyro) or 2 (pods3)",
+    )?;
+    let pod_timeout_ms = r.u32();
+    let count = r.u8();
+    let mut list = [PodConfig::default(); PODS_MAX];
+    for pod in &mut list {
+        *pod = PodConfig {
+            x: r.f32(),
+            y: r.f32(),
+            direction_deg: r.f32(),
+            radius: r.f32(),
+            counts_per_turn: r.u32(),
+        };
+    }
+    let pods = list
+        .get(..usize::from(count))
+        .and_then(Pods::new)
+        .ok_or_else(|| tag("odometry.pods", count, "at most 3 pods"))?;
+    let odometry = OdometryConfig {
+        heading_source,
+        gyro_timeout_ms,
+        gyro_standstill_ms,
+        gyro_bias_estimation,
+        source,
+        pod_timeout_ms,
+        pods,
+    };
+    Ok(odometry)
 }
 
 fn bits(flags: [bool; 4]) -> u8 {
