@@ -8,10 +8,10 @@ mod common;
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use common::{logged_run, scratch};
+use common::{fit, hostsim, logged_run, print_fit, scratch};
 use firmware::Config;
 use firmware::config::Geometry;
-use hostsim::calibrate::{CalibrateError, Calibration, Options, calibrate};
+use hostsim::calibrate::{CalibrateError, Options, calibrate};
 use hostsim::plant::{Chassis, ChassisParams, WheelInput};
 use hostsim::scenario::{Action, PlantSpec, Scenario};
 use hostsim::sim::RunSummary;
@@ -81,17 +81,6 @@ fn calibration_log() -> &'static Path {
         )
         .1
     })
-}
-
-fn fit(path: &Path) -> Calibration {
-    calibrate(path, &Options::default()).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
-}
-
-fn print_fit(what: &str, c: &Calibration) {
-    println!("{what}:");
-    for line in c.to_string().lines() {
-        println!("  {line}");
-    }
 }
 
 /// The loop of the README on the simulator: run `calibration`, calibrate, rerun with the
@@ -323,16 +312,11 @@ fn a_straight_only_log_is_refused_naming_the_missing_motion() {
         "{text}"
     );
 
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_hostsim"))
-        .arg("calibrate")
-        .arg(&log)
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    println!("command line: exit {:?}, {stderr}", out.status.code());
-    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    let (code, stdout, stderr) = hostsim(["calibrate", log.to_str().unwrap()]);
+    println!("command line: exit {code}, {stderr}");
+    assert_eq!(code, 2, "{stderr}");
     assert!(stderr.contains("no strafe in this log"), "{stderr}");
-    assert!(out.stdout.is_empty());
+    assert!(stdout.is_empty());
 }
 
 /// The poses of a tracker: the ground truth as `geometry_msgs/msg/PoseStamped` on

@@ -8,10 +8,10 @@ mod common;
 
 use std::path::{Path, PathBuf};
 
-use common::{logged_run, scratch};
+use common::{fit, hostsim, logged_run, print_fit, scratch};
 use firmware::Config;
 use firmware::config::PodConfig;
-use hostsim::calibrate::{CalibrateError, Calibration, Options, calibrate};
+use hostsim::calibrate::{CalibrateError, Options, calibrate};
 use hostsim::drives::SimDrives;
 use hostsim::pods::{PodErrors, PodsParams, TruePod};
 use hostsim::scenario::{Action, Scenario};
@@ -65,17 +65,6 @@ fn run(group: &str, scenario: &Scenario) -> PathBuf {
     let path = scratch(group, &format!("{}.mcap", scenario.name));
     logged_run(scenario, &path);
     path
-}
-
-fn fit(path: &Path) -> Calibration {
-    calibrate(path, &Options::default()).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
-}
-
-fn print_fit(what: &str, c: &Calibration) {
-    println!("{what}:");
-    for line in c.to_string().lines() {
-        println!("  {line}");
-    }
 }
 
 /// The true pods of `config` under `errors`.
@@ -331,13 +320,8 @@ fn a_straight_only_log_is_refused_naming_each_pod() {
         ),
         "{text}"
     );
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_hostsim"))
-        .arg("calibrate")
-        .arg(&log)
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    let (code, _, stderr) = hostsim(["calibrate", log.to_str().unwrap()]);
+    assert_eq!(code, 2, "{stderr}");
     assert!(stderr.contains("pod 2: 0.00 m of travel along"), "{stderr}");
 }
 

@@ -6,8 +6,8 @@
 mod common;
 
 use std::path::{Path, PathBuf};
-use std::process::Command as Process;
 
+use common::hostsim;
 use drivelog::candump::{Entry, Writer};
 use embedded_can::StandardId;
 use firmware::protocol::robot::{OdomPosition, Telemetry};
@@ -67,20 +67,12 @@ fn scratch(name: &str) -> PathBuf {
 /// A 2 s drive (enable, then a twist with all three components), logged to MCAP; returns
 /// the log's frames (received and sent, merged by time).
 fn simulated_session(config: Config, name: &str) -> (PathBuf, Vec<TimedFrame>) {
-    let mut scenario = Scenario::from_toml(
-        r#"
-        name = "candump-session"
-        duration_s = 2.0
-        [[actions]]
-        at_s = 0.05
-        enable = true
-        [[actions]]
-        at_s = 0.1
-        twist = [0.5, 0.2, 0.4]
-        "#,
-        Path::new("session.toml"),
-    )
-    .unwrap();
+    let text = common::driving(
+        "name = \"candump-session\"\nduration_s = 2.0",
+        [0.5, 0.2, 0.4],
+        "",
+    );
+    let mut scenario = Scenario::from_toml(&text, Path::new("session.toml")).unwrap();
     scenario.config = config;
     let path = scratch(&format!("{name}.mcap"));
     common::logged_run(&scenario, &path);
@@ -224,18 +216,6 @@ fn a_tampered_odometry_frame_is_a_difference() {
 // ---------------------------------------------------------------------------------------------
 // Command line
 
-fn hostsim(args: &[&str]) -> (i32, String, String) {
-    let out = Process::new(env!("CARGO_BIN_EXE_hostsim"))
-        .args(args)
-        .output()
-        .unwrap();
-    (
-        out.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&out.stdout).into_owned(),
-        String::from_utf8_lossy(&out.stderr).into_owned(),
-    )
-}
-
 #[test]
 fn replay_command_on_candump_and_mcap_logs() {
     let config = Config::dji_m3508_example();
@@ -245,7 +225,7 @@ fn replay_command_on_candump_and_mcap_logs() {
     let log_s = log.to_str().unwrap();
 
     // candump, JSON.
-    let (code, out, err) = hostsim(&["replay", log_s, "--json"]);
+    let (code, out, err) = hostsim(["replay", log_s, "--json"]);
     assert_eq!(code, 0, "{out}{err}");
     let v: serde_json::Value = serde_json::from_str(&out).unwrap();
     assert_eq!(v["format"], "candump");
@@ -255,14 +235,14 @@ fn replay_command_on_candump_and_mcap_logs() {
     assert_eq!(v["odometry"]["agrees"], true);
     assert!(v["odometry"]["logged"]["x"].as_f64().unwrap() > 0.3);
     // candump, text.
-    let (code, out, _) = hostsim(&["replay", log_s]);
+    let (code, out, _) = hostsim(["replay", log_s]);
     assert_eq!(code, 0);
     assert!(out.contains("verdict: identical"), "{out}");
     assert!(out.contains("odometry agrees"), "{out}");
     // The wrong configuration (ODrive) classifies the DJI frames as received: it differs.
     let odrive_cfg = scratch("odrive.toml");
     std::fs::write(&odrive_cfg, Config::odrive_example().to_toml_string()).unwrap();
-    let (code, out, err) = hostsim(&[
+    let (code, out, err) = hostsim([
         "replay",
         log_s,
         "--json",
@@ -274,7 +254,7 @@ fn replay_command_on_candump_and_mcap_logs() {
     assert_eq!(v["verdict"], "differs");
 
     // MCAP, JSON.
-    let (code, out, err) = hostsim(&["replay", mcap.to_str().unwrap(), "--json"]);
+    let (code, out, err) = hostsim(["replay", mcap.to_str().unwrap(), "--json"]);
     assert_eq!(code, 0, "{out}{err}");
     let v: serde_json::Value = serde_json::from_str(&out).unwrap();
     assert_eq!(
@@ -282,7 +262,7 @@ fn replay_command_on_candump_and_mcap_logs() {
         (Some("mcap"), Some(true))
     );
     // With an MCAP log, --config is a what-if; another drive protocol is refused.
-    let (code, _, err) = hostsim(&[
+    let (code, _, err) = hostsim([
         "replay",
         mcap.to_str().unwrap(),
         "--config",
@@ -304,24 +284,24 @@ fn bad_inputs_exit_2_naming_the_file_line_or_field() {
     )
     .unwrap();
     let bad_s = bad.to_str().unwrap();
-    let (code, _, err) = hostsim(&["replay", bad_s]);
+    let (code, _, err) = hostsim(["replay", bad_s]);
     assert_eq!(code, 2);
     assert!(err.contains(bad_s) && err.contains("line 2"), "{err}");
     assert!(err.contains("201#00GG"), "{err}");
 
     let fd = scratch("fd.log");
     std::fs::write(&fd, "(1.000000) vcan0 301##0112233\n").unwrap();
-    let (code, _, err) = hostsim(&["replay", fd.to_str().unwrap()]);
+    let (code, _, err) = hostsim(["replay", fd.to_str().unwrap()]);
     assert_eq!(code, 2);
     assert!(err.contains("line 1: CAN FD"), "{err}");
 
     let empty = scratch("empty.log");
     std::fs::write(&empty, "\n").unwrap();
-    let (code, _, err) = hostsim(&["replay", empty.to_str().unwrap()]);
+    let (code, _, err) = hostsim(["replay", empty.to_str().unwrap()]);
     assert_eq!(code, 2);
     assert!(err.contains("no frames"), "{err}");
 
-    let (code, _, err) = hostsim(&["replay", "/nonexistent/session.log"]);
+    let (code, _, err) = hostsim(["replay", "/nonexistent/session.log"]);
     assert_eq!(code, 2);
     assert!(err.contains("/nonexistent/session.log"), "{err}");
 
@@ -329,7 +309,7 @@ fn bad_inputs_exit_2_naming_the_file_line_or_field() {
     std::fs::write(&bad_cfg, "[geometry]\nkind = 3\n").unwrap();
     let good = scratch("good.log");
     std::fs::write(&good, "(1.000000) vcan0 201#0000000000000000\n").unwrap();
-    let (code, _, err) = hostsim(&[
+    let (code, _, err) = hostsim([
         "replay",
         good.to_str().unwrap(),
         "--config",
@@ -339,10 +319,10 @@ fn bad_inputs_exit_2_naming_the_file_line_or_field() {
     assert!(err.contains(bad_cfg.to_str().unwrap()), "{err}");
 
     // Playback options need --iface; a bad speed is refused before the interface is opened.
-    let (code, _, err) = hostsim(&["replay", good.to_str().unwrap(), "--speed", "2"]);
+    let (code, _, err) = hostsim(["replay", good.to_str().unwrap(), "--speed", "2"]);
     assert_eq!(code, 2);
     assert!(err.contains("--iface"), "{err}");
-    let (code, _, err) = hostsim(&[
+    let (code, _, err) = hostsim([
         "replay",
         good.to_str().unwrap(),
         "--iface",
@@ -352,13 +332,13 @@ fn bad_inputs_exit_2_naming_the_file_line_or_field() {
     ]);
     assert_eq!(code, 2);
     assert!(err.contains("--speed"), "{err}");
-    let (code, _, err) = hostsim(&["replay", good.to_str().unwrap(), "--iface", "nosuchcan9"]);
+    let (code, _, err) = hostsim(["replay", good.to_str().unwrap(), "--iface", "nosuchcan9"]);
     assert_eq!(code, 2);
     assert!(err.contains("nosuchcan9"), "{err}");
-    let (code, _, err) = hostsim(&["plant", "--iface", "nosuchcan9", "--duration", "1"]);
+    let (code, _, err) = hostsim(["plant", "--iface", "nosuchcan9", "--duration", "1"]);
     assert_eq!(code, 2);
     assert!(err.contains("nosuchcan9"), "{err}");
-    let (code, _, err) = hostsim(&[
+    let (code, _, err) = hostsim([
         "plant",
         "--iface",
         "nosuchcan9",
@@ -367,6 +347,6 @@ fn bad_inputs_exit_2_naming_the_file_line_or_field() {
     ]);
     assert_eq!(code, 2);
     assert!(err.contains(bad_cfg.to_str().unwrap()), "{err}");
-    let (code, _, _) = hostsim(&["plant", "--iface", "vcan0", "--duration", "-1"]);
+    let (code, _, _) = hostsim(["plant", "--iface", "vcan0", "--duration", "-1"]);
     assert_eq!(code, 2);
 }

@@ -407,13 +407,6 @@ impl SimPlant for BadImu {
             self.next_ns += 100_000_000;
         }
     }
-    fn advance(&mut self, dt: f64) {
-        self.advance_ns((dt * 1e9).round() as u64);
-    }
-    fn advance_ns(&mut self, dt_ns: u64) {
-        self.now_ns += dt_ns;
-        self.drives.advance_ns(dt_ns);
-    }
     fn next_feedback_ns(&self) -> u64 {
         let mine = if self.next_ns <= Self::LAST_NS {
             self.next_ns
@@ -422,15 +415,7 @@ impl SimPlant for BadImu {
         };
         self.drives.next_feedback_ns().min(mine)
     }
-    fn truth(&self) -> [f64; 3] {
-        self.drives.truth()
-    }
-    fn truth_velocity(&self) -> [f64; 3] {
-        self.drives.truth_velocity()
-    }
-    fn set_faults(&mut self, at_ns: u64, stuck: [bool; 4], offline: [bool; 4]) {
-        self.drives.set_faults(at_ns, stuck, offline);
-    }
+    common::pass_to_drives!();
 }
 
 #[test]

@@ -1,6 +1,8 @@
 //! The simulated tracking-pod node (`[pods]`) in lockstep runs: its frames on the bus, their
 //! counts against the ground truth, its seed, its silence, and the scenario's checks.
 
+mod common;
+
 use std::f64::consts::TAU;
 use std::path::Path;
 
@@ -37,24 +39,19 @@ fn pods_config() -> Config {
 }
 
 fn scenario_with(config: Config, rest: &str) -> Result<Scenario, ScenarioError> {
-    let text = format!(
-        r#"
-        duration_s = 2.0
-        seed = 11
-        [[actions]]
-        at_s = 0.05
-        enable = true
-        [[actions]]
-        at_s = 0.1
-        twist = [0.4, 0.2, 0.6]
-        {rest}
-        "#
-    );
+    let text = common::driving("duration_s = 2.0\nseed = 11", [0.4, 0.2, 0.6], rest);
     Scenario::from_toml_with_config(&text, Path::new("pods.toml"), Some(config))
 }
 
 fn scenario(rest: &str) -> Scenario {
     scenario_with(pods_config(), rest).unwrap()
+}
+
+/// [`scenario`] with the pod node silent from `from_s` to `until_s`.
+fn pods_silent(from_s: f64, until_s: f64) -> Scenario {
+    scenario(&format!(
+        "[pods]\n[[faults]]\nkind = \"pods_silent\"\nfrom_s = {from_s:?}\nuntil_s = {until_s:?}"
+    ))
 }
 
 /// A run's pod frames `(sample time ns, counts, seq, fate)` and the ground-truth pose at every
@@ -193,15 +190,7 @@ fn a_silent_pod_node_is_absent_from_the_bus_and_leaves_the_run_as_without_pods()
     assert!(without.pods.is_empty());
     // Silent for the whole run: the node samples at the plant's period boundaries (200 Hz
     // on the 1 ms grid), which do not change the physics, and sends nothing.
-    let silent = observe(&scenario(
-        r#"
-        [pods]
-        [[faults]]
-        kind = "pods_silent"
-        from_s = 0.0
-        until_s = 10.0
-        "#,
-    ));
+    let silent = observe(&pods_silent(0.0, 10.0));
     assert!(silent.pods.is_empty());
     assert_eq!(silent.summary.tx_hash, without.summary.tx_hash);
     assert_eq!(silent.summary.bus.frames, without.summary.bus.frames);
@@ -210,15 +199,7 @@ fn a_silent_pod_node_is_absent_from_the_bus_and_leaves_the_run_as_without_pods()
         without.summary.truth.map(f64::to_bits)
     );
     // Silent for a while: the frames of the window are missing, seq and counts went on.
-    let gap = observe(&scenario(
-        r#"
-        [pods]
-        [[faults]]
-        kind = "pods_silent"
-        from_s = 0.5
-        until_s = 0.75
-        "#,
-    ));
+    let gap = observe(&pods_silent(0.5, 0.75));
     let before = gap.pods.iter().rfind(|f| f.0 < 500_000_000).unwrap();
     let after = gap.pods.iter().find(|f| f.0 >= 500_000_000).unwrap();
     assert_eq!((before.0, after.0), (495_000_000, 750_000_000));

@@ -8,10 +8,12 @@ use std::io;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::thread;
 
+use firmware::control::Snapshot;
 use firmware::protocol::robot::{Command, ModeRequest, RobotState, Telemetry, TwistCmd};
 use firmware::{CanFrame, Config, Controller};
 use hostsim::drives::SimDrives;
-use hostsim::realtime::{PlantOptions, PlayOptions, play_frames, run_plant};
+use hostsim::imu::{ImuParams, WithImu};
+use hostsim::realtime::{PlantOptions, PlantReport, PlayOptions, play_frames, run_plant};
 use hostsim::replay::TimedFrame;
 use hostsim::sim::SimPlant;
 use mecanum_linux::testing::{MemoryBus, MemoryPort, VirtualClock, VirtualClockHandle};
@@ -65,12 +67,18 @@ fn run_host(mut port: MemoryPort, clock: &VirtualClockHandle, vx: f32, until_us:
     view
 }
 
-#[test]
-fn the_firmware_runner_drives_the_real_time_plant_forward() {
-    let config = Config::dji_m3508_example();
-    let duration_us = 2_000_000;
-    let vx = 0.5f32;
+/// What the three loops of [`run_together`] report.
+struct Together {
+    fw_report: linux::Report,
+    snapshot: Snapshot,
+    plant_report: PlantReport,
+    view: HostView,
+}
 
+/// The firmware runner of `config`, the plant loop (its drives, and an IMU node with `imu`)
+/// and the host driving at `vx` ([`run_host`]), each on its own thread for `duration_us` of
+/// virtual time on one bus.
+fn run_together(config: Config, duration_us: u64, vx: f32, imu: Option<ImuParams>) -> Together {
     let bus = MemoryBus::new();
     let clock = VirtualClock::new(T0);
     let (fw_clock, plant_clock, host_clock) = (clock.join(), clock.join(), clock.join());
@@ -100,19 +108,35 @@ fn the_firmware_runner_drives_the_real_time_plant_forward() {
             duration_us: Some(duration_us),
             ..PlantOptions::default()
         };
-        run_plant(
-            &mut drives,
-            &mut plant_port,
-            &plant_clock,
-            &options,
-            &AtomicUsize::new(0),
-        )
+        let stop = AtomicUsize::new(0);
+        match imu {
+            Some(imu) => {
+                let mut plant = WithImu::new(&mut drives, Some(&imu), 0);
+                run_plant(&mut plant, &mut plant_port, &plant_clock, &options, &stop)
+            }
+            None => run_plant(&mut drives, &mut plant_port, &plant_clock, &options, &stop),
+        }
     });
     let host = thread::spawn(move || run_host(host_port, &host_clock, vx, duration_us));
 
     let (fw_report, snapshot) = fw.join().unwrap();
-    let plant_report = plant.join().unwrap();
-    let view = host.join().unwrap();
+    Together {
+        fw_report,
+        snapshot,
+        plant_report: plant.join().unwrap(),
+        view: host.join().unwrap(),
+    }
+}
+
+#[test]
+fn the_firmware_runner_drives_the_real_time_plant_forward() {
+    let vx = 0.5f32;
+    let Together {
+        fw_report,
+        snapshot,
+        plant_report,
+        view,
+    } = run_together(Config::dji_m3508_example(), 2_000_000, vx, None);
 
     // The firmware ran 2000 steps, on time, enabled, with all four motors online.
     assert_eq!(fw_report.stop, StopReason::Duration);
@@ -395,47 +419,13 @@ fn the_real_time_plant_can_carry_the_imu_for_a_gyro_runner() {
     // As `hostsim plant --imu` and a runner with [odometry] heading_source = "gyro".
     let mut config = Config::dji_m3508_example();
     config.odometry.heading_source = firmware::config::HeadingMode::Gyro;
-    let duration_us = 1_000_000;
-    let bus = MemoryBus::new();
-    let clock = VirtualClock::new(T0);
-    let (fw_clock, plant_clock, host_clock) = (clock.join(), clock.join(), clock.join());
-    let (mut fw_port, mut plant_port, host_port) = (bus.port(), bus.port(), bus.port());
-    let fw = thread::spawn(move || {
-        let mut ctl = Controller::new(&config).unwrap();
-        let options = RunOptions {
-            duration_us: Some(duration_us),
-            ..RunOptions::default()
-        };
-        let r = linux::run(
-            &mut ctl,
-            &mut fw_port,
-            &fw_clock,
-            &options,
-            &AtomicUsize::new(0),
-        );
-        (r, ctl.snapshot())
-    });
-    let plant = thread::spawn(move || {
-        let mut drives = SimDrives::new(&config).unwrap();
-        let imu = hostsim::imu::ImuParams::default();
-        let mut plant = hostsim::imu::WithImu::new(&mut drives, Some(&imu), 0);
-        plant_clock.sleep_until(T0 + 500);
-        let options = PlantOptions {
-            duration_us: Some(duration_us),
-            ..PlantOptions::default()
-        };
-        run_plant(
-            &mut plant,
-            &mut plant_port,
-            &plant_clock,
-            &options,
-            &AtomicUsize::new(0),
-        )
-    });
-    let host = thread::spawn(move || run_host(host_port, &host_clock, 0.3, duration_us));
-    let (fw_report, snapshot) = fw.join().unwrap();
-    let plant_report = plant.join().unwrap();
-    host.join().unwrap();
+    let imu = hostsim::imu::ImuParams::default();
+    let Together {
+        fw_report,
+        snapshot,
+        plant_report,
+        ..
+    } = run_together(config, 1_000_000, 0.3, Some(imu));
     // 4 feedback frames a millisecond and an IMU frame every 5 ms.
     assert!(
         plant_report.frames_sent >= 4 * 990 + 198,

@@ -20,23 +20,18 @@ fn scenario(text: &str) -> Scenario {
 
 #[test]
 fn same_scenario_same_frames_and_faults_follow_the_seed() {
-    let text = r#"
-        duration_s = 1.5
-        seed = 3
-        [[actions]]
-        at_s = 0.05
-        enable = true
-        [[actions]]
-        at_s = 0.1
-        twist = [0.4, 0.2, 0.3]
+    let s = scenario(&common::driving(
+        "duration_s = 1.5\nseed = 3",
+        [0.4, 0.2, 0.3],
+        r#"
         [[faults]]
         kind = "drop"
         rate = 0.1
         from_s = 0.5
         until_s = 1.0
         sender = "drives"
-    "#;
-    let s = scenario(text);
+        "#,
+    ));
     let (a, b) = (simulate(&s), simulate(&s));
     assert_eq!(a.tx_hash, b.tx_hash);
     assert_eq!(a.truth, b.truth);
@@ -92,22 +87,17 @@ fn watchdog_stops_and_disables_the_robot_when_the_host_goes_silent() {
 
 #[test]
 fn a_motor_going_offline_faults_the_firmware_within_a_few_ms() {
-    let s = scenario(
+    let s = scenario(&common::driving(
+        "duration_s = 1.0",
+        [0.3, 0.0, 0.0],
         r#"
-        duration_s = 1.0
-        [[actions]]
-        at_s = 0.05
-        enable = true
-        [[actions]]
-        at_s = 0.1
-        twist = [0.3, 0.0, 0.0]
         [[faults]]
         kind = "motor_offline"
         wheel = 1
         from_s = 0.5
         until_s = 1.0
-    "#,
-    );
+        "#,
+    ));
     let r = simulate(&s);
     assert_eq!(
         (r.last.state, r.last.fault),
@@ -125,17 +115,10 @@ fn a_motor_going_offline_faults_the_firmware_within_a_few_ms() {
 /// The feedback frames wheel FR's C620 (ESC 2, id 0x202) put on the bus under `faults`, as
 /// (send time in ms, rotor angle).
 fn fr_feedback(faults: &str) -> Vec<(u64, u16)> {
-    let s = scenario(&format!(
-        r#"
-        duration_s = 0.8
-        [[actions]]
-        at_s = 0.05
-        enable = true
-        [[actions]]
-        at_s = 0.1
-        twist = [0.3, 0.0, 0.0]
-        {faults}
-    "#
+    let s = scenario(&common::driving(
+        "duration_s = 0.8",
+        [0.3, 0.0, 0.0],
+        faults,
     ));
     let mut plant = SimDrives::new(&s.config).unwrap();
     let mut frames = Vec::new();
@@ -263,18 +246,11 @@ fn odrive_chassis_drives_too() {
 #[test]
 fn the_host_sends_every_command_due_even_above_the_control_rate() {
     // A 100 Hz core and a host commanding at 200 Hz: two TWIST_CMD per control period.
-    let mut s = scenario(
-        r#"
-        duration_s = 2.0
-        command_hz = 200.0
-        [[actions]]
-        at_s = 0.05
-        enable = true
-        [[actions]]
-        at_s = 0.1
-        twist = [0.3, 0.0, 0.0]
-    "#,
-    );
+    let mut s = scenario(&common::driving(
+        "duration_s = 2.0\ncommand_hz = 200.0",
+        [0.3, 0.0, 0.0],
+        "",
+    ));
     s.config.timing.control_hz = 100;
     s.config.timing.setpoint_hz = 100;
     let mut plant = SimDrives::new(&s.config).unwrap();
@@ -434,25 +410,10 @@ impl SimPlant for Spy {
     fn feedback(&mut self, until_ns: u64, out: &mut Vec<(u64, firmware::CanFrame)>) {
         self.drives.feedback(until_ns, out);
     }
-    fn advance(&mut self, dt: f64) {
-        self.advance_ns((dt * 1e9).round() as u64);
-    }
-    fn advance_ns(&mut self, dt_ns: u64) {
-        self.now_ns += dt_ns;
-        self.drives.advance_ns(dt_ns);
-    }
     fn next_feedback_ns(&self) -> u64 {
         self.drives.next_feedback_ns()
     }
-    fn truth(&self) -> [f64; 3] {
-        self.drives.truth()
-    }
-    fn truth_velocity(&self) -> [f64; 3] {
-        self.drives.truth_velocity()
-    }
-    fn set_faults(&mut self, at_ns: u64, stuck: [bool; 4], offline: [bool; 4]) {
-        self.drives.set_faults(at_ns, stuck, offline);
-    }
+    common::pass_to_drives!();
 }
 
 #[test]

@@ -6,9 +6,9 @@
 mod common;
 
 use std::path::{Path, PathBuf};
-use std::process::Command as Process;
 use std::sync::OnceLock;
 
+use common::hostsim;
 use firmware::Config;
 use hostsim::replay::{StepTime, read_log, replay_mcap};
 use hostsim::scenario::Scenario;
@@ -44,18 +44,6 @@ fn dji_with(edit: impl FnOnce(&mut Config)) -> Config {
 
 fn seconds(t_s: &str) -> f64 {
     t_s.parse().unwrap()
-}
-
-fn hostsim(args: &[&str]) -> (i32, String, String) {
-    let out = Process::new(env!("CARGO_BIN_EXE_hostsim"))
-        .args(args)
-        .output()
-        .unwrap();
-    (
-        out.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&out.stdout).into_owned(),
-        String::from_utf8_lossy(&out.stderr).into_owned(),
-    )
 }
 
 #[test]
@@ -385,7 +373,7 @@ fn the_command_line_what_if() {
     let kp = kp.to_str().unwrap();
 
     // Text: open loop first, a difference is exit 0.
-    let (code, out, err) = hostsim(&["replay", log, "--config", kp]);
+    let (code, out, err) = hostsim(["replay", log, "--config", kp]);
     assert_eq!(code, 0, "{out}{err}");
     assert_eq!(out.lines().next(), Some(OPEN_LOOP_NOTE));
     assert!(out.contains("changes: gains.kp 1.2 -> 2.4"), "{out}");
@@ -393,10 +381,10 @@ fn the_command_line_what_if() {
     assert!(out.contains("0x200"), "{out}");
     assert!(out.contains("verdict: differs"), "{out}");
     // The same run twice prints the same report.
-    assert_eq!(hostsim(&["replay", log, "--config", kp]).1, out);
+    assert_eq!(hostsim(["replay", log, "--config", kp]).1, out);
 
     // JSON.
-    let (code, out, _) = hostsim(&["replay", log, "--config", kp, "--json"]);
+    let (code, out, _) = hostsim(["replay", log, "--config", kp, "--json"]);
     assert_eq!(code, 0);
     let v: serde_json::Value = serde_json::from_str(&out).unwrap();
     assert_eq!(v["verdict"], "differs");
@@ -413,7 +401,7 @@ fn the_command_line_what_if() {
 
     // No difference.
     let same = config_file("cli-same.toml", &Config::dji_m3508_example());
-    let (code, out, _) = hostsim(&["replay", log, "--config", same.to_str().unwrap()]);
+    let (code, out, _) = hostsim(["replay", log, "--config", same.to_str().unwrap()]);
     assert_eq!(code, 0);
     assert!(
         out.contains("the change makes no difference on this log"),
@@ -423,7 +411,7 @@ fn the_command_line_what_if() {
 
     // Refused: exit 2, naming the field.
     let odrive = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../config/odrive.toml");
-    let (code, _, err) = hostsim(&["replay", log, "--config", odrive.to_str().unwrap()]);
+    let (code, _, err) = hostsim(["replay", log, "--config", odrive.to_str().unwrap()]);
     assert_eq!(code, 2);
     assert!(err.contains("drive.protocol differs"), "{err}");
     let bad = common::scratch("whatif", "cli-bad.toml");
@@ -434,7 +422,7 @@ fn the_command_line_what_if() {
             .replace("max_current = 16.0", "max_current = 25.0"),
     )
     .unwrap();
-    let (code, _, err) = hostsim(&["replay", log, "--config", bad.to_str().unwrap()]);
+    let (code, _, err) = hostsim(["replay", log, "--config", bad.to_str().unwrap()]);
     assert_eq!(code, 2);
     assert!(
         err.contains("cli-bad.toml") && err.contains("limits.max_current = 25"),
@@ -442,7 +430,7 @@ fn the_command_line_what_if() {
     );
 
     // The help says what it is and what it is not.
-    let (_, help, _) = hostsim(&["replay", "--help"]);
+    let (_, help, _) = hostsim(["replay", "--help"]);
     assert!(help.contains("OPEN LOOP"), "{help}");
     assert!(help.contains("What-if: 0"), "{help}");
 }
@@ -457,7 +445,7 @@ fn a_damaged_log_runs_on_its_complete_part_and_exits_3() {
     assert!(!r.read.as_ref().unwrap().is_complete());
     assert!(r.identical, "{:?}", r.first_difference);
     assert!(r.steps > 100 && r.steps < 2501, "{}", r.steps);
-    let (code, out, err) = hostsim(&[
+    let (code, out, err) = hostsim([
         "replay",
         cut.to_str().unwrap(),
         "--config",
