@@ -32,27 +32,12 @@ pub use emcy::Emcy;
 pub use nmt::{NmtCommand, NmtState};
 pub use sdo::{SdoRequest, SdoResponse, abort_code, abort_text};
 
-/// A CANopen node id, `1..=127`.
-#[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Debug)]
-pub struct NodeId(u8);
+u8_id!(
+    /// A CANopen node id, `1..=127`.
+    NodeId(1..=layout::NODE_MAX)
+);
 
 impl NodeId {
-    /// A node id; `None` for 0 and above 127.
-    #[must_use]
-    pub const fn new(raw: u8) -> Option<Self> {
-        if raw >= 1 && raw <= layout::NODE_MAX {
-            Some(Self(raw))
-        } else {
-            None
-        }
-    }
-
-    /// The raw node id.
-    #[must_use]
-    pub const fn get(self) -> u8 {
-        self.0
-    }
-
     /// The id of message `def` to or from this node.
     #[must_use]
     pub const fn can_id(self, def: wire::MessageDef) -> StandardId {
