@@ -21,7 +21,7 @@ use hostsim::scenario::Scenario;
 use hostsim::sim::{LogOptions, run_observed};
 
 mod common;
-use common::board_run;
+use common::{board_run, print_lines};
 
 /// The DJI current command of motors 1-4.
 fn is_zero_current(frame: &firmware::CanFrame) -> bool {
@@ -146,14 +146,7 @@ fn a_stalled_loop_is_reset_by_the_watchdog_and_the_robot_stays_disabled() {
         ..Harness::default()
     };
     let run = board_run(&s, harness);
-    for l in &run.lines {
-        eprintln!(
-            "{:.6} {} {}",
-            l.at as f64 / boardsim::CPU_HZ as f64,
-            l.level,
-            l.text
-        );
-    }
+    print_lines(&run, "");
     assert_eq!(run.board.stats().watchdog_resets, 1);
     let reset = run
         .lines

@@ -9,7 +9,7 @@ use hostsim::scenario::Scenario;
 use hostsim::sim::LogOptions;
 
 mod common;
-use common::{board_run_on, elf_for, heartbeat_config_ids};
+use common::{board_run_on, elf_for, heartbeat_config_ids, print_lines};
 
 #[test]
 fn the_square_on_the_dji_image_matches_the_in_process_core() {
@@ -32,14 +32,7 @@ fn square_on(config: &str) {
         hostsim::sim::run(&scenario, &mut plant, None, LogOptions::default(), |_| {}).unwrap();
 
     let run = board_run_on(&elf_for(config), &scenario, Harness::default());
-    for l in &run.lines {
-        eprintln!(
-            "board {:.6} {} {}",
-            l.at as f64 / boardsim::CPU_HZ as f64,
-            l.level,
-            l.text
-        );
-    }
+    print_lines(&run, "board ");
     let line = format!("drive configuration {config}.toml, id {id:#06x}");
     assert!(
         run.lines.iter().any(|l| l.text == line),

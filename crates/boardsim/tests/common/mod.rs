@@ -63,6 +63,15 @@ pub fn try_board_run_on(
     )
 }
 
+/// Prints the board's log lines, each after `prefix` and its time in seconds (shown when a
+/// test fails).
+pub fn print_lines(run: &BoardRun, prefix: &str) {
+    for l in &run.lines {
+        let t = l.at as f64 / boardsim::CPU_HZ as f64;
+        eprintln!("{prefix}{t:.6} {} {}", l.level, l.text);
+    }
+}
+
 /// The `config_id` of every `HEARTBEAT` the board sent.
 pub fn heartbeat_config_ids(run: &BoardRun) -> Vec<u16> {
     run.sent
