@@ -22,7 +22,8 @@ use kinematics::Twist2;
 use nalgebra::{DMatrix, DVector, RowVector3};
 use serde::Serialize;
 
-use super::{CalibrateError, Estimate, MIN_TRAVEL_M, MIN_TURN_RAD, MissingMotion, least_squares};
+use super::fit::least_squares;
+use super::{CalibrateError, Estimate, MIN_TRAVEL_M, MIN_TURN_RAD, MissingMotion};
 
 /// One window of the pods' fit: the reference's body increment and each pod's angle
 /// increment over it.
