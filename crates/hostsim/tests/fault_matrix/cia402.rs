@@ -248,11 +248,21 @@ fn stop_row(
 }
 
 pub(super) fn rows() -> Vec<Row> {
-    let mut rows = Vec::new();
     let cruising = MOMENTS[1];
     let consumer_us = 150 * MS;
+    vec![
+        heartbeat_lost_row(cruising, consumer_us),
+        reboot_row(cruising),
+        drive_fault_row(cruising),
+        sdo_abort_row(),
+        enable_refused_row(),
+        runner_restart_row(cruising, consumer_us),
+        bus_off_row(cruising),
+    ]
+}
 
-    // Node 2's heartbeat stops: the fault from its last heartbeat, after the consumer time.
+/// Node 2's heartbeat stops: the fault from its last heartbeat, after the consumer time.
+fn heartbeat_lost_row(cruising: (f64, &str), consumer_us: u64) -> Row {
     let rec = run(&scenario(cruising.0, FaultName::DriveSilent, 3, None));
     let last_beat = rec
         .heartbeats
@@ -261,7 +271,7 @@ pub(super) fn rows() -> Vec<Row> {
         .map(|h| h.0)
         .next_back();
     let issue = rec.issue.clone().unwrap_or_default();
-    rows.push(stop_row(
+    stop_row(
         "CiA 402: a drive's heartbeat stops (node 2)",
         cruising,
         &rec,
@@ -273,9 +283,11 @@ pub(super) fn rows() -> Vec<Row> {
             issue == "node 2: heartbeat lost",
             format!("from its last heartbeat; \"{issue}\""),
         ),
-    ));
+    )
+}
 
-    // Node 1 reboots: boot-up 2 ms later; configured again; no target before the end.
+/// Node 1 reboots: boot-up 2 ms later; configured again; no target before the end.
+fn reboot_row(cruising: (f64, &str)) -> Row {
     let rec = run(&scenario(cruising.0, FaultName::DriveReboot, 0, None));
     let onset = us(cruising.0);
     let restarted = rec.starts.iter().any(|(t, n)| *t > onset && *n == 1);
@@ -288,7 +300,7 @@ pub(super) fn rows() -> Vec<Row> {
         .iter()
         .filter(|(t, n, _)| *t > onset && *n == 1)
         .count();
-    rows.push(stop_row(
+    stop_row(
         "CiA 402: a drive reboots (node 1)",
         cruising,
         &rec,
@@ -305,12 +317,14 @@ pub(super) fn rows() -> Vec<Row> {
                 !moved
             ),
         ),
-    ));
+    )
+}
 
-    // Node 2 faults (statusword bit 3, EMCY 0x2310): seen in the next cycle's TPDO.
+/// Node 2 faults (statusword bit 3, EMCY 0x2310): seen in the next cycle's TPDO.
+fn drive_fault_row(cruising: (f64, &str)) -> Row {
     let rec = run(&scenario(cruising.0, FaultName::DriveFault, 2, None));
     let issue = rec.issue.clone().unwrap_or_default();
-    rows.push(stop_row(
+    stop_row(
         "CiA 402: a drive faults (node 2, EMCY 0x2310)",
         cruising,
         &rec,
@@ -322,9 +336,11 @@ pub(super) fn rows() -> Vec<Row> {
             rec.emcy == 1 && issue.ends_with("last EMCY 0x2310"),
             format!("{} EMCY counted; \"{issue}\"", rec.emcy),
         ),
-    ));
+    )
+}
 
-    // Node 1 aborts the write of the mode: the fault at the step after the answer.
+/// Node 1 aborts the write of the mode: the fault at the step after the answer.
+fn sdo_abort_row() -> Row {
     let boot = (0.0, "configuring");
     let rec = run(&scenario(boot.0, FaultName::SdoAbort, 0, None));
     let request = rec
@@ -335,7 +351,7 @@ pub(super) fn rows() -> Vec<Row> {
     let issue = rec.issue.clone().unwrap_or_default();
     let hit = rec.first(0, (RobotState::Fault, Fault::DriveSetup));
     let latency = hit.zip(request).map(|(h, r)| h - r);
-    rows.push(Row {
+    Row {
         fault: "CiA 402: a drive aborts an SDO write (node 1, 0x6060)".into(),
         onset: moment(boot),
         expected: "FAULT (DRIVE_SETUP) naming the object and the abort code".into(),
@@ -344,9 +360,11 @@ pub(super) fn rows() -> Vec<Row> {
         detail: format!("from the request; \"{issue}\""),
         pass: latency.is_some_and(|l| l <= 2 * MS)
             && issue.starts_with("node 1: SDO abort 0x06090030 on 0x6060:00"),
-    });
+    }
+}
 
-    // Node 2 never reaches operation enabled: the enable step times out.
+/// Node 2 never reaches operation enabled: the enable step times out.
+fn enable_refused_row() -> Row {
     let enabling = (0.05, "enabling");
     let rec = run(&scenario(0.0, FaultName::EnableRefused, 3, None));
     let enable_op = rec
@@ -356,7 +374,7 @@ pub(super) fn rows() -> Vec<Row> {
         .map(|r| r.0);
     let issue = rec.issue.clone().unwrap_or_default();
     let timeout = CIA402_TRANSITION_TIMEOUT_US;
-    rows.push(stop_row(
+    stop_row(
         "CiA 402: a drive's enable does not come (node 2)",
         enabling,
         &rec,
@@ -369,10 +387,7 @@ pub(super) fn rows() -> Vec<Row> {
                 && !rec.rpdos.iter().any(|r| r.3 != 0),
             format!("from the first 0x0F sent, the robot never moved; \"{issue}\""),
         ),
-    ));
-    rows.push(runner_restart_row(cruising, consumer_us));
-    rows.push(bus_off_row(cruising));
-    rows
+    )
 }
 
 /// The host's reset and enable of the recovery rows: a reset at `reset_s`, an enable 50 ms
