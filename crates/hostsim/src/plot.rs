@@ -8,6 +8,7 @@ use std::path::Path;
 use drivelog::Staged;
 use image::ImageEncoder;
 use plotters::coord::Shift;
+use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 
 /// One sample of the trajectories: time s, truth `[x, y]`, odometry `[x, y]`.
@@ -89,6 +90,16 @@ const COLOURS: [(RGBColor, RGBColor); 3] = [
     (RGBColor(120, 0, 160), RGBColor(140, 90, 40)),
 ];
 
+/// A panel of a figure.
+type Panel<'a> = DrawingArea<BitMapBackend<'a>, Shift>;
+
+/// A chart of two real axes on a panel.
+type Chart<'a, 'b> =
+    ChartContext<'a, BitMapBackend<'b>, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
+
+/// What turns a drawing error into a [`PlotError`] naming the file.
+type ToPlotError<'a> = dyn Fn(&dyn std::fmt::Display) -> PlotError + 'a;
+
 /// Draws several runs, each `(label, points)`, into one figure as [`plot_run`] draws one: a
 /// panel per run with its ground truth and odometry seen from above (the same equal axes for
 /// all, the largest drift in the legend), then one panel of every run's position error over
@@ -111,134 +122,147 @@ pub fn plot_runs(
         root.fill(&WHITE).map_err(|e| err(&e))?;
         let areas = root.split_evenly((1, panels as usize));
         let (paths, right) = areas.split_at(areas.len() - 1);
-        let right = &right[0];
-        let prefix = |label: &str| {
-            if label.is_empty() {
-                String::new()
-            } else {
-                format!("{label}: ")
-            }
-        };
-
-        // Equal axes around every path, with a margin, the same for every run.
-        let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-        for p in runs.iter().flat_map(|r| r.1) {
-            for [x, y] in [p.truth, p.odom] {
-                x0 = x0.min(x);
-                x1 = x1.max(x);
-                y0 = y0.min(y);
-                y1 = y1.max(y);
-            }
-        }
-        if runs.iter().all(|r| r.1.is_empty()) {
-            (x0, x1, y0, y1) = (-1.0, 1.0, -1.0, 1.0);
-        }
-        let span = (x1 - x0).max(y1 - y0).max(0.2) * 1.15;
-        let (cx, cy) = ((x0 + x1) / 2.0, (y0 + y1) / 2.0);
+        let view = equal_axes(runs);
         for (i, ((label, points), area)) in runs.iter().zip(paths).enumerate() {
-            let (truth, odom) = COLOURS[i % COLOURS.len()];
             let caption = if label.is_empty() {
                 format!("{title}: path seen from above")
             } else {
                 format!("{label}: path seen from above")
             };
-            let mut chart = ChartBuilder::on(area)
-                .caption(
-                    caption,
-                    ("sans-serif", if label.is_empty() { 20 } else { 16 }),
-                )
-                .margin(10)
-                .x_label_area_size(35)
-                .y_label_area_size(50)
-                .build_cartesian_2d(
-                    cx - span / 2.0..cx + span / 2.0,
-                    cy - span / 2.0..cy + span / 2.0,
-                )
-                .map_err(|e| err(&e))?;
-            chart
-                .configure_mesh()
-                .x_desc("x [m]")
-                .y_desc("y [m]")
-                .draw()
-                .map_err(|e| err(&e))?;
-            chart
-                .draw_series(LineSeries::new(
-                    points.iter().map(|p| (p.truth[0], p.truth[1])),
-                    truth.stroke_width(3),
-                ))
-                .map_err(|e| err(&e))?
-                .label("ground truth")
-                .legend(move |(x, y)| {
-                    PathElement::new(vec![(x, y), (x + 20, y)], truth.stroke_width(3))
-                });
-            chart
-                .draw_series(LineSeries::new(
-                    points.iter().map(|p| (p.odom[0], p.odom[1])),
-                    odom.stroke_width(1),
-                ))
-                .map_err(|e| err(&e))?
-                .label(format!(
-                    "odometry (firmware), max drift {:.1} mm",
-                    max_drift(points) * 1000.0
-                ))
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], odom));
-            chart
-                .configure_series_labels()
-                .background_style(WHITE.mix(0.8))
-                .border_style(BLACK)
-                .draw()
-                .map_err(|e| err(&e))?;
+            let size = if label.is_empty() { 20 } else { 16 };
+            let colours = COLOURS[i % COLOURS.len()];
+            draw_path(area, (caption, size), points, colours, view, &err)?;
         }
-
-        let t_end = runs
-            .iter()
-            .filter_map(|r| r.1.last())
-            .map(|p| p.t)
-            .fold(1e-3, f64::max);
-        let e_max = runs
-            .iter()
-            .map(|r| max_drift(r.1) * 1000.0)
-            .fold(1.0, f64::max)
-            * 1.1;
-        let mut chart = ChartBuilder::on(right)
-            .caption("odometry position error", ("sans-serif", 20))
-            .margin(10)
-            .x_label_area_size(35)
-            .y_label_area_size(50)
-            .build_cartesian_2d(0.0..t_end, 0.0..e_max)
-            .map_err(|e| err(&e))?;
-        chart
-            .configure_mesh()
-            .x_desc("t [s]")
-            .y_desc("error [mm]")
-            .draw()
-            .map_err(|e| err(&e))?;
-        for (i, (label, points)) in runs.iter().enumerate() {
-            let (_, odom) = COLOURS[i % COLOURS.len()];
-            let errs = points.iter().map(|p| {
-                let e = (p.truth[0] - p.odom[0]).hypot(p.truth[1] - p.odom[1]);
-                (p.t, e * 1000.0)
-            });
-            chart
-                .draw_series(LineSeries::new(errs, odom))
-                .map_err(|e| err(&e))?
-                .label(format!(
-                    "{}max {:.1} mm",
-                    prefix(label),
-                    max_drift(points) * 1000.0
-                ))
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], odom));
-        }
-        if runs.len() > 1 {
-            chart
-                .configure_series_labels()
-                .background_style(WHITE.mix(0.8))
-                .border_style(BLACK)
-                .draw()
-                .map_err(|e| err(&e))?;
-        }
-        Ok(())
+        draw_errors(&right[0], runs, &err)
     })
+}
+
+/// Equal axes around every run's paths, with a margin: the centre and the side, m.
+fn equal_axes(runs: &[(&str, &[TrackPoint])]) -> (f64, f64, f64) {
+    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    for p in runs.iter().flat_map(|r| r.1) {
+        for [x, y] in [p.truth, p.odom] {
+            x0 = x0.min(x);
+            x1 = x1.max(x);
+            y0 = y0.min(y);
+            y1 = y1.max(y);
+        }
+    }
+    if runs.iter().all(|r| r.1.is_empty()) {
+        (x0, x1, y0, y1) = (-1.0, 1.0, -1.0, 1.0);
+    }
+    let span = (x1 - x0).max(y1 - y0).max(0.2) * 1.15;
+    ((x0 + x1) / 2.0, (y0 + y1) / 2.0, span)
+}
+
+/// A run's ground truth and odometry seen from above, on `area` with `caption` (text and
+/// size), in the colours `(truth, odom)`, on the axes `(cx, cy, span)`.
+fn draw_path(
+    area: &Panel<'_>,
+    caption: (String, u32),
+    points: &[TrackPoint],
+    (truth, odom): (RGBColor, RGBColor),
+    (cx, cy, span): (f64, f64, f64),
+    err: &ToPlotError<'_>,
+) -> Result<(), PlotError> {
+    let mut chart = ChartBuilder::on(area)
+        .caption(caption.0, ("sans-serif", caption.1))
+        .margin(10)
+        .x_label_area_size(35)
+        .y_label_area_size(50)
+        .build_cartesian_2d(
+            cx - span / 2.0..cx + span / 2.0,
+            cy - span / 2.0..cy + span / 2.0,
+        )
+        .map_err(|e| err(&e))?;
+    chart
+        .configure_mesh()
+        .x_desc("x [m]")
+        .y_desc("y [m]")
+        .draw()
+        .map_err(|e| err(&e))?;
+    chart
+        .draw_series(LineSeries::new(
+            points.iter().map(|p| (p.truth[0], p.truth[1])),
+            truth.stroke_width(3),
+        ))
+        .map_err(|e| err(&e))?
+        .label("ground truth")
+        .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], truth.stroke_width(3)));
+    chart
+        .draw_series(LineSeries::new(
+            points.iter().map(|p| (p.odom[0], p.odom[1])),
+            odom.stroke_width(1),
+        ))
+        .map_err(|e| err(&e))?
+        .label(format!(
+            "odometry (firmware), max drift {:.1} mm",
+            max_drift(points) * 1000.0
+        ))
+        .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], odom));
+    legend(&mut chart, err)
+}
+
+/// Every run's odometry position error over time, on `area`.
+fn draw_errors(
+    area: &Panel<'_>,
+    runs: &[(&str, &[TrackPoint])],
+    err: &ToPlotError<'_>,
+) -> Result<(), PlotError> {
+    let t_end = runs
+        .iter()
+        .filter_map(|r| r.1.last())
+        .map(|p| p.t)
+        .fold(1e-3, f64::max);
+    let e_max = runs
+        .iter()
+        .map(|r| max_drift(r.1) * 1000.0)
+        .fold(1.0, f64::max)
+        * 1.1;
+    let mut chart = ChartBuilder::on(area)
+        .caption("odometry position error", ("sans-serif", 20))
+        .margin(10)
+        .x_label_area_size(35)
+        .y_label_area_size(50)
+        .build_cartesian_2d(0.0..t_end, 0.0..e_max)
+        .map_err(|e| err(&e))?;
+    chart
+        .configure_mesh()
+        .x_desc("t [s]")
+        .y_desc("error [mm]")
+        .draw()
+        .map_err(|e| err(&e))?;
+    for (i, (label, points)) in runs.iter().enumerate() {
+        let (_, odom) = COLOURS[i % COLOURS.len()];
+        let errs = points.iter().map(|p| {
+            let e = (p.truth[0] - p.odom[0]).hypot(p.truth[1] - p.odom[1]);
+            (p.t, e * 1000.0)
+        });
+        let prefix = if label.is_empty() {
+            String::new()
+        } else {
+            format!("{label}: ")
+        };
+        chart
+            .draw_series(LineSeries::new(errs, odom))
+            .map_err(|e| err(&e))?
+            .label(format!("{prefix}max {:.1} mm", max_drift(points) * 1000.0))
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], odom));
+    }
+    if runs.len() > 1 {
+        legend(&mut chart, err)?;
+    }
+    Ok(())
+}
+
+/// The legend of `chart`'s series, on white in a black frame.
+fn legend<'a, 'b: 'a>(chart: &mut Chart<'a, 'b>, err: &ToPlotError<'_>) -> Result<(), PlotError> {
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| err(&e))
 }
 
 /// A logged run's track ([`track_from_log`]), with what the reader made of the file.

@@ -211,38 +211,12 @@ fn a_silent_gyro_falls_back_to_the_wheels_with_the_reason_reported_and_comes_bac
         "#,
     );
     let path = common::scratch("gyro", "silent.mcap");
-    let mut log =
-        hostsim::log::McapLog::create(&path, &hostsim::sim::run_metadata(&scenario)).unwrap();
-    let mut plant = SimDrives::for_scenario(&scenario).unwrap();
-    let mut statuses = Vec::new();
-    let mut last_imu_us = 0;
-    let mut first_imu_after_us = None;
-    let r = run_observed(
-        &scenario,
-        &mut plant,
-        Some(&mut log),
-        LogOptions::default(),
-        |step| {
-            for tx in step.delivered {
-                if tx.from == Node::Imu && tx.fate != hostsim::bus::Fate::Dropped {
-                    let t = tx.delivered_ns / 1000;
-                    if t < 5_000_000 {
-                        last_imu_us = t;
-                    } else if first_imu_after_us.is_none() {
-                        first_imu_after_us = Some(t);
-                    }
-                }
-            }
-            for f in step.sent {
-                if let Ok(Telemetry::Status(s)) = Telemetry::decode(f) {
-                    statuses.push((step.t_us, s));
-                }
-            }
-        },
-    )
-    .unwrap();
-    log.finish().unwrap();
-    let back_us = first_imu_after_us.unwrap();
+    let SilentRun {
+        summary: r,
+        statuses,
+        last_imu_us,
+        back_us,
+    } = silent_run(&scenario, &path);
     println!(
         "last IMU frame before the silence at {:.6} s, first after at {:.6} s; heading source \
          changes: {:?}",
@@ -289,7 +263,76 @@ fn a_silent_gyro_falls_back_to_the_wheels_with_the_reason_reported_and_comes_bac
 
     // The log: /rosout has the two changes of the silence (a warning with the reason, then
     // information), /diagnostics says WheelsGyroSilent at the WARN level meanwhile.
-    let bytes = std::fs::read(&path).unwrap();
+    check_silence_in_the_log(&path, fell_back_us, returned_us);
+    // `hostsim summary` lists the changes among the events.
+    let summary = hostsim::summary::summarize(&path).unwrap();
+    let events: Vec<_> = summary
+        .events
+        .iter()
+        .filter(|e| e.2.starts_with("heading source"))
+        .collect();
+    assert_eq!(events.len(), 4);
+    // The log replays bit for bit: the IMU's frames are among the inbound ones.
+    let replay = replay_mcap(&path).unwrap();
+    assert!(replay.identical(), "{:?}", replay.difference);
+}
+
+/// What the silent-gyro run shows: its summary, every STATUS sent (step time, µs), the last
+/// IMU frame delivered before the silence (at 5 s) and the first after it (µs).
+struct SilentRun {
+    summary: RunSummary,
+    statuses: Vec<(u64, robot::Status)>,
+    last_imu_us: u64,
+    back_us: u64,
+}
+
+/// Runs `scenario` with its log at `path`, watching the IMU's deliveries and the STATUS
+/// frames.
+fn silent_run(scenario: &Scenario, path: &Path) -> SilentRun {
+    let mut log =
+        hostsim::log::McapLog::create(path, &hostsim::sim::run_metadata(scenario)).unwrap();
+    let mut plant = SimDrives::for_scenario(scenario).unwrap();
+    let mut statuses = Vec::new();
+    let mut last_imu_us = 0;
+    let mut first_imu_after_us = None;
+    let r = run_observed(
+        scenario,
+        &mut plant,
+        Some(&mut log),
+        LogOptions::default(),
+        |step| {
+            for tx in step.delivered {
+                if tx.from == Node::Imu && tx.fate != hostsim::bus::Fate::Dropped {
+                    let t = tx.delivered_ns / 1000;
+                    if t < 5_000_000 {
+                        last_imu_us = t;
+                    } else if first_imu_after_us.is_none() {
+                        first_imu_after_us = Some(t);
+                    }
+                }
+            }
+            for f in step.sent {
+                if let Ok(Telemetry::Status(s)) = Telemetry::decode(f) {
+                    statuses.push((step.t_us, s));
+                }
+            }
+        },
+    )
+    .unwrap();
+    log.finish().unwrap();
+    SilentRun {
+        summary: r,
+        statuses,
+        last_imu_us,
+        back_us: first_imu_after_us.unwrap(),
+    }
+}
+
+/// The log of the silent-gyro run: /rosout has the fallback at `fell_back_us` (a warning
+/// with the reason) and the return at `returned_us`, /diagnostics says WHEELS_GYRO_SILENT
+/// at the WARN level every 10 ms between them.
+fn check_silence_in_the_log(path: &Path, fell_back_us: u64, returned_us: u64) {
+    let bytes = std::fs::read(path).unwrap();
     let mut rosout = Vec::new();
     let mut silent_diagnostics = Vec::new();
     let mut gyro_diagnostics = 0;
@@ -352,17 +395,6 @@ fn a_silent_gyro_falls_back_to_the_wheels_with_the_reason_reported_and_comes_bac
     assert!(during.iter().all(|d| d.1 == msg::DiagnosticStatus::WARN
         && d.2 == "ENABLED, heading from the wheels: gyro silent"));
     assert!(gyro_diagnostics > 1000);
-    // `hostsim summary` lists the changes among the events.
-    let summary = hostsim::summary::summarize(&path).unwrap();
-    let events: Vec<_> = summary
-        .events
-        .iter()
-        .filter(|e| e.2.starts_with("heading source"))
-        .collect();
-    assert_eq!(events.len(), 4);
-    // The log replays bit for bit: the IMU's frames are among the inbound ones.
-    let replay = replay_mcap(&path).unwrap();
-    assert!(replay.identical(), "{:?}", replay.difference);
 }
 
 /// The simulated drives, with an IMU of their own that sends malformed `IMU_YAW_RATE`

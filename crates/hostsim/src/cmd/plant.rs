@@ -172,30 +172,7 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
     // Before the log: an address that cannot be served fails before a file is made.
     let server = args.live.serve(format!("hostsim plant --iface {iface}"))?;
     let mut plant_log = match log {
-        Some(path) => {
-            let start_unix_ns = std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map_or(0, |d| d.as_nanos());
-            let metadata = std::collections::BTreeMap::from([
-                ("config".to_string(), config.to_toml_string()),
-                ("program".to_string(), PLANT_PROGRAM.to_string()),
-                (
-                    "source".to_string(),
-                    format!("hostsim plant --iface {iface}"),
-                ),
-                ("start_unix_ns".to_string(), start_unix_ns.to_string()),
-                (
-                    "hostsim_version".to_string(),
-                    env!("CARGO_PKG_VERSION").to_string(),
-                ),
-            ]);
-            let mut log = McapLog::create(path, &metadata)?;
-            if let Some(server) = &server {
-                log.set_tap(Box::new(server.tap()));
-                log.set_flush_interval(live::FLUSH_INTERVAL);
-            }
-            Some(PlantLog::new(log))
-        }
+        Some(path) => Some(open_log(path, &config, iface, server.as_ref())?),
         None => None,
     };
     let options = PlantOptions {
@@ -224,19 +201,10 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
         }
         None => run_plant(&mut drives, &mut bus, &clock, &options, &stop),
     };
-    let mut status = ExitCode::SUCCESS;
-    if let (Some(observer), Some(path)) = (plant_log, log) {
-        match observer.finish() {
-            Ok(n) if !quiet => {
-                eprintln!("hostsim plant: {n} messages logged to {}", path.display())
-            }
-            Ok(_) => {}
-            Err(e) => {
-                eprintln!("error: log {}: {e}", path.display());
-                status = ExitCode::from(EXIT_FAILED);
-            }
-        }
-    }
+    let status = match (plant_log, log) {
+        (Some(observer), Some(path)) => finish_log(observer, path, quiet),
+        _ => ExitCode::SUCCESS,
+    };
     // After the log: its last messages are queued for the clients before they are let go.
     let live = server.map(live::LiveServer::stop);
     if let (Some(report), false) = (&live, quiet) {
@@ -256,23 +224,78 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
     if !quiet {
         eprintln!("hostsim plant: {report}");
     }
-    if let Some((path, mut file)) = stats {
-        let stats = Stats {
-            report: &report,
-            live: live.as_ref().map(live::LiveReport::to_json),
-        };
-        let written = mecanum_linux::write_stats_json(&mut file, &stats)
-            .map_err(anyhow::Error::from)
-            .and_then(|()| Ok(file.commit()?));
-        if let Err(e) = written {
-            eprintln!(
-                "error: cannot write --stats-json file {}: {e:#}",
-                path.display()
-            );
-            return Ok(ExitCode::from(EXIT_FAILED));
-        }
+    if let Some((path, file)) = stats
+        && let Err(e) = write_stats(file, &report, live.as_ref())
+    {
+        eprintln!(
+            "error: cannot write --stats-json file {}: {e:#}",
+            path.display()
+        );
+        return Ok(ExitCode::from(EXIT_FAILED));
     }
     Ok(status)
+}
+
+/// The `--log` file at `path`, its metadata the run's (`config`, the interface), served to
+/// the `--live` clients as it is written.
+fn open_log(
+    path: &std::path::Path,
+    config: &firmware::Config,
+    iface: &str,
+    server: Option<&live::LiveServer>,
+) -> Result<PlantLog> {
+    let start_unix_ns = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos());
+    let metadata = std::collections::BTreeMap::from([
+        ("config".to_string(), config.to_toml_string()),
+        ("program".to_string(), PLANT_PROGRAM.to_string()),
+        (
+            "source".to_string(),
+            format!("hostsim plant --iface {iface}"),
+        ),
+        ("start_unix_ns".to_string(), start_unix_ns.to_string()),
+        (
+            "hostsim_version".to_string(),
+            env!("CARGO_PKG_VERSION").to_string(),
+        ),
+    ]);
+    let mut log = McapLog::create(path, &metadata)?;
+    if let Some(server) = server {
+        log.set_tap(Box::new(server.tap()));
+        log.set_flush_interval(live::FLUSH_INTERVAL);
+    }
+    Ok(PlantLog::new(log))
+}
+
+/// Finishes the log at `path`: failure if it cannot be written whole.
+fn finish_log(observer: PlantLog, path: &std::path::Path, quiet: bool) -> ExitCode {
+    match observer.finish() {
+        Ok(n) if !quiet => {
+            eprintln!("hostsim plant: {n} messages logged to {}", path.display());
+            ExitCode::SUCCESS
+        }
+        Ok(_) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: log {}: {e}", path.display());
+            ExitCode::from(EXIT_FAILED)
+        }
+    }
+}
+
+/// Writes `--stats-json`: the plant's report and, with `--live`, the live server's.
+fn write_stats(
+    mut file: drivelog::Staged,
+    report: &crate::realtime::PlantReport,
+    live: Option<&live::LiveReport>,
+) -> Result<()> {
+    let stats = Stats {
+        report,
+        live: live.map(live::LiveReport::to_json),
+    };
+    mecanum_linux::write_stats_json(&mut file, &stats)?;
+    file.commit()?;
+    Ok(())
 }
 
 /// What `--stats-json` holds: the plant's report and, with `--live`, the live server's.

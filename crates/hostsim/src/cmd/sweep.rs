@@ -135,15 +135,13 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
     } = plan;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create the output folder {}", args.out.display()))?;
-    let csv_path = args.out.join("sweep.csv");
-    let jsonl_path = args.out.join("sweep.jsonl");
-    let png_path = args.out.join("sweep.png");
     // Written as `.part` files, renamed when the sweep is whole: an interrupted or failed
     // sweep leaves the last whole table as it was (an interrupted one its rows in the `.part`).
     let staged = |path: &std::path::Path| -> Result<BufWriter<Staged>> {
         Ok(BufWriter::new(Staged::create(path)?))
     };
-    let (mut csv, mut jsonl) = (staged(&csv_path)?, staged(&jsonl_path)?);
+    let csv = staged(&args.out.join("sweep.csv"))?;
+    let jsonl = staged(&args.out.join("sweep.jsonl"))?;
     let threads = if args.jobs == 0 {
         std::thread::available_parallelism().map_or(1, std::num::NonZero::get)
     } else {
@@ -156,45 +154,11 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
         seeds.len(),
         runs.len() / seeds.len().max(1)
     );
-    let signal = mecanum_linux::stop_on_signals()?;
-    let bar = ProgressBar::new(runs.len() as u64);
-    bar.set_style(
-        ProgressStyle::with_template("[{bar:40}] {pos}/{len} runs, {elapsed} elapsed, ETA {eta}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
-    let stop = || signal.load(std::sync::atomic::Ordering::Relaxed) != 0;
     let wall = std::time::Instant::now();
-    let rows = sw::run_all(&base, &runs, threads, &stop, |_| bar.inc(1))?;
-    bar.finish_and_clear();
+    let rows = run_all(&base, &runs, threads)?;
     let interrupted = rows.len() < runs.len();
     let keys: Vec<String> = params.iter().map(|p| p.key.clone()).collect();
-    writeln!(csv, "{}", sw::csv_header(&keys))?;
-    for r in &rows {
-        writeln!(csv, "{}", r.csv())?;
-        writeln!(jsonl, "{}", r.json())?;
-    }
-    let done = |w: BufWriter<Staged>| -> Result<Staged> {
-        let part = w.get_ref().part().display().to_string();
-        w.into_inner()
-            .map_err(std::io::IntoInnerError::into_error)
-            .with_context(|| format!("cannot write {part}"))
-    };
-    let (csv, jsonl) = (done(csv)?, done(jsonl)?);
-    // Kept only for an interrupted sweep: a sweep that fails leaves no empty `.part` behind.
-    let (csv, jsonl) = if interrupted {
-        (csv.keep_part(), jsonl.keep_part())
-    } else {
-        (csv, jsonl)
-    };
-    let table = if interrupted {
-        format!("{} and {}", csv.part().display(), jsonl.part().display())
-    } else {
-        format!(
-            "{} and {}",
-            csv.commit()?.display(),
-            jsonl.commit()?.display()
-        )
-    };
+    let table = write_tables(csv, jsonl, &keys, &rows, interrupted)?;
     let secs = wall.elapsed().as_secs_f64();
     let simulated: f64 =
         rows.iter().map(|r| r.steps as f64).sum::<f64>() / f64::from(base.config.timing.control_hz);
@@ -210,6 +174,85 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
             ""
         }
     );
+    print_figures(&rows);
+    let mut worst: Vec<&sw::Row> = rows.iter().collect();
+    worst.sort_by(|a, b| {
+        b.drift_max_m
+            .total_cmp(&a.drift_max_m)
+            .then(a.index.cmp(&b.index))
+    });
+    print_worst(args, &base, &worst)?;
+    if !args.no_plot && !rows.is_empty() && !interrupted {
+        plot(&args.out.join("sweep.png"), &base, &keys, &rows)?;
+    }
+    println!("table: {table}");
+    Ok(if interrupted {
+        ExitCode::from(EXIT_INTERRUPTED)
+    } else {
+        ExitCode::SUCCESS
+    })
+}
+
+/// Runs `runs` on `threads` threads with a progress bar; Ctrl-C stops starting runs (the
+/// rows finished are returned).
+fn run_all(
+    base: &Scenario,
+    runs: &[crate::sweep::RunSpec],
+    threads: usize,
+) -> Result<Vec<crate::sweep::Row>> {
+    let signal = mecanum_linux::stop_on_signals()?;
+    let bar = ProgressBar::new(runs.len() as u64);
+    bar.set_style(
+        ProgressStyle::with_template("[{bar:40}] {pos}/{len} runs, {elapsed} elapsed, ETA {eta}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let stop = || signal.load(std::sync::atomic::Ordering::Relaxed) != 0;
+    let rows = crate::sweep::run_all(base, runs, threads, &stop, |_| bar.inc(1))?;
+    bar.finish_and_clear();
+    Ok(rows)
+}
+
+/// Writes the rows to the staged CSV and JSON lines tables, and commits them unless the
+/// sweep was `interrupted` (their `.part` files are then kept). Returns where they are.
+fn write_tables(
+    mut csv: BufWriter<Staged>,
+    mut jsonl: BufWriter<Staged>,
+    keys: &[String],
+    rows: &[crate::sweep::Row],
+    interrupted: bool,
+) -> Result<String> {
+    writeln!(csv, "{}", crate::sweep::csv_header(keys))?;
+    for r in rows {
+        writeln!(csv, "{}", r.csv())?;
+        writeln!(jsonl, "{}", r.json())?;
+    }
+    let done = |w: BufWriter<Staged>| -> Result<Staged> {
+        let part = w.get_ref().part().display().to_string();
+        w.into_inner()
+            .map_err(std::io::IntoInnerError::into_error)
+            .with_context(|| format!("cannot write {part}"))
+    };
+    let (csv, jsonl) = (done(csv)?, done(jsonl)?);
+    // Kept only for an interrupted sweep: a sweep that fails leaves no empty `.part` behind.
+    if interrupted {
+        let (csv, jsonl) = (csv.keep_part(), jsonl.keep_part());
+        Ok(format!(
+            "{} and {}",
+            csv.part().display(),
+            jsonl.part().display()
+        ))
+    } else {
+        Ok(format!(
+            "{} and {}",
+            csv.commit()?.display(),
+            jsonl.commit()?.display()
+        ))
+    }
+}
+
+/// The percentiles of the drift, the tracking error and the stop, and the faults' counts.
+fn print_figures(rows: &[crate::sweep::Row]) {
+    use crate::sweep as sw;
     let column = |f: fn(&sw::Row) -> f64| rows.iter().map(f).collect::<Vec<f64>>();
     for (name, unit, values) in [
         ("drift, largest", "m", column(|r| r.drift_max_m)),
@@ -230,17 +273,16 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
         );
     }
     let mut faults: std::collections::BTreeMap<&str, usize> = std::collections::BTreeMap::new();
-    for r in &rows {
+    for r in rows {
         *faults.entry(r.fault.as_str()).or_default() += 1;
     }
     let faults: Vec<String> = faults.iter().map(|(k, n)| format!("{k} {n}")).collect();
     println!("faults: {}", faults.join(", "));
-    let mut worst: Vec<&sw::Row> = rows.iter().collect();
-    worst.sort_by(|a, b| {
-        b.drift_max_m
-            .total_cmp(&a.drift_max_m)
-            .then(a.index.cmp(&b.index))
-    });
+}
+
+/// The `--worst` worst runs (`worst`, largest drift first), each with the command that runs
+/// it alone; the `--log-worst` worst run again with logs.
+fn print_worst(args: &Args, base: &Scenario, worst: &[&crate::sweep::Row]) -> Result<()> {
     println!("worst runs (largest drift):");
     for r in worst.iter().take(args.worst) {
         println!(
@@ -252,7 +294,7 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
         );
     }
     for r in worst.iter().take(args.log_worst) {
-        let s = sw::apply(&base, r.seed, &r.values)?;
+        let s = crate::sweep::apply(base, r.seed, &r.values)?;
         let path = args.out.join(format!("sweep-{}.mcap", r.index));
         let mut log = McapLog::create(&path, &run_metadata(&s))?;
         let mut plant = crate::drives::SimDrives::for_scenario(&s)?;
@@ -266,26 +308,29 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
         log.finish()?;
         println!("  log of #{}: {}", r.index, path.display());
     }
-    if !args.no_plot && !rows.is_empty() && !interrupted {
-        let (label, xs): (String, Vec<f64>) = match keys.first() {
-            Some(k) => (k.clone(), rows.iter().map(|r| r.values[0].1).collect()),
-            #[allow(clippy::cast_precision_loss)]
-            None => ("seed".into(), rows.iter().map(|r| r.seed as f64).collect()),
-        };
-        let ys = column(|r| r.drift_max_m);
-        crate::plot::scatter(
-            &png_path,
-            &format!("sweep of {}", base.name),
-            &label,
-            "largest drift, m",
-            &xs,
-            &ys,
-        )?;
-    }
-    println!("table: {table}");
-    Ok(if interrupted {
-        ExitCode::from(EXIT_INTERRUPTED)
-    } else {
-        ExitCode::SUCCESS
-    })
+    Ok(())
+}
+
+/// sweep.png: each run's largest drift against the first swept parameter, or the seed.
+fn plot(
+    png_path: &std::path::Path,
+    base: &Scenario,
+    keys: &[String],
+    rows: &[crate::sweep::Row],
+) -> Result<()> {
+    let (label, xs): (String, Vec<f64>) = match keys.first() {
+        Some(k) => (k.clone(), rows.iter().map(|r| r.values[0].1).collect()),
+        #[allow(clippy::cast_precision_loss)]
+        None => ("seed".into(), rows.iter().map(|r| r.seed as f64).collect()),
+    };
+    let ys: Vec<f64> = rows.iter().map(|r| r.drift_max_m).collect();
+    crate::plot::scatter(
+        png_path,
+        &format!("sweep of {}", base.name),
+        &label,
+        "largest drift, m",
+        &xs,
+        &ys,
+    )?;
+    Ok(())
 }

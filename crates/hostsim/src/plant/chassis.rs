@@ -542,17 +542,47 @@ impl Chassis {
     /// One substep of `h` seconds (`h` at most [`Self::substep`]; not checked): the
     /// linearly implicit step of `docs/simulator.md`, section "Chassis", "Integration".
     pub(crate) fn advance(&mut self, h: f64, inputs: &[WheelInput; WHEELS]) {
+        let wz = self.state.velocity.wz;
+        let (mut kb, mut rb, wheels) = self.assemble(h, inputs);
+        // Eliminate the wheels: a held wheel's speed is known; a driven one is
+        // ω = (r_w − c·v) / d_w, which folds its column into the body block.
+        eliminate_wheels(&mut kb, &mut rb, &wheels);
+        let [ux, uy, wz_new] = solve_spd3(&kb, rb);
+        let wheel_speed = self.wheel_speeds_and_contacts(&wheels, [ux, uy, wz_new]);
+        // The frame rotation ω × v as an exact rotation of the new body velocity by −ω h.
+        let (sin_r, cos_r) = libm::sincos(-wz * h);
+        let vx_new = cos_r * ux - sin_r * uy;
+        let vy_new = sin_r * ux + cos_r * uy;
+
+        let st = &mut self.state;
+        st.velocity = ChassisVelocity::new(vx_new, vy_new, wz_new);
+        st.wheel_speed = wheel_speed;
+        for (a, w) in st.wheel_angle.iter_mut().zip(wheel_speed) {
+            *a += h * w;
+        }
+        st.pose = st.pose.exp(Twist2::new(vx_new * h, vy_new * h, wz_new * h));
+        st.yaw += wz_new * h;
+        self.travel[0] += vx_new * h;
+        self.travel[1] += vy_new * h;
+        self.travel[2] += wz_new * h;
+    }
+
+    /// The system (M + h D) q⁺ = M q + h τ over q = (vx, vy, wz, ω_1..ω_4), in its arrowhead
+    /// form: the body block `kb` (symmetric 3 × 3, upper triangle used), the rhs `rb`, and
+    /// per wheel its coupling column, diagonal and rhs ([`WheelSystem`]).
+    #[inline]
+    fn assemble(
+        &self,
+        h: f64,
+        inputs: &[WheelInput; WHEELS],
+    ) -> ([[f64; 3]; 3], [f64; 3], [WheelSystem; WHEELS]) {
         let s = self.state;
         let (vx, vy, wz) = (s.velocity.vx, s.velocity.vy, s.velocity.wz);
         let (mass, inertia) = (self.params.mass, self.params.yaw_inertia);
         let eps = self.params.roller_drag;
         let s0_sq = self.params.slip_velocity * self.params.slip_velocity;
-
-        // The system (M + h D) q⁺ = M q + h τ over q = (vx, vy, wz, ω_1..ω_4), in its arrowhead
-        // form: the body block `kb` (symmetric 3 × 3, upper triangle used), the rhs `rb`,
-        // and per wheel its coupling column `cw`, diagonal `dw` and rhs `rw`.
         let mut kb = [[mass, 0.0, 0.0], [0.0, mass, 0.0], [0.0, 0.0, inertia]];
-        let mut rb = [mass * vx, mass * vy, inertia * wz];
+        let rb = [mass * vx, mass * vy, inertia * wz];
         let mut wheels = [WheelSystem::default(); WHEELS];
         for (i, w) in wheels.iter_mut().enumerate() {
             let c = self.consts[i];
@@ -594,28 +624,18 @@ impl Chassis {
                 WheelInput::Speed(speed) => w.held = Some(speed),
             }
         }
-        // Eliminate the wheels: a held wheel's speed is known; a driven one is
-        // ω = (r_w − c·v) / d_w, which folds its column into the body block.
-        for w in &wheels {
-            let c = w.coupling;
-            match w.held {
-                Some(speed) => {
-                    for (r, cj) in rb.iter_mut().zip(c) {
-                        *r -= cj * speed;
-                    }
-                }
-                None => {
-                    let inv = w.inv_diagonal;
-                    for j in 0..3 {
-                        rb[j] -= c[j] * w.rhs * inv;
-                        for l in j..3 {
-                            kb[j][l] -= c[j] * c[l] * inv;
-                        }
-                    }
-                }
-            }
-        }
-        let [ux, uy, wz_new] = solve_spd3(&kb, rb);
+        (kb, rb, wheels)
+    }
+
+    /// The wheel speeds from the new body velocity `[ux, uy, wz]` (before the frame
+    /// rotation), and each contact's force at them ([`Self::contacts`]).
+    #[inline]
+    fn wheel_speeds_and_contacts(
+        &mut self,
+        wheels: &[WheelSystem; WHEELS],
+        [ux, uy, wz_new]: [f64; 3],
+    ) -> [f64; WHEELS] {
+        let eps = self.params.roller_drag;
         let mut wheel_speed = [0.0; WHEELS];
         for (i, w) in wheels.iter().enumerate() {
             let c = self.consts[i];
@@ -645,22 +665,32 @@ impl Chassis {
                 load_torque: c.r * (f[0] * c.dx + f[1] * c.dy),
             };
         }
-        // The frame rotation ω × v as an exact rotation of the new body velocity by −ω h.
-        let (sin_r, cos_r) = libm::sincos(-wz * h);
-        let vx_new = cos_r * ux - sin_r * uy;
-        let vy_new = sin_r * ux + cos_r * uy;
+        wheel_speed
+    }
+}
 
-        let st = &mut self.state;
-        st.velocity = ChassisVelocity::new(vx_new, vy_new, wz_new);
-        st.wheel_speed = wheel_speed;
-        for (a, w) in st.wheel_angle.iter_mut().zip(wheel_speed) {
-            *a += h * w;
+/// Folds the wheels' rows of the arrowhead system into the body block `kb` and rhs `rb`: a
+/// held wheel's speed is known, a driven one's is `ω = (r_w − c·v) / d_w`.
+#[inline]
+fn eliminate_wheels(kb: &mut [[f64; 3]; 3], rb: &mut [f64; 3], wheels: &[WheelSystem; WHEELS]) {
+    for w in wheels {
+        let c = w.coupling;
+        match w.held {
+            Some(speed) => {
+                for (r, cj) in rb.iter_mut().zip(c) {
+                    *r -= cj * speed;
+                }
+            }
+            None => {
+                let inv = w.inv_diagonal;
+                for j in 0..3 {
+                    rb[j] -= c[j] * w.rhs * inv;
+                    for l in j..3 {
+                        kb[j][l] -= c[j] * c[l] * inv;
+                    }
+                }
+            }
         }
-        st.pose = st.pose.exp(Twist2::new(vx_new * h, vy_new * h, wz_new * h));
-        st.yaw += wz_new * h;
-        self.travel[0] += vx_new * h;
-        self.travel[1] += vy_new * h;
-        self.travel[2] += wz_new * h;
     }
 }
 

@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use firmware::CanFrame;
 use firmware::config::Config;
 use firmware::control::{Controller, Instant};
+use firmware::protocol::robot::{OdomPosition, OdomVelocity, Telemetry};
 use serde::Serialize;
 
 use super::*;
@@ -235,21 +236,10 @@ pub fn replay_split(
     log: &SplitLog,
     tolerance: OdometryTolerance,
 ) -> Result<CandumpReplay, ReplayRunError> {
-    use firmware::protocol::robot::Telemetry;
     let mut ctl = Controller::new(config)?;
     check_time_gaps(&log.all)?;
     let period_ns = ctl.period_micros() * 1000;
-
-    // The last logged odometry.
-    let mut logged_pos = None;
-    let mut logged_vel = None;
-    for f in &log.tx {
-        match Telemetry::decode(&f.frame) {
-            Ok(Telemetry::OdomPosition(p)) => logged_pos = Some((f.t_ns, p)),
-            Ok(Telemetry::OdomVelocity(v)) => logged_vel = Some(v),
-            _ => {}
-        }
-    }
+    let (logged_pos, logged_vel) = last_logged_odometry(&log.tx);
     let target_ns = logged_pos.map(|(t, _)| t);
 
     let end_ns = log.all.last().map_or(0, |f| f.t_ns);
@@ -260,13 +250,6 @@ pub fn replay_split(
     let mut at_target = None;
     let mut t_ns = 0u64;
     let mut last_step_ns = 0u64;
-    let state = |ctl: &Controller| {
-        let s = ctl.snapshot();
-        (
-            [s.pose.x, s.pose.y, s.pose.heading],
-            [s.measured.vx, s.measured.vy, s.measured.wz],
-        )
-    };
     while t_ns <= end_ns {
         let now = Instant::from_micros(t_ns / 1000);
         while let Some(f) = log.rx.get(next_rx)
@@ -275,28 +258,12 @@ pub fn replay_split(
             ctl.on_frame(now, &f.frame);
             next_rx += 1;
         }
-        // A step's frames leave in the bus's order (a capture of a simulated or a real CAN
-        // bus), or in the order the core queued them (a vcan capture): compared in one order.
-        let mut sent: Vec<CanFrame> = ctl.step(now).iter().copied().collect();
-        sent.sort_by_key(wire_order);
-        let end = (out_index + sent.len()).min(log.tx.len());
-        let mut logged: Vec<TimedFrame> = log.tx[out_index.min(end)..end].to_vec();
-        logged.sort_by_key(|f| wire_order(&f.frame));
-        for (i, frame) in sent.into_iter().enumerate() {
-            let logged = logged.get(i);
-            if first_difference.is_none() && logged.map(|l| l.frame) != Some(frame) {
-                first_difference = Some(StreamDifference {
-                    index: out_index,
-                    logged: logged.map(ReportFrame::new),
-                    replayed: Some(ReportFrame::new(&TimedFrame { t_ns, frame })),
-                });
-            }
-            out_index += 1;
-        }
+        let sent: Vec<CanFrame> = ctl.step(now).iter().copied().collect();
+        out_index = compare_step(sent, &log.tx, out_index, t_ns, &mut first_difference);
         steps += 1;
         last_step_ns = t_ns;
         if target_ns.is_some_and(|t| t_ns <= t) {
-            at_target = Some((t_ns, state(&ctl)));
+            at_target = Some((t_ns, pose_and_velocity(&ctl)));
         }
         // The gap check bounds end_ns far below u64::MAX; stop rather than wrap regardless.
         let Some(next) = t_ns.checked_add(period_ns) else {
@@ -312,32 +279,19 @@ pub fn replay_split(
         });
     }
     let matching_prefix = first_difference.as_ref().map_or(out_index, |d| d.index);
-
     let odometry = match (logged_pos, at_target) {
         (Some((t, p)), Some((t_rep, (pose, vel)))) => {
             let v = logged_vel.unwrap_or_default();
             let logged = reading(t, [p.x, p.y, v.heading], [v.vx, v.vy, v.wz]);
-            let replayed = reading(t_rep, pose, vel);
-            let position_error_m = (logged.x - replayed.x).hypot(logged.y - replayed.y);
-            let heading_error_rad = kinematics::wrap_angle(logged.heading - replayed.heading).abs();
-            let velocity_error = (logged.vx - replayed.vx)
-                .abs()
-                .max((logged.vy - replayed.vy).abs())
-                .max((logged.wz - replayed.wz).abs());
-            Some(OdometryComparison {
+            Some(compare_odometry(
                 logged,
-                replayed,
-                position_error_m,
-                heading_error_rad,
-                velocity_error,
+                reading(t_rep, pose, vel),
                 tolerance,
-                agrees: position_error_m <= tolerance.position_m
-                    && heading_error_rad <= tolerance.heading_rad,
-            })
+            ))
         }
         _ => None,
     };
-    let (pose, vel) = state(&ctl);
+    let (pose, vel) = pose_and_velocity(&ctl);
     Ok(CandumpReplay {
         interfaces: log.interfaces.clone(),
         frames: log.all.len(),
@@ -354,4 +308,81 @@ pub fn replay_split(
         final_pose: reading(last_step_ns, pose, vel),
         rejected: ctl.snapshot().rx_errors,
     })
+}
+
+/// The last `ODOM_POSITION` the log's outbound frames hold (with its time) and the last
+/// `ODOM_VELOCITY`.
+fn last_logged_odometry(tx: &[TimedFrame]) -> (Option<(u64, OdomPosition)>, Option<OdomVelocity>) {
+    let mut logged_pos = None;
+    let mut logged_vel = None;
+    for f in tx {
+        match Telemetry::decode(&f.frame) {
+            Ok(Telemetry::OdomPosition(p)) => logged_pos = Some((f.t_ns, p)),
+            Ok(Telemetry::OdomVelocity(v)) => logged_vel = Some(v),
+            _ => {}
+        }
+    }
+    (logged_pos, logged_vel)
+}
+
+/// The core's pose and measured velocity.
+fn pose_and_velocity(ctl: &Controller) -> ([f32; 3], [f32; 3]) {
+    let s = ctl.snapshot();
+    (
+        [s.pose.x, s.pose.y, s.pose.heading],
+        [s.measured.vx, s.measured.vy, s.measured.wz],
+    )
+}
+
+/// Compares a step's frames (`sent`, at `t_ns`) with the logged ones from `out_index` on,
+/// recording the first difference; returns the index after them.
+fn compare_step(
+    mut sent: Vec<CanFrame>,
+    tx: &[TimedFrame],
+    mut out_index: usize,
+    t_ns: u64,
+    first_difference: &mut Option<StreamDifference>,
+) -> usize {
+    // A step's frames leave in the bus's order (a capture of a simulated or a real CAN
+    // bus), or in the order the core queued them (a vcan capture): compared in one order.
+    sent.sort_by_key(wire_order);
+    let end = (out_index + sent.len()).min(tx.len());
+    let mut logged: Vec<TimedFrame> = tx[out_index.min(end)..end].to_vec();
+    logged.sort_by_key(|f| wire_order(&f.frame));
+    for (i, frame) in sent.into_iter().enumerate() {
+        let logged = logged.get(i);
+        if first_difference.is_none() && logged.map(|l| l.frame) != Some(frame) {
+            *first_difference = Some(StreamDifference {
+                index: out_index,
+                logged: logged.map(ReportFrame::new),
+                replayed: Some(ReportFrame::new(&TimedFrame { t_ns, frame })),
+            });
+        }
+        out_index += 1;
+    }
+    out_index
+}
+
+/// The replayed odometry against the logged one, within `tolerance`.
+fn compare_odometry(
+    logged: OdometryReading,
+    replayed: OdometryReading,
+    tolerance: OdometryTolerance,
+) -> OdometryComparison {
+    let position_error_m = (logged.x - replayed.x).hypot(logged.y - replayed.y);
+    let heading_error_rad = kinematics::wrap_angle(logged.heading - replayed.heading).abs();
+    let velocity_error = (logged.vx - replayed.vx)
+        .abs()
+        .max((logged.vy - replayed.vy).abs())
+        .max((logged.wz - replayed.wz).abs());
+    OdometryComparison {
+        logged,
+        replayed,
+        position_error_m,
+        heading_error_rad,
+        velocity_error,
+        tolerance,
+        agrees: position_error_m <= tolerance.position_m
+            && heading_error_rad <= tolerance.heading_rad,
+    }
 }

@@ -222,138 +222,157 @@ pub(super) fn build(
     let mut host_faults = Vec::new();
     let mut node_faults = Vec::new();
     for (i, f) in faults.iter().enumerate() {
-        if !(f.from_s.is_finite()
-            && f.until_s.is_finite()
-            && 0.0 <= f.from_s
-            && f.from_s < f.until_s)
-        {
-            return Err(invalid.at(
-                &format!("faults[{i}].from_s..until_s"),
-                format!("{}..{}", f.from_s, f.until_s),
-                "0 <= from_s < until_s",
-            ));
-        }
-        if f.from_s >= duration_s {
-            return Err(invalid.at(
-                &format!("faults[{i}].from_s"),
-                f.from_s.to_string(),
-                "a time before duration_s (a later fault would never happen)",
-            ));
-        }
-        // A field another kind uses is a mistake (a `wheel` on a `drop` fault would
-        // otherwise drop every frame, not one wheel's).
-        let (rate_used, delay_used, sender_used, wheel_used, uses) = match f.kind {
-            FaultName::Drop | FaultName::Corrupt => (true, false, true, false, "rate, sender"),
-            FaultName::Burst => (false, false, true, false, "sender"),
-            FaultName::Delay => (false, true, true, false, "delay_ms, sender"),
-            FaultName::StuckEncoder
-            | FaultName::MotorOffline
-            | FaultName::DriveSilent
-            | FaultName::DriveReboot
-            | FaultName::DriveFault
-            | FaultName::EnableRefused
-            | FaultName::SdoAbort
-            | FaultName::DriveBusOff => (false, false, false, true, "wheel"),
-            FaultName::NonFiniteTwist
-            | FaultName::RepeatedTwist
-            | FaultName::PodsSilent
-            | FaultName::RunnerRestart => (false, false, false, false, "no other field"),
-        };
-        for (field, given, used) in [
-            ("rate", f.rate.map(|x| x.to_string()), rate_used),
-            ("delay_ms", f.delay_ms.map(|x| x.to_string()), delay_used),
-            ("sender", f.sender.map(|x| format!("{x:?}")), sender_used),
-            ("wheel", f.wheel.map(|x| x.to_string()), wheel_used),
-        ] {
-            if let (Some(value), false) = (given, used) {
-                return Err(ScenarioError::UnusedField {
-                    path: invalid.path.to_path_buf(),
-                    field: format!("faults[{i}].{field}"),
-                    value,
-                    kind: f.kind,
-                    uses,
-                });
-            }
-        }
+        check_window(i, f, duration_s, invalid)?;
+        check_fields(i, f, invalid)?;
         let (from_us, until_us) = (secs_to_us(f.from_s), secs_to_us(f.until_s));
-        let rate = |f: &FaultSpec| match f.rate {
-            Some(r) if (0.0..=1.0).contains(&r) => Ok(r),
-            other => Err(invalid.at(
-                &format!("faults[{i}].rate"),
-                given(other),
-                "a probability in 0..=1",
-            )),
-        };
-        let kind = match f.kind {
-            FaultName::Drop => Some(FaultKind::Drop { rate: rate(f)? }),
-            FaultName::Corrupt => Some(FaultKind::Corrupt { rate: rate(f)? }),
-            FaultName::Burst => Some(FaultKind::Burst),
-            FaultName::Delay => match f.delay_ms {
-                Some(ms) if ms.is_finite() && (0.0..=10_000.0).contains(&ms) => {
-                    Some(FaultKind::Delay {
-                        micros: (ms * 1000.0).round() as u64,
-                    })
-                }
-                other => {
-                    return Err(invalid.at(
-                        &format!("faults[{i}].delay_ms"),
-                        given(other),
-                        "a delay in 0..=10000 ms",
-                    ));
-                }
-            },
-            FaultName::StuckEncoder
-            | FaultName::MotorOffline
-            | FaultName::NonFiniteTwist
-            | FaultName::RepeatedTwist
-            | FaultName::DriveSilent
-            | FaultName::DriveReboot
-            | FaultName::DriveFault
-            | FaultName::EnableRefused
-            | FaultName::SdoAbort
-            | FaultName::DriveBusOff
-            | FaultName::PodsSilent
-            | FaultName::RunnerRestart => None,
-        };
-        if matches!(f.kind, FaultName::PodsSilent | FaultName::RunnerRestart) {
-            node_faults.push(NodeFault {
+        let kind = bus_kind(i, f, invalid)?;
+        match f.kind {
+            FaultName::PodsSilent | FaultName::RunnerRestart => node_faults.push(NodeFault {
                 kind: f.kind,
                 from_us,
                 until_us,
-            });
-            continue;
-        }
-        if matches!(f.kind, FaultName::NonFiniteTwist | FaultName::RepeatedTwist) {
-            host_faults.push(HostFault {
-                kind: f.kind,
-                from_us,
-                until_us,
-            });
-            continue;
-        }
-        match kind {
-            Some(kind) => bus_faults.push(Fault {
-                kind,
-                from_us,
-                until_us,
-                sender: f.sender.map(Node::from),
             }),
-            None => match f.wheel {
-                Some(wheel) if wheel < 4 => wheel_faults.push(WheelFault {
-                    kind: f.kind,
-                    wheel,
+            FaultName::NonFiniteTwist | FaultName::RepeatedTwist => host_faults.push(HostFault {
+                kind: f.kind,
+                from_us,
+                until_us,
+            }),
+            _ => match kind {
+                Some(kind) => bus_faults.push(Fault {
+                    kind,
                     from_us,
                     until_us,
+                    sender: f.sender.map(Node::from),
                 }),
-                other => {
-                    return Err(invalid.at(
-                        &format!("faults[{i}].wheel"),
-                        given(other),
-                        "a wheel index 0..=3 (FL, FR, RL, RR)",
-                    ));
-                }
+                None => match f.wheel {
+                    Some(wheel) if wheel < 4 => wheel_faults.push(WheelFault {
+                        kind: f.kind,
+                        wheel,
+                        from_us,
+                        until_us,
+                    }),
+                    other => {
+                        return Err(invalid.at(
+                            &format!("faults[{i}].wheel"),
+                            given(other),
+                            "a wheel index 0..=3 (FL, FR, RL, RR)",
+                        ));
+                    }
+                },
             },
         }
     }
     Ok((bus_faults, wheel_faults, host_faults, node_faults))
+}
+
+/// Fault `i`'s window: `0 <= from_s < until_s`, starting before the run ends.
+fn check_window(
+    i: usize,
+    f: &FaultSpec,
+    duration_s: f64,
+    invalid: &Invalid<'_>,
+) -> Result<(), ScenarioError> {
+    if !(f.from_s.is_finite() && f.until_s.is_finite() && 0.0 <= f.from_s && f.from_s < f.until_s) {
+        return Err(invalid.at(
+            &format!("faults[{i}].from_s..until_s"),
+            format!("{}..{}", f.from_s, f.until_s),
+            "0 <= from_s < until_s",
+        ));
+    }
+    if f.from_s >= duration_s {
+        return Err(invalid.at(
+            &format!("faults[{i}].from_s"),
+            f.from_s.to_string(),
+            "a time before duration_s (a later fault would never happen)",
+        ));
+    }
+    Ok(())
+}
+
+/// Fault `i` sets no field its kind does not use.
+fn check_fields(i: usize, f: &FaultSpec, invalid: &Invalid<'_>) -> Result<(), ScenarioError> {
+    // A field another kind uses is a mistake (a `wheel` on a `drop` fault would
+    // otherwise drop every frame, not one wheel's).
+    let (rate_used, delay_used, sender_used, wheel_used, uses) = match f.kind {
+        FaultName::Drop | FaultName::Corrupt => (true, false, true, false, "rate, sender"),
+        FaultName::Burst => (false, false, true, false, "sender"),
+        FaultName::Delay => (false, true, true, false, "delay_ms, sender"),
+        FaultName::StuckEncoder
+        | FaultName::MotorOffline
+        | FaultName::DriveSilent
+        | FaultName::DriveReboot
+        | FaultName::DriveFault
+        | FaultName::EnableRefused
+        | FaultName::SdoAbort
+        | FaultName::DriveBusOff => (false, false, false, true, "wheel"),
+        FaultName::NonFiniteTwist
+        | FaultName::RepeatedTwist
+        | FaultName::PodsSilent
+        | FaultName::RunnerRestart => (false, false, false, false, "no other field"),
+    };
+    for (field, given, used) in [
+        ("rate", f.rate.map(|x| x.to_string()), rate_used),
+        ("delay_ms", f.delay_ms.map(|x| x.to_string()), delay_used),
+        ("sender", f.sender.map(|x| format!("{x:?}")), sender_used),
+        ("wheel", f.wheel.map(|x| x.to_string()), wheel_used),
+    ] {
+        if let (Some(value), false) = (given, used) {
+            return Err(ScenarioError::UnusedField {
+                path: invalid.path.to_path_buf(),
+                field: format!("faults[{i}].{field}"),
+                value,
+                kind: f.kind,
+                uses,
+            });
+        }
+    }
+    Ok(())
+}
+
+/// What fault `i` does to the frames on the bus, with its rate or delay checked; `None` for
+/// a fault that acts elsewhere (a motor, the host, a node).
+fn bus_kind(
+    i: usize,
+    f: &FaultSpec,
+    invalid: &Invalid<'_>,
+) -> Result<Option<FaultKind>, ScenarioError> {
+    let rate = |f: &FaultSpec| match f.rate {
+        Some(r) if (0.0..=1.0).contains(&r) => Ok(r),
+        other => Err(invalid.at(
+            &format!("faults[{i}].rate"),
+            given(other),
+            "a probability in 0..=1",
+        )),
+    };
+    Ok(match f.kind {
+        FaultName::Drop => Some(FaultKind::Drop { rate: rate(f)? }),
+        FaultName::Corrupt => Some(FaultKind::Corrupt { rate: rate(f)? }),
+        FaultName::Burst => Some(FaultKind::Burst),
+        FaultName::Delay => match f.delay_ms {
+            Some(ms) if ms.is_finite() && (0.0..=10_000.0).contains(&ms) => {
+                Some(FaultKind::Delay {
+                    micros: (ms * 1000.0).round() as u64,
+                })
+            }
+            other => {
+                return Err(invalid.at(
+                    &format!("faults[{i}].delay_ms"),
+                    given(other),
+                    "a delay in 0..=10000 ms",
+                ));
+            }
+        },
+        FaultName::StuckEncoder
+        | FaultName::MotorOffline
+        | FaultName::NonFiniteTwist
+        | FaultName::RepeatedTwist
+        | FaultName::DriveSilent
+        | FaultName::DriveReboot
+        | FaultName::DriveFault
+        | FaultName::EnableRefused
+        | FaultName::SdoAbort
+        | FaultName::DriveBusOff
+        | FaultName::PodsSilent
+        | FaultName::RunnerRestart => None,
+    })
 }

@@ -14,6 +14,74 @@ fn builtins_exist_and_end_after_their_last_action() {
     assert!(e.contains("square") && e.contains("nope"), "{e}");
 }
 
+/// Scenario texts the format refuses, each with what the refusal must name.
+const REFUSED: &[(&str, &str)] = &[
+    ("duration_s = -1.0", "duration_s"),
+    // Positive but a period past u64 microseconds: it wrapped the host's command clock.
+    (
+        "duration_s = 1.0\ncommand_hz = 1e-300",
+        "command_hz = 1e-300: a rate in [0.01, 1000] Hz",
+    ),
+    (
+        "duration_s = 1.0\ncommand_hz = 0.001",
+        "command_hz = 0.001: a rate in [0.01, 1000] Hz",
+    ),
+    (
+        "duration_s = 1.0\ncommand_hz = 1000.5",
+        "command_hz = 1000.5: a rate in [0.01, 1000] Hz",
+    ),
+    ("name = \" \"\nduration_s = 1.0", "name = \" \": a name"),
+    (
+        "duration_s = 1.0\n[[faults]]\nkind = \"drop\"\nfrom_s = 0.0\nuntil_s = 1.0",
+        "faults[0].rate = (missing): a probability",
+    ),
+    (
+        "duration_s = 1.0\n[[faults]]\nkind = \"corrupt\"\nrate = 2.0\nfrom_s = 0.0\nuntil_s = 1.0",
+        "faults[0].rate = 2: a probability",
+    ),
+    (
+        "duration_s = 1.0\n[[faults]]\nkind = \"motor_offline\"\nwheel = 4\nfrom_s = 0.0\nuntil_s = 1.0",
+        "faults[0].wheel = 4: a wheel index",
+    ),
+    (
+        "duration_s = 1.0\n[[faults]]\nkind = \"delay\"\ndelay_ms = -5.0\nfrom_s = 0.0\nuntil_s = 1.0",
+        "faults[0].delay_ms = -5: a delay",
+    ),
+    (
+        "duration_s = 1.0\n[[faults]]\nkind = \"burst\"\nfrom_s = 2.0\nuntil_s = 1.0",
+        "from_s",
+    ),
+    ("duration_s = 1.0\n[[actions]]\nat_s = -0.5", "at_s"),
+    (
+        "duration_s = 1.0\n[[actions]]\nat_s = 1.0\nenable = true",
+        "actions[0].at_s = 1: a time before duration_s",
+    ),
+    (
+        "duration_s = 1.0\n[[actions]]\nat_s = 0.5",
+        "actions[0] = {}: at least one of",
+    ),
+    (
+        "duration_s = 1.0\n[[actions]]\nat_s = 0.5\nenable = true\ndisable = true",
+        "actions[0] = {enable, disable}",
+    ),
+    (
+        "duration_s = 1.0\n[[faults]]\nkind = \"burst\"\nfrom_s = 1.5\nuntil_s = 2.0",
+        "faults[0].from_s = 1.5: a time before duration_s",
+    ),
+    (
+        "duration_s = 1.0\n[[faults]]\nkind = \"drop\"\nrate = 0.5\nwheel = 2\nfrom_s = 0.0\nuntil_s = 1.0",
+        "faults[0].wheel = 2: not used by a \"drop\" fault (it takes rate, sender)",
+    ),
+    (
+        "duration_s = 1.0\n[[faults]]\nkind = \"stuck_encoder\"\nwheel = 1\nrate = 0.5\nfrom_s = 0.0\nuntil_s = 1.0",
+        "faults[0].rate = 0.5: not used by a \"stuck_encoder\" fault (it takes wheel)",
+    ),
+    (
+        "duration_s = 1.0\n[[faults]]\nkind = \"repeated_twist\"\nwheel = 1\nfrom_s = 0.0\nuntil_s = 1.0",
+        "faults[0].wheel = 1: not used by a \"repeated_twist\" fault (it takes no other field)",
+    ),
+];
+
 #[test]
 fn toml_scenario_parses_and_validates() {
     let text = r#"
@@ -71,72 +139,7 @@ fn toml_scenario_parses_and_validates() {
     assert!(s.host_faults[1].active(2_000_000) && !s.host_faults[1].active(2_500_000));
     assert_eq!(s.bus_faults.len(), 1);
 
-    for (bad, field) in [
-        ("duration_s = -1.0", "duration_s"),
-        // Positive but a period past u64 microseconds: it wrapped the host's command clock.
-        (
-            "duration_s = 1.0\ncommand_hz = 1e-300",
-            "command_hz = 1e-300: a rate in [0.01, 1000] Hz",
-        ),
-        (
-            "duration_s = 1.0\ncommand_hz = 0.001",
-            "command_hz = 0.001: a rate in [0.01, 1000] Hz",
-        ),
-        (
-            "duration_s = 1.0\ncommand_hz = 1000.5",
-            "command_hz = 1000.5: a rate in [0.01, 1000] Hz",
-        ),
-        ("name = \" \"\nduration_s = 1.0", "name = \" \": a name"),
-        (
-            "duration_s = 1.0\n[[faults]]\nkind = \"drop\"\nfrom_s = 0.0\nuntil_s = 1.0",
-            "faults[0].rate = (missing): a probability",
-        ),
-        (
-            "duration_s = 1.0\n[[faults]]\nkind = \"corrupt\"\nrate = 2.0\nfrom_s = 0.0\nuntil_s = 1.0",
-            "faults[0].rate = 2: a probability",
-        ),
-        (
-            "duration_s = 1.0\n[[faults]]\nkind = \"motor_offline\"\nwheel = 4\nfrom_s = 0.0\nuntil_s = 1.0",
-            "faults[0].wheel = 4: a wheel index",
-        ),
-        (
-            "duration_s = 1.0\n[[faults]]\nkind = \"delay\"\ndelay_ms = -5.0\nfrom_s = 0.0\nuntil_s = 1.0",
-            "faults[0].delay_ms = -5: a delay",
-        ),
-        (
-            "duration_s = 1.0\n[[faults]]\nkind = \"burst\"\nfrom_s = 2.0\nuntil_s = 1.0",
-            "from_s",
-        ),
-        ("duration_s = 1.0\n[[actions]]\nat_s = -0.5", "at_s"),
-        (
-            "duration_s = 1.0\n[[actions]]\nat_s = 1.0\nenable = true",
-            "actions[0].at_s = 1: a time before duration_s",
-        ),
-        (
-            "duration_s = 1.0\n[[actions]]\nat_s = 0.5",
-            "actions[0] = {}: at least one of",
-        ),
-        (
-            "duration_s = 1.0\n[[actions]]\nat_s = 0.5\nenable = true\ndisable = true",
-            "actions[0] = {enable, disable}",
-        ),
-        (
-            "duration_s = 1.0\n[[faults]]\nkind = \"burst\"\nfrom_s = 1.5\nuntil_s = 2.0",
-            "faults[0].from_s = 1.5: a time before duration_s",
-        ),
-        (
-            "duration_s = 1.0\n[[faults]]\nkind = \"drop\"\nrate = 0.5\nwheel = 2\nfrom_s = 0.0\nuntil_s = 1.0",
-            "faults[0].wheel = 2: not used by a \"drop\" fault (it takes rate, sender)",
-        ),
-        (
-            "duration_s = 1.0\n[[faults]]\nkind = \"stuck_encoder\"\nwheel = 1\nrate = 0.5\nfrom_s = 0.0\nuntil_s = 1.0",
-            "faults[0].rate = 0.5: not used by a \"stuck_encoder\" fault (it takes wheel)",
-        ),
-        (
-            "duration_s = 1.0\n[[faults]]\nkind = \"repeated_twist\"\nwheel = 1\nfrom_s = 0.0\nuntil_s = 1.0",
-            "faults[0].wheel = 1: not used by a \"repeated_twist\" fault (it takes no other field)",
-        ),
-    ] {
+    for &(bad, field) in REFUSED {
         let e = Scenario::from_toml(bad, Path::new("bad.toml"))
             .unwrap_err()
             .to_string();
