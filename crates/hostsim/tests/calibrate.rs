@@ -6,6 +6,7 @@
 mod common;
 
 use std::collections::BTreeMap;
+use std::ffi::OsStr;
 use std::path::Path;
 
 use common::{fit, hostsim, logged_run, print_fit, scratch};
@@ -460,21 +461,15 @@ fn a_tracker_pose_stamped_reference_gives_the_same_fit() {
 #[test]
 fn the_command_line_writes_a_configuration_that_loads() {
     let written = scratch("calibrate-cli", "calibrated.toml");
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_hostsim"))
-        .arg("calibrate")
-        .arg(calibration_log())
-        .arg("--write")
-        .arg(&written)
-        .arg("--json")
-        .output()
-        .unwrap();
-    assert_eq!(
-        out.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let (code, stdout, stderr) = hostsim([
+        "calibrate",
+        calibration_log().to_str().unwrap(),
+        "--write",
+        written.to_str().unwrap(),
+        "--json",
+    ]);
+    assert_eq!(code, 0, "{stderr}");
+    let v: serde_json::Value = serde_json::from_str(&stdout).unwrap();
     println!("{v:#}");
     let config = Config::from_toml_file(&written).unwrap();
     let Geometry::Standard {
@@ -520,17 +515,9 @@ fn the_command_line_writes_a_configuration_that_loads() {
     let bytes = std::fs::read(calibration_log()).unwrap();
     let cut = scratch("calibrate-cli", "cut.mcap");
     std::fs::write(&cut, &bytes[..bytes.len() * 97 / 100]).unwrap();
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_hostsim"))
-        .arg("calibrate")
-        .arg(&cut)
-        .output()
-        .unwrap();
-    let (stdout, stderr) = (
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr),
-    );
-    println!("cut log: exit {:?}, {stderr}", out.status.code());
-    assert_eq!(out.status.code(), Some(3), "{stderr}");
+    let (code, stdout, stderr) = hostsim(["calibrate", cut.to_str().unwrap()]);
+    println!("cut log: exit {code}, {stderr}");
+    assert_eq!(code, 3, "{stderr}");
     assert!(
         stderr.contains("cut.mcap is damaged") && stderr.contains("complete part"),
         "{stderr}"
@@ -577,19 +564,10 @@ fn the_plot_draws_two_runs_side_by_side() {
     }
     let png = scratch(group, "before-vs-after.png");
     let _ = std::fs::remove_file(&png);
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_hostsim"))
-        .arg("plot")
-        .args([&before, &after])
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout);
+    let (code, stdout, stderr) =
+        hostsim([OsStr::new("plot"), before.as_os_str(), after.as_os_str()]);
     println!("{stdout}");
-    assert_eq!(
-        out.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_eq!(code, 0, "{stderr}");
     assert!(stdout.contains("before-vs-after.png"), "{stdout}");
     let bytes = std::fs::read(&png).unwrap();
     // PNG signature, then the IHDR chunk: width and height, big-endian.
@@ -599,12 +577,8 @@ fn the_plot_draws_two_runs_side_by_side() {
 
     let log = scratch(group, "no-odometry.mcap");
     std::fs::write(&log, b"not a log").unwrap();
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_hostsim"))
-        .args(["plot".as_ref(), log.as_os_str()])
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    let (code, _, stderr) = hostsim([OsStr::new("plot"), log.as_os_str()]);
+    assert_eq!(code, 2, "{stderr}");
     assert!(
         stderr.contains("no-odometry.mcap") && stderr.contains("not a readable MCAP"),
         "{stderr}"

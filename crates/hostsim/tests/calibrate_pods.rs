@@ -340,21 +340,13 @@ fn the_command_line_reports_the_pods_only_for_a_robot_with_pods() {
         &calibration_run("calibration-pods3-cli", pods3_config(), params),
     );
     let written = scratch(group, "calibrated.toml");
-    let hostsim = |args: &[&std::ffi::OsStr]| {
-        let out = std::process::Command::new(env!("CARGO_BIN_EXE_hostsim"))
-            .arg("calibrate")
-            .args(args)
-            .output()
-            .unwrap();
-        assert_eq!(
-            out.status.code(),
-            Some(0),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        String::from_utf8(out.stdout).unwrap()
+    // `hostsim calibrate ARGS`, which succeeds: its stdout.
+    let calibrate_ok = |args: &[&str]| {
+        let (code, stdout, stderr) = hostsim([&["calibrate"], args].concat());
+        assert_eq!(code, 0, "{stderr}");
+        stdout
     };
-    let text = hostsim(&[log.as_os_str()]);
+    let text = calibrate_ok(&[log.to_str().unwrap()]);
     println!("{text}");
     for needle in [
         "pods, from their angles in /joint_states",
@@ -366,11 +358,11 @@ fn the_command_line_reports_the_pods_only_for_a_robot_with_pods() {
     ] {
         assert!(text.contains(needle), "{needle:?} in {text}");
     }
-    let json = hostsim(&[
-        log.as_os_str(),
-        "--json".as_ref(),
-        "--write".as_ref(),
-        written.as_os_str(),
+    let json = calibrate_ok(&[
+        log.to_str().unwrap(),
+        "--json",
+        "--write",
+        written.to_str().unwrap(),
     ]);
     let v: serde_json::Value = serde_json::from_str(&json).unwrap();
     let pods = v["pods"].as_array().unwrap();
@@ -392,12 +384,12 @@ fn the_command_line_reports_the_pods_only_for_a_robot_with_pods() {
     let mut plain = Scenario::builtin("calibration").unwrap();
     plain.name = "calibration-no-pods".into();
     let log = run(group, &plain);
-    let text = hostsim(&[log.as_os_str()]);
+    let text = calibrate_ok(&[log.to_str().unwrap()]);
     assert!(
         !text.contains("pods, from") && !text.contains("odometry.pods"),
         "{text}"
     );
-    let json = hostsim(&[log.as_os_str(), "--json".as_ref()]);
+    let json = calibrate_ok(&[log.to_str().unwrap(), "--json"]);
     let v: serde_json::Value = serde_json::from_str(&json).unwrap();
     assert!(
         v.get("pods").is_none() && v.get("pod_lines").is_none(),
