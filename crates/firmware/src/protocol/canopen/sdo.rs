@@ -265,7 +265,8 @@ impl Transfer {
         let transfer = match command {
             c if c == commands.plain => Self::Plain,
             layout::SDO_ABORT => Self::Abort(data),
-            // The expedited command specifier with bit 4 clear, whatever the size bits.
+            // The direction's expedited command specifier: bits 5-7 as it, expedited (bit 1)
+            // and bit 4 clear, whatever the size bits (0, 2-3).
             c if c & 0xF2 == commands.expedited & 0xF2 => {
                 let size = expedited_size(c);
                 Self::Expedited {
