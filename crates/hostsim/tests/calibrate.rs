@@ -12,7 +12,7 @@ use std::path::Path;
 use common::{fit, hostsim, logged_run, print_fit, scratch};
 use firmware::Config;
 use firmware::config::Geometry;
-use hostsim::calibrate::{CalibrateError, Options, calibrate};
+use hostsim::calibrate::{CalibrateError, GeometryValues, Options, calibrate};
 use hostsim::plant::{Chassis, ChassisParams, WheelInput};
 use hostsim::scenario::{Action, PlantSpec, Scenario};
 use hostsim::sim::RunSummary;
@@ -203,20 +203,11 @@ fn spin_effectiveness(params: ChassisParams, wz: f64) -> f64 {
 /// `hostsim calibrate` reports the effective value.
 #[test]
 fn the_fit_recovers_a_robot_built_unlike_its_configuration() {
-    let config = Config::dji_m3508_example();
-    let Geometry::Standard {
-        lx,
-        ly,
-        wheel_radius,
-        ..
-    } = config.geometry
-    else {
-        unreachable!()
-    };
+    let logged = GeometryValues::of(&Config::dji_m3508_example().geometry).unwrap();
     let (lx, ly, r) = (
-        0.97 * f64::from(lx),
-        0.97 * f64::from(ly),
-        1.02 * f64::from(wheel_radius),
+        0.97 * logged.lx,
+        0.97 * logged.ly,
+        1.02 * logged.wheel_radius,
     );
     let eps = 3.0 / 17.0;
     let plant = PlantSpec {
@@ -320,18 +311,12 @@ fn a_straight_only_log_is_refused_naming_the_missing_motion() {
     assert!(stdout.is_empty());
 }
 
-/// The poses of a tracker: the ground truth as `geometry_msgs/msg/PoseStamped` on
-/// `/tracker/pose` at 30 Hz, stamped 4 ms late with ±0.3 mm and ±0.3 mrad of noise, in a log
-/// with the wheels (`/joint_states`) and the configuration but no ground truth. The fit
-/// matches the ground truth's within 0.2 %; a missing or non-pose reference is refused,
-/// naming the topics.
-#[test]
-fn a_tracker_pose_stamped_reference_gives_the_same_fit() {
+/// The built-in calibration run's log rewritten as a tracker would give it: metadata, wheels
+/// (`/joint_states`) and `/cmd_vel` as they are, the ground truth as
+/// `geometry_msgs/msg/PoseStamped` on `/tracker/pose` at 30 Hz, 4 ms late, with ±0.3 mm and
+/// ±0.3 mrad of noise. Written to `tracker.mcap` in the scratch folder `group`.
+fn tracker_log(group: &str) -> std::path::PathBuf {
     use hostsim::log::msg::{self, decode, encode};
-    let group = "calibrate-tracker";
-    let truth_fit = fit(calibration_log());
-
-    // Rewrite the log: metadata, wheels and /cmd_vel as they are, the truth as a tracker.
     let bytes = std::fs::read(calibration_log()).unwrap();
     let path = scratch(group, "tracker.mcap");
     let mut w = mcap::WriteOptions::new()
@@ -408,6 +393,20 @@ fn a_tracker_pose_stamped_reference_gives_the_same_fit() {
     }
     w.finish().unwrap();
     drop(w);
+    path
+}
+
+/// The poses of a tracker: the ground truth as `geometry_msgs/msg/PoseStamped` on
+/// `/tracker/pose` at 30 Hz, stamped 4 ms late with ±0.3 mm and ±0.3 mrad of noise, in a log
+/// with the wheels (`/joint_states`) and the configuration but no ground truth. The fit
+/// matches the ground truth's within 0.2 %; a missing or non-pose reference is refused,
+/// naming the topics.
+#[test]
+fn a_tracker_pose_stamped_reference_gives_the_same_fit() {
+    let group = "calibrate-tracker";
+    let truth_fit = fit(calibration_log());
+
+    let path = tracker_log(group);
 
     let options = Options {
         reference: "/tracker/pose".into(),
