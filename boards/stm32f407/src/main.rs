@@ -175,6 +175,8 @@ async fn main(spawner: Spawner) {
     }
 
     let mut counters = Counters::default();
+    // The core boots disabled without a fault.
+    let mut last_shown = (ctl.state(), ctl.fault());
     let mut ticker = Ticker::every(Duration::from_micros(period));
     // Started once the loop starts: only a step feeds it (frames arriving do not).
     let mut watchdog = IndependentWatchdog::new(p.IWDG, WATCHDOG_TIMEOUT_US);
@@ -199,6 +201,18 @@ async fn main(spawner: Spawner) {
                         .convert::<embassy_stm32::can::Frame>()
                         .is_some_and(|f| TX_QUEUE.try_send((now, f)).is_ok());
                     counters.tx(queued);
+                }
+                // Each change of state or fault, at the step that made it (STATUS shows it
+                // only at its next frame, up to 100 ms later).
+                let shown = (ctl.state(), ctl.fault());
+                if shown != last_shown {
+                    info!(
+                        "step {=u64}: state {=u8} fault {=u8}",
+                        counters.steps,
+                        shown.0.raw(),
+                        shown.1.raw()
+                    );
+                    last_shown = shown;
                 }
                 counters.steps += 1;
                 watchdog.pet();

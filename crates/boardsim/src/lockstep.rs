@@ -1,6 +1,6 @@
 //! The board as the firmware node on hostsim's bit-timed bus, in one virtual time.
 //!
-//! The bus ([`hostsim::bus::Bus`]) times every frame bit for bit and arbitrates by id. The
+//! The bus ([`hostsim::bus::Bus`], the engine's) times every frame bit for bit and arbitrates by id. The
 //! board's CAN1 offers one frame at a time (its next mailbox, as the controller does): it is
 //! queued on the bus when the board requests it, started when it wins arbitration, and
 //! completes (TXOK) at its end of frame. Frames of the other nodes, queued by the caller at
@@ -49,8 +49,6 @@ pub const fn ns_to_cycles(ns: u64) -> u64 {
 pub struct Lockstep {
     /// The board.
     pub board: Board,
-    /// The bus.
-    pub bus: Bus,
     /// The board's cycle at the bus's time 0 ([`power_on`](Self::power_on)).
     epoch: u64,
     /// A fault on the wire and its window `[from, until)` of bus time, ns.
@@ -66,12 +64,11 @@ pub struct Lockstep {
 }
 
 impl Lockstep {
-    /// `board` on `bus`.
+    /// `board`, for a bus whose time 0 is set by [`power_on`](Self::power_on).
     #[must_use]
-    pub const fn new(board: Board, bus: Bus) -> Self {
+    pub const fn new(board: Board) -> Self {
         Self {
             board,
-            bus,
             epoch: 0,
             wire_fault: None,
             in_flight: Vec::new(),
@@ -141,28 +138,24 @@ impl Lockstep {
         self.epoch + ns_to_cycles(ns)
     }
 
-    /// Queues `frame` from `node` (not the board's) to be sent at `at_ns`.
-    pub fn send(&mut self, at_ns: u64, node: Node, frame: firmware::CanFrame) {
-        self.bus.send(at_ns, node, frame);
-    }
-
-    /// Runs board and bus to `until_ns`.
+    /// Runs board and `bus` to `until_ns` (the other nodes' frames are queued on the bus by
+    /// the caller).
     ///
     /// # Errors
     /// The board stopped ([`BoardError`]).
-    pub fn run_until(&mut self, until_ns: u64) -> Result<(), BoardError> {
+    pub fn run_until(&mut self, bus: &mut Bus, until_ns: u64) -> Result<(), BoardError> {
         loop {
             let now_ns = self.now_ns();
             // The board's next frame, once its previous one is off the bus.
             if !self.board_queued
                 && let Some(frame) = self.board.can_offer()
             {
-                self.bus.send(now_ns, Node::Controller, frame);
+                bus.send(now_ns, Node::Controller, frame);
                 self.board_queued = true;
             }
             // Transmissions that start by now.
             self.scratch.clear();
-            self.bus.advance_into(now_ns + 1, &mut self.scratch);
+            bus.advance_into(now_ns + 1, &mut self.scratch);
             for tx in self.scratch.drain(..) {
                 if tx.from == Node::Controller {
                     self.board
@@ -216,7 +209,7 @@ impl Lockstep {
                         t.delivered_ns
                     }
                 })
-                .chain(self.bus.next_start_ns())
+                .chain(bus.next_start_ns())
                 .filter(|&t| t > now_ns)
                 .min()
                 .map_or(until_ns, |t| t.min(until_ns));

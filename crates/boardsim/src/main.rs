@@ -8,8 +8,8 @@ use clap::{Parser, Subcommand};
 use boardsim::rtt::LogLine;
 use boardsim::run::{Harness, run_scenario};
 use boardsim::{Board, CPU_HZ, Image};
+use hostsim::engine::LogOptions;
 use hostsim::scenario::Scenario;
-use hostsim::sim::LogOptions;
 
 /// The STM32F407 board image, exactly as flashed, on the simulated robot's CAN bus.
 #[derive(Parser, Debug)]
@@ -248,7 +248,7 @@ fn run(
             "simulated_s": run.simulated_s,
             "wall_s": wall,
             "real_time_factor": run.simulated_s / wall,
-            "transitions": run.transitions.iter().map(|(t, st, f)| serde_json::json!({"t": t, "state": st.as_str(), "fault": f.as_str()})).collect::<Vec<_>>(),
+            "transitions": run.state_changes.iter().map(|(t, st, f)| serde_json::json!({"t": t, "state": st, "fault": f})).collect::<Vec<_>>(),
             "odometry": odometry,
             "truth": run.truth,
             "final_position_error": error.map(|e| e.0),
@@ -267,7 +267,7 @@ fn run(
         scenario.name,
         elf.display()
     );
-    for (t, st, f) in &run.transitions {
+    for (t, st, f) in &run.state_changes {
         println!("  {t:8.3} s  state {st}, fault {f}");
     }
     if let (Some(p), Some((dxy, dh))) = (odometry, error) {

@@ -1,25 +1,24 @@
-//! A scenario with the board image as the firmware node: hostsim's host node, simulated
-//! drives and plant (with the scenario's IMU, bus and wheel faults) and bit-timed bus, and the
-//! board in their virtual time ([`Lockstep`]).
+//! A scenario with the board image as the firmware node of hostsim's lockstep engine
+//! ([`hostsim::engine`]): the engine's host, simulated drives and plant (with the scenario's
+//! IMU, bus and wheel faults) and bit-timed bus, the board in their virtual time
+//! ([`Lockstep`]).
 //!
-//! The loop follows hostsim's runner where it can: the host's frames are queued at their
-//! times; the bus and the board run ahead of the plant only up to the drives' next feedback
-//! (whose frames may win arbitration over those waiting); each frame for the drives acts from
-//! its delivery time. What differs is the firmware: the board steps on its own timer and
-//! sends through its mailboxes, so the runner sees it as a host would, through its frames:
-//! the state changes are the STATUS frames' (and so logged up to 100 ms after the core made
-//! them, at STATUS's 10 Hz), the odometry is ODOM_POSITION and ODOM_VELOCITY's (0.1 mm,
-//! 0.0001 rad). The log has the same channels as hostsim's but `/joint_states` and
-//! `/diagnostics` (the core's internals are inside the board), plus the board's defmt lines
-//! on `/rosout`.
+//! The board steps on its own timer and sends through its mailboxes, so the engine's tick
+//! does nothing to it; the engine sees it through its frames and its log: the state changes
+//! are the ones the image logs at the step that made them (STATUS, a host's view, reports them
+//! at its 10 Hz), the odometry is ODOM_POSITION and ODOM_VELOCITY's (0.1 mm, 0.0001 rad). The log has
+//! the same channels as hostsim's but `/joint_states` and `/diagnostics` (the core's
+//! internals are inside the board), plus the board's defmt lines on `/rosout`.
+
+use std::ops::ControlFlow;
 
 use firmware::protocol::robot::{Fault, RobotState, Telemetry};
-use hostsim::bus::{Bus, Fate, Node};
+use firmware::{CanFrame, StreamHash};
+use hostsim::bus::{Bus, Fate, Node, Transmission};
 use hostsim::drives::SimDrives;
-use hostsim::host::HostNode;
+use hostsim::engine::{Firmware, LogOptions, Record};
 use hostsim::log::{CoreLog, McapLog, msg};
 use hostsim::scenario::Scenario;
-use hostsim::sim::{LogOptions, SimPlant, log_transmission, queue_feedback, set_wheel_faults};
 
 use crate::board::{Board, BoardError, CPU_HZ};
 use crate::lockstep::{Lockstep, WireFault};
@@ -77,8 +76,11 @@ impl RunError {
 /// What a run saw.
 #[derive(Debug)]
 pub struct BoardRun {
-    /// (s, state, fault) at each STATUS that reported a new pair.
+    /// (s, state, fault) at each STATUS that reported a new pair: what a host reads.
     pub transitions: Vec<(f64, RobotState, Fault)>,
+    /// (s, state, fault) at each step that changed the state or the fault, as the image logs
+    /// them: the in-process core's [`RunSummary::transitions`](hostsim::sim::RunSummary).
+    pub state_changes: Vec<(f64, String, String)>,
     /// The last odometry the board sent: `[x, y, heading]` (m, m, rad) and its time (s).
     pub odometry: Option<([f64; 3], f64)>,
     /// Ground truth at the end.
@@ -144,8 +146,8 @@ struct Observer {
 enum Seen {
     /// A complete odometry (ODOM_POSITION then ODOM_VELOCITY): pose and twist.
     Odometry([f64; 3], [f64; 3]),
-    /// A STATUS with a new state or fault.
-    Transition(RobotState, Fault),
+    /// A STATUS with a new state or fault (in the observer's `transitions`).
+    Transition,
     /// A HEARTBEAT: the id of the configuration the image carries.
     ConfigId(u16),
 }
@@ -164,7 +166,7 @@ impl Observer {
                     return None;
                 }
                 self.transitions.push((t, s.state, s.fault));
-                Some(Seen::Transition(s.state, s.fault))
+                Some(Seen::Transition)
             }
             Telemetry::OdomPosition(p) => {
                 self.position = Some([f64::from(p.x), f64::from(p.y)]);
@@ -195,188 +197,242 @@ pub fn run_metadata(
     m
 }
 
-/// Runs `scenario` with `board` as the firmware node, logging to `log` if given; `progress`
-/// gets the simulated time (µs) every simulated 100 ms.
-///
-/// # Errors
-/// [`RunError`]: the board stopped, the plant could not be built, the log failed.
-pub fn run_scenario(
-    scenario: &Scenario,
-    board: Board,
-    mut log: Option<&mut McapLog>,
-    options: LogOptions,
+/// The board as the engine's firmware node. See the [module documentation](self).
+struct BoardNode {
+    ls: Lockstep,
     harness: Harness,
-    mut progress: impl FnMut(u64),
-) -> Result<BoardRun, RunError> {
-    let mut drives =
-        SimDrives::for_scenario(scenario).map_err(|e| RunError::Plant(e.to_string()))?;
-    let plant = &mut hostsim::imu::WithImu::new(&mut drives, scenario.imu.as_ref(), scenario.seed);
-    let plant = &mut hostsim::pods::WithPods::for_scenario(plant, scenario);
-    let bus = Bus::new(1_000_000, scenario.bus_faults.clone(), scenario.seed);
-    let mut ls = Lockstep::new(board, bus);
-    let mut host = HostNode::new(scenario);
-    let mut observer = Observer::default();
-    let (mut host_frames, mut twists, mut feedback) = (Vec::new(), Vec::new(), Vec::new());
-    let duration_ns = scenario.duration_us() * 1000;
-    // The plant's time, ns; the bus and the board run ahead of it up to `horizon`.
-    let mut plant_ns = 0u64;
-    let mut received = 0u64;
-    let mut bus_hash = firmware::StreamHash::new();
-    let mut next_progress = 0u64;
-    let mut lines = Vec::new();
-    let mut track = Vec::new();
-    let mut board_frames = Vec::new();
-    let mut stall_at = harness.stall_timer_at_ns;
-    let mut hold_rx = harness.hold_can_rx_ns;
-    // What the image's HEARTBEATs must carry.
-    let config_id = scenario.config.id();
-    let stopped = |ls: &mut Lockstep, lines: &mut Vec<LogLine>, error| {
-        lines.extend(ls.board.take_lines());
+    /// What the image's HEARTBEATs must carry.
+    config_id: u16,
+    /// Transmissions completed, not yet delivered (a delay fault delivers a frame of the
+    /// board's after its end).
+    pending: Vec<Transmission>,
+    observer: Observer,
+    lines: Vec<LogLine>,
+    sent: Vec<(u64, CanFrame)>,
+    bus_hash: StreamHash,
+    boot_ns: u64,
+    duration_ns: u64,
+    period_us: u64,
+}
+
+/// A state change the image logs at the step that made it: `step N: state S fault F`
+/// (`boards/stm32f407/src/main.rs`), as (step, state, fault).
+fn state_change(text: &str) -> Option<(u64, RobotState, Fault)> {
+    let (step, rest) = text.strip_prefix("step ")?.split_once(": state ")?;
+    let (state, fault) = rest.split_once(" fault ")?;
+    Some((
+        step.parse().ok()?,
+        RobotState::from_raw(state.parse().ok()?)?,
+        Fault::from_raw(fault.parse().ok()?)?,
+    ))
+}
+
+impl BoardNode {
+    /// The board stopped with `error`: the error with the board's log up to then.
+    fn stopped(&mut self, error: BoardError) -> RunError {
+        self.lines.extend(self.ls.board.take_lines());
         RunError::Board {
-            t: ls.board.now() as f64 / CPU_HZ as f64,
+            t: self.ls.board.now() as f64 / CPU_HZ as f64,
             error,
-            lines: std::mem::take(lines),
-        }
-    };
-    // The scenario starts at the tick of the board's first step (see `Lockstep::power_on`).
-    let boot_ns = ls
-        .power_on(BOOT_LIMIT_NS)
-        .map_err(|e| stopped(&mut ls, &mut lines, e))?;
-    if let Some((fault, from, until)) = harness.wire_fault_ns {
-        ls.set_wire_fault(fault, from, until);
-    }
-    set_wheel_faults(scenario, plant, 0);
-    queue_feedback(plant, &mut feedback, 0, |t, n, f| ls.send(t, n, f));
-    if let Some((from, until)) = harness.flood_ns {
-        let frame = firmware::CanFrame::standard(
-            embedded_can::StandardId::new(FLOOD_ID).expect("an 11-bit id"),
-            &[0; 8],
-        )
-        .expect("8 bytes");
-        // Back to back when nothing of higher priority is queued; otherwise the bus holds
-        // them (each node offers its lowest id first) and sends them as it can.
-        let frame_ns = u64::from(hostsim::bus::frame_bits(&frame)) * 1000;
-        let mut at = from;
-        while at < until.min(duration_ns) {
-            ls.send(at, Node::Host, frame);
-            at += frame_ns;
+            lines: std::mem::take(&mut self.lines),
         }
     }
-    while plant_ns < duration_ns {
-        let horizon = duration_ns.min(plant.next_feedback_ns().max(plant_ns + 1));
-        host_frames.clear();
-        twists.clear();
-        host.frames_until(horizon / 1000, &mut host_frames, &mut twists);
-        for &(at_ns, frame) in &host_frames {
-            ls.send(at_ns, Node::Host, frame);
+
+    /// Runs board and bus to `until_ns`, first to the harness's interventions due by then.
+    fn run_board(&mut self, bus: &mut Bus, until_ns: u64) -> Result<(), BoardError> {
+        if let Some((from, until)) = self.harness.hold_can_rx_ns.filter(|&(f, _)| f <= until_ns) {
+            self.ls.run_until(bus, from)?;
+            self.ls.hold_can_rx(until);
+            self.harness.hold_can_rx_ns = None;
         }
-        if let Some(l) = log.as_deref_mut() {
-            for &(at_ns, twist) in &twists {
-                l.twist(at_ns, twist)?;
+        if let Some(at) = self.harness.stall_timer_at_ns.filter(|&at| at <= until_ns) {
+            self.ls.run_until(bus, at)?;
+            self.ls.board.stall_timer();
+            self.harness.stall_timer_at_ns = None;
+        }
+        self.ls.run_until(bus, until_ns)
+    }
+}
+
+impl Firmware for BoardNode {
+    type Error = RunError;
+
+    fn start(&mut self, bus: &mut Bus) -> Result<(), RunError> {
+        // The scenario starts at the tick of the board's first step (`Lockstep::power_on`).
+        self.boot_ns = match self.ls.power_on(BOOT_LIMIT_NS) {
+            Ok(ns) => ns,
+            Err(e) => return Err(self.stopped(e)),
+        };
+        if let Some((fault, from, until)) = self.harness.wire_fault_ns {
+            self.ls.set_wire_fault(fault, from, until);
+        }
+        if let Some((from, until)) = self.harness.flood_ns {
+            let frame = CanFrame::standard(
+                embedded_can::StandardId::new(FLOOD_ID).expect("an 11-bit id"),
+                &[0; 8],
+            )
+            .expect("8 bytes");
+            // Back to back when nothing of higher priority is queued; otherwise the bus holds
+            // them (each node offers its lowest id first) and sends them as it can.
+            let frame_ns = u64::from(hostsim::bus::frame_bits(&frame)) * 1000;
+            let mut at = from;
+            while at < until.min(self.duration_ns) {
+                bus.send(at, Node::Host, frame);
+                at += frame_ns;
             }
         }
-        if let Some((from, until)) = hold_rx.filter(|&(from, _)| from <= horizon) {
-            ls.run_until(from)
-                .map_err(|e| stopped(&mut ls, &mut lines, e))?;
-            ls.hold_can_rx(until);
-            hold_rx = None;
+        Ok(())
+    }
+
+    fn run_until(
+        &mut self,
+        bus: &mut Bus,
+        until_ns: u64,
+        done: &mut Vec<Transmission>,
+    ) -> Result<(), RunError> {
+        if let Err(e) = self.run_board(bus, until_ns) {
+            return Err(self.stopped(e));
         }
-        if let Some(at) = stall_at.filter(|&at| at <= horizon) {
-            ls.run_until(at)
-                .map_err(|e| stopped(&mut ls, &mut lines, e))?;
-            ls.board.stall_timer();
-            stall_at = None;
+        for tx in self.ls.completed.drain(..) {
+            self.bus_hash.add(tx.end_ns, &tx.frame);
+            if tx.from == Node::Controller && tx.fate != Fate::Dropped {
+                self.sent.push((tx.end_ns, tx.frame));
+            }
+            self.pending.push(tx);
         }
-        ls.run_until(horizon)
-            .map_err(|e| stopped(&mut ls, &mut lines, e))?;
-        // The transmissions completed by now: to the drives at their delivery time, to the
-        // log, and the board's to the observer.
-        let done = std::mem::take(&mut ls.completed);
-        for tx in &done {
-            bus_hash.add(tx.end_ns, &tx.frame);
-            if let Some(l) = log.as_deref_mut() {
-                log_transmission(l, tx, options)?;
-            }
-            if tx.fate == Fate::Dropped {
-                continue;
-            }
-            if tx.from != Node::Controller {
-                received += 1;
-            } else {
-                board_frames.push((tx.end_ns, tx.frame));
-                let t = tx.delivered_ns as f64 * 1e-9;
-                match observer.on_frame(t, &tx.frame) {
-                    Some(Seen::Odometry(pose, twist)) => {
-                        let truth = plant.truth();
-                        track.push(hostsim::plot::TrackPoint {
-                            t,
-                            truth: [truth[0], truth[1]],
-                            odom: [pose[0], pose[1]],
-                        });
-                        if let Some(l) = log.as_deref_mut() {
-                            let truth = (truth, plant.truth_velocity());
-                            CoreLog::odometry(l, tx.delivered_ns, (pose, twist), Some(truth))?;
-                        }
-                    }
-                    Some(Seen::Transition(state, fault)) => {
-                        if let Some(l) = log.as_deref_mut() {
-                            let (level, text) = hostsim::log::state_line(state, fault);
-                            l.text(tx.delivered_ns, level, &text)?;
-                        }
-                    }
-                    Some(Seen::ConfigId(image)) if image != config_id => {
-                        return Err(RunError::ConfigMismatch {
-                            image,
-                            scenario: config_id,
-                        });
-                    }
-                    Some(Seen::ConfigId(_)) | None => {}
+        self.pending.sort_by_key(|tx| tx.delivered_ns);
+        let due = self
+            .pending
+            .partition_point(|tx| tx.delivered_ns <= until_ns);
+        done.extend(self.pending.drain(..due));
+        Ok(())
+    }
+
+    fn tick(
+        &mut self,
+        _bus: &mut Bus,
+        _t_us: u64,
+        _delivered: &mut Vec<Transmission>,
+        _sent: &mut Vec<CanFrame>,
+    ) -> Result<(), RunError> {
+        // The board steps on its own timer.
+        Ok(())
+    }
+
+    fn observe(
+        &mut self,
+        _t_us: u64,
+        mut log: Option<&mut McapLog>,
+        _truth: [f64; 3],
+        _velocity: &dyn Fn() -> [f64; 3],
+        record: &mut Record,
+    ) -> Result<(), RunError> {
+        for line in self.ls.board.take_lines() {
+            if let Some((step, state, fault)) = state_change(&line.text) {
+                // The step's time as the core's record has it.
+                let t_us = step * self.period_us;
+                let (t_ns, t) = (t_us * 1000, t_us as f64 * 1e-6);
+                record
+                    .transitions
+                    .push((t, state.to_string(), fault.to_string()));
+                if let Some(l) = log.as_deref_mut() {
+                    let (level, text) = hostsim::log::state_line(state, fault);
+                    l.text(t_ns, level, &text)?;
                 }
             }
-            if tx.from != Node::Drives && tx.delivered_ns > plant_ns && tx.delivered_ns <= horizon {
-                plant.advance_ns(tx.delivered_ns - plant_ns);
-                plant_ns = tx.delivered_ns;
-                plant.on_frame(tx.delivered_ns / 1000, &tx.frame);
-            }
-        }
-        plant.advance_ns(horizon - plant_ns);
-        plant_ns = horizon;
-        set_wheel_faults(scenario, plant, plant_ns / 1000 + 1);
-        queue_feedback(plant, &mut feedback, plant_ns, |t, n, f| ls.send(t, n, f));
-        for line in ls.board.take_lines() {
             if let Some(l) = log.as_deref_mut() {
                 let level = match line.level.as_str() {
                     "error" => msg::Log::ERROR,
                     "warn" => msg::Log::WARN,
                     _ => msg::Log::INFO,
                 };
-                l.text(
-                    ls.board_ns(line.at),
-                    level,
-                    &format!("board: {}", line.text),
-                )?;
+                let text = format!("board: {}", line.text);
+                l.text(self.ls.board_ns(line.at), level, &text)?;
             }
-            lines.push(line);
+            self.lines.push(line);
         }
-        if let Some(l) = log.as_deref_mut() {
-            l.maybe_flush()?;
-        }
-        while plant_ns / 1000 >= next_progress {
-            progress(next_progress);
-            next_progress += 100_000;
-        }
+        Ok(())
     }
+
+    fn on_own_frame(
+        &mut self,
+        tx: &Transmission,
+        log: Option<&mut McapLog>,
+        truth: &dyn Fn() -> ([f64; 3], [f64; 3]),
+        record: &mut Record,
+    ) -> Result<(), RunError> {
+        if tx.fate == Fate::Dropped {
+            return Ok(());
+        }
+        let t = tx.delivered_ns as f64 * 1e-9;
+        match self.observer.on_frame(t, &tx.frame) {
+            Some(Seen::Odometry(pose, twist)) => {
+                let (pose_truth, velocity) = truth();
+                record.pose(pose, pose_truth);
+                record.track_point(t, pose, pose_truth);
+                if let Some(l) = log {
+                    let truth = Some((pose_truth, velocity));
+                    CoreLog::odometry(l, tx.delivered_ns, (pose, twist), truth)?;
+                }
+            }
+            Some(Seen::ConfigId(image)) if image != self.config_id => {
+                return Err(RunError::ConfigMismatch {
+                    image,
+                    scenario: self.config_id,
+                });
+            }
+            Some(Seen::ConfigId(_) | Seen::Transition) | None => {}
+        }
+        Ok(())
+    }
+}
+
+/// Runs `scenario` with `board` as the firmware node of hostsim's engine, logging to `log`
+/// if given; `progress` gets the simulated time (µs) every simulated 100 ms.
+///
+/// # Errors
+/// [`RunError`]: the board stopped, the plant could not be built, the log failed.
+pub fn run_scenario(
+    scenario: &Scenario,
+    board: Board,
+    log: Option<&mut McapLog>,
+    options: LogOptions,
+    harness: Harness,
+    mut progress: impl FnMut(u64),
+) -> Result<BoardRun, RunError> {
+    let mut drives =
+        SimDrives::for_scenario(scenario).map_err(|e| RunError::Plant(e.to_string()))?;
+    let mut node = BoardNode {
+        ls: Lockstep::new(board),
+        harness,
+        config_id: scenario.config.id(),
+        pending: Vec::new(),
+        observer: Observer::default(),
+        lines: Vec::new(),
+        sent: Vec::new(),
+        bus_hash: StreamHash::new(),
+        boot_ns: 0,
+        duration_ns: scenario.duration_us() * 1000,
+        period_us: 1_000_000 / u64::from(scenario.config.timing.control_hz),
+    };
+    let run = hostsim::engine::run(scenario, &mut node, &mut drives, log, options, |step| {
+        if step.t_us.is_multiple_of(100_000) {
+            progress(step.t_us);
+        }
+        ControlFlow::Continue(())
+    })?;
     Ok(BoardRun {
-        transitions: observer.transitions,
-        odometry: observer.odometry,
-        truth: plant.truth(),
-        lines,
-        boot_ns,
-        frames_received: received,
-        simulated_s: plant_ns as f64 * 1e-9,
-        track,
-        sent: board_frames,
-        bus_hash: bus_hash.value(),
-        board: ls.board,
+        transitions: node.observer.transitions,
+        state_changes: run.record.transitions,
+        odometry: node.observer.odometry,
+        truth: run.truth,
+        lines: node.lines,
+        boot_ns: node.boot_ns,
+        frames_received: run.rx_frames,
+        simulated_s: run.duration_s,
+        track: run.record.track,
+        sent: node.sent,
+        bus_hash: node.bus_hash.value(),
+        board: node.ls.board,
     })
 }

@@ -11,6 +11,7 @@ pub mod calibrate;
 pub mod canopen_drive;
 pub mod cmd;
 pub mod drives;
+pub mod engine;
 pub mod host;
 pub mod imu;
 pub mod kin;

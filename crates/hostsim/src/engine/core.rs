@@ -1,0 +1,178 @@
+//! The in-process firmware node: the real core ([`Controller`]) stepped at every tick, with
+//! the frames the bus delivered by then, its frames put on the bus at the tick's time. A
+//! scenario's `runner_restart` faults take it down for their window (it receives and sends
+//! nothing) and start a fresh core at their end.
+
+use firmware::CanFrame;
+use firmware::control::{Controller, Instant, Outbox};
+
+use super::{Firmware, Record};
+use crate::bus::{Bus, Fate, Node, Transmission};
+use crate::log::{CoreLog, McapLog};
+use crate::scenario::{FaultName, Scenario};
+use crate::sim::SimError;
+
+/// The in-process core as the engine's firmware node: a [`Controller`] stepped at every tick,
+/// down for each `runner_restart` window and started afresh at its end.
+#[derive(Debug)]
+pub struct InProcess {
+    config: firmware::Config,
+    ctl: Controller,
+    /// The runner's deaths: from, until (µs); a fresh core starts at `until`.
+    restarts: Vec<(u64, u64)>,
+    down: bool,
+    /// Transmissions on the bus not delivered yet, in delivery order.
+    started: Vec<Transmission>,
+    out: Outbox,
+    /// The firmware boots DISABLED without a fault: the log says the changes from there.
+    core_log: CoreLog,
+}
+
+impl InProcess {
+    /// The core of `scenario`'s configuration, logging its internals as `options` says.
+    ///
+    /// # Errors
+    /// The firmware refused the configuration.
+    pub fn new(scenario: &Scenario, options: super::LogOptions) -> Result<Self, SimError> {
+        Ok(Self {
+            config: scenario.config,
+            ctl: Controller::new(&scenario.config)?,
+            restarts: scenario
+                .node_faults
+                .iter()
+                .filter(|f| f.kind == FaultName::RunnerRestart)
+                .map(|f| (f.from_us, f.until_us))
+                .collect(),
+            down: false,
+            started: Vec::new(),
+            out: Outbox::new(),
+            core_log: CoreLog::new(options.snapshot_every, options.pose_every).from_boot(),
+        })
+    }
+
+    /// The core (as it stopped, while it is down).
+    #[must_use]
+    pub const fn controller(&self) -> &Controller {
+        &self.ctl
+    }
+
+    /// The core is not running (a `runner_restart` fault's window).
+    #[must_use]
+    pub const fn is_down(&self) -> bool {
+        self.down
+    }
+
+    /// Moves the transmissions delivered by `until_ns` to `done`, in delivery order.
+    fn deliver(&mut self, until_ns: u64, done: &mut Vec<Transmission>) {
+        self.started.sort_by_key(|tx| tx.delivered_ns);
+        let due = self
+            .started
+            .partition_point(|tx| tx.delivered_ns <= until_ns);
+        done.extend(self.started.drain(..due));
+    }
+}
+
+impl Firmware for InProcess {
+    type Error = SimError;
+
+    fn run_until(
+        &mut self,
+        bus: &mut Bus,
+        until_ns: u64,
+        done: &mut Vec<Transmission>,
+    ) -> Result<(), SimError> {
+        // Frames delivered by `until_ns` started before it: all of them are known after this.
+        bus.advance_into(until_ns, &mut self.started);
+        self.deliver(until_ns, done);
+        Ok(())
+    }
+
+    fn tick(
+        &mut self,
+        bus: &mut Bus,
+        t_us: u64,
+        delivered: &mut Vec<Transmission>,
+        sent: &mut Vec<CanFrame>,
+    ) -> Result<(), SimError> {
+        let down = self
+            .restarts
+            .iter()
+            .any(|&(from, until)| from <= t_us && t_us < until);
+        if self.down && !down {
+            self.ctl = Controller::new(&self.config)?;
+        }
+        self.down = down;
+        let t_ns = t_us * 1000;
+        // What starts by the tick starts before the core's frames are queued; a frame queued
+        // with a time the bus had passed may be delivered by now.
+        bus.advance_into(t_ns + 1, &mut self.started);
+        let late = delivered.len();
+        self.deliver(t_ns, delivered);
+        if delivered.len() > late {
+            delivered.sort_by_key(|tx| tx.delivered_ns);
+        }
+        if down {
+            self.out.clear();
+            return Ok(());
+        }
+        for tx in delivered.iter() {
+            if tx.fate != Fate::Dropped && tx.from != Node::Controller {
+                let at = Instant::from_micros(tx.delivered_ns / 1000);
+                self.ctl.on_frame(at, &tx.frame);
+            }
+        }
+        self.ctl
+            .step_into(Instant::from_micros(t_us), &mut self.out);
+        for f in &self.out {
+            bus.send(t_ns, Node::Controller, *f);
+            sent.push(*f);
+        }
+        Ok(())
+    }
+
+    fn receiving(&self) -> bool {
+        !self.down
+    }
+
+    fn observe(
+        &mut self,
+        t_us: u64,
+        log: Option<&mut McapLog>,
+        truth: [f64; 3],
+        velocity: &dyn Fn() -> [f64; 3],
+        record: &mut Record,
+    ) -> Result<(), SimError> {
+        let pose = pose_array(self.ctl.pose());
+        record.pose(pose, truth);
+        if t_us.is_multiple_of(10_000) {
+            record.track_point(t_us as f64 * 1e-6, pose, truth);
+        }
+        if self.down {
+            return Ok(());
+        }
+        let truth_now = || (truth, velocity());
+        let changes = self
+            .core_log
+            .step(log, t_us * 1000, &self.ctl, Some(&truth_now))?;
+        let t = t_us as f64 * 1e-6;
+        if changes.state {
+            let (state, fault) = (self.ctl.state().to_string(), self.ctl.fault().to_string());
+            record.transitions.push((t, state, fault));
+        }
+        if changes.heading {
+            let source = self.ctl.heading_source().to_string();
+            record.heading_changes.push((t, source));
+        }
+        Ok(())
+    }
+
+    fn drain(&mut self, bus: &mut Bus, until_ns: u64, done: &mut Vec<Transmission>) {
+        bus.advance_into(until_ns, &mut self.started);
+        self.deliver(u64::MAX, done);
+    }
+}
+
+/// The firmware's pose as `[x, y, heading]` in f64, the plant's format.
+pub(crate) fn pose_array(p: kinematics::Pose2<f32>) -> [f64; 3] {
+    [f64::from(p.x), f64::from(p.y), f64::from(p.heading)]
+}
