@@ -556,3 +556,36 @@ fn behind_a_stalled_writer_messages_are_dropped_and_counted_not_waited_for() {
         warnings[0].msg
     );
 }
+
+/// A run in simulated time writes the same bytes however slowly the machine runs it: with
+/// `flush_on_log_time_only` a pause longer than the wall-clock interval (a loaded machine)
+/// moves no chunk boundary; without it, the pause ends a chunk where it fell.
+#[test]
+fn a_log_flushed_on_log_time_only_is_the_same_bytes_however_slowly_it_is_written() {
+    let write = |name: &str, log_time_only: bool, pause: bool| {
+        let file = TempFile::new(name);
+        let mut log = McapLog::create(&file.0, &BTreeMap::new()).unwrap();
+        if log_time_only {
+            log.flush_on_log_time_only();
+        }
+        // 1 ms of log time a message: one hand-over at 250 ms of log time; the wall clock
+        // is read at every 64th call.
+        for i in 0..300u64 {
+            log.text(i * 1_000_000, msg::Log::INFO, "step").unwrap();
+            if pause && i == 127 {
+                std::thread::sleep(Duration::from_millis(600));
+            }
+            log.maybe_flush().unwrap();
+        }
+        log.finish().unwrap();
+        std::fs::read(&file.0).unwrap()
+    };
+    let fast = write("log-time-fast", true, false);
+    assert_eq!(write("log-time-slow", true, true), fast);
+    let wall = write("wall-slow", false, true);
+    assert_ne!(
+        wall,
+        write("wall-fast", false, false),
+        "the pause moved no chunk boundary"
+    );
+}

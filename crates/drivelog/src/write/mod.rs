@@ -165,8 +165,9 @@ pub struct McapLog {
     written: Arc<AtomicU64>,
     /// Log time between two hand-overs, ns ([`Self::set_flush_interval`]).
     flush_log_interval_ns: u64,
-    /// Wall-clock time between two hand-overs.
-    flush_wall_interval: Duration,
+    /// Wall-clock time between two hand-overs (`None`: log time only,
+    /// [`Self::flush_on_log_time_only`]).
+    flush_wall_interval: Option<Duration>,
     /// Whether a tap was installed ([`Self::set_tap`]).
     tapped: bool,
 }
@@ -256,7 +257,7 @@ impl McapLog {
             dropped_reported: 0,
             written,
             flush_log_interval_ns: FLUSH_LOG_INTERVAL_NS,
-            flush_wall_interval: FLUSH_WALL_INTERVAL,
+            flush_wall_interval: Some(FLUSH_WALL_INTERVAL),
             tapped: false,
         })
     }
@@ -321,7 +322,18 @@ impl McapLog {
             .unwrap_or(u64::MAX)
             .max(1);
         self.flush_log_interval_ns = ns;
-        self.flush_wall_interval = interval.saturating_mul(2);
+        if self.flush_wall_interval.is_some() {
+            self.flush_wall_interval = Some(interval.saturating_mul(2));
+        }
+    }
+
+    /// Hands the messages over on log time only, never on the wall clock: for a run in
+    /// simulated time, whose file must be the same bytes however fast the machine runs it
+    /// (each hand-over ends a chunk, so a hand-over at a wall-clock moment would put the
+    /// chunk boundaries where the machine's load put them). A run slower than real time then
+    /// reaches the disk in steps of log time only.
+    pub const fn flush_on_log_time_only(&mut self) {
+        self.flush_wall_interval = None;
     }
 
     fn io_err(&self, source: io::Error) -> LogError {
@@ -601,7 +613,10 @@ impl McapLog {
         self.flush_calls += 1;
         let log_due =
             self.last_log_ns.saturating_sub(self.flushed_log_ns) >= self.flush_log_interval_ns;
-        let wall_due = || self.last_flush.elapsed() >= self.flush_wall_interval;
+        let wall_due = || {
+            self.flush_wall_interval
+                .is_some_and(|interval| self.last_flush.elapsed() >= interval)
+        };
         if log_due || (self.flush_calls.is_multiple_of(CALLS_PER_CLOCK_READ) && wall_due()) {
             self.hand_over()?;
         }

@@ -132,9 +132,21 @@ pub trait Firmware {
         Ok(())
     }
 
-    /// After the last tick, the bus alone to `until_ns`, so that the frames the node sent at
-    /// its last steps are logged. Nothing by default (a board would step on).
-    fn drain(&mut self, _bus: &mut Bus, _until_ns: u64, _done: &mut Vec<Transmission>) {}
+    /// After the run, the bus (and the node, if it must run for its frames to leave) up to
+    /// `until_ns` at most, so that the frames the node sent at its last steps complete:
+    /// appended to `done` as by [`Self::run_until`], they are logged and shown to
+    /// [`Self::on_own_frame`]. Nothing by default.
+    ///
+    /// # Errors
+    /// The node stopped.
+    fn drain(
+        &mut self,
+        _bus: &mut Bus,
+        _until_ns: u64,
+        _done: &mut Vec<Transmission>,
+    ) -> Result<(), Self::Error> {
+        Ok(())
+    }
 }
 
 /// What a run recorded of the firmware node as it went: filled by the engine and by the node
@@ -296,6 +308,10 @@ impl<'s, 'l, P: SimPlant> Engine<'s, 'l, P> {
         fw: &mut F,
         mut observe: impl FnMut(&Step<'_, F>) -> ControlFlow<()>,
     ) -> Result<Outcome, F::Error> {
+        if let Some(l) = self.log.as_deref_mut() {
+            // The same run, the same bytes, on a busy machine too.
+            l.flush_on_log_time_only();
+        }
         fw.start(&mut self.bus)?;
         let duration_us = self.scenario.duration_us();
         // Ground truth at the last tick (the plant then advances one more period, which the
@@ -445,11 +461,20 @@ impl<'s, 'l, P: SimPlant> Engine<'s, 'l, P> {
         truth: [f64; 3],
     ) -> Result<Outcome, F::Error> {
         let (bus, bus_load) = (self.bus.stats(), self.bus.load(end_ns));
-        if let Some(l) = self.log.as_deref_mut() {
-            // The frames the node sent at its last steps, once they are off the wire.
-            let mut done = std::mem::take(&mut self.delivered);
-            fw.drain(&mut self.bus, end_ns + DRAIN_NS, &mut done);
-            for tx in done.iter().filter(|tx| tx.from == Node::Controller) {
+        // The frames the node sent at its last steps, once they are off the wire.
+        let mut done = std::mem::take(&mut self.delivered);
+        let drained = done.len();
+        fw.drain(&mut self.bus, end_ns + DRAIN_NS, &mut done)?;
+        for (i, tx) in done.iter().enumerate() {
+            if tx.from != Node::Controller {
+                continue;
+            }
+            if i >= drained {
+                let plant = &self.plant;
+                let truth = || (plant.truth(), plant.truth_velocity());
+                fw.on_own_frame(tx, self.log.as_deref_mut(), &truth, &mut self.record)?;
+            }
+            if let Some(l) = self.log.as_deref_mut() {
                 log_transmission(l, tx, self.options)?;
             }
         }
