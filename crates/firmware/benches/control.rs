@@ -9,8 +9,9 @@
 //! - `control_step_4_wheels_cia402`: the CiA 402 example (two dual-axis nodes, a 250 Hz
 //!   SYNC cycle), the nodes configured, started and operation enabled: every 4th step SYNC
 //!   and the four RPDOs go out, the step after it the four TPDOs (statusword 0x0237 and the
-//!   actual velocities) come in; the nodes' heartbeats every 50th step. A compact scripted
-//!   bus (below) brings the nodes there; the measured loop then feeds frames built in advance.
+//!   actual velocities) come in; the nodes' heartbeats every 50th step. The firmware crate's
+//!   drive double (`protocol::canopen::drive`) brings the nodes there; the measured loop then
+//!   feeds their last TPDOs and heartbeats from a table built in advance.
 
 use core::hint::black_box;
 
@@ -18,9 +19,8 @@ use criterion::{Criterion, criterion_group, criterion_main};
 use firmware::CanFrame;
 use firmware::config::Config;
 use firmware::control::{Controller, Instant, Outbox};
-use firmware::protocol::canopen::{
-    self, DriveState402, Message, NmtCommand, NmtState, NodeId as CoNode, SdoRequest, SdoResponse,
-};
+use firmware::protocol::canopen::drive::{Axes, AxisCommand, Drives402, Options, Timing};
+use firmware::protocol::canopen::{self, DriveState402, Message};
 use firmware::protocol::dji::{EscId, EscModel, Feedback};
 use firmware::protocol::odrive::{self, AxisState, NodeId};
 use firmware::protocol::robot::{Command, Fault, ModeRequest, RobotState, TwistCmd};
@@ -130,178 +130,37 @@ fn bench_odrive(c: &mut Criterion) {
     });
 }
 
-/// One scripted CiA 402 node: the master's NMT, SDO, SYNC and RPDOs answered the next step
-/// (a compact form of `tests/control/canopen_bus.rs`, which a bench cannot import; the
-/// codec's drive-side state machine).
-struct Node402 {
-    id: CoNode,
-    operational: bool,
-    state: DriveState402,
-    last_controlword: u16,
-    mode: i8,
-    /// Targets of axes 1 and 2, raw (rpm).
-    targets: [i32; 2],
-}
+/// The bench's axes: each follows its target at once (0.1 rpm units: the target in rpm x 10).
+struct Follow([i32; 4]);
 
-impl Node402 {
-    fn control(&mut self, cw: u16) {
-        self.state = self
-            .state
-            .on_controlword(cw, self.last_controlword, self.mode == 3);
-        self.last_controlword = cw;
-    }
-
-    /// TPDO1 and TPDO2: the statusword and the actual velocities (0.1 rpm: the targets x 10
-    /// once operation enabled).
-    fn tpdos(&self) -> [CanFrame; 2] {
-        let moving = self.state == DriveState402::OperationEnabled;
-        let actual = self.targets.map(|t| if moving { t * 10 } else { 0 });
-        [
-            Message::Tpdo1 {
-                node: self.id,
-                statusword: self.state.statusword(),
-                velocity: actual[0],
-            }
-            .to_can_frame(),
-            Message::Tpdo2 {
-                node: self.id,
-                velocity: actual[1],
-            }
-            .to_can_frame(),
-        ]
-    }
-}
-
-fn heartbeat_402(node: CoNode, state: NmtState) -> CanFrame {
-    Message::Heartbeat { node, state }.to_can_frame()
-}
-
-/// The nodes of the example and the frames they owe the next step.
-struct Bus402 {
-    nodes: Vec<Node402>,
-    pending: Vec<CanFrame>,
-}
-
-impl Bus402 {
-    fn new() -> Self {
-        let node = |id| Node402 {
-            id: CoNode::new(id).unwrap(),
-            operational: false,
-            state: DriveState402::SwitchOnDisabled,
-            last_controlword: 0,
-            mode: 0,
-            targets: [0; 2],
+impl Axes for Follow {
+    fn command(&mut self, wheel: usize, command: AxisCommand) {
+        self.0[wheel] = match command {
+            AxisCommand::Velocity(target) => target * 10,
+            _ => 0,
         };
-        Self {
-            nodes: vec![node(1), node(2)],
-            pending: Vec::new(),
-        }
     }
 
-    /// The frames of step `k` (1 ms each): what the nodes owe, and their heartbeats (50 ms).
-    fn feed(&mut self, k: u64) -> Vec<CanFrame> {
-        let mut out = std::mem::take(&mut self.pending);
-        if k > 0 && k.is_multiple_of(50) {
-            for n in &self.nodes {
-                let state = if n.operational {
-                    NmtState::Operational
-                } else {
-                    NmtState::PreOperational
-                };
-                out.push(heartbeat_402(n.id, state));
-            }
-        }
-        out
+    fn velocity(&self, wheel: usize) -> i32 {
+        self.0[wheel]
     }
 
-    /// Takes the master's frames of one step.
-    fn take(&mut self, frames: &Outbox) {
-        for f in frames {
-            let Ok(msg) = canopen::decode(f) else {
-                continue;
-            };
-            let node = msg.node();
-            match msg {
-                Message::Nmt { command, .. } => {
-                    for n in &mut self.nodes {
-                        if node.is_some_and(|id| id != n.id) {
-                            continue;
-                        }
-                        match command {
-                            NmtCommand::Start => n.operational = true,
-                            NmtCommand::ResetNode | NmtCommand::ResetCommunication => {
-                                n.operational = false;
-                                n.state = DriveState402::SwitchOnDisabled;
-                                n.mode = 0;
-                                self.pending.push(heartbeat_402(n.id, NmtState::BootUp));
-                            }
-                            _ => n.operational = false,
-                        }
-                    }
-                    continue;
-                }
-                Message::Sync { .. } => {
-                    for n in self.nodes.iter().filter(|n| n.operational) {
-                        self.pending.extend(n.tpdos());
-                    }
-                    continue;
-                }
-                _ => {}
-            }
-            let Some(n) = self.nodes.iter_mut().find(|n| Some(n.id) == node) else {
-                continue;
-            };
-            match msg {
-                Message::SdoRequest { request, .. } => {
-                    let (index, sub) = request.object();
-                    let response = match request {
-                        SdoRequest::Upload { .. } if (index, sub) == (0x1000, 0) => {
-                            SdoResponse::Uploaded {
-                                index,
-                                sub,
-                                value: 0x0002_0192,
-                                size: 4,
-                            }
-                        }
-                        SdoRequest::Download { value, .. } => {
-                            if (index, sub) == (0x6060, 0) {
-                                n.mode = value as i8;
-                            }
-                            SdoResponse::Downloaded { index, sub }
-                        }
-                        _ => SdoResponse::Abort {
-                            index,
-                            sub,
-                            code: 0x0602_0000,
-                        },
-                    };
-                    self.pending.push(
-                        Message::SdoResponse {
-                            node: n.id,
-                            response,
-                        }
-                        .to_can_frame(),
-                    );
-                }
-                Message::Rpdo1 {
-                    controlword,
-                    target,
-                    ..
-                } => {
-                    n.control(controlword);
-                    n.targets[0] = target;
-                }
-                Message::Rpdo3 { target, .. } => n.targets[1] = target,
-                _ => {}
-            }
-        }
+    fn at_rest(&self, wheel: usize) -> bool {
+        self.0[wheel] == 0
     }
 }
 
 fn bench_cia402(c: &mut Criterion) {
     let config = Config::cia402_example();
     let mut ctl = Controller::new(&config).unwrap();
-    let mut bus = Bus402::new();
+    // The firmware crate's drive double, answering the next step; heartbeats on the
+    // multiples of their period (50 ms).
+    let timing = Timing {
+        heartbeat_aligned: true,
+        ..Timing::NEXT_MS
+    };
+    let mut bus = Drives402::new(&config, timing, Options::default());
+    let mut axes = Follow([0; 4]);
     let twists: [CanFrame; 256] = core::array::from_fn(|seq| {
         Command::Twist(TwistCmd {
             vx: 0.8,
@@ -316,22 +175,35 @@ fn bench_cia402(c: &mut Criterion) {
     // then driving until the ramp has settled (0.8 m/s at 4 m/s²: 0.2 s).
     let mut k = 0u64;
     let mut last_sync = None;
+    // The nodes' last TPDOs and heartbeats, for the measured loop's schedule.
+    let (mut tpdos, mut beats) = (Vec::new(), Vec::new());
     let mut run = |ctl: &mut Controller, k: &mut u64, drive: bool| {
         let now = Instant::from_micros(*k * 1000);
-        for f in bus.feed(*k) {
-            ctl.on_frame(now, &f);
+        let mut fed = Vec::new();
+        bus.feedback(*k * 1_000_000, &mut axes, |_, f| fed.push(f));
+        for f in &fed {
+            ctl.on_frame(now, f);
+        }
+        let is = |f: &CanFrame, heartbeat: bool| match canopen::decode(f) {
+            Ok(Message::Tpdo1 { .. } | Message::Tpdo2 { .. }) => !heartbeat,
+            Ok(Message::Heartbeat { .. }) => heartbeat,
+            _ => false,
+        };
+        for (list, heartbeat) in [(&mut tpdos, false), (&mut beats, true)] {
+            if fed.iter().any(|f| is(f, heartbeat)) {
+                *list = fed.iter().filter(|f| is(f, heartbeat)).copied().collect();
+            }
         }
         if drive {
             ctl.on_frame(now, &twists[*k as u8 as usize]);
         }
         ctl.step_into(now, &mut out);
-        if out
-            .iter()
-            .any(|f| matches!(canopen::decode(f), Ok(Message::Sync { .. })))
-        {
-            last_sync = Some(*k);
+        for f in &out {
+            if matches!(canopen::decode(f), Ok(Message::Sync { .. })) {
+                last_sync = Some(*k);
+            }
+            bus.on_frame(*k * 1_000_000, f, &mut axes);
         }
-        bus.take(&out);
         *k += 1;
     };
     while ctl.snapshot().motors_online != 0b1111 {
@@ -347,16 +219,17 @@ fn bench_cia402(c: &mut Criterion) {
         run(&mut ctl, &mut k, true);
     }
     assert!(
-        bus.nodes
+        bus.nodes()
             .iter()
-            .all(|n| n.state == DriveState402::OperationEnabled)
+            .all(|n| n.state() == DriveState402::OperationEnabled)
     );
-    assert!(bus.nodes.iter().all(|n| n.targets != [0, 0]), "driving");
+    assert!(axes.0.iter().all(|v| *v != 0), "driving");
+    assert_eq!(tpdos.len(), 4, "TPDO1 and TPDO2 of each node");
+    assert_eq!(beats.len(), 2, "a heartbeat of each node");
     let last_sync = last_sync.expect("SYNC is sent");
     // From here on the frames of each step come from a table of 100 steps (the TPDOs every
-    // 4th, the step after SYNC; the heartbeats every 50th): the nodes answer as above, with
-    // the targets of the settled ramp.
-    let tpdos: Vec<CanFrame> = bus.nodes.iter().flat_map(Node402::tpdos).collect();
+    // 4th, the step after SYNC; the heartbeats every 50th): the nodes' last ones, with the
+    // targets of the settled ramp.
     let schedule: Vec<Vec<CanFrame>> = (0..100u64)
         .map(|i| {
             let mut frames = Vec::new();
@@ -364,11 +237,7 @@ fn bench_cia402(c: &mut Criterion) {
                 frames.extend(&tpdos);
             }
             if i.is_multiple_of(50) {
-                frames.extend(
-                    bus.nodes
-                        .iter()
-                        .map(|n| heartbeat_402(n.id, NmtState::Operational)),
-                );
+                frames.extend(&beats);
             }
             frames
         })

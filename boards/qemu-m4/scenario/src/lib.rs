@@ -37,12 +37,15 @@
 //! | 2700 | wheel 2's feedback stops (DJI 10 ms, ODrive 50 ms, CiA 402 20 ms): stale motor fault |
 //! | 2800, 2850 | reset, enable; twists 2860..3000 |
 //!
-//! CiA 402: the core resets both nodes at 0 ms and configures them by SDO (34 transfers a
-//! node, one a step), so the enable at 10 ms waits in the enable sequence until the nodes are
-//! started (NMT start at 35 ms, SYNC from 36 ms) and runs it from there: operation enabled at
-//! 57 ms, targets from the SYNC at 60 ms. The disable, the watchdog's stop and the reset send
-//! shutdown, the e-stop and the stale fault a quick stop. Wheel 2's
-//! lost feedback is node 2's TPDO1 (its statusword and first axis); its TPDO2 still comes.
+//! CiA 402: the nodes are the firmware crate's drive double (`protocol::canopen::drive`, the
+//! simulator's), answering the next millisecond, as drives without the option codes
+//! 0x605B / 0x605C. The core resets both nodes at 0 ms and configures them by SDO (37
+//! transfers a node, one a step), so the enable at 10 ms waits in the enable sequence until
+//! the nodes are started (NMT start at 38 ms, SYNC from 40 ms) and runs it from there:
+//! enable operation at 56 ms, targets from the SYNC at 64 ms. The disable, the watchdog's
+//! stop and the reset send shutdown (the torque goes at once), the e-stop and the stale fault
+//! a quick stop (it ends once the wheels rest). Wheel 2's lost feedback is node 2's TPDO1
+//! (its statusword and first axis); its TPDO2 still comes.
 //!
 //! Pods: the DJI setup with `odometry.source = "pods3"` (the layout of
 //! `config/dji_m3508_pods3.toml`). A pod node sends `POD_COUNTS` every 5 ms from the body
@@ -59,9 +62,10 @@ use core::fmt::{self, Write};
 
 use embedded_can::{ExtendedId, Frame, StandardId};
 use firmware::config::{Cia402Drive, Drive, OdometryMode, PodConfig, Pods};
-use firmware::protocol::canopen::{
-    self, DriveState402, Message, NmtCommand, NmtState, NodeId as CoNode, SdoRequest, SdoResponse,
+use firmware::protocol::canopen::drive::{
+    Axes, AxisCommand, Drives402, Options as CoOptions, Timing,
 };
+use firmware::protocol::canopen::{self, Message, NodeId as CoNode};
 use firmware::protocol::dji::{self, EscId, EscModel};
 use firmware::protocol::odrive::{self, AxisState, NodeId};
 use firmware::protocol::robot::{self, Command, ModeRequest, TwistCmd};
@@ -73,6 +77,9 @@ pub const STEPS: u32 = 3000;
 
 /// The control period, µs (the example configurations run at 1 kHz).
 pub const PERIOD_US: u64 = 1000;
+
+/// Nanoseconds a millisecond: the CiA 402 nodes' clock.
+const NS_PER_MS: u64 = 1_000_000;
 
 /// Checkpoint lines (`ck`) every this many steps.
 pub const CHECKPOINT_EVERY: u32 = 100;
@@ -208,126 +215,43 @@ const OD_K: f32 = 40.0;
 const OD_COAST: f32 = 2.0;
 
 /// CiA 402 axis model: the drive's profile velocity loop as the same first-order lag as the
-/// ODrive's; a quick stop decelerates with a 50 ms time constant, otherwise the axis coasts.
+/// ODrive's; a quick stop or a slow down decelerates with a 50 ms time constant, otherwise
+/// (no torque) the axis coasts.
 const CO_QUICK_STOP: f32 = 20.0;
 
-/// The device type a CiA 402 drive reports (object 0x1000): profile 402, servo drive.
-const DEVICE_TYPE_402: u32 = 0x0002_0192;
+/// A CiA 402 axis slower than this is at rest (a quick stop or a slow down ends), motor rpm:
+/// about the simulator's 0.1 rad/s.
+const CO_REST_RPM: f32 = 1.0;
 
-/// Frames one scripted CiA 402 node can owe the next step (an SDO answer or a boot-up, and
-/// the two TPDOs of a SYNC).
-const NODE_PENDING: usize = 3;
+/// The scenario's CiA 402 drives have no shutdown and disable operation option codes
+/// (0x605B, 0x605C): the master's writes are refused (no failure: the drive keeps its own
+/// behaviour), and a shutdown takes the torque at once.
+const OPTIONS_402: CoOptions = CoOptions {
+    lacks_option_codes: true,
+    quick_stop_stays: false,
+    self_starting: false,
+};
 
-/// One scripted CiA 402 node: it answers the master's NMT, SDO, SYNC and RPDOs the next
-/// millisecond and runs the 402 state machine (the codec's drive side,
-/// `DriveState402::on_controlword`) on each controlword: the firmware's test double in
-/// `crates/firmware/tests/control/canopen_bus.rs`, without heap and fault injection.
-#[derive(Clone, Copy, Debug)]
-struct Node402 {
-    id: CoNode,
-    operational: bool,
-    state: DriveState402,
-    mode: i8,
-    last_controlword: u16,
-    pending: [Option<CanFrame>; NODE_PENDING],
-}
-
-impl Node402 {
-    fn new(id: CoNode) -> Self {
-        Self {
-            id,
-            operational: false,
-            state: DriveState402::SwitchOnDisabled,
-            mode: 0,
-            last_controlword: 0,
-            pending: [None; NODE_PENDING],
-        }
-    }
-
-    fn owe(&mut self, frame: CanFrame) {
-        if let Some(slot) = self.pending.iter_mut().find(|p| p.is_none()) {
-            *slot = Some(frame);
-        }
-    }
-
-    /// A boot-up: pre-operational, switch on disabled, the mode forgotten.
-    fn reboot(&mut self) {
-        self.operational = false;
-        self.state = DriveState402::SwitchOnDisabled;
-        self.mode = 0;
-        self.pending = [None; NODE_PENDING];
-        self.owe(
-            Message::Heartbeat {
-                node: self.id,
-                state: NmtState::BootUp,
-            }
-            .to_can_frame(),
-        );
-    }
-
-    fn sdo(&mut self, request: SdoRequest) {
-        let (index, sub) = request.object();
-        let response = match request {
-            SdoRequest::Upload { .. } if (index, sub) == (0x1000, 0) => SdoResponse::Uploaded {
-                index,
-                sub,
-                value: DEVICE_TYPE_402,
-                size: 4,
-            },
-            // The mode of operation display shows the mode written at once.
-            SdoRequest::Upload { .. } if (index, sub) == (0x6061, 0) => SdoResponse::Uploaded {
-                index,
-                sub,
-                value: u32::from(self.mode as u8),
-                size: 1,
-            },
-            SdoRequest::Download { value, .. } => {
-                if (index, sub) == (0x6060, 0) {
-                    self.mode = value as i8;
-                }
-                SdoResponse::Downloaded { index, sub }
-            }
-            _ => SdoResponse::Abort {
-                index,
-                sub,
-                code: 0x0602_0000,
-            },
-        };
-        self.owe(
-            Message::SdoResponse {
-                node: self.id,
-                response,
-            }
-            .to_can_frame(),
-        );
-    }
-
-    /// The CiA 402 state machine, on each controlword received.
-    fn control(&mut self, cw: u16) {
-        self.state = self
-            .state
-            .on_controlword(cw, self.last_controlword, self.mode == 3);
-        self.last_controlword = cw;
-    }
-}
-
-/// The CiA 402 side of the plant: the nodes and each wheel's place on them.
-#[derive(Clone, Copy, Debug)]
+/// The CiA 402 side of the plant: the firmware crate's drive double
+/// (`firmware::protocol::canopen::drive`), answering the next millisecond, and what each
+/// wheel's node asks of it.
+#[derive(Clone, Debug)]
 struct Canopen {
-    /// The nodes, in the order they first appear in `node_ids` (the example has two).
-    nodes: [Option<Node402>; 2],
-    /// Each wheel's node (index into `nodes`) and axis slot (0: sub-index 0 or 1; 1: 2).
-    wheel_node: [(usize, usize); 4],
+    drives: Drives402,
+    /// Each wheel's command from its node.
+    command: [AxisCommand; 4],
     /// Motor rpm per raw unit of target and of actual velocity.
     target_rpm: f32,
     actual_rpm: f32,
+    /// The node of wheel 2, whose TPDO1 (statusword and first axis) the stale-motor part of
+    /// the script drops.
+    stale_node: Option<CoNode>,
 }
 
 impl Canopen {
     fn new(config: &Config) -> Option<Self> {
         let Drive::Cia402(Cia402Drive {
             node_ids,
-            axes,
             target_rpm_per_unit,
             actual_rpm_per_unit,
             ..
@@ -335,45 +259,56 @@ impl Canopen {
         else {
             return None;
         };
-        let mut nodes: [Option<Node402>; 2] = [None; 2];
-        let mut wheel_node = [(0, 0); 4];
-        for ((slot, &id), &axis) in wheel_node.iter_mut().zip(&node_ids).zip(&axes) {
-            let index = nodes
-                .iter()
-                .position(|n| n.is_some_and(|n| n.id.get() == id))
-                .or_else(|| {
-                    let free = nodes.iter().position(Option::is_none)?;
-                    let node = nodes.get_mut(free)?;
-                    *node = Some(Node402::new(CoNode::new(id)?));
-                    Some(free)
-                });
-            let Some(index) = index else {
-                panic!("the scenario's CiA 402 plant takes at most two nodes");
-            };
-            *slot = (index, usize::from(axis == 2));
-        }
         Some(Self {
-            nodes,
-            wheel_node,
+            drives: Drives402::new(config, Timing::NEXT_MS, OPTIONS_402),
+            command: [AxisCommand::Off; 4],
             target_rpm: target_rpm_per_unit,
             actual_rpm: actual_rpm_per_unit,
+            stale_node: CoNode::new(node_ids[2]),
         })
     }
 
-    /// A target (raw) of axis `(node index, slot)` into its wheel's command, motor rpm.
-    fn set_target(&self, axes: &mut [Axis; 4], axis: (usize, usize), target: i32) {
-        for (a, &w) in axes.iter_mut().zip(&self.wheel_node) {
-            if w == axis {
+    /// The drives and the plant's axes as they see them.
+    fn split<'a>(&'a mut self, axes: &'a mut [Axis; 4]) -> (&'a mut Drives402, CoAxes<'a>) {
+        let view = CoAxes {
+            axes,
+            command: &mut self.command,
+            target_rpm: self.target_rpm,
+            actual_rpm: self.actual_rpm,
+        };
+        (&mut self.drives, view)
+    }
+}
+
+/// The plant's axes as the CiA 402 nodes see them, by wheel.
+struct CoAxes<'a> {
+    axes: &'a mut [Axis; 4],
+    command: &'a mut [AxisCommand; 4],
+    target_rpm: f32,
+    actual_rpm: f32,
+}
+
+impl Axes for CoAxes<'_> {
+    fn command(&mut self, wheel: usize, command: AxisCommand) {
+        if let (Some(c), Some(a)) = (self.command.get_mut(wheel), self.axes.get_mut(wheel)) {
+            *c = command;
+            if let AxisCommand::Velocity(target) = command {
                 a.cmd = target as f32 * self.target_rpm;
             }
         }
     }
 
-    fn node(&mut self, id: CoNode) -> Option<(usize, &mut Node402)> {
-        self.nodes
-            .iter_mut()
-            .enumerate()
-            .find_map(|(i, n)| n.as_mut().filter(|n| n.id == id).map(|n| (i, n)))
+    fn velocity(&self, wheel: usize) -> i32 {
+        // Saturating, truncating: the drive's own rounding.
+        self.axes
+            .get(wheel)
+            .map_or(0, |a| (a.speed / self.actual_rpm) as i32)
+    }
+
+    fn at_rest(&self, wheel: usize) -> bool {
+        self.axes
+            .get(wheel)
+            .is_none_or(|a| a.speed.abs() < CO_REST_RPM)
     }
 }
 
@@ -489,8 +424,9 @@ struct Plant {
     ms: u32,
 }
 
-/// Frames one step can feed the controller (4 estimates + 4 heartbeats, or 4 DJI feedbacks).
-type Inbox = [Option<CanFrame>; 8];
+/// Frames one step can feed the controller (4 estimates + 4 heartbeats, 4 DJI feedbacks, or
+/// what two CiA 402 nodes owe: their TPDOs, answers, heartbeats and boot-ups).
+type Inbox = [Option<CanFrame>; 12];
 
 impl Plant {
     fn new(setup: Setup, config: &Config) -> Self {
@@ -521,7 +457,7 @@ impl Plant {
     }
 
     fn feedback(&mut self, ms: u32, inbox: &mut Inbox) {
-        *inbox = [None; 8];
+        *inbox = [None; 12];
         self.ms = ms;
         if let Some(p) = &mut self.pods {
             inbox[4] = p.frame(ms);
@@ -582,26 +518,22 @@ impl Plant {
                 let Some(co) = self.canopen.as_mut() else {
                     return;
                 };
-                // What each node owes from the last step, then its heartbeat (50 ms, offset
-                // per node).
+                // What the nodes owe by now, in time order, but wheel 2's node's TPDO1 while
+                // its feedback is cut.
+                let stale = co.stale_node.filter(|_| dropped(self.setup, ms, 2));
+                let (drives, mut axes) = co.split(&mut self.axes);
                 let mut slots = inbox.iter_mut();
-                for (i, n) in co.nodes.iter_mut().enumerate() {
-                    let Some(n) = n else { continue };
-                    let owed = core::mem::replace(&mut n.pending, [None; NODE_PENDING]);
-                    let heartbeat = (ms > 0 && (ms + 7 * i as u32).is_multiple_of(50)).then(|| {
-                        let state = if n.operational {
-                            NmtState::Operational
-                        } else {
-                            NmtState::PreOperational
-                        };
-                        Message::Heartbeat { node: n.id, state }.to_can_frame()
-                    });
-                    for f in owed.into_iter().chain([heartbeat]).flatten() {
-                        if let Some(slot) = slots.next() {
-                            *slot = Some(f);
-                        }
+                drives.feedback(u64::from(ms) * NS_PER_MS, &mut axes, |_, f| {
+                    if stale.is_some_and(|node| {
+                        matches!(canopen::decode(&f), Ok(Message::Tpdo1 { node: n, .. }) if n == node)
+                    }) {
+                        return;
                     }
-                }
+                    match slots.next() {
+                        Some(slot) => *slot = Some(f),
+                        None => panic!("more CiA 402 frames in one step than the inbox holds"),
+                    }
+                });
             }
         }
     }
@@ -641,93 +573,14 @@ impl Plant {
         }
     }
 
-    /// CiA 402: takes one frame of the master (frames of the next step are owed by the nodes).
+    /// CiA 402: takes one frame of the master (the nodes answer the next step).
     fn receive_canopen(&mut self, frame: &CanFrame) {
-        let ms = self.ms;
+        let t_ns = u64::from(self.ms) * NS_PER_MS;
         let Some(co) = self.canopen.as_mut() else {
             return;
         };
-        let Ok(msg) = canopen::decode(frame) else {
-            return;
-        };
-        match msg {
-            Message::Nmt { command, node } => {
-                for n in co.nodes.iter_mut().flatten() {
-                    if node.is_some_and(|id| id != n.id) {
-                        continue;
-                    }
-                    match command {
-                        NmtCommand::Start => n.operational = true,
-                        NmtCommand::Stop | NmtCommand::EnterPreOperational => {
-                            n.operational = false;
-                        }
-                        NmtCommand::ResetNode | NmtCommand::ResetCommunication => n.reboot(),
-                    }
-                }
-            }
-            Message::SdoRequest { node, request } => {
-                if let Some((_, n)) = co.node(node) {
-                    n.sdo(request);
-                }
-            }
-            Message::Sync { .. } => {
-                // Each operational node's TPDO1 (statusword, first axis) and TPDO2 (second
-                // axis), delivered the next step: synchronous TPDOs, sampled at the SYNC, so
-                // before the RPDOs that follow it in the outbox.
-                for (index, n) in co.nodes.iter_mut().enumerate() {
-                    let Some(n) = n.as_mut().filter(|n| n.operational) else {
-                        continue;
-                    };
-                    let mut actual = [0i32; 2];
-                    let mut first_wheel = None;
-                    for (w, (a, &(i, slot))) in self.axes.iter().zip(&co.wheel_node).enumerate() {
-                        if i == index
-                            && let Some(v) = actual.get_mut(slot)
-                        {
-                            // Saturating, truncating: the drive's own rounding.
-                            *v = (a.speed / co.actual_rpm) as i32;
-                            if slot == 0 {
-                                first_wheel = Some(w);
-                            }
-                        }
-                    }
-                    let [v1, v2] = actual;
-                    if !first_wheel.is_some_and(|w| dropped(self.setup, ms + 1, w)) {
-                        n.owe(
-                            Message::Tpdo1 {
-                                node: n.id,
-                                statusword: n.state.statusword(),
-                                velocity: v1,
-                            }
-                            .to_can_frame(),
-                        );
-                    }
-                    n.owe(
-                        Message::Tpdo2 {
-                            node: n.id,
-                            velocity: v2,
-                        }
-                        .to_can_frame(),
-                    );
-                }
-            }
-            Message::Rpdo1 {
-                node,
-                controlword,
-                target,
-            } => {
-                if let Some((index, n)) = co.node(node) {
-                    n.control(controlword);
-                    co.set_target(&mut self.axes, (index, 0), target);
-                }
-            }
-            Message::Rpdo3 { node, target } => {
-                if let Some((index, _)) = co.node(node) {
-                    co.set_target(&mut self.axes, (index, 1), target);
-                }
-            }
-            _ => {}
-        }
+        let (drives, mut axes) = co.split(&mut self.axes);
+        drives.on_frame(t_ns, frame, &mut axes);
     }
 
     /// Integrates one period, `dt` s.
@@ -759,13 +612,14 @@ impl Plant {
             }
         }
         if let Some(co) = &self.canopen {
-            for (a, &(i, _)) in self.axes.iter_mut().zip(&co.wheel_node) {
-                let state = co.nodes.get(i).copied().flatten().map(|n| n.state);
-                // Motor rpm; a drive not enabled has no torque and coasts.
-                a.speed += match state {
-                    Some(DriveState402::OperationEnabled) => (a.cmd - a.speed) * (OD_K * dt),
-                    Some(DriveState402::QuickStopActive) => -a.speed * (CO_QUICK_STOP * dt),
-                    _ => -a.speed * (OD_COAST * dt),
+            for (a, command) in self.axes.iter_mut().zip(co.command) {
+                // Motor rpm; a drive without torque coasts.
+                a.speed += match command {
+                    AxisCommand::Velocity(_) => (a.cmd - a.speed) * (OD_K * dt),
+                    AxisCommand::QuickStop | AxisCommand::SlowDown => {
+                        -a.speed * (CO_QUICK_STOP * dt)
+                    }
+                    AxisCommand::Off => -a.speed * (OD_COAST * dt),
                 };
                 a.pos += a.speed * (dt / 60.0);
             }
@@ -887,7 +741,7 @@ pub fn run<W: Write, P: Probe>(
     let mut hash = StreamHash::new();
     let mut frames = 0u64;
     let mut seq = 0u8;
-    let mut inbox: Inbox = [None; 8];
+    let mut inbox: Inbox = [None; 12];
     let mut cmds = [None; 6];
     writeln!(out, "begin {name} steps={}", opts.steps)?;
     for k in 0..opts.steps {

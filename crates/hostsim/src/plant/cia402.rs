@@ -4,7 +4,8 @@
 //! The motor and its loop are the [`OdriveAxis`] model's (a velocity loop with an integrator,
 //! a torque limit and friction), with a hub motor's parameters ([`Cia402Params`]); its ODrive
 //! feedback schedule is not used. The CANopen side (NMT, SDO, PDOs, heartbeats, the 402 state
-//! machine) is the adapter's, `crate::canopen_drive`, which commands this axis.
+//! machine) is the firmware crate's drive double (`firmware::protocol::canopen::drive`), whose
+//! commands the adapter, `crate::canopen_drive`, applies to this axis.
 
 use firmware::protocol::odrive::AxisState;
 

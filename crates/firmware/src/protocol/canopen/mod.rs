@@ -20,6 +20,7 @@ use super::wire::{self, Payload};
 use crate::frame::CanFrame;
 
 mod cia402;
+pub mod drive;
 mod emcy;
 mod heartbeat;
 pub mod layout;
