@@ -26,6 +26,9 @@ use crate::rtt::LogLine;
 
 /// How long the board may boot before the scenario starts without its first frame, ns.
 const BOOT_LIMIT_NS: u64 = 100_000_000;
+/// How long the board runs on after the scenario for the frames of its last step to leave, ns:
+/// a few frames' time on a loaded bus.
+const DRAIN_NS: u64 = 10_000_000;
 
 /// Why a run stopped.
 #[derive(Debug, thiserror::Error)]
@@ -308,6 +311,18 @@ impl Firmware for BoardNode {
         Ok(())
     }
 
+    fn drain(
+        &mut self,
+        bus: &mut Bus,
+        until_ns: u64,
+        done: &mut Vec<Transmission>,
+    ) -> Result<(), RunError> {
+        // The board runs on (its frames leave from its mailboxes), for long enough that the
+        // frames of its last step complete on a loaded bus.
+        let until_ns = until_ns.min(self.duration_ns + DRAIN_NS);
+        self.run_until(bus, until_ns, done)
+    }
+
     fn tick(
         &mut self,
         _bus: &mut Bus,
@@ -361,7 +376,10 @@ impl Firmware for BoardNode {
         truth: &dyn Fn() -> ([f64; 3], [f64; 3]),
         record: &mut Record,
     ) -> Result<(), RunError> {
-        if tx.fate == Fate::Dropped {
+        // What the board reported by its last step: the frames it offered before the step
+        // after it (the engine runs on a period, and drains, for them to complete).
+        let last_step_ends = self.duration_ns + self.period_us * 1000;
+        if tx.fate == Fate::Dropped || tx.queued_ns >= last_step_ends {
             return Ok(());
         }
         let t = tx.delivered_ns as f64 * 1e-9;

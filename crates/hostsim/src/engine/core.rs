@@ -166,9 +166,15 @@ impl Firmware for InProcess {
         Ok(())
     }
 
-    fn drain(&mut self, bus: &mut Bus, until_ns: u64, done: &mut Vec<Transmission>) {
+    fn drain(
+        &mut self,
+        bus: &mut Bus,
+        until_ns: u64,
+        done: &mut Vec<Transmission>,
+    ) -> Result<(), SimError> {
         bus.advance_into(until_ns, &mut self.started);
         self.deliver(u64::MAX, done);
+        Ok(())
     }
 }
 
