@@ -37,6 +37,7 @@ use embassy_stm32::wdg::IndependentWatchdog;
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::channel::Channel;
 use embassy_time::{Duration, Ticker, Timer};
+use firmware::protocol::robot::{Fault, RobotState};
 use firmware::{Config, Controller, Instant};
 use panic_probe as _;
 
@@ -202,18 +203,7 @@ async fn main(spawner: Spawner) {
                         .is_some_and(|f| TX_QUEUE.try_send((now, f)).is_ok());
                     counters.tx(queued);
                 }
-                // Each change of state or fault, at the step that made it (STATUS shows it
-                // only at its next frame, up to 100 ms later).
-                let shown = (ctl.state(), ctl.fault());
-                if shown != last_shown {
-                    info!(
-                        "step {=u64}: state {=u8} fault {=u8}",
-                        counters.steps,
-                        shown.0.raw(),
-                        shown.1.raw()
-                    );
-                    last_shown = shown;
-                }
+                log_state_change(&ctl, &mut last_shown, counters.steps);
                 counters.steps += 1;
                 watchdog.pet();
                 if counters.steps.is_multiple_of(REPORT_EVERY_STEPS) {
@@ -276,6 +266,22 @@ fn drain_fifo(rx: &mut CanRx<'_>, ctl: &mut Controller, counters: &mut Counters)
             Err(TryReadError::BusError(_)) => counters.bus_error(),
             Err(TryReadError::Empty) => break,
         }
+    }
+}
+
+/// Logs each change of the core's state or fault with the step that made it (`step` counts
+/// from 0): STATUS shows it only at its next frame, up to 100 ms later, and boardsim reads
+/// these lines to compare the image's state changes with the in-process core's, step for step.
+fn log_state_change(ctl: &Controller, last: &mut (RobotState, Fault), step: u64) {
+    let shown = (ctl.state(), ctl.fault());
+    if shown != *last {
+        info!(
+            "step {=u64}: state {=u8} fault {=u8}",
+            step,
+            shown.0.raw(),
+            shown.1.raw()
+        );
+        *last = shown;
     }
 }
 

@@ -233,40 +233,50 @@ fn run(
         )
         .map_err(|e| anyhow::anyhow!("{e}"))?;
     }
-    let s = run.board.stats();
-    let odometry = run.odometry.map(|(p, _)| p);
-    let error = odometry.map(|p| {
-        (
-            (p[0] - run.truth[0]).hypot(p[1] - run.truth[1]),
-            p[2] - run.truth[2],
-        )
-    });
     if json {
-        let summary = serde_json::json!({
-            "scenario": scenario.name,
-            "elf": elf.display().to_string(),
-            "simulated_s": run.simulated_s,
-            "wall_s": wall,
-            "real_time_factor": run.simulated_s / wall,
-            "transitions": run.state_changes.iter().map(|(t, st, f)| serde_json::json!({"t": t, "state": st, "fault": f})).collect::<Vec<_>>(),
-            "odometry": odometry,
-            "truth": run.truth,
-            "final_position_error": error.map(|e| e.0),
-            "frames_sent": run.sent.len(),
-            "frames_received": run.frames_received,
-            "instructions": s.instructions,
-            "instructions_per_ms": s.instructions as f64 / (run.simulated_s * 1e3),
-            "exceptions": s.exceptions,
-            "board_log": run.lines.iter().map(|l| format!("{:.6} {} {}", l.at as f64 / CPU_HZ as f64, l.level, l.text)).collect::<Vec<_>>(),
-        });
-        println!("{summary:#}");
+        println!("{:#}", json_summary(&scenario.name, elf, &run, wall));
         return Ok(());
     }
-    println!(
-        "scenario {} on the board image {}",
-        scenario.name,
-        elf.display()
-    );
+    print_summary(&scenario.name, elf, &run, wall);
+    if log {
+        println!("log {}", log_path.display());
+    }
+    Ok(())
+}
+
+/// What `run --json` prints: the run's figures and the board's log.
+fn json_summary(
+    name: &str,
+    elf: &std::path::Path,
+    run: &boardsim::run::BoardRun,
+    wall: f64,
+) -> serde_json::Value {
+    let s = run.board.stats();
+    let (odometry, error) = (run.odometry.map(|(p, _)| p), odometry_error(run));
+    serde_json::json!({
+        "scenario": name,
+        "elf": elf.display().to_string(),
+        "simulated_s": run.simulated_s,
+        "wall_s": wall,
+        "real_time_factor": run.simulated_s / wall,
+        "transitions": run.state_changes.iter().map(|(t, st, f)| serde_json::json!({"t": t, "state": st, "fault": f})).collect::<Vec<_>>(),
+        "odometry": odometry,
+        "truth": run.truth,
+        "final_position_error": error.map(|e| e.0),
+        "frames_sent": run.sent.len(),
+        "frames_received": run.frames_received,
+        "instructions": s.instructions,
+        "instructions_per_ms": s.instructions as f64 / (run.simulated_s * 1e3),
+        "exceptions": s.exceptions,
+        "board_log": run.lines.iter().map(|l| format!("{:.6} {} {}", l.at as f64 / CPU_HZ as f64, l.level, l.text)).collect::<Vec<_>>(),
+    })
+}
+
+/// What `run` prints: the state changes, the odometry against the truth, the board's figures.
+fn print_summary(name: &str, elf: &std::path::Path, run: &boardsim::run::BoardRun, wall: f64) {
+    let s = run.board.stats();
+    let (odometry, error) = (run.odometry.map(|(p, _)| p), odometry_error(run));
+    println!("scenario {} on the board image {}", name, elf.display());
     for (t, st, f) in &run.state_changes {
         println!("  {t:8.3} s  state {st}, fault {f}");
     }
@@ -296,8 +306,14 @@ fn run(
         run.simulated_s,
         run.simulated_s / wall
     );
-    if log {
-        println!("log {}", log_path.display());
-    }
-    Ok(())
+}
+
+/// The board's last odometry against the ground truth: position (m) and heading (rad) off.
+fn odometry_error(run: &boardsim::run::BoardRun) -> Option<(f64, f64)> {
+    run.odometry.map(|(p, _)| {
+        (
+            (p[0] - run.truth[0]).hypot(p[1] - run.truth[1]),
+            p[2] - run.truth[2],
+        )
+    })
 }
