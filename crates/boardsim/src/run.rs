@@ -303,11 +303,7 @@ impl Firmware for BoardNode {
             }
             self.pending.push(tx);
         }
-        self.pending.sort_by_key(|tx| tx.delivered_ns);
-        let due = self
-            .pending
-            .partition_point(|tx| tx.delivered_ns <= until_ns);
-        done.extend(self.pending.drain(..due));
+        hostsim::engine::deliver_due(&mut self.pending, until_ns, done);
         Ok(())
     }
 

@@ -6,7 +6,7 @@
 use firmware::CanFrame;
 use firmware::control::{Controller, Instant, Outbox};
 
-use super::{Firmware, Record};
+use super::{Firmware, Record, deliver_due};
 use crate::bus::{Bus, Fate, Node, Transmission};
 use crate::log::{CoreLog, McapLog};
 use crate::scenario::{FaultName, Scenario};
@@ -21,7 +21,7 @@ pub struct InProcess {
     /// The runner's deaths: from, until (µs); a fresh core starts at `until`.
     restarts: Vec<(u64, u64)>,
     down: bool,
-    /// Transmissions on the bus not delivered yet, in delivery order.
+    /// Transmissions on the bus not delivered yet.
     started: Vec<Transmission>,
     out: Outbox,
     /// The firmware boots DISABLED without a fault: the log says the changes from there.
@@ -61,15 +61,6 @@ impl InProcess {
     pub const fn is_down(&self) -> bool {
         self.down
     }
-
-    /// Moves the transmissions delivered by `until_ns` to `done`, in delivery order.
-    fn deliver(&mut self, until_ns: u64, done: &mut Vec<Transmission>) {
-        self.started.sort_by_key(|tx| tx.delivered_ns);
-        let due = self
-            .started
-            .partition_point(|tx| tx.delivered_ns <= until_ns);
-        done.extend(self.started.drain(..due));
-    }
 }
 
 impl Firmware for InProcess {
@@ -83,7 +74,7 @@ impl Firmware for InProcess {
     ) -> Result<(), SimError> {
         // Frames delivered by `until_ns` started before it: all of them are known after this.
         bus.advance_into(until_ns, &mut self.started);
-        self.deliver(until_ns, done);
+        deliver_due(&mut self.started, until_ns, done);
         Ok(())
     }
 
@@ -107,7 +98,7 @@ impl Firmware for InProcess {
         // with a time the bus had passed may be delivered by now.
         bus.advance_into(t_ns + 1, &mut self.started);
         let late = delivered.len();
-        self.deliver(t_ns, delivered);
+        deliver_due(&mut self.started, t_ns, delivered);
         if delivered.len() > late {
             delivered.sort_by_key(|tx| tx.delivered_ns);
         }
@@ -173,7 +164,7 @@ impl Firmware for InProcess {
         done: &mut Vec<Transmission>,
     ) -> Result<(), SimError> {
         bus.advance_into(until_ns, &mut self.started);
-        self.deliver(u64::MAX, done);
+        deliver_due(&mut self.started, u64::MAX, done);
         Ok(())
     }
 }

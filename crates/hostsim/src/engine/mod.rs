@@ -149,6 +149,15 @@ pub trait Firmware {
     }
 }
 
+/// Moves the transmissions of `pending` delivered by `until_ns` to `done`, in delivery order
+/// (those delivered at one instant in the order they were added): what a node's
+/// [`Firmware::run_until`] hands the engine.
+pub fn deliver_due(pending: &mut Vec<Transmission>, until_ns: u64, done: &mut Vec<Transmission>) {
+    pending.sort_by_key(|tx| tx.delivered_ns);
+    let due = pending.partition_point(|tx| tx.delivered_ns <= until_ns);
+    done.extend(pending.drain(..due));
+}
+
 /// What a run recorded of the firmware node as it went: filled by the engine and by the node
 /// ([`Firmware::observe`]).
 #[derive(Debug, Clone, Default, PartialEq)]
