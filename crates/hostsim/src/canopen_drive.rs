@@ -280,28 +280,10 @@ mod tests {
             self.put(t_ns, Message::SdoRequest { node, request });
         }
 
-        /// Node 1 configured as the master does it (RPDO1: the controlword and both targets;
-        /// TPDO1: statusword and sub 1's velocity, on SYNC), started, operation enabled.
+        /// Node 1 configured as the master does it ([`drive::NODE1_PDO_SETUP`]), started,
+        /// operation enabled.
         fn enabled(&mut self) {
-            for (k, (index, sub, value)) in [
-                (0x1400, 1, 0x8000_0201),
-                (0x1600, 0, 0),
-                (0x1600, 1, 0x6040_0010),
-                (0x1600, 2, 0x60FF_0120),
-                (0x1600, 0, 2),
-                (0x1400, 1, 0x201),
-                (0x1800, 1, 0x8000_0181),
-                (0x1A00, 0, 0),
-                (0x1A00, 1, 0x6041_0010),
-                (0x1A00, 2, 0x606C_0120),
-                (0x1A00, 0, 2),
-                (0x1800, 2, 1),
-                (0x1800, 1, 0x181),
-                (0x6060, 0, 3),
-            ]
-            .into_iter()
-            .enumerate()
-            {
+            for (k, (index, sub, value)) in drive::NODE1_PDO_SETUP.into_iter().enumerate() {
                 self.download((3 + k as u64) * MS, index, sub, value);
             }
             let node = canopen::NodeId::new(1);

@@ -35,6 +35,28 @@ pub use server::abort;
 #[cfg(doc)]
 use super::DriveState402;
 
+/// The SDO writes (index, sub-index, value) that map node 1's PDOs as the master maps them,
+/// in order: RPDO1 (COB-ID 0x201) the controlword and sub 1's target velocity, TPDO1 (0x181,
+/// on every SYNC) the statusword and sub 1's actual velocity, each disabled, mapped and
+/// enabled again; then profile velocity mode (3). For tests that need a configured node
+/// without the master.
+pub const NODE1_PDO_SETUP: [(u16, u8, u32); 14] = [
+    (0x1400, 1, 0x8000_0201),
+    (0x1600, 0, 0),
+    (0x1600, 1, 0x6040_0010),
+    (0x1600, 2, 0x60FF_0120),
+    (0x1600, 0, 2),
+    (0x1400, 1, 0x201),
+    (0x1800, 1, 0x8000_0181),
+    (0x1A00, 0, 0),
+    (0x1A00, 1, 0x6041_0010),
+    (0x1A00, 2, 0x606C_0120),
+    (0x1A00, 0, 2),
+    (0x1800, 2, 1),
+    (0x1800, 1, 0x181),
+    (0x6060, 0, 3),
+];
+
 /// EMCY error code of a drive fault (CiA 402: continuous over-current), the simulator's
 /// `drive_fault`.
 pub const EMCY_DRIVE_FAULT: u16 = 0x2310;

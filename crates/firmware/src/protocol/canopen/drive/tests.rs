@@ -129,25 +129,7 @@ impl Bench {
     /// Node 1's RPDO1 carries its controlword and sub 1's target, TPDO1 its statusword and
     /// sub 1's velocity on SYNC (disable, map, enable); mode 3, started.
     fn started(&mut self, t_ns: u64) {
-        for (k, (index, sub, value)) in [
-            (0x1400, 1, 0x8000_0201),
-            (0x1600, 0, 0),
-            (0x1600, 1, 0x6040_0010),
-            (0x1600, 2, 0x60FF_0120),
-            (0x1600, 0, 2),
-            (0x1400, 1, 0x201),
-            (0x1800, 1, 0x8000_0181),
-            (0x1A00, 0, 0),
-            (0x1A00, 1, 0x6041_0010),
-            (0x1A00, 2, 0x606C_0120),
-            (0x1A00, 0, 2),
-            (0x1800, 2, 1),
-            (0x1800, 1, 0x181),
-            (0x6060, 0, 3),
-        ]
-        .into_iter()
-        .enumerate()
-        {
+        for (k, (index, sub, value)) in NODE1_PDO_SETUP.into_iter().enumerate() {
             self.download(t_ns + k as u64 * MS, index, sub, value);
         }
         self.nmt(t_ns + 20 * MS, NmtCommand::Start);
