@@ -236,33 +236,10 @@ impl SensorNode for ImuNode {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// A plant turning at a constant rate, that only counts time.
-    struct Turning {
-        now_ns: u64,
-        wz: f64,
-    }
-
-    impl SimPlant for Turning {
-        fn on_frame(&mut self, _: u64, _: &CanFrame) {}
-        fn feedback(&mut self, _: u64, _: &mut Vec<(u64, CanFrame)>) {}
-        fn advance(&mut self, dt: f64) {
-            self.advance_ns((dt * 1e9).round() as u64);
-        }
-        fn advance_ns(&mut self, dt_ns: u64) {
-            self.now_ns += dt_ns;
-        }
-        fn truth(&self) -> [f64; 3] {
-            [0.0; 3]
-        }
-        fn truth_velocity(&self) -> [f64; 3] {
-            [0.0, 0.0, self.wz]
-        }
-        fn set_faults(&mut self, _: u64, _: [bool; 4], _: [bool; 4]) {}
-    }
+    use crate::sim::test_plant::Moving;
 
     fn frames(params: ImuParams, seed: u64, ms: u64) -> Vec<(u64, f32, u8)> {
-        let mut plant = Turning { now_ns: 0, wz: 0.5 };
+        let mut plant = Moving::new([0.0, 0.0, 0.5]);
         let mut imu = WithImu::new(&mut plant, Some(&params), seed);
         let mut out = Vec::new();
         for _ in 0..ms {
@@ -338,7 +315,7 @@ mod tests {
 
     #[test]
     fn without_an_imu_every_call_passes_through() {
-        let mut plant = Turning { now_ns: 0, wz: 0.5 };
+        let mut plant = Moving::new([0.0, 0.0, 0.5]);
         let off = ImuParams {
             enabled: false,
             ..ImuParams::default()

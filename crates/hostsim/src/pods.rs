@@ -379,49 +379,7 @@ mod tests {
     use std::f64::consts::TAU;
 
     use super::*;
-
-    /// A plant moving at a constant body velocity, whose travel is exactly `v · t` (or, with
-    /// `integrates = false`, that leaves the integral to the wrapper).
-    struct Moving {
-        now_ns: u64,
-        v: [f64; 3],
-        integrates: bool,
-        advances: Vec<u64>,
-    }
-
-    impl Moving {
-        fn new(v: [f64; 3]) -> Self {
-            Self {
-                now_ns: 0,
-                v,
-                integrates: true,
-                advances: Vec::new(),
-            }
-        }
-    }
-
-    impl SimPlant for Moving {
-        fn on_frame(&mut self, _: u64, _: &CanFrame) {}
-        fn feedback(&mut self, _: u64, _: &mut Vec<(u64, CanFrame)>) {}
-        fn advance(&mut self, dt: f64) {
-            self.advance_ns((dt * 1e9).round() as u64);
-        }
-        fn advance_ns(&mut self, dt_ns: u64) {
-            self.advances.push(dt_ns);
-            self.now_ns += dt_ns;
-        }
-        fn truth(&self) -> [f64; 3] {
-            [0.0; 3]
-        }
-        fn truth_velocity(&self) -> [f64; 3] {
-            self.v
-        }
-        fn truth_travel(&self) -> Option<[f64; 3]> {
-            let t = self.now_ns as f64 * 1e-9;
-            self.integrates.then(|| self.v.map(|v| v * t))
-        }
-        fn set_faults(&mut self, _: u64, _: [bool; 4], _: [bool; 4]) {}
-    }
+    use crate::sim::test_plant::Moving;
 
     const R: f32 = 0.024;
     const CPT: u32 = 2000;

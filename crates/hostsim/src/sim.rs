@@ -269,3 +269,60 @@ pub fn run_metadata(scenario: &Scenario) -> BTreeMap<String, String> {
     }
     metadata
 }
+
+/// A plant for the unit tests of what wraps or drives one: it moves at a constant body
+/// velocity and only counts time.
+#[cfg(test)]
+pub(crate) mod test_plant {
+    use firmware::CanFrame;
+
+    use super::SimPlant;
+
+    /// A plant moving at the body velocity `v`, whose travel is exactly `v · t` (or, with
+    /// `integrates = false`, that leaves the integral to the wrapper); it records every
+    /// advance and every frame it is given, with the plant time then.
+    pub(crate) struct Moving {
+        pub now_ns: u64,
+        pub v: [f64; 3],
+        pub integrates: bool,
+        pub advances: Vec<u64>,
+        pub frames: Vec<(u64, CanFrame)>,
+    }
+
+    impl Moving {
+        pub fn new(v: [f64; 3]) -> Self {
+            Self {
+                now_ns: 0,
+                v,
+                integrates: true,
+                advances: Vec::new(),
+                frames: Vec::new(),
+            }
+        }
+    }
+
+    impl SimPlant for Moving {
+        fn on_frame(&mut self, _: u64, frame: &CanFrame) {
+            self.frames.push((self.now_ns, *frame));
+        }
+        fn feedback(&mut self, _: u64, _: &mut Vec<(u64, CanFrame)>) {}
+        fn advance(&mut self, dt: f64) {
+            self.advance_ns((dt * 1e9).round() as u64);
+        }
+        fn advance_ns(&mut self, dt_ns: u64) {
+            self.advances.push(dt_ns);
+            self.now_ns += dt_ns;
+        }
+        fn truth(&self) -> [f64; 3] {
+            [0.0; 3]
+        }
+        fn truth_velocity(&self) -> [f64; 3] {
+            self.v
+        }
+        fn truth_travel(&self) -> Option<[f64; 3]> {
+            let t = self.now_ns as f64 * 1e-9;
+            self.integrates.then(|| self.v.map(|v| v * t))
+        }
+        fn set_faults(&mut self, _: u64, _: [bool; 4], _: [bool; 4]) {}
+    }
+}

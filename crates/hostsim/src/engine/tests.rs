@@ -6,40 +6,14 @@ use firmware::CanFrame;
 use super::core::pose_array;
 use super::*;
 use crate::bus::{Fault, FaultKind, frame_bits};
+use crate::sim::test_plant::Moving;
 use crate::sim::{run_observed, run_until};
-
-/// Records the plant time of every frame it is given.
-#[derive(Default)]
-struct Recorder {
-    now_ns: u64,
-    applied: Vec<(u64, u16)>,
-}
 
 fn id_of(frame: &CanFrame) -> u16 {
     match embedded_can::Frame::id(frame) {
         embedded_can::Id::Standard(id) => id.as_raw(),
         embedded_can::Id::Extended(_) => 0,
     }
-}
-
-impl SimPlant for Recorder {
-    fn on_frame(&mut self, _: u64, frame: &CanFrame) {
-        self.applied.push((self.now_ns, id_of(frame)));
-    }
-    fn feedback(&mut self, _: u64, _: &mut Vec<(u64, CanFrame)>) {}
-    fn advance(&mut self, dt: f64) {
-        self.advance_ns((dt * 1e9).round() as u64);
-    }
-    fn advance_ns(&mut self, dt_ns: u64) {
-        self.now_ns += dt_ns;
-    }
-    fn truth(&self) -> [f64; 3] {
-        [0.0; 3]
-    }
-    fn truth_velocity(&self) -> [f64; 3] {
-        [0.0; 3]
-    }
-    fn set_faults(&mut self, _: u64, _: [bool; 4], _: [bool; 4]) {}
 }
 
 #[test]
@@ -83,7 +57,12 @@ fn frames_for_the_drives_act_at_their_delivery_even_at_the_same_instant() {
     // the drives at the very instant 0x300 does.
     let delay_us = u64::from(frame_bits(&b));
     let scenario = Scenario::load("square", None).unwrap();
-    let mut engine = Engine::new(&scenario, Recorder::default(), None, LogOptions::default());
+    let mut engine = Engine::new(
+        &scenario,
+        Moving::new([0.0; 3]),
+        None,
+        LogOptions::default(),
+    );
     engine.bus = Bus::new(
         1_000_000,
         vec![Fault {
@@ -99,7 +78,13 @@ fn frames_for_the_drives_act_at_their_delivery_even_at_the_same_instant() {
     let mut core = InProcess::new(&scenario, LogOptions::default()).unwrap();
     engine.advance_period(&mut core, 0).unwrap();
     let at = u64::from(frame_bits(&a) + frame_bits(&b)) * 1000;
-    assert_eq!(engine.plant.applied, [(at, 0x200), (at, 0x300)]);
+    let applied: Vec<_> = engine
+        .plant
+        .frames
+        .iter()
+        .map(|(t, f)| (*t, id_of(f)))
+        .collect();
+    assert_eq!(applied, [(at, 0x200), (at, 0x300)]);
     assert_eq!(engine.plant.now_ns, 1_000_000);
     // Both reached the receivers, for the firmware's side at the next tick.
     assert_eq!(engine.delivered.len(), 2);
