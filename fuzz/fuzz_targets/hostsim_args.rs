@@ -20,7 +20,7 @@ use std::sync::Once;
 
 use clap::Parser;
 use hostsim::cmd::{Cli, Cmd, Prepared};
-use hostsim::sweep::MAX_RUNS;
+use hostsim::analysis::sweep::MAX_RUNS;
 use libfuzzer_sys::fuzz_target;
 
 /// Whether clap may resolve a host name: `--live` is given, and an argument (or what follows

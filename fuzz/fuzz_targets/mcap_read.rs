@@ -25,7 +25,7 @@ const MAX_REPLAY_SPAN_NS: u64 = 500_000_000;
 
 fuzz_target!(|data: &[u8]| {
     let mut messages = 0usize;
-    let walked = hostsim::log::for_each_message(data, |_| messages += 1, |_, _| {});
+    let walked = drivelog::for_each_message(data, |_| messages += 1, |_, _| {});
 
     let content = replay::read_log_bytes(data);
     assert_eq!(walked.is_ok(), content.is_ok());
@@ -46,7 +46,7 @@ fuzz_target!(|data: &[u8]| {
     }
 
     std::fs::write(scratch(), data).expect("scratch file");
-    let summary = hostsim::summary::summarize(scratch());
+    let summary = hostsim::analysis::summary::summarize(scratch());
     // The summary also refuses a readable log in another layout than this project's.
     let ours = content
         .as_ref()

@@ -25,15 +25,15 @@ fuzz_target!(|data: &[u8]| {
             return;
         }
     };
-    let Ok(mut plant) = hostsim::drives::SimDrives::for_scenario(&scenario) else {
+    let Ok(mut plant) = hostsim::engine::plant_for(&scenario) else {
         return;
     };
     if scenario.duration_us() <= 20_000 {
-        let _ = hostsim::sim::run(
+        let _ = hostsim::engine::run(
             &scenario,
             &mut plant,
             None,
-            hostsim::sim::LogOptions::default(),
+            hostsim::engine::LogOptions::default(),
             |_| {},
         );
     }

@@ -8,7 +8,7 @@
 use std::sync::OnceLock;
 
 use hostsim::scenario::Scenario;
-use hostsim::sweep::{self, Param};
+use hostsim::analysis::sweep::{self, Param};
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {

@@ -171,10 +171,10 @@ fn run(
     let image = Image::read(elf)?;
     std::fs::create_dir_all(out).with_context(|| format!("--out {}", out.display()))?;
     // The scenario's name, made a file name that stays in `out`.
-    let stem = hostsim::log::file_stem(&scenario.name);
+    let stem = drivelog::file_stem(&scenario.name);
     let log_path = out.join(format!("{stem}.mcap"));
     let mut mcap = if log {
-        Some(hostsim::log::McapLog::create(
+        Some(drivelog::McapLog::create(
             &log_path,
             &boardsim::run::run_metadata(&scenario, &image),
         )?)
@@ -226,7 +226,7 @@ fn run(
     let wall = wall.elapsed().as_secs_f64();
     if plot && !run.track.is_empty() {
         let png = out.join(format!("{stem}.png"));
-        hostsim::plot::plot_run(
+        hostsim::analysis::plot::plot_run(
             &png,
             &format!("{} (board image)", scenario.name),
             &run.track,

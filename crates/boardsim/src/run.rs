@@ -12,12 +12,11 @@
 
 use std::ops::ControlFlow;
 
+use drivelog::{CoreLog, McapLog, msg};
 use firmware::protocol::robot::{Fault, RobotState, Telemetry};
 use firmware::{CanFrame, StreamHash};
 use hostsim::bus::{Bus, Fate, Node, Transmission};
-use hostsim::drives::SimDrives;
 use hostsim::engine::{Firmware, LogOptions, Record};
-use hostsim::log::{CoreLog, McapLog, msg};
 use hostsim::scenario::Scenario;
 
 use crate::board::{Board, BoardError, CPU_HZ};
@@ -62,7 +61,7 @@ pub enum RunError {
     Plant(String),
     /// The log could not be written.
     #[error(transparent)]
-    Log(#[from] hostsim::log::LogError),
+    Log(#[from] drivelog::LogError),
 }
 
 impl RunError {
@@ -82,7 +81,7 @@ pub struct BoardRun {
     /// (s, state, fault) at each STATUS that reported a new pair: what a host reads.
     pub transitions: Vec<(f64, RobotState, Fault)>,
     /// (s, state, fault) at each step that changed the state or the fault, as the image logs
-    /// them: the in-process core's [`RunSummary::transitions`](hostsim::sim::RunSummary).
+    /// them: the in-process core's [`RunSummary::transitions`](hostsim::engine::RunSummary).
     pub state_changes: Vec<(f64, String, String)>,
     /// The last odometry the board sent: `[x, y, heading]` (m, m, rad) and its time (s).
     pub odometry: Option<([f64; 3], f64)>,
@@ -98,7 +97,7 @@ pub struct BoardRun {
     /// Simulated seconds.
     pub simulated_s: f64,
     /// The board's odometry and the ground truth at each of its odometry frames (100 Hz).
-    pub track: Vec<hostsim::plot::TrackPoint>,
+    pub track: Vec<hostsim::engine::TrackPoint>,
     /// Every frame the board sent, with the end of its transmission (ns).
     pub sent: Vec<(u64, firmware::CanFrame)>,
     /// Hash of every transmission on the bus, all senders, with its end time (ns): two runs
@@ -194,7 +193,7 @@ pub fn run_metadata(
     scenario: &Scenario,
     image: &crate::Image,
 ) -> std::collections::BTreeMap<String, String> {
-    let mut m = hostsim::sim::run_metadata(scenario);
+    let mut m = hostsim::engine::run_metadata(scenario);
     m.insert("program".into(), "boardsim run".into());
     m.insert("board_image".into(), image.path.display().to_string());
     m
@@ -347,7 +346,7 @@ impl Firmware for BoardNode {
                     .transitions
                     .push((t, state.to_string(), fault.to_string()));
                 if let Some(l) = log.as_deref_mut() {
-                    let (level, text) = hostsim::log::state_line(state, fault);
+                    let (level, text) = drivelog::state_line(state, fault);
                     l.text(t_ns, level, &text)?;
                 }
             }
@@ -415,7 +414,7 @@ pub fn run_scenario(
     mut progress: impl FnMut(u64),
 ) -> Result<BoardRun, RunError> {
     let mut drives =
-        SimDrives::for_scenario(scenario).map_err(|e| RunError::Plant(e.to_string()))?;
+        hostsim::engine::plant_for(scenario).map_err(|e| RunError::Plant(e.to_string()))?;
     let mut node = BoardNode {
         ls: Lockstep::new(board),
         harness,
@@ -429,12 +428,13 @@ pub fn run_scenario(
         duration_ns: scenario.duration_us() * 1000,
         period_us: 1_000_000 / u64::from(scenario.config.timing.control_hz),
     };
-    let run = hostsim::engine::run(scenario, &mut node, &mut drives, log, options, |step| {
-        if step.t_us.is_multiple_of(100_000) {
-            progress(step.t_us);
-        }
-        ControlFlow::Continue(())
-    })?;
+    let run =
+        hostsim::engine::run_firmware(scenario, &mut node, &mut drives, log, options, |step| {
+            if step.t_us.is_multiple_of(100_000) {
+                progress(step.t_us);
+            }
+            ControlFlow::Continue(())
+        })?;
     Ok(BoardRun {
         transitions: node.observer.transitions,
         state_changes: run.record.transitions,

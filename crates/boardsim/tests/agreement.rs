@@ -4,7 +4,6 @@
 //! image logs each change at the step that made it (`step N: state S fault F`).
 
 use boardsim::run::Harness;
-use hostsim::drives::SimDrives;
 use hostsim::engine::LogOptions;
 use hostsim::scenario::Scenario;
 
@@ -13,9 +12,9 @@ use common::board_run;
 
 fn agree(name: &str) {
     let scenario = Scenario::builtin(name).unwrap();
-    let mut plant = SimDrives::for_scenario(&scenario).unwrap();
+    let mut plant = hostsim::engine::plant_for(&scenario).unwrap();
     let core =
-        hostsim::sim::run(&scenario, &mut plant, None, LogOptions::default(), |_| {}).unwrap();
+        hostsim::engine::run(&scenario, &mut plant, None, LogOptions::default(), |_| {}).unwrap();
     let board = board_run(&scenario, Harness::default());
     eprintln!("{name}: core  {:?}", core.transitions);
     eprintln!("{name}: board {:?}", board.state_changes);

@@ -171,14 +171,13 @@ fn the_same_scenario_twice_writes_the_same_log() {
         .map(|name| {
             let path = dir.join(format!("{name}.mcap"));
             let mut log =
-                hostsim::log::McapLog::create(&path, &boardsim::run::run_metadata(&s, &image))
-                    .unwrap();
+                drivelog::McapLog::create(&path, &boardsim::run::run_metadata(&s, &image)).unwrap();
             let board = boardsim::Board::new(image.clone()).unwrap();
             boardsim::run::run_scenario(
                 &s,
                 board,
                 Some(&mut log),
-                hostsim::sim::LogOptions::default(),
+                hostsim::engine::LogOptions::default(),
                 Harness::default(),
                 |_| {},
             )

@@ -16,9 +16,8 @@ use boardsim::run::Harness;
 use embedded_can::{Frame, Id, StandardId};
 use firmware::control::Fault;
 use firmware::protocol::robot::RobotState;
-use hostsim::drives::SimDrives;
+use hostsim::engine::{LogOptions, run_observed};
 use hostsim::scenario::Scenario;
-use hostsim::sim::{LogOptions, run_observed};
 
 mod common;
 use common::{board_run, print_lines};
@@ -44,7 +43,7 @@ type Seen = (Vec<(f64, String, String)>, Option<f64>);
 /// The core's and the board's state changes, and the first all-zero current command of each
 /// from the core's first state change at or after `onset_s` on, in s.
 fn both(s: &Scenario, onset_s: f64) -> [Seen; 2] {
-    let mut plant = SimDrives::for_scenario(s).unwrap();
+    let mut plant = hostsim::engine::plant_for(s).unwrap();
     let mut zeros = Vec::new();
     let core = run_observed(s, &mut plant, None, LogOptions::default(), |step| {
         if step.sent.iter().any(is_zero_current) {

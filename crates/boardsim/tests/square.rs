@@ -4,9 +4,8 @@
 //! changes as the core with it, and ends with odometry within 1 mm and 0.05° of the core's.
 
 use boardsim::run::Harness;
-use hostsim::drives::SimDrives;
+use hostsim::engine::LogOptions;
 use hostsim::scenario::Scenario;
-use hostsim::sim::LogOptions;
 
 mod common;
 use common::{board_run_on, elf_for, heartbeat_config_ids, print_lines};
@@ -27,9 +26,9 @@ fn square_on(config: &str) {
         .join(format!("../../config/{config}.toml"));
     scenario.config = firmware::Config::from_toml_file(&file).unwrap();
     let id = scenario.config.id();
-    let mut plant = SimDrives::for_scenario(&scenario).unwrap();
+    let mut plant = hostsim::engine::plant_for(&scenario).unwrap();
     let core =
-        hostsim::sim::run(&scenario, &mut plant, None, LogOptions::default(), |_| {}).unwrap();
+        hostsim::engine::run(&scenario, &mut plant, None, LogOptions::default(), |_| {}).unwrap();
 
     let run = board_run_on(&elf_for(config), &scenario, Harness::default());
     print_lines(&run, "board ");

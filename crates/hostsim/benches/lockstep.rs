@@ -18,7 +18,7 @@ use criterion::{Criterion, criterion_group, criterion_main};
 use firmware::CanFrame;
 use firmware::protocol::dji::{CurrentCommand, EscGroup, EscId, EscModel, Feedback};
 use firmware::protocol::robot::{Command, OdomVelocity, Telemetry, TwistCmd};
-use hostsim::plant::{Chassis, ChassisParams, Plant, Wheel, WheelInput};
+use hostsim::nodes::plant::{Chassis, ChassisParams, Plant, Wheel, WheelInput};
 
 /// A deterministic mix of DJI feedback, current commands and robot-protocol frames.
 fn frames() -> Vec<CanFrame> {
@@ -112,9 +112,9 @@ fn bench(c: &mut Criterion) {
     group.sample_size(10);
     group.bench_function("square", |b| {
         b.iter(|| {
-            let mut plant = hostsim::drives::SimDrives::for_scenario(&square).unwrap();
-            let options = hostsim::sim::LogOptions::default();
-            black_box(hostsim::sim::run(&square, &mut plant, None, options, |_| {}).unwrap())
+            let mut plant = hostsim::engine::plant_for(&square).unwrap();
+            let options = hostsim::engine::LogOptions::default();
+            black_box(hostsim::engine::run(&square, &mut plant, None, options, |_| {}).unwrap())
         })
     });
     group.finish();

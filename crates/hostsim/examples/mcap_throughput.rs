@@ -10,9 +10,9 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::time::Instant;
 
+use drivelog::{Direction, McapLog};
 use embedded_can::{Frame as _, StandardId};
 use firmware::CanFrame;
-use hostsim::log::{Direction, McapLog};
 
 /// Frame `i` of the sequence (the Python side builds the same): four drives' feedback ids in
 /// turn, 1 kHz each, the index in the data bytes.

@@ -1,5 +1,6 @@
-//! Real time: the simulated drives and logged frames on a real (or in-memory) CAN bus, paced
-//! by a clock.
+//! Real time: the simulated drives, or a log's frames, on a real SocketCAN bus.
+//!
+//! The simulated drives and logged frames on a real (or in-memory) CAN bus, paced by a clock.
 //!
 //! Everything here is written against the firmware runner's two small traits,
 //! [`mecanum_linux::Bus`] (non-blocking receive, send) and [`mecanum_linux::Clock`]
@@ -31,9 +32,9 @@ use serde::Serialize;
 use firmware::protocol::robot;
 
 use crate::bus::Node;
-use crate::log::{CoreLog, Direction, LogError, McapLog};
+use crate::nodes::SimPlant;
 use crate::replay::TimedFrame;
-use crate::sim::SimPlant;
+use drivelog::{CoreLog, Direction, LogError, McapLog};
 
 // ---------------------------------------------------------------------------------------------
 // The plant loop
@@ -264,7 +265,7 @@ impl<P: SimPlant, O: PlantObserver<P>> linux::Node for PlantNode<'_, P, O> {
 // The plant's log
 
 /// A [`PlantObserver`] that writes an MCAP log of a real-time run (`hostsim plant --log`), in
-/// the simulator's format ([`crate::log`]), every frame on the bus once, seen from the
+/// the simulator's format ([`drivelog`]), every frame on the bus once, seen from the
 /// firmware: `/can/rx` for the plant's own feedback and the robot protocol's commands (what
 /// the firmware receives), `/can/tx` for every other frame (what the firmware sends); the
 /// host's twist commands (`/cmd_vel`); and every 10 ms the firmware's odometry (decoded from

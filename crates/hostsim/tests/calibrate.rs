@@ -12,10 +12,11 @@ use std::path::Path;
 use common::{fit, hostsim, logged_run, print_fit, scratch};
 use firmware::Config;
 use firmware::config::Geometry;
-use hostsim::calibrate::{CalibrateError, GeometryValues, Options, calibrate};
-use hostsim::plant::{Chassis, ChassisParams, WheelInput};
-use hostsim::scenario::{Action, PlantSpec, Scenario};
-use hostsim::sim::RunSummary;
+use hostsim::analysis::calibrate::{CalibrateError, GeometryValues, Options, calibrate};
+use hostsim::engine::RunSummary;
+use hostsim::nodes::plant::PlantSpec;
+use hostsim::nodes::plant::{Chassis, ChassisParams, WheelInput};
+use hostsim::scenario::{Action, Scenario};
 use kinematics::ChassisVelocity;
 
 /// A scenario on the DJI example's robot (fixed: `[plant]`), run with `config`: after the
@@ -316,11 +317,11 @@ fn a_straight_only_log_is_refused_naming_the_missing_motion() {
 /// `geometry_msgs/msg/PoseStamped` on `/tracker/pose` at 30 Hz, 4 ms late, with ±0.3 mm and
 /// ±0.3 mrad of noise. Written to `tracker.mcap` in the scratch folder `group`.
 fn tracker_log(group: &str) -> std::path::PathBuf {
-    use hostsim::log::msg::{self, decode, encode};
+    use drivelog::msg::{self, decode, encode};
     let bytes = std::fs::read(calibration_log()).unwrap();
     let path = scratch(group, "tracker.mcap");
     let mut w = mcap::WriteOptions::new()
-        .profile(hostsim::log::PROFILE)
+        .profile(drivelog::PROFILE)
         .create(std::io::BufWriter::new(
             std::fs::File::create(&path).unwrap(),
         ))
@@ -345,7 +346,7 @@ fn tracker_log(group: &str) -> std::path::PathBuf {
         noise ^= noise << 17;
         (noise >> 11) as f64 / (1u64 << 52) as f64 - 1.0
     };
-    hostsim::log::for_each_message(
+    drivelog::for_each_message(
         &bytes,
         |m| match m.topic {
             "/joint_states" => messages.push((m.log_time, joints, m.data.to_vec())),
@@ -370,14 +371,14 @@ fn tracker_log(group: &str) -> std::path::PathBuf {
             _ => {}
         },
         |name, kv| {
-            if name == hostsim::log::METADATA_NAME {
+            if name == drivelog::METADATA_NAME {
                 metadata = kv.clone();
             }
         },
     )
     .unwrap();
     w.write_metadata(&mcap::records::Metadata {
-        name: hostsim::log::METADATA_NAME.into(),
+        name: drivelog::METADATA_NAME.into(),
         metadata,
     })
     .unwrap();
@@ -551,8 +552,10 @@ fn the_plot_draws_two_runs_side_by_side() {
     );
     let (after_run, after) = run(group, &legs("after", after, &SQUARE, 0.5));
     for (path, summary) in [(&before, &before_run), (&after, &after_run)] {
-        let track = hostsim::plot::track_from_log(path).unwrap().points;
-        let drift = hostsim::plot::max_drift(&track);
+        let track = hostsim::analysis::plot::track_from_log(path)
+            .unwrap()
+            .points;
+        let drift = hostsim::analysis::plot::max_drift(&track);
         println!(
             "{}: max drift {:.1} mm from the log, {:.1} mm in the run",
             path.display(),

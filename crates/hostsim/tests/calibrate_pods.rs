@@ -11,11 +11,10 @@ use std::path::{Path, PathBuf};
 use common::{fit, hostsim, logged_run, print_fit, scratch};
 use firmware::Config;
 use firmware::config::PodConfig;
-use hostsim::calibrate::{CalibrateError, Options, calibrate};
-use hostsim::drives::SimDrives;
-use hostsim::pods::{PodErrors, PodsParams, TruePod};
+use hostsim::analysis::calibrate::{CalibrateError, Options, calibrate};
+use hostsim::engine::{LogOptions, run_observed};
+use hostsim::nodes::pods::{PodErrors, PodsParams, TruePod};
 use hostsim::scenario::{Action, Scenario};
-use hostsim::sim::{LogOptions, run_observed};
 
 fn repo_file(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -188,7 +187,7 @@ fn errors_against(nominal: &[PodConfig], truth: &[TruePod]) -> Vec<PodErrors> {
 fn per_lap(scenario: &Scenario) -> (f64, f64) {
     const FIRST_TWIST_S: f64 = 2.0;
     const LAP_S: f64 = 8.0;
-    let mut plant = SimDrives::for_scenario(scenario).unwrap();
+    let mut plant = hostsim::engine::plant_for(scenario).unwrap();
     let mut distance = 0.0;
     let mut last: Option<[f64; 2]> = None;
     let laps = ((scenario.duration_s - FIRST_TWIST_S) / LAP_S) as usize;

@@ -4,16 +4,16 @@
 
 mod common;
 
+use drivelog::for_each_message;
+use drivelog::msg::{self, decode};
 use embedded_can::Frame;
 use firmware::Config;
 use firmware::protocol::canopen::{self, Message, NmtCommand};
 use firmware::protocol::robot::{self, RobotState};
 use hostsim::bus::Node;
-use hostsim::drives::SimDrives;
-use hostsim::log::for_each_message;
-use hostsim::log::msg::{self, decode};
+use hostsim::engine::{LogOptions, RunSummary, run, run_observed};
+use hostsim::nodes::drives::SimDrives;
 use hostsim::scenario::Scenario;
-use hostsim::sim::{LogOptions, RunSummary, run, run_observed};
 
 fn cia402() -> Config {
     Config::from_toml_file(std::path::Path::new("../../config/cia402.toml")).unwrap()
@@ -180,7 +180,7 @@ fn canopen_faults_are_refused_for_other_drives() {
     let mut s =
         Scenario::from_file(std::path::Path::new("../../scenarios/cia402_reboot.toml")).unwrap();
     s.config = Config::dji_m3508_example();
-    let e = SimDrives::for_scenario(&s).unwrap_err().to_string();
+    let e = hostsim::engine::plant_for(&s).unwrap_err().to_string();
     assert!(e.contains("faults[].kind") && e.contains("cia402"), "{e}");
     // Where the scenario is loaded with such a configuration, the file, the fault and its
     // kind are named.

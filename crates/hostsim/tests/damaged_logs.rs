@@ -12,12 +12,12 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
+use drivelog::{Direction, McapLog, Problem, ReadReport, for_each_message};
 use embedded_can::StandardId;
 use firmware::CanFrame;
-use hostsim::log::{Direction, McapLog, Problem, ReadReport, for_each_message};
+use hostsim::engine::run_metadata;
 use hostsim::replay::{self, MAX_GAP_NS, ReplayError, ReplayRunError, TimedFrame};
 use hostsim::scenario::Scenario;
-use hostsim::sim::run_metadata;
 
 /// A message: topic, log time, data, publish time.
 type Msg = (String, u64, Vec<u8>, u64);
@@ -145,7 +145,7 @@ fn fixture() -> &'static Fixture {
 
 /// Reads `bytes`; the count of messages delivered, if they are the first of the fixture's
 /// messages in order (`None` if any differs).
-fn read(bytes: &[u8]) -> (Result<ReadReport, hostsim::log::Damage>, Option<usize>) {
+fn read(bytes: &[u8]) -> (Result<ReadReport, drivelog::Damage>, Option<usize>) {
     let expected = &fixture().messages;
     let mut n = 0;
     let mut same = true;
@@ -438,7 +438,7 @@ fn replay_of_a_cut_log_is_bit_identical_up_to_the_cut_and_summary_reports_it() {
         assert_eq!(report.compared, want, "cut at {cut}");
         assert!(report.compared > 0, "cut at {cut}");
 
-        let s = hostsim::summary::summarize(&path).unwrap();
+        let s = hostsim::analysis::summary::summarize(&path).unwrap();
         assert_eq!(s.read, read);
         assert_eq!(s.topics.values().sum::<u64>(), read.messages);
     }
@@ -504,7 +504,7 @@ fn a_corrupt_timestamp_is_refused_not_replayed_for_centuries() {
     assert!(text.contains("18446744073.709"), "{text}");
     assert!(text.contains("huge-time.mcap"), "{text}");
     // The summary reads it as it is (no loop there), with its absurd duration.
-    let s = hostsim::summary::summarize(&path).unwrap();
+    let s = hostsim::analysis::summary::summarize(&path).unwrap();
     assert!(s.duration_s > 1e10);
     // A jump of just over the limit is refused; the limit itself is replayed.
     let path = log_with_time(&dir, "long-gap.mcap", 200_000_000 + MAX_GAP_NS + 1);
@@ -547,7 +547,7 @@ fn a_log_is_a_readable_part_until_finished_and_the_last_good_one_stays() {
     // NAME.mcap stays as it was.
     let dir = TempDir::new("part");
     let path = dir.0.join("run.mcap");
-    let part = hostsim::log::part_path(&path);
+    let part = drivelog::part_path(&path);
     McapLog::create(&path, &Default::default())
         .unwrap()
         .finish()
@@ -624,7 +624,7 @@ fn remote_and_extended_frames_read_back_as_written_and_count_on_the_bus() {
     log.finish().unwrap();
     let content = replay::read_log(&path).unwrap();
     assert_eq!(content.rx, written);
-    let s = hostsim::summary::summarize(&path).unwrap();
+    let s = hostsim::analysis::summary::summarize(&path).unwrap();
     let load = s.bus_load.unwrap();
     assert!(
         (load - bits as f64 / 1e6).abs() < 1e-12,
@@ -667,7 +667,7 @@ fn a_log_in_the_old_json_layout_is_refused_in_one_line() {
         "{text}"
     );
     assert!(!text.contains('\n'), "{text}");
-    let err = hostsim::summary::summarize(&path).unwrap_err();
+    let err = hostsim::analysis::summary::summarize(&path).unwrap_err();
     assert!(err.contains("JSON layout"), "{err}");
 }
 
@@ -684,7 +684,7 @@ fn an_undecodable_inbound_frame_fails_replay_and_summary_and_plot_count_it() {
         .create(file)
         .unwrap();
     let mut metadata = Vec::new();
-    hostsim::log::for_each_message(
+    drivelog::for_each_message(
         &fx.bytes,
         |_| {},
         |name, kv| {
@@ -723,10 +723,10 @@ fn an_undecodable_inbound_frame_fails_replay_and_summary_and_plot_count_it() {
     ] {
         assert!(text.contains(says), "{says}: {text}");
     }
-    let s = hostsim::summary::summarize(&path).unwrap();
+    let s = hostsim::analysis::summary::summarize(&path).unwrap();
     assert!(s.read.is_complete());
     assert_eq!(s.undecodable.total(), 1);
     assert_eq!(s.undecodable.on("/can/rx"), 1);
-    let track = hostsim::plot::track_from_log(&path).unwrap();
+    let track = hostsim::analysis::plot::track_from_log(&path).unwrap();
     assert_eq!(track.undecodable.total(), 0, "the plot reads odometry only");
 }

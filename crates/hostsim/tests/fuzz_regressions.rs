@@ -1,7 +1,7 @@
 //! Regression tests for crashes found by fuzzing (`fuzz/`, `scripts/fuzz.sh`; see
 //! docs/reliability.md). Each test is named after the bug and builds its input by hand.
 
-use hostsim::log::for_each_message;
+use drivelog::for_each_message;
 use hostsim::replay::read_log_bytes;
 
 const MAGIC: &[u8] = b"\x89MCAP0\r\n";

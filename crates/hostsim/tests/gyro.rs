@@ -8,18 +8,19 @@ mod common;
 
 use std::path::Path;
 
+use drivelog::for_each_message;
+use drivelog::msg::{self, decode};
+use drivelog::write::DIAGNOSTIC_NAME;
 use firmware::CanFrame;
 use firmware::config::{Config, HeadingMode};
 use firmware::control::HeadingSource;
 use firmware::protocol::robot::{self, RobotState, Telemetry};
 use hostsim::bus::Node;
-use hostsim::drives::SimDrives;
-use hostsim::log::for_each_message;
-use hostsim::log::msg::{self, decode};
-use hostsim::log::write::DIAGNOSTIC_NAME;
+use hostsim::engine::{LogOptions, RunSummary, run_observed};
+use hostsim::nodes::SimPlant;
+use hostsim::nodes::drives::SimDrives;
 use hostsim::replay::replay_mcap;
 use hostsim::scenario::Scenario;
-use hostsim::sim::{LogOptions, RunSummary, SimPlant, run_observed};
 
 fn repo_file(name: &str) -> std::path::PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -47,7 +48,7 @@ fn heading_error(odometry: f64, truth: f64) -> f64 {
 /// Runs `scenario`, measuring the heading error at every step; also the STATUS frames the
 /// core sent, with their time (µs).
 fn measure(scenario: &Scenario) -> (RunSummary, HeadingError, Vec<(u64, robot::Status)>) {
-    let mut plant = SimDrives::for_scenario(scenario).unwrap();
+    let mut plant = hostsim::engine::plant_for(scenario).unwrap();
     let mut max = 0.0f64;
     let mut statuses = Vec::new();
     let summary = run_observed(scenario, &mut plant, None, LogOptions::default(), |step| {
@@ -265,7 +266,7 @@ fn a_silent_gyro_falls_back_to_the_wheels_with_the_reason_reported_and_comes_bac
     // information), /diagnostics says WheelsGyroSilent at the WARN level meanwhile.
     check_silence_in_the_log(&path, fell_back_us, returned_us);
     // `hostsim summary` lists the changes among the events.
-    let summary = hostsim::summary::summarize(&path).unwrap();
+    let summary = hostsim::analysis::summary::summarize(&path).unwrap();
     let events: Vec<_> = summary
         .events
         .iter()
@@ -290,8 +291,8 @@ struct SilentRun {
 /// frames.
 fn silent_run(scenario: &Scenario, path: &Path) -> SilentRun {
     let mut log =
-        hostsim::log::McapLog::create(path, &hostsim::sim::run_metadata(scenario)).unwrap();
-    let mut plant = SimDrives::for_scenario(scenario).unwrap();
+        drivelog::McapLog::create(path, &hostsim::engine::run_metadata(scenario)).unwrap();
+    let mut plant = hostsim::engine::plant_for(scenario).unwrap();
     let mut statuses = Vec::new();
     let mut last_imu_us = 0;
     let mut first_imu_after_us = None;
@@ -454,7 +455,7 @@ impl SimPlant for BadImu {
 fn malformed_imu_frames_are_counted_by_kind_and_the_gyro_carries_on() {
     let scenario = short_gyro_run("");
     let mut plant = BadImu {
-        drives: SimDrives::for_scenario(&scenario).unwrap(),
+        drives: hostsim::engine::plant_for(&scenario).unwrap(),
         now_ns: 0,
         next_ns: 1_000_000_000,
         sent: [0; 4],
@@ -499,7 +500,7 @@ fn malformed_imu_frames_are_counted_by_kind_and_the_gyro_carries_on() {
 #[test]
 fn the_same_seed_gives_the_same_imu_frames_and_outbound_stream() {
     let imu_frames = |scenario: &Scenario| {
-        let mut plant = SimDrives::for_scenario(scenario).unwrap();
+        let mut plant = hostsim::engine::plant_for(scenario).unwrap();
         let mut frames = Vec::new();
         let r = run_observed(scenario, &mut plant, None, LogOptions::default(), |step| {
             frames.extend(

@@ -4,7 +4,7 @@
 //!
 //! - Driving: the firmware's `WheelRunaway` fault stops the robot within its window, before
 //!   the robot has moved 5 cm the wrong way, for every miswiring a wheel encoder can see.
-//! - The bring-up check (on blocks, [`hostsim::bringup`]) names each miswiring and prints the
+//! - The bring-up check (on blocks, [`hostsim::analysis::bringup`]) names each miswiring and prints the
 //!   exact configuration lines that fix it; with them the square runs clean.
 //! - No false alarm: the runaway watch stays silent over every built-in and checked-in
 //!   scenario and over drives with random frame drops (the test prints how many steps).
@@ -16,10 +16,11 @@ use std::path::Path;
 use firmware::Config;
 use firmware::control::Fault;
 use firmware::protocol::robot::RobotState;
-use hostsim::bringup::{self, WHEEL_NAMES, Wiring, diagnose};
-use hostsim::drives::SimDrives;
-use hostsim::scenario::{PlantSpec, Scenario};
-use hostsim::sim::{LogOptions, run_observed};
+use hostsim::analysis::bringup::{self, WHEEL_NAMES, Wiring, diagnose};
+use hostsim::engine::{LogOptions, run_observed};
+use hostsim::nodes::drives::SimDrives;
+use hostsim::nodes::plant::PlantSpec;
+use hostsim::scenario::Scenario;
 
 /// The ten miswirings of one robot: each motor flipped, each pair of drives swapped.
 fn miswirings() -> Vec<(String, PlantSpec)> {
@@ -73,7 +74,7 @@ struct Drove {
 
 fn drive(s: &Scenario) -> Drove {
     use firmware::control::FIGHT_CURRENT_FRACTION;
-    let mut plant = SimDrives::for_scenario(s).unwrap();
+    let mut plant = hostsim::engine::plant_for(s).unwrap();
     let kin = s.config.kinematics().unwrap();
     let threshold = FIGHT_CURRENT_FRACTION * s.config.limits.max_current;
     let mut d = Drove {
@@ -225,7 +226,8 @@ fn square_is_clean(firmware: &Config, config: &Config, spec: &PlantSpec) -> f64 
     let mut s = Scenario::builtin("square").unwrap();
     s.config = *firmware;
     let mut plant = SimDrives::with_spec(config, spec).unwrap();
-    let summary = hostsim::sim::run(&s, &mut plant, None, LogOptions::default(), |_| {}).unwrap();
+    let summary =
+        hostsim::engine::run(&s, &mut plant, None, LogOptions::default(), |_| {}).unwrap();
     assert!(
         summary
             .transitions

@@ -8,7 +8,7 @@
 //! watchdog and velocity loop), `setup` (parameters refused, plants from the example
 //! configurations, determinism, cost).
 
-use hostsim::plant::{DjiDrive, Plant, WHEELS, Wheel};
+use hostsim::nodes::plant::{DjiDrive, Plant, WHEELS, Wheel};
 use kinematics::MecanumKinematics;
 
 #[path = "plant/chassis.rs"]

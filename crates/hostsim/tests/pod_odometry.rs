@@ -11,11 +11,11 @@ use std::path::Path;
 
 use firmware::config::{Config, HeadingMode, OdometryMode, Pods};
 use firmware::control::OdometrySource;
-use hostsim::drives::SimDrives;
-use hostsim::pods::PodErrors;
+use hostsim::bus::SplitMix64;
+use hostsim::engine::{LogOptions, run_observed};
+use hostsim::nodes::pods::PodErrors;
 use hostsim::replay::replay_mcap;
 use hostsim::scenario::Scenario;
-use hostsim::sim::{LogOptions, run_observed};
 use rayon::prelude::*;
 
 fn repo_file(name: &str) -> std::path::PathBuf {
@@ -86,7 +86,7 @@ impl Accuracy {
 /// the error vector since the lap began, over the lap's distance: the issue's "229.8 mm, 5.9 %
 /// of 3.91 m") and over the run. Only whole laps count per lap.
 fn measure(scenario: &Scenario) -> (Accuracy, Vec<(f64, OdometrySource)>) {
-    let mut plant = SimDrives::for_scenario(scenario).unwrap();
+    let mut plant = hostsim::engine::plant_for(scenario).unwrap();
     let mut a = Accuracy::default();
     let mut last: Option<[f64; 2]> = None;
     let laps = ((scenario.duration_s - FIRST_TWIST_S) / LAP_S) as usize;
@@ -182,15 +182,8 @@ struct ScaleDraw {
 /// the seed: the scale as `scale` says, the pod block's misalignment uniform in ±0.5° plus
 /// each pod's own in ±0.1°, contact points off by up to ±2 mm.
 fn drawn(base: &Scenario, seed: u64, scale: ScaleDraw) -> Scenario {
-    let mut state = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0x5EED;
-    let mut uniform = |half: f64| {
-        state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = state;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^= z >> 31;
-        ((z >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0) * half
-    };
+    let mut rng = SplitMix64(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0x5EED);
+    let mut uniform = |half: f64| (rng.unit() * 2.0 - 1.0) * half;
     let mut s = base.clone();
     s.seed = seed;
     let block = uniform(0.5);
@@ -262,7 +255,7 @@ fn silent_pods_hand_over_to_the_wheels_in_time_without_a_jump_and_come_back() {
         from_us: 9_000_000,
         until_us: 11_000_000,
     });
-    let mut plant = SimDrives::for_scenario(&s).unwrap();
+    let mut plant = hostsim::engine::plant_for(&s).unwrap();
     let timeout_us = u64::from(s.config.odometry.pod_timeout_ms) * 1000;
     let mut changes: Vec<(u64, OdometrySource)> = Vec::new();
     let mut largest_step = 0.0f64;

@@ -10,9 +10,8 @@ use firmware::Config;
 use firmware::config::{OdometryMode, PodConfig, Pods};
 use firmware::protocol::robot::Command;
 use hostsim::bus::{Fate, Node};
-use hostsim::drives::SimDrives;
+use hostsim::engine::{LogOptions, RunSummary, StepView, run_observed};
 use hostsim::scenario::{Scenario, ScenarioError};
-use hostsim::sim::{LogOptions, RunSummary, StepView, run_observed};
 
 const R: f32 = 0.024;
 const CPT: u32 = 2000;
@@ -63,7 +62,7 @@ struct Observed {
 }
 
 fn observe(s: &Scenario) -> Observed {
-    let mut plant = SimDrives::for_scenario(s).unwrap();
+    let mut plant = hostsim::engine::plant_for(s).unwrap();
     let (mut pods, mut truth) = (Vec::new(), Vec::new());
     let summary = run_observed(
         s,

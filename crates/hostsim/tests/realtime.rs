@@ -11,11 +11,11 @@ use std::thread;
 use firmware::control::Snapshot;
 use firmware::protocol::robot::{Command, ModeRequest, RobotState, Telemetry, TwistCmd};
 use firmware::{CanFrame, Config, Controller};
-use hostsim::drives::SimDrives;
-use hostsim::imu::{ImuParams, WithImu};
+use hostsim::nodes::SimPlant;
+use hostsim::nodes::drives::SimDrives;
+use hostsim::nodes::imu::{ImuParams, WithImu};
 use hostsim::realtime::{PlantOptions, PlantReport, PlayOptions, play_frames, run_plant};
 use hostsim::replay::TimedFrame;
-use hostsim::sim::SimPlant;
 use mecanum_linux::testing::{MemoryBus, MemoryPort, VirtualClock, VirtualClockHandle};
 use mecanum_linux::{self as linux, Bus, Clock, RunOptions, StopReason};
 
@@ -419,7 +419,7 @@ fn the_real_time_plant_can_carry_the_imu_for_a_gyro_runner() {
     // As `hostsim plant --imu` and a runner with [odometry] heading_source = "gyro".
     let mut config = Config::dji_m3508_example();
     config.odometry.heading_source = firmware::config::HeadingMode::Gyro;
-    let imu = hostsim::imu::ImuParams::default();
+    let imu = hostsim::nodes::imu::ImuParams::default();
     let Together {
         fw_report,
         snapshot,

@@ -4,10 +4,11 @@ mod common;
 
 use firmware::control::Fault;
 use firmware::protocol::robot::RobotState;
-use hostsim::drives::SimDrives;
+use hostsim::engine::{LogOptions, RunSummary, run};
+use hostsim::nodes::SimPlant;
+use hostsim::nodes::drives::SimDrives;
 use hostsim::replay::{TimedFrame, replay_frames, replay_mcap};
 use hostsim::scenario::Scenario;
-use hostsim::sim::{LogOptions, RunSummary, SimPlant, run};
 
 fn simulate(scenario: &Scenario) -> RunSummary {
     let mut plant = SimDrives::new(&scenario.config).unwrap();
@@ -122,7 +123,7 @@ fn fr_feedback(faults: &str) -> Vec<(u64, u16)> {
     ));
     let mut plant = SimDrives::new(&s.config).unwrap();
     let mut frames = Vec::new();
-    hostsim::sim::run_observed(&s, &mut plant, None, LogOptions::default(), |step| {
+    hostsim::engine::run_observed(&s, &mut plant, None, LogOptions::default(), |step| {
         for tx in step.delivered {
             if embedded_can::Frame::id(&tx.frame)
                 == embedded_can::Id::Standard(embedded_can::StandardId::new(0x202).unwrap())
@@ -255,7 +256,7 @@ fn the_host_sends_every_command_due_even_above_the_control_rate() {
     s.config.timing.setpoint_hz = 100;
     let mut plant = SimDrives::new(&s.config).unwrap();
     let mut twists = Vec::new();
-    hostsim::sim::run_observed(&s, &mut plant, None, LogOptions::default(), |step| {
+    hostsim::engine::run_observed(&s, &mut plant, None, LogOptions::default(), |step| {
         for tx in step.delivered {
             if tx.from == hostsim::bus::Node::Host
                 && embedded_can::Frame::id(&tx.frame)
@@ -290,7 +291,7 @@ fn the_summary_compares_odometry_and_truth_at_the_same_step() {
     s.duration_s = 1.0;
     let mut plant = SimDrives::new(&s.config).unwrap();
     let mut last_truth = [f64::NAN; 3];
-    let r = hostsim::sim::run_observed(&s, &mut plant, None, LogOptions::default(), |step| {
+    let r = hostsim::engine::run_observed(&s, &mut plant, None, LogOptions::default(), |step| {
         last_truth = step.truth;
     })
     .unwrap();
@@ -302,14 +303,14 @@ fn the_summary_compares_odometry_and_truth_at_the_same_step() {
 
 #[test]
 fn every_pose_is_in_a_frame_the_transforms_place() {
-    use hostsim::log::msg::{Odometry, TfMessage, decode};
+    use drivelog::msg::{Odometry, TfMessage, decode};
     let path = common::scratch("sim", "frames.mcap");
     let mut s = Scenario::builtin("circle").unwrap();
     s.duration_s = 0.5;
     common::logged_run(&s, &path);
     let bytes = std::fs::read(&path).unwrap();
     let (mut odometry, mut placed) = (Vec::new(), vec!["odom".to_string()]);
-    hostsim::log::for_each_message(
+    drivelog::for_each_message(
         &bytes,
         |m| match m.topic {
             "/odom" | "/ground_truth/odom" => {
@@ -340,7 +341,7 @@ fn every_pose_is_in_a_frame_the_transforms_place() {
 
 #[test]
 fn every_frame_on_the_bus_is_logged_once() {
-    use hostsim::log::msg::{BusFault, Frame, decode};
+    use drivelog::msg::{BusFault, Frame, decode};
     // The example fault scenario: drives' frames dropped, host frames corrupted, a burst.
     let s = Scenario::from_file(std::path::Path::new("../../scenarios/faults.toml")).unwrap();
     let path = common::scratch("sim", "once.mcap");
@@ -348,7 +349,7 @@ fn every_frame_on_the_bus_is_logged_once() {
     let bytes = std::fs::read(&path).unwrap();
     let (mut rx, mut tx, mut faults) = (0u64, 0u64, Vec::new());
     let mut stamps_ok = true;
-    hostsim::log::for_each_message(
+    drivelog::for_each_message(
         &bytes,
         |m| match m.topic {
             "/can/rx" | "/can/tx" => {

@@ -4,8 +4,8 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+use hostsim::analysis::sweep::{self, Param};
 use hostsim::scenario::Scenario;
-use hostsim::sweep::{self, Param};
 
 fn scenario_file(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))

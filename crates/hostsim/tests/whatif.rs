@@ -10,11 +10,11 @@ use std::sync::OnceLock;
 
 use common::hostsim;
 use firmware::Config;
-use hostsim::replay::{StepTime, read_log, replay_mcap};
-use hostsim::scenario::Scenario;
-use hostsim::whatif::{
+use hostsim::replay::whatif::{
     OPEN_LOOP_NOTE, WhatIfError, WhatIfReport, WhatIfRunError, what_if_frames, what_if_mcap,
 };
+use hostsim::replay::{StepTime, read_log, replay_mcap};
+use hostsim::scenario::Scenario;
 
 /// A logged 2.5 s of the built-in square (DJI C620/M3508): enable at 0.05 s, forward at
 /// 0.5 m/s from 0.1 s, left from 2.1 s. Written once per test run.
@@ -180,7 +180,7 @@ fn a_fault_only_the_what_if_has_is_reported_with_its_time() {
         &dji_with(|c| c.timing.command_timeout_ms = 10),
     );
     let r = what_if_mcap(log, &path).unwrap();
-    let watchdog = |changes: &[hostsim::whatif::StateChange]| {
+    let watchdog = |changes: &[hostsim::replay::whatif::StateChange]| {
         changes
             .iter()
             .find(|c| c.fault == "WATCHDOG")

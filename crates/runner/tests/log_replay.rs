@@ -74,7 +74,7 @@ fn a_runner_log_replays_bit_for_bit_at_its_recorded_steps() {
 
     // A what-if steps at the recorded steps too: the logged configuration changes nothing,
     // a doubled velocity gain changes only the current commands.
-    use hostsim::whatif::what_if_frames;
+    use hostsim::replay::whatif::what_if_frames;
     let same = what_if_frames(&config, &config, &rx, &tx, &steps).unwrap();
     assert!(same.identical, "{:?}", same.first_difference);
     assert_eq!(same.steps, report.steps + 1);

@@ -7,8 +7,8 @@ use std::path::PathBuf;
 use boardsim::run::{BoardRun, Harness, RunError, run_scenario};
 use boardsim::{Board, Image};
 use firmware::protocol::robot::Telemetry;
+use hostsim::engine::LogOptions;
 use hostsim::scenario::Scenario;
-use hostsim::sim::LogOptions;
 
 /// The release image of `boards/stm32f407` built for `config/<config>.toml`, as
 /// `scripts/test.sh` builds them before the Rust tests: `board-stm32f407` for the default

@@ -121,8 +121,9 @@ pub(super) fn apply(
     (frame, fate, delay_ns)
 }
 
-/// SplitMix64: a tiny, fixed, seedable generator, so fault patterns never change with a
-/// dependency's version.
+/// SplitMix64 (Steele, Lea and Flood 2014): a tiny, fixed, seedable generator of full
+/// period, so fault patterns and the sensor nodes' noise never change with a dependency's
+/// version.
 #[derive(Debug, Clone)]
 pub struct SplitMix64(pub u64);
 
@@ -139,5 +140,16 @@ impl SplitMix64 {
     /// Uniform in `[0, 1)` with 53 random bits.
     pub fn unit(&mut self) -> f64 {
         (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    /// Uniform in `(0, 1]`: 53 random bits, never 0 (a logarithm follows).
+    fn unit_open(&mut self) -> f64 {
+        ((self.next_u64() >> 11) + 1) as f64 * (1.0 / (1u64 << 53) as f64)
+    }
+
+    /// A standard normal number (Box–Muller, one of the pair).
+    pub fn normal(&mut self) -> f64 {
+        let (u1, u2) = (self.unit_open(), self.unit_open());
+        libm::sqrt(-2.0 * libm::log(u1)) * libm::cos(std::f64::consts::TAU * u2)
     }
 }

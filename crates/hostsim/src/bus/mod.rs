@@ -1,5 +1,4 @@
-//! A simulated CAN bus: bit-accurate frame timing, arbitration by id, bus load, and seeded
-//! fault injection.
+//! The simulated CAN bus: bit timing, arbitration by id, bus load and seeded faults.
 //!
 //! # Arbitration
 //!
@@ -30,9 +29,9 @@ pub enum Node {
     Drives,
     /// The host that commands the robot.
     Host,
-    /// An IMU node sending its gyro's yaw rate ([`crate::imu`]).
+    /// An IMU node sending its gyro's yaw rate.
     Imu,
-    /// A tracking-pod node sending its pods' encoder counts ([`crate::pods`]).
+    /// A tracking-pod node sending its pods' encoder counts.
     Pods,
 }
 

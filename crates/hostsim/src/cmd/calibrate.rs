@@ -48,7 +48,7 @@ pub struct Args {
     /// A log (MCAP) of `hostsim run`, `mecanum-runner --log` or `hostsim plant --log`.
     pub log: PathBuf,
     /// The reference pose topic.
-    #[arg(long, value_name = "TOPIC", default_value = crate::calibrate::GROUND_TRUTH)]
+    #[arg(long, value_name = "TOPIC", default_value = crate::analysis::calibrate::GROUND_TRUTH)]
     pub reference: String,
     /// Window length, s.
     #[arg(long, value_name = "SECONDS", default_value_t = 0.1)]
@@ -80,7 +80,7 @@ fn calibrate(
     write: Option<&Path>,
     json: bool,
 ) -> Result<ExitCode> {
-    let options = crate::calibrate::Options {
+    let options = crate::analysis::calibrate::Options {
         reference,
         window_s,
     };
@@ -89,7 +89,7 @@ fn calibrate(
         // file only: the last calibration there stays until the new one is whole.)
         drivelog::Staged::create(file).context("cannot write the calibration")?;
     }
-    let c = crate::calibrate::calibrate(path, &options)
+    let c = crate::analysis::calibrate::calibrate(path, &options)
         .with_context(|| format!("cannot calibrate from {}", path.display()))?;
     warn_if_damaged(path, &c.read, "the fit used its complete part");
     if let Some(file) = write {
@@ -130,7 +130,7 @@ fn calibrate(
 struct Report<'a> {
     /// The fit.
     #[serde(flatten)]
-    calibration: &'a crate::calibrate::Calibration,
+    calibration: &'a crate::analysis::calibrate::Calibration,
     /// The `[geometry]` lines to paste.
     geometry_lines: String,
     /// The `[[odometry.pods]]` tables to paste, with pods.

@@ -46,7 +46,7 @@ pub struct Prepared {
     /// Where it came from, for the report.
     pub source: String,
     /// The simulated robot's wiring (`--flip`, `--swap`).
-    pub spec: crate::scenario::PlantSpec,
+    pub spec: crate::nodes::plant::PlantSpec,
 }
 
 /// `hostsim check`'s checks before the first test: `--speed` and `--duration-ms` in range,
@@ -75,7 +75,7 @@ pub fn prepare(args: &Args) -> Result<Prepared> {
 
 /// `hostsim check`: the bring-up check on a simulated robot on blocks.
 pub fn execute(args: &Args) -> Result<ExitCode> {
-    use crate::bringup::{Report, Wiring, diagnose, run_check};
+    use crate::analysis::bringup::{Report, Wiring, diagnose, run_check};
     let Prepared {
         config,
         source,

@@ -28,7 +28,7 @@ pub struct Args {}
 /// `hostsim kin`.
 pub fn execute(_: &Args) -> Result<ExitCode> {
     let stdin = std::io::stdin();
-    match crate::kin::run(stdin.lock(), std::io::stdout().lock()) {
+    match crate::analysis::kin::run(stdin.lock(), std::io::stdout().lock()) {
         Ok(()) => Ok(ExitCode::SUCCESS),
         // The reader went away (`hostsim kin | head -1`): end quietly, as on SIGPIPE.
         Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => Ok(ExitCode::from(SIGPIPE_STATUS)),

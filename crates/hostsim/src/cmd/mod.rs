@@ -1,10 +1,12 @@
-//! The command line of `hostsim`: [`Cli`], one module per subcommand with its arguments
-//! (`Args`, whose doc is the subcommand's `--help`), its `execute` and what it prints; the
-//! exit statuses are the constants here. `main.rs` parses, dispatches ([`Cmd::execute`]) and
-//! maps an error to [`EXIT_ERROR`].
+//! The `hostsim` command line (a library module so that the fuzz targets reach it).
 //!
-//! A library module so that a fuzz target reaches it (`fuzz/fuzz_targets/hostsim_args.rs`):
-//! [`Cmd::prepare`] runs every check a subcommand makes of its arguments before any work,
+//! [`Cli`], one module per subcommand with its arguments (`Args`, whose doc is the
+//! subcommand's `--help`), its `execute` and what it prints; the exit statuses are the
+//! constants here. `main.rs` parses, dispatches ([`Cmd::execute`]) and maps an error to
+//! [`EXIT_ERROR`].
+//!
+//! The fuzz target (`fuzz/fuzz_targets/hostsim_args.rs`) calls [`Cmd::prepare`], which runs
+//! every check a subcommand makes of its arguments before any work,
 //! and nothing else. It reads the files named (configurations, scenarios) but writes none,
 //! opens no socket or CAN interface, installs no signal handler, reads no log and no stdin,
 //! and runs no simulation; a sweep's plan is counted there and built later
@@ -161,7 +163,7 @@ pub fn print_report(
 }
 
 /// Warns on stderr that the log at `path` is damaged, if it is: where, what, what was read.
-pub fn warn_if_damaged(path: &Path, read: &crate::log::ReadReport, doing: &str) {
+pub fn warn_if_damaged(path: &Path, read: &drivelog::ReadReport, doing: &str) {
     if !read.is_complete() {
         eprintln!("warning: {} is {read}; {doing}", path.display());
     }
@@ -169,11 +171,7 @@ pub fn warn_if_damaged(path: &Path, read: &crate::log::ReadReport, doing: &str) 
 
 /// Warns on stderr that messages of the log at `path` did not decode, and what `doing` does
 /// about them; whether there were any.
-pub fn warn_if_undecodable(
-    path: &Path,
-    undecodable: &crate::log::Undecodable,
-    doing: &str,
-) -> bool {
+pub fn warn_if_undecodable(path: &Path, undecodable: &drivelog::Undecodable, doing: &str) -> bool {
     let any = undecodable.total() > 0;
     if any {
         eprintln!("warning: {}: {undecodable}: {doing}", path.display());
@@ -217,11 +215,11 @@ pub struct WiringArgs {
 
 impl WiringArgs {
     /// The plant's wiring as a scenario's `[plant]` table would give it.
-    pub fn spec(&self) -> crate::scenario::PlantSpec {
-        crate::scenario::PlantSpec {
+    pub fn spec(&self) -> crate::nodes::plant::PlantSpec {
+        crate::nodes::plant::PlantSpec {
             flip: self.flip.clone(),
             swap: self.swap.clone(),
-            ..crate::scenario::PlantSpec::default()
+            ..crate::nodes::plant::PlantSpec::default()
         }
     }
 }
@@ -229,7 +227,7 @@ impl WiringArgs {
 /// A wheel by name (FL, FR, RL, RR, any case) or index 0-3.
 pub fn parse_wheel(s: &str) -> Result<usize, String> {
     let t = s.trim();
-    crate::bringup::WHEEL_NAMES
+    crate::analysis::bringup::WHEEL_NAMES
         .iter()
         .position(|n| n.eq_ignore_ascii_case(t))
         .or_else(|| t.parse::<usize>().ok().filter(|&i| i < 4))
@@ -308,7 +306,7 @@ mod tests {
         else {
             panic!("a million runs is within the cap");
         };
-        assert_eq!(plan.count, crate::sweep::MAX_RUNS);
+        assert_eq!(plan.count, crate::analysis::sweep::MAX_RUNS);
         let refused = parse(&[
             "sweep",
             "square",
@@ -372,7 +370,7 @@ mod tests {
             }
         }
         words.extend(Scenario::BUILTINS.map(String::from));
-        words.extend(crate::bringup::WHEEL_NAMES.map(String::from));
+        words.extend(crate::analysis::bringup::WHEEL_NAMES.map(String::from));
         let plant = crate::scenario::PLANT_FIELDS.map(|f| format!("plant.{f}"));
         words.extend(plant);
         let config = firmware::Config::dji_m3508_example().to_toml_string();

@@ -6,9 +6,9 @@ use std::process::ExitCode;
 use anyhow::{Context, Result, bail};
 use mecanum_linux::{MonotonicClock, SocketCanBus};
 
-use crate::log::McapLog;
 use crate::realtime::{PlantLog, PlantOptions, run_plant, run_plant_observed};
 use crate::replay::PLANT_PROGRAM;
+use drivelog::McapLog;
 
 use super::*;
 
@@ -92,11 +92,11 @@ pub struct Prepared {
     /// Where it came from, for the messages.
     pub source: String,
     /// The simulated drives and chassis, wired and lifted as asked.
-    pub drives: crate::drives::SimDrives,
+    pub drives: crate::nodes::drives::SimDrives,
     /// The IMU node's parameters (`--imu`).
-    pub imu: Option<crate::imu::ImuParams>,
+    pub imu: Option<crate::nodes::imu::ImuParams>,
     /// The tracking pods' node (`--pods`).
-    pub pods: Option<crate::pods::PodNode>,
+    pub pods: Option<crate::nodes::pods::PodNode>,
 }
 
 /// `hostsim plant`'s checks before it touches the interface: `--live` has a log to serve,
@@ -110,15 +110,15 @@ pub fn prepare(args: &Args) -> Result<Prepared> {
         bail!("--live serves the log as it is written: give --log FILE too");
     }
     let (config, source) = load_config(args.config.as_deref())?;
-    let spec = crate::scenario::PlantSpec {
+    let spec = crate::nodes::plant::PlantSpec {
         lifted: args.lifted,
         ..args.wiring.spec()
     };
-    let drives = crate::drives::SimDrives::with_spec(&config, &spec)
+    let drives = crate::nodes::drives::SimDrives::with_spec(&config, &spec)
         .with_context(|| format!("configuration {source}: the plant cannot model it"))?;
-    let imu = args.imu.then(|| crate::imu::ImuParams {
+    let imu = args.imu.then(|| crate::nodes::imu::ImuParams {
         bias_deg_s: args.imu_bias_deg_s.unwrap_or(0.1),
-        ..crate::imu::ImuParams::default()
+        ..crate::nodes::imu::ImuParams::default()
     });
     if let Some((key, value, expected)) = imu.as_ref().and_then(|i| i.invalid()) {
         bail!(
@@ -134,7 +134,11 @@ pub fn prepare(args: &Args) -> Result<Prepared> {
         );
     }
     let pods = args.pods.then(|| {
-        crate::pods::PodNode::new(&crate::pods::PodsParams::default(), nominal.as_slice(), 0)
+        crate::nodes::pods::PodNode::new(
+            &crate::nodes::pods::PodsParams::default(),
+            nominal.as_slice(),
+            0,
+        )
     });
     Ok(Prepared {
         config,
@@ -156,8 +160,8 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
         imu,
         pods,
     } = prepare(args)?;
-    let mut drives = crate::imu::WithImu::new(&mut drives, imu.as_ref(), 0);
-    let mut drives = crate::pods::WithPods::new(&mut drives, pods);
+    let mut drives = crate::nodes::imu::WithImu::new(&mut drives, imu.as_ref(), 0);
+    let mut drives = crate::nodes::pods::WithPods::new(&mut drives, pods);
     let stop = mecanum_linux::stop_on_signals()?;
     let mut bus = SocketCanBus::open(iface)?;
     // Created before the loop starts, so a bad path fails now and not after a long run.

@@ -46,7 +46,7 @@ fn plot_logs(logs: &[PathBuf], out: Option<PathBuf>) -> Result<ExitCode> {
     });
     let logged = logs
         .iter()
-        .map(|p| crate::plot::track_from_log(p).map_err(anyhow::Error::msg))
+        .map(|p| crate::analysis::plot::track_from_log(p).map_err(anyhow::Error::msg))
         .collect::<Result<Vec<_>>>()?;
     // Drawn all the same, from what could be read; said, and the exit status says it too.
     let mut damaged = false;
@@ -57,19 +57,20 @@ fn plot_logs(logs: &[PathBuf], out: Option<PathBuf>) -> Result<ExitCode> {
         }
         damaged |= warn_if_undecodable(path, &l.undecodable, "the plot leaves them out");
     }
-    let tracks: Vec<Vec<crate::plot::TrackPoint>> = logged.into_iter().map(|l| l.points).collect();
+    let tracks: Vec<Vec<crate::engine::TrackPoint>> =
+        logged.into_iter().map(|l| l.points).collect();
     let labels: Vec<String> = logs.iter().map(|p| p.display().to_string()).collect();
-    let runs: Vec<(&str, &[crate::plot::TrackPoint])> = labels
+    let runs: Vec<(&str, &[crate::engine::TrackPoint])> = labels
         .iter()
         .zip(&tracks)
         .map(|(l, t)| (l.as_str(), t.as_slice()))
         .collect();
     let title = stem(&logs[0]);
-    crate::plot::plot_runs(&out, &title, &runs)?;
+    crate::analysis::plot::plot_runs(&out, &title, &runs)?;
     for (label, track) in labels.iter().zip(&tracks) {
         println!(
             "{label}: max drift {:.1} mm",
-            crate::plot::max_drift(track) * 1000.0
+            crate::analysis::plot::max_drift(track) * 1000.0
         );
     }
     println!("plot:  {}", out.display());

@@ -8,11 +8,11 @@ use mecanum_linux::{MonotonicClock, SocketCanBus};
 use serde::Serialize;
 
 use crate::realtime::{PlayOptions, play_frames};
+use crate::replay::whatif::{OPEN_LOOP_NOTE, what_if_mcap};
 use crate::replay::{
     CandumpReplayError, LogFormat, OdometryTolerance, ReportFrame, detect_format, mcap_playback,
     replay_candump, replay_mcap, split_candump,
 };
-use crate::whatif::{OPEN_LOOP_NOTE, what_if_mcap};
 
 use super::*;
 
@@ -335,12 +335,12 @@ fn what_if_log(path: &Path, config: &Path, json: bool) -> Result<ExitCode> {
     Ok(code)
 }
 
-/// What a what-if reports: the comparison of [`crate::whatif::WhatIfReport`], the log and
+/// What a what-if reports: the comparison of [`crate::replay::whatif::WhatIfReport`], the log and
 /// the configuration.
 #[derive(Debug, Serialize)]
 struct WhatIf<'a> {
     #[serde(flatten)]
-    report: &'a crate::whatif::WhatIfReport,
+    report: &'a crate::replay::whatif::WhatIfReport,
     /// [`OPEN_LOOP_NOTE`].
     note: &'static str,
     log: String,
@@ -443,7 +443,7 @@ impl std::fmt::Display for WhatIf<'_> {
                 )?;
             }
         }
-        let list = |changes: &[crate::whatif::StateChange]| {
+        let list = |changes: &[crate::replay::whatif::StateChange]| {
             if changes.is_empty() {
                 "none".to_string()
             } else {

@@ -12,9 +12,9 @@ use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
-use crate::log::McapLog;
-use crate::plot::plot_run;
-use crate::sim::{LogOptions, RunSummary, run_metadata};
+use crate::analysis::plot::plot_run;
+use crate::engine::{LogOptions, RunSummary, run_metadata};
+use drivelog::McapLog;
 
 use super::*;
 
@@ -96,7 +96,7 @@ pub struct Prepared {
     /// The scenario to run.
     pub scenario: crate::scenario::Scenario,
     /// Its simulated drives and chassis.
-    pub plant: crate::drives::SimDrives,
+    pub plant: crate::nodes::drives::SimDrives,
 }
 
 /// `hostsim run`'s checks before any output: the configuration and scenario load, each
@@ -117,18 +117,20 @@ pub fn prepare(a: &Args) -> Result<Prepared> {
     if !a.set.is_empty() {
         let mut values = Vec::new();
         for arg in &a.set {
-            let p = crate::sweep::Param::parse(arg)?;
+            let p = crate::analysis::sweep::Param::parse(arg)?;
             match p.values {
-                crate::sweep::Values::List(v) if v.len() == 1 => values.push((p.key, v[0])),
+                crate::analysis::sweep::Values::List(v) if v.len() == 1 => {
+                    values.push((p.key, v[0]))
+                }
                 _ => bail!(
                     "--set {arg}: expected one value, KEY=VALUE (grids and ranges are for sweep)"
                 ),
             }
         }
-        scenario = crate::sweep::apply(&scenario, scenario.seed, &values)?;
+        scenario = crate::analysis::sweep::apply(&scenario, scenario.seed, &values)?;
     }
     // The plant before any output: a scenario it refuses makes no file.
-    let plant = crate::drives::SimDrives::for_scenario(&scenario)?;
+    let plant = crate::engine::plant_for(&scenario)?;
     Ok(Prepared { scenario, plant })
 }
 
@@ -205,7 +207,7 @@ fn run(
     bar.set_message(scenario.name.clone());
     let wall = std::time::Instant::now();
     let partial = log.as_ref().and_then(|l| l.part()).map(Path::to_path_buf);
-    let summary = crate::sim::run_until(
+    let summary = crate::engine::run_until(
         &scenario,
         &mut plant,
         log.as_mut(),

@@ -31,7 +31,7 @@ pub fn execute(a: &Args) -> Result<ExitCode> {
 }
 
 fn summary(path: &Path) -> Result<ExitCode> {
-    let s = crate::summary::summarize(path).map_err(anyhow::Error::msg)?;
+    let s = crate::analysis::summary::summarize(path).map_err(anyhow::Error::msg)?;
     let damaged = !s.read.is_complete();
     if s.topics.is_empty() && !damaged {
         bail!("{}: no messages", path.display());
@@ -66,10 +66,10 @@ fn summary(path: &Path) -> Result<ExitCode> {
     }
     for (t, level, text) in &s.events {
         let tag = match *level {
-            l if l >= crate::log::msg::Log::ERROR => "FAULT",
+            l if l >= drivelog::msg::Log::ERROR => "FAULT",
             // An e-stop; other warnings (a silent gyro, a lost CAN link) do not stop.
-            l if l >= crate::log::msg::Log::WARN && text.starts_with("state") => "STOP ",
-            l if l >= crate::log::msg::Log::WARN => "WARN ",
+            l if l >= drivelog::msg::Log::WARN && text.starts_with("state") => "STOP ",
+            l if l >= drivelog::msg::Log::WARN => "WARN ",
             _ => "     ",
         };
         println!("  {tag} {t:9.3} s  {text}");

@@ -8,8 +8,8 @@ use anyhow::{Context, Result};
 use drivelog::Staged;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use crate::log::McapLog;
-use crate::sim::{LogOptions, run_metadata};
+use crate::engine::{LogOptions, run_metadata};
+use drivelog::McapLog;
 
 use super::*;
 
@@ -63,14 +63,14 @@ pub struct Args {
 }
 
 /// A sweep before its runs are built: the base scenario, the seeds, the parameters, and how
-/// many runs they make (at most [`crate::sweep::MAX_RUNS`]).
+/// many runs they make (at most [`crate::analysis::sweep::MAX_RUNS`]).
 pub struct Plan {
     /// The scenario, with `--config`.
     pub base: Scenario,
     /// The seeds of `--seeds`, or the scenario's own.
     pub seeds: Vec<u64>,
     /// The `--set` parameters, in the order given.
-    pub params: Vec<crate::sweep::Param>,
+    pub params: Vec<crate::analysis::sweep::Param>,
     /// The runs they make, counted without building them.
     pub count: u64,
 }
@@ -82,8 +82,8 @@ impl Plan {
     ///
     /// # Errors
     /// The first value the scenario refuses.
-    pub fn runs(&self) -> Result<Vec<crate::sweep::RunSpec>> {
-        use crate::sweep as sw;
+    pub fn runs(&self) -> Result<Vec<crate::analysis::sweep::RunSpec>> {
+        use crate::analysis::sweep as sw;
         let runs = sw::expand(&self.seeds, &self.params)?;
         // Every name and value (and both ends of each range), before the first run.
         sw::check(&self.base, &runs, &self.params)?;
@@ -97,7 +97,7 @@ impl Plan {
 /// # Errors
 /// The first of those that fails, naming the argument.
 pub fn prepare(args: &Args) -> Result<Plan> {
-    use crate::sweep::{self as sw, Param};
+    use crate::analysis::sweep::{self as sw, Param};
     let config = args
         .config
         .as_deref()
@@ -124,7 +124,7 @@ pub fn prepare(args: &Args) -> Result<Plan> {
 
 /// `hostsim sweep`: many runs at once.
 pub fn execute(args: &Args) -> Result<ExitCode> {
-    use crate::sweep as sw;
+    use crate::analysis::sweep as sw;
     let plan = prepare(args)?;
     let runs = plan.runs()?;
     let Plan {
@@ -197,9 +197,9 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
 /// rows finished are returned).
 fn run_all(
     base: &Scenario,
-    runs: &[crate::sweep::RunSpec],
+    runs: &[crate::analysis::sweep::RunSpec],
     threads: usize,
-) -> Result<Vec<crate::sweep::Row>> {
+) -> Result<Vec<crate::analysis::sweep::Row>> {
     let signal = mecanum_linux::stop_on_signals()?;
     let bar = ProgressBar::new(runs.len() as u64);
     bar.set_style(
@@ -207,7 +207,7 @@ fn run_all(
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     let stop = || signal.load(std::sync::atomic::Ordering::Relaxed) != 0;
-    let rows = crate::sweep::run_all(base, runs, threads, &stop, |_| bar.inc(1))?;
+    let rows = crate::analysis::sweep::run_all(base, runs, threads, &stop, |_| bar.inc(1))?;
     bar.finish_and_clear();
     Ok(rows)
 }
@@ -218,10 +218,10 @@ fn write_tables(
     mut csv: BufWriter<Staged>,
     mut jsonl: BufWriter<Staged>,
     keys: &[String],
-    rows: &[crate::sweep::Row],
+    rows: &[crate::analysis::sweep::Row],
     interrupted: bool,
 ) -> Result<String> {
-    writeln!(csv, "{}", crate::sweep::csv_header(keys))?;
+    writeln!(csv, "{}", crate::analysis::sweep::csv_header(keys))?;
     for r in rows {
         writeln!(csv, "{}", r.csv())?;
         writeln!(jsonl, "{}", r.json())?;
@@ -251,8 +251,8 @@ fn write_tables(
 }
 
 /// The percentiles of the drift, the tracking error and the stop, and the faults' counts.
-fn print_figures(rows: &[crate::sweep::Row]) {
-    use crate::sweep as sw;
+fn print_figures(rows: &[crate::analysis::sweep::Row]) {
+    use crate::analysis::sweep as sw;
     let column = |f: fn(&sw::Row) -> f64| rows.iter().map(f).collect::<Vec<f64>>();
     for (name, unit, values) in [
         ("drift, largest", "m", column(|r| r.drift_max_m)),
@@ -282,7 +282,7 @@ fn print_figures(rows: &[crate::sweep::Row]) {
 
 /// The `--worst` worst runs (`worst`, largest drift first), each with the command that runs
 /// it alone; the `--log-worst` worst run again with logs.
-fn print_worst(args: &Args, base: &Scenario, worst: &[&crate::sweep::Row]) -> Result<()> {
+fn print_worst(args: &Args, base: &Scenario, worst: &[&crate::analysis::sweep::Row]) -> Result<()> {
     println!("worst runs (largest drift):");
     for r in worst.iter().take(args.worst) {
         println!(
@@ -294,11 +294,11 @@ fn print_worst(args: &Args, base: &Scenario, worst: &[&crate::sweep::Row]) -> Re
         );
     }
     for r in worst.iter().take(args.log_worst) {
-        let s = crate::sweep::apply(base, r.seed, &r.values)?;
+        let s = crate::analysis::sweep::apply(base, r.seed, &r.values)?;
         let path = args.out.join(format!("sweep-{}.mcap", r.index));
         let mut log = McapLog::create(&path, &run_metadata(&s))?;
-        let mut plant = crate::drives::SimDrives::for_scenario(&s)?;
-        crate::sim::run(
+        let mut plant = crate::engine::plant_for(&s)?;
+        crate::engine::run(
             &s,
             &mut plant,
             Some(&mut log),
@@ -316,7 +316,7 @@ fn plot(
     png_path: &std::path::Path,
     base: &Scenario,
     keys: &[String],
-    rows: &[crate::sweep::Row],
+    rows: &[crate::analysis::sweep::Row],
 ) -> Result<()> {
     let (label, xs): (String, Vec<f64>) = match keys.first() {
         Some(k) => (k.clone(), rows.iter().map(|r| r.values[0].1).collect()),
@@ -324,7 +324,7 @@ fn plot(
         None => ("seed".into(), rows.iter().map(|r| r.seed as f64).collect()),
     };
     let ys: Vec<f64> = rows.iter().map(|r| r.drift_max_m).collect();
-    crate::plot::scatter(
+    crate::analysis::plot::scatter(
         png_path,
         &format!("sweep of {}", base.name),
         &label,

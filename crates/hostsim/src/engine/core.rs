@@ -8,9 +8,9 @@ use firmware::control::{Controller, Instant, Outbox};
 
 use super::{Firmware, Record, deliver_due};
 use crate::bus::{Bus, Fate, Node, Transmission};
-use crate::log::{CoreLog, McapLog};
+use crate::engine::SimError;
 use crate::scenario::{FaultName, Scenario};
-use crate::sim::SimError;
+use drivelog::{CoreLog, McapLog};
 
 /// The in-process core as the engine's firmware node: a [`Controller`] stepped at every tick,
 /// down for each `runner_restart` window and started afresh at its end.

@@ -1,5 +1,7 @@
-//! The lockstep engine: a firmware node, the simulated plant and the scenario's host on one
-//! bit-timed bus, in simulated time.
+//! The lockstep engine: a firmware node, the nodes and a scenario on one bus; in-process runs.
+//!
+//! A firmware node, the simulated plant and the scenario's host on one bit-timed bus, in
+//! simulated time; [`run`] and its kin run the in-process core.
 //!
 //! The firmware is a node behind one trait, [`Firmware`]: the in-process core
 //! ([`InProcess`], the same `Controller` that runs on the MCU) or an emulated board
@@ -15,20 +17,23 @@
 //! runner".
 
 mod core;
+mod nodes;
 mod plant_io;
+mod run;
 
 use std::ops::ControlFlow;
 
 use firmware::{CanFrame, StreamHash};
 
 use crate::bus::{Bus, BusStats, Fate, Node, Transmission};
-use crate::host::HostNode;
-use crate::log::{LogError, McapLog};
-use crate::plot::TrackPoint;
+use crate::nodes::SimPlant;
+use crate::nodes::host::HostNode;
 use crate::scenario::Scenario;
-use crate::sim::SimPlant;
+use drivelog::{LogError, McapLog};
 
 pub use self::core::InProcess;
+pub use self::nodes::plant_for;
+pub use self::run::{RunSummary, SimError, StepView, run, run_metadata, run_observed, run_until};
 pub use plant_io::{log_transmission, queue_feedback, set_wheel_faults};
 
 /// What to log.
@@ -158,6 +163,17 @@ pub fn deliver_due(pending: &mut Vec<Transmission>, until_ns: u64, done: &mut Ve
     done.extend(pending.drain(..due));
 }
 
+/// One sample of the trajectories: time s, truth `[x, y]`, odometry `[x, y]`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrackPoint {
+    /// Simulated time, s.
+    pub t: f64,
+    /// Ground-truth position, m.
+    pub truth: [f64; 2],
+    /// Odometry position, m.
+    pub odom: [f64; 2],
+}
+
 /// What a run recorded of the firmware node as it went: filled by the engine and by the node
 /// ([`Firmware::observe`]).
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -245,7 +261,7 @@ const DRAIN_NS: u64 = 100_000_000;
 ///
 /// # Errors
 /// The node's error: it stopped, or the log could not be written.
-pub fn run<F: Firmware, P: SimPlant>(
+pub fn run_firmware<F: Firmware, P: SimPlant>(
     scenario: &Scenario,
     firmware: &mut F,
     plant: &mut P,
@@ -255,8 +271,8 @@ pub fn run<F: Firmware, P: SimPlant>(
 ) -> Result<Outcome, F::Error> {
     // The scenario's IMU node and pod node, if any, on the plant (without them, a
     // pass-through).
-    let mut with_imu = crate::imu::WithImu::new(plant, scenario.imu.as_ref(), scenario.seed);
-    let plant = crate::pods::WithPods::for_scenario(&mut with_imu, scenario);
+    let mut with_imu = crate::nodes::imu::WithImu::new(plant, scenario.imu.as_ref(), scenario.seed);
+    let plant = nodes::with_pods(&mut with_imu, scenario);
     Engine::new(scenario, plant, log, options).run(firmware, observe)
 }
 
@@ -299,7 +315,7 @@ impl<'s, 'l, P: SimPlant> Engine<'s, 'l, P> {
             log,
             options,
             bus: Bus::new(1_000_000, scenario.bus_faults.clone(), scenario.seed),
-            host: HostNode::new(scenario),
+            host: nodes::host(scenario),
             host_frames: Vec::new(),
             twists: Vec::new(),
             feedback: Vec::with_capacity(16),

@@ -5,9 +5,9 @@ use firmware::CanFrame;
 
 use super::LogOptions;
 use crate::bus::{Fate, Node, Transmission};
-use crate::log::{Direction, LogError, McapLog};
+use crate::nodes::{DriveFaults, SimPlant};
 use crate::scenario::{FaultName, Scenario};
-use crate::sim::{DriveFaults, SimPlant};
+use drivelog::{Direction, LogError, McapLog};
 
 /// Logs one transmission: on `/can/rx` if the firmware received it, on `/can/tx` if it sent
 /// it (dropped or not), and on `/can/faults` if the fault injector dropped or corrupted it.

@@ -6,8 +6,8 @@ use firmware::CanFrame;
 use super::core::pose_array;
 use super::*;
 use crate::bus::{Fault, FaultKind, frame_bits};
-use crate::sim::test_plant::Moving;
-use crate::sim::{run_observed, run_until};
+use crate::engine::{run_observed, run_until};
+use crate::nodes::test_plant::Moving;
 
 fn id_of(frame: &CanFrame) -> u16 {
     match embedded_can::Frame::id(frame) {
@@ -19,7 +19,7 @@ fn id_of(frame: &CanFrame) -> u16 {
 #[test]
 fn an_observer_can_end_the_run_after_any_step() {
     let s = Scenario::load("square", None).unwrap();
-    let mut plant = crate::drives::SimDrives::for_scenario(&s).unwrap();
+    let mut plant = super::plant_for(&s).unwrap();
     let mut last = 0;
     let summary = run_until(&s, &mut plant, None, LogOptions::default(), |step| {
         last = step.t_us;
@@ -39,7 +39,7 @@ fn an_observer_can_end_the_run_after_any_step() {
     );
     // The same steps as a whole run's first half second.
     let mut whole = Vec::new();
-    let mut plant = crate::drives::SimDrives::for_scenario(&s).unwrap();
+    let mut plant = super::plant_for(&s).unwrap();
     run_observed(&s, &mut plant, None, LogOptions::default(), |step| {
         if step.t_us <= 500_000 {
             whole.push(step.controller.pose());

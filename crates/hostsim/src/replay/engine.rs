@@ -8,7 +8,7 @@ use firmware::CanFrame;
 use firmware::config::Config;
 use firmware::control::{Controller, Instant};
 
-use crate::log::ReadReport;
+use drivelog::ReadReport;
 
 use super::*;
 

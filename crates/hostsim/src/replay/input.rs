@@ -7,7 +7,7 @@ use firmware::CanFrame;
 use firmware::config::Config;
 use serde::Serialize;
 
-use crate::log::{Damage, ReadReport};
+use drivelog::{Damage, ReadReport};
 
 /// A frame with its log time.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -48,7 +48,7 @@ pub struct LogContent {
     /// Messages per topic.
     pub topics: std::collections::BTreeMap<String, u64>,
     /// The messages of the topics read here that did not decode.
-    pub undecodable: crate::log::Undecodable,
+    pub undecodable: drivelog::Undecodable,
     /// What the reader read, and where the log is damaged if it is.
     pub read: ReadReport,
 }
@@ -79,7 +79,7 @@ pub enum ReplayError {
         /// The log file.
         path: PathBuf,
         /// How many, on which topics, and the first.
-        undecodable: crate::log::Undecodable,
+        undecodable: drivelog::Undecodable,
     },
     /// A log in the JSON layout of earlier versions, which this version does not read.
     #[error("{path}: {}", OLD_LAYOUT)]
@@ -187,7 +187,7 @@ pub fn check_time_gaps<'a>(
 /// [`ReplayError`] if the file cannot be read or nothing in it is readable. A damaged file is
 /// not an error: [`LogContent::read`] says where the damage is.
 pub fn read_log(path: &Path) -> Result<LogContent, ReplayError> {
-    let bytes = crate::log::read::read_log_file(path).map_err(|source| ReplayError::Io {
+    let bytes = drivelog::read::read_log_file(path).map_err(|source| ReplayError::Io {
         path: path.to_path_buf(),
         source,
     })?;
@@ -211,7 +211,7 @@ pub const OLD_LAYOUT: &str = "an MCAP file without the `ros2` profile: not a ROS
 /// `true` for a log in the JSON layout of earlier versions: MCAP without the `ros2` profile.
 #[must_use]
 pub fn is_old_layout(read: &ReadReport) -> bool {
-    read.profile != crate::log::PROFILE
+    read.profile != drivelog::PROFILE
 }
 
 /// The order in which a node's frames queued together leave on the bus: the one with the
@@ -238,16 +238,16 @@ pub fn read_log_bytes(bytes: &[u8]) -> Result<LogContent, Damage> {
     let mut config = None;
     let mut scenario = None;
     let mut program = None;
-    let read = crate::log::for_each_message(
+    let read = drivelog::for_each_message(
         bytes,
         |m| {
             *content.topics.entry(m.topic.to_string()).or_default() += 1;
             let (list, t_ns) = match m.topic {
                 "/firmware/steps" => {
-                    if let Some(step) = content.undecodable.decode::<crate::log::msg::Step>(m) {
+                    if let Some(step) = content.undecodable.decode::<drivelog::msg::Step>(m) {
                         content.steps.push(StepTime {
                             t_ns: m.log_time,
-                            shutdown: step.kind == crate::log::msg::Step::SHUTDOWN,
+                            shutdown: step.kind == drivelog::msg::Step::SHUTDOWN,
                         });
                     }
                     return;
@@ -265,7 +265,7 @@ pub fn read_log_bytes(bytes: &[u8]) -> Result<LogContent, Damage> {
             }
         },
         |name, kv| {
-            if name == crate::log::METADATA_NAME {
+            if name == drivelog::METADATA_NAME {
                 config = kv.get("config").cloned();
                 scenario = kv.get("scenario").cloned();
                 program = kv.get("program").cloned();
@@ -300,7 +300,7 @@ pub struct McapReplayInput {
     pub steps: Vec<StepTime>,
 }
 
-/// Reads an MCAP log for replay ([`replay_mcap`](super::replay_mcap), [`crate::whatif::what_if_mcap`]): its
+/// Reads an MCAP log for replay ([`replay_mcap`](super::replay_mcap), [`crate::replay::whatif::what_if_mcap`]): its
 /// configuration and the complete part of its frames.
 ///
 /// # Errors

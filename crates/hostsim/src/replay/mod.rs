@@ -1,7 +1,10 @@
-//! Replay: run the firmware core again on a log's inbound frames and check that it sends the
-//! same frames, bit for bit.
+//! Replay and what-if: a log's frames through the core again, from MCAP or candump.
 //!
-//! [`replay_mcap`] replays an MCAP log ([`crate::log`]) through a fresh [`Controller`](firmware::control::Controller) built
+//! Replay runs the firmware core again on a log's inbound frames and checks that it sends the
+//! same frames, bit for bit; what-if ([`whatif`]) runs them through a core of another
+//! configuration.
+//!
+//! [`replay_mcap`] replays an MCAP log ([`drivelog`]) through a fresh [`Controller`](firmware::control::Controller) built
 //! from the logged configuration and returns a [`ReplayReport`] with the first difference, if
 //! any; [`replay_frames`] and [`replay_at_steps`] do the same on frames already read. A
 //! candump log ([`replay_candump`]) is split into the two directions with [`split_candump`]
@@ -15,6 +18,7 @@
 mod candump;
 mod engine;
 mod input;
+pub mod whatif;
 
 pub use self::candump::*;
 pub use self::engine::*;

@@ -2,7 +2,8 @@
 
 use firmware::Config;
 
-use super::{Action, PlantSpec, Scenario, ScenarioError};
+use super::{Action, Scenario, ScenarioError};
+use crate::nodes::plant::PlantSpec;
 
 impl Scenario {
     /// A built-in scenario on the DJI example chassis. See [`Scenario::BUILTINS`].

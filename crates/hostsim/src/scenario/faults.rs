@@ -4,6 +4,7 @@ use serde::Deserialize;
 
 use super::{Invalid, given, secs_to_us};
 use crate::bus::{Fault, FaultKind, Node};
+use crate::nodes::host::{HostFault, HostFaultKind};
 use crate::scenario::ScenarioError;
 
 /// A fault on the timeline, as written in a scenario.
@@ -51,7 +52,7 @@ pub enum FaultName {
     /// A drive is off: it sends nothing and drives nothing (the wheel coasts).
     MotorOffline,
     /// Besides its own stream, the host sends `TWIST_CMD` frames whose values are not finite
-    /// numbers (see [`crate::host::non_finite_twist_frames`]), once per command period.
+    /// numbers (see [`crate::nodes::host::non_finite_twist_frames`]), once per command period.
     NonFiniteTwist,
     /// CiA 402: the wheel's drive sends no heartbeat (its PDOs still flow).
     DriveSilent,
@@ -74,7 +75,7 @@ pub enum FaultName {
     /// frame), whatever its setpoint; afterwards it sends fresh frames again.
     RepeatedTwist,
     /// The tracking-pod node (`[pods]`) sends nothing: its pods roll and count on, its `seq`
-    /// counts on, its frames stay off the bus (a disconnected node; `crate::pods`).
+    /// counts on, its frames stay off the bus (a disconnected node; `crate::nodes::pods`).
     PodsSilent,
     /// The runner is killed at `from_s` (the firmware core sends and takes nothing) and
     /// started again at `until_s`: a fresh core, as a restarted runner or a rebooted board.
@@ -169,25 +170,6 @@ impl WheelFault {
     }
 }
 
-/// A host-side fault: what the commanding node sends wrong, when.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct HostFault {
-    /// What it sends (`NonFiniteTwist`, `RepeatedTwist`).
-    pub kind: FaultName,
-    /// Start, µs.
-    pub from_us: u64,
-    /// End, µs.
-    pub until_us: u64,
-}
-
-impl HostFault {
-    /// Whether the fault is active at `t_us`.
-    #[must_use]
-    pub const fn active(&self, t_us: u64) -> bool {
-        self.from_us <= t_us && t_us < self.until_us
-    }
-}
-
 /// A fault of a node other than the drives and the host: a sensor node on the plant
 /// (`pods_silent`) or the firmware's own (`runner_restart`); what, when.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -233,7 +215,11 @@ pub(super) fn build(
                 until_us,
             }),
             FaultName::NonFiniteTwist | FaultName::RepeatedTwist => host_faults.push(HostFault {
-                kind: f.kind,
+                kind: if f.kind == FaultName::NonFiniteTwist {
+                    HostFaultKind::NonFiniteTwist
+                } else {
+                    HostFaultKind::RepeatedTwist
+                },
                 from_us,
                 until_us,
             }),

@@ -1,10 +1,12 @@
-//! Scenarios: what the host does and what goes wrong, on a timeline.
+//! Scenarios: the data of a run (configuration, timed actions, faults, nodes' parameters).
+//!
+//! What the host does and what goes wrong, on a timeline.
 //!
 //! A scenario is a list of timed host [`Action`]s (enable, twist setpoints, e-stop, silence)
 //! and timed [`FaultSpec`]s (bus faults, a stuck encoder, a motor offline, a host sending
 //! non-finite twists or repeating one twist frame), plus the drive configuration, the
 //! simulated robot where it differs from it ([`PlantSpec`]), an optional IMU, optional
-//! tracking pods (`[pods]`, [`crate::pods`]) and a seed.
+//! tracking pods (`[pods]`, [`crate::nodes::pods`]) and a seed.
 //! While a twist setpoint is active and the host is not silent, the host streams `TWIST_CMD`
 //! frames at `command_hz`, as a teleoperation or navigation stack would.
 //!
@@ -14,7 +16,6 @@
 mod actions;
 mod builtin;
 mod faults;
-mod plant;
 mod set;
 #[cfg(test)]
 mod tests;
@@ -26,10 +27,11 @@ use firmware::input::{TomlError, quote};
 use serde::Deserialize;
 
 pub use self::actions::{Action, WheelTestSpec};
-pub use self::faults::{FaultName, FaultSpec, HostFault, NodeFault, SenderName, WheelFault};
-pub use self::plant::PlantSpec;
+pub use self::faults::{FaultName, FaultSpec, NodeFault, SenderName, WheelFault};
 pub use self::set::{PLANT_FIELDS, SetError};
 use crate::bus::Fault;
+use crate::nodes::host::HostFault;
+use crate::nodes::plant::PlantSpec;
 
 /// A complete scenario.
 #[derive(Debug, Clone, PartialEq)]
@@ -55,10 +57,10 @@ pub struct Scenario {
     /// The robot where it differs from the configuration (empty: as configured).
     pub plant: PlantSpec,
     /// The IMU node on the plant (`[imu]`), if any.
-    pub imu: Option<crate::imu::ImuParams>,
+    pub imu: Option<crate::nodes::imu::ImuParams>,
     /// The tracking-pod node on the plant (`[pods]`), if any: the configuration's pods
-    /// (`[[odometry.pods]]`) as they truly are ([`crate::pods`]).
-    pub pods: Option<crate::pods::PodsParams>,
+    /// (`[[odometry.pods]]`) as they truly are ([`crate::nodes::pods`]).
+    pub pods: Option<crate::nodes::pods::PodsParams>,
     /// Faults of the sensor nodes (`pods_silent`).
     pub node_faults: Vec<NodeFault>,
 }
@@ -138,8 +140,8 @@ struct ScenarioFile {
     faults: Vec<FaultSpec>,
     #[serde(default)]
     plant: PlantSpec,
-    imu: Option<crate::imu::ImuParams>,
-    pods: Option<crate::pods::PodsParams>,
+    imu: Option<crate::nodes::imu::ImuParams>,
+    pods: Option<crate::nodes::pods::PodsParams>,
 }
 
 /// The host's command rates a scenario may ask for, Hz: a command period from 1 ms (the
@@ -347,7 +349,7 @@ impl Scenario {
 
 /// `[pods]` against the configuration's pods, and the `pods_silent` faults against `[pods]`.
 fn check_pods(
-    pods: Option<&crate::pods::PodsParams>,
+    pods: Option<&crate::nodes::pods::PodsParams>,
     config: &Config,
     faults: &[FaultSpec],
     invalid: &Invalid<'_>,

@@ -4,8 +4,9 @@
 
 use firmware::Config;
 
-use super::{PlantSpec, Scenario};
-use crate::drives::SimDrives;
+use super::Scenario;
+use crate::nodes::drives::SimDrives;
+use crate::nodes::plant::PlantSpec;
 
 /// Why a value cannot be set.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -84,7 +85,7 @@ impl Scenario {
                 why: format!("expected {expected}"),
             });
         }
-        SimDrives::for_scenario(&s).map_err(|e| SetError::Invalid {
+        SimDrives::with_spec(&s.config, &s.plant).map_err(|e| SetError::Invalid {
             key: e.field.to_string(),
             value: e.value,
             why: format!("the plant refuses it: expected {}", e.expected),

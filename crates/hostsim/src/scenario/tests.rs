@@ -1,7 +1,8 @@
 //! The scenario format: what parses, what is refused and how the refusal reads.
 use super::*;
 use crate::bus::{FaultKind, Node};
-use crate::plant::ChassisParams;
+use crate::nodes::host::{HostFault, HostFaultKind};
+use crate::nodes::plant::ChassisParams;
 
 #[test]
 fn builtins_exist_and_end_after_their_last_action() {
@@ -125,12 +126,12 @@ fn toml_scenario_parses_and_validates() {
         s.host_faults,
         [
             HostFault {
-                kind: FaultName::NonFiniteTwist,
+                kind: HostFaultKind::NonFiniteTwist,
                 from_us: 1_500_000,
                 until_us: 1_600_000
             },
             HostFault {
-                kind: FaultName::RepeatedTwist,
+                kind: HostFaultKind::RepeatedTwist,
                 from_us: 2_000_000,
                 until_us: 2_500_000
             }

@@ -7,16 +7,15 @@ use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use hostsim::calibrate::{Calibration, Options, calibrate};
-use hostsim::drives::SimDrives;
-use hostsim::log::McapLog;
+use drivelog::McapLog;
+use hostsim::analysis::calibrate::{Calibration, Options, calibrate};
+use hostsim::engine::{LogOptions, RunSummary, run, run_metadata};
 use hostsim::scenario::Scenario;
-use hostsim::sim::{LogOptions, RunSummary, run, run_metadata};
 
 /// Runs `scenario` on the simulated drives, logging every message into `log`, which is left
 /// open (the caller finishes it, or drops it to leave a log cut short).
 pub fn run_into(scenario: &Scenario, log: &mut McapLog) -> RunSummary {
-    let mut plant = SimDrives::for_scenario(scenario).unwrap();
+    let mut plant = hostsim::engine::plant_for(scenario).unwrap();
     run(
         scenario,
         &mut plant,
@@ -63,8 +62,8 @@ pub fn print_fit(what: &str, c: &Calibration) {
     }
 }
 
-/// The [`SimPlant`](hostsim::sim::SimPlant) methods of a test plant around `self.drives` (a
-/// [`SimDrives`]) that pass through to them, the plant's time kept in `self.now_ns`:
+/// The [`SimPlant`](hostsim::nodes::SimPlant) methods of a test plant around `self.drives` (a
+/// [`SimDrives`](hostsim::nodes::drives::SimDrives)) that pass through to them, the plant's time kept in `self.now_ns`:
 /// `advance`, `advance_ns`, `truth`, `truth_velocity` and `set_faults`. Used inside the
 /// plant's `impl SimPlant`.
 #[allow(unused_macros)] // as `dead_code` above: not every test crate has such a plant

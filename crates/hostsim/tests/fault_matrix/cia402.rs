@@ -11,9 +11,8 @@ use firmware::protocol::canopen::DriveState402;
 use firmware::protocol::canopen::{self, Message, NmtCommand, NmtState};
 use firmware::protocol::robot::RobotState;
 use hostsim::bus::{Fate, Node};
-use hostsim::drives::SimDrives;
+use hostsim::engine::{LogOptions, run_observed};
 use hostsim::scenario::{Action, FaultName, NodeFault, Scenario, WheelFault};
-use hostsim::sim::{LogOptions, run_observed};
 
 use super::{MOMENTS, MS, Row, add_action, drive, moment, ms, us};
 
@@ -117,7 +116,7 @@ impl Record {
 }
 
 fn run(s: &Scenario) -> Record {
-    let mut plant = SimDrives::for_scenario(s).unwrap();
+    let mut plant = hostsim::engine::plant_for(s).unwrap();
     let mut rec = Record::default();
     let mut last = None;
     run_observed(s, &mut plant, None, LogOptions::default(), |v| {

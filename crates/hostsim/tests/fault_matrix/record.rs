@@ -6,9 +6,9 @@ use firmware::control::Fault;
 use firmware::protocol::dji::{self, CurrentCommand, EscModel};
 use firmware::protocol::robot::{Command, RobotState};
 use hostsim::bus::{Fate, Node};
-use hostsim::drives::SimDrives;
+use hostsim::engine::{LogOptions, StepView, run_observed};
+use hostsim::nodes::drives::SimDrives;
 use hostsim::scenario::Scenario;
-use hostsim::sim::{LogOptions, StepView, run_observed};
 use kinematics::ChassisVelocity;
 
 /// One control step as the record shows it.

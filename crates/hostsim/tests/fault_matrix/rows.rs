@@ -5,7 +5,8 @@ use firmware::Config;
 use firmware::control::{ENCODER_STUCK_DRAGGED_US, ENCODER_STUCK_MIN_CURRENT, Fault};
 use firmware::protocol::robot::RobotState;
 use hostsim::bus::FaultKind;
-use hostsim::scenario::{FaultName, HostFault, Scenario, WheelFault};
+use hostsim::nodes::host::{HostFault, HostFaultKind};
+use hostsim::scenario::{FaultName, Scenario, WheelFault};
 use kinematics::ChassisVelocity;
 
 use super::MS;
@@ -227,7 +228,7 @@ pub(super) fn repeated_twist_row(m: (f64, &str)) -> Row {
     let onset_us = us(m.0);
     let end_us = s.duration_us();
     s.host_faults.push(HostFault {
-        kind: FaultName::RepeatedTwist,
+        kind: HostFaultKind::RepeatedTwist,
         from_us: onset_us,
         until_us: end_us + 1,
     });
@@ -380,7 +381,7 @@ pub(super) fn stuck_at_rest_row(config: &Config) -> Row {
 pub(super) fn non_finite_row(m: (f64, &str), base: Option<&Record>) -> Row {
     let mut s = at(m.0);
     s.host_faults.push(HostFault {
-        kind: FaultName::NonFiniteTwist,
+        kind: HostFaultKind::NonFiniteTwist,
         from_us: us(m.0),
         until_us: us(m.0 + 0.2),
     });

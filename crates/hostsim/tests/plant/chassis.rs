@@ -3,7 +3,7 @@
 
 use core::f64::consts::{FRAC_PI_2, PI, TAU};
 
-use hostsim::plant::{
+use hostsim::nodes::plant::{
     Chassis, ChassisParams, ChassisState, DjiDrive, Plant, Ripple, WHEELS, Wheel, WheelInput,
 };
 use kinematics::ChassisVelocity;

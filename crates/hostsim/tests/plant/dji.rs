@@ -3,7 +3,7 @@
 
 use core::f64::consts::TAU;
 
-use hostsim::plant::{DjiDrive, Drive, Plant, Shaft, WHEELS, Wheel};
+use hostsim::nodes::plant::{DjiDrive, Drive, Plant, Shaft, WHEELS, Wheel};
 use kinematics::ChassisVelocity;
 
 use super::{WheelPi, kin};

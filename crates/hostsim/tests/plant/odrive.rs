@@ -3,8 +3,8 @@
 use core::f64::consts::TAU;
 
 use firmware::protocol::odrive::{AxisState, Command, ControlMode, InputMode};
-use hostsim::plant::odrive::{ESTOP_REQUESTED, WATCHDOG_TIMER_EXPIRED};
-use hostsim::plant::{
+use hostsim::nodes::plant::odrive::{ESTOP_REQUESTED, WATCHDOG_TIMER_EXPIRED};
+use hostsim::nodes::plant::{
     Drive, OdriveAxis, OdriveFeedback, OdriveParams, Plant, Shaft, WHEELS, Wheel,
 };
 use kinematics::{ChassisVelocity, MecanumKinematics};

@@ -4,8 +4,8 @@
 use core::f64::consts::PI;
 
 use firmware::protocol::odrive::{AxisState, Command};
-use hostsim::plant::chassis::STANDARD_GRAVITY;
-use hostsim::plant::{
+use hostsim::nodes::plant::chassis::STANDARD_GRAVITY;
+use hostsim::nodes::plant::{
     Chassis, ChassisParams, ChassisState, DjiDrive, DjiFeedback, Drive, OdriveAxis, OdriveParams,
     Plant, Ripple, Wheel, WheelInput,
 };

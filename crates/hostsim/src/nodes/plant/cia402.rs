@@ -5,7 +5,7 @@
 //! a torque limit and friction), with a hub motor's parameters ([`Cia402Params`]); its ODrive
 //! feedback schedule is not used. The CANopen side (NMT, SDO, PDOs, heartbeats, the 402 state
 //! machine) is the firmware crate's drive double (`firmware::protocol::canopen::drive`), whose
-//! commands the adapter, `crate::canopen_drive`, applies to this axis.
+//! commands the adapter, `crate::nodes::drives::canopen`, applies to this axis.
 
 use firmware::protocol::odrive::AxisState;
 

@@ -3,7 +3,7 @@
 //! simulated plant and a host on one simulated bus, in simulated time.
 //!
 //! [`run`] plays a [`Scenario`] on a [`SimPlant`] (the plant as the engine sees it), logging
-//! to MCAP if asked ([`crate::log`]), and returns a [`RunSummary`]; [`run_observed`] also
+//! to MCAP if asked ([`drivelog`]), and returns a [`RunSummary`]; [`run_observed`] also
 //! shows an observer every firmware step ([`StepView`]), and [`run_until`] lets it end the
 //! run early. The same scenario gives the same frames, bit for bit, and the log is all that
 //! [`crate::replay`] needs to run the firmware again.
@@ -15,75 +15,13 @@ use firmware::CanFrame;
 use firmware::control::{Controller, Snapshot};
 use firmware::protocol::robot::{self};
 
-use crate::bus::{BusStats, Node, Transmission};
+use crate::bus::{BusStats, Transmission};
 use crate::engine::InProcess;
-use crate::log::{LogError, McapLog};
+use crate::nodes::SimPlant;
 use crate::scenario::Scenario;
+use drivelog::{LogError, McapLog};
 
-pub use crate::engine::{LogOptions, log_transmission, queue_feedback, set_wheel_faults};
-
-/// The plant as the runner sees it: drives that take command frames and produce feedback
-/// frames, and a body with a true pose.
-pub trait SimPlant {
-    /// A frame from the bus (the drives pick out their commands; anything else is ignored).
-    fn on_frame(&mut self, t_us: u64, frame: &CanFrame);
-    /// Feedback frames the drives have sent up to `until_ns`, each with its send time (ns),
-    /// in time order; called once per tick.
-    fn feedback(&mut self, until_ns: u64, out: &mut Vec<(u64, CanFrame)>);
-    /// The frames a sensor node on the plant has sent as bus node `node` up to `until_ns`
-    /// (`IMU_YAW_RATE` as [`Node::Imu`], `POD_COUNTS` as [`Node::Pods`]), as
-    /// [`Self::feedback`]. None by default: see [`crate::sensor::WithNode`], which the runner
-    /// puts around the plant for the scenario's IMU and pods.
-    fn node_frames(&mut self, _node: Node, _until_ns: u64, _out: &mut Vec<(u64, CanFrame)>) {}
-    /// Advances the physics by `dt` seconds.
-    fn advance(&mut self, dt: f64);
-    /// Advances the physics by `dt_ns` nanoseconds ([`Self::advance`] by default).
-    fn advance_ns(&mut self, dt_ns: u64) {
-        self.advance(dt_ns as f64 * 1e-9);
-    }
-    /// When the drives next send feedback, ns of the plant's time (`u64::MAX`: not known,
-    /// the runner then takes the period's end). The runner lets the bus run no further
-    /// before it has those frames, which may win arbitration over the ones waiting.
-    fn next_feedback_ns(&self) -> u64 {
-        u64::MAX
-    }
-    /// Ground-truth pose `[x, y, heading]` in the world frame (m, m, rad).
-    fn truth(&self) -> [f64; 3];
-    /// Ground-truth body velocity `[vx, vy, wz]`.
-    fn truth_velocity(&self) -> [f64; 3];
-    /// Ground-truth body velocity integrated over time since the plant was built,
-    /// `[∫vx dt, ∫vy dt, ∫wz dt]` (m, m, rad), in the plant's own integration steps
-    /// ([`crate::plant::Chassis::body_travel`]); `None` (the default) for a plant that does
-    /// not keep it: [`crate::pods::WithPods`] then integrates [`Self::truth_velocity`] itself.
-    fn truth_travel(&self) -> Option<[f64; 3]> {
-        None
-    }
-    /// Plant faults from `at_ns` on (at once if the plant is there already): `stuck[i]`
-    /// freezes wheel i's encoder, `offline[i]` silences its drive. The motion before `at_ns`
-    /// does not feel them; the feedback stamped `at_ns` does.
-    fn set_faults(&mut self, at_ns: u64, stuck: [bool; 4], offline: [bool; 4]);
-    /// CiA 402 drives' faults in force from `at_ns` on, by wheel (the wheel's node): a plant
-    /// without CANopen nodes has none (such a scenario is refused before the run).
-    fn set_drive_faults(&mut self, _at_ns: u64, _faults: [DriveFaults; 4]) {}
-}
-
-/// The CiA 402 faults in force on one wheel's drive (its node), from the scenario's
-/// `drive_*`, `enable_refused` and `sdo_abort` faults.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct DriveFaults {
-    /// `drive_silent`: no heartbeat.
-    pub silent: bool,
-    /// `drive_reboot`: its rising edge reboots the node.
-    pub reboot: bool,
-    /// `drive_fault`: its rising edge faults the node.
-    pub fault: bool,
-    /// `enable_refused`.
-    pub refuses_enable: bool,
-    /// `sdo_abort`: the write of 0x6060 is aborted.
-    pub sdo_abort: bool,
-    /// `drive_bus_off`: its CAN controller is bus-off (it comes back when this ends).
-    pub bus_off: bool,
-}
+use super::LogOptions;
 
 /// Figures of a finished run.
 #[derive(Debug, Clone, PartialEq)]
@@ -123,7 +61,7 @@ pub struct RunSummary {
     /// robot without a gyro stays on `Wheels`).
     pub heading_changes: Vec<(f64, String)>,
     /// Ground truth and odometry every 10 ms, for plots.
-    pub track: Vec<crate::plot::TrackPoint>,
+    pub track: Vec<super::TrackPoint>,
 }
 
 /// Why a run failed.
@@ -208,7 +146,7 @@ pub fn run_until<P: SimPlant>(
     mut observe: impl FnMut(&StepView<'_>) -> ControlFlow<()>,
 ) -> Result<RunSummary, SimError> {
     let mut core = InProcess::new(scenario, options)?;
-    let run = crate::engine::run(scenario, &mut core, plant, log, options, |step| {
+    let run = crate::engine::run_firmware(scenario, &mut core, plant, log, options, |step| {
         observe(&StepView {
             t_us: step.t_us,
             controller: step.firmware.controller(),
@@ -268,61 +206,4 @@ pub fn run_metadata(scenario: &Scenario) -> BTreeMap<String, String> {
         metadata.insert("plant".to_string(), plant);
     }
     metadata
-}
-
-/// A plant for the unit tests of what wraps or drives one: it moves at a constant body
-/// velocity and only counts time.
-#[cfg(test)]
-pub(crate) mod test_plant {
-    use firmware::CanFrame;
-
-    use super::SimPlant;
-
-    /// A plant moving at the body velocity `v`, whose travel is exactly `v · t` (or, with
-    /// `integrates = false`, that leaves the integral to the wrapper); it records every
-    /// advance and every frame it is given, with the plant time then.
-    pub(crate) struct Moving {
-        pub now_ns: u64,
-        pub v: [f64; 3],
-        pub integrates: bool,
-        pub advances: Vec<u64>,
-        pub frames: Vec<(u64, CanFrame)>,
-    }
-
-    impl Moving {
-        pub fn new(v: [f64; 3]) -> Self {
-            Self {
-                now_ns: 0,
-                v,
-                integrates: true,
-                advances: Vec::new(),
-                frames: Vec::new(),
-            }
-        }
-    }
-
-    impl SimPlant for Moving {
-        fn on_frame(&mut self, _: u64, frame: &CanFrame) {
-            self.frames.push((self.now_ns, *frame));
-        }
-        fn feedback(&mut self, _: u64, _: &mut Vec<(u64, CanFrame)>) {}
-        fn advance(&mut self, dt: f64) {
-            self.advance_ns((dt * 1e9).round() as u64);
-        }
-        fn advance_ns(&mut self, dt_ns: u64) {
-            self.advances.push(dt_ns);
-            self.now_ns += dt_ns;
-        }
-        fn truth(&self) -> [f64; 3] {
-            [0.0; 3]
-        }
-        fn truth_velocity(&self) -> [f64; 3] {
-            self.v
-        }
-        fn truth_travel(&self) -> Option<[f64; 3]> {
-            let t = self.now_ns as f64 * 1e-9;
-            self.integrates.then(|| self.v.map(|v| v * t))
-        }
-        fn set_faults(&mut self, _: u64, _: [bool; 4], _: [bool; 4]) {}
-    }
 }

@@ -70,7 +70,7 @@ impl Default for Options {
 /// [`CalibrateError`] naming what is missing or wrong; a damaged log is not an error (it is
 /// calibrated from its complete part: [`Calibration::read`]).
 pub fn calibrate(path: &Path, options: &Options) -> Result<Calibration, CalibrateError> {
-    let bytes = crate::log::read::read_log_file(path)
+    let bytes = drivelog::read::read_log_file(path)
         .map_err(|e| CalibrateError::Read(format!("cannot read {}: {e}", path.display())))?;
     calibrate_bytes(&bytes, options).map_err(|e| match e {
         CalibrateError::Read(m) => CalibrateError::Read(format!("{}: {m}", path.display())),

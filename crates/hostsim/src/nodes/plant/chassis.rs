@@ -446,7 +446,7 @@ impl Chassis {
     /// Within a substep the twist is constant, so a point fixed on the body moves at a
     /// constant body-frame velocity: the distance it travels along a body-fixed direction
     /// `(cos φ, sin φ)` from `(x, y)` is exactly `cos φ (T_x − y T_ω) + sin φ (T_y + x T_ω)`
-    /// for the difference `T` of two readings (what a tracking pod rolls, `crate::pods`).
+    /// for the difference `T` of two readings (what a tracking pod rolls, `crate::nodes::pods`).
     #[must_use]
     pub const fn body_travel(&self) -> [f64; 3] {
         self.travel

@@ -4,7 +4,7 @@
 use firmware::Config;
 use serde::Deserialize;
 
-use crate::plant::{ChassisParams, ParamError};
+use crate::nodes::plant::{ChassisParams, ParamError};
 
 /// The simulated robot where it differs from the drive configuration (a scenario's `[plant]`
 /// table): its true wheel radius, wheel positions and roller drag. `None` keeps the value the

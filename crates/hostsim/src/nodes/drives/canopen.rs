@@ -18,8 +18,8 @@ pub use firmware::protocol::canopen::drive::{
     Faults as NodeFaults, abort, error_register,
 };
 
-use crate::plant::{Cia402Axis, Plant, Wheel};
-use crate::sim::DriveFaults;
+use crate::nodes::DriveFaults;
+use crate::nodes::plant::{Cia402Axis, Plant, Wheel};
 
 /// Time from a request (SDO, SYNC, NMT) to the node's answer, ns.
 pub const ANSWER_NS: u64 = 200_000;

@@ -22,11 +22,11 @@ use firmware::protocol::robot::{Fault, RobotState, Telemetry};
 use firmware::protocol::{canopen, dji, odrive};
 use serde::Serialize;
 
-use crate::log::ReadReport;
 use crate::replay::{
     ReplayError, ReportFrame, StepTime, TimeGap, TimedFrame, open_mcap, run_schedule,
     step_schedule, wire_order,
 };
+use drivelog::ReadReport;
 
 /// The first line of every what-if report: what it is, and what it is not.
 pub const OPEN_LOOP_NOTE: &str = "what-if, open loop: the logged inbound frames (motor \

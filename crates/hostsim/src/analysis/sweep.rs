@@ -9,7 +9,7 @@
 //! threads, and each row is what `hostsim run` with the row's seed and values gives
 //! ([`Row::reproduce`]).
 //!
-//! Parameter names: `plant.<field>` sets the simulated robot ([`PlantSpec`](crate::scenario::PlantSpec): `wheel_radius`,
+//! Parameter names: `plant.<field>` sets the simulated robot ([`PlantSpec`](crate::nodes::plant::PlantSpec): `wheel_radius`,
 //! `lx`, `ly`, `roller_drag`, `mass_kg`); any other dotted name is a field of the drive
 //! configuration as its TOML file names it (`gains.kp`, `limits.max_current`,
 //! `timing.command_timeout_ms`, ...). Every name and value is checked before any run starts,
@@ -18,9 +18,8 @@
 use rayon::prelude::*;
 
 use crate::bus::SplitMix64;
-use crate::drives::SimDrives;
+use crate::engine::{LogOptions, run_observed};
 use crate::scenario::{Scenario, SetError};
-use crate::sim::{LogOptions, run_observed};
 
 /// Why a sweep cannot be set up.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -312,7 +311,7 @@ pub fn run_one(scenario: &Scenario, spec: &RunSpec) -> Result<Row, SweepError> {
             why,
         })
     };
-    let mut plant = SimDrives::for_scenario(scenario).map_err(|e| refused(e.to_string()))?;
+    let mut plant = crate::engine::plant_for(scenario).map_err(|e| refused(e.to_string()))?;
     let period_s = 1.0 / f64::from(scenario.config.timing.control_hz);
     let mut fault: Option<(String, f64)> = None;
     let mut stood_at: Option<f64> = None;

@@ -10,8 +10,8 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use crate::bus::frame_bits;
-use crate::log::msg;
-use crate::log::{ReadReport, for_each_message};
+use drivelog::msg;
+use drivelog::{ReadReport, for_each_message};
 
 /// Figures of a logged run.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -39,7 +39,7 @@ pub struct LogSummary {
     /// What was read, and where the log is damaged if it is.
     pub read: ReadReport,
     /// The messages of the topics summarised here that did not decode.
-    pub undecodable: crate::log::Undecodable,
+    pub undecodable: drivelog::Undecodable,
 }
 
 /// Summarises a log.
@@ -49,7 +49,7 @@ pub struct LogSummary {
 /// MCAP), or it is in the JSON layout of earlier versions. A damaged log is not an error:
 /// [`LogSummary::read`] says where the damage is.
 pub fn summarize(path: &Path) -> Result<LogSummary, String> {
-    let bytes = crate::log::read::read_log_file(path)
+    let bytes = drivelog::read::read_log_file(path)
         .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
     let mut s = LogSummary::default();
     let mut odom: Option<(u64, [f64; 3])> = None;
@@ -124,7 +124,7 @@ pub fn summarize(path: &Path) -> Result<LogSummary, String> {
             }
         },
         |name, kv| {
-            if name == crate::log::METADATA_NAME {
+            if name == drivelog::METADATA_NAME {
                 s.scenario = kv.get("scenario").cloned();
             }
         },

@@ -1,4 +1,4 @@
-//! The drives on the bus: the adapter between CAN frames and the [`plant`](crate::plant).
+//! The drives on the bus: the adapter between CAN frames and the [`plant`](crate::nodes::plant).
 //!
 //! Command frames addressed to the configured ESCs or ODrive nodes are decoded with the
 //! firmware crate's codecs (the same ones the firmware encodes with) and applied to the drive
@@ -6,14 +6,18 @@
 //! sent it. Frames that are not for a configured drive are ignored, as a real drive would.
 //! CiA 402 nodes are [`CanopenDrives`], which speak CANopen themselves.
 
+pub mod canopen;
+
 use firmware::CanFrame;
 use firmware::config::{Config, Drive as DriveConfig};
 use firmware::protocol::dji::{CurrentCommand, EscId, EscModel};
 use firmware::protocol::odrive::{self, NodeId};
 
-use crate::canopen_drive::CanopenDrives;
-use crate::plant::{ChassisParams, Cia402Axis, DjiDrive, OdriveAxis, ParamError, Plant, Wheel};
-use crate::sim::SimPlant;
+use self::canopen::CanopenDrives;
+use crate::nodes::SimPlant;
+use crate::nodes::plant::{
+    ChassisParams, Cia402Axis, DjiDrive, OdriveAxis, ParamError, Plant, PlantSpec, Wheel,
+};
 
 /// A plant of one drive kind, with the ids its drives answer to.
 #[derive(Debug, Clone)]
@@ -82,36 +86,14 @@ impl SimDrives {
 }
 
 impl SimDrives {
-    /// The plant of a scenario: [`Self::with_spec`] of its configuration and `[plant]` table.
-    ///
-    /// # Errors
-    /// As [`Self::with_spec`].
-    pub fn for_scenario(scenario: &crate::scenario::Scenario) -> Result<Self, ParamError> {
-        if !matches!(scenario.config.drive, DriveConfig::Cia402(_))
-            && scenario.wheel_faults.iter().any(|f| f.kind.cia402_only())
-        {
-            return Err(ParamError::new(
-                "faults[].kind",
-                f64::NAN,
-                "stuck_encoder or motor_offline: drive_silent, drive_reboot, drive_fault, \
-                 enable_refused, sdo_abort and drive_bus_off act on CANopen nodes, a \
-                 protocol = \"cia402\" configuration",
-            ));
-        }
-        Self::with_spec(&scenario.config, &scenario.plant)
-    }
-
     /// The plant of a configuration where the robot differs from it
-    /// ([`PlantSpec`](crate::scenario::PlantSpec)): [`Self::new`], then the robot's true
+    /// ([`PlantSpec`]): [`Self::new`], then the robot's true
     /// geometry and roller drag, its wiring (motors mounted the other way, drives on each
     /// other's ids) and whether it stands on blocks.
     ///
     /// # Errors
     /// [`ParamError`] as [`Self::new`], or naming the `plant.*` value the plant refuses.
-    pub fn with_spec(
-        config: &Config,
-        spec: &crate::scenario::PlantSpec,
-    ) -> Result<Self, ParamError> {
+    pub fn with_spec(config: &Config, spec: &PlantSpec) -> Result<Self, ParamError> {
         let drives = Self::new(config)?;
         if spec.is_empty() {
             return Ok(drives);
@@ -161,7 +143,7 @@ impl SimDrives {
 
     /// The true state of the chassis and its wheels (ground truth).
     #[must_use]
-    pub fn chassis_state(&self) -> &crate::plant::ChassisState {
+    pub fn chassis_state(&self) -> &crate::nodes::plant::ChassisState {
         match self {
             Self::Dji { plant, .. } => plant.chassis().state(),
             Self::Odrive { plant, .. } => plant.chassis().state(),
@@ -280,7 +262,7 @@ impl SimPlant for SimDrives {
         }
     }
 
-    fn set_drive_faults(&mut self, at_ns: u64, faults: [crate::sim::DriveFaults; 4]) {
+    fn set_drive_faults(&mut self, at_ns: u64, faults: [crate::nodes::DriveFaults; 4]) {
         if let Self::Cia402 { plant, nodes } = self {
             nodes.set_wheel_faults(at_ns, faults, plant);
         }

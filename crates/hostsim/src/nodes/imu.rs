@@ -17,7 +17,7 @@
 //! [`imu_seed`], so that it does not repeat the bus's fault draws) and Box–Muller with `libm`:
 //! the same seed gives the same frames, bit for bit, on every machine.
 //!
-//! [`WithImu`] puts the node beside any [`SimPlant`] ([`crate::sensor::WithNode`]: the plant
+//! [`WithImu`] puts the node beside any [`SimPlant`] ([`crate::nodes::sensor::WithNode`]: the plant
 //! advanced to each sample instant, the frames sent as the bus node [`Node::Imu`]). Without
 //! an IMU it only passes every call through, so a run without one is what it was before the
 //! IMU existed.
@@ -26,9 +26,9 @@ use firmware::CanFrame;
 use firmware::protocol::robot::{Command, ImuYawRate};
 use serde::Deserialize;
 
-use crate::bus::Node;
-use crate::sensor::{SensorNode, WithNode};
-use crate::sim::SimPlant;
+use crate::bus::{Node, SplitMix64};
+use crate::nodes::SimPlant;
+use crate::nodes::sensor::{SensorNode, WithNode};
 
 /// The IMU of a scenario (its `[imu]` table).
 #[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
@@ -94,32 +94,6 @@ pub fn imu_seed(scenario_seed: u64) -> u64 {
     r.next_u64()
 }
 
-/// SplitMix64 (Steele, Lea and Flood 2014): 64-bit state, full period. Shared with the pod
-/// node ([`crate::pods`]).
-#[derive(Debug, Clone, Copy)]
-pub(crate) struct SplitMix64(pub(crate) u64);
-
-impl SplitMix64 {
-    pub(crate) fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in `(0, 1]`: 53 random bits, never 0 (a logarithm follows).
-    fn unit_open(&mut self) -> f64 {
-        ((self.next_u64() >> 11) + 1) as f64 * (1.0 / (1u64 << 53) as f64)
-    }
-
-    /// A standard normal number (Box–Muller, one of the pair).
-    pub(crate) fn normal(&mut self) -> f64 {
-        let (u1, u2) = (self.unit_open(), self.unit_open());
-        libm::sqrt(-2.0 * libm::log(u1)) * libm::cos(std::f64::consts::TAU * u2)
-    }
-}
-
 /// The IMU node: its schedule, counter, generator and the frames not yet collected.
 #[derive(Debug, Clone)]
 pub struct ImuNode {
@@ -167,7 +141,7 @@ impl ImuNode {
 
     fn schedule_next(&mut self) {
         self.k += 1;
-        self.next_ns = crate::plant::round(self.k as f64 * 1e9 / self.params.rate_hz) as u64;
+        self.next_ns = crate::nodes::plant::round(self.k as f64 * 1e9 / self.params.rate_hz) as u64;
     }
 
     /// Takes the sample due now (`now_ns` = [`Self::next_ns`]) of the true yaw rate
@@ -236,7 +210,7 @@ impl SensorNode for ImuNode {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sim::test_plant::Moving;
+    use crate::nodes::test_plant::Moving;
 
     fn frames(params: ImuParams, seed: u64, ms: u64) -> Vec<(u64, f32, u8)> {
         let mut plant = Moving::new([0.0, 0.0, 0.5]);

@@ -1,18 +1,17 @@
-//! The host node of a scenario: the robot's commander on the bus, as the simulator runs it.
+//! The host node: the robot's commander on the bus, as the simulator runs it.
 //!
-//! It performs the scenario's timed actions (enable, disable, reset, e-stop, status and
-//! wheel-test requests), streams `TWIST_CMD` at the scenario's command rate with an alive
-//! counter (`seq`, one more per fresh frame), and injects the scenario's host faults: during a
-//! `repeated_twist` fault it sends its last frame again, unchanged; during a
-//! `non_finite_twist` fault three frames with a NaN and infinities each command period.
+//! It plays its script of timed actions (enable, disable, reset, e-stop, status and
+//! wheel-test requests: a scenario's actions, as the engine gives them), streams `TWIST_CMD`
+//! at its command rate with an alive counter (`seq`, one more per fresh frame), and injects
+//! its host faults: during a `repeated_twist` fault it sends its last frame again, unchanged;
+//! during a `non_finite_twist` fault three frames with a NaN and infinities each command
+//! period.
 //!
-//! The node only says what it sends and when ([`HostNode::frames_until`]); the runner that
-//! owns the bus queues the frames (hostsim's lockstep runner, boardsim's).
+//! The node only says what it sends and when ([`HostNode::frames_until`]); the engine that
+//! owns the bus queues the frames.
 
 use firmware::CanFrame;
-use firmware::protocol::robot::{self, Command, ModeRequest, TwistCmd};
-
-use crate::scenario::{FaultName, HostFault, Scenario};
+use firmware::protocol::robot::{self, Command, TwistCmd};
 
 /// The three `TWIST_CMD` frames a `non_finite_twist` fault injects, around the setpoint
 /// `twist`: `vx` NaN, `vy` +∞, `wz` −∞, as they reach the wire.
@@ -40,9 +39,9 @@ pub fn non_finite_twist_frames(twist: [f32; 3], seq: u8) -> [CanFrame; 3] {
     ]
 }
 
-/// What the host does at one moment.
+/// What the host does at one moment: one step of its script.
 #[derive(Debug, Clone, Copy, PartialEq)]
-enum HostAction {
+pub enum HostAction {
     /// Send this command once.
     Send(Command),
     /// Stream this twist from now on.
@@ -51,43 +50,35 @@ enum HostAction {
     Stream(bool),
 }
 
-/// The scenario's actions in time order, one host action each.
-fn expand_actions(s: &Scenario) -> Vec<(u64, HostAction)> {
-    let mut out = Vec::new();
-    for (t, a) in s.timed_actions() {
-        let mut push = |action| out.push((t, action));
-        for (flag, cmd) in [
-            (a.estop, Command::Estop),
-            (a.reset, Command::Mode(ModeRequest::Reset)),
-            (a.disable, Command::Mode(ModeRequest::Disable)),
-            (a.enable, Command::Mode(ModeRequest::Enable)),
-            (a.status_request, Command::StatusRequest),
-        ] {
-            if flag {
-                push(HostAction::Send(cmd));
-            }
-        }
-        if let Some(t) = a.wheel_test {
-            push(HostAction::Send(Command::WheelTest(robot::WheelTest {
-                wheel: t.wheel,
-                speed: t.speed,
-                duration_ms: t.duration_ms,
-            })));
-        }
-        if let Some(tw) = a.twist {
-            push(HostAction::Twist(tw));
-        }
-        if a.silence {
-            push(HostAction::Stream(false));
-        }
-        if a.resume {
-            push(HostAction::Stream(true));
-        }
-    }
-    out
+/// What a host fault sends.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum HostFaultKind {
+    /// `non_finite_twist`: [`non_finite_twist_frames`] once per command period.
+    NonFiniteTwist,
+    /// `repeated_twist`: the last twist frame again, unchanged, instead of a fresh one.
+    RepeatedTwist,
 }
 
-/// The host of a scenario. See the [module documentation](self).
+/// A host fault: what, when.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct HostFault {
+    /// What it sends.
+    pub kind: HostFaultKind,
+    /// Start, µs.
+    pub from_us: u64,
+    /// End, µs.
+    pub until_us: u64,
+}
+
+impl HostFault {
+    /// Whether the fault is active at `t_us`.
+    #[must_use]
+    pub const fn active(&self, t_us: u64) -> bool {
+        self.from_us <= t_us && t_us < self.until_us
+    }
+}
+
+/// The host node. See the [module documentation](self).
 #[derive(Debug, Clone)]
 pub struct HostNode {
     actions: Vec<(u64, HostAction)>,
@@ -106,20 +97,22 @@ pub struct HostNode {
 }
 
 impl HostNode {
-    /// The host of `scenario`, before its first action.
+    /// A host that plays `script` (time µs, action; in time order), streams its twist every
+    /// `command_hz`-th of a second and injects `faults`; before its first action.
     #[must_use]
-    pub fn new(scenario: &Scenario) -> Self {
+    pub fn new(script: Vec<(u64, HostAction)>, command_hz: f64, faults: Vec<HostFault>) -> Self {
+        let next_injection_us = faults.iter().map(|f| f.from_us).collect();
         Self {
-            actions: expand_actions(scenario),
-            faults: scenario.host_faults.clone(),
+            actions: script,
+            faults,
             twist: [0.0; 3],
             streaming: false,
             seq: 0,
             last_twist: None,
             next_action: 0,
-            command_period_us: (1e6 / scenario.command_hz).round().max(1.0) as u64,
+            command_period_us: (1e6 / command_hz).round().max(1.0) as u64,
             next_command_us: 0,
-            next_injection_us: scenario.host_faults.iter().map(|f| f.from_us).collect(),
+            next_injection_us,
         }
     }
 
@@ -163,7 +156,7 @@ impl HostNode {
             let repeating = self
                 .faults
                 .iter()
-                .any(|f| f.kind == FaultName::RepeatedTwist && f.active(at_us));
+                .any(|f| f.kind == HostFaultKind::RepeatedTwist && f.active(at_us));
             let frame = match self.last_twist {
                 Some(last) if repeating => last,
                 _ => {
@@ -184,7 +177,7 @@ impl HostNode {
             self.next_command_us += self.command_period_us;
         }
         for (fault, next_us) in self.faults.iter().zip(&mut self.next_injection_us) {
-            if fault.kind != FaultName::NonFiniteTwist {
+            if fault.kind != HostFaultKind::NonFiniteTwist {
                 continue;
             }
             while *next_us <= t_us && *next_us < fault.until_us {

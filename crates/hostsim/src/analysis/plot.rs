@@ -11,16 +11,7 @@ use plotters::coord::Shift;
 use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 
-/// One sample of the trajectories: time s, truth `[x, y]`, odometry `[x, y]`.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct TrackPoint {
-    /// Simulated time, s.
-    pub t: f64,
-    /// Ground-truth position, m.
-    pub truth: [f64; 2],
-    /// Odometry position, m.
-    pub odom: [f64; 2],
-}
+use crate::engine::TrackPoint;
 
 /// Why the plot could not be drawn.
 #[derive(Debug, thiserror::Error)]
@@ -271,9 +262,9 @@ pub struct LoggedTrack {
     /// The track.
     pub points: Vec<TrackPoint>,
     /// What was read, and where the log is damaged if it is (the track is its complete part).
-    pub read: crate::log::ReadReport,
+    pub read: drivelog::ReadReport,
     /// The odometry messages that did not decode.
-    pub undecodable: crate::log::Undecodable,
+    pub undecodable: drivelog::Undecodable,
 }
 
 /// A logged run's track: the odometry (`/odom`) and the ground truth (`/ground_truth/odom`)
@@ -283,12 +274,12 @@ pub struct LoggedTrack {
 /// A description naming the file if it cannot be read, is not MCAP, or has no odometry and
 /// ground truth at the same times.
 pub fn track_from_log(path: &Path) -> Result<LoggedTrack, String> {
-    use crate::log::msg;
-    let bytes = crate::log::read::read_log_file(path)
+    use drivelog::msg;
+    let bytes = drivelog::read::read_log_file(path)
         .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
     let (mut odom, mut truth) = (Vec::new(), Vec::new());
-    let mut undecodable = crate::log::Undecodable::default();
-    let read = crate::log::for_each_message(
+    let mut undecodable = drivelog::Undecodable::default();
+    let read = drivelog::for_each_message(
         &bytes,
         |m| {
             let list = match m.topic {

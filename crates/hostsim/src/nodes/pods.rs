@@ -12,7 +12,7 @@
 //! count = floor(angle / 2π · counts_per_turn) mod 65536
 //! ```
 //!
-//! `T` is the chassis's own integral ([`Chassis::body_travel`](crate::plant::Chassis::body_travel)),
+//! `T` is the chassis's own integral ([`Chassis::body_travel`](crate::nodes::plant::Chassis::body_travel)),
 //! exact in every substep the pose is integrated with, not only at the frames; `noise` is
 //! white noise on the travel rate of density `noise` (m/s/√Hz: the travel random-walks by
 //! `noise · √t`), one independent draw per pod and sample, from a SplitMix64 generator
@@ -20,7 +20,7 @@
 //! frames, bit for bit, on every machine. At every `k / rate_hz` (k = 1, 2, ...) the node
 //! sends the counts with `seq` counting up from 0 (mod 256), unless a `pods_silent` fault
 //! holds it (the counts and `seq` go on; nothing is sent). [`WithPods`] puts it beside any
-//! [`SimPlant`] ([`crate::sensor::WithNode`]) and hands its frames to the runner
+//! [`SimPlant`] ([`crate::nodes::sensor::WithNode`]) and hands its frames to the runner
 //! ([`SimPlant::node_frames`], the bus node
 //! [`Node::Pods`]); without pods it only passes every call through.
 
@@ -29,10 +29,9 @@ use firmware::config::{PODS_MAX, PodConfig};
 use firmware::protocol::robot::{Command, PodCounts};
 use serde::Deserialize;
 
-use crate::bus::Node;
-use crate::imu::SplitMix64;
-use crate::sensor::{SensorNode, WithNode};
-use crate::sim::SimPlant;
+use crate::bus::{Node, SplitMix64};
+use crate::nodes::SimPlant;
+use crate::nodes::sensor::{SensorNode, WithNode};
 
 /// The pod node of a scenario (its `[pods]` table). The pods themselves are the robot
 /// configuration's (`[[odometry.pods]]`); this says how the true ones differ.
@@ -265,7 +264,7 @@ impl PodNode {
 
     fn schedule_next(&mut self) {
         self.k += 1;
-        self.next_ns = crate::plant::round(self.k as f64 * 1e9 / self.rate_hz) as u64;
+        self.next_ns = crate::nodes::plant::round(self.k as f64 * 1e9 / self.rate_hz) as u64;
     }
 
     /// Takes the sample due now (`now_ns` = [`Self::next_ns`]) of the body's travel since the
@@ -309,27 +308,6 @@ impl<'a, P: SimPlant> WithNode<'a, P, PodNode> {
     /// `plant` with the pod node `node` (none: a pass-through). The plant must be at time 0.
     pub fn new(plant: &'a mut P, node: Option<PodNode>) -> Self {
         Self::with(plant, node)
-    }
-
-    /// `plant` with the pod node of `scenario`: its `[pods]` on the configuration's pods,
-    /// seeded with [`pods_seed`]`(scenario.seed)`, silent in its `pods_silent` faults; none
-    /// without a `[pods]` table or without configured pods.
-    pub fn for_scenario(plant: &'a mut P, scenario: &crate::scenario::Scenario) -> Self {
-        let nominal = scenario.config.odometry.pods;
-        let node = scenario
-            .pods
-            .as_ref()
-            .filter(|_| !nominal.is_empty())
-            .map(|params| {
-                PodNode::new(params, nominal.as_slice(), pods_seed(scenario.seed)).silenced(
-                    scenario
-                        .node_faults
-                        .iter()
-                        .filter(|f| f.kind == crate::scenario::FaultName::PodsSilent)
-                        .map(|f| (f.from_us * 1000, f.until_us.saturating_mul(1000))),
-                )
-            });
-        Self::new(plant, node)
     }
 
     /// The pod node, if there is one.
@@ -379,7 +357,7 @@ mod tests {
     use std::f64::consts::TAU;
 
     use super::*;
-    use crate::sim::test_plant::Moving;
+    use crate::nodes::test_plant::Moving;
 
     const R: f32 = 0.024;
     const CPT: u32 = 2000;

@@ -7,8 +7,8 @@ use firmware::config::PODS_MAX;
 use kinematics::Pose2;
 
 use super::CalibrateError;
-use crate::log::msg::{self, decode};
-use crate::log::{Message, ReadReport, for_each_message};
+use drivelog::msg::{self, decode};
+use drivelog::{Message, ReadReport, for_each_message};
 
 /// A pose track: log time (ns) and pose, in time order.
 pub(super) type Track = Vec<(u64, Pose2<f64>)>;
@@ -49,7 +49,7 @@ pub(super) fn read_log(
         bytes,
         |m| d.take(m, reference),
         |name, kv| {
-            if name == crate::log::METADATA_NAME {
+            if name == drivelog::METADATA_NAME {
                 config = kv.get("config").cloned();
             }
         },
@@ -132,12 +132,12 @@ impl LogData {
             let i = j.name.iter().position(|n| n == name)?;
             j.position.get(i).copied()
         };
-        let [fl, fr, rl, rr] = crate::log::WHEEL_NAMES.map(angle);
+        let [fl, fr, rl, rr] = drivelog::WHEEL_NAMES.map(angle);
         if let (Some(fl), Some(fr), Some(rl), Some(rr)) = (fl, fr, rl, rr) {
             self.joints.push(Joints {
                 t: m.log_time,
                 wheels: [fl, fr, rl, rr],
-                pods: crate::log::POD_NAMES.map(angle),
+                pods: drivelog::POD_NAMES.map(angle),
             });
         }
     }

@@ -9,7 +9,7 @@ use firmware::config::Geometry;
 use serde::Serialize;
 
 use super::pods::{self, PodFit};
-use crate::log::ReadReport;
+use drivelog::ReadReport;
 
 /// One axis's fit.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]

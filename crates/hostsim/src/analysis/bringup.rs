@@ -21,10 +21,11 @@ use firmware::control::Fault;
 use firmware::protocol::robot::{self, RobotState, WheelTestResult};
 use serde::Serialize;
 
-use crate::drives::SimDrives;
-use crate::plant::ParamError;
-use crate::scenario::{Action, PlantSpec, Scenario, ScenarioError, WheelTestSpec};
-use crate::sim::{LogOptions, SimError, run_observed};
+use crate::engine::{LogOptions, SimError, run_observed};
+use crate::nodes::drives::SimDrives;
+use crate::nodes::plant::ParamError;
+use crate::nodes::plant::PlantSpec;
+use crate::scenario::{Action, Scenario, ScenarioError, WheelTestSpec};
 
 /// Why the simulated check could not run.
 #[derive(Debug, thiserror::Error)]

@@ -15,7 +15,7 @@
 //! - [`odrive`]: an ODrive axis (velocity loop, watchdog, 10 ms encoder estimates, 100 ms
 //!   heartbeat).
 //! - [`cia402`]: a CiA 402 drive's hub-motor axis (the CANopen node around it is the
-//!   adapter's, `crate::canopen_drive`).
+//!   adapter's, `crate::nodes::drives::canopen`).
 //!
 //! Wheel order is FL, FR, RL, RR ([`Wheel`]). How the drives' mounting signs and gear ratios
 //! couple them to the wheels, when feedback is due ([`Plant::take_feedback`]) and what the
@@ -26,6 +26,7 @@ pub mod cia402;
 pub mod dji;
 pub mod error;
 pub mod odrive;
+mod spec;
 
 use kinematics::{ChassisVelocity, Pose2};
 
@@ -34,6 +35,7 @@ pub use cia402::{Cia402Axis, Cia402Params};
 pub use dji::{C620Params, DjiDrive, DjiFeedback, M3508Params};
 pub use error::ParamError;
 pub use odrive::{OdriveAxis, OdriveFeedback, OdriveParams};
+pub use spec::PlantSpec;
 
 /// Number of wheels.
 pub const WHEELS: usize = 4;

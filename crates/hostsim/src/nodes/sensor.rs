@@ -1,5 +1,5 @@
 //! A sensor node on the plant: [`WithNode`] puts a node that samples the plant at instants
-//! of its own (the IMU, [`crate::imu`]; the tracking pods, [`crate::pods`]) beside any
+//! of its own (the IMU, [`crate::nodes::imu`]; the tracking pods, [`crate::nodes::pods`]) beside any
 //! [`SimPlant`], and hands its frames to the runner ([`SimPlant::node_frames`]).
 //!
 //! The wrapper advances the plant to each sample instant, so a sample carries the state of
@@ -11,7 +11,7 @@
 use firmware::CanFrame;
 
 use crate::bus::Node;
-use crate::sim::{DriveFaults, SimPlant};
+use crate::nodes::{DriveFaults, SimPlant};
 
 /// A node that samples the plant at instants of its own and sends frames as bus node
 /// [`Self::NODE`].
@@ -91,10 +91,10 @@ impl<P: SimPlant, N: SensorNode> SimPlant for WithNode<'_, P, N> {
         if self.node.is_none() {
             // Exactly the plant's own step, as without the node.
             self.inner.advance(dt);
-            self.now_ns += crate::plant::round(dt * 1e9) as u64;
+            self.now_ns += crate::nodes::plant::round(dt * 1e9) as u64;
             return;
         }
-        self.advance_ns(crate::plant::round(dt * 1e9) as u64);
+        self.advance_ns(crate::nodes::plant::round(dt * 1e9) as u64);
     }
 
     fn advance_ns(&mut self, dt_ns: u64) {
