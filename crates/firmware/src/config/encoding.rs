@@ -56,6 +56,7 @@ impl Config {
             out: [0; ENCODED_LEN],
             at: 0,
         };
+        // Every field, so that a new one cannot be left out.
         let Self {
             geometry,
             drive,
@@ -66,156 +67,15 @@ impl Config {
         } = *self;
         w.u8(FORMAT);
         let start = w.at;
-        match geometry {
-            Geometry::Standard {
-                lx,
-                ly,
-                wheel_radius,
-                ..
-            } => {
-                w.u8(0);
-                w.f32s(&[lx, ly, wheel_radius]);
-            }
-            Geometry::General { wheels, .. } => {
-                w.u8(1);
-                for WheelConfig {
-                    x,
-                    y,
-                    axle_angle,
-                    roller_angle,
-                    radius,
-                } in wheels
-                {
-                    w.f32s(&[x, y, axle_angle, roller_angle, radius]);
-                }
-            }
-        }
-        // The factors at the end of the geometry's bytes, whichever the layout.
-        w.at = start + GEOMETRY_LEN - 3 * 4;
-        w.f32s(&geometry.effectiveness().as_array());
-        // Both drives in one layout, as `decode` reads it: protocol, ESC model (0 for ODrive),
-        // ids, gear ratio, inversion bits, then the ODrive's ramp flag (0 for DJI).
-        let (protocol, model, ids, gear_ratio, inverted, vel_ramp) = match drive {
-            Drive::Dji {
-                model,
-                esc_ids,
-                gear_ratio,
-                inverted,
-            } => {
-                let model = match model {
-                    EscModel::C620 => 0,
-                    EscModel::C610 => 1,
-                };
-                (0, model, esc_ids, gear_ratio, inverted, false)
-            }
-            Drive::Odrive {
-                node_ids,
-                gear_ratio,
-                inverted,
-                vel_ramp,
-            } => (1, 0, node_ids, gear_ratio, inverted, vel_ramp),
-            Drive::Cia402(Cia402Drive {
-                node_ids,
-                gear_ratio,
-                inverted,
-                ..
-            }) => (2, 0, node_ids, gear_ratio, inverted, false),
-        };
-        w.u8(protocol);
-        w.u8(model);
-        w.bytes(&ids);
-        w.f32s(&[gear_ratio]);
-        w.u8(bits(inverted));
-        w.u8(u8::from(vel_ramp));
-        if let Drive::Cia402(Cia402Drive {
-            axes,
-            target_rpm_per_unit,
-            actual_rpm_per_unit,
-            master_node,
-            heartbeat_ms,
-            heartbeat_timeout_ms,
-            ..
-        }) = drive
-        {
-            w.bytes(&axes);
-            w.f32s(&[target_rpm_per_unit, actual_rpm_per_unit]);
-            w.u8(master_node);
-            w.bytes(&heartbeat_ms.to_le_bytes());
-            w.bytes(&heartbeat_timeout_ms.to_le_bytes());
-        }
+        w.geometry(geometry);
+        w.at = start + GEOMETRY_LEN;
+        w.drive(drive);
         w.at = start + GEOMETRY_LEN + DRIVE_LEN;
-        let Limits {
-            max_linear_speed,
-            max_angular_speed,
-            max_linear_accel,
-            max_angular_accel,
-            stop_linear_decel,
-            stop_angular_decel,
-            max_wheel_speed,
-            max_current,
-        } = limits;
-        w.f32s(&[
-            max_linear_speed,
-            max_angular_speed,
-            max_linear_accel,
-            max_angular_accel,
-            stop_linear_decel,
-            stop_angular_decel,
-            max_wheel_speed,
-            max_current,
-        ]);
+        w.limits(limits);
         let Gains { kp, ki, kv } = gains;
         w.f32s(&[kp, ki, kv]);
-        let Timing {
-            control_hz,
-            odometry_hz,
-            status_hz,
-            setpoint_hz,
-            command_timeout_ms,
-            boot_timeout_ms,
-            stale_periods,
-        } = timing;
-        for v in [
-            control_hz,
-            odometry_hz,
-            status_hz,
-            setpoint_hz,
-            command_timeout_ms,
-            boot_timeout_ms,
-            stale_periods,
-        ] {
-            w.bytes(&v.to_le_bytes());
-        }
-        let OdometryConfig {
-            heading_source,
-            gyro_timeout_ms,
-            gyro_standstill_ms,
-            gyro_bias_estimation,
-            source,
-            pod_timeout_ms,
-            pods,
-        } = odometry;
-        w.u8(match heading_source {
-            HeadingMode::Wheels => 0,
-            HeadingMode::Gyro => 1,
-        });
-        w.bytes(&gyro_timeout_ms.to_le_bytes());
-        w.bytes(&gyro_standstill_ms.to_le_bytes());
-        w.u8(u8::from(gyro_bias_estimation));
-        w.u8(match source {
-            OdometryMode::Wheels => 0,
-            OdometryMode::Pods2Gyro => 1,
-            OdometryMode::Pods3 => 2,
-        });
-        w.bytes(&pod_timeout_ms.to_le_bytes());
-        // At most PODS_MAX, so the count fits a byte.
-        w.u8(pods.len() as u8);
-        for i in 0..PODS_MAX {
-            // Unused slots are zeros.
-            let pod = pods.as_slice().get(i).copied().unwrap_or_default();
-            w.f32s(&[pod.x, pod.y, pod.direction_deg, pod.radius]);
-            w.bytes(&pod.counts_per_turn.to_le_bytes());
-        }
+        w.timing(timing);
+        w.odometry(odometry);
         debug_assert_eq!(w.at, ENCODED_LEN);
         w.out
     }
@@ -467,6 +327,182 @@ fn pick<T: Copy, const N: usize>(
         .get(usize::from(raw))
         .copied()
         .ok_or_else(|| tag(field, raw, expected))
+}
+
+impl Writer {
+    /// The geometry: its layout's tag and values, then the three effectiveness factors at the
+    /// end of the geometry's bytes, whichever the layout.
+    fn geometry(&mut self, geometry: Geometry) {
+        let w = self;
+        let start = w.at;
+        match geometry {
+            Geometry::Standard {
+                lx,
+                ly,
+                wheel_radius,
+                ..
+            } => {
+                w.u8(0);
+                w.f32s(&[lx, ly, wheel_radius]);
+            }
+            Geometry::General { wheels, .. } => {
+                w.u8(1);
+                for WheelConfig {
+                    x,
+                    y,
+                    axle_angle,
+                    roller_angle,
+                    radius,
+                } in wheels
+                {
+                    w.f32s(&[x, y, axle_angle, roller_angle, radius]);
+                }
+            }
+        }
+        w.at = start + GEOMETRY_LEN - 3 * 4;
+        w.f32s(&geometry.effectiveness().as_array());
+    }
+
+    /// The drive: both protocols in one layout, then the CiA 402 drive's own fields.
+    fn drive(&mut self, drive: Drive) {
+        let w = self;
+        // Both drives in one layout, as `decode` reads it: protocol, ESC model (0 for ODrive),
+        // ids, gear ratio, inversion bits, then the ODrive's ramp flag (0 for DJI).
+        let (protocol, model, ids, gear_ratio, inverted, vel_ramp) = match drive {
+            Drive::Dji {
+                model,
+                esc_ids,
+                gear_ratio,
+                inverted,
+            } => {
+                let model = match model {
+                    EscModel::C620 => 0,
+                    EscModel::C610 => 1,
+                };
+                (0, model, esc_ids, gear_ratio, inverted, false)
+            }
+            Drive::Odrive {
+                node_ids,
+                gear_ratio,
+                inverted,
+                vel_ramp,
+            } => (1, 0, node_ids, gear_ratio, inverted, vel_ramp),
+            Drive::Cia402(Cia402Drive {
+                node_ids,
+                gear_ratio,
+                inverted,
+                ..
+            }) => (2, 0, node_ids, gear_ratio, inverted, false),
+        };
+        w.u8(protocol);
+        w.u8(model);
+        w.bytes(&ids);
+        w.f32s(&[gear_ratio]);
+        w.u8(bits(inverted));
+        w.u8(u8::from(vel_ramp));
+        if let Drive::Cia402(Cia402Drive {
+            axes,
+            target_rpm_per_unit,
+            actual_rpm_per_unit,
+            master_node,
+            heartbeat_ms,
+            heartbeat_timeout_ms,
+            ..
+        }) = drive
+        {
+            w.bytes(&axes);
+            w.f32s(&[target_rpm_per_unit, actual_rpm_per_unit]);
+            w.u8(master_node);
+            w.bytes(&heartbeat_ms.to_le_bytes());
+            w.bytes(&heartbeat_timeout_ms.to_le_bytes());
+        }
+    }
+
+    /// The limits, every field in declaration order.
+    fn limits(&mut self, limits: Limits) {
+        let w = self;
+        let Limits {
+            max_linear_speed,
+            max_angular_speed,
+            max_linear_accel,
+            max_angular_accel,
+            stop_linear_decel,
+            stop_angular_decel,
+            max_wheel_speed,
+            max_current,
+        } = limits;
+        w.f32s(&[
+            max_linear_speed,
+            max_angular_speed,
+            max_linear_accel,
+            max_angular_accel,
+            stop_linear_decel,
+            stop_angular_decel,
+            max_wheel_speed,
+            max_current,
+        ]);
+    }
+
+    /// The timing, every field in declaration order.
+    fn timing(&mut self, timing: Timing) {
+        let w = self;
+        let Timing {
+            control_hz,
+            odometry_hz,
+            status_hz,
+            setpoint_hz,
+            command_timeout_ms,
+            boot_timeout_ms,
+            stale_periods,
+        } = timing;
+        for v in [
+            control_hz,
+            odometry_hz,
+            status_hz,
+            setpoint_hz,
+            command_timeout_ms,
+            boot_timeout_ms,
+            stale_periods,
+        ] {
+            w.bytes(&v.to_le_bytes());
+        }
+    }
+
+    /// The odometry: heading source, gyro times and flag, source, pod timeout and count,
+    /// then every pod slot (unused ones zeros).
+    fn odometry(&mut self, odometry: OdometryConfig) {
+        let w = self;
+        let OdometryConfig {
+            heading_source,
+            gyro_timeout_ms,
+            gyro_standstill_ms,
+            gyro_bias_estimation,
+            source,
+            pod_timeout_ms,
+            pods,
+        } = odometry;
+        w.u8(match heading_source {
+            HeadingMode::Wheels => 0,
+            HeadingMode::Gyro => 1,
+        });
+        w.bytes(&gyro_timeout_ms.to_le_bytes());
+        w.bytes(&gyro_standstill_ms.to_le_bytes());
+        w.u8(u8::from(gyro_bias_estimation));
+        w.u8(match source {
+            OdometryMode::Wheels => 0,
+            OdometryMode::Pods2Gyro => 1,
+            OdometryMode::Pods3 => 2,
+        });
+        w.bytes(&pod_timeout_ms.to_le_bytes());
+        // At most PODS_MAX, so the count fits a byte.
+        w.u8(pods.len() as u8);
+        for i in 0..PODS_MAX {
+            // Unused slots are zeros.
+            let pod = pods.as_slice().get(i).copied().unwrap_or_default();
+            w.f32s(&[pod.x, pod.y, pod.direction_deg, pod.radius]);
+            w.bytes(&pod.counts_per_turn.to_le_bytes());
+        }
+    }
 }
 
 struct Writer {
