@@ -8,11 +8,14 @@ import os
 import pathlib
 import subprocess
 from collections.abc import Callable, Iterable
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 import cantools
 import pytest
 import vcan_robot
+
+if TYPE_CHECKING:
+    import vcan_cia402  # imported by the fixture that needs it (it checks its configuration)
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 DBC_DIR = ROOT / "dbc"
@@ -192,6 +195,7 @@ def can_utils() -> Callable[[str], str]:
 
 
 # --- vcan: the runner and the plant as processes (tests/vcan_robot.py) ----------------------
+# (or the runner and two CiA 402 drives: tests/vcan_cia402.py, `cia402_factory`).
 # Module-scoped, as each module's sessions are: a module gets its own configurations and
 # temporary directories.
 
@@ -248,6 +252,21 @@ def robot_factory(runner_bin: pathlib.Path, plant_bin: pathlib.Path, can_utils: 
             workdir=tmp_path_factory.mktemp(name),
             **kw,
         )
+
+    return make
+
+
+@pytest.fixture(scope="module")
+def cia402_factory(runner_bin: pathlib.Path, can_utils: Callable[[str], str], vcan: str,
+                   tmp_path_factory: pytest.TempPathFactory) -> Callable[..., vcan_cia402.Cia402Robot]:
+    """`make(name, **kw)`: a `vcan_cia402.Cia402Robot` on vcan0 running `vcan_cia402.CONFIG`
+    (tests/test_vcan_cia402.py, tests/test_vcan_cia402_outages.py), its files in a fresh
+    directory `name`; `kw` as `Cia402Robot` takes them."""
+    import vcan_cia402
+
+    def make(name: str, **kw: Any) -> vcan_cia402.Cia402Robot:
+        return vcan_cia402.Cia402Robot(runner=runner_bin, candump=can_utils("candump"), iface=vcan,
+                                       config=vcan_cia402.CONFIG, workdir=tmp_path_factory.mktemp(name), **kw)
 
     return make
 

@@ -285,7 +285,7 @@ def test_enable_service_enables_the_robot(session: Session) -> None:
 @pytest.mark.parametrize("name,vx,vy,wz", MOTIONS, ids=[m[0] for m in MOTIONS])
 def test_cmd_vel_motion_shows_in_odom(session: Session, name: str, vx: float, vy: float, wz: float) -> None:
     """Each /cmd_vel phase shows in /odom: its settled part moves at the commanded twist
-    (VEL_TOL, WZ_TOL) and covers the commanded path (PATH_TOL), as test_vcan_runner.py checks
+    (VEL_TOL, WZ_TOL) and covers the commanded path (PATH_TOL), as test_vcan_motion.py checks
     the robot's own frames."""
     published, on_bus, t1 = _window(session, name)
     t0 = on_bus + SETTLE_S

@@ -1,5 +1,5 @@
 """The firmware as the CANopen master of two CiA 402 drives on a real vcan0, for the tests
-marked `vcan` (tests/test_vcan_cia402.py).
+marked `vcan` (tests/test_vcan_cia402.py, tests/test_vcan_cia402_outages.py).
 
 `Cia402Robot` starts `mecanum-runner --iface vcan0 --config <a cia402 configuration>` (the
 control core, the master) and two simulated drives, `Cia402Peer`s of tests/cia402_peer.py
@@ -31,12 +31,18 @@ import pathlib
 import stat
 import struct
 import subprocess
+import time
+import tomllib
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import can
 from cia402_peer import DUAL_EDS, Cia402Peer
 from vcan_robot import READY_TIMEOUT_S, SLOW_CPU, STATE_DISABLED, STATE_FAULT, STATUS, Frame, Robot
+from vcan_robot import ANSWER_S, MODE_CMD, MODE_ENABLE, ROOT
+
+if TYPE_CHECKING:
+    import mecanum_drive
 
 #: The nodes of config/cia402.toml: node 1 the front wheels (axis 1 FL, axis 2 FR), node 2
 #: the rear (axis 1 RL, axis 2 RR).
@@ -289,3 +295,84 @@ class Cia402Robot(Robot):
     def nmt(self, t0: float = -math.inf, t1: float = math.inf) -> list[tuple[float, int, int]]:
         """NMT commands: (time, command, node)."""
         return [(f.t, f.data[0], f.data[1]) for f in self.of(NMT, t0, t1)]
+
+
+# --- the sessions of tests/test_vcan_cia402.py and tests/test_vcan_cia402_outages.py ----------
+
+#: The configuration every session runs: config/cia402.toml but for timing.stale_periods
+#: (its comments say why); nothing else may differ.
+CONFIG = pathlib.Path(__file__).resolve().parent / "cia402_vcan.toml"
+CFG = tomllib.loads(CONFIG.read_text())
+_EXAMPLE = tomllib.loads((ROOT / "config" / "cia402.toml").read_text())
+assert {**CFG, "timing": {**CFG["timing"], "stale_periods": None}} == {
+    **_EXAMPLE, "timing": {**_EXAMPLE["timing"], "stale_periods": None}}, (
+    f"{CONFIG} differs from config/cia402.toml in more than timing.stale_periods")
+
+CONTROL_PERIOD_S = 1.0 / float(CFG["timing"]["control_hz"])
+CYCLE_S = 1.0 / float(CFG["timing"]["setpoint_hz"])  # the CANopen cycle: SYNC, RPDOs, TPDOs
+TARGET_RPM_PER_UNIT = float(CFG["drive"]["target_rpm_per_unit"])
+GEAR = float(CFG["drive"]["gear_ratio"])
+SIGN = [-1.0 if inv else 1.0 for inv in CFG["drive"]["inverted"]]
+LX, LY = float(CFG["geometry"]["lx"]), float(CFG["geometry"]["ly"])
+RADIUS = float(CFG["geometry"]["wheel_radius"])
+RPM = 2 * math.pi / 60  # rad/s per rpm
+
+#: From a phase's first TWIST_CMD until its targets and the drives' velocities have settled:
+#: the acceleration limits (at most |dv| 0.64 m/s at 4 m/s², 1 rad/s at 12 rad/s²: 0.16 s),
+#: then the peer's motor (a 50 ms lag: within a tenth of a raw unit of 0.1 rpm after 12 time
+#: constants of a 300-unit step, 0.6 s); with margin.
+SETTLE_S = 0.9
+
+
+# --- the kinematics of the configuration (docs: kinematics::MecanumKinematics::standard) ----
+
+def wheel_speeds(vx: float, vy: float, wz: float) -> list[float]:
+    """FL, FR, RL, RR in rad/s, robot-forward positive."""
+    k = LX + LY
+    return [(vx - vy - k * wz) / RADIUS, (vx + vy + k * wz) / RADIUS,
+            (vx + vy - k * wz) / RADIUS, (vx - vy + k * wz) / RADIUS]
+
+
+def exact_targets(vx: float, vy: float, wz: float) -> list[float]:
+    """Each wheel's 0x60FF target before rounding, raw units (rpm / target_rpm_per_unit)."""
+    return [s * w * GEAR / RPM / TARGET_RPM_PER_UNIT for s, w in zip(SIGN, wheel_speeds(vx, vy, wz))]
+
+
+# --- the host's steps and the record's -------------------------------------------------------
+
+def reset_and_wait_disabled(api: mecanum_drive.Robot, session: Cia402Robot) -> None:
+    """`api.reset()`, then the robot's STATUS DISABLED, from the package's latest STATUS.
+
+    Not `api.wait_state("DISABLED")`: the package drops a STATUS stamped before its reset was
+    sent (tests/test_package.py), but one the runner sent after the reset reached its socket
+    and before its next step took it still reports FAULT; stored after the reset, it makes
+    `wait_state` raise RobotFault (through `check`), though the robot is DISABLED at its next
+    STATUS. Such a STATUS is kept in `session.notes["stale_after_reset"]` with its kernel
+    timestamp less the wall time the reset was sent (the tests check the STATUS frames on
+    candump's record)."""
+    session.marks["reset"] = time.time()
+    api.reset()
+    sent = time.time()
+    deadline = time.monotonic() + ANSWER_S
+    seen = set()
+    while True:
+        status = api.status
+        if status is not None and status.state == "DISABLED":
+            return
+        if status is not None and status.stamp not in seen:
+            seen.add(status.stamp)
+            session.notes.setdefault("stale_after_reset", []).append((status.state, status.fault, status.stamp - sent))
+        assert time.monotonic() < deadline, f"not DISABLED within {ANSWER_S} s of the reset: {status}"
+        time.sleep(0.005)
+
+
+def first(frames: list[Any], what: str) -> Any:
+    assert frames, f"no {what}"
+    return frames[0]
+
+
+def enable_frame(session: Cia402Robot, after: float) -> float:
+    """The candump time of the first MODE_CMD enable at or after `after` (a wall mark, less a
+    little: the mark is taken just before the API sends)."""
+    frames = [f for f in session.of(MODE_CMD, after - 0.01) if f.data == bytes([MODE_ENABLE])]
+    return float(first(frames, f"MODE_CMD enable after {after}").t)

@@ -121,7 +121,7 @@ MOTIONS = [
     ("rotation", 0.0, 0.0, 1.0),
     ("mix", 0.3, -0.2, 0.6),
 ]
-# The odometry against the commanded twist (tests/test_vcan_runner.py on the robot's frames,
+# The odometry against the commanded twist (tests/test_vcan_motion.py on the robot's frames,
 # tests/test_vcan_ros2.py on /odom). Settling after each change (acceleration limits 4 m/s²,
 # 12 rad/s², plus the wheel loops):
 SETTLE_S = 0.6
