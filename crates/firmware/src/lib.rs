@@ -52,6 +52,7 @@ pub mod control;
 pub mod frame;
 #[cfg(feature = "std")]
 pub mod input;
+pub mod params;
 pub mod protocol;
 pub mod stream_hash;
 
