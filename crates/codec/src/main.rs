@@ -13,6 +13,7 @@ mod commands {
     pub mod config_id;
     pub mod decode;
     pub mod golden;
+    pub mod params;
 }
 
 use std::io;
@@ -21,7 +22,7 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 use commands::decode::DecodeArgs;
-use commands::{config_id, decode, golden};
+use commands::{config_id, decode, golden, params};
 
 /// Decode CAN frames with the mecanum firmware's codecs, or print golden frames.
 ///
@@ -29,7 +30,8 @@ use commands::{config_id, decode, golden};
 /// C620/C610 (dbc/dji_c620.dbc), ODrive CAN Simple (dbc/odrive_cansimple.dbc) and, with
 /// `decode --canopen`, CANopen CiA 301/402 (dbc/cia402.dbc). `decode` reads candump lines and
 /// prints JSON lines; `golden` prints frames built by the encoders, for the Python tests to
-/// decode with cantools and the DBC files; `config-id` names the configuration a robot runs.
+/// decode with cantools and the DBC files; `config-id` names the configuration a robot runs;
+/// `params` lists the parameters a host reads and sets over CAN (or writes their EDS).
 /// `mecanum-codec help <COMMAND>` explains each.
 #[derive(Debug, Parser)]
 #[command(
@@ -89,6 +91,27 @@ enum Command {
         #[arg(required = true, value_name = "FILE")]
         files: Vec<PathBuf>,
     },
+    /// Print the robot's parameters, one JSON line each, or its EDS.
+    ///
+    /// The parameters a host reads and sets over CAN (firmware::params; docs/protocol.md,
+    /// section "Parameters"), one JSON line each:
+    ///     {"name":"gains.kp","index":8194,"sub":1,"type":"REAL32","unit":"A/(rad/s)",
+    ///      "low":0.0,"high":100.0,"change":"live","doc":"..."}
+    /// `change` is when it may change: live (in any state, at the next control step),
+    /// disabled (only while the robot is disabled) or fixed (read-only over CAN); `high` is
+    /// null where the parameter has no upper bound (inf is a setting). With --config each
+    /// line also has the configuration's "value" (null where it has no such field: another
+    /// geometry layout, a pod it does not have). With --eds prints the robot's object
+    /// dictionary as a CiA 306 EDS instead (dbc/mecanum_robot.eds is this output).
+    #[command(verbatim_doc_comment)]
+    Params {
+        /// A drive configuration (TOML) whose values to print.
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+        /// Print the EDS instead of JSON lines.
+        #[arg(long, conflicts_with = "config")]
+        eds: bool,
+    },
 }
 
 fn main() -> ExitCode {
@@ -97,6 +120,7 @@ fn main() -> ExitCode {
         Command::Decode(args) => decode::run(args.routing()),
         Command::Golden => golden::run(),
         Command::ConfigId { files } => return config_id::run(&files),
+        Command::Params { config, eds } => params::run(config.as_deref(), eds),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
