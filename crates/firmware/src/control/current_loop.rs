@@ -81,6 +81,25 @@ impl CurrentLoop {
         self.integral = [0.0; 4];
     }
 
+    /// New gains, bumpless: each integrator takes up the change of the proportional and
+    /// feed-forward terms at the last step's `setpoints` and `speeds`, so that the current
+    /// those give is the same with `new` as with `old` (within the limit `max`). The
+    /// integrator holds amperes (`ki` is inside its increments), so `ki` moves nothing.
+    pub(super) fn retune(
+        &mut self,
+        old: &Gains,
+        new: &Gains,
+        setpoints: [f32; 4],
+        speeds: [f32; 4],
+        max: f32,
+    ) {
+        for i in 0..4 {
+            let error = setpoints[i] - speeds[i];
+            let change = (new.kv - old.kv) * setpoints[i] + (new.kp - old.kp) * error;
+            self.integral[i] = symmetric_limit(self.integral[i] - change, max);
+        }
+    }
+
     /// One step of the velocity PI of the wheels in `mask` (bit i: wheel i; the others get no
     /// current, and their integrators are emptied) with the current limit `max`: the currents.
     #[inline]

@@ -4,8 +4,10 @@
 //!
 //! ```text
 //! on_frame ─► decode (typed; errors counted) ─► command.rs (robot commands)
+//!                                            ├► params.rs (parameter requests, kept)
 //!                                            └► dji.rs │ odrive.rs │ cia402/ (drives)
-//! step(now) ─► health.rs (missing / stale / drive error, the drive's watches → fault)
+//! step(now) ─► params.rs (the request kept served: a change in force from here)
+//!           ─► health.rs (missing / stale / drive error, the drive's watches → fault)
 //!           ─► command.rs (watchdog, acceleration limits), wheel_test.rs
 //!           ─► odometry.rs (wheel increments, the gyro's rotation → SE(2) pose)
 //!           ─► inverse kinematics ─► desaturation
@@ -30,6 +32,7 @@ mod dji;
 mod health;
 mod odometry;
 mod odrive;
+mod params;
 mod pods;
 mod telemetry;
 mod time;
@@ -52,6 +55,7 @@ pub use self::dji::{
 };
 pub use self::odometry::{GYRO_BIAS_MAX_SAMPLES, STANDSTILL_WHEEL_SPEED};
 pub use self::odrive::{ODRIVE_CLEAR_GRACE_US, ODRIVE_MAX_JUMP_FACTOR, ODRIVE_STATE_GRACE_US};
+pub use self::params::PARAM_NODE_DEFAULT;
 pub use self::pods::SLIP_TIME_CONSTANT_S;
 pub use self::telemetry::Snapshot;
 pub use self::time::Instant;
@@ -70,8 +74,9 @@ use crate::protocol::{DecodeError, RxErrorCounters};
 /// axes `Clear_Errors` (after a reset), three state commands (after an enable) and a velocity
 /// setpoint each (16), or for four CiA 402 nodes an SDO request, NMT start and RPDO1 each,
 /// SYNC and the master's heartbeat (14); plus odometry (2, and the slip with pods: 3), status,
-/// status counters and heartbeat (3), and a wheel test's result (1).
-pub const OUTBOX_CAPACITY: usize = 27;
+/// status counters and heartbeat (3), a wheel test's result (1) and the parameter service's
+/// response (1).
+pub const OUTBOX_CAPACITY: usize = 28;
 
 /// The frames one step emits, in the order they should be sent.
 pub type Outbox = heapless::Vec<CanFrame, OUTBOX_CAPACITY>;
@@ -255,6 +260,11 @@ pub struct Controller {
     steps: u64,
     status_requested: bool,
     status_seq: u8,
+
+    /// The parameter service's node id (`params.rs`).
+    param_node: u8,
+    /// A parameter request received, served at the next step's start.
+    param_request: Option<crate::protocol::canopen::SdoRequest>,
 }
 
 impl Controller {
@@ -355,6 +365,8 @@ impl Controller {
             steps: 0,
             status_requested: false,
             status_seq: 0,
+            param_node: params::node_of(config),
+            param_request: None,
         })
     }
 
@@ -429,6 +441,8 @@ impl Controller {
         if (robot::layout::ID_FIRST..=robot::layout::ID_LAST).contains(&raw_id) {
             let cmd = Command::decode(frame)?;
             self.on_command(now, cmd)
+        } else if self.is_param_request(raw_id) {
+            self.on_param_frame(frame)
         } else {
             self.drive
                 .on_frame(now, frame, &self.wheel_of, &mut self.wheels)
@@ -440,7 +454,7 @@ impl Controller {
     /// Call it once per period (`1 / timing.control_hz`) with a monotonic `now`; frames
     /// received since the previous call must have been passed to [`on_frame`](Self::on_frame).
     /// A loop that keeps its outbox calls [`step_into`](Self::step_into) instead: the outbox
-    /// is 26 frames, and moving it out of a call that is not inlined copies all of it.
+    /// is [`OUTBOX_CAPACITY`] frames, and moving it out of a call that is not inlined copies all of it.
     #[inline]
     pub fn step(&mut self, now: Instant) -> Outbox {
         // Inlined into the caller, so the frames are written straight into the caller's
@@ -454,6 +468,8 @@ impl Controller {
     /// loop that keeps one outbox from period to period.
     pub fn step_into(&mut self, now: Instant, out: &mut Outbox) {
         out.clear();
+        // A parameter change takes effect here, at the step's start, for the whole step.
+        let param_response = self.serve_param();
         let boot = *self.boot.get_or_insert(now);
         self.drive.step_started(now);
         self.check_motors(now, boot);
@@ -490,6 +506,9 @@ impl Controller {
         self.emit_drive(out, mask, setpoint_due);
         self.note_test_current();
         self.emit_robot_block(out, now, boot, due);
+        if let Some(frame) = param_response {
+            push(out, frame);
+        }
         self.steps += 1;
     }
 

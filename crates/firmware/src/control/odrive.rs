@@ -77,9 +77,7 @@ impl Odrive {
             nodes: node_ids.map(NodeId::new),
             gear_ratio,
             vel_ramp,
-            max_turns_per_us: ODRIVE_MAX_JUMP_FACTOR * max_wheel_speed * gear_ratio
-                / core::f32::consts::TAU
-                * 1e-6,
+            max_turns_per_us: max_turns_per_us(max_wheel_speed, gear_ratio),
             axes: [Axis::default(); 4],
             request: None,
             only: None,
@@ -87,6 +85,11 @@ impl Odrive {
             errors_cleared_at: None,
             closed_loop_at: None,
         }
+    }
+
+    /// A new `limits.max_wheel_speed` (rad/s), for the estimates' plausibility check.
+    pub(super) fn set_max_wheel_speed(&mut self, max_wheel_speed: f32) {
+        self.max_turns_per_us = max_turns_per_us(max_wheel_speed, self.gear_ratio);
     }
 
     /// Takes one frame from an axis into its wheel.
@@ -258,4 +261,9 @@ impl Odrive {
             }
         }
     }
+}
+
+/// The largest change of a position estimate per µs that is plausible at `max_wheel_speed`.
+fn max_turns_per_us(max_wheel_speed: f32, gear_ratio: f32) -> f32 {
+    ODRIVE_MAX_JUMP_FACTOR * max_wheel_speed * gear_ratio / core::f32::consts::TAU * 1e-6
 }

@@ -14,6 +14,7 @@ mod fight;
 mod gyro;
 mod odometry;
 mod odrive;
+mod params;
 mod pods;
 mod rejection;
 mod spec;
