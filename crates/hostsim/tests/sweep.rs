@@ -83,7 +83,7 @@ fn a_bad_name_or_value_fails_before_any_run() {
 fn ctrl_c_keeps_the_rows_finished() {
     let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("sweep-interrupted");
     let _ = std::fs::remove_dir_all(&out);
-    let child = hostsim()
+    let mut child = hostsim()
         .args([
             "sweep",
             "square",
@@ -99,6 +99,12 @@ fn ctrl_c_keeps_the_rows_finished() {
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
+    // Its first line comes once Ctrl-C is handled (not before: a fixed wait lost that race
+    // on a loaded machine); the runs are under way 1.5 s later, and the one in flight ends.
+    let mut stderr = std::io::BufReader::new(child.stderr.take().unwrap());
+    let mut line = String::new();
+    std::io::BufRead::read_line(&mut stderr, &mut line).unwrap();
+    assert!(line.starts_with("sweep of"), "{line}");
     std::thread::sleep(std::time::Duration::from_millis(1500));
     let killed = Command::new("kill")
         .args(["-INT", &child.id().to_string()])

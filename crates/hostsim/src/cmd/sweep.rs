@@ -147,6 +147,8 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
     } else {
         args.jobs
     };
+    // Ctrl-C stops starting runs from here on: the line below says so to whoever waits on it.
+    let signal = mecanum_linux::stop_on_signals()?;
     eprintln!(
         "sweep of {:?}: {} runs ({} seeds x {} values) on {threads} threads",
         base.name,
@@ -155,7 +157,7 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
         runs.len() / seeds.len().max(1)
     );
     let wall = std::time::Instant::now();
-    let rows = run_all(&base, &runs, threads)?;
+    let rows = run_all(&base, &runs, threads, &signal)?;
     let interrupted = rows.len() < runs.len();
     let keys: Vec<String> = params.iter().map(|p| p.key.clone()).collect();
     let table = write_tables(csv, jsonl, &keys, &rows, interrupted)?;
@@ -199,8 +201,8 @@ fn run_all(
     base: &Scenario,
     runs: &[crate::analysis::sweep::RunSpec],
     threads: usize,
+    signal: &std::sync::atomic::AtomicUsize,
 ) -> Result<Vec<crate::analysis::sweep::Row>> {
-    let signal = mecanum_linux::stop_on_signals()?;
     let bar = ProgressBar::new(runs.len() as u64);
     bar.set_style(
         ProgressStyle::with_template("[{bar:40}] {pos}/{len} runs, {elapsed} elapsed, ETA {eta}")
