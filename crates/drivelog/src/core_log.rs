@@ -3,11 +3,14 @@
 //! in the DBC's names ([`StatusLog`]), and at a fixed cadence of control steps the core's
 //! snapshot (`/joint_states`, `/diagnostics`) and its odometry (`/odom`, `/tf`) with the
 //! ground truth beside it when the run has a simulated robot ([`CoreLog`]). The simulator and
-//! the runner feed a [`CoreLog`] their core at every step; `hostsim plant` and boardsim, which
+//! the runner feed a [`CoreLog`] their core at every step, and it says each parameter change
+//! ([`config_lines`]); `hostsim plant` and boardsim, which
 //! see the firmware only through its frames, feed a [`StatusLog`] and [`CoreLog::odometry`]
 //! what the frames say.
 
+use firmware::Config;
 use firmware::control::Controller;
+use firmware::params::{PARAMS, ParamType};
 use firmware::protocol::robot::{Fault, HeadingSource, RobotState};
 
 use crate::msg::Log;
@@ -44,6 +47,33 @@ pub fn heading_source_line(source: HeadingSource, gyro_timeout_ms: u32) -> (u8, 
         ),
         HeadingSource::Wheels => (Log::INFO, "heading source WHEELS".to_string()),
     }
+}
+
+/// The `/rosout` lines for the configuration in force changing from `old` to `new`: one per
+/// parameter whose value changed, `gains.kp 1.2 -> 1.5, config 0x1a2b -> 0x3c4d` (a value the
+/// configuration lacks is `-`).
+#[must_use]
+pub fn config_lines(old: &Config, new: &Config) -> Vec<String> {
+    let (old_id, new_id) = (old.id(), new.id());
+    let show = |ty: ParamType, raw: Option<u32>| match (ty, raw) {
+        (_, None) => "-".to_string(),
+        (ParamType::Real32, Some(raw)) => f32::from_bits(raw).to_string(),
+        (_, Some(raw)) => raw.to_string(),
+    };
+    PARAMS
+        .iter()
+        .filter_map(|p| {
+            let (a, b) = (p.read(old).ok(), p.read(new).ok());
+            (a != b).then(|| {
+                format!(
+                    "{} {} -> {}, config 0x{old_id:04x} -> 0x{new_id:04x}",
+                    p.name,
+                    show(p.ty, a),
+                    show(p.ty, b)
+                )
+            })
+        })
+        .collect()
 }
 
 /// The status last logged, and the lines its changes make.
@@ -97,6 +127,8 @@ pub type PoseTwist = ([f64; 3], [f64; 3]);
 #[derive(Debug, Clone)]
 pub struct CoreLog {
     status: StatusLog,
+    /// The configuration in force at the last step (`None` before the first).
+    config: Option<Config>,
     snapshot_every: u32,
     pose_every: u32,
     steps: u64,
@@ -109,6 +141,8 @@ pub struct Changes {
     pub state: bool,
     /// The heading source.
     pub heading: bool,
+    /// The configuration in force (a parameter set over CAN).
+    pub config: bool,
 }
 
 impl CoreLog {
@@ -118,6 +152,7 @@ impl CoreLog {
     pub const fn new(snapshot_every: u32, pose_every: u32) -> Self {
         Self {
             status: StatusLog::new(),
+            config: None,
             snapshot_every,
             pose_every,
             steps: 0,
@@ -206,6 +241,15 @@ impl CoreLog {
                 }
             }
         }
+        let config = *ctl.config();
+        if let Some(old) = self.config.replace(config).filter(|old| *old != config) {
+            changes.config = true;
+            if let Some(l) = log.as_deref_mut() {
+                for text in config_lines(&old, &config) {
+                    l.text(t_ns, Log::INFO, &text)?;
+                }
+            }
+        }
         let Some(log) = log else {
             return Ok(changes);
         };
@@ -268,5 +312,19 @@ mod tests {
         assert!(text.contains("for 100 ms"), "{text}");
         let mut booted = StatusLog::new().starting_in(RobotState::Disabled, Fault::None);
         assert_eq!(booted.state(RobotState::Disabled, Fault::None), None);
+    }
+
+    #[test]
+    fn a_parameter_change_is_one_line_with_both_values_and_both_ids() {
+        let old = Config::dji_m3508_example();
+        let mut new = old;
+        new.gains.kp = 1.5;
+        let want = format!(
+            "gains.kp 1.2 -> 1.5, config 0x{:04x} -> 0x{:04x}",
+            old.id(),
+            new.id()
+        );
+        assert_eq!(config_lines(&old, &new), [want]);
+        assert!(config_lines(&old, &old).is_empty());
     }
 }

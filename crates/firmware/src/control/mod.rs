@@ -55,7 +55,6 @@ pub use self::dji::{
 };
 pub use self::odometry::{GYRO_BIAS_MAX_SAMPLES, STANDSTILL_WHEEL_SPEED};
 pub use self::odrive::{ODRIVE_CLEAR_GRACE_US, ODRIVE_MAX_JUMP_FACTOR, ODRIVE_STATE_GRACE_US};
-pub use self::params::PARAM_NODE_DEFAULT;
 pub use self::pods::SLIP_TIME_CONSTANT_S;
 pub use self::telemetry::Snapshot;
 pub use self::time::Instant;
@@ -365,7 +364,7 @@ impl Controller {
             steps: 0,
             status_requested: false,
             status_seq: 0,
-            param_node: params::node_of(config),
+            param_node: crate::params::service_node(config),
             param_request: None,
         })
     }

@@ -13,29 +13,17 @@
 use embedded_can::Frame;
 
 use super::{Controller, DriveState, pods};
-use crate::config::{Config, Drive};
+use crate::config::Config;
 use crate::frame::CanFrame;
 use crate::params::{self, PARAMS};
 use crate::protocol::DecodeError;
 use crate::protocol::canopen::{self, Message, NodeId, SdoRequest, SdoResponse, abort_code};
 use crate::protocol::robot::{PROTOCOL_VERSION, RobotState};
 
-/// The robot's node id for its parameter service when its drives are not CANopen nodes (with
-/// CiA 402 drives it is their master's, `drive.master_node`).
-pub const PARAM_NODE_DEFAULT: u8 = 127;
-
 /// Abort code: the data type's length does not match the request's size.
 const WRONG_LENGTH: u32 = 0x0607_0010;
 /// Abort code: attempt to write a read-only object.
 const READ_ONLY: u32 = 0x0601_0002;
-
-/// The parameter service's node id for `config`.
-pub(super) fn node_of(config: &Config) -> u8 {
-    match config.drive {
-        Drive::Cia402(ref d) => d.master_node,
-        Drive::Dji { .. } | Drive::Odrive { .. } => PARAM_NODE_DEFAULT,
-    }
-}
 
 impl Controller {
     /// The node id of the robot's parameter service: requests on `0x600 + id`, responses on

@@ -16,8 +16,9 @@ mod tests;
 
 use core::fmt;
 
-use crate::config::{Config, ConfigError, PODS_MAX, PodConfig, Pods};
-use crate::protocol::canopen::abort_code;
+use crate::config::{Config, ConfigError, Drive, PODS_MAX, PodConfig, Pods};
+use crate::frame::CanFrame;
+use crate::protocol::canopen::{Message, NodeId, SdoRequest, abort_code};
 
 pub use table::PARAMS;
 
@@ -236,6 +237,20 @@ impl Param {
         (self.get)(config).ok_or(Refusal::Absent { name: self.name })
     }
 
+    /// The request that sets this parameter to `raw` on the service of node `node` (an
+    /// expedited SDO download of the type's size); `None` for a node id outside `1..=127`.
+    #[must_use]
+    pub fn download(&self, node: u8, raw: u32) -> Option<CanFrame> {
+        let request = SdoRequest::Download {
+            index: self.index,
+            sub: self.sub,
+            value: raw,
+            size: self.ty.size(),
+        };
+        let node = NodeId::new(node)?;
+        Some(Message::SdoRequest { node, request }.to_can_frame())
+    }
+
     /// `config` with this field set to `raw`, checked: the robot's state (`enabled`), the
     /// type, the declared range, then [`Config::validate`] on the whole configuration.
     ///
@@ -278,6 +293,20 @@ impl Param {
         }
         candidate.validate().map_err(Refusal::Invalid)?;
         Ok(candidate)
+    }
+}
+
+/// The robot's parameter service's node id when its drives are not CANopen nodes (with CiA
+/// 402 drives it is their master's, `drive.master_node`).
+pub const SERVICE_NODE_DEFAULT: u8 = 127;
+
+/// The node id of the robot's parameter service for `config`: requests on `0x600 + id`,
+/// responses on `0x580 + id`.
+#[must_use]
+pub const fn service_node(config: &Config) -> u8 {
+    match config.drive {
+        Drive::Cia402(ref d) => d.master_node,
+        Drive::Dji { .. } | Drive::Odrive { .. } => SERVICE_NODE_DEFAULT,
     }
 }
 
