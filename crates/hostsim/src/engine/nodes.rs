@@ -66,6 +66,7 @@ pub(crate) fn with_pods<'a, P: SimPlant>(plant: &'a mut P, scenario: &Scenario) 
 
 /// The scenario's actions in time order, one host action each.
 fn script(s: &Scenario) -> Vec<(u64, HostAction)> {
+    let node = firmware::params::service_node(&s.config);
     let mut out = Vec::new();
     for (t, a) in s.timed_actions() {
         let mut push = |action| out.push((t, action));
@@ -86,6 +87,16 @@ fn script(s: &Scenario) -> Vec<(u64, HostAction)> {
                 speed: t.speed,
                 duration_ms: t.duration_ms,
             })));
+        }
+        if let Some(set) = a.set
+            && let Some(frame) = set
+                .param
+                .0
+                .ty
+                .from_f64(set.value)
+                .and_then(|raw| set.param.0.download(node, raw))
+        {
+            push(HostAction::Frame(frame));
         }
         if let Some(tw) = a.twist {
             push(HostAction::Twist(tw));

@@ -1,7 +1,7 @@
 //! The host node: the robot's commander on the bus, as the simulator runs it.
 //!
 //! It plays its script of timed actions (enable, disable, reset, e-stop, status and
-//! wheel-test requests: a scenario's actions, as the engine gives them), streams `TWIST_CMD`
+//! wheel-test requests, parameter writes: a scenario's actions, as the engine gives them), streams `TWIST_CMD`
 //! at its command rate with an alive counter (`seq`, one more per fresh frame), and injects
 //! its host faults: during a `repeated_twist` fault it sends its last frame again, unchanged;
 //! during a `non_finite_twist` fault three frames with a NaN and infinities each command
@@ -48,6 +48,8 @@ pub enum HostAction {
     Twist([f32; 3]),
     /// Stop (`false`) or resume (`true`) streaming.
     Stream(bool),
+    /// Send this frame once (a parameter request to the robot's service).
+    Frame(CanFrame),
 }
 
 /// What a host fault sends.
@@ -137,6 +139,7 @@ impl HostNode {
         {
             match action {
                 HostAction::Send(cmd) => out.push((at_us * 1000, cmd.to_can_frame())),
+                HostAction::Frame(frame) => out.push((at_us * 1000, frame)),
                 HostAction::Twist(tw) => {
                     self.twist = tw;
                     self.streaming = true;

@@ -1,5 +1,6 @@
 //! `[[actions]]`: what the host does, and when.
 
+use firmware::params::{self, Param};
 use serde::Deserialize;
 
 use super::Invalid;
@@ -38,6 +39,41 @@ pub struct Action {
     /// Send a `WHEEL_TEST` (the bring-up check; a disabled robot runs it).
     #[serde(default)]
     pub wheel_test: Option<WheelTestSpec>,
+    /// Set a parameter over CAN (an SDO download to the robot's parameter service; the robot
+    /// may refuse it): `set = { param = "gains.kp", value = 1.5 }`.
+    #[serde(default)]
+    pub set: Option<ParamSet>,
+}
+
+/// A parameter write as a scenario writes it.
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ParamSet {
+    /// The parameter, by its name (`mecanum-codec params` lists them).
+    pub param: ParamName,
+    /// The value, in the parameter's unit (a whole number for an integer type).
+    pub value: f64,
+}
+
+/// A parameter of `firmware::params::PARAMS`, named in a scenario.
+#[derive(Debug, Clone, Copy)]
+pub struct ParamName(pub &'static Param);
+
+impl PartialEq for ParamName {
+    fn eq(&self, other: &Self) -> bool {
+        self.0.name == other.0.name
+    }
+}
+
+impl<'de> Deserialize<'de> for ParamName {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let name = String::deserialize(d)?;
+        params::find(&name).map(Self).ok_or_else(|| {
+            serde::de::Error::custom(format!(
+                "no parameter {name:?} (`mecanum-codec params` lists them)"
+            ))
+        })
+    }
 }
 
 /// A `WHEEL_TEST` as a scenario writes it: `wheel_test = { wheel = 0, speed = 3.0,
@@ -68,6 +104,7 @@ impl Action {
             silence: false,
             resume: false,
             wheel_test: None,
+            set: None,
         }
     }
 
@@ -112,6 +149,7 @@ pub(super) fn check(
             does(a.silence, "silence"),
             does(a.resume, "resume"),
             does(a.wheel_test.is_some(), "wheel_test"),
+            does(a.set.is_some(), "set"),
         ]
         .into_iter()
         .flatten()
@@ -125,8 +163,8 @@ pub(super) fn check(
                 &format!("actions[{i}]"),
                 format!("{{{}}}", commands.join(", ")),
                 "at least one of enable, disable, reset, estop, status_request, twist, \
-                 silence, resume, wheel_test, and not both enable and disable or silence \
-                 and resume",
+                 silence, resume, wheel_test, set, and not both enable and disable or \
+                 silence and resume",
             ));
         }
         if let Some(t) = a.twist
@@ -136,6 +174,16 @@ pub(super) fn check(
                 &format!("actions[{i}].twist"),
                 format!("{t:?}"),
                 "finite numbers",
+            ));
+        }
+        if let Some(s) = a.set
+            && s.param.0.ty.from_f64(s.value).is_none()
+        {
+            return Err(invalid.at(
+                &format!("actions[{i}].set.value"),
+                s.value.to_string(),
+                "a value the parameter's type holds (a whole number for an integer type, \
+                 0 or 1 for a flag)",
             ));
         }
         if let Some(t) = a.wheel_test {
