@@ -12,7 +12,7 @@ from typing import Any
 
 import can
 
-from . import protocol, ros2
+from . import params, protocol, ros2
 from .robot import NotResponding, Robot, RobotError
 
 #: Teleop: a key held down repeats (the terminal's auto-repeat); when no key has come for
@@ -50,6 +50,55 @@ def _robot(args: argparse.Namespace) -> Robot:
         return Robot.open(channel=channel, interface=interface, **kwargs)
     except (can.CanError, OSError, ValueError) as err:
         raise SystemExit(f"mecanum-drive: cannot open {interface} channel {channel}: {err}") from err
+
+
+def cmd_param(args: argparse.Namespace) -> int:
+    """`param get|set|list`: the robot's parameters over its SDO service (docs/protocol.md)."""
+    known = params.table()
+    names = args.names if args.action != "set" else [args.names[0]] if args.names else []
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise ValueError(f"no parameter {unknown[0]!r} (`mecanum-drive param list` lists them)")
+    if args.action == "list":
+        for p in known.values():
+            high = "" if p.high == math.inf else f"{p.high:g}"
+            print(f"{p.name:32} {p.change:8} {p.low:g}..{high}  {p.doc}")
+        return 0
+    if args.action == "set" and len(args.names) != 2:
+        raise ValueError("set takes a name and a value: param set gains.kp 1.5")
+    channel = args.channel or DEFAULT_CHANNEL
+    interface = args.interface or DEFAULT_INTERFACE
+    node = args.node
+    response = [{"can_id": 0x580 + node, "can_mask": 0x7FF, "extended": False}]
+    try:
+        bus = can.Bus(channel=channel, interface=interface, can_filters=response,
+                      **({"bitrate": args.bitrate} if args.bitrate else {}))
+    except (can.CanError, OSError, ValueError) as err:
+        raise SystemExit(f"mecanum-drive: cannot open {interface} channel {channel}: {err}") from err
+    with bus:
+        client = params.Client(bus, node=node, timeout=args.timeout)
+        if args.action == "set":
+            p, text = known[args.names[0]], args.names[1]
+            try:
+                value = float(text)
+            except ValueError:
+                raise ValueError(f"{p.name}: {text!r} is not a number") from None
+            client.set(p, value)
+            print(f"{p.name} = {client.get(p):g}")
+            return 0
+        values = {}
+        for name in names or known:
+            try:
+                values[name] = client.get(known[name])
+            except params.ParamError as err:
+                if names or "not in this configuration" not in str(err):
+                    raise
+        if args.json:
+            print(json.dumps(values))
+        else:
+            for name, value in values.items():
+                print(f"{name} = {value:g}")
+    return 0
 
 
 def _wait_first_status(robot: Robot, timeout: float) -> None:
@@ -378,6 +427,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_check)
 
     p = sub.add_parser(
+        "param", help="read and set the robot's parameters over CAN (gains, limits, timeouts, ...)",
+        description="The robot's parameters, read and set over its CANopen SDO service on node --node "
+        "(docs/protocol.md, \"Parameters\"). `list` prints every parameter with when it may change "
+        "(live: any time; disabled: only while the robot is disabled; fixed: not over CAN) and its range; "
+        "`get [NAME ...]` prints values (all the robot has without a name); `set NAME VALUE` sets one and "
+        "prints the value then in force. A refusal names the parameter and the reason (exit status 1).",
+    )
+    p.add_argument("action", choices=["list", "get", "set"], help="list, get or set")
+    p.add_argument("names", nargs="*", metavar="NAME [VALUE]", help="parameter names; for set, a name and a value")
+    p.add_argument("--node", type=int, default=params.DEFAULT_NODE,
+                   help=f"the robot's node id (default {params.DEFAULT_NODE}; with CiA 402 drives, drive.master_node)")
+    p.add_argument("--json", action="store_true", help="get: print one JSON object")
+    p.set_defaults(func=cmd_param)
+
+    p = sub.add_parser(
         "ros2", help="the ROS 2 bridge: /cmd_vel in; /odom, /tf, /diagnostics out; enable/disable/reset/estop services",
         description="The ROS 2 node mecanum_drive (needs the ros2 extra: pip install './python[ros2]', or a "
         "sourced ROS 2 installation). Runs until Ctrl-C or SIGTERM, then leaves the robot disabled.",
@@ -409,7 +473,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.ros_args = ros_args
     try:
         return int(args.func(args))
-    except (RobotError, TimeoutError, ValueError) as err:
+    except (RobotError, TimeoutError, ValueError, params.ParamError) as err:
         print(f"mecanum-drive {args.command}: {err}", file=sys.stderr)
         return 1
 
