@@ -23,10 +23,13 @@ import re
 import signal
 import struct
 import subprocess
+import sys
 import time
 from collections.abc import Iterable, Sequence
 
+import canopen
 import pytest
+from mecanum_drive import params as robot_params
 from vcan_robot import (
     DJI_CMD_1_4, FAULT_NONE, FAULT_WATCHDOG, HOST_STALLS, MODE_ENABLE, MODE_RESET, ODOM_VELOCITY,
     SLOW_CPU, STATE_DISABLED, STATE_ENABLED, STATE_ESTOP, STATUS, STATUS_COUNTERS, STATUS_REQ,
@@ -78,7 +81,22 @@ def stops(robot_factory) -> Robot:
         time.sleep(0.1)
         robot.mode(MODE_ENABLE, mark="enable4")
         robot.start_stream()
-        time.sleep(0.5)
+        time.sleep(0.2)
+        # 4. Parameters set while it drives: gains.kp by the package's command line, gains.kv
+        # by python-canopen with the robot's EDS (docs/protocol.md, "Parameters").
+        robot.marks["params"] = time.time()
+        robot.param_cli = subprocess.run(
+            [sys.executable, "-m", "mecanum_drive", "--channel", robot.iface, "param", "set", "gains.kp", "1.5"],
+            capture_output=True, text=True, timeout=120, check=False)
+        network = canopen.Network()
+        network.connect(interface="socketcan", channel=robot.iface)
+        try:
+            node = network.add_node(127, str(robot_params.eds_path()))
+            node.sdo["gains"]["gains.kv"].raw = 0.05
+            robot.param_kv = node.sdo["gains"]["gains.kv"].raw
+        finally:
+            network.disconnect()
+        time.sleep(0.3)
         robot.stop_stream(mark="end")
         time.sleep(0.3)
     return robot
@@ -430,6 +448,38 @@ def test_runner_log_replays_bit_identical_and_reads_with_rosbags(request, sessio
     else:
         assert sum(t.startswith("CAN link lost") for t in texts) == 1, texts
         assert sum(t.startswith("CAN link back after") for t in texts) == 1, texts
+
+
+def test_parameters_set_while_driving_are_answered_within_two_periods_and_logged(stops) -> None:
+    """The stops session's fourth drive: `mecanum-drive param set gains.kp 1.5` and
+    python-canopen's write of gains.kv to the runner's parameter service (node 127) while it
+    drives. Each request is answered within two control periods (candump's kernel
+    timestamps), the robot stays enabled, the heartbeat carries the new configuration id, and
+    the runner's log says each change on /rosout."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    cli = stops.param_cli
+    assert cli.returncode == 0 and cli.stdout.strip() == "gains.kp = 1.5", cli.stdout + cli.stderr
+    assert stops.param_kv == pytest.approx(0.05)
+    t0, t1 = stops.marks["params"], stops.marks["end"]
+    requests, answers = stops.of(0x67F, t0=t0, t1=t1), stops.of(0x5FF, t0=t0, t1=t1)
+    # Set and read back, each: kp by the command line, kv by python-canopen.
+    assert len(requests) == len(answers) == 4, (requests, answers)
+    for request, answer in zip(requests, answers):
+        assert answer.data[1:4] == request.data[1:4], (request, answer)
+        assert answer.data[0] != 0x80, f"refused: {answer}"
+        assert answer.t - request.t <= 2 * CONTROL_PERIOD_S, (answer.t - request.t, request, answer)
+    assert stops.status_in(t0, t1)["state"] == STATE_ENABLED
+    ids = {f.data[6] | f.data[7] << 8 for f in stops.of(0x31F, t0=t1)}
+    assert len(ids) == 1, ids
+    with AnyReader([stops.runner_mcap], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
+        texts = [reader.deserialize(raw, c.msgtype).msg for c, _, raw in reader.messages()
+                 if c.topic == "/rosout"]
+    kp = [t for t in texts if t.startswith("gains.kp ")]
+    kv = [t for t in texts if t.startswith("gains.kv ")]
+    assert len(kp) == len(kv) == 1, texts
+    assert kp[0].startswith("gains.kp 1.2 -> 1.5, config 0x") and kv[0].endswith(f"0x{ids.pop():04x}"), (kp, kv)
 
 
 # --- the link: the interface goes down mid-drive and comes back ------------------------------
