@@ -15,9 +15,10 @@ import pathlib
 import struct
 import time
 from dataclasses import dataclass
-from importlib import resources
 
 import can
+
+from . import protocol
 
 #: The EDS's name inside the package (and in the repository's `dbc/` directory).
 EDS_NAME = "mecanum_robot.eds"
@@ -69,14 +70,8 @@ class Param:
 
 
 def eds_path() -> pathlib.Path:
-    """The EDS: the package's copy, or the repository's from a source checkout."""
-    packaged = resources.files("mecanum_drive") / EDS_NAME
-    if packaged.is_file():
-        return pathlib.Path(str(packaged))
-    source = pathlib.Path(__file__).resolve().parents[2] / "dbc" / EDS_NAME
-    if source.is_file():
-        return source
-    raise FileNotFoundError(f"{EDS_NAME} is neither in the installed package nor at {source}")
+    """The robot's EDS."""
+    return protocol.data_file(EDS_NAME)
 
 
 def table(path: pathlib.Path | None = None) -> dict[str, Param]:

@@ -23,19 +23,25 @@ DBC_NAME = "mecanum_robot.dbc"
 ESTOP_MAGIC = 0xE5
 
 
-def dbc_path() -> pathlib.Path:
-    """The robot DBC: the package's copy, or the repository's when the package is used from a
-    source checkout (not installed)."""
-    packaged = resources.files("mecanum_drive") / DBC_NAME
+def data_file(name: str) -> pathlib.Path:
+    """A file the package carries from the repository's `dbc/` directory (the DBC, the EDS):
+    the package's copy, or the repository's when the package is used from a source checkout
+    (not installed)."""
+    packaged = resources.files("mecanum_drive") / name
     if packaged.is_file():
         return pathlib.Path(str(packaged))
-    source = pathlib.Path(__file__).resolve().parents[2] / "dbc" / DBC_NAME
+    source = pathlib.Path(__file__).resolve().parents[2] / "dbc" / name
     if source.is_file():
         return source
     raise FileNotFoundError(
-        f"{DBC_NAME} is neither in the installed package nor at {source}: reinstall the package "
+        f"{name} is neither in the installed package nor at {source}: reinstall the package "
         "(pip install ./python from the repository)"
     )
+
+
+def dbc_path() -> pathlib.Path:
+    """The robot DBC."""
+    return data_file(DBC_NAME)
 
 
 @functools.cache
