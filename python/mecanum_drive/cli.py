@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -476,6 +477,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (RobotError, TimeoutError, ValueError, params.ParamError) as err:
         print(f"mecanum-drive {args.command}: {err}", file=sys.stderr)
         return 1
+    except BrokenPipeError:
+        # `| head` closed the output: not an error worth a traceback (nor one at exit).
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":
