@@ -143,6 +143,7 @@ impl McapRecorder {
         let mut rotation = Rotation {
             dir: dir.to_path_buf(),
             metadata: metadata(config),
+            config_id: config.id(),
             max_bytes,
             keep,
             index: 1,
@@ -348,7 +349,10 @@ fn join_finisher(handle: Finisher, dir: &Path) -> Result<(), LogError> {
 /// The state of a rotated log.
 struct Rotation {
     dir: PathBuf,
+    /// The next file's metadata: the configuration in force ([`Self::follow`]).
     metadata: BTreeMap<String, String>,
+    /// The id of the configuration in `metadata`.
+    config_id: u16,
     max_bytes: u64,
     keep: usize,
     /// The current file's number, from 1.
@@ -363,19 +367,38 @@ struct Rotation {
 }
 
 impl Rotation {
-    /// Creates the next file on a thread: the loop only swaps it in.
+    /// Creates the next file on a thread: the loop only swaps it in. A next file prepared
+    /// before (with a configuration no longer in force) is finished and removed first, on
+    /// that thread.
     fn prepare(&mut self) {
         let path = rotated_path(&self.dir, self.index + 1);
         let metadata = self.metadata.clone();
+        let stale = self.next.take();
         let spawned = std::thread::Builder::new()
             .name("log-create".into())
             .spawn(move || {
+                if let Some(Ok(Ok(old))) = stale.map(JoinHandle::join) {
+                    // Never written to: whether it finishes cleanly does not matter.
+                    let _ = old.finish();
+                    let _ = std::fs::remove_file(&path);
+                }
                 let mut log = McapLog::create(&path, &metadata)?;
                 log.drop_when_behind(MAX_PENDING_EVENTS);
                 Ok(log)
             });
         // Without a thread, no rotation: the current file grows past the limit.
         self.next = spawned.ok();
+    }
+
+    /// The next file records `config`, the configuration now in force (a parameter set over
+    /// CAN): prepared again if it was prepared with another.
+    fn follow(&mut self, config: &Config) {
+        let id = config.id();
+        if id != self.config_id {
+            self.metadata = metadata(config);
+            self.config_id = id;
+            self.prepare();
+        }
     }
 }
 
@@ -388,6 +411,11 @@ impl Recorder for McapRecorder {
     fn stepped(&mut self, t_us: u64, controller: &Controller) {
         self.with(|log| log.step(t_us * 1000, msg::Step::STEP));
         self.core(t_us, controller, false);
+        if let Some(rotation) = self.rotation.as_mut()
+            && rotation.config_id != controller.config_id()
+        {
+            rotation.follow(controller.config());
+        }
     }
 
     fn shut_down(&mut self, t_us: u64, controller: &Controller) {

@@ -16,11 +16,13 @@ use mecanum_runner::{McapRecorder, TapMaker, rotated_path};
 /// Run length: 3 s, 3000 steps.
 const RUN_MS: u64 = 3000;
 
-/// The ESCs report every millisecond; the host enables at 10 ms and drives until 2.5 s.
-fn session() -> VecDeque<(u64, CanFrame)> {
+/// The ESCs report every millisecond; the host enables at 10 ms and drives until 2.5 s; and
+/// sends `writes` (parameter requests).
+fn session(writes: &[(u64, CanFrame)]) -> VecDeque<(u64, CanFrame)> {
     let mut frames = esc_feedback(0..RUN_MS);
     frames.push(enable_at(10));
     frames.extend(twists(20..2500));
+    frames.extend_from_slice(writes);
     frames.sort_by_key(|f| f.0);
     frames.into()
 }
@@ -82,8 +84,14 @@ impl Recorder for Settled<'_> {
 }
 
 /// A 3 s run logged in `dir`, rotated at `max_bytes`, keeping `keep` files; served to the
-/// taps of `tap` if given ([`McapRecorder::serve`]).
-fn run(dir: &Path, max_bytes: u64, keep: usize, tap: Option<TapMaker>) -> Run {
+/// taps of `tap` if given ([`McapRecorder::serve`]); the host's `writes` in it.
+fn run(
+    dir: &Path,
+    max_bytes: u64,
+    keep: usize,
+    tap: Option<TapMaker>,
+    writes: &[(u64, CanFrame)],
+) -> Run {
     let _ = std::fs::remove_dir_all(dir);
     let config = Config::dji_m3508_example();
     // As fast as the machine goes: the recorder waits for its threads at each step
@@ -91,7 +99,7 @@ fn run(dir: &Path, max_bytes: u64, keep: usize, tap: Option<TapMaker>) -> Run {
     // busy machine. (Without it, on a loaded core the writer fell behind and a run made 2-4
     // files instead of 5+.)
     let clock = clock((0..RUN_MS).map(|k| (k * 53) % 300), 0);
-    let mut bus = bus(&clock, session());
+    let mut bus = bus(&clock, session(writes));
     let mut recorder = McapRecorder::rotating(dir, &config, max_bytes, keep).unwrap();
     if let Some(tap) = tap {
         recorder.serve(tap, std::time::Duration::from_millis(50));
@@ -157,7 +165,7 @@ const MAX_BYTES: u64 = 40_000;
 #[test]
 fn a_rotated_log_keeps_the_newest_k_complete_files() {
     let dir = tmp("rotated_keep3");
-    let run = run(&dir, MAX_BYTES, 3, None);
+    let run = run(&dir, MAX_BYTES, 3, None, &[]);
     assert!(run.files >= 5, "{} files", run.files);
     let expected: Vec<String> = (run.files - 2..=run.files)
         .map(|i| format!("runner-{i:06}.mcap"))
@@ -199,7 +207,7 @@ fn a_rotated_log_keeps_the_newest_k_complete_files() {
 #[test]
 fn every_file_of_a_rotated_log_is_whole_and_the_first_replays_bit_for_bit() {
     let dir = tmp("rotated_keep_all");
-    let run = run(&dir, MAX_BYTES, 1000, None);
+    let run = run(&dir, MAX_BYTES, 1000, None, &[]);
     assert!(run.files >= 5, "{} files", run.files);
     let names = listing(&dir);
     assert_eq!(names.len() as u64, run.files);
@@ -238,6 +246,53 @@ fn every_file_of_a_rotated_log_is_whole_and_the_first_replays_bit_for_bit() {
     assert!(!later.identical());
 }
 
+/// A parameter set over CAN mid-run (gains.kp at 1.2 s): each file records the configuration
+/// in force at its first step, the old one before the change and the new one after it (the
+/// next file was prepared before the change: it is prepared again).
+#[test]
+fn each_rotated_file_records_the_configuration_in_force_at_its_start() {
+    let dir = tmp("rotated_param");
+    let config = Config::dji_m3508_example();
+    let kp = firmware::params::find("gains.kp").unwrap();
+    let node = firmware::params::service_node(&config);
+    let write = kp.download(node, 1.5f32.to_bits()).unwrap();
+    let run = run(&dir, MAX_BYTES, 1000, None, &[(1200, write)]);
+    assert!(run.files >= 5, "{} files", run.files);
+    let mut changed = config;
+    changed.gains.kp = 1.5;
+    // The step that answered the write (0x580 + node), ns: the change is in force from it.
+    let answer_id = 0x580 + u16::from(node);
+    let (mut before, mut after, mut answered) = (0, 0, None);
+    for name in listing(&dir) {
+        let content = hostsim::replay::read_log(&dir.join(&name)).unwrap();
+        let id = Config::from_toml_str(content.config.as_deref().unwrap())
+            .unwrap()
+            .id();
+        answered = answered.or(content.tx.iter().find_map(|f| {
+            let embedded_can::Id::Standard(sid) = embedded_can::Frame::id(&f.frame) else {
+                return None;
+            };
+            (sid.as_raw() == answer_id).then_some(f.t_ns)
+        }));
+        let first_step = content.steps[0].t_ns;
+        match answered {
+            Some(t) if first_step > t => {
+                assert_eq!(id, changed.id(), "{name}: starts after the change");
+                after += 1;
+            }
+            _ => {
+                assert_eq!(id, config.id(), "{name}: starts before the change");
+                before += 1;
+            }
+        }
+    }
+    assert!(answered.is_some(), "the write was answered");
+    assert!(
+        before >= 1 && after >= 2,
+        "{before} files before, {after} after"
+    );
+}
+
 /// What each tap of a served log saw: the channels shown, the messages (log time order).
 #[derive(Default)]
 struct Seen {
@@ -266,7 +321,7 @@ fn a_served_rotated_log_gives_each_file_a_tap_that_sees_all_of_it() {
         made.lock().unwrap().push(Arc::clone(&seen));
         Box::new(Counting(seen))
     });
-    let run = run(&dir, MAX_BYTES, 1000, Some(maker));
+    let run = run(&dir, MAX_BYTES, 1000, Some(maker), &[]);
     assert!(run.files >= 5, "{} files", run.files);
     let taps = taps.lock().unwrap();
     assert_eq!(taps.len() as u64, run.files, "a tap per file");
