@@ -62,8 +62,9 @@ def test_a_refusal_names_the_parameter_and_the_reason(server) -> None:
     t = params.table()
     with pytest.raises(params.ParamError, match=r"drive.protocol: read-only over CAN \(SDO abort 0x06010002\)"):
         client.set(t["drive.protocol"], 1)
-    with pytest.raises(ValueError, match="timing.command_timeout_ms: 1.5 is not a whole number"):
-        client.set(t["timing.command_timeout_ms"], 1.5)
+    for bad in (1.5, math.nan, -1.0):
+        with pytest.raises(ValueError, match=f"timing.command_timeout_ms: {bad} is not a whole number"):
+            client.set(t["timing.command_timeout_ms"], bad)
     silent = params.Client(client.bus, node=5, timeout=0.2)
     with pytest.raises(params.ParamError, match="gains.kp: no answer from node 5 within 0.2 s"):
         silent.get(t["gains.kp"])

@@ -65,8 +65,15 @@ def cmd_param(args: argparse.Namespace) -> int:
             high = "" if p.high == math.inf else f"{p.high:g}"
             print(f"{p.name:32} {p.change:8} {p.low:g}..{high}  {p.doc}")
         return 0
-    if args.action == "set" and len(args.names) != 2:
-        raise ValueError("set takes a name and a value: param set gains.kp 1.5")
+    value = math.nan
+    if args.action == "set":
+        if len(args.names) != 2:
+            raise ValueError("set takes a name and a value: param set gains.kp 1.5")
+        try:
+            value = float(args.names[1])
+        except ValueError:
+            raise ValueError(f"{args.names[0]}: {args.names[1]!r} is not a number") from None
+        known[args.names[0]].encode(value)  # a value the type cannot hold: refused before the bus
     channel = args.channel or DEFAULT_CHANNEL
     interface = args.interface or DEFAULT_INTERFACE
     node = args.node
@@ -79,11 +86,7 @@ def cmd_param(args: argparse.Namespace) -> int:
     with bus:
         client = params.Client(bus, node=node, timeout=args.timeout)
         if args.action == "set":
-            p, text = known[args.names[0]], args.names[1]
-            try:
-                value = float(text)
-            except ValueError:
-                raise ValueError(f"{p.name}: {text!r} is not a number") from None
+            p = known[args.names[0]]
             client.set(p, value)
             print(f"{p.name} = {client.get(p):g}")
             return 0

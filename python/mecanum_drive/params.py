@@ -11,6 +11,7 @@ carried by the package as the DBC is. python-canopen works as well
 from __future__ import annotations
 
 import configparser
+import math
 import pathlib
 import struct
 import time
@@ -57,7 +58,7 @@ class Param:
     def encode(self, value: float) -> tuple[bytes, int]:
         """The value's bytes and size; ValueError if the type cannot hold it."""
         fmt, size = _FORMATS[self.data_type]
-        if fmt != "<f" and (value != int(value) or value < 0):
+        if fmt != "<f" and not (math.isfinite(value) and value == int(value) and value >= 0):
             raise ValueError(f"{self.name}: {value} is not a whole number >= 0")
         try:
             return struct.pack(fmt, value if fmt == "<f" else int(value)), size
