@@ -26,15 +26,19 @@ from mcap.reader import NonSeekingReader
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
-#: Runs killed (at least 100), how many at once, and when: seconds after the start, uniform in
-#: [0, KILL_WINDOW_S], or in the first half of the fastest of three whole runs where that is
-#: shorter (a release build runs the 60 s square in half a second). Half of the fastest: a run
-#: timed while the machine was busier than during the kills (a build finishing beside the
-#: test) would otherwise let runs end before their kill; four at a time on two cores are
-#: slower, not faster, than one alone.
+#: Runs killed, how many at once, and when. Most are killed at a moment of the run's own log
+#: time: once its progress line says it has logged `target` seconds of the 60 s square, uniform
+#: in [0, KILL_AT_MAX_S], the kill follows at once, with 60 - KILL_AT_MAX_S s of the run still to
+#: go (tens of milliseconds at the fastest): no run can end before its kill, however fast or
+#: loaded the machine (a kill timed in wall-clock seconds from a calibration let 16 of 104 runs
+#: end first when the load changed between the two). One in EARLY is killed before its first
+#: progress line instead, EARLY_S of wall time after its start at most, so that runs that die
+#: before their file or its header exists are covered too.
 KILLS = 104
 PARALLEL = 4
-KILL_WINDOW_S = 2.0
+KILL_AT_MAX_S = 10.0
+EARLY = 8
+EARLY_S = 0.02
 SEED = 20261122
 
 #: How the Python reader's errors for a file that ends inside a record begin.
@@ -88,10 +92,12 @@ def header_length(path: pathlib.Path) -> int:
     raise AssertionError(f"{path}: no chunk in its first MiB")
 
 
-def kill_one(binary: pathlib.Path, out: pathlib.Path, delay_s: float, header_len: int) -> dict:
-    """Starts the 60 s square, SIGKILLs it `delay_s` seconds later, and checks what it left.
-    A `.part` shorter than `header_len` was killed between its creation and its header's
-    write, microseconds apart: counted as `headerless`, not read."""
+def kill_one(binary: pathlib.Path, out: pathlib.Path, target_s: float | None, early_s: float,
+             header_len: int) -> dict:
+    """Starts the 60 s square and SIGKILLs it once it has logged `target_s` seconds (its
+    progress lines), or `early_s` seconds of wall time after its start without a target; then
+    checks what it left. A `.part` shorter than `header_len` was killed between its creation
+    and its header's write, microseconds apart: counted as `headerless`, not read."""
     proc = subprocess.Popen(
         [str(binary), "run", str(ROOT / "scenarios" / "square_60s.toml"), "--out", str(out), "--no-plot", "--progress-lines"],
         stdout=subprocess.DEVNULL,
@@ -108,13 +114,17 @@ def kill_one(binary: pathlib.Path, out: pathlib.Path, delay_s: float, header_len
             match = PROGRESS_LINE.fullmatch(line)
             if match:
                 progress.append(float(match.group(1)))
+                if target_s is not None and progress[-1] >= target_s and proc.returncode is None:
+                    proc.send_signal(signal.SIGKILL)
 
     follower = threading.Thread(target=follow)
     follower.start()
-    time.sleep(delay_s)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait(timeout=30)
+    if target_s is None:
+        time.sleep(early_s)
+        proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=300)
     follower.join(timeout=30)
+    delay_s = target_s if target_s is not None else early_s
     result = {"delay_s": delay_s, "killed": proc.returncode == -signal.SIGKILL, "files": sorted(p.name for p in out.iterdir())}
     # Every progress line printed before the kill has been read by now (the pipe drained).
     # The run had logged every step up to the last one, and not yet printed the next, 0.1 s
@@ -145,7 +155,8 @@ def kill_one(binary: pathlib.Path, out: pathlib.Path, delay_s: float, header_len
 
 
 def test_killed_runs_leave_logs_that_open_and_lose_at_most_a_second(hostsim_bin, tmp_path) -> None:
-    """SIGKILL `hostsim run` at KILLS random moments (seeded), PARALLEL runs at a time.
+    """SIGKILL `hostsim run` at KILLS random moments of its log time (seeded), PARALLEL runs
+    at a time.
 
     For every run: the only file left is `square-60s.mcap.part` (or nothing, if it died before
     creating it): a killed run is never renamed to `.mcap`. Every `.part` left that holds its
@@ -163,31 +174,27 @@ def test_killed_runs_leave_logs_that_open_and_lose_at_most_a_second(hostsim_bin,
     """
     whole = tmp_path / "whole"
     whole.mkdir()
-    walls = []
-    for _ in range(3):
-        started = time.monotonic()
-        subprocess.run(
-            [str(hostsim_bin), "run", str(ROOT / "scenarios" / "square_60s.toml"), "--out", str(whole), "--no-plot"],
-            capture_output=True, timeout=600, check=True,
-        )
-        walls.append(time.monotonic() - started)
-        header_len = header_length(whole / "square-60s.mcap")
-        (whole / "square-60s.mcap").unlink()
-    window = min(KILL_WINDOW_S, 0.5 * min(walls))
+    subprocess.run(
+        [str(hostsim_bin), "run", str(ROOT / "scenarios" / "square_60s.toml"), "--out", str(whole), "--no-plot"],
+        capture_output=True, timeout=600, check=True,
+    )
+    header_len = header_length(whole / "square-60s.mcap")
+    (whole / "square-60s.mcap").unlink()
     rng = random.Random(SEED)
-    delays = [rng.uniform(0.0, window) for _ in range(KILLS)]
+    kills = [(None, rng.uniform(0.0, EARLY_S)) if i % EARLY == 0 else (rng.uniform(0.0, KILL_AT_MAX_S), 0.0)
+             for i in range(KILLS)]
     started = time.monotonic()
     with concurrent.futures.ThreadPoolExecutor(PARALLEL) as pool:
         futures = []
-        for i, delay in enumerate(delays):
+        for i, (target, early) in enumerate(kills):
             out = tmp_path / f"run{i:03d}"
             out.mkdir()
-            futures.append(pool.submit(kill_one, hostsim_bin, out, delay, header_len))
+            futures.append(pool.submit(kill_one, hostsim_bin, out, target, early, header_len))
         results = [f.result() for f in futures]
     elapsed = time.monotonic() - started
 
     killed = [r for r in results if r["killed"]]
-    assert len(killed) >= 100, f"only {len(killed)} of {len(results)} runs were killed mid-run"
+    assert len(killed) == KILLS, [r for r in results if not r["killed"]]
     with_log = [r for r in killed if "messages" in r]
     losses = []
     for r in killed:
