@@ -135,7 +135,7 @@ pub(crate) fn eds_text() -> String {
         );
     }
     for (index, name, params) in &objects {
-        let highest = params.iter().map(|p| p.sub).max().unwrap_or(0);
+        let highest = firmware::params::highest_sub(*index).unwrap_or(0);
         let _ = write!(
             w,
             "\n[{index:04X}]\nParameterName={name}\nObjectType=0x9\nSubNumber={}\n\n\

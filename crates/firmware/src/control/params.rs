@@ -15,7 +15,7 @@ use embedded_can::Frame;
 use super::{Controller, DriveState, pods};
 use crate::config::Config;
 use crate::frame::CanFrame;
-use crate::params::{self, PARAMS};
+use crate::params;
 use crate::protocol::DecodeError;
 use crate::protocol::canopen::{self, Message, NodeId, SdoRequest, SdoResponse, abort_code};
 use crate::protocol::robot::{PROTOCOL_VERSION, RobotState};
@@ -87,16 +87,11 @@ impl Controller {
             (0x1000 | 0x1018, _) => return Err(abort_code::NO_SUBINDEX),
             _ => {}
         }
-        let record = PARAMS.iter().filter(|p| p.index == index);
+        let highest = params::highest_sub(index).ok_or(abort_code::NO_OBJECT)?;
         if sub == 0 {
-            let highest = record.map(|p| p.sub).max().ok_or(abort_code::NO_OBJECT)?;
             return Ok((u32::from(highest), 1));
         }
-        let p = params::at(index, sub).ok_or(if record.count() == 0 {
-            abort_code::NO_OBJECT
-        } else {
-            abort_code::NO_SUBINDEX
-        })?;
+        let p = params::at(index, sub).ok_or(abort_code::NO_SUBINDEX)?;
         let value = p.read(&self.config).map_err(|e| e.abort_code())?;
         Ok((value, p.ty.size()))
     }

@@ -322,6 +322,17 @@ pub fn at(index: u16, sub: u8) -> Option<&'static Param> {
     PARAMS.iter().find(|p| p.index == index && p.sub == sub)
 }
 
+/// The highest sub-index of object `index` (what its sub-index 0 reads, as a record's entry
+/// count): `None` for an index no parameter has.
+#[must_use]
+pub fn highest_sub(index: u16) -> Option<u8> {
+    PARAMS
+        .iter()
+        .filter(|p| p.index == index)
+        .map(|p| p.sub)
+        .max()
+}
+
 /// Pod `i` of `config`, if it has one.
 fn pod(config: &Config, i: usize) -> Option<PodConfig> {
     config.odometry.pods.as_slice().get(i).copied()
