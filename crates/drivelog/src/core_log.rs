@@ -241,11 +241,13 @@ impl CoreLog {
                 }
             }
         }
-        let config = *ctl.config();
-        if let Some(old) = self.config.replace(config).filter(|old| *old != config) {
+        // Copied only when it changed (the first step, a parameter set): not at every step.
+        if self.config.as_ref() != Some(ctl.config())
+            && let Some(old) = self.config.replace(*ctl.config())
+        {
             changes.config = true;
             if let Some(l) = log.as_deref_mut() {
-                for text in config_lines(&old, &config) {
+                for text in config_lines(&old, ctl.config()) {
                     l.text(t_ns, Log::INFO, &text)?;
                 }
             }

@@ -390,13 +390,12 @@ impl Rotation {
         self.next = spawned.ok();
     }
 
-    /// The next file records `config`, the configuration now in force (a parameter set over
-    /// CAN): prepared again if it was prepared with another.
-    fn follow(&mut self, config: &Config) {
-        let id = config.id();
-        if id != self.config_id {
-            self.metadata = metadata(config);
-            self.config_id = id;
+    /// The next file records the configuration `controller` has in force (a parameter set
+    /// over CAN): prepared again if it was prepared with another.
+    fn follow(&mut self, controller: &Controller) {
+        if controller.config_id() != self.config_id {
+            self.metadata = metadata(controller.config());
+            self.config_id = controller.config_id();
             self.prepare();
         }
     }
@@ -411,10 +410,8 @@ impl Recorder for McapRecorder {
     fn stepped(&mut self, t_us: u64, controller: &Controller) {
         self.with(|log| log.step(t_us * 1000, msg::Step::STEP));
         self.core(t_us, controller, false);
-        if let Some(rotation) = self.rotation.as_mut()
-            && rotation.config_id != controller.config_id()
-        {
-            rotation.follow(controller.config());
+        if let Some(rotation) = self.rotation.as_mut() {
+            rotation.follow(controller);
         }
     }
 
