@@ -23,6 +23,8 @@ from . import protocol
 
 #: The EDS's name inside the package (and in the repository's `dbc/` directory).
 EDS_NAME = "mecanum_robot.eds"
+#: The read-only record of the configurations' ids and the saved set (not parameters).
+INFO_INDEX = 0x2100
 #: The service's node id unless the robot's drives are CiA 402 nodes.
 DEFAULT_NODE = 127
 _FORMATS = {0x0001: ("<B", 1), 0x0005: ("<B", 1), 0x0007: ("<I", 4), 0x0008: ("<f", 4)}
@@ -83,7 +85,7 @@ def table(path: pathlib.Path | None = None) -> dict[str, Param]:
     params = {}
     for section in ini.sections():
         head, sep, sub = section.partition("sub")
-        if not sep or int(head, 16) < 0x2000 or int(sub, 16) == 0:
+        if not sep or not 0x2000 <= int(head, 16) < INFO_INDEX or int(sub, 16) == 0:
             continue
         e = ini[section]
         doc, _, change = e.get("Denotation", "").rpartition(" (")

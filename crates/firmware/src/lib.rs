@@ -44,7 +44,7 @@
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
-#[cfg(feature = "std")]
+#[cfg(any(test, feature = "std"))]
 extern crate std;
 
 pub mod config;
@@ -54,6 +54,8 @@ pub mod frame;
 pub mod input;
 pub mod params;
 pub mod protocol;
+pub mod rng;
+pub mod storage;
 pub mod stream_hash;
 
 pub use config::Config;

@@ -6,6 +6,7 @@ use std::io::{self, Write as _};
 use std::path::Path;
 
 use firmware::Config;
+use firmware::control::{INFO, INFO_INDEX, RESTORE, STORE};
 use firmware::params::{Change, PARAMS, Param, ParamType};
 use firmware::protocol::robot::PROTOCOL_VERSION;
 use serde::Serialize;
@@ -109,12 +110,14 @@ pub(crate) fn eds_text() -> String {
          Line2=the others (see each entry's Denotation) only while the robot is disabled.\n\
          Line3=ro: fixed at run time (a new configuration file or image changes them).\n\n\
          [MandatoryObjects]\nSupportedObjects=2\n1=0x1000\n2=0x1018\n\n\
-         [OptionalObjects]\nSupportedObjects=0\n\n[ManufacturerObjects]\nSupportedObjects={}\n",
-        objects.len()
+         [OptionalObjects]\nSupportedObjects=2\n1=0x{STORE:04X}\n2=0x{RESTORE:04X}\n\n\
+         [ManufacturerObjects]\nSupportedObjects={}\n",
+        objects.len() + 1
     );
     for (i, (index, _, _)) in objects.iter().enumerate() {
         let _ = writeln!(w, "{}=0x{index:04X}", i + 1);
     }
+    let _ = writeln!(w, "{}=0x{INFO_INDEX:04X}", objects.len() + 1);
     let _ = write!(
         w,
         "\n[1000]\nParameterName=Device type\nObjectType=0x7\nDataType=0x0007\nAccessType=ro\n\
@@ -132,6 +135,19 @@ pub(crate) fn eds_text() -> String {
             w,
             "\n[1018sub{sub}]\nParameterName={name}\nObjectType=0x7\nDataType=0x0007\n\
              AccessType=ro\nDefaultValue=0x{value:08X}\nPDOMapping=0\n"
+        );
+    }
+    for (index, name, signature) in [
+        (STORE, "Store parameters", "save"),
+        (RESTORE, "Restore default parameters", "load"),
+    ] {
+        let _ = write!(
+            w,
+            "\n[{index:04X}]\nParameterName={name}\nObjectType=0x8\nSubNumber=2\n\n\
+             [{index:04X}sub0]\nParameterName=Highest sub-index supported\nObjectType=0x7\n\
+             DataType=0x0005\nAccessType=ro\nDefaultValue=1\nPDOMapping=0\n\n\
+             [{index:04X}sub1]\nParameterName=All parameters\nDenotation=write '{signature}'\n\
+             ObjectType=0x7\nDataType=0x0007\nAccessType=rw\nDefaultValue=1\nPDOMapping=0\n"
         );
     }
     for (index, name, params) in &objects {
@@ -166,6 +182,21 @@ pub(crate) fn eds_text() -> String {
             let _ = writeln!(w, "PDOMapping=0");
         }
     }
+    let _ = write!(
+        w,
+        "\n[{INFO_INDEX:04X}]\nParameterName=info\nObjectType=0x9\nSubNumber={}\n\n\
+         [{INFO_INDEX:04X}sub0]\nParameterName=Highest sub-index supported\nObjectType=0x7\n\
+         DataType=0x0005\nAccessType=const\nDefaultValue={}\nPDOMapping=0\n",
+        INFO.len() + 1,
+        INFO.len()
+    );
+    for (sub, (name, doc)) in (1..).zip(INFO) {
+        let _ = write!(
+            w,
+            "\n[{INFO_INDEX:04X}sub{sub}]\nParameterName={name}\nDenotation={doc}\n\
+             ObjectType=0x7\nDataType=0x0007\nAccessType=ro\nPDOMapping=0\n"
+        );
+    }
     s
 }
 
@@ -185,7 +216,10 @@ mod tests {
     #[test]
     fn the_eds_has_one_record_per_object_and_an_entry_per_parameter() {
         let eds = eds_text();
-        assert_eq!(eds.matches("ObjectType=0x9").count(), objects().len() + 1);
+        // The records: the identity, one per object of PARAMS, and the info object; the save
+        // and restore arrays.
+        assert_eq!(eds.matches("ObjectType=0x9").count(), objects().len() + 2);
+        assert_eq!(eds.matches("ObjectType=0x8").count(), 2);
         for p in &PARAMS {
             let entry = format!(
                 "[{:04X}sub{:X}]\nParameterName={}\n",

@@ -55,6 +55,9 @@ pub use self::dji::{
 };
 pub use self::odometry::{GYRO_BIAS_MAX_SAMPLES, STANDSTILL_WHEEL_SPEED};
 pub use self::odrive::{ODRIVE_CLEAR_GRACE_US, ODRIVE_MAX_JUMP_FACTOR, ODRIVE_STATE_GRACE_US};
+pub use self::params::{
+    INFO, INFO_INDEX, LOAD_SIGNATURE, RESTORE, SAVE_SIGNATURE, STORE, SaveOutcome,
+};
 pub use self::pods::SLIP_TIME_CONSTANT_S;
 pub use self::telemetry::Snapshot;
 pub use self::time::Instant;
@@ -264,6 +267,12 @@ pub struct Controller {
     param_node: u8,
     /// A parameter request received, served at the next step's start.
     param_request: Option<crate::protocol::canopen::SdoRequest>,
+    /// The configuration this controller was made with: what a restore puts back.
+    builtin: Config,
+    /// The saved set (object 0x2100).
+    saved: params::SavedSet,
+    /// A save or restore being stored by the edge.
+    saving: params::Saving,
 }
 
 impl Controller {
@@ -366,6 +375,13 @@ impl Controller {
             status_seq: 0,
             param_node: crate::params::service_node(config),
             param_request: None,
+            builtin: *config,
+            saved: params::SavedSet {
+                builtin_id: config.id(),
+                id: config.id(),
+                seq: 0,
+            },
+            saving: params::Saving::Idle,
         })
     }
 

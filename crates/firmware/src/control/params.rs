@@ -7,8 +7,11 @@
 //! (`0x580 + node`) goes out with that step's frames. A change goes through
 //! [`Param::write`](crate::params::Param::write) (state, type, range, `Config::validate`);
 //! new gains are taken up bumplessly by the current loop's integrators; the id that
-//! `HEARTBEAT.config_id` sends follows the configuration in force. Object map, classes and
-//! abort codes: `docs/protocol.md`, section "Parameters".
+//! `HEARTBEAT.config_id` sends follows the configuration in force. A save (`0x1010:01`) or a
+//! restore of the built-in set (`0x1011:01`) is handed to the edge, which stores it
+//! ([`Controller::take_save`]) and reports the end ([`Controller::on_saved`], a logged input);
+//! the response goes out at the step after. Object map, classes and abort codes:
+//! `docs/protocol.md`, section "Parameters".
 
 use embedded_can::Frame;
 
@@ -24,6 +27,107 @@ use crate::protocol::robot::{PROTOCOL_VERSION, RobotState};
 const WRONG_LENGTH: u32 = 0x0607_0010;
 /// Abort code: attempt to write a read-only object.
 const READ_ONLY: u32 = 0x0601_0002;
+/// Abort code: data cannot be stored (a save or restore without its signature).
+const NOT_STORED: u32 = 0x0800_0020;
+/// Abort code: not in the present device state (a save already running; a restore while
+/// the robot moves).
+const WRONG_STATE: u32 = 0x0800_0022;
+
+/// `0x1010` Store parameters: sub-index 1 ("all") saves the configuration in force.
+pub const STORE: u16 = 0x1010;
+/// `0x1011` Restore default parameters: sub-index 1 puts the built-in configuration in force
+/// and saves it.
+pub const RESTORE: u16 = 0x1011;
+/// The signature a save writes to `0x1010:01`: `save`, little-endian (CiA 301).
+pub const SAVE_SIGNATURE: u32 = u32::from_le_bytes(*b"save");
+/// The signature a restore writes to `0x1011:01`: `load`, little-endian (CiA 301).
+pub const LOAD_SIGNATURE: u32 = u32::from_le_bytes(*b"load");
+/// `0x2100` The configurations' ids and the saved set, read-only ([`INFO`]).
+pub const INFO_INDEX: u16 = 0x2100;
+/// The entries of [`INFO_INDEX`] (all `UNSIGNED32`), by sub-index from 1: name and meaning.
+pub const INFO: [(&str, &str); 4] = [
+    (
+        "info.running_id",
+        "Id of the configuration in force (HEARTBEAT.config_id)",
+    ),
+    (
+        "info.builtin_id",
+        "Id of the image's (or configuration file's) built-in configuration",
+    ),
+    (
+        "info.saved_id",
+        "Id of the configuration a restart runs: the saved set, else the built-in one",
+    ),
+    (
+        "info.saved_seq",
+        "Sequence number of the saved set's record; 0: none saved",
+    ),
+];
+
+/// How a save handed to the edge ended: the edge's report to the core, logged as an input.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SaveOutcome {
+    /// Stored as record number `seq`.
+    Stored {
+        /// The record's sequence number.
+        seq: u32,
+    },
+    /// Not stored: the CiA 301 abort code the response carries
+    /// ([`SaveError::abort_code`](crate::storage::SaveError::abort_code)).
+    Failed {
+        /// The abort code.
+        code: u32,
+    },
+}
+
+impl From<Result<u32, crate::storage::SaveError>> for SaveOutcome {
+    fn from(result: Result<u32, crate::storage::SaveError>) -> Self {
+        match result {
+            Ok(seq) => Self::Stored { seq },
+            Err(e) => Self::Failed {
+                code: e.abort_code(),
+            },
+        }
+    }
+}
+
+/// A save or restore (its object, [`STORE`] or [`RESTORE`]) not yet answered.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub(super) enum Saving {
+    /// None.
+    #[default]
+    Idle,
+    /// Served at this step; the edge takes it after the step.
+    Asked {
+        /// The object written.
+        index: u16,
+    },
+    /// The edge is storing the configuration with id `id`.
+    Writing {
+        /// The object written.
+        index: u16,
+        /// The id of the configuration being stored.
+        id: u16,
+    },
+    /// Ended; answered at the next step.
+    Ended {
+        /// The object written.
+        index: u16,
+        /// How.
+        outcome: SaveOutcome,
+    },
+}
+
+/// What the parameter service knows of the saved set (object [`INFO_INDEX`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) struct SavedSet {
+    /// The built-in configuration's id.
+    pub builtin_id: u16,
+    /// The id of the set a restart runs.
+    pub id: u16,
+    /// Its record's number; 0 for the built-in set.
+    pub seq: u32,
+}
 
 impl Controller {
     /// The node id of the robot's parameter service: requests on `0x600 + id`, responses on
@@ -50,12 +154,86 @@ impl Controller {
         }
     }
 
-    /// Serves the request kept, at a step's start: the response to send, if any (a client's
-    /// abort has none).
+    /// The configuration a save or restore served at the last step asks the edge to store
+    /// (its built-in id is [`builtin_id`](Self::builtin_id)), once. The edge calls this after
+    /// every step and reports the end with [`on_saved`](Self::on_saved).
+    pub fn take_save(&mut self) -> Option<Config> {
+        let Saving::Asked { index } = self.saving else {
+            return None;
+        };
+        self.saving = Saving::Writing {
+            index,
+            id: self.config_id,
+        };
+        Some(self.config)
+    }
+
+    /// The edge's report that the save it took ended (a logged input: replay calls it at the
+    /// same point). Answered at the next step. Ignored when no save is being stored.
+    pub fn on_saved(&mut self, outcome: SaveOutcome) {
+        let Saving::Writing { index, id } = self.saving else {
+            return;
+        };
+        if let SaveOutcome::Stored { seq } = outcome {
+            self.saved = SavedSet {
+                id,
+                seq,
+                ..self.saved
+            };
+        }
+        self.saving = Saving::Ended { index, outcome };
+    }
+
+    /// The id of the built-in configuration (the image's, or the configuration file's): what a
+    /// saved record is saved under.
+    #[must_use]
+    pub const fn builtin_id(&self) -> u16 {
+        self.saved.builtin_id
+    }
+
+    /// Starts with `saved` in force, found in storage as record `seq`, instead of the built-in
+    /// configuration this controller was made with. For the edge's boot, before any step.
+    ///
+    /// # Errors
+    /// The first [`ConfigError`](crate::config::ConfigError) of `saved`'s validation.
+    pub fn with_saved(self, saved: &Config, seq: u32) -> Result<Self, super::Error> {
+        let builtin = self.builtin;
+        let mut ctl = Self::new(saved)?;
+        ctl.builtin = builtin;
+        ctl.saved = SavedSet {
+            builtin_id: builtin.id(),
+            id: saved.id(),
+            seq,
+        };
+        Ok(ctl)
+    }
+
+    /// Serves the request kept, or answers the save that ended, at a step's start: the
+    /// response to send, if any (a client's abort has none). One a step: a request waits
+    /// for the step after an ended save's answer.
     pub(super) fn serve_param(&mut self) -> Option<CanFrame> {
+        let response = if let Saving::Ended { index, outcome } = self.saving {
+            self.saving = Saving::Idle;
+            match outcome {
+                SaveOutcome::Stored { .. } => SdoResponse::Downloaded { index, sub: 1 },
+                SaveOutcome::Failed { code } => SdoResponse::Abort {
+                    index,
+                    sub: 1,
+                    code,
+                },
+            }
+        } else {
+            self.serve_request()?
+        };
+        let node = NodeId::new(self.param_node)?;
+        Some(Message::SdoResponse { node, response }.to_can_frame())
+    }
+
+    /// The response to the request kept, if one is due now: a save or restore answers later.
+    fn serve_request(&mut self) -> Option<SdoResponse> {
         let request = self.param_request.take()?;
         let (index, sub) = request.object();
-        let response = match request {
+        Some(match request {
             SdoRequest::Upload { .. } => match self.upload(index, sub) {
                 Ok((value, size)) => SdoResponse::Uploaded {
                     index,
@@ -65,6 +243,12 @@ impl Controller {
                 },
                 Err(code) => SdoResponse::Abort { index, sub, code },
             },
+            SdoRequest::Download { value, size, .. } if matches!(index, STORE | RESTORE) => {
+                match self.ask_save(index, sub, value, size) {
+                    Ok(()) => return None,
+                    Err(code) => SdoResponse::Abort { index, sub, code },
+                }
+            }
             SdoRequest::Download { value, size, .. } => {
                 match self.download(index, sub, value, size) {
                     Ok(()) => SdoResponse::Downloaded { index, sub },
@@ -72,9 +256,35 @@ impl Controller {
                 }
             }
             SdoRequest::Abort { .. } => return None,
+        })
+    }
+
+    /// A write to [`STORE`] or [`RESTORE`]: checked, and handed to the edge (a restore puts
+    /// the built-in configuration in force first).
+    fn ask_save(&mut self, index: u16, sub: u8, value: u32, size: u8) -> Result<(), u32> {
+        if sub != 1 {
+            return Err(abort_code::NO_SUBINDEX);
+        }
+        if size != 4 {
+            return Err(WRONG_LENGTH);
+        }
+        let signature = if index == STORE {
+            SAVE_SIGNATURE
+        } else {
+            LOAD_SIGNATURE
         };
-        let node = NodeId::new(self.param_node)?;
-        Some(Message::SdoResponse { node, response }.to_can_frame())
+        if value != signature {
+            return Err(NOT_STORED);
+        }
+        let moving = matches!(self.state, RobotState::Enabled | RobotState::WheelTest);
+        if self.saving != Saving::Idle || (index == RESTORE && moving) {
+            return Err(WRONG_STATE);
+        }
+        if index == RESTORE {
+            self.apply_config(self.builtin);
+        }
+        self.saving = Saving::Asked { index };
+        Ok(())
     }
 
     /// The value and size of object `index`, `sub`.
@@ -84,7 +294,17 @@ impl Controller {
             (0x1018, 0) => return Ok((3, 1)),
             (0x1018, 1 | 2) => return Ok((0, 4)),
             (0x1018, 3) => return Ok((u32::from(PROTOCOL_VERSION), 4)),
-            (0x1000 | 0x1018, _) => return Err(abort_code::NO_SUBINDEX),
+            (STORE | RESTORE, 0) => return Ok((1, 1)),
+            // Bit 0: saves on command (CiA 301); a restore reads as 1 too.
+            (STORE | RESTORE, 1) => return Ok((1, 4)),
+            (INFO_INDEX, 0) => return Ok((INFO.len() as u32, 1)),
+            (INFO_INDEX, 1) => return Ok((u32::from(self.config_id), 4)),
+            (INFO_INDEX, 2) => return Ok((u32::from(self.saved.builtin_id), 4)),
+            (INFO_INDEX, 3) => return Ok((u32::from(self.saved.id), 4)),
+            (INFO_INDEX, 4) => return Ok((self.saved.seq, 4)),
+            (0x1000 | 0x1018 | STORE | RESTORE | INFO_INDEX, _) => {
+                return Err(abort_code::NO_SUBINDEX);
+            }
             _ => {}
         }
         let highest = params::highest_sub(index).ok_or(abort_code::NO_OBJECT)?;

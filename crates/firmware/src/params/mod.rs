@@ -333,6 +333,20 @@ pub fn highest_sub(index: u16) -> Option<u8> {
         .max()
 }
 
+/// Whether `target` differs from `base` only in parameters a host may write ([`Change::Live`]
+/// or [`Change::Disabled`]): what a saved configuration must be to run on the image whose
+/// built-in configuration is `base`.
+#[must_use]
+pub fn reachable(base: &Config, target: &Config) -> bool {
+    let mut made = *base;
+    for p in PARAMS.iter().filter(|p| p.change != Change::Fixed) {
+        if let Some(raw) = (p.get)(target) {
+            (p.set)(&mut made, raw);
+        }
+    }
+    made == *target
+}
+
 /// Pod `i` of `config`, if it has one.
 fn pod(config: &Config, i: usize) -> Option<PodConfig> {
     config.odometry.pods.as_slice().get(i).copied()

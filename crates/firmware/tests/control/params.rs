@@ -2,8 +2,10 @@
 //! next step with the heartbeat's config id, refusals on the wire, and gains changed while
 //! driving without a step in the current.
 
+use firmware::control::{INFO_INDEX, LOAD_SIGNATURE, RESTORE, SAVE_SIGNATURE, STORE};
 use firmware::protocol::canopen::{self, Message, SdoRequest, SdoResponse};
 use firmware::protocol::robot::{PROTOCOL_VERSION, Telemetry};
+use firmware::storage::{Layout, RECORD_BYTES, RamFlash, Store};
 use kinematics::ChassisVelocity;
 
 use crate::rig::*;
@@ -195,4 +197,157 @@ fn a_gain_changed_while_driving_does_not_step_the_current() {
         );
     }
     assert_eq!(rig.ctl.config().gains.kp, new_kp);
+}
+
+/// Steps until the response to a save or restore, the store on `flash` serving the core after
+/// every step as a board does (three words a step): the response and the steps it took.
+fn until_answered(rig: &mut Rig, store: &mut Store, flash: &mut RamFlash) -> (SdoResponse, u32) {
+    for steps in 1..=200 {
+        let out = rig.tick();
+        if let Some(r) = response(rig, &out) {
+            return (r, steps);
+        }
+        store.serve(&mut rig.ctl, flash, 3);
+    }
+    panic!("no response in 200 steps");
+}
+
+const LAYOUT: Layout = Layout {
+    starts: [0x4000, 0x8000],
+    sector_bytes: 0x4000,
+};
+
+#[test]
+fn a_save_is_answered_once_stored_and_a_new_controller_boots_it() {
+    let mut rig = Rig::dji();
+    let mut flash = RamFlash::new(0xC000);
+    let (mut store, found) = Store::mount(&mut flash, LAYOUT, &rig.config).unwrap();
+    assert_eq!(found.saved, None);
+    let kp = 1.5f32;
+    assert!(matches!(
+        ask(&mut rig, write(0x2002, 1, kp.to_bits(), 4)),
+        SdoResponse::Downloaded { .. }
+    ));
+    request(&mut rig, write(STORE, 1, SAVE_SIGNATURE, 4));
+    let (r, steps) = until_answered(&mut rig, &mut store, &mut flash);
+    assert_eq!(
+        r,
+        SdoResponse::Downloaded {
+            index: STORE,
+            sub: 1
+        }
+    );
+    // Served at the first step, 72 words at 3 after each step from it (24 steps), answered
+    // at the step after the last: 25 periods, 25 ms at 1 kHz.
+    assert_eq!(steps, 25);
+    assert!(steps <= 30, "a save acknowledged within 30 ms");
+    let info = |rig: &mut Rig, sub| match ask(
+        rig,
+        SdoRequest::Upload {
+            index: INFO_INDEX,
+            sub,
+        },
+    ) {
+        SdoResponse::Uploaded { value, .. } => value,
+        other => panic!("{other:?}"),
+    };
+    let running = u32::from(rig.ctl.config_id());
+    assert_eq!(info(&mut rig, 1), running);
+    assert_eq!(info(&mut rig, 2), u32::from(rig.config.id()));
+    assert_eq!((info(&mut rig, 3), info(&mut rig, 4)), (running, 1));
+
+    // A boot on that flash runs the saved set.
+    let (_, found) = Store::mount(&mut flash, LAYOUT, &rig.config).unwrap();
+    let saved = found.saved.expect("saved");
+    assert_eq!(saved.config.gains.kp, kp);
+    let booted = Controller::new(&rig.config)
+        .unwrap()
+        .with_saved(&saved.config, saved.seq)
+        .unwrap();
+    assert_eq!(u32::from(booted.config_id()), running);
+    assert_eq!(booted.builtin_id(), rig.config.id());
+}
+
+#[test]
+fn save_and_restore_refusals_name_their_rule() {
+    let mut rig = Rig::dji();
+    let mut flash = RamFlash::new(0xC000);
+    let (mut store, _) = Store::mount(&mut flash, LAYOUT, &rig.config).unwrap();
+    // Without the signature, another sub-index, another size.
+    assert_eq!(
+        abort_of(ask(&mut rig, write(STORE, 1, LOAD_SIGNATURE, 4))),
+        0x0800_0020
+    );
+    assert_eq!(
+        abort_of(ask(&mut rig, write(RESTORE, 1, SAVE_SIGNATURE, 4))),
+        0x0800_0020
+    );
+    assert_eq!(
+        abort_of(ask(&mut rig, write(STORE, 2, SAVE_SIGNATURE, 4))),
+        0x0609_0011
+    );
+    assert_eq!(
+        abort_of(ask(&mut rig, write(STORE, 1, 0x73, 1))),
+        0x0607_0010
+    );
+    // A second save while one is stored.
+    request(&mut rig, write(STORE, 1, SAVE_SIGNATURE, 4));
+    rig.tick();
+    store.serve(&mut rig.ctl, &mut flash, 3);
+    assert_eq!(
+        abort_of(ask(&mut rig, write(STORE, 1, SAVE_SIGNATURE, 4))),
+        0x0800_0022
+    );
+    let (r, _) = until_answered(&mut rig, &mut store, &mut flash);
+    assert!(matches!(r, SdoResponse::Downloaded { .. }));
+    // A restore while driving.
+    rig.enable();
+    assert_eq!(
+        abort_of(ask(&mut rig, write(RESTORE, 1, LOAD_SIGNATURE, 4))),
+        0x0800_0022
+    );
+}
+
+#[test]
+fn a_restore_puts_the_built_in_set_in_force_and_saves_it() {
+    let mut rig = Rig::dji();
+    let mut flash = RamFlash::new(0xC000);
+    let (mut store, _) = Store::mount(&mut flash, LAYOUT, &rig.config).unwrap();
+    let builtin = rig.ctl.config_id();
+    ask(&mut rig, write(0x2002, 1, 2.0f32.to_bits(), 4));
+    assert_ne!(rig.ctl.config_id(), builtin);
+    request(&mut rig, write(RESTORE, 1, LOAD_SIGNATURE, 4));
+    let (r, _) = until_answered(&mut rig, &mut store, &mut flash);
+    assert_eq!(
+        r,
+        SdoResponse::Downloaded {
+            index: RESTORE,
+            sub: 1
+        }
+    );
+    assert_eq!(rig.ctl.config_id(), builtin);
+    let (_, found) = Store::mount(&mut flash, LAYOUT, &rig.config).unwrap();
+    assert_eq!(found.saved.map(|s| s.config.id()), Some(builtin));
+}
+
+#[test]
+fn a_full_store_refuses_the_save_at_the_next_step() {
+    let mut rig = Rig::dji();
+    // Room for one record in each sector.
+    let layout = Layout {
+        starts: [0, RECORD_BYTES as u32],
+        sector_bytes: RECORD_BYTES as u32,
+    };
+    let mut flash = RamFlash::new(2 * RECORD_BYTES);
+    let (mut store, _) = Store::mount(&mut flash, layout, &rig.config).unwrap();
+    for _ in 0..2 {
+        request(&mut rig, write(STORE, 1, SAVE_SIGNATURE, 4));
+        assert!(matches!(
+            until_answered(&mut rig, &mut store, &mut flash).0,
+            SdoResponse::Downloaded { .. }
+        ));
+    }
+    request(&mut rig, write(STORE, 1, SAVE_SIGNATURE, 4));
+    let (r, steps) = until_answered(&mut rig, &mut store, &mut flash);
+    assert_eq!((abort_of(r), steps), (0x0800_0020, 2));
 }
