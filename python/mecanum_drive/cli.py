@@ -6,6 +6,7 @@ import argparse
 import json
 import math
 import os
+import struct
 import sys
 import time
 from collections.abc import Sequence
@@ -54,8 +55,14 @@ def _robot(args: argparse.Namespace) -> Robot:
 
 
 def cmd_param(args: argparse.Namespace) -> int:
-    """`param get|set|list`: the robot's parameters over its SDO service (docs/protocol.md)."""
+    """`param list|get|set|save|restore|dump`: the robot's parameters over its SDO service
+    (docs/protocol.md, "Parameters")."""
     known = params.table()
+    if args.action in ("save", "restore", "dump") and args.names:
+        raise ValueError(f"{args.action} takes no names: param {args.action}"
+                         + (" [--output FILE]" if args.action == "dump" else ""))
+    if args.output is not None and args.action != "dump":
+        raise ValueError("--output is for dump: param dump --output robot.toml")
     names = args.names if args.action != "set" else [args.names[0]] if args.names else []
     unknown = [n for n in names if n not in known]
     if unknown:
@@ -90,18 +97,111 @@ def cmd_param(args: argparse.Namespace) -> int:
             client.set(p, value)
             print(f"{p.name} = {client.get(p):g}")
             return 0
+        if args.action in ("save", "restore"):
+            if args.action == "save":
+                client.save()
+            else:
+                client.restore()
+            verb = "saved" if args.action == "save" else "restored"
+            try:
+                info = client.info()
+            except params.ParamError as err:  # stored all the same: the robot answered the save
+                print(f"{verb}; the ids could not be read after it: {err}")
+                return 0
+            print(_stored(verb, info))
+            return 0
+        if args.action == "dump":
+            return _dump(client, known, args.output)
         values = {}
         for name in names or known:
             try:
                 values[name] = client.get(known[name])
             except params.ParamError as err:
-                if names or "not in this configuration" not in str(err):
+                if names or err.code != params.NOT_IN_CONFIGURATION:
                     raise
         if args.json:
             print(json.dumps(values))
         else:
             for name, value in values.items():
                 print(f"{name} = {value:g}")
+    return 0
+
+
+def _stored(verb: str, info: params.Info) -> str:
+    """What a save or restore did, from object 0x2100 read after it."""
+    if verb == "restored":
+        text = f"restored: the built-in config 0x{info.builtin_id:04x} is in force, saved as record {info.saved_seq}"
+    else:
+        text = f"saved: config 0x{info.saved_id:04x} as record {info.saved_seq}"
+    text += "; a restart runs it"
+    if info.running_id != info.saved_id:  # a change since (another client's set)
+        text += f" (config 0x{info.running_id:04x} is in force now)"
+    return text
+
+
+def _toml_number(p: params.Param, value: float) -> str:
+    """A TOML number: an integer type's as an integer; a REAL32 in the fewest digits that
+    read back as the same float32 (`gains.kp` 1.2, not 1.2000000476837158)."""
+    if p.data_type != 0x0008:
+        return str(int(value))
+    if not math.isfinite(value):
+        return "nan" if math.isnan(value) else "inf" if value > 0 else "-inf"
+    exact = struct.pack("<f", value)
+    text = repr(value)  # the float32 widened to a double: exact, if long
+    for digits in range(1, 10):  # 9 significant digits always read back as the same float32
+        short = f"{value:.{digits}g}"
+        try:
+            if struct.pack("<f", float(short)) == exact:
+                text = short
+                break
+        except OverflowError:  # rounded up beyond float32's range: more digits
+            continue
+    return text if any(c in text for c in ".en") else text + ".0"
+
+
+def _dump(client: params.Client, known: dict[str, params.Param], output: str | None) -> int:
+    """`param dump`: every parameter the robot has as TOML, to stdout or to `output`
+    (written whole to OUTPUT.tmp, then renamed: a failed dump leaves an old file as it was)."""
+    info = client.info()
+    lines = []
+    for p in known.values():
+        try:
+            value = client.get(p)
+        except params.ParamError as err:
+            if err.code != params.NOT_IN_CONFIGURATION:
+                raise
+            continue
+        lines.append(f"{json.dumps(p.name)} = {_toml_number(p, value)}")
+    running = client.info().running_id
+    if running != info.running_id:
+        raise params.ParamError(f"dump: the configuration changed while it was read (0x{info.running_id:04x} -> "
+                                f"0x{running:04x}); dump again")
+    restart = (f"the saved set 0x{info.saved_id:04x} (record {info.saved_seq})" if info.saved_seq
+               else f"the built-in set 0x{info.saved_id:04x} (none saved)")
+    text = "\n".join([
+        f"# mecanum-drive param dump of node {client.node}: running config 0x{info.running_id:04x}, "
+        f"built-in config 0x{info.builtin_id:04x}; a restart runs {restart}.",
+        f"# {len(lines)} parameters, each by its name (`mecanum-drive param list`); REAL32 values "
+        "in the fewest digits that read back as the same float32.",
+        *lines, "",
+    ])
+    if output is None:
+        sys.stdout.write(text)
+        return 0
+    tmp = f"{output}.tmp"
+    try:
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, output)
+    except OSError as err:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise SystemExit(f"mecanum-drive param: cannot write {output}: {err}") from err
+    print(f"dumped {len(lines)} parameters of config 0x{info.running_id:04x} to {output}")
     return 0
 
 
@@ -431,18 +531,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_check)
 
     p = sub.add_parser(
-        "param", help="read and set the robot's parameters over CAN (gains, limits, timeouts, ...)",
+        "param", help="read, set, save, restore and dump the robot's parameters over CAN (gains, limits, timeouts, ...)",
         description="The robot's parameters, read and set over its CANopen SDO service on node --node "
         "(docs/protocol.md, \"Parameters\"). `list` prints every parameter with when it may change "
         "(live: any time; disabled: only while the robot is disabled; fixed: not over CAN) and its range; "
         "`get [NAME ...]` prints values (all the robot has without a name); `set NAME VALUE` sets one and "
-        "prints the value then in force. A refusal names the parameter and the reason (exit status 1).",
+        "prints the value then in force (until a restart). `save` saves the configuration in force: a "
+        "restart runs it; `restore` puts the built-in configuration in force and saves it (only while "
+        "disabled); both print the configuration's id and the saved record. `dump [--output FILE]` "
+        "writes every parameter the robot has as TOML (\"gains.kp\" = 1.5), a header naming the node "
+        "and the configurations' ids. A refusal names the parameter and the reason (exit status 1).",
     )
-    p.add_argument("action", choices=["list", "get", "set"], help="list, get or set")
+    p.add_argument("action", choices=["list", "get", "set", "save", "restore", "dump"],
+                   help="list, get, set, save, restore or dump")
     p.add_argument("names", nargs="*", metavar="NAME [VALUE]", help="parameter names; for set, a name and a value")
     p.add_argument("--node", type=int, default=params.DEFAULT_NODE,
                    help=f"the robot's node id (default {params.DEFAULT_NODE}; with CiA 402 drives, drive.master_node)")
     p.add_argument("--json", action="store_true", help="get: print one JSON object")
+    p.add_argument("--output", default=None, metavar="FILE",
+                   help="dump: write the TOML to FILE (through FILE.tmp: a failed dump leaves FILE as it was)")
     p.set_defaults(func=cmd_param)
 
     p = sub.add_parser(
