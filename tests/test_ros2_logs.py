@@ -42,6 +42,7 @@ CHANNEL_TYPES = {
     "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
     "/rosout": "rcl_interfaces/msg/Log",
     "/firmware/steps": "mecanum_drive_msgs/msg/Step",
+    "/firmware/store": "mecanum_drive_msgs/msg/SaveResult",
 }
 
 #: The two runs: a built-in, and a scenario file with bus faults.
@@ -186,7 +187,8 @@ def test_the_standard_types_are_ros2_humbles(log: Log) -> None:
                 seen.add(typename)
             else:
                 own.add(typename)
-    assert own == {"can_msgs/msg/Frame", "mecanum_drive_msgs/msg/BusFault", "mecanum_drive_msgs/msg/Step"}
+    assert own == {"can_msgs/msg/Frame", "mecanum_drive_msgs/msg/BusFault", "mecanum_drive_msgs/msg/Step",
+                   "mecanum_drive_msgs/msg/SaveResult"}
     assert seen == {
         "builtin_interfaces/msg/Time", "std_msgs/msg/Header", "rcl_interfaces/msg/Log",
         "geometry_msgs/msg/Vector3", "geometry_msgs/msg/Point", "geometry_msgs/msg/Quaternion",

@@ -115,11 +115,13 @@ pub enum Channel {
     Rosout,
     /// `/firmware/steps`.
     Steps,
+    /// `/firmware/store`.
+    Store,
 }
 
 impl Channel {
     /// Every channel, in channel id order (id = index + 1).
-    pub const ALL: [Self; 11] = [
+    pub const ALL: [Self; 12] = [
         Self::CanRx,
         Self::CanTx,
         Self::CanFaults,
@@ -131,6 +133,7 @@ impl Channel {
         Self::Diagnostics,
         Self::Rosout,
         Self::Steps,
+        Self::Store,
     ];
 
     /// The topic.
@@ -148,6 +151,7 @@ impl Channel {
             Self::Diagnostics => "/diagnostics",
             Self::Rosout => "/rosout",
             Self::Steps => "/firmware/steps",
+            Self::Store => "/firmware/store",
         }
     }
 
@@ -164,6 +168,7 @@ impl Channel {
             Self::Diagnostics => &msg::DIAGNOSTIC_ARRAY,
             Self::Rosout => &msg::LOG,
             Self::Steps => &msg::STEP,
+            Self::Store => &msg::SAVE_RESULT,
         }
     }
 

@@ -5,11 +5,15 @@
 mod common;
 
 use drivelog::msg::{Log, decode};
+use firmware::control::{RESTORE, STORE, SaveOutcome};
 use firmware::params::{Change, PARAMS, ParamType, service_node};
 use firmware::protocol::canopen::{self, Message, SdoResponse};
+use firmware::protocol::robot::Telemetry;
 use hostsim::bus::SplitMix64;
 use hostsim::replay::{read_log, replay_mcap};
-use hostsim::scenario::{Action, ParamName, ParamSet, Scenario};
+use hostsim::scenario::{
+    Action, FaultName, NodeFault, ParamName, ParamSet, Scenario, StoreCommand,
+};
 
 /// The square with `n` writes of random parameters at random times after the enable: values
 /// drawn across and beyond each one's range, so that some are refused (out of range, the
@@ -151,4 +155,129 @@ fn a_set_action_names_a_parameter_and_a_value_its_type_holds() {
         e.contains("actions[0].set.value") && e.contains("1.5"),
         "{e}"
     );
+}
+
+/// The service's responses to saves and restores in a log, with their step times (ns).
+fn store_answers(content: &hostsim::replay::LogContent, node: u8) -> Vec<(u64, SdoResponse)> {
+    content
+        .tx
+        .iter()
+        .filter_map(|f| match canopen::decode(&f.frame) {
+            Ok(Message::SdoResponse { node: n, response }) if n.get() == node => {
+                let (index, _) = response.object();
+                matches!(index, STORE | RESTORE).then_some((f.t_ns, response))
+            }
+            _ => None,
+        })
+        .collect()
+}
+
+fn store_at(at_s: f64, command: StoreCommand) -> Action {
+    let mut a = Action::at(at_s);
+    a.store = Some(command);
+    a
+}
+
+#[test]
+fn saves_are_answered_once_stored_logged_and_replay_bit_identically() {
+    // Random writes, and saves among them: one while enabled (taken: nothing is erased), a
+    // restore while enabled (refused), a restore once disabled.
+    let mut s = square_with_writes(40, 5);
+    let end = s.duration_s;
+    for (at_s, command) in [
+        (1.0, StoreCommand::Save),
+        (2.0, StoreCommand::Restore),
+        (4.0, StoreCommand::Save),
+        (end - 0.4, StoreCommand::Save),
+    ] {
+        s.actions.push(store_at(at_s, command));
+    }
+    let mut off = Action::at(end - 0.3);
+    off.disable = true;
+    s.actions.push(off);
+    s.actions.push(store_at(end - 0.2, StoreCommand::Restore));
+    s.actions.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
+    let path = common::scratch("params", "saves.mcap");
+    common::logged_run(&s, &path);
+    let content = read_log(&path).unwrap();
+    let answers = store_answers(&content, service_node(&s.config));
+    let stores: Vec<&Action> = s.actions.iter().filter(|a| a.store.is_some()).collect();
+    assert_eq!(answers.len(), stores.len(), "{answers:?}");
+    for (a, (t_ns, r)) in stores.iter().zip(&answers) {
+        #[allow(clippy::cast_precision_loss)]
+        let waited_ms = (*t_ns as f64 * 1e-6) - a.at_s * 1e3;
+        match (a.store, a.at_s) {
+            (Some(StoreCommand::Restore), 2.0) => {
+                assert!(
+                    matches!(
+                        r,
+                        SdoResponse::Abort {
+                            code: 0x0800_0022,
+                            ..
+                        }
+                    ),
+                    "{r:?}"
+                );
+            }
+            _ => {
+                assert!(matches!(r, SdoResponse::Downloaded { .. }), "{a:?}: {r:?}");
+                // Acknowledged within 30 ms of the request (25 steps at 1 kHz).
+                assert!(waited_ms <= 30.0, "{a:?}: answered after {waited_ms} ms");
+            }
+        }
+    }
+    // Each end of a save is an input on /firmware/store.
+    assert_eq!(content.saves.len(), 4);
+    assert!(
+        content
+            .saves
+            .iter()
+            .all(|s| matches!(s.outcome, SaveOutcome::Stored { .. }))
+    );
+    let report = replay_mcap(&path).unwrap();
+    assert!(report.identical(), "{:?}", report.difference);
+}
+
+#[test]
+fn a_restarted_core_runs_the_set_it_saved() {
+    let mut s = Scenario::builtin("square").unwrap();
+    let kp = firmware::params::find("gains.kp").unwrap();
+    let mut set = Action::at(1.0);
+    set.set = Some(ParamSet {
+        param: ParamName(kp),
+        value: 1.25,
+    });
+    s.actions.push(set);
+    s.actions.push(store_at(1.1, StoreCommand::Save));
+    s.actions.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
+    s.node_faults.push(NodeFault {
+        kind: FaultName::RunnerRestart,
+        from_us: 3_000_000,
+        until_us: 3_200_000,
+    });
+    let path = common::scratch("params", "restart.mcap");
+    common::logged_run(&s, &path);
+    let content = read_log(&path).unwrap();
+    let mut saved = s.config;
+    saved.gains.kp = 1.25;
+    let heartbeat_ids: Vec<(u64, u16)> = content
+        .tx
+        .iter()
+        .filter_map(|f| match Telemetry::decode(&f.frame) {
+            Ok(Telemetry::Heartbeat(h)) => Some((f.t_ns, h.config_id)),
+            _ => None,
+        })
+        .collect();
+    let before = heartbeat_ids.iter().filter(|(t, _)| *t < 1_000_000_000);
+    assert!(before.clone().count() > 5 && before.clone().all(|&(_, id)| id == s.config.id()));
+    let after: Vec<_> = heartbeat_ids
+        .iter()
+        .filter(|(t, _)| *t > 3_200_000_000)
+        .collect();
+    assert!(
+        after.len() > 5,
+        "{} heartbeats after the restart",
+        after.len()
+    );
+    assert!(after.iter().all(|&&(_, id)| id == saved.id()), "{after:?}");
 }

@@ -61,7 +61,7 @@ fn parse_can_hz(s: &str) -> Result<u32, String> {
 /// descriptor.
 pub const MAX_CLIENTS: std::ops::RangeInclusive<usize> = 1..=1024;
 
-/// The range of `--live-max-subscriptions`: the log has 11 channels, one subscription each.
+/// The range of `--live-max-subscriptions`: the log has 12 channels, one subscription each.
 pub const MAX_SUBSCRIPTIONS: std::ops::RangeInclusive<usize> = 1..=4096;
 
 /// A whole number of `what` in `range`.

@@ -106,7 +106,7 @@ pub struct LiveOptions {
     /// (Foxglove and Lichtblick open one connection per window); the cap keeps a flood of
     /// connections from costing each a queue (`--live-max-clients`).
     pub max_clients: usize,
-    /// Subscriptions one client may hold (64). The log advertises 11 channels, and Foxglove
+    /// Subscriptions one client may hold (64). The log advertises 12 channels, and Foxglove
     /// and Lichtblick subscribe once per channel; a client may not subscribe a channel twice
     /// or reuse an id, so 64 leaves room for more channels. A client that asks for more, or
     /// for a duplicate, gets a `status` error naming it and is disconnected

@@ -1,4 +1,5 @@
-//! The project's own types, which no standard type describes: a bus fault and a control step.
+//! The project's own types, which no standard type describes: a bus fault, a control step and
+//! the end of a parameter save.
 
 use serde::{Deserialize, Serialize};
 
@@ -61,3 +62,27 @@ pub static STEP: MsgDef = MsgDef {
     deps: &[&TIME],
 };
 ros_msg!(Step, STEP);
+
+/// `mecanum_drive_msgs/msg/SaveResult`: the end of a parameter save, as the robot's edge (its
+/// flash, the runner's file, the simulator's flash) reported it to the core before the step at
+/// `stamp` (`/firmware/store`): an input replay gives the core at the same step.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SaveResult {
+    /// The step before which the core was told (the message's log time).
+    pub stamp: Time,
+    /// The stored record's sequence number; 0 when not stored.
+    pub seq: u32,
+    /// 0 when stored; else the CiA 301 SDO abort code the save's response carries.
+    pub abort_code: u32,
+}
+
+/// Definition of [`SaveResult`].
+pub static SAVE_RESULT: MsgDef = MsgDef {
+    name: "mecanum_drive_msgs/msg/SaveResult",
+    text: "# The end of a parameter save, as the robot's edge reported it to the core.\n\
+           builtin_interfaces/Time stamp # the step before which the core was told\n\
+           uint32 seq # the stored record's number; 0 when not stored\n\
+           uint32 abort_code # 0 when stored; else the SDO abort code of the response\n",
+    deps: &[&TIME],
+};
+ros_msg!(SaveResult, SAVE_RESULT);

@@ -36,6 +36,12 @@ pub(super) enum Event {
     Text { t_ns: u64, level: u8, index: u32 },
     /// `/firmware/steps`.
     Step { t_ns: u64, kind: u8 },
+    /// `/firmware/store`.
+    Saved {
+        t_ns: u64,
+        seq: u32,
+        abort_code: u32,
+    },
     /// `/diagnostics` with the tap's status alone ([`McapLog::tap_status`]).
     TapStatus { t_ns: u64 },
 }
@@ -231,6 +237,18 @@ impl Encoder {
                     kind,
                 };
                 self.write(Channel::Steps, t_ns, t_ns, &m)
+            }
+            Event::Saved {
+                t_ns,
+                seq,
+                abort_code,
+            } => {
+                let m = msg::SaveResult {
+                    stamp: msg::Time::from_ns(t_ns),
+                    seq,
+                    abort_code,
+                };
+                self.write(Channel::Store, t_ns, t_ns, &m)
             }
             Event::TapStatus { t_ns } => {
                 let m = msg::DiagnosticArray {

@@ -33,7 +33,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant as WallInstant};
 
 use firmware::CanFrame;
-use firmware::control::Snapshot;
+use firmware::control::{SaveOutcome, Snapshot};
 
 use crate::msg;
 use crate::{Channel, output::Staged};
@@ -599,6 +599,31 @@ impl McapLog {
             return Ok(());
         }
         self.push(Event::Step { t_ns, kind }, t_ns, 1)
+    }
+
+    /// Logs the end of a parameter save as the core was told it before the step at `t_ns`
+    /// (`/firmware/store`): `outcome` is what
+    /// [`Controller::on_saved`](firmware::Controller::on_saved) was given.
+    ///
+    /// # Errors
+    /// [`LogError`] if writing the log failed.
+    pub fn saved(&mut self, t_ns: u64, outcome: SaveOutcome) -> Result<(), LogError> {
+        if !self.admit(t_ns, 1)? {
+            return Ok(());
+        }
+        let (seq, abort_code) = match outcome {
+            SaveOutcome::Stored { seq } => (seq, 0),
+            SaveOutcome::Failed { code } => (0, code),
+        };
+        self.push(
+            Event::Saved {
+                t_ns,
+                seq,
+                abort_code,
+            },
+            t_ns,
+            1,
+        )
     }
 
     /// Hands the messages logged so far to the writing thread if a quarter of a second of log

@@ -28,6 +28,17 @@ use crate::config::{Config, ENCODED_LEN};
 use crate::control::{Controller, SaveOutcome};
 use crate::params;
 
+/// Words a board programs after each control step: at most 300 µs of stalled CPU at the
+/// datasheet's worst 100 µs a word, and a record in 24 steps.
+pub const WORDS_PER_STEP: usize = 3;
+
+/// The STM32F407's sectors 1 and 2 (16 KiB each, at `0x0800_4000` and `0x0800_8000`), as
+/// offsets from the flash's start: where the board keeps its records.
+pub const F407_LAYOUT: Layout = Layout {
+    starts: [0x4000, 0x8000],
+    sector_bytes: 0x4000,
+};
+
 /// A record's first word: `MCF1` (the `1` is the record format).
 pub const MAGIC: u32 = u32::from_le_bytes(*b"MCF1");
 
@@ -395,9 +406,9 @@ impl Store {
         Progress::Done(Ok(seq))
     }
 
-    /// The edge's part after each control step: takes the save `ctl` asks for, programs at
-    /// most `max_words` words of it, and reports its end to `ctl`. Returns that end, for the
-    /// edge's log (the core's input).
+    /// The edge's part before each control step: takes the save `ctl` asked for at the
+    /// previous step, programs at most `max_words` words of it, and reports its end to `ctl`.
+    /// Returns that end, for the edge's log (the core's input, given before this step).
     pub fn serve<F: NorFlash>(
         &mut self,
         ctl: &mut Controller,

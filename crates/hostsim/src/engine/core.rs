@@ -1,10 +1,13 @@
 //! The in-process firmware node: the real core ([`Controller`]) stepped at every tick, with
 //! the frames the bus delivered by then, its frames put on the bus at the tick's time. A
 //! scenario's `runner_restart` faults take it down for their window (it receives and sends
-//! nothing) and start a fresh core at their end.
+//! nothing) and start a fresh core at their end, on the saved parameters if any. Saves go to a
+//! flash in RAM laid out and programmed as the board's (`firmware::storage`, a few words
+//! before each step), and each end is logged (`/firmware/store`).
 
 use firmware::CanFrame;
-use firmware::control::{Controller, Instant, Outbox};
+use firmware::control::{Controller, Instant, Outbox, SaveOutcome};
+use firmware::storage::{self, F407_LAYOUT, RamFlash, Store};
 
 use super::{Firmware, Record, deliver_due};
 use crate::bus::{Bus, Fate, Node, Transmission};
@@ -26,6 +29,11 @@ pub struct InProcess {
     out: Outbox,
     /// The firmware boots DISABLED without a fault: the log says the changes from there.
     core_log: CoreLog,
+    /// The board's parameter flash (sectors 0 to 2), and its record log.
+    flash: RamFlash,
+    store: Store,
+    /// The end of a save given to the core at the last tick, to log.
+    saved: Option<SaveOutcome>,
 }
 
 impl InProcess {
@@ -34,9 +42,14 @@ impl InProcess {
     /// # Errors
     /// The firmware refused the configuration.
     pub fn new(scenario: &Scenario, options: super::LogOptions) -> Result<Self, SimError> {
+        let mut flash = RamFlash::new((F407_LAYOUT.starts[1] + F407_LAYOUT.sector_bytes) as usize);
+        let (ctl, store) = boot(&scenario.config, &mut flash)?;
         Ok(Self {
             config: scenario.config,
-            ctl: Controller::new(&scenario.config)?,
+            ctl,
+            flash,
+            store,
+            saved: None,
             restarts: scenario
                 .node_faults
                 .iter()
@@ -90,7 +103,7 @@ impl Firmware for InProcess {
             .iter()
             .any(|&(from, until)| from <= t_us && t_us < until);
         if self.down && !down {
-            self.ctl = Controller::new(&self.config)?;
+            (self.ctl, self.store) = boot(&self.config, &mut self.flash)?;
         }
         self.down = down;
         let t_ns = t_us * 1000;
@@ -112,6 +125,9 @@ impl Firmware for InProcess {
                 self.ctl.on_frame(at, &tx.frame);
             }
         }
+        self.saved = self
+            .store
+            .serve(&mut self.ctl, &mut self.flash, storage::WORDS_PER_STEP);
         self.ctl
             .step_into(Instant::from_micros(t_us), &mut self.out);
         for f in &self.out {
@@ -128,7 +144,7 @@ impl Firmware for InProcess {
     fn observe(
         &mut self,
         t_us: u64,
-        log: Option<&mut McapLog>,
+        mut log: Option<&mut McapLog>,
         truth: [f64; 3],
         velocity: &dyn Fn() -> [f64; 3],
         record: &mut Record,
@@ -140,6 +156,9 @@ impl Firmware for InProcess {
         }
         if self.down {
             return Ok(());
+        }
+        if let (Some(outcome), Some(l)) = (self.saved.take(), log.as_deref_mut()) {
+            l.saved(t_us * 1000, outcome)?;
         }
         let truth_now = || (truth, velocity());
         let changes = self
@@ -172,4 +191,17 @@ impl Firmware for InProcess {
 /// The firmware's pose as `[x, y, heading]` in f64, the plant's format.
 pub(crate) fn pose_array(p: kinematics::Pose2<f32>) -> [f64; 3] {
     [f64::from(p.x), f64::from(p.y), f64::from(p.heading)]
+}
+
+/// A boot on `flash`, as the board's: the newest saved set for `config` if there is one (else
+/// `config`), the stale sector erased.
+fn boot(config: &firmware::Config, flash: &mut RamFlash) -> Result<(Controller, Store), SimError> {
+    let ctl = Controller::new(config)?;
+    let (mut store, found) = Store::mount(flash, F407_LAYOUT, config).map_err(SimError::Flash)?;
+    store.erase_stale(flash).map_err(SimError::Flash)?;
+    let ctl = match found.saved {
+        Some(s) => ctl.with_saved(&s.config, s.seq)?,
+        None => ctl,
+    };
+    Ok((ctl, store))
 }

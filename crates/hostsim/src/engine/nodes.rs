@@ -3,6 +3,8 @@
 //! The one place that reads a [`Scenario`] into the nodes' own parameters.
 
 use firmware::config::Drive as DriveConfig;
+use firmware::control::{LOAD_SIGNATURE, RESTORE, SAVE_SIGNATURE, STORE};
+use firmware::protocol::canopen::{Message, NodeId, SdoRequest};
 use firmware::protocol::robot::{self, Command, ModeRequest};
 
 use crate::nodes::SimPlant;
@@ -10,7 +12,7 @@ use crate::nodes::drives::SimDrives;
 use crate::nodes::host::{HostAction, HostNode};
 use crate::nodes::plant::ParamError;
 use crate::nodes::pods::{PodNode, WithPods, pods_seed};
-use crate::scenario::{FaultName, Scenario};
+use crate::scenario::{FaultName, Scenario, StoreCommand};
 
 /// The plant of a scenario: its drives ([`SimDrives::with_spec`]) for its configuration and
 /// `[plant]` table.
@@ -97,6 +99,23 @@ fn script(s: &Scenario) -> Vec<(u64, HostAction)> {
                 .and_then(|raw| set.param.0.download(node, raw))
         {
             push(HostAction::Frame(frame));
+        }
+        if let Some(store) = a.store
+            && let Some(node) = NodeId::new(node)
+        {
+            let (index, value) = match store {
+                StoreCommand::Save => (STORE, SAVE_SIGNATURE),
+                StoreCommand::Restore => (RESTORE, LOAD_SIGNATURE),
+            };
+            let request = SdoRequest::Download {
+                index,
+                sub: 1,
+                value,
+                size: 4,
+            };
+            push(HostAction::Frame(
+                Message::SdoRequest { node, request }.to_can_frame(),
+            ));
         }
         if let Some(tw) = a.twist {
             push(HostAction::Twist(tw));

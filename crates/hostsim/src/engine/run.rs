@@ -73,6 +73,9 @@ pub enum SimError {
     /// The log could not be written.
     #[error(transparent)]
     Log(#[from] LogError),
+    /// The simulated parameter flash refused a read or an erase at boot.
+    #[error("parameter flash: {0:?}")]
+    Flash(embedded_storage::nor_flash::NorFlashErrorKind),
 }
 
 /// What the runner shows an observer after each firmware step (see [`run_observed`]).

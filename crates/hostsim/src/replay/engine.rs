@@ -69,11 +69,17 @@ impl ReplayReport {
 /// its time line longer than [`MAX_GAP_NS`].
 pub fn replay_mcap(path: &Path) -> Result<ReplayReport, ReplayError> {
     let log = open_mcap(path)?;
-    let replayed = if log.steps.is_empty() {
-        replay_frames(&log.config, &log.rx, &log.tx)
-    } else {
-        replay_at_steps(&log.config, &log.rx, &log.tx, &log.steps)
+    let inputs = Inputs {
+        rx: &log.rx,
+        saves: &log.content.saves,
     };
+    let replayed = Controller::new(&log.config)
+        .map_err(ReplayRunError::from)
+        .and_then(|ctl| {
+            let period_ns = ctl.period_micros() * 1000;
+            let schedule = step_schedule(period_ns, &log.rx, &log.tx, &log.steps)?;
+            Ok(replay_schedule(ctl, inputs, &log.tx, schedule))
+        });
     let mut report = replayed.map_err(|e| match e {
         ReplayRunError::Config(source) => ReplayError::Refused {
             path: path.to_path_buf(),
@@ -101,7 +107,7 @@ pub fn replay_frames(
 ) -> Result<ReplayReport, ReplayRunError> {
     let ctl = Controller::new(config)?;
     let grid = step_schedule(ctl.period_micros() * 1000, rx, tx, &[])?;
-    Ok(replay_schedule(ctl, rx, tx, grid))
+    Ok(replay_schedule(ctl, Inputs { rx, saves: &[] }, tx, grid))
 }
 
 /// Runs the core on `rx` and compares its output with `tx`, stepping at the recorded
@@ -117,49 +123,55 @@ pub fn replay_at_steps(
     steps: &[StepTime],
 ) -> Result<ReplayReport, ReplayRunError> {
     let ctl = Controller::new(config)?;
-    Ok(replay_schedule(ctl, rx, tx, steps.iter().copied()))
+    let inputs = Inputs { rx, saves: &[] };
+    Ok(replay_schedule(ctl, inputs, tx, steps.iter().copied()))
 }
 
 /// Feeds `rx` to `ctl` and steps it at `schedule`, comparing its frames with `tx`.
 fn replay_schedule(
     mut ctl: Controller,
-    rx: &[TimedFrame],
+    inputs: Inputs<'_>,
     tx: &[TimedFrame],
     schedule: impl Iterator<Item = StepTime>,
 ) -> ReplayReport {
     let mut out_index = 0;
     let mut steps = 0;
     let mut difference = None;
-    let fed = run_schedule(&mut ctl, rx, schedule, |StepTime { t_ns, .. }, sent, _| {
-        for &frame in sent {
-            let replayed = TimedFrame { t_ns, frame };
-            let logged = tx.get(out_index).copied();
-            if logged != Some(replayed) {
+    let fed = run_schedule(
+        &mut ctl,
+        inputs,
+        schedule,
+        |StepTime { t_ns, .. }, sent, _| {
+            for &frame in sent {
+                let replayed = TimedFrame { t_ns, frame };
+                let logged = tx.get(out_index).copied();
+                if logged != Some(replayed) {
+                    difference = Some(Difference {
+                        index: out_index,
+                        t_ns,
+                        logged,
+                        replayed: Some(replayed),
+                    });
+                    return ControlFlow::Break(());
+                }
+                out_index += 1;
+            }
+            // The log has a frame of this step (or earlier) that the replay did not send.
+            if let Some(&logged) = tx.get(out_index)
+                && logged.t_ns <= t_ns
+            {
                 difference = Some(Difference {
                     index: out_index,
-                    t_ns,
-                    logged,
-                    replayed: Some(replayed),
+                    t_ns: logged.t_ns,
+                    logged: Some(logged),
+                    replayed: None,
                 });
                 return ControlFlow::Break(());
             }
-            out_index += 1;
-        }
-        // The log has a frame of this step (or earlier) that the replay did not send.
-        if let Some(&logged) = tx.get(out_index)
-            && logged.t_ns <= t_ns
-        {
-            difference = Some(Difference {
-                index: out_index,
-                t_ns: logged.t_ns,
-                logged: Some(logged),
-                replayed: None,
-            });
-            return ControlFlow::Break(());
-        }
-        steps += 1;
-        ControlFlow::Continue(())
-    });
+            steps += 1;
+            ControlFlow::Continue(())
+        },
+    );
     if difference.is_none() && out_index < tx.len() {
         difference = Some(Difference {
             index: out_index,
@@ -201,25 +213,44 @@ pub(crate) fn step_schedule<'a>(
     ))
 }
 
-/// The replay loop, the one place where a log's inbound frames meet a core: before each
-/// step of `schedule`, feeds `ctl` the frames of `rx` logged at or before the step's time
-/// (each at its own logged time), runs the step (or the shutdown), and passes `on_step` the
-/// step, the frames it sent in [`wire_order`] and the core after it. Stops at the end of
-/// the schedule or when `on_step` breaks. Returns the number of inbound frames fed.
+/// A log's inputs to its core: the frames it received and the ends of the saves its edge
+/// reported.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Inputs<'a> {
+    /// `/can/rx`, in log time order.
+    pub rx: &'a [TimedFrame],
+    /// `/firmware/store`, in log time order.
+    pub saves: &'a [TimedSave],
+}
+
+/// The replay loop, the one place where a log's inputs meet a core: before each step of
+/// `schedule`, feeds `ctl` the frames of `rx` logged at or before the step's time (each at
+/// its own logged time) and, as the edge did before that step, takes the save it asked for
+/// and gives it the ends of saves logged by then; runs the step (or the shutdown), and
+/// passes `on_step` the step, the frames it sent in [`wire_order`] and the core after it.
+/// Stops at the end of the schedule or when `on_step` breaks. Returns the number of inbound
+/// frames fed.
 pub(crate) fn run_schedule(
     ctl: &mut Controller,
-    rx: &[TimedFrame],
+    inputs: Inputs<'_>,
     schedule: impl Iterator<Item = StepTime>,
     mut on_step: impl FnMut(StepTime, &[CanFrame], &Controller) -> ControlFlow<()>,
 ) -> usize {
-    let mut next_rx = 0;
+    let (mut next_rx, mut next_save) = (0, 0);
     let mut sent: Vec<CanFrame> = Vec::new();
     for step in schedule {
-        while let Some(f) = rx.get(next_rx)
+        while let Some(f) = inputs.rx.get(next_rx)
             && f.t_ns <= step.t_ns
         {
             ctl.on_frame(Instant::from_micros(f.t_ns / 1000), &f.frame);
             next_rx += 1;
+        }
+        let _ = ctl.take_save();
+        while let Some(s) = inputs.saves.get(next_save)
+            && s.t_ns <= step.t_ns
+        {
+            ctl.on_saved(s.outcome);
+            next_save += 1;
         }
         let out = if step.shutdown {
             ctl.shutdown()

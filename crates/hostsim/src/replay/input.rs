@@ -18,6 +18,16 @@ pub struct TimedFrame {
     pub frame: CanFrame,
 }
 
+/// The end of a parameter save as the core was told it, before the step at `t_ns`
+/// (`/firmware/store`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TimedSave {
+    /// Log time: the step's, ns.
+    pub t_ns: u64,
+    /// What the core was given.
+    pub outcome: firmware::control::SaveOutcome,
+}
+
 /// A recorded step of a runner: when, and whether it was the shutdown.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct StepTime {
@@ -42,6 +52,8 @@ pub struct LogContent {
     pub tx: Vec<TimedFrame>,
     /// The recorded steps (`/firmware/steps`, a runner's log; empty for the simulator's).
     pub steps: Vec<StepTime>,
+    /// The ends of parameter saves the core was told (`/firmware/store`).
+    pub saves: Vec<TimedSave>,
     /// The longest a sent frame took from its step to the end of its transmission, among
     /// those read, ns.
     pub tx_lag_ns: u64,
@@ -248,6 +260,19 @@ pub fn read_log_bytes(bytes: &[u8]) -> Result<LogContent, Damage> {
                         content.steps.push(StepTime {
                             t_ns: m.log_time,
                             shutdown: step.kind == drivelog::msg::Step::SHUTDOWN,
+                        });
+                    }
+                    return;
+                }
+                "/firmware/store" => {
+                    if let Some(s) = content.undecodable.decode::<drivelog::msg::SaveResult>(m) {
+                        let outcome = match s.abort_code {
+                            0 => firmware::control::SaveOutcome::Stored { seq: s.seq },
+                            code => firmware::control::SaveOutcome::Failed { code },
+                        };
+                        content.saves.push(TimedSave {
+                            t_ns: m.log_time,
+                            outcome,
                         });
                     }
                     return;

@@ -23,7 +23,7 @@ use firmware::protocol::{canopen, dji, odrive};
 use serde::Serialize;
 
 use crate::replay::{
-    ReplayError, ReportFrame, StepTime, TimeGap, TimedFrame, open_mcap, run_schedule,
+    Inputs, ReplayError, ReportFrame, StepTime, TimeGap, TimedFrame, open_mcap, run_schedule,
     step_schedule, wire_order,
 };
 use drivelog::ReadReport;
@@ -543,7 +543,9 @@ pub fn what_if_frames(
     let mut steps_run = 0u64;
     let mut core = vec![StateChange::new(0, ctl.state(), ctl.fault())];
     let logged_id = logged.id();
-    let fed = run_schedule(&mut ctl, rx, schedule, |step, frames, ctl| {
+    // The logged saves' ends are not given: a what-if's core need not ask for the same saves.
+    let inputs = Inputs { rx, saves: &[] };
+    let fed = run_schedule(&mut ctl, inputs, schedule, |step, frames, ctl| {
         sent.extend(frames.iter().map(|&frame| TimedFrame {
             t_ns: step.t_ns,
             frame: with_config_id(frame, logged_id),

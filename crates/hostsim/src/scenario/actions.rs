@@ -43,6 +43,20 @@ pub struct Action {
     /// may refuse it): `set = { param = "gains.kp", value = 1.5 }`.
     #[serde(default)]
     pub set: Option<ParamSet>,
+    /// Save the parameters in force (`"save"`, `0x1010`) or restore the built-in set
+    /// (`"restore"`, `0x1011`) over CAN; the robot answers once its flash has stored it.
+    #[serde(default)]
+    pub store: Option<StoreCommand>,
+}
+
+/// A save or a restore of the robot's parameters (CiA 301 `0x1010`, `0x1011`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum StoreCommand {
+    /// Save the parameters in force.
+    Save,
+    /// Put the built-in set in force and save it.
+    Restore,
 }
 
 /// A parameter write as a scenario writes it.
@@ -105,6 +119,7 @@ impl Action {
             resume: false,
             wheel_test: None,
             set: None,
+            store: None,
         }
     }
 
@@ -150,6 +165,7 @@ pub(super) fn check(
             does(a.resume, "resume"),
             does(a.wheel_test.is_some(), "wheel_test"),
             does(a.set.is_some(), "set"),
+            does(a.store.is_some(), "store"),
         ]
         .into_iter()
         .flatten()
@@ -163,7 +179,7 @@ pub(super) fn check(
                 &format!("actions[{i}]"),
                 format!("{{{}}}", commands.join(", ")),
                 "at least one of enable, disable, reset, estop, status_request, twist, \
-                 silence, resume, wheel_test, set, and not both enable and disable or \
+                 silence, resume, wheel_test, set, store, and not both enable and disable or \
                  silence and resume",
             ));
         }

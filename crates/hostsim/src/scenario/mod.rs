@@ -26,7 +26,7 @@ use firmware::Config;
 use firmware::input::{TomlError, quote};
 use serde::Deserialize;
 
-pub use self::actions::{Action, ParamName, ParamSet, WheelTestSpec};
+pub use self::actions::{Action, ParamName, ParamSet, StoreCommand, WheelTestSpec};
 pub use self::faults::{FaultName, FaultSpec, NodeFault, SenderName, WheelFault};
 pub use self::set::{PLANT_FIELDS, SetError};
 use crate::bus::Fault;
