@@ -7,9 +7,10 @@
 //! `O_CREAT | O_EXCL | O_NOFOLLOW`: a link planted at either name by another user of a shared
 //! output folder is never written through (a leftover `.part` is unlinked first, which never
 //! follows a link; if another appears between the two calls, creation fails), and the rename
-//! replaces a link at `NAME` instead of following it. There is no `fsync`: this protects
-//! against the process dying, not against the machine losing power (`docs/logs.md`,
-//! "Crash safety").
+//! replaces a link at `NAME` instead of following it. [`Staged::commit`] does not `fsync`:
+//! that protects against the process dying, not against the machine losing power
+//! (`docs/logs.md`, "Crash safety"); [`Staged::commit_durable`] does, for a file that must
+//! survive a power cut once committed (the runner's saved parameters).
 //!
 //! [`file_stem`] is the one place a name that came from input (a scenario's `name`) becomes a
 //! file name.
@@ -144,6 +145,32 @@ impl Staged {
         })?;
         self.committed = true;
         Ok(self.path.clone())
+    }
+}
+
+impl Staged {
+    /// [`commit`](Self::commit) that survives a power cut once it returns: the file's data is
+    /// synced before the rename, and the folder after it (the rename itself).
+    ///
+    /// # Errors
+    /// [`LogError::Io`] naming the file or folder that could not be synced or renamed (the
+    /// previous file stays, or the new one is in place but its folder's entry may not be
+    /// durable yet).
+    pub fn commit_durable(self) -> Result<PathBuf, LogError> {
+        let io = |path: &Path| {
+            let path = path.to_path_buf();
+            move |source| LogError::Io { path, source }
+        };
+        self.file.sync_all().map_err(io(&self.part))?;
+        let path = self.commit()?;
+        let dir = match path.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d,
+            _ => Path::new("."),
+        };
+        File::open(dir)
+            .and_then(|d| d.sync_all())
+            .map_err(io(dir))?;
+        Ok(path)
     }
 }
 

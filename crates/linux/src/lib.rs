@@ -37,7 +37,9 @@ pub use report::{
     ControllerReport, CoreFigures, ErrorCounts, ErrorLog, LatencyHistogram, LatencySummary,
     LinkReport, LoopReport, Report, ShutdownReport, StopReason,
 };
-pub use run::{LinkEvent, Recorder, RunOptions, id_text, run, run_recorded, send_with_retry};
+pub use run::{
+    LinkEvent, ParamStore, Recorder, RunOptions, id_text, run, run_recorded, send_with_retry,
+};
 pub use schedule::Schedule;
 pub use signals::{stop_on_signals, stop_requested};
 pub use socketcan::{OpenError, SocketCanBus};

@@ -1,13 +1,13 @@
-//! The control core in the fixed-rate loop ([`run`], [`run_recorded`]) and what it tells a
-//! [`Recorder`].
+//! The control core in the fixed-rate loop ([`run`], [`run_recorded`]), what it tells a
+//! [`Recorder`], and where it saves its parameters ([`ParamStore`]).
 
 use core::sync::atomic::AtomicUsize;
 use std::io;
 
 use embedded_can::Frame as _;
 
-use firmware::CanFrame;
-use firmware::control::{Controller, Instant, Snapshot};
+use firmware::control::{Controller, Instant, SaveOutcome, Snapshot};
+use firmware::{CanFrame, Config};
 
 use crate::bus::{Bus, is_busy};
 use crate::clock::Clock;
@@ -143,8 +143,39 @@ pub trait Recorder {
         let _ = (t_us, event);
     }
 
+    /// Before the step at `t_us`, [`Controller::on_saved`] was given `outcome`: the end of a
+    /// parameter save (an input of the core, as a frame is).
+    fn saved(&mut self, t_us: u64, outcome: SaveOutcome) {
+        let _ = (t_us, outcome);
+    }
+
     /// A step and its frames are done: the place to hand the records over.
     fn step_done(&mut self) {}
+}
+
+/// Where the loop saves the parameter set the core asks it to ([`Controller::take_save`]):
+/// a file for the runner. The loop calls [`begin`](Self::begin) after the step that asked, and
+/// [`poll`](Self::poll) before every step; neither may block it.
+pub trait ParamStore {
+    /// Starts storing `config`, saved under the built-in configuration's id `builtin_id`.
+    ///
+    /// # Errors
+    /// How the save ended at once (refused), told to the core before the next step.
+    fn begin(&mut self, config: &Config, builtin_id: u16) -> Result<(), SaveOutcome>;
+
+    /// The end of the save being stored, once it has ended.
+    fn poll(&mut self) -> Option<SaveOutcome>;
+}
+
+/// No store: every save is refused with `0x0800_0020` (data cannot be stored).
+impl ParamStore for () {
+    fn begin(&mut self, _: &Config, _: u16) -> Result<(), SaveOutcome> {
+        Err(SaveOutcome::Failed { code: 0x0800_0020 })
+    }
+
+    fn poll(&mut self) -> Option<SaveOutcome> {
+        None
+    }
 }
 
 impl Recorder for () {}
@@ -161,10 +192,10 @@ pub fn run<B: Bus, C: Clock>(
     options: &RunOptions,
     stop: &AtomicUsize,
 ) -> Report {
-    run_recorded(controller, bus, clock, options, stop, &mut ())
+    run_recorded(controller, bus, clock, options, stop, &mut (), &mut ())
 }
 
-/// [`run`], telling `recorder` what the loop does.
+/// [`run`], telling `recorder` what the loop does and saving parameters to `store`.
 ///
 /// # Recording
 ///
@@ -187,7 +218,9 @@ pub fn run<B: Bus, C: Clock>(
 ///    (`start := now, k := 0`) instead of running a burst of catch-up steps;
 /// 3. drains every frame waiting on the bus (non-blocking reads, at most
 ///    [`RunOptions::max_rx_per_step`]) into [`Controller::on_frame`], all stamped `now`;
-/// 4. runs [`Controller::step`] at `now` and sends its frames in order.
+/// 4. gives the core the end of a parameter save from `store` ([`ParamStore::poll`]), if one
+///    ended, then runs [`Controller::step`] at `now` and sends its frames in order; a save the
+///    step asked for is handed to `store` ([`ParamStore::begin`]).
 ///
 /// `now` is passed to the core as microseconds since the first step's clock reading, so the
 /// core's [`Instant`] starts near zero.
@@ -241,10 +274,13 @@ pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
     options: &RunOptions,
     stop: &AtomicUsize,
     recorder: &mut R,
+    store: &mut dyn ParamStore,
 ) -> Report {
     let core = Core {
         controller,
         recorder,
+        store,
+        refused: None,
         at_stop: None,
         shutdown: ShutdownReport {
             frames: 0,
@@ -259,6 +295,9 @@ pub fn run_recorded<B: Bus, C: Clock, R: Recorder + ?Sized>(
 struct Core<'a, R: ?Sized> {
     controller: &'a mut Controller,
     recorder: &'a mut R,
+    store: &'a mut dyn ParamStore,
+    /// A save the store refused at once, told to the core before the next step.
+    refused: Option<SaveOutcome>,
     /// The controller when the loop stopped, before its shutdown.
     at_stop: Option<Snapshot>,
     shutdown: ShutdownReport,
@@ -277,8 +316,18 @@ impl<R: Recorder + ?Sized> Node for Core<'_, R> {
     }
 
     fn step(&mut self, t_us: u64, out: &mut Vec<CanFrame>) {
+        if let Some(outcome) = self.refused.take().or_else(|| self.store.poll()) {
+            self.controller.on_saved(outcome);
+            self.recorder.saved(t_us, outcome);
+        }
         out.extend(self.controller.step(Instant::from_micros(t_us)));
         self.recorder.stepped(t_us, self.controller);
+        if let Some(config) = self.controller.take_save() {
+            self.refused = self
+                .store
+                .begin(&config, self.controller.builtin_id())
+                .err();
+        }
     }
 
     fn sent(&mut self, step_us: u64, sent_us: u64, frame: &CanFrame, sent: bool) {

@@ -332,6 +332,7 @@ fn a_lost_link_keeps_the_core_stepping_and_resumes_when_it_is_back() {
         &for_ms(60),
         &AtomicUsize::new(0),
         &mut events,
+        &mut (),
     );
     // Every step ran, on schedule.
     assert_eq!((r.steps, r.overruns), (60, 0));

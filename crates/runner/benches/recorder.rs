@@ -117,8 +117,11 @@ fn main() {
     let path = std::env::temp_dir().join(format!("recorder-bench-{}.mcap", std::process::id()));
 
     let bare = run(steps, &mut ());
-    let mut log =
-        McapRecorder::create(&path, &Config::dji_m3508_example()).expect("create the log");
+    let mut log = McapRecorder::create(
+        &path,
+        &Controller::new(&Config::dji_m3508_example()).expect("the example"),
+    )
+    .expect("create the log");
     let logged = run(steps, &mut log);
     let (messages, dropped) = (log.messages(), log.dropped());
     log.finish().expect("finish the log");

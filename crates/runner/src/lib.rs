@@ -15,6 +15,8 @@
 //! specified in `docs/logs.md`, sections "The runner's log (`--log FILE.mcap`)" and "Rotation
 //! (`--log-max-mb N --log-keep K`)".
 
+pub mod params;
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -22,7 +24,7 @@ use std::thread::JoinHandle;
 use std::time::Duration;
 
 use drivelog::{CoreLog, Direction, LogError, McapLog, MessageTap, msg};
-use firmware::control::{Controller, Fault};
+use firmware::control::{Controller, Fault, SaveOutcome};
 use firmware::protocol::robot::RobotState;
 use firmware::{CanFrame, Config};
 use mecanum_linux::{LinkEvent, Recorder};
@@ -54,6 +56,23 @@ pub fn metadata(config: &Config) -> BTreeMap<String, String> {
     ])
 }
 
+/// The metadata record of a runner's log for `controller` as it is: [`metadata`] of the
+/// configuration in force and, when it did not start on its built-in configuration (a saved
+/// set, `--params`), that built-in configuration (`builtin_config`) and the saved record's
+/// number (`saved_seq`), which replay needs to make the same core.
+#[must_use]
+pub fn metadata_for(controller: &Controller) -> BTreeMap<String, String> {
+    let mut m = metadata(controller.config());
+    if controller.builtin() != controller.config() || controller.saved_seq() != 0 {
+        m.insert(
+            "builtin_config".to_string(),
+            controller.builtin().to_toml_string(),
+        );
+        m.insert("saved_seq".to_string(), controller.saved_seq().to_string());
+    }
+    m
+}
+
 /// A [`Recorder`] that writes the run to an MCAP log. See the [crate documentation](crate) and
 /// `docs/logs.md`, sections "The runner's log (`--log FILE.mcap`)" and "Rotation
 /// (`--log-max-mb N --log-keep K`)".
@@ -73,12 +92,16 @@ pub struct McapRecorder {
 pub type TapMaker = Arc<dyn Fn() -> Box<dyn MessageTap> + Send + Sync>;
 
 impl McapRecorder {
-    /// Creates the log at `path` with `config` in its metadata.
+    /// Creates the log at `path` with the configuration `controller` starts on in its
+    /// metadata ([`metadata_for`]).
     ///
     /// # Errors
     /// [`LogError`] naming the file.
-    pub fn create(path: &Path, config: &Config) -> Result<Self, LogError> {
-        Ok(Self::on_log(McapLog::create(path, &metadata(config))?))
+    pub fn create(path: &Path, controller: &Controller) -> Result<Self, LogError> {
+        Ok(Self::on_log(McapLog::create(
+            path,
+            &metadata_for(controller),
+        )?))
     }
 
     /// A recorder on an open log (its metadata already written), switched to the
@@ -121,7 +144,7 @@ impl McapRecorder {
     /// error naming `--log-max-mb` / `--log-keep` and the value.
     pub fn rotating(
         dir: &Path,
-        config: &Config,
+        controller: &Controller,
         max_bytes: u64,
         keep: usize,
     ) -> Result<Self, LogError> {
@@ -139,11 +162,11 @@ impl McapRecorder {
             path: dir.to_path_buf(),
             source,
         })?;
-        let mut recorder = Self::create(&rotated_path(dir, 1), config)?;
+        let mut recorder = Self::create(&rotated_path(dir, 1), controller)?;
         let mut rotation = Rotation {
             dir: dir.to_path_buf(),
-            metadata: metadata(config),
-            config_id: config.id(),
+            metadata: metadata_for(controller),
+            config_id: controller.config_id(),
             max_bytes,
             keep,
             index: 1,
@@ -394,7 +417,7 @@ impl Rotation {
     /// over CAN): prepared again if it was prepared with another.
     fn follow(&mut self, controller: &Controller) {
         if controller.config_id() != self.config_id {
-            self.metadata = metadata(controller.config());
+            self.metadata = metadata_for(controller);
             self.config_id = controller.config_id();
             self.prepare();
         }
@@ -440,6 +463,10 @@ impl Recorder for McapRecorder {
             ),
         };
         self.with(|log| log.text(t_us * 1000, level, &text));
+    }
+
+    fn saved(&mut self, t_us: u64, outcome: SaveOutcome) {
+        self.with(|log| log.saved(t_us * 1000, outcome));
     }
 
     fn step_done(&mut self) {
@@ -525,6 +552,12 @@ impl Recorder for Console<'_> {
             LinkEvent::Restored { down_us, attempts } => {
                 self.restored = Some((t_us, down_us, attempts));
             }
+        }
+    }
+
+    fn saved(&mut self, t_us: u64, outcome: SaveOutcome) {
+        if let Some(log) = self.log.as_deref_mut() {
+            log.saved(t_us, outcome);
         }
     }
 

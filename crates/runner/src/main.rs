@@ -15,6 +15,7 @@ use clap::Parser;
 use firmware::config::Drive;
 use firmware::{Config, Controller};
 use mecanum_linux::{self as linux, MonotonicClock, Report, RunOptions, SocketCanBus, StopReason};
+use mecanum_runner::params::{Found, ParamFile};
 use mecanum_runner::{Console, McapRecorder};
 
 /// Exit status for a startup error (bad arguments, configuration or interface).
@@ -130,6 +131,15 @@ struct Args {
     #[arg(long)]
     exit_on_link_loss: bool,
 
+    /// Keep the parameters a host saves over CAN (`mecanum-drive param save`, CiA 301 0x1010)
+    /// in FILE: written to FILE.part, synced and renamed over FILE, so a power cut leaves the
+    /// old set or the new one. At start the set in FILE runs if it was saved for this
+    /// --config's configuration (else the configuration file's, reported); a restore (0x1011)
+    /// puts the configuration file's set back and saves it. Without --params a save is
+    /// refused (SDO abort 0x08000020). FILE must be a saved set or not exist.
+    #[arg(long, value_name = "FILE")]
+    params: Option<PathBuf>,
+
     /// Print only errors (no start line, no statistics on stderr).
     #[arg(long, short)]
     quiet: bool,
@@ -159,6 +169,8 @@ fn parse_keep(s: &str) -> Result<usize, String> {
 /// What `main` needs from the startup: everything is checked before the loop starts.
 struct Setup {
     controller: Controller,
+    /// `--params`.
+    params: Option<ParamFile>,
     bus: SocketCanBus,
     stats: Option<(PathBuf, drivelog::Staged)>,
     log: Option<McapRecorder>,
@@ -179,6 +191,7 @@ fn main() -> ExitCode {
     };
     let Setup {
         mut controller,
+        mut params,
         mut bus,
         stats,
         mut log,
@@ -205,6 +218,10 @@ fn main() -> ExitCode {
     let clock = MonotonicClock::new(args.spin_us);
     let report = {
         let mut recorder = Console::new(&args.iface, log.as_mut());
+        let store: &mut dyn linux::ParamStore = match params.as_mut() {
+            Some(file) => file,
+            None => &mut (),
+        };
         linux::run_recorded(
             &mut controller,
             &mut bus,
@@ -212,8 +229,12 @@ fn main() -> ExitCode {
             &options,
             &stop,
             &mut recorder,
+            store,
         )
     };
+    if let Some(e) = params.as_ref().and_then(ParamFile::last_error) {
+        eprintln!("mecanum-runner: the last parameter save failed: {e}");
+    }
     let log_stats = log.as_ref().map(|l| (l.messages(), l.dropped()));
     let log_result = log.map(McapRecorder::finish);
     // After the log: its last messages are queued for the clients before they are let go.
@@ -286,8 +307,31 @@ fn startup(args: &Args) -> Result<Setup> {
             "built-in DJI M3508/C620 example".to_string(),
         ),
     };
-    let controller = Controller::new(&config)
+    let mut controller = Controller::new(&config)
         .with_context(|| format!("configuration {source} rejected by the controller"))?;
+    let (params, params_note) = match &args.params {
+        Some(path) => {
+            let (file, found) = ParamFile::open(path, &config)?;
+            let shown = path.display();
+            let note = match found {
+                Found::Missing => format!("parameters: {shown} (none saved yet)"),
+                Found::Saved { config: saved, seq } => {
+                    controller = controller.with_saved(&saved, seq).with_context(|| {
+                        format!("--params {shown}: the saved set is refused by the controller")
+                    })?;
+                    format!("parameters: the set saved in {shown} (record {seq})")
+                }
+                Found::Other { base_id } => format!(
+                    "parameters: {shown} holds a set saved for another configuration (id 0x{base_id:04x}); running {source}'s, the next save replaces it"
+                ),
+                Found::Damaged => format!(
+                    "parameters: {shown} is damaged (its CRC fails); running {source}'s, the next save replaces it"
+                ),
+            };
+            (Some(file), Some(note))
+        }
+        None => (None, None),
+    };
 
     if args.live.live.is_some() && args.log.is_none() {
         anyhow::bail!("--live serves the log as it is written: give --log FILE too");
@@ -305,11 +349,11 @@ fn startup(args: &Args) -> Result<Setup> {
     let mut log = match (&args.log, args.log_max_mb) {
         (Some(dir), Some(mb)) => Some(McapRecorder::rotating(
             dir,
-            &config,
+            &controller,
             ((mb * 1e6).round() as u64).max(1),
             args.log_keep,
         )?),
-        (Some(path), None) => Some(McapRecorder::create(path, &config)?),
+        (Some(path), None) => Some(McapRecorder::create(path, &controller)?),
         (None, _) => None,
     };
     if let (Some(server), Some(log)) = (&server, log.as_mut()) {
@@ -337,15 +381,19 @@ fn startup(args: &Args) -> Result<Setup> {
             format!("CiA 402 nodes {:?} axes {:?}", cia402.node_ids, cia402.axes)
         }
     };
-    let summary = format!(
+    let mut summary = format!(
         "{} at {} Hz ({} µs period), {drive}, configuration: {source} (id 0x{:04x})",
         args.iface,
         config.timing.control_hz,
         controller.period_micros(),
         controller.config_id()
     );
+    if let Some(note) = params_note {
+        summary = format!("{summary}; {note}");
+    }
     Ok(Setup {
         controller,
+        params,
         bus,
         stats,
         log,

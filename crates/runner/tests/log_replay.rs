@@ -4,7 +4,7 @@
 use std::collections::VecDeque;
 
 use firmware::protocol::robot::Command;
-use firmware::{CanFrame, Config};
+use firmware::{CanFrame, Config, Controller};
 
 mod common;
 use common::{T0, bus, clock, enable_at, esc_feedback, run_for, std_frame, twists};
@@ -33,7 +33,7 @@ fn a_runner_log_replays_bit_for_bit_at_its_recorded_steps() {
         0,
     );
     let mut bus = bus(&clock, session());
-    let mut recorder = McapRecorder::create(&path, &config).unwrap();
+    let mut recorder = McapRecorder::create(&path, &Controller::new(&config).unwrap()).unwrap();
     let report = run_for(&config, &clock, &mut bus, 600_000, &mut recorder);
     assert_eq!(report.overruns, 1);
     assert_eq!(report.node.controller.state_at_stop, "ESTOP");

@@ -100,7 +100,8 @@ fn run(
     // files instead of 5+.)
     let clock = clock((0..RUN_MS).map(|k| (k * 53) % 300), 0);
     let mut bus = bus(&clock, session(writes));
-    let mut recorder = McapRecorder::rotating(dir, &config, max_bytes, keep).unwrap();
+    let mut recorder =
+        McapRecorder::rotating(dir, &Controller::new(&config).unwrap(), max_bytes, keep).unwrap();
     if let Some(tap) = tap {
         recorder.serve(tap, std::time::Duration::from_millis(50));
     }
@@ -342,10 +343,12 @@ fn a_served_rotated_log_gives_each_file_a_tap_that_sees_all_of_it() {
 fn rotation_rejects_a_zero_size_or_keep_naming_the_option() {
     let config = Config::dji_m3508_example();
     let dir = tmp("rotated_bad");
-    let e = McapRecorder::rotating(&dir, &config, 1000, 0)
+    let e = McapRecorder::rotating(&dir, &Controller::new(&config).unwrap(), 1000, 0)
         .err()
         .unwrap();
     assert!(e.to_string().contains("--log-keep 0"), "{e}");
-    let e = McapRecorder::rotating(&dir, &config, 0, 3).err().unwrap();
+    let e = McapRecorder::rotating(&dir, &Controller::new(&config).unwrap(), 0, 3)
+        .err()
+        .unwrap();
     assert!(e.to_string().contains("--log-max-mb 0"), "{e}");
 }

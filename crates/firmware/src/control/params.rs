@@ -184,6 +184,19 @@ impl Controller {
         self.saving = Saving::Ended { index, outcome };
     }
 
+    /// The built-in configuration (the image's, or the configuration file's): what a restore
+    /// puts back.
+    #[must_use]
+    pub const fn builtin(&self) -> &Config {
+        &self.builtin
+    }
+
+    /// The number of the saved record a restart runs (0: none saved, the built-in set).
+    #[must_use]
+    pub const fn saved_seq(&self) -> u32 {
+        self.saved.seq
+    }
+
     /// The id of the built-in configuration (the image's, or the configuration file's): what a
     /// saved record is saved under.
     #[must_use]

@@ -73,13 +73,17 @@ pub fn replay_mcap(path: &Path) -> Result<ReplayReport, ReplayError> {
         rx: &log.rx,
         saves: &log.content.saves,
     };
-    let replayed = Controller::new(&log.config)
-        .map_err(ReplayRunError::from)
-        .and_then(|ctl| {
-            let period_ns = ctl.period_micros() * 1000;
-            let schedule = step_schedule(period_ns, &log.rx, &log.tx, &log.steps)?;
-            Ok(replay_schedule(ctl, inputs, &log.tx, schedule))
-        });
+    let booted = match &log.builtin {
+        None => Controller::new(&log.config),
+        Some((builtin, seq)) => {
+            Controller::new(builtin).and_then(|ctl| ctl.with_saved(&log.config, *seq))
+        }
+    };
+    let replayed = booted.map_err(ReplayRunError::from).and_then(|ctl| {
+        let period_ns = ctl.period_micros() * 1000;
+        let schedule = step_schedule(period_ns, &log.rx, &log.tx, &log.steps)?;
+        Ok(replay_schedule(ctl, inputs, &log.tx, schedule))
+    });
     let mut report = replayed.map_err(|e| match e {
         ReplayRunError::Config(source) => ReplayError::Refused {
             path: path.to_path_buf(),

@@ -42,6 +42,9 @@ pub struct StepTime {
 pub struct LogContent {
     /// The configuration TOML from the metadata, if any.
     pub config: Option<String>,
+    /// The built-in configuration's TOML and the saved record's number, when the core did
+    /// not start on its built-in configuration (a runner on a saved set, `--params`).
+    pub builtin: Option<(String, String)>,
     /// Scenario name from the metadata.
     pub scenario: Option<String>,
     /// The program that wrote the log, from the metadata (`hostsim run`, [`PLANT_PROGRAM`]).
@@ -107,6 +110,16 @@ pub enum ReplayError {
     NoConfig {
         /// The log file.
         path: PathBuf,
+    },
+    /// A metadata entry's value is not what it should be.
+    #[error("{path}: metadata `{key}` = \"{}\": not a number", firmware::input::quote(.value))]
+    Metadata {
+        /// The log file.
+        path: PathBuf,
+        /// The entry.
+        key: &'static str,
+        /// Its value.
+        value: String,
     },
     /// The logged configuration does not load.
     #[error("{path}: logged configuration: {source}")]
@@ -250,6 +263,7 @@ pub fn read_log_bytes(bytes: &[u8]) -> Result<LogContent, Damage> {
     let mut config = None;
     let mut scenario = None;
     let mut program = None;
+    let mut builtin = None;
     let read = drivelog::for_each_message(
         bytes,
         |m| {
@@ -294,6 +308,10 @@ pub fn read_log_bytes(bytes: &[u8]) -> Result<LogContent, Damage> {
                 config = kv.get("config").cloned();
                 scenario = kv.get("scenario").cloned();
                 program = kv.get("program").cloned();
+                builtin = kv
+                    .get("builtin_config")
+                    .cloned()
+                    .zip(kv.get("saved_seq").cloned());
             }
         },
     )?;
@@ -302,6 +320,7 @@ pub fn read_log_bytes(bytes: &[u8]) -> Result<LogContent, Damage> {
     content.config = config;
     content.scenario = scenario;
     content.program = program;
+    content.builtin = builtin;
     content.read = read;
     Ok(content)
 }
@@ -317,6 +336,9 @@ pub struct McapReplayInput {
     pub content: LogContent,
     /// The logged configuration, loaded and validated.
     pub config: Config,
+    /// The built-in configuration and the saved record's number, when the logged core ran a
+    /// saved set: what its restores put back.
+    pub builtin: Option<(Config, u32)>,
     /// The inbound frames to feed.
     pub rx: Vec<TimedFrame>,
     /// The outbound frames to compare with.
@@ -349,6 +371,21 @@ pub fn open_mcap(path: &Path) -> Result<McapReplayInput, ReplayError> {
         path: path.to_path_buf(),
         source: Box::new(source),
     })?;
+    let builtin = match &content.builtin {
+        None => None,
+        Some((text, seq)) => {
+            let builtin = Config::from_toml_str(text).map_err(|source| ReplayError::Config {
+                path: path.to_path_buf(),
+                source: Box::new(source),
+            })?;
+            let seq = seq.parse::<u32>().map_err(|_| ReplayError::Metadata {
+                path: path.to_path_buf(),
+                key: "saved_seq",
+                value: seq.clone(),
+            })?;
+            Some((builtin, seq))
+        }
+    };
     if content.program.as_deref() == Some(PLANT_PROGRAM) {
         return Err(ReplayError::NothingToReplay {
             path: path.to_path_buf(),
@@ -372,6 +409,7 @@ pub fn open_mcap(path: &Path) -> Result<McapReplayInput, ReplayError> {
     Ok(McapReplayInput {
         content,
         config,
+        builtin,
         rx,
         tx,
         steps,

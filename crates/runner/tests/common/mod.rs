@@ -11,7 +11,7 @@ use embedded_can::StandardId;
 use firmware::protocol::robot::{Command, ModeRequest, TwistCmd};
 use firmware::{CanFrame, Config, Controller};
 use mecanum_linux::testing::{ScriptedBus, ScriptedClock};
-use mecanum_linux::{Recorder, Report, RunOptions, run_recorded};
+use mecanum_linux::{ParamStore, Recorder, Report, RunOptions, run_recorded};
 
 /// Where simulated time starts, µs.
 pub const T0: u64 = 5_000_000;
@@ -40,12 +40,24 @@ pub fn run_for(
     recorder: &mut impl Recorder,
 ) -> Report {
     let mut controller = Controller::new(config).unwrap();
+    run_core(&mut controller, clock, bus, duration_us, recorder, &mut ())
+}
+
+/// [`run_for`] with the core `controller`, saving its parameters to `store`.
+pub fn run_core(
+    controller: &mut Controller,
+    clock: &ScriptedClock,
+    bus: &mut ScriptedBus,
+    duration_us: u64,
+    recorder: &mut impl Recorder,
+    store: &mut dyn ParamStore,
+) -> Report {
     let options = RunOptions {
         duration_us: Some(duration_us),
         ..RunOptions::default()
     };
     let stop = AtomicUsize::new(0);
-    run_recorded(&mut controller, bus, clock, &options, &stop, recorder)
+    run_recorded(controller, bus, clock, &options, &stop, recorder, store)
 }
 
 /// A standard data frame.
