@@ -71,6 +71,11 @@ class Rig:
         self._spin = threading.Thread(target=self.executor.spin, daemon=True)
         self._spin.start()
         self.peer = RosPeer(cmd_vel_period_s=0.05, answer_slack_s=5.0)
+        # Ready once the bridge has heard the robot, as a user's bridge is before it is asked
+        # anything (its enable_on_start waits for the same). On a loaded machine this process's
+        # threads (robot, bridge, peer) share one GIL, and the robot's first HEARTBEATs may come
+        # after a test's first call; the bridge then rightly answers that the robot is silent.
+        wait_for(lambda: self.bridge.robot.heartbeat is not None, 10, "the bridge hearing the robot's HEARTBEAT")
 
     def close(self) -> None:
         self.peer.close()
