@@ -75,8 +75,10 @@ for ((i = 1; i <= runs; i++)); do
     fi
     took=$(($(date +%s) - start))
     stop_stress
-    results+=("run $i of $runs${fresh:+ (fresh clone of $commit)}, $cpus core(s) busy: exit $run_rc after $took s; $(
-        grep -E '^ +[0-9]+ s' "$times" 2>/dev/null | awk '{printf "%s%s %s", sep, $3, $1; sep=", "}')")
+    # A failed run may have no stage times: its line is printed all the same.
+    stages=$(grep -E '^ +[0-9]+ s' "$times" 2>/dev/null | awk '{printf "%s%s %s", sep, $3, $1; sep=", "}') ||
+        stages="no stage times in $times"
+    results+=("run $i of $runs${fresh:+ (fresh clone of $commit)}, $cpus core(s) busy: exit $run_rc after $took s; $stages")
     printf '\n==> test-busy: %s\n' "${results[-1]}"
     if [ "$run_rc" != 0 ]; then
         rc=$run_rc

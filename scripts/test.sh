@@ -197,7 +197,9 @@ join_stage() {
     read -r STAGE_BUSY STAGE_TOTAL <<<"${BG_TICKS[$1]}"
     printf '\n==> %s: waiting for it (started %d s ago)\n' "$1" "$(($(now) - STAGE_T))"
     # The PID stays set while it is waited for: a signal meanwhile stops it (stop_stages).
-    join_background "${BG_PID[$1]}" "$LOGS/$1.log"
+    # `|| return`: a failure inside a function does not run the ERR trap (no errtrace); so
+    # it is returned to the top level, where the trap names the stage and prints the times.
+    join_background "${BG_PID[$1]}" "$LOGS/$1.log" || return
     unset "BG_PID[$1]"
 }
 stop_stages() {
