@@ -9,6 +9,10 @@
 //!           3 TX mailboxes (FIFO order) ─► CAN1
 //! ```
 //!
+//! Saved parameters live in flash sectors 1 and 2 (`firmware::storage`): read at boot, the
+//! stale sector erased before the watchdog starts, a save programmed a few words before each
+//! step (never an erase while the loop runs).
+//!
 //! See the README for the pins, clocks, bounds and how to flash it.
 
 #![no_std]
@@ -32,12 +36,14 @@ use embassy_stm32::can::{
     Can, CanRx, CanTx, Fifo, Mailbox, Rx0InterruptHandler, Rx1InterruptHandler,
     SceInterruptHandler, StandardId, TxInterruptHandler,
 };
+use embassy_stm32::flash::Flash;
 use embassy_stm32::peripherals::CAN1;
 use embassy_stm32::wdg::IndependentWatchdog;
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::channel::Channel;
 use embassy_time::{Duration, Ticker, Timer};
 use firmware::protocol::robot::{Fault, RobotState};
+use firmware::storage::{self, F407_LAYOUT, Store};
 use firmware::{Config, Controller, Instant};
 use panic_probe as _;
 
@@ -123,23 +129,51 @@ async fn main(spawner: Spawner) {
 
     // Validated when the image was built; decoded and validated again here, so that an image
     // whose firmware crate disagrees with its build script stops with the reason.
-    let config = Config::decode(CONFIG);
-    let mut ctl = match config.and_then(|c| Controller::new(&c)) {
-        Ok(ctl) => ctl,
-        // Fields logged one by one: defmt formats the f64 on the host, so no float formatting
-        // code goes into flash.
-        Err(e) => defmt::panic!(
-            "configuration rejected: {=str} = {=f64}: {=str}",
-            e.field,
-            e.value,
-            e.expected
-        ),
+    let builtin = match Config::decode(CONFIG) {
+        Ok(c) => c,
+        Err(e) => config_rejected(&e),
     };
+    // The saved parameters: the newest set saved for this image's configuration, if any; the
+    // sector that holds none of it erased now, while nothing watches the loop (an erase
+    // stops the CPU for 250-500 ms).
+    let mut flash = Flash::new_blocking(p.FLASH);
+    let (mut store, found) = match Store::mount(&mut flash, F407_LAYOUT, &builtin) {
+        Ok(mounted) => mounted,
+        Err(e) => defmt::panic!("parameter flash unreadable: {}", defmt::Debug2Format(&e)),
+    };
+    if found.foreign > 0 || found.garbage > 0 {
+        info!(
+            "parameter flash: {=u32} records for another configuration, {=u32} cut short",
+            found.foreign, found.garbage
+        );
+    }
+    if let Err(e) = store.erase_stale(&mut flash) {
+        warn!(
+            "parameter flash: a stale sector could not be erased ({}): saves that need it are refused",
+            defmt::Debug2Format(&e)
+        );
+    }
+    let booted = Controller::new(&builtin).and_then(|ctl| match found.saved {
+        Some(saved) => ctl.with_saved(&saved.config, saved.seq),
+        None => Ok(ctl),
+    });
+    let mut ctl = match booted {
+        Ok(ctl) => ctl,
+        Err(e) => config_rejected(&e),
+    };
+    match found.saved {
+        Some(saved) => info!(
+            "parameters: the saved set, record {=u32}, id {=u16:#06x}",
+            saved.seq,
+            ctl.config_id()
+        ),
+        None => info!("parameters: the built-in set"),
+    }
     let period = ctl.period_micros();
     info!(
         "drive configuration {=str}, id {=u16:#06x}",
         env!("MECANUM_CONFIG_NAME"),
-        ctl.config_id()
+        ctl.builtin_id()
     );
 
     // CAN1: RX on PD0, TX on PD1 (AF9), as wired on the type C board's CAN1 connector.
@@ -195,6 +229,9 @@ async fn main(spawner: Spawner) {
             Either::First(()) => {
                 // Frames that arrived since the task last ran go in before the step.
                 drain_fifo(&mut rx, &mut ctl, &mut counters);
+                // A save asked for at the last step: a few words now (at most 300 µs of
+                // stalled CPU), its end given to the core before this step.
+                store.serve(&mut ctl, &mut flash, storage::WORDS_PER_STEP);
                 let now = now();
                 let outbox = ctl.step(now);
                 for frame in &outbox {
@@ -227,6 +264,17 @@ async fn main(spawner: Spawner) {
             }
         }
     }
+}
+
+/// Stops the board on a configuration the core refuses. Fields logged one by one: defmt
+/// formats the f64 on the host, so no float formatting code goes into flash.
+fn config_rejected(e: &firmware::config::ConfigError) -> ! {
+    defmt::panic!(
+        "configuration rejected: {=str} = {=f64}: {=str}",
+        e.field,
+        e.value,
+        e.expected
+    )
 }
 
 /// Moves the queued frames into the mailboxes, oldest first, as each mailbox frees. A frame

@@ -5,7 +5,8 @@
 //! - [`elf`]: the image's load segments, symbols and hint instructions;
 //! - [`board`]: the Cortex-M4 in virtual time (instructions at 168 MHz), the memory map,
 //!   exception entry and return, sleep; [`nvic`] (NVIC, SCB, SysTick), [`regs`] (RCC and
-//!   the register files), [`tim`] (TIM2), [`bxcan`] (CAN1), [`iwdg`] (the watchdog);
+//!   the register files), [`tim`] (TIM2), [`bxcan`] (CAN1), [`iwdg`] (the watchdog),
+//!   [`flash`] (the flash interface: program, erase);
 //! - [`rtt`]: the board's defmt log over RTT;
 //! - [`lockstep`]: the board on hostsim's bit-timed bus; [`run`]: a scenario with it.
 //!
@@ -15,6 +16,7 @@
 pub mod board;
 pub mod bxcan;
 pub mod elf;
+pub mod flash;
 pub mod iwdg;
 pub mod lockstep;
 pub mod nvic;

@@ -1,7 +1,7 @@
-//! Register files: peripherals the firmware only configures (PWR, FLASH, GPIO, SYSCFG, DMA,
-//! DBGMCU) read back what was written, from their RM0090 reset values; RCC's ready flags
-//! follow their enables at once (each of embassy's clock busy-waits then ends on its first
-//! read), and it computes the clock tree the firmware programmed.
+//! Register files: peripherals the firmware only configures (PWR, GPIO, SYSCFG, DMA, DBGMCU)
+//! read back what was written, from their RM0090 reset values; RCC's ready flags follow their
+//! enables at once (each of embassy's clock busy-waits then ends on its first read), and it
+//! computes the clock tree the firmware programmed.
 
 /// A peripheral's registers as words that read back what was written, from reset values.
 #[derive(Debug, Clone)]
@@ -248,7 +248,6 @@ impl Rcc {
 /// A documented-register list for the blocks kept as plain register files.
 mod known {
     pub const PWR: &[u32] = &[0x00, 0x04];
-    pub const FLASH: &[u32] = &[0x00, 0x04, 0x08, 0x0C, 0x10, 0x14];
     pub const GPIO: &[u32] = &[0x00, 0x04, 0x08, 0x0C, 0x10, 0x14, 0x18, 0x1C, 0x20, 0x24];
     pub const SYSCFG: &[u32] = &[0x00, 0x04, 0x08, 0x0C, 0x10, 0x14, 0x20];
     pub const DBGMCU: &[u32] = &[0x00, 0x04, 0x08, 0x0C];
@@ -295,15 +294,6 @@ pub fn register_files() -> Vec<(u32, RegFile)> {
         (
             base::PWR,
             RegFile::new("PWR", 0x400, known::PWR, &[(0x00, 0x0000_4000)]),
-        ),
-        (
-            base::FLASH,
-            RegFile::new(
-                "FLASH",
-                0x400,
-                known::FLASH,
-                &[(0x10, 0x8000_0000), (0x14, 0x0FFF_AAED)],
-            ),
         ),
         (
             base::SYSCFG,

@@ -45,10 +45,11 @@ pub enum RunError {
     /// The image carries another configuration than the scenario's: the simulated drives
     /// would be another robot's.
     #[error(
-        "the board image carries configuration id {image:#06x} (its HEARTBEAT), the scenario's \
-         configuration has id {scenario:#06x}: build the image with MECANUM_CONFIG=<that file> \
-         (boards/stm32f407/README.md) or run with --config <the image's file> \
-         (`mecanum-codec config-id FILE` prints a file's id)"
+        "the board image runs configuration id {image:#06x} (its first HEARTBEAT), the \
+         scenario's configuration has id {scenario:#06x}: build the image with \
+         MECANUM_CONFIG=<that file> (boards/stm32f407/README.md) or run with --config <the \
+         image's file> (`mecanum-codec config-id FILE` prints a file's id); a board started on \
+         a flash image with a saved parameter set runs that set"
     )]
     ConfigMismatch {
         /// The id in the board's HEARTBEAT.
@@ -203,8 +204,9 @@ pub fn run_metadata(
 struct BoardNode {
     ls: Lockstep,
     harness: Harness,
-    /// What the image's HEARTBEATs must carry.
-    config_id: u16,
+    /// What the image's first HEARTBEAT must carry (the configuration it runs), until it is
+    /// checked; later ones follow the parameters set over CAN.
+    config_id: Option<u16>,
     /// Transmissions completed, not yet delivered (a delay fault delivers a frame of the
     /// board's after its end).
     pending: Vec<Transmission>,
@@ -388,13 +390,14 @@ impl Firmware for BoardNode {
                     CoreLog::odometry(l, tx.delivered_ns, (pose, twist), truth)?;
                 }
             }
-            Some(Seen::ConfigId(image)) if image != self.config_id => {
-                return Err(RunError::ConfigMismatch {
-                    image,
-                    scenario: self.config_id,
-                });
+            Some(Seen::ConfigId(image)) => {
+                if let Some(scenario) = self.config_id.take()
+                    && image != scenario
+                {
+                    return Err(RunError::ConfigMismatch { image, scenario });
+                }
             }
-            Some(Seen::ConfigId(_) | Seen::Transition) | None => {}
+            Some(Seen::Transition) | None => {}
         }
         Ok(())
     }
@@ -418,7 +421,7 @@ pub fn run_scenario(
     let mut node = BoardNode {
         ls: Lockstep::new(board),
         harness,
-        config_id: scenario.config.id(),
+        config_id: Some(scenario.config.id()),
         pending: Vec::new(),
         observer: Observer::default(),
         lines: Vec::new(),

@@ -1,13 +1,16 @@
-//! The emulated CPU: Unicorn's Cortex-M4 with the memory map, the image and the RAM loaded,
-//! the peripherals' MMIO callbacks, and the hooks that count virtual time, catch faults and
-//! see the sleep and event hints (WFE, WFI, SEV, CPSIE I).
+//! The emulated CPU: Unicorn's Cortex-M4 with the memory map, the flash, the image and the RAM
+//! loaded, the peripherals' MMIO callbacks, and the hooks that count virtual time, catch faults
+//! (and serve the flash's writes and stalls) and see the sleep and event hints (WFE, WFI, SEV,
+//! CPSIE I).
 
 use unicorn_engine::unicorn_const::{Arch, ArmCpuModel, HookType, MemType, Mode, Prot};
 use unicorn_engine::{RegisterARM, Unicorn};
 
+use super::flash_mem;
 use super::hw::{Hw, Sleep};
 use super::{Board, BoardError};
 use crate::elf::{CPSIE_I, Image, SEV, WFE, WFI};
+use crate::flash::{self, Timing};
 
 /// Memory regions: (base, size, permissions, name).
 const MEMORY: [(u32, u32, u32, &str); 5] = [
@@ -27,7 +30,7 @@ const MMIO: [(u32, u32); 5] = [
     (0xE000_0000, 0x10_0000),
 ];
 /// The flash's size (a power of two).
-pub(super) const FLASH_SIZE: u32 = 0x10_0000;
+const FLASH_SIZE: u32 = flash::SIZE;
 /// The factory flash-size register (KiB) in system memory.
 const FLASH_SIZE_REG: u32 = 0x1FFF_7A22;
 
@@ -40,14 +43,21 @@ fn err(what: &'static str) -> impl Fn(unicorn_engine::uc_error) -> anyhow::Error
 }
 
 impl Board {
-    /// A Cortex-M4 with the memory map, the image and `ram` (base, bytes) loaded, and the
-    /// hooks installed.
-    pub(super) fn cpu(image: &Image, ram: &[(u32, Vec<u8>)]) -> anyhow::Result<Cpu> {
-        let mut uc = Unicorn::new_with_data(Arch::ARM, Mode::THUMB | Mode::MCLASS, Hw::new())
+    /// A Cortex-M4 with the memory map, the flash (`flash`, else erased and the image's
+    /// segments), the image's other segments and `ram` (base, bytes) loaded, and the hooks
+    /// installed; its flash operations take `timing`.
+    pub(super) fn cpu(
+        image: &Image,
+        flash: Option<&[u8]>,
+        ram: &[(u32, Vec<u8>)],
+        timing: Timing,
+    ) -> anyhow::Result<Cpu> {
+        let hw = Hw::new(timing);
+        let mut uc = Unicorn::new_with_data(Arch::ARM, Mode::THUMB | Mode::MCLASS, hw)
             .map_err(err("Unicorn"))?;
         uc.ctl_set_cpu_model(ArmCpuModel::CORTEX_M4 as i32)
             .map_err(err("the Cortex-M4 model"))?;
-        load(&mut uc, image, ram)?;
+        load(&mut uc, image, flash, ram)?;
         map_peripherals(&mut uc)?;
         count_instructions(&mut uc)?;
         catch_faults(&mut uc)?;
@@ -56,15 +66,36 @@ impl Board {
     }
 }
 
-/// The memory map, the image's segments (the flash's also at its boot alias at 0), the
-/// factory flash-size register and `ram`.
-fn load(uc: &mut Cpu, image: &Image, ram: &[(u32, Vec<u8>)]) -> anyhow::Result<()> {
+/// The memory map; the flash (and its boot alias at 0): `flash`, else erased (0xFF, as a
+/// chip's flash outside the image is) with the image's segments; the image's other segments;
+/// the factory flash-size register and `ram`.
+fn load(
+    uc: &mut Cpu,
+    image: &Image,
+    flash: Option<&[u8]>,
+    ram: &[(u32, Vec<u8>)],
+) -> anyhow::Result<()> {
     for (at, size, prot, _) in MEMORY {
         uc.mem_map(u64::from(at), u64::from(size), Prot(prot))
             .map_err(err("memory map"))?;
     }
+    let erased;
+    let contents = match flash {
+        Some(bytes) => bytes,
+        None => {
+            erased = vec![flash::ERASED; FLASH_SIZE as usize];
+            &erased
+        }
+    };
+    for at in [flash::BASE, 0] {
+        uc.mem_write(u64::from(at), contents)
+            .map_err(err("flash"))?;
+    }
     for (addr, bytes) in &image.segments {
-        let in_flash = (0x0800_0000..0x0810_0000).contains(addr);
+        let in_flash = (flash::BASE..flash::BASE + FLASH_SIZE).contains(addr);
+        if in_flash && flash.is_some() {
+            continue;
+        }
         uc.mem_write(u64::from(*addr), bytes).map_err(|err| {
             anyhow::anyhow!(
                 "{}: a segment of {} bytes at {addr:#010x} is outside the memory map ({err:?})",
@@ -73,7 +104,7 @@ fn load(uc: &mut Cpu, image: &Image, ram: &[(u32, Vec<u8>)]) -> anyhow::Result<(
             )
         })?;
         if in_flash {
-            uc.mem_write(u64::from(addr - 0x0800_0000), bytes)
+            uc.mem_write(u64::from(addr - flash::BASE), bytes)
                 .map_err(err("boot alias"))?;
         }
     }
@@ -91,7 +122,11 @@ fn map_peripherals(uc: &mut Cpu) -> anyhow::Result<()> {
     for (at, size) in MMIO {
         let read = move |uc: &mut Unicorn<'_, Hw>, off: u64, size: usize| -> u64 {
             let addr = at + off as u32;
-            if let Some(v) = uc.get_data_mut().read(addr, size) {
+            let known = match flash_mem::register(addr) {
+                Some(off) => flash_mem::read(uc, off, size),
+                None => uc.get_data_mut().read(addr, size),
+            };
+            if let Some(v) = known {
                 return u64::from(v);
             }
             let pc = uc.reg_read(RegisterARM::PC).unwrap_or(0) as u32;
@@ -101,11 +136,11 @@ fn map_peripherals(uc: &mut Cpu) -> anyhow::Result<()> {
         let write = move |uc: &mut Unicorn<'_, Hw>, off: u64, size: usize, value: u64| {
             let addr = at + off as u32;
             let mut stop = false;
-            if uc
-                .get_data_mut()
-                .write(addr, size, value as u32, &mut stop)
-                .is_none()
-            {
+            let known = match flash_mem::register(addr) {
+                Some(off) => flash_mem::write(uc, off, size, value as u32),
+                None => uc.get_data_mut().write(addr, size, value as u32, &mut stop),
+            };
+            if known.is_none() {
                 let pc = uc.reg_read(RegisterARM::PC).unwrap_or(0) as u32;
                 let file = uc.get_data_mut().unknown_access(addr, true, pc);
                 file.write(addr & 0x3FF, size, value as u32);
@@ -128,6 +163,13 @@ fn count_instructions(uc: &mut Cpu) -> anyhow::Result<()> {
     uc.add_block_hook(1, 0, |uc, addr, size| {
         if uc.get_data().now >= uc.get_data().stop_at {
             let _ = uc.emu_stop();
+            return;
+        }
+        // A fetch from the flash while it is busy stalls (before the block runs).
+        if uc.get_data().flash.op().is_some()
+            && flash_mem::flash_addr(addr).is_some()
+            && flash_mem::fetch(uc)
+        {
             return;
         }
         // The flash and its boot alias share one table.
@@ -161,17 +203,32 @@ fn count_instructions(uc: &mut Cpu) -> anyhow::Result<()> {
 }
 
 /// An access outside the memory map stops the CPU with [`BoardError::Unmapped`]; a fetch of
-/// an EXC_RETURN value is a handler's return. Unicorn's invalid-instruction report of a hint
-/// the hooks expect is claimed.
+/// an EXC_RETURN value is a handler's return. A write to the (read-only) flash goes to the
+/// FLASH model, and a read of it during an operation stalls (`flash_mem`). Unicorn's
+/// invalid-instruction report of a hint the hooks expect is claimed.
 fn catch_faults(uc: &mut Cpu) -> anyhow::Result<()> {
     let unmapped = HookType(
         HookType::MEM_READ_UNMAPPED.0
             | HookType::MEM_WRITE_UNMAPPED.0
             | HookType::MEM_FETCH_UNMAPPED.0
             | HookType::MEM_WRITE_PROT.0
+            | HookType::MEM_READ_PROT.0
             | HookType::MEM_FETCH_PROT.0,
     );
-    uc.add_mem_hook(unmapped, 1, 0, |uc, kind, addr, _size, _value| {
+    uc.add_mem_hook(unmapped, 1, 0, |uc, kind, addr, size, value| {
+        if kind == MemType::WRITE_PROT
+            && let Some(at) = flash_mem::flash_addr(addr)
+        {
+            // Returning true discards the CPU's own write (Unicorn 2.1.5: a read-only
+            // region's TLB entry discards writes once the hook claims them).
+            flash_mem::cpu_write(uc, at, size, value);
+            return true;
+        }
+        if kind == MemType::READ_PROT
+            && let Some(handled) = flash_mem::read_prot(uc, addr)
+        {
+            return handled;
+        }
         let pc = uc.reg_read(RegisterARM::PC).unwrap_or(0) as u32;
         let hw = uc.get_data_mut();
         let addr = addr as u32;

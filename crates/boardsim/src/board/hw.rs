@@ -1,13 +1,13 @@
 //! The hardware state the CPU's callbacks and hooks see: the clock, the peripheral models
-//! behind the MMIO map (RCC, TIM2, CAN1, IWDG, the SCS and plain register files), their
+//! behind the MMIO map (RCC, TIM2, CAN1, IWDG, FLASH, the SCS and plain register files), their
 //! interrupt lines, and what the hooks report back to the board's loop.
 
 use std::collections::{BTreeMap, HashMap};
 
 use super::BoardError;
-use super::cpu::FLASH_SIZE;
 use super::{CPU_HZ, HSE_HZ, UnknownRegister, irq};
 use crate::bxcan::BxCan;
+use crate::flash::{Flash, Timing};
 use crate::iwdg::Iwdg;
 use crate::nvic::{Effect, Scs};
 use crate::regs::{Rcc, RegFile, base, register_files};
@@ -33,6 +33,10 @@ pub struct Stats {
     pub sleep_cycles: u64,
     /// Resets by the independent watchdog.
     pub watchdog_resets: u64,
+    /// Cycles the CPU waited on the flash (a fetch, read or write while it was busy).
+    pub flash_stall_cycles: u64,
+    /// Flash operations a reset cut short (their bytes left as before them).
+    pub flash_ops_interrupted: u64,
 }
 
 /// Why the CPU is not running.
@@ -43,6 +47,8 @@ pub(super) enum Sleep {
     Event,
     /// WFI: until an interrupt is pending and enabled, whatever the masks.
     Interrupt,
+    /// Stalled on a fetch or read from the flash until its operation ends; interrupts wait.
+    Flash,
 }
 
 /// The hardware state the MMIO callbacks and hooks see.
@@ -58,6 +64,9 @@ pub(super) struct Hw {
     pub(super) tim2: Timer,
     pub(super) can1: BxCan,
     pub(super) iwdg: Iwdg,
+    pub(super) flash: Flash,
+    /// Byte writes still to come of a misaligned flash write Unicorn splits (dropped).
+    pub(super) flash_split_bytes: usize,
     /// The harness withholds the TIM2 interrupt until the next reset (a stalled loop).
     pub(super) stall_timer: bool,
     /// The harness withholds the CAN1 RX0 interrupt until this cycle (a busy CPU).
@@ -88,7 +97,7 @@ pub(super) struct Hw {
 }
 
 impl Hw {
-    pub(super) fn new() -> Self {
+    pub(super) fn new(flash_timing: Timing) -> Self {
         let rcc = Rcc::new(HSE_HZ);
         let (tim_div, pclk_div) = Self::dividers(&rcc);
         Self {
@@ -101,6 +110,8 @@ impl Hw {
             tim2: Timer::new(tim_div),
             can1: BxCan::new(pclk_div),
             iwdg: Iwdg::new(CPU_HZ),
+            flash: Flash::new(CPU_HZ, flash_timing),
+            flash_split_bytes: 0,
             stall_timer: false,
             hold_rx0_until: 0,
             reset_requested: false,
@@ -113,7 +124,7 @@ impl Hw {
             can_attention: false,
             unknown: Vec::new(),
             reported: std::collections::BTreeSet::new(),
-            blocks: vec![(0, 0); FLASH_SIZE as usize / 2],
+            blocks: vec![(0, 0); crate::flash::SIZE as usize / 2],
             other_blocks: HashMap::new(),
             stats: Stats::default(),
         }
@@ -238,6 +249,7 @@ impl Hw {
             self.can1.next_event(),
             self.scs.next_event(),
             self.iwdg.expiry(),
+            self.flash.op().map(|op| op.end),
         ]
         .into_iter()
         .flatten()
@@ -257,6 +269,7 @@ impl Hw {
             (irq::CAN1_RX1, rx1),
             (irq::CAN1_SCE, sce),
             (irq::TIM2, self.tim2.irq() && !self.stall_timer),
+            (irq::FLASH, self.flash.irq()),
         ];
         for (line, asserted) in lines {
             if self.scs.level(line, asserted) && self.scs.sev_on_pend() {

@@ -14,15 +14,21 @@
 //! WFE and WFI stop the CPU and the board sleeps to the next event; SEV, exception entry and
 //! return set the event register.
 //!
+//! The flash is the FLASH model's ([`crate::flash`]): it programs and erases in virtual time,
+//! and a fetch or read of the flash while it is busy stalls the CPU to the operation's end
+//! (time runs on, interrupts pend). Its contents persist across resets; [`Board::flash_image`]
+//! takes them out and [`Board::with_flash_image`] starts a board on them.
+//!
 //! The parts: `cpu` sets up the emulator and its hooks, `hw` holds the peripheral models the
-//! MMIO callbacks reach, `exception` enters and returns from exceptions, `error` names why a
-//! run stopped.
+//! MMIO callbacks reach, `flash_mem` keeps the flash's bytes and stalls, `exception` enters and
+//! returns from exceptions, `error` names why a run stopped.
 
 use firmware::CanFrame;
 use unicorn_engine::{RegisterARM, Unicorn};
 
 use crate::bxcan::{BxCan, Lec, Received};
 use crate::elf::Image;
+use crate::flash::{self, Flash, Timing};
 use crate::regs::Rcc;
 use crate::rtt::{LogLine, Rtt};
 use crate::tim::Timer;
@@ -30,6 +36,9 @@ use crate::tim::Timer;
 mod cpu;
 mod error;
 mod exception;
+mod flash_mem;
+#[cfg(test)]
+mod flash_tests;
 mod hw;
 
 pub use error::{BoardError, UnknownRegister};
@@ -46,6 +55,8 @@ const MAX_SLICE: u64 = 20_000;
 
 /// The interrupt lines of the modelled peripherals (RM0090 Table 61).
 pub mod irq {
+    /// FLASH (end of operation, error).
+    pub const FLASH: usize = 4;
     /// CAN1 TX.
     pub const CAN1_TX: usize = 19;
     /// CAN1 RX0.
@@ -93,16 +104,37 @@ fn uc_err(e: unicorn_engine::uc_error, pc: u32) -> BoardError {
 }
 
 impl Board {
-    /// The board with `image` flashed, out of reset.
+    /// The board with `image` flashed (the rest of the flash erased), out of reset.
     ///
     /// # Errors
     /// The emulator could not be set up, or the image does not fit the memory map.
     pub fn new(image: Image) -> anyhow::Result<Self> {
+        Self::start(image, None)
+    }
+
+    /// The board with the flash holding `flash` (all [`flash::SIZE`] bytes, as
+    /// [`Self::flash_image`] gives them) in place of the image's segments, out of reset. The
+    /// image still gives the RTT control block, the hints and any segment outside the flash.
+    ///
+    /// # Errors
+    /// `flash` is not [`flash::SIZE`] bytes long, the emulator could not be set up, or the
+    /// image's other segments do not fit the memory map.
+    pub fn with_flash_image(image: Image, flash: &[u8]) -> anyhow::Result<Self> {
+        anyhow::ensure!(
+            flash.len() == flash::SIZE as usize,
+            "a flash image of {} bytes: the F407's flash is {}",
+            flash.len(),
+            flash::SIZE
+        );
+        Self::start(image, Some(flash))
+    }
+
+    fn start(image: Image, flash: Option<&[u8]>) -> anyhow::Result<Self> {
         let rtt = match image.symbol("_SEGGER_RTT") {
             Some(control) => Some(Rtt::new(control, &image.bytes)?),
             None => None,
         };
-        let uc = Self::cpu(&image, &[])?;
+        let uc = Self::cpu(&image, flash, &[], Timing::default())?;
         let mut board = Self {
             uc,
             image,
@@ -135,11 +167,16 @@ impl Board {
     }
 
     /// A system reset (AIRCR.SYSRESETREQ, the watchdog): a fresh CPU and peripherals, the
-    /// RAM as it was, the time and the counters going on.
+    /// RAM and the flash as they were (a flash operation in flight is lost, its bytes as before
+    /// it), the time and the counters going on.
     ///
     /// # Errors
     /// The emulator could not be set up again.
     pub fn reset(&mut self) -> anyhow::Result<()> {
+        let flash = self
+            .uc
+            .mem_read_as_vec(u64::from(flash::BASE), flash::SIZE as usize)
+            .map_err(|e| anyhow::anyhow!("flash: {e:?}"))?;
         let mut ram = Vec::new();
         for (at, size) in [SRAM, CCM] {
             let bytes = self
@@ -149,9 +186,13 @@ impl Board {
             ram.push((at, bytes));
         }
         let old = self.uc.get_data();
-        let (now, stats) = (old.now, old.stats);
+        let (now, mut stats) = (old.now, old.stats);
         let (unknown, reported) = (old.unknown.clone(), old.reported.clone());
-        self.uc = Self::cpu(&self.image, &ram)?;
+        let timing = old.flash.timing();
+        if old.flash.op().is_some() {
+            stats.flash_ops_interrupted += 1;
+        }
+        self.uc = Self::cpu(&self.image, Some(&flash), &ram, timing)?;
         let hw = self.uc.get_data_mut();
         hw.now = now;
         hw.stats = stats;
@@ -226,6 +267,31 @@ impl Board {
         &self.uc.get_data().can1
     }
 
+    /// The FLASH model: its registers and the operation in flight ([`Flash::op`]: a program or
+    /// an erase, its start and end in cycles).
+    #[must_use]
+    pub fn flash(&self) -> &Flash {
+        &self.uc.get_data().flash
+    }
+
+    /// The flash's contents ([`flash::SIZE`] bytes from [`flash::BASE`]): the completed
+    /// operations', not the one in flight.
+    ///
+    /// # Panics
+    /// Never: the flash is always mapped.
+    #[must_use]
+    pub fn flash_image(&self) -> Vec<u8> {
+        self.uc
+            .mem_read_as_vec(u64::from(flash::BASE), flash::SIZE as usize)
+            .expect("the flash is mapped")
+    }
+
+    /// The datasheet figures the flash's operations take from now on (typical by default),
+    /// also after resets.
+    pub fn set_flash_timing(&mut self, timing: Timing) {
+        self.uc.get_data_mut().flash.set_timing(timing);
+    }
+
     /// The log lines drained since the last call.
     pub fn take_lines(&mut self) -> Vec<LogLine> {
         std::mem::take(&mut self.lines)
@@ -257,15 +323,31 @@ impl Board {
                 self.system_reset(0x1400_0000)?;
                 continue;
             }
+            flash_mem::sync(&mut self.uc);
             let hw = self.uc.get_data_mut();
             hw.sync_lines();
             if std::mem::take(&mut hw.can_attention) {
                 return Ok(hw.now);
             }
+            if hw.sleep == Sleep::Flash {
+                // Stalled on the flash: time runs to the operation's end (the next event
+                // first); interrupts wait.
+                if let Some(end) = hw.flash.op().map(|op| op.end) {
+                    let wake = hw
+                        .next_event()
+                        .map_or(until, |t| t.min(until))
+                        .min(end)
+                        .max(hw.now + 1);
+                    hw.stats.flash_stall_cycles += wake - hw.now;
+                    hw.now = wake;
+                    continue;
+                }
+                hw.sleep = Sleep::Awake;
+            }
             self.take_exceptions()?;
             let hw = self.uc.get_data_mut();
             match hw.sleep {
-                Sleep::Awake => {}
+                Sleep::Awake | Sleep::Flash => {}
                 Sleep::Event if hw.event => {
                     hw.event = false;
                     hw.sleep = Sleep::Awake;
@@ -292,12 +374,14 @@ impl Board {
             let exc_return = hw.exc_return.take();
             let fault = hw.fault.take();
             let resume = hw.resume_at.take();
+            // A read stalled on the flash stops Unicorn with an error, at the load.
+            let stalled = hw.sleep == Sleep::Flash;
             self.pc = resume.unwrap_or_else(|| self.reg(RegisterARM::PC)) | 1;
             if let Some(value) = exc_return {
                 self.exception_return(value)?;
             } else if let Some(fault) = fault {
                 return Err(fault);
-            } else if let Err(e) = result {
+            } else if let (Err(e), false) = (result, stalled) {
                 let pc = self.pc & !1;
                 return Err(match e {
                     unicorn_engine::uc_error::INSN_INVALID => BoardError::InvalidInstruction { pc },
