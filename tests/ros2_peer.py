@@ -325,19 +325,25 @@ class RosPeer:
     def call(self, service: str, timeout: float) -> Call:
         from std_srvs.srv import Trigger
 
-        client = self.node.create_client(Trigger, service)
+        sent, answered, answer = self.call_service(Trigger, service, Trigger.Request(), timeout)
+        return Call(sent, answered, bool(answer.success), str(answer.message))
+
+    def call_service(self, srv_type: Any, service: str, request: Any, timeout: float) -> tuple[float, float, Any]:
+        """Calls `service` (of type `srv_type`) with `request`: (sent, answered: wall times, the
+        response). The node's parameter services too: rcl_interfaces/srv/SetParameters on
+        /mecanum_drive/set_parameters, ..."""
+        client = self.node.create_client(srv_type, service)
         try:
             assert client.wait_for_service(timeout_sec=timeout), f"{service} not offered within {timeout} s"
             sent = time.time()
-            future = client.call_async(Trigger.Request())
+            future = client.call_async(request)
             # The bridge waits for the robot (its service_timeout); then the answer's way back.
             wait = timeout + self.answer_slack_s
             deadline = time.monotonic() + wait
             while not future.done():
                 assert time.monotonic() < deadline, f"{service}: no answer within {wait} s"
                 time.sleep(0.01)
-            answer = future.result()
-            return Call(sent, time.time(), bool(answer.success), str(answer.message))
+            return sent, time.time(), future.result()
         finally:
             self.node.destroy_client(client)
 

@@ -9,6 +9,14 @@ latch, a command watchdog that a twist repeating the last accepted `seq` does no
 fault on demand. It records every frame it receives with its arrival time, so a test can
 measure what the package sent and when. It is a test double of the firmware's behaviour on
 the bus, not of its control; the real firmware is tested on vcan0 (tests/test_vcan_*.py).
+
+With `parameters=True` it also serves the robot's parameters as the firmware does
+(docs/protocol.md, "Parameters"): python-canopen's `LocalNode` built from the robot's EDS on
+node 127 of the same channel, holding `PARAMETER_VALUES` (config/dji_m3508_pods2_gyro.toml:
+a standard layout and two pods, so the general layout's wheels and the third pod are absent,
+read as 0x0609_0011), and refusing writes by the robot's rules: fixed 0x0601_0002, disabled
+while ENABLED 0x0800_0022, NaN 0x0609_0030, above or below the EDS's range 0x0609_0031 /
+0x0609_0032. A write it takes changes HEARTBEAT.config_id, as the firmware's does.
 """
 
 from __future__ import annotations
@@ -18,6 +26,7 @@ import math
 import pathlib
 import threading
 import time
+from typing import Any
 
 import can
 import cantools
@@ -25,11 +34,34 @@ import cantools
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 DB = cantools.database.load_file(str(ROOT / "dbc" / "mecanum_robot.dbc"), strict=True)
 IDS = {m.name: m.frame_id for m in DB.messages}
+BY_ID = {m.frame_id: m for m in DB.messages}
 STATES = {"DISABLED": 0, "ENABLED": 1, "FAULT": 2, "ESTOP": 3}
 FAULTS = {str(v): int(k) for k, v in DB.get_message_by_name("STATUS").get_signal_by_name("fault").choices.items()}
 #: ODOM_SLIP.source by name: WHEELS, PODS2_GYRO, PODS3, WHEELS_PODS_SILENT.
 ODOMETRY_SOURCES = {str(v): int(k)
                     for k, v in DB.get_message_by_name("ODOM_SLIP").get_signal_by_name("source").choices.items()}
+
+#: The parameters of config/dji_m3508_pods2_gyro.toml as the robot serves them (the DJI example
+#: with a gyro and two pods); the others (`ABSENT_PARAMETERS`) this configuration does not have.
+PARAMETER_VALUES: dict[str, float] = {
+    "geometry.lx": 0.20, "geometry.ly": 0.18, "geometry.wheel_radius": 0.076,
+    "geometry.forward_effectiveness": 1.0, "geometry.lateral_effectiveness": 1.0, "geometry.yaw_effectiveness": 1.0,
+    "limits.max_linear_speed": 3.0, "limits.max_angular_speed": 6.0, "limits.max_linear_accel": 4.0,
+    "limits.max_angular_accel": 12.0, "limits.stop_linear_decel": 8.0, "limits.stop_angular_decel": 24.0,
+    "limits.max_wheel_speed": 45.0, "limits.max_current": 16.0,
+    "gains.kp": 1.2, "gains.ki": 30.0, "gains.kv": 0.0,
+    "timing.control_hz": 1000, "timing.odometry_hz": 100, "timing.status_hz": 10, "timing.setpoint_hz": 200,
+    "timing.command_timeout_ms": 100, "timing.boot_timeout_ms": 1000, "timing.stale_periods": 3,
+    "odometry.heading_source": 1, "odometry.gyro_timeout_ms": 50, "odometry.gyro_standstill_ms": 50,
+    "odometry.gyro_bias_estimation": 1, "odometry.source": 1, "odometry.pod_timeout_ms": 50, "odometry.pod_count": 2,
+    "drive.protocol": 0, "drive.gear_ratio": 3591 / 187, "drive.ids[0]": 1, "drive.ids[1]": 2, "drive.ids[2]": 3,
+    "drive.ids[3]": 4, "drive.inverted": 0b1010,
+    "odometry.pods[0].x": 0.0, "odometry.pods[0].y": 0.11, "odometry.pods[0].direction_deg": 0.0,
+    "odometry.pods[0].radius": 0.024, "odometry.pods[0].counts_per_turn": 2000,
+    "odometry.pods[1].x": 0.12, "odometry.pods[1].y": 0.0, "odometry.pods[1].direction_deg": 90.0,
+    "odometry.pods[1].radius": 0.024, "odometry.pods[1].counts_per_turn": 2000,
+}
+ABSENT_PARAMETERS = ("geometry.wheels[", "odometry.pods[2]")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,8 +87,18 @@ class ScriptedRobot:
         config_id: int = 0,
         odometry_source: str | None = None,
         slip: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        parameters: bool = False,
+        node: int = 127,
     ) -> None:
         self.bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+        self.channel = channel
+        self.node_id = node
+        # The SDO server (`parameters`): python-canopen's network and node, made on __enter__.
+        self.params_network: Any = None
+        self.params_node: Any = None
+        self.serve_parameters = parameters
+        self.param_writes: list[tuple[str, float]] = []  # the writes it took: (name, value)
+        self.param_refusals: list[tuple[str, float, int]] = []  # those it refused: (name, value, abort code)
         self.period_s = period_s
         self.odom_period_s = odom_period_s
         self.command_timeout_s = command_timeout_s
@@ -85,6 +127,8 @@ class ScriptedRobot:
         ]
 
     def __enter__(self) -> ScriptedRobot:
+        if self.serve_parameters:
+            self._start_parameters()
         for t in self._threads:
             t.start()
         return self
@@ -93,7 +137,79 @@ class ScriptedRobot:
         self._stop.set()
         for t in self._threads:
             t.join(timeout=2)
+        if self.params_network is not None:
+            self.params_network.disconnect()
         self.bus.shutdown()
+
+    # --- the parameters (SDO) ----------------------------------------------------------------
+
+    def _start_parameters(self) -> None:
+        import canopen
+        from mecanum_drive import params
+
+        self.param_table = params.table()
+        self._by_object = {(p.index, p.sub): p for p in self.param_table.values()}
+        network = canopen.Network()
+        network.NOTIFIER_CYCLE = 0.05  # its thread's wait: the teardown's, 1 s by default
+        network.connect(interface="virtual", channel=self.channel, receive_own_messages=False,
+                        can_filters=[{"can_id": 0x600 + self.node_id, "can_mask": 0x7FF, "extended": False}])
+        node = canopen.LocalNode(self.node_id, str(params.eds_path()))
+        network.add_node(node)
+        self.params_network, self.params_node = network, node
+        for name, value in PARAMETER_VALUES.items():
+            self.write_parameter(name, value)
+        node.add_read_callback(self._on_param_read)
+        node.add_write_callback(self._on_param_write)
+
+    def write_parameter(self, name: str, value: float) -> None:
+        """Puts `value` into the robot's parameter `name` as another client's write that the
+        robot took leaves it: straight into the node's store, without the rules or a new
+        config_id (set `config_id` for that)."""
+        p = self.param_table[name]
+        raw = self.params_node.object_dictionary[p.index][p.sub].encode_raw(
+            value if p.data_type == 0x0008 else int(value))
+        self.params_node.data_store.setdefault(p.index, {})[p.sub] = raw
+
+    def parameter(self, name: str) -> float:
+        """The robot's value of parameter `name` (as the robot's type holds it)."""
+        p = self.param_table[name]
+        return p.decode(self.params_node.data_store[p.index][p.sub])
+
+    def _on_param_read(self, index: int, subindex: int, od: object) -> None:
+        from canopen.sdo import SdoAbortedError
+
+        p = self._by_object.get((index, subindex))
+        if p is not None and p.name.startswith(ABSENT_PARAMETERS):
+            raise SdoAbortedError(0x0609_0011)
+
+    def _on_param_write(self, index: int, subindex: int, od: object, data: bytes) -> None:
+        from canopen.sdo import SdoAbortedError
+
+        p = self._by_object.get((index, subindex))
+        if p is None:
+            return  # not a parameter: nothing of the robot's to emulate
+        value = p.decode(bytes(data))
+        with self._lock:
+            code = None
+            if p.name.startswith(ABSENT_PARAMETERS):
+                code = 0x0609_0011
+            elif p.change == "fixed":
+                code = 0x0601_0002
+            elif p.change == "disabled" and self.state == "ENABLED":
+                code = 0x0800_0022
+            elif math.isnan(value):
+                code = 0x0609_0030
+            elif value > p.high:
+                code = 0x0609_0031
+            elif value < p.low:
+                code = 0x0609_0032
+            if code is not None:
+                self.param_refusals.append((p.name, value, code))
+                raise SdoAbortedError(code)
+            # Taken (python-canopen stores it once this returns, before it answers): another
+            # configuration is in force, with another id.
+            self.param_writes.append((p.name, value))
+            self.config_id = (self.config_id + 1) & 0xFFFF
 
     def frames(self, name: str) -> list[Received]:
         with self._lock:
@@ -125,7 +241,9 @@ class ScriptedRobot:
             if msg is None:
                 continue
             now = time.monotonic()
-            message = DB.get_message_by_frame_id(msg.arbitration_id)
+            if msg.arbitration_id not in BY_ID:
+                continue  # not the robot protocol's (the parameters' SDO, python-canopen's)
+            message = BY_ID[msg.arbitration_id]
             signals = message.decode(bytes(msg.data), decode_choices=False) if message.signals else {}
             with self._lock:
                 self.received.append(Received(now, message.name, signals))

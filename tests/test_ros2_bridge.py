@@ -2,8 +2,10 @@
 node and a real ROS 2 peer (rclpy, DDS over loopback) against the scripted robot on python-can's
 virtual bus (tests/scripted_robot.py): the services' answers in every state, /cmd_vel clamping,
 rejection and timeout, /odom (its covariance's growth with the odometry source) and
-/diagnostics (the odometry source and the slip), the parameters, and what the command line says
-about bad ones. Against the real firmware on vcan0, as processes: tests/test_vcan_ros2.py.
+/diagnostics (the odometry source and the slip), the parameters, the robot's own parameters
+(robot.*: declared from the scripted robot's SDO server, python-canopen's LocalNode; set,
+refused, and changed by another client), and what the command line says about bad ones. Against
+the real firmware on vcan0, as processes: tests/test_vcan_ros2.py.
 
 Every DDS participant here lives in a network namespace of this module's own (ros2_peer.py);
 without root the module is skipped with the reason (a failure in CI).
@@ -14,6 +16,7 @@ from __future__ import annotations
 import itertools
 import math
 import pathlib
+import struct
 import subprocess
 import sys
 import threading
@@ -266,6 +269,9 @@ def test_enable_on_start_and_twist_stamped(make_rig: Any) -> None:
     rig = make_rig(enable_on_start="true", use_stamped_vel="true")
     wait_for(lambda: rig.fake.state == "ENABLED", 5, "enabled at start-up")
     rig.peer.use_cmd_vel(stamped=True)
+    # The TwistStamped publisher is a DDS participant of its own, discovered on its own: the
+    # twists go out once the bridge's subscription has met it (seen missing the 0.3 s below).
+    rig.peer.wait_cmd_vel_subscribers(1, 10, "the bridge's TwistStamped subscription")
     t = time.monotonic()
     rig.peer.twist(0.25, 0.0, 0.0)
     time.sleep(0.3)
@@ -509,6 +515,254 @@ def test_limit_twist_scales_by_one_factor() -> None:
         assert math.hypot(twist[0], twist[1]) <= 3.0 - LIMIT_MARGIN + 1e-12 and abs(twist[2]) <= 6.0
 
 
+# --- the robot's parameters (robot.*) ----------------------------------------------------------
+
+
+def f32(x: float) -> float:
+    """`x` as a REAL32 holds it."""
+    return struct.unpack("<f", struct.pack("<f", x))[0]
+
+
+def set_parameters(rig: Rig, values: dict[str, Any], timeout: float = 5.0) -> tuple[float, list[Any]]:
+    """SetParameters from the peer node, as `ros2 param set` calls it: (the call's time, its
+    SetParametersResult per parameter)."""
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+
+    request = SetParameters.Request(parameters=[Parameter(k, value=v).to_parameter_msg() for k, v in values.items()])
+    sent, answered, response = rig.peer.call_service(SetParameters, "/mecanum_drive/set_parameters", request, timeout)
+    return answered - sent, list(response.results)
+
+
+def get_parameters(rig: Rig, names: list[str]) -> dict[str, Any]:
+    """GetParameters from the peer node: the values by name."""
+    from rcl_interfaces.srv import GetParameters
+    from rclpy.parameter import parameter_value_to_python
+
+    _, _, response = rig.peer.call_service(GetParameters, "/mecanum_drive/get_parameters",
+                                           GetParameters.Request(names=names), 5.0)
+    return {n: parameter_value_to_python(v) for n, v in zip(names, response.values)}
+
+
+def robot_parameter_names(rig: Rig) -> list[str]:
+    """The bridge's robot.* parameters, from ListParameters (as `ros2 param list`)."""
+    from rcl_interfaces.srv import ListParameters
+
+    _, _, response = rig.peer.call_service(ListParameters, "/mecanum_drive/list_parameters",
+                                           ListParameters.Request(prefixes=["robot"], depth=0), 5.0)
+    return sorted(response.result.names)
+
+
+def test_the_robots_parameter_names_map_to_ros_names_one_to_one() -> None:
+    pytest.importorskip("rclpy")
+    from mecanum_drive import params
+    from mecanum_drive.ros2.robot_parameters import ros_parameter_name
+
+    assert ros_parameter_name("gains.kp") == "robot.gains.kp"
+    assert ros_parameter_name("odometry.pods[1].x") == "robot.odometry.pods_1.x"
+    assert ros_parameter_name("drive.ids[3]") == "robot.drive.ids_3"
+    names = [ros_parameter_name(n) for n in params.table()]
+    assert len(set(names)) == len(names) == 73
+    assert all(set(n) <= set("abcdefghijklmnopqrstuvwxyz0123456789_.") for n in names), names
+
+
+def test_the_robots_parameters_are_declared_with_its_ranges_and_classes(make_rig: Any) -> None:
+    """Each parameter the robot has (the pods2_gyro DJI example: 73 in the EDS less the general
+    layout's 20 and the third pod's 5) is `robot.<name>`, with the robot's value, its type, the
+    EDS's range (none without an upper limit), read-only where fixed, and a description that
+    says what it is and when it may change."""
+    from rcl_interfaces.msg import ParameterType
+    from rcl_interfaces.srv import DescribeParameters
+    from scripted_robot import PARAMETER_VALUES
+
+    from mecanum_drive.ros2.robot_parameters import ros_parameter_name
+
+    rig = make_rig(robot={"parameters": True})
+    names = robot_parameter_names(rig)
+    assert len(names) == 48 == len(PARAMETER_VALUES)
+    assert names == sorted(ros_parameter_name(n) for n in PARAMETER_VALUES)
+    assert "robot.odometry.pods_1.x" in names and "robot.odometry.pods_2.x" not in names
+    assert not any(n.startswith("robot.geometry.wheels_") for n in names)
+    # The values: the robot's, REAL32s as float32 holds them.
+    values = get_parameters(rig, names)
+    table = rig.fake.param_table
+    for name, value in PARAMETER_VALUES.items():
+        got = values[ros_parameter_name(name)]
+        kind = table[name].data_type
+        want = {0x0008: f32(value), 0x0001: bool(value)}.get(kind, int(value))
+        assert got == want and type(got) is type(want), (name, got, want)
+    assert values["robot.gains.kp"] == 1.2000000476837158
+    assert values["robot.odometry.pods_1.x"] == 0.11999999731779099
+    assert values["robot.timing.command_timeout_ms"] == 100
+    assert values["robot.odometry.gyro_bias_estimation"] is True
+    # The descriptors, as `ros2 param describe` reads them.
+    asked = ["robot.gains.kp", "robot.limits.stop_linear_decel", "robot.timing.command_timeout_ms",
+             "robot.timing.status_hz", "robot.drive.protocol", "robot.odometry.gyro_bias_estimation",
+             "robot.odometry.pods_1.direction_deg"]
+    _, _, response = rig.peer.call_service(DescribeParameters, "/mecanum_drive/describe_parameters",
+                                           DescribeParameters.Request(names=asked), 5.0)
+    d = dict(zip(asked, response.descriptors))
+    for name, desc in d.items():
+        ranges = [(r.from_value, r.to_value, r.step) for r in (*desc.floating_point_range, *desc.integer_range)]
+        print(f"{name}: type {desc.type}, read_only {desc.read_only}, range {ranges}: {desc.description!r}")
+    kp = d["robot.gains.kp"]
+    assert kp.type == ParameterType.PARAMETER_DOUBLE and not kp.read_only
+    assert [(r.from_value, r.to_value, r.step) for r in kp.floating_point_range] == [(0.0, 100.0, 0.0)]
+    assert not kp.integer_range
+    assert kp.description == ("Wheel velocity PI: proportional gain. The robot's parameter gains.kp, object 0x2002:01, "
+                              "REAL32; live: changes in any state, at the robot's next control step")
+    stop = d["robot.limits.stop_linear_decel"]
+    assert not stop.floating_point_range and not stop.read_only  # no upper limit: no range
+    timeout = d["robot.timing.command_timeout_ms"]
+    assert timeout.type == ParameterType.PARAMETER_INTEGER
+    assert [(r.from_value, r.to_value, r.step) for r in timeout.integer_range] == [(1, 60000, 1)]
+    status = d["robot.timing.status_hz"]
+    assert [(r.from_value, r.to_value) for r in status.integer_range] == [(1, 10000)] and not status.read_only
+    assert status.description.endswith("disabled: changes only while the robot is disabled (else refused, "
+                                       "SDO abort 0x08000022)")
+    protocol = d["robot.drive.protocol"]
+    assert protocol.read_only and protocol.type == ParameterType.PARAMETER_INTEGER
+    assert "fixed: never over CAN" in protocol.description
+    bias = d["robot.odometry.gyro_bias_estimation"]
+    assert bias.type == ParameterType.PARAMETER_BOOL and not bias.integer_range
+    pod = d["robot.odometry.pods_1.direction_deg"]
+    assert [(r.from_value, r.to_value) for r in pod.floating_point_range] == [(-360.0, 360.0)]
+    assert pod.description.startswith("Direction in which its count increases, CCW from the body's x axis. "
+                                      "The robot's parameter odometry.pods[1].direction_deg, object 0x2021:03, REAL32")
+    # Reading them wrote nothing.
+    assert rig.fake.param_writes == [] and rig.fake.param_refusals == []
+
+
+def test_a_set_goes_to_the_robot_and_the_parameter_holds_the_value_in_force(make_rig: Any) -> None:
+    """SetParameters of robot.* parameters: the robot takes each value and the parameter holds
+    what the robot holds (a REAL32 the float32 of the value asked), a double, an integer and a
+    bool; the robot's config_id changes and the re-read that follows changes nothing."""
+    rig = make_rig(robot={"parameters": True})
+    wait_for(lambda: "robot.gains.kp" in rig.bridge.robot_parameters, 5, "robot.* declared")
+    config = rig.fake.config_id
+    took, results = set_parameters(rig, {"robot.gains.kp": 1.3})
+    print(f"robot.gains.kp = 1.3: {results[0].successful} {results[0].reason!r} in {took * 1e3:.1f} ms; "
+          f"the robot holds {rig.fake.parameter('gains.kp')!r}")
+    assert results[0].successful and results[0].reason == ""
+    assert rig.fake.param_writes == [("gains.kp", f32(1.3))]
+    assert rig.fake.parameter("gains.kp") == f32(1.3) == 1.2999999523162842
+    assert get_parameters(rig, ["robot.gains.kp"]) == {"robot.gains.kp": 1.2999999523162842}
+    assert took < 0.5 + 1.0  # the robot's answers within PARAM_TIMEOUT_S, then the way back
+    took, results = set_parameters(rig, {"robot.timing.command_timeout_ms": 250,
+                                         "robot.odometry.gyro_bias_estimation": False})
+    assert [(r.successful, r.reason) for r in results] == [(True, ""), (True, "")]
+    assert (rig.fake.parameter("timing.command_timeout_ms"), rig.fake.parameter("odometry.gyro_bias_estimation")) == (
+        250, 0)
+    assert get_parameters(rig, ["robot.timing.command_timeout_ms", "robot.odometry.gyro_bias_estimation"]) == {
+        "robot.timing.command_timeout_ms": 250, "robot.odometry.gyro_bias_estimation": False}
+    assert rig.fake.config_id == (config + 3) & 0xFFFF
+    # The new config_id makes the bridge read the parameters again: the same values, nothing
+    # written back.
+    wait_for(lambda: rig.bridge.robot_parameters_synced() == rig.fake.config_id, 5, "the re-read after the sets")
+    assert len(rig.fake.param_writes) == 3
+    assert get_parameters(rig, ["robot.gains.kp", "robot.timing.command_timeout_ms"]) == {
+        "robot.gains.kp": 1.2999999523162842, "robot.timing.command_timeout_ms": 250}
+
+
+def test_a_set_the_robot_refuses_fails_with_its_reason_and_changes_nothing(make_rig: Any) -> None:
+    """The robot's rules: a disabled-class parameter while ENABLED (0x0800_0022), below the
+    range of one without a declared range (0x0609_0032): the set fails with the robot's reason,
+    naming the parameter, the value and the rule; robot and parameter keep their values. A
+    fixed one is read-only and a value out of the declared range is refused by ROS 2 itself:
+    neither reaches the robot."""
+    rig = make_rig(robot={"parameters": True})
+    wait_for(lambda: "robot.gains.kp" in rig.bridge.robot_parameters, 5, "robot.* declared")
+    assert rig.peer.call("/mecanum_drive/enable", 5).success
+    asked = {
+        "robot.timing.status_hz": 20,
+        "robot.limits.stop_linear_decel": -1.0,
+        "robot.drive.protocol": 1,
+        "robot.gains.kp": 150.0,
+    }
+    answers = {}
+    for name, value in asked.items():
+        took, results = set_parameters(rig, {name: value})
+        answers[name] = (results[0].successful, results[0].reason)
+        print(f"{name} = {value}: {answers[name]} in {took * 1e3:.1f} ms")
+        assert took < 0.5 + 1.0
+    assert answers["robot.timing.status_hz"] == (
+        False, "timing.status_hz = 20: changes only while disabled (SDO abort 0x08000022)")
+    assert answers["robot.limits.stop_linear_decel"] == (
+        False, "limits.stop_linear_decel = -1.0: below its range (SDO abort 0x06090032)")
+    assert answers["robot.drive.protocol"] == (False, "Trying to set a read-only parameter: robot.drive.protocol.")
+    assert answers["robot.gains.kp"][0] is False and "out of range" in answers["robot.gains.kp"][1]
+    assert rig.fake.param_refusals == [("timing.status_hz", 20.0, 0x0800_0022),
+                                       ("limits.stop_linear_decel", -1.0, 0x0609_0032)]
+    assert rig.fake.param_writes == []
+    assert [rig.fake.parameter(n) for n in ("timing.status_hz", "limits.stop_linear_decel", "drive.protocol",
+                                            "gains.kp")] == [10, 8.0, 0, f32(1.2)]
+    assert get_parameters(rig, list(asked)) == {
+        "robot.timing.status_hz": 10, "robot.limits.stop_linear_decel": 8.0, "robot.drive.protocol": 0,
+        "robot.gains.kp": f32(1.2)}
+    assert rig.fake.state == "ENABLED"
+    # Several at once (SetParametersAtomically): written in order up to the refusal; the set
+    # fails, and the one the robot took shows up in its parameter at the re-read.
+    from rcl_interfaces.srv import SetParametersAtomically
+    from rclpy.parameter import Parameter
+
+    request = SetParametersAtomically.Request(parameters=[
+        Parameter("robot.gains.kp", value=1.5).to_parameter_msg(),
+        Parameter("robot.timing.status_hz", value=20).to_parameter_msg(),
+        Parameter("robot.gains.ki", value=20.0).to_parameter_msg(),
+    ])
+    _, _, response = rig.peer.call_service(SetParametersAtomically, "/mecanum_drive/set_parameters_atomically",
+                                           request, 5.0)
+    assert (response.result.successful, response.result.reason) == (
+        False, "timing.status_hz = 20: changes only while disabled (SDO abort 0x08000022)")
+    assert rig.fake.param_writes == [("gains.kp", 1.5)]
+    assert (rig.fake.parameter("gains.kp"), rig.fake.parameter("gains.ki")) == (1.5, 30.0)
+    wait_for(lambda: rig.bridge.robot_parameters_synced() == rig.fake.config_id, 5, "the re-read")
+    assert get_parameters(rig, ["robot.gains.kp", "robot.gains.ki", "robot.timing.status_hz"]) == {
+        "robot.gains.kp": 1.5, "robot.gains.ki": 30.0, "robot.timing.status_hz": 10}
+    # Disabled, the robot takes it.
+    assert rig.peer.call("/mecanum_drive/disable", 5).success
+    _, results = set_parameters(rig, {"robot.timing.status_hz": 20})
+    assert (results[0].successful, rig.fake.parameter("timing.status_hz")) == (True, 20)
+    assert rig.fake.param_writes == [("gains.kp", 1.5), ("timing.status_hz", 20.0)]
+
+
+def test_a_change_by_another_client_shows_up_in_the_parameter(make_rig: Any) -> None:
+    """Another client changes gains.kv and a pod's x on the robot (the values written in the
+    robot's node, and a new HEARTBEAT.config_id), and the robot now runs a configuration with
+    other inverted wheels (a fixed parameter): the bridge reads the parameters again and the
+    parameters hold the new values within a second, without writing anything to the robot."""
+    rig = make_rig(robot={"parameters": True})
+    wait_for(lambda: rig.bridge.robot_parameters_synced() == rig.fake.config_id, 5, "robot.* declared and in step")
+    rig.fake.write_parameter("gains.kv", 0.25)
+    rig.fake.write_parameter("drive.inverted", 0b0101)
+    rig.fake.write_parameter("odometry.pods[1].x", 0.13)
+    changed = time.monotonic()
+    rig.fake.config_id = 0x3C4D
+    wait_for(lambda: rig.bridge.get_parameter("robot.odometry.pods_1.x").value == f32(0.13), 5,
+             "the new values in the parameters")
+    seen = time.monotonic()
+    print(f"another client's change in the parameters {(seen - changed) * 1e3:.0f} ms after the new config_id "
+          "(HEARTBEAT every 100 ms)")
+    assert seen - changed < 1.0
+    assert get_parameters(rig, ["robot.gains.kv", "robot.odometry.pods_1.x", "robot.gains.kp", "robot.drive.inverted"]
+                          ) == {"robot.gains.kv": 0.25, "robot.odometry.pods_1.x": f32(0.13),
+                                "robot.gains.kp": f32(1.2), "robot.drive.inverted": 0b0101}
+    assert rig.bridge.describe_parameter("robot.drive.inverted").read_only  # still read-only for a set
+    _, results = set_parameters(rig, {"robot.drive.inverted": 0})
+    assert (results[0].successful, results[0].reason) == (
+        False, "Trying to set a read-only parameter: robot.drive.inverted.")
+    assert rig.fake.param_writes == [] and rig.fake.param_refusals == []
+
+
+def test_without_an_answer_the_bridge_starts_without_the_robots_parameters(make_rig: Any) -> None:
+    """A robot that serves no parameters (this scripted robot without `parameters`): the bridge
+    comes up all the same, without robot.* parameters, and its services work."""
+    rig = make_rig()
+    assert robot_parameter_names(rig) == []
+    assert rig.bridge.robot_parameters == {}
+    assert rig.peer.call("/mecanum_drive/enable", 5).success
+
+
 # --- the command line --------------------------------------------------------------------------
 
 
@@ -531,6 +785,7 @@ def run_bridge_cli(*args: str, timeout: float = 60) -> subprocess.CompletedProce
     ("heading_error_wheels", "abc", "parameter heading_error_wheels = 'abc': must be a number"),
     ("missed_heartbeats", "0", "parameter missed_heartbeats = 0: must be a whole number >= 1"),
     ("odom_frame_id", "''", "parameter odom_frame_id = '': must be a non-empty string"),
+    ("robot_node", "128", "parameter robot_node = 128: must be a CANopen node id, 1..127"),
 ])
 def test_a_bad_parameter_is_refused_naming_it(ros: Any, param: str, value: str, message: str) -> None:
     proc = run_bridge_cli("ros2", "--interface", "virtual", "--channel", "cli-test", "--ros-args",

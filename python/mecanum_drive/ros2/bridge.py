@@ -47,6 +47,37 @@ The parameters (PARAMETERS below; `ros2 param describe /mecanum_drive NAME`) are
 start-up and read-only after. The robot stays disabled until `~/enable`, or enables once it
 answers with `enable_on_start`.
 
+**The robot's own parameters** (docs/protocol.md, "Parameters": the firmware's configuration,
+served as CiA 301 expedited SDO on node `robot_node`, 127 unless its CiA 402 drives make it
+their master's node) are ROS 2 parameters too, `robot.<name>`: the name of the robot's table
+with each index `[i]` written `_i`, since ROS 2 names take dots but no brackets
+(`robot.gains.kp`, `robot.odometry.pods_1.x` for `odometry.pods[1].x`; `ros_parameter_name`).
+At start-up the bridge reads each from the robot and declares those it has (a parameter the
+robot answers "not in this configuration", 0x0609_0011, is not declared): a REAL32 as a
+double, an UNSIGNED8 or UNSIGNED32 as an integer, a BOOLEAN as a bool, each described by the
+robot's EDS (what it is, its object and type, its change class; the EDS carries no unit),
+with the EDS's range (none where it has no upper limit) and read-only where its class is
+*fixed*. A robot that does not answer leaves them undeclared, with a warning; they are
+declared once it answers (tried again on its HEARTBEAT, at most every 5 s). They are the
+robot's values: `-p robot.x:=...` and parameter files do not set them.
+
+`ros2 param set /mecanum_drive robot.gains.kp 1.5` (the SetParameters service; a REAL32's
+parameter is a double, so `2.0`, not `2`, which ROS 2 refuses as an integer) writes the
+value to the robot, waiting at most 0.5 s for its answers, and succeeds only if the robot takes
+it; a refusal fails the set with the robot's reason, `timing.status_hz = 20: changes only
+while disabled (SDO abort 0x08000022)` (the rules: *live* any time, *disabled* only while the
+robot is disabled, the EDS's range), and leaves the parameter as it was. The bridge reads the
+value back and the parameter holds the value in force: a REAL32 is the float32 nearest the one
+asked (1.3 becomes 1.2999999523162842). A set to a robot that sends no HEARTBEAT fails at
+once. A set of several parameters at once (SetParametersAtomically) writes them in order and
+stops at the first refusal; those written before it are in force on the robot and show up in
+their parameters at the re-read below. When the robot's `HEARTBEAT.config_id` changes (another
+client, `mecanum-drive param set` or a restore, changed the configuration; or the robot
+restarted on another one) the bridge reads the parameters again and updates the declared
+values, without writing them back. The SDO responses (0x580 + `robot_node`) arrive on the
+bridge's one CAN bus: its receive path (`_SdoTap`, under the `Robot`'s receiving thread) hands
+them to the parameter client and every other frame to the `Robot`.
+
 On Ctrl-C or SIGTERM the bridge stops the stream and sends a zero twist and MODE_CMD disable
 (`Robot.close`); killed outright, it stops sending and the robot's own command watchdog
 stops it (100 ms by default).
@@ -67,7 +98,6 @@ import rclpy.utilities
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.task import Future
 from rclpy.time import Time
@@ -78,8 +108,10 @@ from nav_msgs.msg import Odometry as OdometryMsg  # type: ignore[import-untyped]
 from rcl_interfaces.msg import ParameterDescriptor  # type: ignore[import-untyped]
 from std_srvs.srv import Trigger  # type: ignore[import-untyped]
 
+from .. import params as robot_params
 from .. import protocol
 from ..robot import Odometry, Robot, RobotError, RobotFault, Status
+from .robot_parameters import RobotParameters, _SdoTap
 from .covariance import (
     HEADING_ERROR_GYRO,
     HEADING_ERROR_WHEELS,
@@ -136,6 +168,8 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     "diagnostics_rate": (1.0, "Hz, /diagnostics messages per second"),
     "service_timeout": (2.0, "s a service waits for the robot to report the state it asked for"),
     "enable_on_start": (False, "enable the robot once it answers, at start-up"),
+    "robot_node": (robot_params.DEFAULT_NODE, "CANopen node id of the robot's parameter service (SDO): 127, or with "
+                   "CiA 402 drives their master's node (drive.master_node); its parameters are robot.*"),
 }
 
 
@@ -178,6 +212,7 @@ class Settings:
     diagnostics_rate: float
     service_timeout: float
     enable_on_start: bool
+    robot_node: int
 
     @classmethod
     def from_values(cls, values: Mapping[str, object]) -> Settings:
@@ -227,6 +262,9 @@ class Settings:
         bitrate = values["bitrate"]
         if isinstance(bitrate, bool) or not isinstance(bitrate, int) or bitrate < 0:
             raise ParameterError("bitrate", bitrate, "must be an integer >= 0 (0: leave the adapter's)")
+        node = values["robot_node"]
+        if isinstance(node, bool) or not isinstance(node, int) or not 1 <= node <= 127:
+            raise ParameterError("robot_node", node, "must be a CANopen node id, 1..127")
         _, top = protocol.signal_range("TWIST_CMD", "vx")
         return cls(
             channel=text("channel"),
@@ -251,6 +289,7 @@ class Settings:
             diagnostics_rate=positive("diagnostics_rate"),
             service_timeout=positive("service_timeout"),
             enable_on_start=flag("enable_on_start"),
+            robot_node=node,
         )
 
 
@@ -291,7 +330,7 @@ def _covariance_matrix(diagonal: Sequence[float]) -> list[float]:
     return matrix
 
 
-class Bridge(Node):
+class Bridge(RobotParameters):
     """The node. `overrides`: parameter values that win over `--ros-args` (the command line's
     `--channel`, `--interface`, `--bitrate`); `context`: rclpy's (default: the global one).
     Raises ParameterError for a bad parameter, BusError when the channel cannot be opened."""
@@ -327,13 +366,25 @@ class Bridge(Node):
             heading_wheels=s.heading_error_wheels, heading_gyro=s.heading_error_gyro))
         self._twist_cov = _covariance_matrix(s.twist_covariance_diagonal)
 
-        kwargs: dict[str, Any] = {"heartbeat_period_s": 1.0 / s.status_rate, "missed_heartbeats": s.missed_heartbeats}
+        # The bus as Robot.open makes it, with the robot's SDO responses let through too (the
+        # parameter client's: `_SdoTap` hands them to it, the rest to the Robot).
+        bus_args: dict[str, Any] = {"can_filters": [
+            *Robot.receive_filters(), {"can_id": 0x580 + s.robot_node, "can_mask": 0x7FF, "extended": False}]}
         if s.bitrate:
-            kwargs["bitrate"] = s.bitrate
+            bus_args["bitrate"] = s.bitrate
         try:
-            self.robot = Robot.open(channel=s.channel, interface=s.interface, **kwargs)
+            tap = _SdoTap(can.Bus(channel=s.channel, interface=s.interface, **bus_args), s.robot_node)
         except (can.CanError, OSError, ValueError) as err:
             raise BusError(f"cannot open {s.interface} channel {s.channel}: {err}") from err
+        try:
+            self.robot = Robot(tap, owns_bus=True, heartbeat_period_s=1.0 / s.status_rate,
+                               missed_heartbeats=s.missed_heartbeats)
+        except BaseException as err:
+            tap.shutdown()
+            if isinstance(err, ValueError):
+                raise BusError(f"cannot open {s.interface} channel {s.channel}: {err}") from err
+            raise
+        self._sdo_port = tap.port
 
         self._odom_pub = self.create_publisher(OdometryMsg, "odom", 10)
         self._tf_pub = None
@@ -375,6 +426,7 @@ class Bridge(Node):
 
         self._watchdog = threading.Thread(target=self._cmd_vel_watchdog, name="cmd_vel timeout", daemon=True)
         self._watchdog.start()
+        self._start_robot_parameters()
         if s.enable_on_start:
             threading.Thread(target=self._enable_on_start, name="enable on start", daemon=True).start()
         log.info(
@@ -645,8 +697,10 @@ class Bridge(Node):
         with self._command_lock, self._lock:
             self._closing = True
             self._lock.notify_all()
+        self._params_stop.set()
         self.robot.close()
         self._watchdog.join(timeout=1.0)
+        self._params_thread.join(timeout=1.0)
 
 
 def make_executor(context: Context | None = None) -> SingleThreadedExecutor:
