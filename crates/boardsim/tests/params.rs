@@ -1,7 +1,9 @@
 //! Parameters saved in the flashed image's own flash (`firmware::storage` in sectors 1 and 2,
 //! programmed through boardsim's FLASH model): a save while driving answered within 30 ms, as
 //! the in-process core's (which saves to a flash in RAM) is; no erase while the loop runs; and
-//! a board powered again on that flash runs the saved set.
+//! a board powered again on that flash runs the saved set. Two hundred saves while driving:
+//! every step on time, no FIFO overrun, no watchdog reset, no erase (the CPU stalled for the
+//! programmed words alone), the saves past the two sectors refused.
 
 use boardsim::run::{Harness, run_scenario};
 use boardsim::{Board, Image};
@@ -144,5 +146,112 @@ fn a_save_while_driving_is_stored_in_the_boards_flash_and_runs_after_a_power_cyc
     assert!(
         ids.len() >= 9 && ids.iter().all(|&id| id == saved.id()),
         "{ids:04x?}"
+    );
+}
+
+/// A request to save every 40 ms while the square drives: 200 of them.
+fn square_with_saves(n: usize) -> Scenario {
+    let mut s = Scenario::builtin("square").unwrap();
+    for i in 0..n {
+        let mut save = Action::at(0.5 + 0.040 * i as f64);
+        save.store = Some(StoreCommand::Save);
+        s.actions.push(save);
+    }
+    s.actions.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
+    s.duration_s = s.duration_s.max(0.5 + 0.040 * n as f64 + 0.5);
+    s
+}
+
+/// The values of `key N` in a report line (`overruns 0`).
+fn counter(line: &str, key: &str) -> Option<u64> {
+    let rest = line.split(&format!(" {key} ")).nth(1)?;
+    rest.split_whitespace().next()?.parse().ok()
+}
+
+#[test]
+fn two_hundred_saves_while_driving_miss_no_step_and_erase_nothing() {
+    let scenario = square_with_saves(200);
+    let board = Board::new(Image::read(&elf()).unwrap()).unwrap();
+    let run = run_scenario(
+        &scenario,
+        board,
+        None,
+        LogOptions::default(),
+        Harness::default(),
+        |_| {},
+    )
+    .unwrap();
+    let answers: Vec<(f64, SdoResponse)> = run
+        .sent
+        .iter()
+        .filter_map(|(t, f)| match canopen::decode(f) {
+            Ok(Message::SdoResponse { node, response }) if node.get() == 127 => {
+                Some((*t as f64 * 1e-9, response))
+            }
+            _ => None,
+        })
+        .collect();
+    assert_eq!(answers.len(), 200);
+    // Both sectors blank at the start: 2 x 56 records; then refused (no erase while running).
+    let slots = 2 * F407_LAYOUT.slots() as usize;
+    let mut worst_ms = 0.0f64;
+    for (i, (t, r)) in answers.iter().enumerate() {
+        let asked = 0.5 + 0.040 * i as f64;
+        let waited_ms = (t - asked) * 1e3;
+        worst_ms = worst_ms.max(waited_ms);
+        assert!(
+            waited_ms > 0.0 && waited_ms < 30.0,
+            "save {i}: {waited_ms} ms"
+        );
+        let expected = if i < slots {
+            SdoResponse::Downloaded {
+                index: STORE,
+                sub: 1,
+            }
+        } else {
+            SdoResponse::Abort {
+                index: STORE,
+                sub: 1,
+                code: 0x0800_0020,
+            }
+        };
+        assert_eq!(*r, expected, "save {i}");
+    }
+    // No erase: the CPU stalled for the records' words alone, 16 µs each (DS8626, x32).
+    let words = (slots * firmware::storage::RECORD_WORDS) as u64;
+    assert_eq!(run.board.stats().flash_stall_cycles, words * 16 * 168);
+    // Every step ran, no frame was lost to a full FIFO, no watchdog reset, no fault.
+    let report = run
+        .lines
+        .iter()
+        .rfind(|l| l.text.starts_with("steps "))
+        .expect("a report line");
+    let steps = counter(&format!(" {}", report.text), "steps").unwrap();
+    let at_s = run.line_time_s(report);
+    assert!(
+        (steps as f64 - at_s * 1e3).abs() <= 2.0,
+        "{steps} steps at {at_s:.4} s"
+    );
+    assert_eq!(
+        counter(&report.text, "overruns"),
+        Some(0),
+        "{}",
+        report.text
+    );
+    assert!(
+        !run.lines
+            .iter()
+            .any(|l| l.text.starts_with("reset by the independent watchdog"))
+    );
+    assert!(
+        run.state_changes.iter().all(|(_, s, _)| s != "FAULT"),
+        "{:?}",
+        run.state_changes
+    );
+    eprintln!(
+        "200 saves while driving: {slots} stored, {} refused (full), answered within {worst_ms:.1} ms; \
+         {steps} steps at {at_s:.3} s; flash stall {:.1} ms in all",
+        200 - slots,
+        run.board.stats().flash_stall_cycles as f64 / 168e3
     );
 }
