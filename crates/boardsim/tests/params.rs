@@ -5,7 +5,7 @@
 //! every step on time, no FIFO overrun, no watchdog reset, no erase (the CPU stalled for the
 //! programmed words alone), the saves past the two sectors refused.
 
-use boardsim::run::{Harness, run_scenario};
+use boardsim::run::Harness;
 use boardsim::{Board, Image};
 use firmware::control::{STORE, SaveOutcome};
 use firmware::params::find;
@@ -15,7 +15,7 @@ use hostsim::engine::LogOptions;
 use hostsim::scenario::{Action, ParamName, ParamSet, Scenario, StoreCommand};
 
 mod common;
-use common::{elf, heartbeat_config_ids, print_lines};
+use common::{elf, heartbeat_config_ids, print_lines, run_board};
 
 /// The square with gains.kp set at 1.0 s and the set saved at 1.5 s, while driving.
 fn square_with_a_save() -> Scenario {
@@ -81,15 +81,7 @@ fn a_save_while_driving_is_stored_in_the_boards_flash_and_runs_after_a_power_cyc
 
     // The image, on the same bus.
     let board = Board::new(Image::read(&elf()).unwrap()).unwrap();
-    let run = run_scenario(
-        &scenario,
-        board,
-        None,
-        LogOptions::default(),
-        Harness::default(),
-        |_| {},
-    )
-    .unwrap();
+    let run = run_board(board, &scenario, Harness::default()).unwrap();
     print_lines(&run, "board ");
     let (board_t, answer) = save_answer(&run.sent).expect("the board answers the save");
     assert_eq!(
@@ -127,15 +119,7 @@ fn a_save_while_driving_is_stored_in_the_boards_flash_and_runs_after_a_power_cyc
     let mut plain = Scenario::builtin("square").unwrap();
     plain.duration_s = 1.0;
     plain.config = saved;
-    let run = run_scenario(
-        &plain,
-        again,
-        None,
-        LogOptions::default(),
-        Harness::default(),
-        |_| {},
-    )
-    .unwrap();
+    let run = run_board(again, &plain, Harness::default()).unwrap();
     print_lines(&run, "rebooted ");
     let line = format!(
         "parameters: the saved set, record 1, id {:#06x}",
@@ -172,15 +156,7 @@ fn counter(line: &str, key: &str) -> Option<u64> {
 fn two_hundred_saves_while_driving_miss_no_step_and_erase_nothing() {
     let scenario = square_with_saves(200);
     let board = Board::new(Image::read(&elf()).unwrap()).unwrap();
-    let run = run_scenario(
-        &scenario,
-        board,
-        None,
-        LogOptions::default(),
-        Harness::default(),
-        |_| {},
-    )
-    .unwrap();
+    let run = run_board(board, &scenario, Harness::default()).unwrap();
     let answers: Vec<(f64, SdoResponse)> = run
         .sent
         .iter()

@@ -53,6 +53,16 @@ pub fn try_board_run_on(
     harness: Harness,
 ) -> Result<BoardRun, RunError> {
     let board = Board::new(Image::read(elf).unwrap()).unwrap();
+    run_board(board, scenario, harness)
+}
+
+/// `scenario` with `board` (a board on a flash image of its own, say) as the firmware node, no
+/// log.
+pub fn run_board(
+    board: Board,
+    scenario: &Scenario,
+    harness: Harness,
+) -> Result<BoardRun, RunError> {
     run_scenario(
         scenario,
         board,
