@@ -28,7 +28,7 @@ use crate::config::{Config, ENCODED_LEN};
 use crate::control::{Controller, SaveOutcome};
 use crate::params;
 
-/// Words a board programs after each control step: at most 300 µs of stalled CPU at the
+/// Words a board programs before each control step: at most 300 µs of stalled CPU at the
 /// datasheet's worst 100 µs a word, and a record in 24 steps.
 pub const WORDS_PER_STEP: usize = 3;
 
