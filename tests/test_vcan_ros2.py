@@ -24,6 +24,7 @@ import dataclasses
 import math
 import pathlib
 import signal
+import struct
 import subprocess
 import sys
 import time
@@ -39,6 +40,7 @@ from vcan_robot import (
     MODE_ENABLE, MODE_RESET, ODOM_POSITION, ODOM_VELOCITY, SLOW_CPU, STATE_DISABLED, STATE_ENABLED,
     STATE_ESTOP, STATUS, TWIST_CMD, ROOT, Robot, dji_currents, mean, write_config,
 )
+from vcan_robot import HEARTBEAT
 # The lane's budgets; the odometry's tolerances against the command.
 from vcan_robot import COMMAND_TIMEOUT_S, CONTROL_PERIOD_S, STOP_BUDGET_S, TIMING_SLACK_S, VM_TIMING
 from vcan_robot import PATH_TOL, SETTLE_S, VEL_TOL, WZ_TOL
@@ -56,6 +58,8 @@ POSE_COVARIANCE = [0.01, 0.02, 1e3, 1e3, 1e3, 0.05]
 #: its 10 Hz heartbeat (every 100 steps) came 0.3 s apart at the median and up to 0.9 s apart
 #: there (measured with the host busy): there the bridge waits 30 periods.
 MISSED_HEARTBEATS = 30 if HOST_STALLS else 3
+#: The proportional gain the session sets through the bridge (`robot.gains.kp`; A/(rad/s)).
+KP = 1.5
 #: The firmware's limits (config/dji_m3508.toml), which the bridge's defaults match.
 MAX_LINEAR_SPEED = 3.0
 #: /cmd_vel's period here (Nav2's controller server runs at 20 Hz by default).
@@ -140,6 +144,8 @@ class Session:
     calls: dict[str, Call]
     bridges: dict[str, dict[str, Any]]  # name -> {"rc", "output", "exit_s"}
     config_id: str  # the robot configuration's id, as `mecanum-codec config-id` computes it
+    param_set: tuple[float, float, list[Any]]  # robot.gains.kp set: sent, answered, the results
+    kp_config_id: str  # the id of the configuration with that kp
 
 
 def _bridge(workdir: pathlib.Path, name: str, channel: str, *ros_params: str) -> tuple[subprocess.Popen, pathlib.Path]:
@@ -193,6 +199,8 @@ def session(robot_factory, private_net: str, tester: RosPeer, tmp_path_factory: 
             marks["silence"] = tester.stop_stream()
             time.sleep(3.0 if HOST_STALLS else 1.5)
             marks["standing"] = time.time()
+            # The robot's own parameter through the bridge, as `ros2 param set` sets it.
+            param_set = _set_parameter(tester, "robot.gains.kp", KP, SERVICE_TIMEOUT_S)
             # 2. Driving, e-stop; /cmd_vel goes on and an enable comes: still stopped.
             tester.twist(0.4, 0.0, 0.0)
             time.sleep(1.0)
@@ -242,7 +250,20 @@ def session(robot_factory, private_net: str, tester: RosPeer, tmp_path_factory: 
                 proc.wait()
     print(f"ROS 2 session: {time.monotonic() - started:.1f} s (bridge 1 ready "
           f"{marks['ready1'] - marks['bridge1']:.1f} s after its start)")
-    return Session(robot, tester, marks, calls, bridges, config_id(robot_config))
+    kp_config = write_config(workdir / "dji-kp.toml", robot_config, kp=KP)
+    return Session(robot, tester, marks, calls, bridges, config_id(robot_config), param_set,
+                   config_id(kp_config))
+
+
+def _set_parameter(tester: RosPeer, name: str, value: float, timeout: float) -> tuple[float, float, list[Any]]:
+    """SetParameters on the bridge, as `ros2 param set /mecanum_drive NAME VALUE` calls it:
+    (sent, answered: wall times, its results)."""
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+
+    request = SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()])
+    sent, answered, response = tester.call_service(SetParameters, "/mecanum_drive/set_parameters", request, timeout)
+    return sent, answered, list(response.results)
 
 
 # --- helpers on the record -------------------------------------------------------------------
@@ -548,3 +569,24 @@ def test_diagnostics_report_state_fault_motors_and_counters(session: Session) ->
     assert (d.name, d.hardware_id) == ("mecanum_drive: robot", f"socketcan:{VCAN_CHANNEL}")
     received = [int(d.values["cmd_vel_received"]) for d in diag]
     assert received == sorted(received) and received[-1] - received[0] >= 0.5 * (diag[-1].t - diag[0].t) / CMD_VEL_PERIOD_S
+
+
+def test_ros2_param_set_writes_the_robots_parameter(session: Session) -> None:
+    """`robot.gains.kp` set on the bridge: the bridge sends the robot's SDO download of 0x2002:01
+    with the value, the runner answers it within two control periods of the frame (candump's
+    kernel stamps), the set succeeds, and the robot's HEARTBEAT carries the id of the
+    configuration with that kp from then on."""
+    sent, answered, results = session.param_set
+    assert [r.successful for r in results] == [True], [r.reason for r in results]
+    node = 127
+    request = struct.pack("<BHB", 0x23, 0x2002, 1) + struct.pack("<f", KP)
+    asked = [f.t for f in session.robot.of(0x600 + node, sent - 1.0) if bytes(f.data) == request]
+    assert len(asked) == 1, f"{len(asked)} downloads of gains.kp = {KP}"
+    answer = [f for f in session.robot.of(0x580 + node, asked[0]) if bytes(f.data)[:4] == bytes([0x60, 0x02, 0x20, 1])]
+    assert answer, "no SDO answer from the runner"
+    periods = (answer[0].t - asked[0]) / CONTROL_PERIOD_S
+    assert periods <= 2.0 + TIMING_SLACK_S / CONTROL_PERIOD_S, f"answered {periods:.2f} periods after the request"
+    ids = [f"0x{v['config_id']:04x}" for t, v in session.robot.decoded(HEARTBEAT, answer[0].t)]
+    assert ids and set(ids) == {session.kp_config_id}, (ids[:5], session.kp_config_id)
+    print(f"ros2 param set robot.gains.kp {KP}: answered {periods:.2f} periods after the download; "
+          f"HEARTBEAT config_id {session.config_id} -> {session.kp_config_id}")
