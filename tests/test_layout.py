@@ -77,6 +77,9 @@ def test_the_layout_is_a_layout_whose_tree_and_panels_agree(layout) -> None:
     # The panels: odometry against ground truth in 3D, plots of the wheel speeds and
     # currents, the diagnostics, the CAN frames.
     assert {"3D", "Plot", "DiagnosticSummary", "DiagnosticStatusPanel", "RawMessages"} <= kinds
+    # The robot's parameters, where the source declares them (the ROS 2 bridge's `robot.*`
+    # through foxglove_bridge; docs/protocol.md, "Parameters").
+    assert "Parameters" in kinds
     three_d = config["3D!odometry"]["topics"]
     assert {"/odom", "/ground_truth/odom"} <= set(three_d)
     plotted = {p["value"] for cfg in config.values() for p in cfg.get("paths", [])}
