@@ -226,6 +226,8 @@ pub struct Flash {
     op: Option<FlashOp>,
     timing: Timing,
     cycles_per_us: u64,
+    /// The operations completed, in order, once [`Self::record`] asked for them.
+    history: Option<Vec<FlashOp>>,
 }
 
 impl Flash {
@@ -241,6 +243,7 @@ impl Flash {
             op: None,
             timing,
             cycles_per_us: cpu_hz / 1_000_000,
+            history: None,
         }
     }
 
@@ -396,11 +399,26 @@ impl Flash {
     /// for its bytes to be written.
     pub fn finish(&mut self) -> Option<FlashOp> {
         let op = self.op.take()?;
+        if let Some(history) = &mut self.history {
+            history.push(op);
+        }
         self.cr &= !cr::STRT;
         if self.cr & cr::EOPIE != 0 {
             self.sr |= sr::EOP;
         }
         Some(op)
+    }
+
+    /// Keeps every operation completed from now on ([`Self::history`]): a power-cut
+    /// harness replays them to make the flash at any cycle (`crate::powercut`).
+    pub fn record(&mut self) {
+        self.history.get_or_insert_with(Vec::new);
+    }
+
+    /// The operations completed since [`Self::record`], in order (empty without it).
+    #[must_use]
+    pub fn history(&self) -> &[FlashOp] {
+        self.history.as_deref().unwrap_or(&[])
     }
 
     /// PSIZE: 0 x8 to 3 x64.

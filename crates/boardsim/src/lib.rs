@@ -20,6 +20,7 @@ pub mod flash;
 pub mod iwdg;
 pub mod lockstep;
 pub mod nvic;
+pub mod powercut;
 pub mod regs;
 pub mod rtt;
 pub mod run;

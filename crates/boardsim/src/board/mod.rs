@@ -286,6 +286,12 @@ impl Board {
             .expect("the flash is mapped")
     }
 
+    /// Has the FLASH model keep every operation it completes from now on, until a reset
+    /// ([`Flash::history`]).
+    pub fn record_flash_ops(&mut self) {
+        self.uc.get_data_mut().flash.record();
+    }
+
     /// The datasheet figures the flash's operations take from now on (typical by default),
     /// also after resets.
     pub fn set_flash_timing(&mut self, timing: Timing) {
