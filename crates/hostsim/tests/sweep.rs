@@ -207,3 +207,65 @@ fn each_rows_command_runs_it_alone() {
         assert_eq!(summary["steps"], rows[index]["steps"], "{command}");
     }
 }
+
+/// `hostsim sweep square` with a grid and a drawn parameter into `out`, and `extra`
+/// arguments: its stdout, or its stderr as the error.
+fn sweep_into(out: &Path, extra: &[&str]) -> Result<String, String> {
+    let o = hostsim()
+        .args([
+            "sweep",
+            "square",
+            "--seeds",
+            "1..2",
+            "--set",
+            "gains.kp=1.0,1.3",
+        ])
+        .args(["--set", "plant.mass_kg=15..30", "--no-plot", "--out"])
+        .arg(out)
+        .args(extra)
+        .output()
+        .unwrap();
+    if o.status.success() {
+        Ok(String::from_utf8_lossy(&o.stdout).into_owned())
+    } else {
+        Err(String::from_utf8_lossy(&o.stderr).into_owned())
+    }
+}
+
+#[test]
+fn shards_of_a_sweep_are_its_rows_byte_for_byte() {
+    let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("sweep-shards");
+    let _ = std::fs::remove_dir_all(&dir);
+    let table = |name: &str| std::fs::read_to_string(dir.join(name).join("sweep.csv")).unwrap();
+    sweep_into(&dir.join("whole"), &[]).unwrap();
+    sweep_into(&dir.join("a"), &["--shard", "1/2"]).unwrap();
+    sweep_into(&dir.join("b"), &["--shard", "2/2"]).unwrap();
+    sweep_into(&dir.join("mid"), &["--runs", "1..2"]).unwrap();
+    let whole = table("whole");
+    let lines: Vec<&str> = whole.lines().collect();
+    assert_eq!(lines.len(), 1 + 4, "{whole}");
+    // The shards' rows after the one header, in order, are the whole table.
+    let (a, b) = (table("a"), table("b"));
+    let mut merged: Vec<&str> = a.lines().collect();
+    merged.extend(b.lines().skip(1));
+    assert_eq!(merged, lines);
+    assert_eq!(
+        table("mid").lines().skip(1).collect::<Vec<_>>(),
+        lines[2..4]
+    );
+    // Bad parts fail before any run, naming the argument and the plan.
+    for (args, says) in [
+        (
+            ["--runs", "3..9"],
+            "--runs 3..9: the plan has rows 0..3 (4 runs)",
+        ),
+        (["--runs", "2..x"], "--runs: \"x\" is not a row index"),
+        (["--shard", "0/2"], "--shard 0/2: K is 1 to N"),
+        (["--shard", "1/5"], "N at most the plan's 4 runs"),
+        (["--shard", "2"], "--shard \"2\": expected K/N"),
+    ] {
+        let e = sweep_into(&dir.join("bad"), &args).unwrap_err();
+        assert!(e.contains(says), "{args:?}: {e}");
+    }
+    assert!(!dir.join("bad").join("sweep.csv").exists());
+}

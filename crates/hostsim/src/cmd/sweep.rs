@@ -31,6 +31,10 @@ use super::*;
 /// the seed), and prints percentiles and the worst runs, each with the command that runs
 /// it alone. The table is the same on any number of threads. Ctrl-C stops starting runs
 /// and writes the rows finished (exit status 130); a second Ctrl-C exits at once.
+///
+/// Shared out: --runs I..J (or --shard K/N) runs only those rows of the same plan, every
+/// row's draws seeded by its index in the whole table, so the rows of the shards, put
+/// together in index order, are the whole table's, byte for byte.
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// A scenario TOML file, or the name of a built-in.
@@ -60,6 +64,76 @@ pub struct Args {
     /// Do not draw sweep.png.
     #[arg(long)]
     pub no_plot: bool,
+    /// Run only rows I to J of the plan (both included, from 0): a part of the table for
+    /// another machine, with the rows and draws the whole sweep gives them.
+    #[arg(long, value_name = "I..J", conflicts_with = "shard")]
+    pub runs: Option<String>,
+    /// Run only the K-th of N equal parts of the plan (K from 1 to N): --runs for the
+    /// rows of part K.
+    #[arg(long, value_name = "K/N")]
+    pub shard: Option<String>,
+}
+
+/// The rows of a plan of `count` runs that `--runs I..J` or `--shard K/N` ask for, as a
+/// half-open range (all of them without either).
+///
+/// # Errors
+/// The argument, named with its value and what it must be, if it does not parse or is out
+/// of the plan.
+pub fn rows_asked(
+    runs: Option<&str>,
+    shard: Option<&str>,
+    count: u64,
+) -> Result<std::ops::Range<u64>> {
+    let quoted = |s: &str| firmware::input::quote(s);
+    let whole = |n: &str, arg: &str, what: &str| -> Result<u64> {
+        n.trim()
+            .parse::<u64>()
+            .map_err(|_| anyhow::anyhow!("{arg}: {:?} is not {what}", quoted(n)))
+    };
+    match (runs, shard) {
+        (Some(r), _) => {
+            let Some((i, j)) = r.split_once("..") else {
+                anyhow::bail!(
+                    "--runs {:?}: expected I..J, rows I to J (from 0)",
+                    quoted(r)
+                );
+            };
+            let (i, j) = (
+                whole(i, "--runs", "a row index")?,
+                whole(j, "--runs", "a row index")?,
+            );
+            if i > j || j >= count {
+                anyhow::bail!(
+                    "--runs {i}..{j}: the plan has rows 0..{} ({count} runs), and I is at most J",
+                    count.saturating_sub(1)
+                );
+            }
+            Ok(i..j + 1)
+        }
+        (None, Some(s)) => {
+            let Some((k, n)) = s.split_once('/') else {
+                anyhow::bail!(
+                    "--shard {:?}: expected K/N, part K of N (K from 1)",
+                    quoted(s)
+                );
+            };
+            let (k, n) = (
+                whole(k, "--shard", "a part number")?,
+                whole(n, "--shard", "a number of parts")?,
+            );
+            if n == 0 || k == 0 || k > n || n > count.max(1) {
+                anyhow::bail!(
+                    "--shard {k}/{n}: K is 1 to N, and N at most the plan's {count} runs"
+                );
+            }
+            let bound = |p: u64| {
+                u64::try_from(u128::from(p) * u128::from(count) / u128::from(n)).unwrap_or(count)
+            };
+            Ok(bound(k - 1)..bound(k))
+        }
+        (None, None) => Ok(0..count),
+    }
 }
 
 /// A sweep before its runs are built: the base scenario, the seeds, the parameters, and how
@@ -126,7 +200,9 @@ pub fn prepare(args: &Args) -> Result<Plan> {
 pub fn execute(args: &Args) -> Result<ExitCode> {
     use crate::analysis::sweep as sw;
     let plan = prepare(args)?;
-    let runs = plan.runs()?;
+    let asked = rows_asked(args.runs.as_deref(), args.shard.as_deref(), plan.count)?;
+    let all = plan.runs()?;
+    let runs = &all[asked.start as usize..asked.end as usize];
     let Plan {
         base,
         seeds,
@@ -150,14 +226,19 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
     // Ctrl-C stops starting runs from here on: the line below says so to whoever waits on it.
     let signal = mecanum_linux::stop_on_signals()?;
     eprintln!(
-        "sweep of {:?}: {} runs ({} seeds x {} values) on {threads} threads",
+        "sweep of {:?}: {} runs ({} seeds x {} values){} on {threads} threads",
         base.name,
-        runs.len(),
+        all.len(),
         seeds.len(),
-        runs.len() / seeds.len().max(1)
+        all.len() / seeds.len().max(1),
+        if runs.len() == all.len() {
+            String::new()
+        } else {
+            format!("; rows {}..{} here", asked.start, asked.end - 1)
+        }
     );
     let wall = std::time::Instant::now();
-    let rows = run_all(&base, &runs, threads, &signal)?;
+    let rows = run_all(&base, runs, threads, &signal)?;
     let interrupted = rows.len() < runs.len();
     let keys: Vec<String> = params.iter().map(|p| p.key.clone()).collect();
     let table = write_tables(csv, jsonl, &keys, &rows, interrupted)?;
