@@ -269,3 +269,75 @@ fn shards_of_a_sweep_are_its_rows_byte_for_byte() {
     }
     assert!(!dir.join("bad").join("sweep.csv").exists());
 }
+
+#[test]
+fn merged_shards_are_the_whole_sweeps_files_and_parts_of_other_sweeps_are_refused() {
+    let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("sweep-merge");
+    let _ = std::fs::remove_dir_all(&dir);
+    let plotted = |out: &str, extra: &[&str]| {
+        let o = hostsim()
+            .args([
+                "sweep",
+                "square",
+                "--seeds",
+                "1..3",
+                "--set",
+                "plant.mass_kg=15..30",
+                "--out",
+            ])
+            .arg(dir.join(out))
+            .args(extra)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    };
+    plotted("whole", &[]);
+    for k in 1..=3 {
+        plotted(
+            &format!("part{k}"),
+            &["--shard", &format!("{k}/3"), "--no-plot"],
+        );
+    }
+    let merge = |parts: &[&str], out: &str| {
+        let mut c = hostsim();
+        c.args(["sweep", "--merge"]);
+        for p in parts {
+            c.arg(dir.join(p));
+        }
+        c.arg("--out").arg(dir.join(out)).output().unwrap()
+    };
+    // In any order of the folders.
+    let o = merge(&["part3", "part1", "part2"], "merged");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for file in ["sweep.csv", "sweep.jsonl", "sweep.png", "sweep.plan.json"] {
+        let (a, b) = (
+            std::fs::read(dir.join("whole").join(file)).unwrap(),
+            std::fs::read(dir.join("merged").join(file)).unwrap(),
+        );
+        assert!(
+            a == b,
+            "{file}: the merged file differs from the whole sweep's"
+        );
+    }
+    // A part missing, a part twice, a part of another sweep: refused, nothing written.
+    plotted(
+        "other",
+        &["--shard", "1/3", "--no-plot", "--set", "gains.kp=1.1"],
+    );
+    for (parts, says) in [
+        (
+            &["part1", "part2"][..],
+            "row 2 of 3 is in none of the parts",
+        ),
+        (
+            &["part1", "part1", "part2", "part3"][..],
+            "row 0 is in two parts",
+        ),
+        (&["other", "part2", "part3"][..], "a part of another sweep"),
+    ] {
+        let o = merge(parts, "bad");
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && e.contains(says), "{parts:?}: {e}");
+        assert!(!dir.join("bad").join("sweep.csv").exists());
+    }
+}

@@ -34,11 +34,14 @@ use super::*;
 ///
 /// Shared out: --runs I..J (or --shard K/N) runs only those rows of the same plan, every
 /// row's draws seeded by its index in the whole table, so the rows of the shards, put
-/// together in index order, are the whole table's, byte for byte.
+/// together in index order, are the whole table's, byte for byte. Each sweep also writes
+/// OUT/sweep.plan.json (the plan and its rows); --merge DIR... checks that the parts are of
+/// one plan and cover its rows once, and writes the whole table and PNG into --out.
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// A scenario TOML file, or the name of a built-in.
-    pub scenario: String,
+    #[arg(required_unless_present = "merge")]
+    pub scenario: Option<String>,
     /// Seeds: A..B (both included), or a list 1,5,9. Default: the scenario's own.
     #[arg(long, value_name = "SEEDS")]
     pub seeds: Option<String>,
@@ -72,7 +75,31 @@ pub struct Args {
     /// rows of part K.
     #[arg(long, value_name = "K/N")]
     pub shard: Option<String>,
+    /// Put the parts of one sweep together: the output folders of its --runs or --shard
+    /// runs, checked to be of one plan and to hold each of its rows once; writes the whole
+    /// table (and PNG) into --out, byte for byte as one run writes it.
+    #[arg(long, value_name = "DIR", num_args = 1.., conflicts_with_all = ["scenario", "seeds", "set", "config", "runs", "shard"])]
+    pub merge: Vec<PathBuf>,
 }
+
+/// `OUT/sweep.plan.json`: which plan a table's rows are of, and which rows it holds.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct PlanFile {
+    /// The scenario's name (the PNG's title).
+    pub scenario: String,
+    /// The plan as the command gave it: the scenario argument, the configuration's id, the
+    /// seeds and the --set arguments. Parts of one sweep have the same.
+    pub plan: String,
+    /// Runs in the whole plan.
+    pub runs: u64,
+    /// The rows this table holds: from, to (excluded).
+    pub rows: [u64; 2],
+    /// The table's CSV header.
+    pub header: String,
+}
+
+/// The name of a sweep's plan file in its output folder.
+pub const PLAN_FILE: &str = "sweep.plan.json";
 
 /// The rows of a plan of `count` runs that `--runs I..J` or `--shard K/N` ask for, as a
 /// half-open range (all of them without either).
@@ -177,7 +204,7 @@ pub fn prepare(args: &Args) -> Result<Plan> {
         .as_deref()
         .map(firmware::Config::from_toml_file)
         .transpose()?;
-    let base = load_scenario(Some(&args.scenario), config)?;
+    let base = load_scenario(args.scenario.as_deref(), config)?;
     let seeds = match &args.seeds {
         Some(s) => sw::parse_seeds(s)?,
         None => vec![base.seed],
@@ -199,6 +226,9 @@ pub fn prepare(args: &Args) -> Result<Plan> {
 /// `hostsim sweep`: many runs at once.
 pub fn execute(args: &Args) -> Result<ExitCode> {
     use crate::analysis::sweep as sw;
+    if !args.merge.is_empty() {
+        return merge(args);
+    }
     let plan = prepare(args)?;
     let asked = rows_asked(args.runs.as_deref(), args.shard.as_deref(), plan.count)?;
     let all = plan.runs()?;
@@ -242,6 +272,25 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
     let interrupted = rows.len() < runs.len();
     let keys: Vec<String> = params.iter().map(|p| p.key.clone()).collect();
     let table = write_tables(csv, jsonl, &keys, &rows, interrupted)?;
+    if !interrupted {
+        let plan_file = PlanFile {
+            scenario: base.name.clone(),
+            plan: format!(
+                "{} | config 0x{:04x} | seeds {:?} | set {:?}",
+                args.scenario.as_deref().unwrap_or_default(),
+                base.config.id(),
+                seeds,
+                args.set
+            ),
+            runs: all.len() as u64,
+            rows: [asked.start, asked.end],
+            header: sw::csv_header(&keys),
+        };
+        drivelog::output::write_whole(
+            &args.out.join(PLAN_FILE),
+            (serde_json::to_string_pretty(&plan_file)? + "\n").as_bytes(),
+        )?;
+    }
     let secs = wall.elapsed().as_secs_f64();
     let simulated: f64 =
         rows.iter().map(|r| r.steps as f64).sum::<f64>() / f64::from(base.config.timing.control_hz);
@@ -266,7 +315,9 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
     });
     print_worst(args, &base, &worst)?;
     if !args.no_plot && !rows.is_empty() && !interrupted {
-        plot(&args.out.join("sweep.png"), &base, &keys, &rows)?;
+        let (label, xs) = plot_x(&keys, &rows);
+        let ys: Vec<f64> = rows.iter().map(|r| r.drift_max_m).collect();
+        plot(&args.out.join("sweep.png"), &base.name, &label, &xs, &ys)?;
     }
     println!("table: {table}");
     Ok(if interrupted {
@@ -373,7 +424,7 @@ fn print_worst(args: &Args, base: &Scenario, worst: &[&crate::analysis::sweep::R
             r.index,
             r.drift_max_m,
             r.fault,
-            r.reproduce(&args.scenario)
+            r.reproduce(args.scenario.as_deref().unwrap_or_default())
         );
     }
     for r in worst.iter().take(args.log_worst) {
@@ -394,26 +445,179 @@ fn print_worst(args: &Args, base: &Scenario, worst: &[&crate::analysis::sweep::R
     Ok(())
 }
 
-/// sweep.png: each run's largest drift against the first swept parameter, or the seed.
-fn plot(
-    png_path: &std::path::Path,
-    base: &Scenario,
-    keys: &[String],
-    rows: &[crate::analysis::sweep::Row],
-) -> Result<()> {
-    let (label, xs): (String, Vec<f64>) = match keys.first() {
+/// sweep.png's x axis: the first swept parameter, or the seed.
+fn plot_x(keys: &[String], rows: &[crate::analysis::sweep::Row]) -> (String, Vec<f64>) {
+    match keys.first() {
         Some(k) => (k.clone(), rows.iter().map(|r| r.values[0].1).collect()),
         #[allow(clippy::cast_precision_loss)]
         None => ("seed".into(), rows.iter().map(|r| r.seed as f64).collect()),
-    };
-    let ys: Vec<f64> = rows.iter().map(|r| r.drift_max_m).collect();
+    }
+}
+
+/// sweep.png: each run's largest drift (`ys`) against `xs`, labelled `label`.
+fn plot(
+    png_path: &std::path::Path,
+    scenario: &str,
+    label: &str,
+    xs: &[f64],
+    ys: &[f64],
+) -> Result<()> {
     crate::analysis::plot::scatter(
         png_path,
-        &format!("sweep of {}", base.name),
-        &label,
+        &format!("sweep of {scenario}"),
+        label,
         "largest drift, m",
-        &xs,
-        &ys,
+        xs,
+        ys,
     )?;
     Ok(())
+}
+
+/// `--merge DIR...`: the parts of one sweep put together (see [`Args`]).
+fn merge(args: &Args) -> Result<ExitCode> {
+    let mut plan: Option<PlanFile> = None;
+    let mut csv_rows: Vec<Option<String>> = Vec::new();
+    let mut json_rows: Vec<Option<String>> = Vec::new();
+    for dir in &args.merge {
+        let path = dir.join(PLAN_FILE);
+        let text = firmware::input::read_bounded(&path, 1 << 16)
+            .with_context(|| format!("--merge {}: cannot read {PLAN_FILE}", dir.display()))?;
+        let part: PlanFile = serde_json::from_slice(&text)
+            .with_context(|| format!("{}: not a sweep's plan file", path.display()))?;
+        let whole = plan.get_or_insert_with(|| part.clone());
+        if (&part.plan, part.runs, &part.header) != (&whole.plan, whole.runs, &whole.header) {
+            anyhow::bail!(
+                "--merge {}: a part of another sweep ({}, {} runs), not of {} ({} runs)",
+                dir.display(),
+                part.plan,
+                part.runs,
+                whole.plan,
+                whole.runs
+            );
+        }
+        let [from, to] = part.rows;
+        if from > to || to > part.runs {
+            anyhow::bail!(
+                "{}: rows {from}..{to} of {} runs",
+                path.display(),
+                part.runs
+            );
+        }
+        if csv_rows.is_empty() {
+            let n = usize::try_from(part.runs).context("too many runs")?;
+            csv_rows = vec![None; n];
+            json_rows = vec![None; n];
+        }
+        let read = |name: &str| {
+            std::fs::read_to_string(dir.join(name)).with_context(|| {
+                format!(
+                    "--merge {}: cannot read {name} (an interrupted part leaves only .part files)",
+                    dir.display()
+                )
+            })
+        };
+        let (csv, jsonl) = (read("sweep.csv")?, read("sweep.jsonl")?);
+        let mut lines = csv.lines();
+        if lines.next() != Some(part.header.as_str()) {
+            anyhow::bail!(
+                "{}: its header is not the plan's",
+                dir.join("sweep.csv").display()
+            );
+        }
+        let (lines, json): (Vec<&str>, Vec<&str>) = (lines.collect(), jsonl.lines().collect());
+        if lines.len() as u64 != to - from || json.len() != lines.len() {
+            anyhow::bail!(
+                "--merge {}: {} rows in sweep.csv and {} in sweep.jsonl where the plan file says {from}..{to}",
+                dir.display(),
+                lines.len(),
+                json.len()
+            );
+        }
+        for (line, json) in lines.into_iter().zip(json) {
+            let index = line
+                .split(',')
+                .next()
+                .and_then(|i| i.parse::<u64>().ok())
+                .filter(|i| (from..to).contains(i))
+                .with_context(|| {
+                    format!(
+                        "--merge {}: a row outside its rows {from}..{to}",
+                        dir.display()
+                    )
+                })?;
+            let slot = &mut csv_rows[index as usize];
+            if slot.is_some() {
+                anyhow::bail!("--merge {}: row {index} is in two parts", dir.display());
+            }
+            *slot = Some(line.to_string());
+            json_rows[index as usize] = Some(json.to_string());
+        }
+    }
+    let Some(plan) = plan else {
+        anyhow::bail!("--merge: no folder given");
+    };
+    if let Some(missing) = csv_rows.iter().position(Option::is_none) {
+        anyhow::bail!(
+            "--merge: row {missing} of {} is in none of the parts",
+            plan.runs
+        );
+    }
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("cannot create the output folder {}", args.out.display()))?;
+    let mut csv = String::with_capacity(csv_rows.iter().flatten().map(|l| l.len() + 1).sum());
+    csv.push_str(&plan.header);
+    csv.push('\n');
+    let mut jsonl = String::new();
+    for (c, j) in csv_rows.iter().flatten().zip(json_rows.iter().flatten()) {
+        csv.push_str(c);
+        csv.push('\n');
+        jsonl.push_str(j);
+        jsonl.push('\n');
+    }
+    let out = |name: &str, bytes: &[u8]| drivelog::output::write_whole(&args.out.join(name), bytes);
+    out("sweep.csv", csv.as_bytes())?;
+    out("sweep.jsonl", jsonl.as_bytes())?;
+    let merged = PlanFile {
+        rows: [0, plan.runs],
+        ..plan.clone()
+    };
+    out(
+        PLAN_FILE,
+        (serde_json::to_string_pretty(&merged)? + "\n").as_bytes(),
+    )?;
+    if !args.no_plot && plan.runs > 0 {
+        // The x axis as the sweep draws it: the first swept parameter, else the seed.
+        let first_key = plan
+            .header
+            .split(',')
+            .nth(2)
+            .filter(|k| *k != "final_state");
+        let mut xs = Vec::with_capacity(json_rows.len());
+        let mut ys = Vec::with_capacity(json_rows.len());
+        for j in json_rows.iter().flatten() {
+            let v: serde_json::Value = serde_json::from_str(j).context("a JSON line of a part")?;
+            let x = match first_key {
+                Some(k) => v["values"][k].as_f64(),
+                #[allow(clippy::cast_precision_loss)]
+                None => v["seed"].as_u64().map(|s| s as f64),
+            };
+            xs.push(x.unwrap_or(f64::NAN));
+            ys.push(v["drift_max_m"].as_f64().unwrap_or(f64::NAN));
+        }
+        plot(
+            &args.out.join("sweep.png"),
+            &plan.scenario,
+            first_key.unwrap_or("seed"),
+            &xs,
+            &ys,
+        )?;
+    }
+    println!(
+        "merged {} parts: {} runs of {} into {}",
+        args.merge.len(),
+        plan.runs,
+        plan.plan,
+        args.out.display()
+    );
+    Ok(ExitCode::SUCCESS)
 }
