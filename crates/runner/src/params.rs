@@ -52,6 +52,14 @@ pub enum ParamFileError {
         /// Why.
         source: std::io::Error,
     },
+    /// It is missing and its folder is not there to hold it: every save would fail.
+    #[error("--params {path}: the folder {folder} does not exist")]
+    NoFolder {
+        /// The file.
+        path: PathBuf,
+        /// Its folder.
+        folder: PathBuf,
+    },
     /// It is not a saved parameter set: never overwritten (it may be the user's file).
     #[error(
         "--params {path}: not a saved parameter set ({len} bytes; a set is {RECORD_BYTES} \
@@ -99,7 +107,19 @@ impl ParamFile {
             Err(e) => return Err(read(e)),
         };
         let (found, seq) = match bytes {
-            None => (Found::Missing, 0),
+            None => {
+                let folder = match path.parent() {
+                    Some(p) if !p.as_os_str().is_empty() => p,
+                    _ => Path::new("."),
+                };
+                if !folder.is_dir() {
+                    return Err(ParamFileError::NoFolder {
+                        path: path.to_path_buf(),
+                        folder: folder.to_path_buf(),
+                    });
+                }
+                (Found::Missing, 0)
+            }
             Some(b) => {
                 let record: Option<[u8; RECORD_BYTES]> = b.as_slice().try_into().ok();
                 let Some(record) = record.filter(|r| r[..4] == MAGIC.to_le_bytes()) else {

@@ -161,6 +161,15 @@ fn a_file_that_is_not_a_saved_set_is_refused_and_kept() {
     assert!(matches!(e, ParamFileError::NotASet { len: 17, .. }), "{e}");
     assert!(e.to_string().contains("not a saved parameter set"), "{e}");
     assert_eq!(std::fs::read(&path).unwrap(), b"[gains]\nkp = 1.0\n");
+    // A file whose folder is not there: refused at start, not at the first save.
+    let nowhere = scratch("robot.toml")
+        .with_file_name("no-such-folder")
+        .join("robot.params");
+    let e = ParamFile::open(&nowhere, &builtin).unwrap_err();
+    assert!(
+        e.to_string().contains("no-such-folder does not exist"),
+        "{e}"
+    );
 
     // A set whose CRC fails: reported, the built-in set runs.
     let mut bytes: Vec<u8> = firmware::storage::record(&builtin, 3, builtin.id())
