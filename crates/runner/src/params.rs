@@ -160,6 +160,12 @@ impl ParamFile {
         &self.path
     }
 
+    /// Whether a save is being written.
+    #[must_use]
+    pub const fn busy(&self) -> bool {
+        self.writing.is_some()
+    }
+
     /// Why the last save failed, if it did.
     #[must_use]
     pub fn last_error(&self) -> Option<&str> {
