@@ -647,7 +647,6 @@ def test_a_set_goes_to_the_robot_and_the_parameter_holds_the_value_in_force(make
     assert rig.fake.param_writes == [("gains.kp", f32(1.3))]
     assert rig.fake.parameter("gains.kp") == f32(1.3) == 1.2999999523162842
     assert get_parameters(rig, ["robot.gains.kp"]) == {"robot.gains.kp": 1.2999999523162842}
-    assert took < 0.5 + 1.0  # the robot's answers within PARAM_TIMEOUT_S, then the way back
     took, results = set_parameters(rig, {"robot.timing.command_timeout_ms": 250,
                                          "robot.odometry.gyro_bias_estimation": False})
     assert [(r.successful, r.reason) for r in results] == [(True, ""), (True, "")]
@@ -684,7 +683,6 @@ def test_a_set_the_robot_refuses_fails_with_its_reason_and_changes_nothing(make_
         took, results = set_parameters(rig, {name: value})
         answers[name] = (results[0].successful, results[0].reason)
         print(f"{name} = {value}: {answers[name]} in {took * 1e3:.1f} ms")
-        assert took < 0.5 + 1.0
     assert answers["robot.timing.status_hz"] == (
         False, "timing.status_hz = 20: changes only while disabled (SDO abort 0x08000022)")
     assert answers["robot.limits.stop_linear_decel"] == (
