@@ -36,7 +36,7 @@ use embassy_stm32::can::{
     Can, CanRx, CanTx, Fifo, Mailbox, Rx0InterruptHandler, Rx1InterruptHandler,
     SceInterruptHandler, StandardId, TxInterruptHandler,
 };
-use embassy_stm32::flash::Flash;
+use embassy_stm32::flash::{Blocking, Flash};
 use embassy_stm32::peripherals::CAN1;
 use embassy_stm32::wdg::IndependentWatchdog;
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
@@ -133,42 +133,8 @@ async fn main(spawner: Spawner) {
         Ok(c) => c,
         Err(e) => config_rejected(&e),
     };
-    // The saved parameters: the newest set saved for this image's configuration, if any; the
-    // sector that holds none of it erased now, while nothing watches the loop (an erase
-    // stops the CPU for 250-500 ms).
     let mut flash = Flash::new_blocking(p.FLASH);
-    let (mut store, found) = match Store::mount(&mut flash, F407_LAYOUT, &builtin) {
-        Ok(mounted) => mounted,
-        Err(e) => defmt::panic!("parameter flash unreadable: {}", defmt::Debug2Format(&e)),
-    };
-    if found.foreign > 0 || found.garbage > 0 {
-        info!(
-            "parameter flash: {=u32} records for another configuration, {=u32} cut short",
-            found.foreign, found.garbage
-        );
-    }
-    if let Err(e) = store.erase_stale(&mut flash) {
-        warn!(
-            "parameter flash: a stale sector could not be erased ({}): saves that need it are refused",
-            defmt::Debug2Format(&e)
-        );
-    }
-    let booted = Controller::new(&builtin).and_then(|ctl| match found.saved {
-        Some(saved) => ctl.with_saved(&saved.config, saved.seq),
-        None => Ok(ctl),
-    });
-    let mut ctl = match booted {
-        Ok(ctl) => ctl,
-        Err(e) => config_rejected(&e),
-    };
-    match found.saved {
-        Some(saved) => info!(
-            "parameters: the saved set, record {=u32}, id {=u16:#06x}",
-            saved.seq,
-            ctl.config_id()
-        ),
-        None => info!("parameters: the built-in set"),
-    }
+    let (mut store, mut ctl) = boot_parameters(&mut flash, &builtin);
     let period = ctl.period_micros();
     info!(
         "drive configuration {=str}, id {=u16:#06x}",
@@ -264,6 +230,45 @@ async fn main(spawner: Spawner) {
             }
         }
     }
+}
+
+/// The saved parameters at boot: the newest set saved for this image's configuration, if any,
+/// and the controller running it; the sector that holds none of it erased now, while nothing
+/// watches the loop (an erase stops the CPU for 400-800 ms at embassy's PSIZE x8).
+fn boot_parameters(flash: &mut Flash<'_, Blocking>, builtin: &Config) -> (Store, Controller) {
+    let (mut store, found) = match Store::mount(flash, F407_LAYOUT, builtin) {
+        Ok(mounted) => mounted,
+        Err(e) => defmt::panic!("parameter flash unreadable: {}", defmt::Debug2Format(&e)),
+    };
+    if found.foreign > 0 || found.garbage > 0 {
+        info!(
+            "parameter flash: {=u32} records for another configuration, {=u32} cut short",
+            found.foreign, found.garbage
+        );
+    }
+    if let Err(e) = store.erase_stale(flash) {
+        warn!(
+            "parameter flash: a stale sector could not be erased ({}): saves that need it are refused",
+            defmt::Debug2Format(&e)
+        );
+    }
+    let booted = Controller::new(builtin).and_then(|ctl| match found.saved {
+        Some(saved) => ctl.with_saved(&saved.config, saved.seq),
+        None => Ok(ctl),
+    });
+    let ctl = match booted {
+        Ok(ctl) => ctl,
+        Err(e) => config_rejected(&e),
+    };
+    match found.saved {
+        Some(saved) => info!(
+            "parameters: the saved set, record {=u32}, id {=u16:#06x}",
+            saved.seq,
+            ctl.config_id()
+        ),
+        None => info!("parameters: the built-in set"),
+    }
+    (store, ctl)
 }
 
 /// Stops the board on a configuration the core refuses. Fields logged one by one: defmt

@@ -37,11 +37,7 @@ pub(super) enum Event {
     /// `/firmware/steps`.
     Step { t_ns: u64, kind: u8 },
     /// `/firmware/store`.
-    Saved {
-        t_ns: u64,
-        seq: u32,
-        abort_code: u32,
-    },
+    Saved { t_ns: u64, result: msg::SaveResult },
     /// `/diagnostics` with the tap's status alone ([`McapLog::tap_status`]).
     TapStatus { t_ns: u64 },
 }
@@ -238,18 +234,7 @@ impl Encoder {
                 };
                 self.write(Channel::Steps, t_ns, t_ns, &m)
             }
-            Event::Saved {
-                t_ns,
-                seq,
-                abort_code,
-            } => {
-                let m = msg::SaveResult {
-                    stamp: msg::Time::from_ns(t_ns),
-                    seq,
-                    abort_code,
-                };
-                self.write(Channel::Store, t_ns, t_ns, &m)
-            }
+            Event::Saved { t_ns, result } => self.write(Channel::Store, t_ns, t_ns, &result),
             Event::TapStatus { t_ns } => {
                 let m = msg::DiagnosticArray {
                     header: Header::new(t_ns, ""),

@@ -615,15 +615,12 @@ impl McapLog {
             SaveOutcome::Stored { seq } => (seq, 0),
             SaveOutcome::Failed { code } => (0, code),
         };
-        self.push(
-            Event::Saved {
-                t_ns,
-                seq,
-                abort_code,
-            },
-            t_ns,
-            1,
-        )
+        let result = msg::SaveResult {
+            stamp: msg::Time::from_ns(t_ns),
+            seq,
+            abort_code,
+        };
+        self.push(Event::Saved { t_ns, result }, t_ns, 1)
     }
 
     /// Hands the messages logged so far to the writing thread if a quarter of a second of log

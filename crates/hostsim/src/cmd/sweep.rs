@@ -475,10 +475,69 @@ fn plot(
 
 /// `--merge DIR...`: the parts of one sweep put together (see [`Args`]).
 fn merge(args: &Args) -> Result<ExitCode> {
+    let (plan, csv_rows, json_rows) = read_parts(&args.merge)?;
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("cannot create the output folder {}", args.out.display()))?;
+    let mut csv = String::with_capacity(csv_rows.iter().map(|l| l.len() + 1).sum());
+    csv.push_str(&plan.header);
+    csv.push('\n');
+    let mut jsonl = String::new();
+    for (c, j) in csv_rows.iter().zip(&json_rows) {
+        csv.push_str(c);
+        csv.push('\n');
+        jsonl.push_str(j);
+        jsonl.push('\n');
+    }
+    let out = |name: &str, bytes: &[u8]| drivelog::output::write_whole(&args.out.join(name), bytes);
+    out("sweep.csv", csv.as_bytes())?;
+    out("sweep.jsonl", jsonl.as_bytes())?;
+    let merged = PlanFile {
+        rows: [0, plan.runs],
+        ..plan.clone()
+    };
+    out(
+        PLAN_FILE,
+        (serde_json::to_string_pretty(&merged)? + "\n").as_bytes(),
+    )?;
+    if !args.no_plot && plan.runs > 0 {
+        // The x axis as the sweep draws it: the first swept parameter, else the seed.
+        let first_key = plan
+            .header
+            .split(',')
+            .nth(2)
+            .filter(|k| *k != "final_state");
+        let mut xs = Vec::with_capacity(json_rows.len());
+        let mut ys = Vec::with_capacity(json_rows.len());
+        for j in &json_rows {
+            let v: serde_json::Value = serde_json::from_str(j).context("a JSON line of a part")?;
+            let x = match first_key {
+                Some(k) => v["values"][k].as_f64(),
+                #[allow(clippy::cast_precision_loss)]
+                None => v["seed"].as_u64().map(|s| s as f64),
+            };
+            xs.push(x.unwrap_or(f64::NAN));
+            ys.push(v["drift_max_m"].as_f64().unwrap_or(f64::NAN));
+        }
+        let label = first_key.unwrap_or("seed");
+        plot(&args.out.join("sweep.png"), &plan.scenario, label, &xs, &ys)?;
+    }
+    println!(
+        "merged {} parts: {} runs of {} into {}",
+        args.merge.len(),
+        plan.runs,
+        plan.plan,
+        args.out.display()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The parts in `dirs`, checked to be of one plan and to hold each of its rows once: the
+/// plan, and every row's CSV and JSON lines in index order.
+fn read_parts(dirs: &[PathBuf]) -> Result<(PlanFile, Vec<String>, Vec<String>)> {
     let mut plan: Option<PlanFile> = None;
     let mut csv_rows: Vec<Option<String>> = Vec::new();
     let mut json_rows: Vec<Option<String>> = Vec::new();
-    for dir in &args.merge {
+    for dir in dirs {
         let path = dir.join(PLAN_FILE);
         let text = firmware::input::read_bounded(&path, 1 << 16)
             .with_context(|| format!("--merge {}: cannot read {PLAN_FILE}", dir.display()))?;
@@ -562,62 +621,9 @@ fn merge(args: &Args) -> Result<ExitCode> {
             plan.runs
         );
     }
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("cannot create the output folder {}", args.out.display()))?;
-    let mut csv = String::with_capacity(csv_rows.iter().flatten().map(|l| l.len() + 1).sum());
-    csv.push_str(&plan.header);
-    csv.push('\n');
-    let mut jsonl = String::new();
-    for (c, j) in csv_rows.iter().flatten().zip(json_rows.iter().flatten()) {
-        csv.push_str(c);
-        csv.push('\n');
-        jsonl.push_str(j);
-        jsonl.push('\n');
-    }
-    let out = |name: &str, bytes: &[u8]| drivelog::output::write_whole(&args.out.join(name), bytes);
-    out("sweep.csv", csv.as_bytes())?;
-    out("sweep.jsonl", jsonl.as_bytes())?;
-    let merged = PlanFile {
-        rows: [0, plan.runs],
-        ..plan.clone()
-    };
-    out(
-        PLAN_FILE,
-        (serde_json::to_string_pretty(&merged)? + "\n").as_bytes(),
-    )?;
-    if !args.no_plot && plan.runs > 0 {
-        // The x axis as the sweep draws it: the first swept parameter, else the seed.
-        let first_key = plan
-            .header
-            .split(',')
-            .nth(2)
-            .filter(|k| *k != "final_state");
-        let mut xs = Vec::with_capacity(json_rows.len());
-        let mut ys = Vec::with_capacity(json_rows.len());
-        for j in json_rows.iter().flatten() {
-            let v: serde_json::Value = serde_json::from_str(j).context("a JSON line of a part")?;
-            let x = match first_key {
-                Some(k) => v["values"][k].as_f64(),
-                #[allow(clippy::cast_precision_loss)]
-                None => v["seed"].as_u64().map(|s| s as f64),
-            };
-            xs.push(x.unwrap_or(f64::NAN));
-            ys.push(v["drift_max_m"].as_f64().unwrap_or(f64::NAN));
-        }
-        plot(
-            &args.out.join("sweep.png"),
-            &plan.scenario,
-            first_key.unwrap_or("seed"),
-            &xs,
-            &ys,
-        )?;
-    }
-    println!(
-        "merged {} parts: {} runs of {} into {}",
-        args.merge.len(),
-        plan.runs,
-        plan.plan,
-        args.out.display()
-    );
-    Ok(ExitCode::SUCCESS)
+    Ok((
+        plan,
+        csv_rows.into_iter().flatten().collect(),
+        json_rows.into_iter().flatten().collect(),
+    ))
 }
