@@ -43,6 +43,21 @@ fn hostsim() -> Command {
     Command::new(env!("CARGO_BIN_EXE_hostsim"))
 }
 
+/// `hostsim sweep square --seeds SEEDS --set plant.mass_kg=15..30`: a sweep with a drawn
+/// parameter, for the tests to add to.
+fn square_sweep(seeds: &str) -> Command {
+    let mut c = hostsim();
+    c.args([
+        "sweep",
+        "square",
+        "--seeds",
+        seeds,
+        "--set",
+        "plant.mass_kg=15..30",
+    ]);
+    c
+}
+
 #[test]
 fn a_bad_name_or_value_fails_before_any_run() {
     let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("sweep-bad");
@@ -150,15 +165,7 @@ fn ctrl_c_keeps_the_rows_finished() {
 fn each_rows_command_runs_it_alone() {
     let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("sweep-reproduce");
     let _ = std::fs::remove_dir_all(&out);
-    let o = hostsim()
-        .args([
-            "sweep",
-            "square",
-            "--seeds",
-            "1..3",
-            "--set",
-            "plant.mass_kg=15..30",
-        ])
+    let o = square_sweep("1..3")
         .args([
             "--set",
             "gains.kp=1.0,1.3",
@@ -208,19 +215,11 @@ fn each_rows_command_runs_it_alone() {
     }
 }
 
-/// `hostsim sweep square` with a grid and a drawn parameter into `out`, and `extra`
-/// arguments: its stdout, or its stderr as the error.
+/// [`square_sweep`] over two seeds with a grid too, into `out`, and `extra` arguments: its
+/// stdout, or its stderr as the error.
 fn sweep_into(out: &Path, extra: &[&str]) -> Result<String, String> {
-    let o = hostsim()
-        .args([
-            "sweep",
-            "square",
-            "--seeds",
-            "1..2",
-            "--set",
-            "gains.kp=1.0,1.3",
-        ])
-        .args(["--set", "plant.mass_kg=15..30", "--no-plot", "--out"])
+    let o = square_sweep("1..2")
+        .args(["--set", "gains.kp=1.0,1.3", "--no-plot", "--out"])
         .arg(out)
         .args(extra)
         .output()
@@ -275,16 +274,8 @@ fn merged_shards_are_the_whole_sweeps_files_and_parts_of_other_sweeps_are_refuse
     let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("sweep-merge");
     let _ = std::fs::remove_dir_all(&dir);
     let plotted = |out: &str, extra: &[&str]| {
-        let o = hostsim()
-            .args([
-                "sweep",
-                "square",
-                "--seeds",
-                "1..3",
-                "--set",
-                "plant.mass_kg=15..30",
-                "--out",
-            ])
+        let o = square_sweep("1..3")
+            .arg("--out")
             .arg(dir.join(out))
             .args(extra)
             .output()
