@@ -170,7 +170,9 @@ pub trait ParamStore {
 /// No store: every save is refused with `0x0800_0020` (data cannot be stored).
 impl ParamStore for () {
     fn begin(&mut self, _: &Config, _: u16) -> Result<(), SaveOutcome> {
-        Err(SaveOutcome::Failed { code: 0x0800_0020 })
+        Err(SaveOutcome::Failed {
+            code: firmware::protocol::canopen::abort_code::NOT_STORED,
+        })
     }
 
     fn poll(&mut self) -> Option<SaveOutcome> {

@@ -11,12 +11,13 @@ use std::thread::JoinHandle;
 
 use firmware::Config;
 use firmware::control::SaveOutcome;
+use firmware::protocol::canopen::abort_code;
 use firmware::storage::{self, Content, MAGIC, RECORD_BYTES};
 use mecanum_linux::ParamStore;
 
 /// The abort code of a save the file system refused ("access failed due to a hardware
 /// error", as a flash error on the board).
-const WRITE_FAILED: u32 = 0x0606_0000;
+const WRITE_FAILED: u32 = abort_code::HARDWARE;
 
 /// What a start found in the parameter file.
 #[derive(Debug, Clone, PartialEq)]
@@ -177,13 +178,12 @@ impl ParamStore for ParamFile {
     fn begin(&mut self, config: &Config, builtin_id: u16) -> Result<(), SaveOutcome> {
         if self.writing.is_some() {
             // The core asks for one save at a time; a second is its state's refusal.
-            return Err(SaveOutcome::Failed { code: 0x0800_0022 });
+            return Err(SaveOutcome::Failed {
+                code: abort_code::DEVICE_STATE,
+            });
         }
         let seq = self.next_seq;
-        let bytes: Vec<u8> = storage::record(config, seq, builtin_id)
-            .iter()
-            .flat_map(|w| w.to_le_bytes())
-            .collect();
+        let bytes = storage::record_bytes(config, seq, builtin_id);
         let path = self.path.clone();
         let spawned = std::thread::Builder::new()
             .name("params-save".into())

@@ -203,13 +203,10 @@ fn a_file_that_is_not_a_saved_set_is_refused_and_kept() {
     );
 
     // A set whose CRC fails: reported, the built-in set runs.
-    let mut bytes: Vec<u8> = firmware::storage::record(&builtin, 3, builtin.id())
-        .iter()
-        .flat_map(|w| w.to_le_bytes())
-        .collect();
+    let mut bytes = firmware::storage::record_bytes(&builtin, 3, builtin.id());
     bytes[100] ^= 0x10;
     let damaged = scratch("damaged.params");
-    std::fs::write(&damaged, &bytes).unwrap();
+    std::fs::write(&damaged, bytes).unwrap();
     assert_eq!(
         ParamFile::open(&damaged, &builtin).unwrap().1,
         Found::Damaged
@@ -217,13 +214,9 @@ fn a_file_that_is_not_a_saved_set_is_refused_and_kept() {
     // Saved for another configuration file.
     let other = Config::odrive_example();
     let foreign = scratch("foreign.params");
-    let words = firmware::storage::record(&other, 4, other.id());
     std::fs::write(
         &foreign,
-        words
-            .iter()
-            .flat_map(|w| w.to_le_bytes())
-            .collect::<Vec<_>>(),
+        firmware::storage::record_bytes(&other, 4, other.id()),
     )
     .unwrap();
     assert_eq!(

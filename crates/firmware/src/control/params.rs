@@ -23,16 +23,6 @@ use crate::protocol::DecodeError;
 use crate::protocol::canopen::{self, Message, NodeId, SdoRequest, SdoResponse, abort_code};
 use crate::protocol::robot::{PROTOCOL_VERSION, RobotState};
 
-/// Abort code: the data type's length does not match the request's size.
-const WRONG_LENGTH: u32 = 0x0607_0010;
-/// Abort code: attempt to write a read-only object.
-const READ_ONLY: u32 = 0x0601_0002;
-/// Abort code: data cannot be stored (a save or restore without its signature).
-const NOT_STORED: u32 = 0x0800_0020;
-/// Abort code: not in the present device state (a save already running; a restore while
-/// the robot moves).
-const WRONG_STATE: u32 = 0x0800_0022;
-
 /// `0x1010` Store parameters: sub-index 1 ("all") saves the configuration in force.
 pub const STORE: u16 = 0x1010;
 /// `0x1011` Restore default parameters: sub-index 1 puts the built-in configuration in force
@@ -279,7 +269,7 @@ impl Controller {
             return Err(abort_code::NO_SUBINDEX);
         }
         if size != 4 {
-            return Err(WRONG_LENGTH);
+            return Err(abort_code::WRONG_LENGTH);
         }
         let signature = if index == STORE {
             SAVE_SIGNATURE
@@ -287,11 +277,11 @@ impl Controller {
             LOAD_SIGNATURE
         };
         if value != signature {
-            return Err(NOT_STORED);
+            return Err(abort_code::NOT_STORED);
         }
         let moving = matches!(self.state, RobotState::Enabled | RobotState::WheelTest);
         if self.saving != Saving::Idle || (index == RESTORE && moving) {
-            return Err(WRONG_STATE);
+            return Err(abort_code::DEVICE_STATE);
         }
         if index == RESTORE {
             self.apply_config(self.builtin);
@@ -336,10 +326,10 @@ impl Controller {
             // An object that reads but is no parameter (the identity, a record's size).
             return Err(self
                 .upload(index, sub)
-                .map_or_else(|code| code, |_| READ_ONLY));
+                .map_or_else(|code| code, |_| abort_code::READ_ONLY));
         };
         if size != p.ty.size() {
-            return Err(WRONG_LENGTH);
+            return Err(abort_code::WRONG_LENGTH);
         }
         let moving = matches!(self.state, RobotState::Enabled | RobotState::WheelTest);
         let new = p

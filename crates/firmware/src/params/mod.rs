@@ -201,11 +201,11 @@ impl Refusal {
         match self {
             Self::Unknown => abort_code::NO_OBJECT,
             Self::Absent { .. } => abort_code::NO_SUBINDEX,
-            Self::ReadOnly { .. } => 0x0601_0002,
-            Self::WhileEnabled { .. } => 0x0800_0022,
+            Self::ReadOnly { .. } => abort_code::READ_ONLY,
+            Self::WhileEnabled { .. } => abort_code::DEVICE_STATE,
             Self::NotAValue { .. } | Self::Invalid(_) => abort_code::INVALID_VALUE,
-            Self::TooHigh { .. } => 0x0609_0031,
-            Self::TooLow { .. } => 0x0609_0032,
+            Self::TooHigh { .. } => abort_code::TOO_HIGH,
+            Self::TooLow { .. } => abort_code::TOO_LOW,
         }
     }
 }

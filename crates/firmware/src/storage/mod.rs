@@ -27,6 +27,7 @@ use embedded_storage::nor_flash::{NorFlash, NorFlashError, NorFlashErrorKind, Re
 use crate::config::{Config, ENCODED_LEN};
 use crate::control::{Controller, SaveOutcome};
 use crate::params;
+use crate::protocol::canopen::abort_code;
 
 /// Words a board programs before each control step: at most 300 µs of stalled CPU at the
 /// datasheet's worst 100 µs a word, and a record in 24 steps.
@@ -86,9 +87,22 @@ pub struct Slot {
     pub index: u32,
 }
 
-/// A record's words for `config`, saved as number `seq` under the built-in id `base_id`.
+/// A record's words for `config`, saved as number `seq` under the built-in id `base_id`
+/// (the words of [`record_bytes`], as a flash programs them).
 #[must_use]
 pub fn record(config: &Config, seq: u32, base_id: u16) -> [u32; RECORD_WORDS] {
+    let bytes = record_bytes(config, seq, base_id);
+    let mut words = [0u32; RECORD_WORDS];
+    for (w, b) in words.iter_mut().zip(bytes.chunks_exact(4)) {
+        *w = u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+    }
+    words
+}
+
+/// A record's bytes for `config`, saved as number `seq` under the built-in id `base_id`:
+/// what a slot holds, or the runner's parameter file.
+#[must_use]
+pub fn record_bytes(config: &Config, seq: u32, base_id: u16) -> [u8; RECORD_BYTES] {
     let mut bytes = [0u8; RECORD_BYTES];
     bytes[0..4].copy_from_slice(&MAGIC.to_le_bytes());
     bytes[4..8].copy_from_slice(&seq.to_le_bytes());
@@ -96,11 +110,7 @@ pub fn record(config: &Config, seq: u32, base_id: u16) -> [u32; RECORD_WORDS] {
     bytes[12..12 + ENCODED_LEN].copy_from_slice(&config.encode());
     let crc = CRC32.checksum(&bytes[..RECORD_BYTES - 4]);
     bytes[RECORD_BYTES - 4..].copy_from_slice(&crc.to_le_bytes());
-    let mut words = [0u32; RECORD_WORDS];
-    for (w, b) in words.iter_mut().zip(bytes.chunks_exact(4)) {
-        *w = u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
-    }
-    words
+    bytes
 }
 
 /// What a slot holds.
@@ -196,12 +206,9 @@ impl SaveError {
     #[must_use]
     pub const fn abort_code(self) -> u32 {
         match self {
-            // "Data cannot be transferred or stored to the application".
-            Self::Full => 0x0800_0020,
-            // "... because of the present device state".
-            Self::Busy => 0x0800_0022,
-            // "Access failed due to a hardware error".
-            Self::Flash(_) | Self::Verify => 0x0606_0000,
+            Self::Full => abort_code::NOT_STORED,
+            Self::Busy => abort_code::DEVICE_STATE,
+            Self::Flash(_) | Self::Verify => abort_code::HARDWARE,
         }
     }
 }

@@ -57,9 +57,10 @@ fn a_record_is_three_header_words_the_configuration_and_its_crc() {
     let words = record(&variant(1), 7, builtin().id());
     assert_eq!(words[0], MAGIC);
     assert_eq!(words[1], 7);
-    let mut bytes = [0u8; RECORD_BYTES];
-    for (b, w) in bytes.chunks_exact_mut(4).zip(words) {
-        b.copy_from_slice(&w.to_le_bytes());
+    // The words are the bytes' (as a flash programs them, little-endian).
+    let bytes = record_bytes(&variant(1), 7, builtin().id());
+    for (b, w) in bytes.chunks_exact(4).zip(words) {
+        assert_eq!(b, w.to_le_bytes());
     }
     assert!(
         matches!(parse(&bytes), Content::Record { seq: 7, config: Some(c), .. } if c == variant(1))

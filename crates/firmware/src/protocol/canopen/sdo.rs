@@ -119,12 +119,30 @@ impl SdoResponse {
 pub mod abort_code {
     /// SDO protocol timed out: the client gives a transfer up.
     pub const TIMEOUT: u32 = 0x0504_0000;
+    /// Attempt to write a read only object.
+    pub const READ_ONLY: u32 = 0x0601_0002;
     /// Object does not exist in the object dictionary.
     pub const NO_OBJECT: u32 = 0x0602_0000;
+    /// The object cannot be mapped to the PDO.
+    pub const CANNOT_MAP: u32 = 0x0604_0041;
+    /// General parameter incompatibility.
+    pub const INCOMPATIBLE: u32 = 0x0604_0043;
+    /// Access failed due to a hardware error.
+    pub const HARDWARE: u32 = 0x0606_0000;
+    /// Data type does not match: the length of the service parameter does not.
+    pub const WRONG_LENGTH: u32 = 0x0607_0010;
     /// Sub-index does not exist.
     pub const NO_SUBINDEX: u32 = 0x0609_0011;
     /// Invalid value for parameter (value range exceeded).
     pub const INVALID_VALUE: u32 = 0x0609_0030;
+    /// Value of parameter written too high.
+    pub const TOO_HIGH: u32 = 0x0609_0031;
+    /// Value of parameter written too low.
+    pub const TOO_LOW: u32 = 0x0609_0032;
+    /// Data cannot be transferred or stored to the application.
+    pub const NOT_STORED: u32 = 0x0800_0020;
+    /// Data cannot be transferred because of the present device state.
+    pub const DEVICE_STATE: u32 = 0x0800_0022;
 }
 
 /// A short description of an SDO abort code (CiA 301 table 22), for logs; `None` for codes

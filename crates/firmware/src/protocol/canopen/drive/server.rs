@@ -6,23 +6,8 @@ use super::dictionary::Dictionary;
 use super::mapping;
 use crate::protocol::canopen::{SdoRequest, SdoResponse};
 
-/// SDO abort codes the nodes give (CiA 301 table 22).
-pub mod abort {
-    /// The object does not exist in the object dictionary.
-    pub const NO_OBJECT: u32 = 0x0602_0000;
-    /// Attempt to write a read only object.
-    pub const READ_ONLY: u32 = 0x0601_0002;
-    /// The object cannot be mapped to the PDO.
-    pub const CANNOT_MAP: u32 = 0x0604_0041;
-    /// General parameter incompatibility.
-    pub const INCOMPATIBLE: u32 = 0x0604_0043;
-    /// The sub-index does not exist.
-    pub const NO_SUBINDEX: u32 = 0x0609_0011;
-    /// Invalid value for parameter.
-    pub const INVALID_VALUE: u32 = 0x0609_0030;
-    /// Data cannot be transferred because of the present device state.
-    pub const DEVICE_STATE: u32 = 0x0800_0022;
-}
+/// SDO abort codes the nodes give (CiA 301 table 22): the codec's.
+pub use crate::protocol::canopen::abort_code as abort;
 
 /// Answers one SDO request: an upload reads the dictionary (4 bytes), a download writes it
 /// if [`check_write`] allows, unless `refused` names the object (then its abort code). A
