@@ -146,6 +146,17 @@ impl CanFrame {
     pub const fn buffer(&self) -> [u8; MAX_DLC] {
         self.data
     }
+
+    /// The 11-bit id of a standard frame; `None` for an extended one.
+    #[must_use]
+    pub const fn standard_id(&self) -> Option<u16> {
+        if self.id & EXTENDED == 0 {
+            // A standard id is 11 bits: the cast cannot truncate.
+            Some((self.id & STANDARD_MASK) as u16)
+        } else {
+            None
+        }
+    }
 }
 
 impl Frame for CanFrame {

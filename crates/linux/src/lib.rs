@@ -23,6 +23,7 @@ mod node;
 mod report;
 mod run;
 mod schedule;
+mod sdo;
 mod signals;
 mod socketcan;
 pub mod testing;
@@ -41,5 +42,6 @@ pub use run::{
     LinkEvent, ParamStore, Recorder, RunOptions, id_text, run, run_recorded, send_with_retry,
 };
 pub use schedule::Schedule;
+pub use sdo::{FramePort, SdoClient};
 pub use signals::{stop_on_signals, stop_requested};
 pub use socketcan::{OpenError, SocketCanBus};

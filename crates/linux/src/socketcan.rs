@@ -125,21 +125,68 @@ impl SocketCanBus {
     pub fn iface(&self) -> &str {
         &self.iface
     }
+
+    /// From now on receives only the standard frames of id `id`, and no error frames: what
+    /// a client of one node's service listens to ([`SdoClient`](crate::SdoClient)).
+    ///
+    /// # Errors
+    /// The socket refused the filter.
+    pub fn listen_only(&mut self, id: u16) -> io::Result<()> {
+        use socketcan::{Socket as _, SocketOptions as _};
+        let mask = libc::CAN_SFF_MASK | libc::CAN_EFF_FLAG | libc::CAN_RTR_FLAG;
+        self.socket
+            .set_filters(&[socketcan::CanFilter::new(u32::from(id), mask)])?;
+        self.socket.set_error_filter(0)?;
+        // What the socket held before the filter is stale.
+        while self.socket.read_frame().is_ok() {}
+        Ok(())
+    }
+}
+
+impl crate::sdo::FramePort for SocketCanBus {
+    fn send(&mut self, frame: &CanFrame) -> io::Result<()> {
+        Bus::send(self, frame)
+    }
+
+    fn recv_timeout(&mut self, timeout: std::time::Duration) -> io::Result<Option<CanFrame>> {
+        use socketcan::Socket as _;
+        if let Some(frame) = self.try_recv()? {
+            return Ok(Some(frame));
+        }
+        match self.socket.read_frame_timeout(timeout) {
+            Ok(frame) => convert(frame).map(Some),
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock
+                ) =>
+            {
+                Ok(None)
+            }
+            Err(e) => Err(e),
+        }
+    }
+}
+
+/// A frame read from the socket: an error frame as a [`BusErrorFrame`] error, a frame that is
+/// not classic CAN as `InvalidData`.
+fn convert(frame: socketcan::CanFrame) -> io::Result<CanFrame> {
+    if let socketcan::CanFrame::Error(e) = frame {
+        return Err(io::Error::other(BusErrorFrame(e.into_error().to_string())));
+    }
+    CanFrame::from_frame(&frame).ok_or_else(|| {
+        io::Error::new(
+            io::ErrorKind::InvalidData,
+            format!("frame with DLC {} is not a classic CAN frame", frame.dlc()),
+        )
+    })
 }
 
 impl Bus for SocketCanBus {
     fn try_recv(&mut self) -> io::Result<Option<CanFrame>> {
         use socketcan::Socket as _;
         match self.socket.read_frame() {
-            Ok(socketcan::CanFrame::Error(e)) => {
-                Err(io::Error::other(BusErrorFrame(e.into_error().to_string())))
-            }
-            Ok(frame) => CanFrame::from_frame(&frame).map(Some).ok_or_else(|| {
-                io::Error::new(
-                    io::ErrorKind::InvalidData,
-                    format!("frame with DLC {} is not a classic CAN frame", frame.dlc()),
-                )
-            }),
+            Ok(frame) => convert(frame).map(Some),
             Err(e) if e.kind() == io::ErrorKind::WouldBlock => Ok(None),
             Err(e) => Err(e),
         }
