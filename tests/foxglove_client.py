@@ -3,7 +3,8 @@
 
 What a viewer does: the WebSocket handshake with the subprotocol, the server's `serverInfo`
 and `advertise` (JSON text messages), `subscribe` to channels by id, then `messageData`
-(binary, opcode 1: subscription id u32 LE, log time u64 LE, the message's bytes). The
+(binary, opcode 1: subscription id u32 LE, log time u64 LE, the message's bytes); and what
+a Parameters panel does: `getParameters` and `setParameters`, answered by `parameterValues`. The
 specification: https://github.com/foxglove/ws-protocol/blob/main/docs/spec.md.
 
 `FoxgloveClient` reads with the `websockets` package; `StalledClient` speaks the handshake
@@ -108,6 +109,20 @@ class FoxgloveClient:
             subs.append({"id": sub_id, "channelId": by_topic[topic]})
         self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
         return dict(self.subscriptions)
+
+    def parameters(self, op: str, request_id: str, timeout: float = 10.0,
+                   **fields: Any) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+        """Sends a `getParameters` or `setParameters` request (`fields`: `parameterNames`,
+        `parameters`); returns its answer's values by name and the statuses the server sent
+        before it (its refusals: a server sends them first)."""
+        before = len(self.statuses)
+        self.ws.send(json.dumps({"op": op, "id": request_id, **fields}))
+        deadline = time.monotonic() + timeout
+        while True:
+            m = self.recv(max(0.0, deadline - time.monotonic()))
+            if isinstance(m, dict) and m.get("op") == "parameterValues" and m.get("id") == request_id:
+                values = {p["name"]: p.get("value") for p in m["parameters"]}
+                return values, self.statuses[before:]
 
     def read_until_closed(self, timeout: float = 30.0) -> list[tuple[str, MessageData, float]]:
         """Every message until the server closes: (topic, message, wall-clock time received)."""

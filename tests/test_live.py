@@ -18,15 +18,19 @@ import pathlib
 import re
 import signal
 import socket
+import struct
 import subprocess
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from typing import Any
 from urllib.parse import urlparse
 
 import pytest
 from foxglove_client import SUBPROTOCOL, FoxgloveClient, MessageData, StalledClient
 from mcap.reader import make_reader
+from mecanum_drive import params as robot_params
+from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from vcan_robot import binary
 
@@ -164,6 +168,54 @@ def test_a_subscriber_gets_the_logs_channels_and_bytes_at_their_log_times(
         assert len(log_times) <= 100 * span_s + 1.5, f"{can_id:#x}: {len(log_times)} in {span_s:.2f} s"
     assert len(times["/can/rx"]) > 3 * len(got["/can/rx"]), "the log keeps every frame"
     assert summary["live"]["thinned"] > 0
+
+
+def test_a_client_sets_a_parameter_and_the_log_has_the_request_at_the_step_it_was_applied(
+        hostsim_bin: pathlib.Path, tmp_path: pathlib.Path, run_codec: Callable[..., list[dict]]) -> None:
+    """What Lichtblick's Parameters panel does, against the simulated robot: every parameter
+    read; gains.kp set while the square drives, answered with the value in force; a refused
+    value answered with the old one and a status naming the parameter, the value and the rule.
+    The request is a frame the robot received (/can/rx) and its change a /rosout line at that
+    step (docs/live.md, "Parameters")."""
+    run = LiveRun(hostsim_bin, tmp_path, "square", "--rate", "1")
+    client = FoxgloveClient(run.url)
+    client.start()
+    assert client.server_info["capabilities"] == ["parameters"], client.server_info
+    values, statuses = client.parameters("getParameters", "all", parameterNames=[])
+    assert statuses == [] and values["gains.kp"] == 1.2 and values["drive.protocol"] == 0, values
+    # Every parameter the square's configuration (the built-in DJI one) has, as the table says.
+    table = [p for p in run_codec("params", "--config", str(ROOT / "config" / "dji_m3508.toml"))
+             if p["value"] is not None]
+    assert list(values) == [p["name"] for p in table]
+    for p in table:
+        assert values[p["name"]] == pytest.approx(p["value"], rel=1e-7), p
+    values, statuses = client.parameters(
+        "setParameters", "set", parameters=[{"name": "gains.kp", "value": 1.5}, {"name": "gains.kp", "value": 1000}])
+    assert values == {"gains.kp": 1.5}, values
+    assert [s["level"] for s in statuses] == [2], statuses
+    high = robot_params.table()["gains.kp"].high
+    assert statuses[0]["message"] == (
+        f"gains.kp = 1000: above {high:g} (SDO abort 0x06090031); the value in force is kept"), statuses
+    client.close()
+    code, summary, stderr = run.finish()
+    assert code == 0, stderr
+    assert summary["live"]["clients"][0]["cut_off"] is None, summary["live"]
+
+    rosout, requests = [], []
+    with AnyReader([tmp_path / "square.mcap"], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
+        for c, t, raw in reader.messages():
+            if c.topic == "/rosout":
+                rosout.append((t, reader.deserialize(raw, c.msgtype).msg))
+            elif c.topic == "/can/rx":
+                f = reader.deserialize(raw, c.msgtype)
+                if f.id == 0x67F and bytes(f.data[:4]) == bytes([0x23, 0x02, 0x20, 0x01]):
+                    requests.append((t, struct.unpack_from("<f", bytes(f.data), 4)[0]))
+    changes = [(t, m) for t, m in rosout if m.startswith("gains.kp ")]
+    assert len(changes) == 1 and changes[0][1].startswith("gains.kp 1.2 -> 1.5, config 0x"), rosout
+    # Both writes reached the robot; the first changed gains.kp at the step that took it (the
+    # request delivered up to a period before).
+    assert [v for _, v in requests] == [1.5, 1000.0], requests
+    assert 0 <= changes[0][0] - requests[0][0] <= 1_000_000, (changes, requests)
 
 
 def test_a_client_that_stops_reading_loses_counted_messages_and_slows_nothing(

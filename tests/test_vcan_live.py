@@ -12,6 +12,8 @@ the protocol (tests/foxglove_client.py) watches each, and the logs are the oracl
 - a client that stops reading does not slow the runner: its step lateness and step time, as
   the runner measures them on its own clock (`--stats-json`), are those of a session without
   a client, and what the client lost is counted, at the end and on /diagnostics;
+- a Parameters panel (`getParameters`, `setParameters`) on either server changes the runner's
+  gains over the bus while it drives, logged where the runner applied it;
 - SIGINT stops both with the logs finished, the connections closed and the ports closed.
 """
 
@@ -23,6 +25,7 @@ import socket
 import threading
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from typing import Any
 from urllib.parse import urlparse
 
@@ -30,7 +33,7 @@ import pytest
 from foxglove_client import SUBPROTOCOL, FoxgloveClient, MessageData, StalledClient
 from mcap.reader import make_reader
 from rosbags.typesys import Stores, get_typestore
-from vcan_robot import HOST_STALLS, MODE_ENABLE, READY_TIMEOUT_S, Robot
+from vcan_robot import CONTROL_PERIOD_S, HOST_STALLS, MODE_ENABLE, READY_TIMEOUT_S, Robot
 
 pytestmark = pytest.mark.vcan
 
@@ -145,11 +148,16 @@ def live_statuses(log: pathlib.Path) -> list[dict[str, str]]:
     return out
 
 
-def drive(robot: Robot, seconds: float) -> None:
+def drive(robot: Robot, seconds: float, during: Callable[[], None] | None = None) -> None:
+    """Drives for `seconds`; `during` runs a second into it."""
     robot.mode(MODE_ENABLE)
     robot.twist(0.3, 0.1, 0.5)
     robot.start_stream()
-    time.sleep(seconds)
+    start = time.monotonic()
+    if during is not None:
+        time.sleep(1.0)
+        during()
+    time.sleep(max(0.0, seconds - (time.monotonic() - start)))
     robot.stop_stream()
     time.sleep(0.3)
 
@@ -166,11 +174,28 @@ def watched(robot_factory, tmp_path_factory: pytest.TempPathFactory) -> dict[str
     ) as robot:
         runner_url, plant_url = live_url(robot, "runner"), live_url(robot, "plant")
         watchers = {"runner": Watcher(runner_url, RUNNER_TOPICS), "plant": Watcher(plant_url, PLANT_TOPICS)}
-        drive(robot, 4.0)
+        # A Parameters panel on each server while the robot drives: gains.kp set through the
+        # runner's, read back through the plant's (whose requests cross the bus to the runner).
+        panels = {"runner": FoxgloveClient(runner_url), "plant": FoxgloveClient(plant_url)}
+        for panel in panels.values():
+            panel.start(timeout=READY_TIMEOUT_S)
+        answers: dict[str, Any] = {}
+
+        def tune() -> None:
+            robot.marks["params"] = time.time()
+            answers["set"] = panels["runner"].parameters(
+                "setParameters", "kp", parameters=[{"name": "gains.kp", "value": 1.5}])
+            answers["get"] = panels["plant"].parameters("getParameters", "kp", parameterNames=["gains.kp"])
+            robot.marks["params_end"] = time.time()
+            for panel in panels.values():
+                panel.close()
+
+        drive(robot, 4.0, during=tune)
     # The session's end sent SIGINT to both: their servers close the connections.
     received = {name: w.join() for name, w in watchers.items()}
     return {"robot": robot, "watchers": watchers, "received": received, "urls": (runner_url, plant_url),
-            "plant_mcap": robot.plant_mcap, "runner_logs": sorted(log_dir.glob("runner-*.mcap"))}
+            "plant_mcap": robot.plant_mcap, "runner_logs": sorted(log_dir.glob("runner-*.mcap")),
+            "panels": panels, "answers": answers}
 
 
 def test_the_runner_serves_its_rotated_log_whole_across_the_files(watched: dict[str, Any]) -> None:
@@ -200,6 +225,41 @@ def test_the_plant_serves_its_log_and_its_live_status(watched: dict[str, Any]) -
     assert len(got["/diagnostics"]) >= 3
     stats = watched["robot"].plant_stats["live"]
     assert stats["dropped"] == 0, stats
+
+
+def test_a_parameters_panel_sets_gains_through_the_runners_server_and_reads_them_through_the_plants(
+        watched: dict[str, Any]) -> None:
+    """Foxglove's `setParameters` on the runner's server while the robot drives, `getParameters`
+    on the plant's: each declares the `parameters` capability; the set is answered with the
+    value in force, and the plant's server reads the same over the bus. Each request went on
+    vcan0 to the runner's service (node 127) and was answered within two control periods
+    (candump's kernel timestamps); the runner's log says the change on /rosout."""
+    robot: Robot = watched["robot"]
+    for panel in watched["panels"].values():
+        assert panel.server_info["capabilities"] == ["parameters"], panel.server_info
+    assert watched["answers"]["set"] == ({"gains.kp": 1.5}, []), watched["answers"]
+    assert watched["answers"]["get"] == ({"gains.kp": 1.5}, []), watched["answers"]
+    t0, t1 = robot.marks["params"], robot.marks["params_end"]
+    requests, answers = robot.of(0x67F, t0=t0, t1=t1 + 0.1), robot.of(0x5FF, t0=t0, t1=t1 + 0.1)
+    # The set and its read-back (the runner's server), the read (the plant's).
+    assert [r.data[0] for r in requests] == [0x23, 0x40, 0x40], requests
+    assert len(answers) == 3, answers
+    for request, answer in zip(requests, answers):
+        assert answer.data[1:4] == request.data[1:4] and answer.data[0] != 0x80, (request, answer)
+        assert answer.t - request.t <= 2 * CONTROL_PERIOD_S, (answer.t - request.t, request, answer)
+    texts = [t for t in rosout(watched["runner_logs"]) if t.startswith("gains.kp ")]
+    assert len(texts) == 1 and texts[0].startswith("gains.kp 1.2 -> 1.5, config 0x"), texts
+
+
+def rosout(logs: list[pathlib.Path]) -> list[str]:
+    """The /rosout lines of `logs`, in order."""
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    out = []
+    for log in logs:
+        with open(log, "rb") as f:
+            for _, _, message in make_reader(f).iter_messages(topics=["/rosout"]):
+                out.append(store.deserialize_cdr(message.data, "rcl_interfaces/msg/Log").msg)
+    return out
 
 
 def test_sigint_stops_both_with_the_connections_and_ports_closed(watched: dict[str, Any]) -> None:

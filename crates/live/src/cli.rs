@@ -6,7 +6,7 @@
 use std::io;
 use std::net::SocketAddr;
 
-use crate::{LiveOptions, LiveReport, LiveServer, parse_addr};
+use crate::{LiveOptions, LiveReport, LiveServer, ParamLink, parse_addr};
 
 /// The live options of a program that writes a log (`#[command(flatten)]`).
 #[derive(Debug, Clone, Default, clap::Args)]
@@ -95,12 +95,16 @@ fn parse_max_subscriptions(s: &str) -> Result<usize, String> {
 }
 
 impl LiveArgs {
-    /// The server `--live` asks for, named `name` (Foxglove shows it), listening; `None`
-    /// without `--live`.
+    /// The server `--live` asks for, named `name` (Foxglove shows it), listening, and
+    /// serving the robot's parameters over `params` if given; `None` without `--live`.
     ///
     /// # Errors
     /// The address cannot be served, naming it and `--live`.
-    pub fn serve(&self, name: String) -> io::Result<Option<LiveServer>> {
+    pub fn serve(
+        &self,
+        name: String,
+        params: Option<Box<dyn ParamLink>>,
+    ) -> io::Result<Option<LiveServer>> {
         let Some(addr) = self.live else {
             return Ok(None);
         };
@@ -114,7 +118,7 @@ impl LiveArgs {
                 .unwrap_or(default.max_subscriptions),
             ..default
         };
-        LiveServer::start(addr, options)
+        LiveServer::start_with(addr, options, params)
             .map(Some)
             .map_err(|e| io::Error::new(e.kind(), format!("--live: {e}")))
     }
@@ -243,7 +247,7 @@ mod tests {
             ..LiveArgs::default()
         };
         assert!(LiveOptions::default().max_subscriptions >= drivelog::Channel::ALL.len());
-        let server = server.serve("caps".into()).unwrap().unwrap();
+        let server = server.serve("caps".into(), None).unwrap().unwrap();
         let status = drivelog::MessageTap::status(&mut server.tap()).unwrap();
         assert_eq!(status.value("max_clients"), Some("32"));
         assert_eq!(status.value("max_subscriptions"), Some("64"));
@@ -256,12 +260,12 @@ mod tests {
             live: Some(parse_addr("127.0.0.1:0").unwrap()),
             ..LiveArgs::default()
         };
-        let server = first.serve("a".into()).unwrap().unwrap();
+        let server = first.serve("a".into(), None).unwrap().unwrap();
         let taken = LiveArgs {
             live: Some(server.local_addr()),
             ..LiveArgs::default()
         };
-        let Err(err) = taken.serve("b".into()) else {
+        let Err(err) = taken.serve("b".into(), None) else {
             panic!("a second server on {}", server.local_addr());
         };
         let err = err.to_string();
@@ -269,7 +273,12 @@ mod tests {
             err.starts_with("--live: ") && err.contains(&server.local_addr().to_string()),
             "{err}"
         );
-        assert!(LiveArgs::default().serve("c".into()).unwrap().is_none());
+        assert!(
+            LiveArgs::default()
+                .serve("c".into(), None)
+                .unwrap()
+                .is_none()
+        );
         let _ = server.stop();
     }
 }

@@ -55,12 +55,18 @@
 //!   loopback ([`DEFAULT_ADDR`]) unless the network is trusted; [`is_exposed`] tells a program
 //!   when to warn.
 //!
+//! - A program that serves the robot's parameters ([`LiveServer::start_with`], a
+//!   [`ParamLink`] to the robot's parameter service) declares the `parameters` capability:
+//!   Lichtblick's Parameters panel reads and edits them, each change sent to the robot as
+//!   any host's (see the `params` module).
+//!
 //! The rest (connecting Foxglove and Lichtblick, the figures) is `docs/live.md`.
 
 mod addr;
 #[cfg(any(feature = "cli", test))]
 mod cli;
 mod pace;
+mod params;
 mod server;
 mod tap;
 
@@ -68,6 +74,7 @@ pub use addr::{DEFAULT_ADDR, DEFAULT_PORT, is_exposed, parse_addr};
 #[cfg(any(feature = "cli", test))]
 pub use cli::LiveArgs;
 pub use pace::{Pacer, PacingReport};
+pub use params::{PARAM_TIMEOUT, ParamLink};
 pub use server::{ClientReport, LiveReport, LiveServer, LiveStats};
 pub use tap::LiveTap;
 

@@ -5,7 +5,9 @@
 //! client falls behind but keeps no count of them (the count is discarded inside the SDK),
 //! and it refuses clients that offer the protocol's former name, `foxglove.websocket.v1`
 //! (Lichtblick before late 2025). This server does the part of protocol version 1 a log needs:
-//! `serverInfo`, `advertise`, `subscribe`/`unsubscribe`, `messageData` and `status`.
+//! `serverInfo`, `advertise`, `subscribe`/`unsubscribe`, `messageData` and `status`; and, for
+//! a program that serves the robot's parameters, `getParameters`/`setParameters` answered
+//! with `parameterValues` (crate::params).
 //!
 //! Each client has a queue of its own, filled by the log's writing thread ([`crate::LiveTap`])
 //! and emptied by the client's task into its socket. The writing thread never waits on a
@@ -28,6 +30,7 @@ use std::time::{Duration, SystemTime, UNIX_EPOCH};
 use tokio::net::TcpSocket;
 use tokio::sync::Notify;
 
+use crate::params::{ParamLink, ParamService};
 use crate::{LiveOptions, LiveTap, SUBPROTOCOL};
 
 mod client;
@@ -85,6 +88,20 @@ impl LiveServer {
     /// The address cannot be bound (in use, not this machine's), naming it; or the thread or
     /// runtime could not be started.
     pub fn start(addr: SocketAddr, options: LiveOptions) -> io::Result<Self> {
+        Self::start_with(addr, options, None)
+    }
+
+    /// [`start`](Self::start), serving the robot's parameters over `params` too: the server
+    /// declares the Foxglove `parameters` capability and answers `getParameters` and
+    /// `setParameters` through it ([`ParamLink`]).
+    ///
+    /// # Errors
+    /// As [`start`](Self::start).
+    pub fn start_with(
+        addr: SocketAddr,
+        options: LiveOptions,
+        params: Option<Box<dyn ParamLink>>,
+    ) -> io::Result<Self> {
         let runtime = tokio::runtime::Builder::new_current_thread()
             .enable_io()
             .enable_time()
@@ -121,6 +138,7 @@ impl LiveServer {
             clients_seen: AtomicU64::new(0),
             refused: AtomicU64::new(0),
             cut_off: AtomicU64::new(0),
+            params: params.map(|link| Arc::new(ParamService::new(link))),
         });
         let stop = Arc::new(Notify::new());
         let thread = {

@@ -14,11 +14,13 @@ use futures_util::{SinkExt as _, StreamExt as _};
 use live::{LiveOptions, LiveServer};
 use serde_json::{Value, json};
 use tokio::net::TcpStream;
+use tokio_tungstenite::MaybeTlsStream;
 use tokio_tungstenite::tungstenite::client::IntoClientRequest as _;
 use tokio_tungstenite::tungstenite::{Error as WsError, Message};
-use tokio_tungstenite::{MaybeTlsStream, WebSocketStream};
 
-type Ws = WebSocketStream<MaybeTlsStream<TcpStream>>;
+mod common;
+
+use common::{Ws, connect, next_json};
 
 /// A file of its own for a test, removed when dropped.
 struct TempFile(PathBuf);
@@ -38,36 +40,6 @@ impl Drop for TempFile {
 
 fn server(options: LiveOptions) -> LiveServer {
     LiveServer::start("127.0.0.1:0".parse().unwrap(), options).unwrap()
-}
-
-async fn connect(server: &LiveServer, protocols: &str) -> Result<(Ws, Option<String>), String> {
-    let mut request = server.url().into_client_request().unwrap();
-    if !protocols.is_empty() {
-        request
-            .headers_mut()
-            .insert("sec-websocket-protocol", protocols.parse().unwrap());
-    }
-    let (ws, response) = tokio_tungstenite::connect_async(request)
-        .await
-        .map_err(|e| e.to_string())?;
-    let chosen = response
-        .headers()
-        .get("sec-websocket-protocol")
-        .map(|h| h.to_str().unwrap().to_string());
-    Ok((ws, chosen))
-}
-
-async fn next_json(ws: &mut Ws) -> Value {
-    loop {
-        let m = tokio::time::timeout(Duration::from_secs(5), ws.next())
-            .await
-            .expect("a message within 5 s")
-            .expect("open")
-            .expect("no error");
-        if let Message::Text(t) = m {
-            return serde_json::from_str(t.as_str()).unwrap();
-        }
-    }
 }
 
 /// Logs `ms` milliseconds of messages: 4 frames a millisecond on /can/rx (two ids), one on

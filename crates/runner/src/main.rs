@@ -342,10 +342,20 @@ fn startup(args: &Args) -> Result<Setup> {
 
     let bus = SocketCanBus::open(&args.iface)?;
 
-    // Before the log: an address that cannot be served fails before a file is made.
-    let server = args
-        .live
-        .serve(format!("mecanum-runner --iface {}", args.iface))?;
+    // Before the log: an address that cannot be served fails before a file is made. Its
+    // clients' parameter requests go on the bus to this runner's own service, as any host's.
+    let params_link = match args.live.live {
+        Some(_) => {
+            let node = firmware::params::service_node(&config);
+            let link = linux::SdoClient::open(&args.iface, node)?;
+            Some(Box::new(link) as Box<dyn live::ParamLink>)
+        }
+        None => None,
+    };
+    let server = args.live.serve(
+        format!("mecanum-runner --iface {}", args.iface),
+        params_link,
+    )?;
     let mut log = match (&args.log, args.log_max_mb) {
         (Some(dir), Some(mb)) => Some(McapRecorder::rotating(
             dir,

@@ -174,7 +174,18 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
         None => None,
     };
     // Before the log: an address that cannot be served fails before a file is made.
-    let server = args.live.serve(format!("hostsim plant --iface {iface}"))?;
+    // Its clients' parameter requests go on the bus to the robot's service (a runner's, a
+    // board's), as any host's.
+    let params_link = match args.live.live {
+        Some(_) => Some(Box::new(mecanum_linux::SdoClient::open(
+            iface,
+            firmware::params::service_node(&config),
+        )?) as Box<dyn live::ParamLink>),
+        None => None,
+    };
+    let server = args
+        .live
+        .serve(format!("hostsim plant --iface {iface}"), params_link)?;
     let mut plant_log = match log {
         Some(path) => Some(open_log(path, &config, iface, server.as_ref())?),
         None => None,

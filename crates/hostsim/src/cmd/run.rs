@@ -6,6 +6,7 @@ use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::atomic::Ordering;
+use std::sync::mpsc::{self, Receiver, RecvTimeoutError, Sender};
 use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
@@ -14,7 +15,10 @@ use serde::Serialize;
 
 use crate::analysis::plot::plot_run;
 use crate::engine::{LogOptions, RunSummary, run_metadata};
+use crate::scenario::Scenario;
 use drivelog::McapLog;
+use firmware::CanFrame;
+use firmware::protocol::canopen::{self, NodeId};
 
 use super::*;
 
@@ -188,9 +192,13 @@ fn run(
         drivelog::Staged::create(&png_path).context("cannot create the plot")?;
     }
     // Before the log: an address that cannot be served fails before a file is made.
-    let mut live = live_args
-        .map(|args| Live::start(args, &scenario.name))
-        .transpose()?;
+    let (mut live, inbox) = match live_args {
+        Some(args) => {
+            let (live, inbox) = Live::start(args, &scenario)?;
+            (Some(live), Some(inbox))
+        }
+        None => (None, None),
+    };
     let mut log = if write_log {
         Some(McapLog::create(&log_path, &run_metadata(&scenario))?)
     } else {
@@ -207,11 +215,12 @@ fn run(
     bar.set_message(scenario.name.clone());
     let wall = std::time::Instant::now();
     let partial = log.as_ref().and_then(|l| l.part()).map(Path::to_path_buf);
-    let summary = crate::engine::run_until(
+    let summary = crate::engine::run_live(
         &scenario,
         &mut plant,
         log.as_mut(),
         LogOptions::default(),
+        inbox.as_ref(),
         |step| {
             let t_us = step.t_us;
             if t_us.is_multiple_of(100_000) {
@@ -223,7 +232,7 @@ fn run(
                 }
             }
             match live.as_mut() {
-                Some(live) => live.step(t_us),
+                Some(live) => live.step(t_us, step.sent),
                 None => ControlFlow::Continue(()),
             }
         },
@@ -271,9 +280,14 @@ fn run(
     })
 }
 
-/// A live run's server, pacer and stop flag.
+/// A live run's server, pacer and stop flag, and the way of its clients' parameter requests
+/// to the simulated robot ([`SimulatedBus`]).
 struct Live {
     server: live::LiveServer,
+    /// The robot's answers to the requests, for the server's [`SimulatedBus`].
+    answers: Sender<CanFrame>,
+    /// The id of those answers: `0x580` + the parameter service's node.
+    answer_id: u16,
     rate: f64,
     /// Started at the run's first step.
     pacer: Option<live::Pacer>,
@@ -291,10 +305,24 @@ struct LiveEnd {
 impl Live {
     /// Listens on `args.addr`, says where on stderr (and warns off loopback), and takes
     /// SIGINT/SIGTERM as "stop the run".
-    fn start(args: LiveArgs, scenario: &str) -> Result<Self> {
+    /// The frames the server's clients send to the robot (their parameter requests) come on
+    /// the receiver returned, for the run's host to send ([`crate::engine::run_live`]).
+    fn start(args: LiveArgs, scenario: &Scenario) -> Result<(Self, Receiver<CanFrame>)> {
+        let node = firmware::params::service_node(&scenario.config);
+        let (requests, inbox) = mpsc::channel();
+        let (answers, from_robot) = mpsc::channel();
+        let port = SimulatedBus {
+            requests,
+            answers: from_robot,
+        };
+        let node_id = NodeId::new(node).context("the parameter service's node id")?;
+        let link = mecanum_linux::SdoClient::new(port, node_id);
         let server = args
             .serve
-            .serve(format!("hostsim run {scenario}"))?
+            .serve(
+                format!("hostsim run {}", scenario.name),
+                Some(Box::new(link)),
+            )?
             .context("--live: no address")?;
         if let Some(warning) = server.exposure_warning() {
             eprintln!("{warning}");
@@ -305,12 +333,15 @@ impl Live {
             server.banner(),
             args.rate
         );
-        Ok(Self {
+        let live = Self {
             server,
+            answers,
+            answer_id: canopen::layout::SDO_RESPONSE.id + u16::from(node),
             rate: args.rate,
             pacer: None,
             signal,
-        })
+        };
+        Ok((live, inbox))
     }
 
     /// Serves what `log` writes, in batches every 50 ms of wall-clock time at most (also in
@@ -321,8 +352,16 @@ impl Live {
         log.set_flush_interval(interval.max(Duration::from_millis(5)));
     }
 
-    /// After each step: waits for the wall clock, and ends the run on a stop signal.
-    fn step(&mut self, t_us: u64) -> ControlFlow<()> {
+    /// After each step: hands the robot's answers among the frames it `sent` to the
+    /// server, waits for the wall clock, and ends the run on a stop signal.
+    fn step(&mut self, t_us: u64, sent: &[CanFrame]) -> ControlFlow<()> {
+        for frame in sent
+            .iter()
+            .filter(|f| f.standard_id() == Some(self.answer_id))
+        {
+            // The server gone (the run ending): nobody to answer.
+            let _ = self.answers.send(*frame);
+        }
         let rate = self.rate;
         self.pacer
             .get_or_insert_with(|| live::Pacer::new(rate))
@@ -342,6 +381,29 @@ impl Live {
                 .report(),
             interrupted: self.signal.load(Ordering::Relaxed) != 0,
             report: self.server.stop(),
+        }
+    }
+}
+
+/// The simulated bus as a live server's clients reach it: their requests go to the run's
+/// host, which sends them at its next tick; the robot's answers come back from the steps.
+struct SimulatedBus {
+    requests: Sender<CanFrame>,
+    answers: Receiver<CanFrame>,
+}
+
+impl mecanum_linux::FramePort for SimulatedBus {
+    fn send(&mut self, frame: &CanFrame) -> std::io::Result<()> {
+        self.requests
+            .send(*frame)
+            .map_err(|_| std::io::Error::other("the run has ended"))
+    }
+
+    fn recv_timeout(&mut self, timeout: Duration) -> std::io::Result<Option<CanFrame>> {
+        match self.answers.recv_timeout(timeout) {
+            Ok(frame) => Ok(Some(frame)),
+            Err(RecvTimeoutError::Timeout) => Ok(None),
+            Err(RecvTimeoutError::Disconnected) => Err(std::io::Error::other("the run has ended")),
         }
     }
 }

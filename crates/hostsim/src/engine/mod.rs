@@ -22,6 +22,7 @@ mod plant_io;
 mod run;
 
 use std::ops::ControlFlow;
+use std::sync::mpsc::Receiver;
 
 use firmware::{CanFrame, StreamHash};
 
@@ -33,7 +34,9 @@ use drivelog::{LogError, McapLog};
 
 pub use self::core::InProcess;
 pub use self::nodes::plant_for;
-pub use self::run::{RunSummary, SimError, StepView, run, run_metadata, run_observed, run_until};
+pub use self::run::{
+    RunSummary, SimError, StepView, run, run_live, run_metadata, run_observed, run_until,
+};
 pub use plant_io::{log_transmission, queue_feedback, set_wheel_faults};
 
 /// What to log.
@@ -269,11 +272,31 @@ pub fn run_firmware<F: Firmware, P: SimPlant>(
     options: LogOptions,
     observe: impl FnMut(&Step<'_, F>) -> ControlFlow<()>,
 ) -> Result<Outcome, F::Error> {
+    run_firmware_live(scenario, firmware, plant, log, options, None, observe)
+}
+
+/// [`run_firmware`], the host sending besides its script the frames that come on `inbox`
+/// (a live server's parameter requests), each at the first tick after it came: a live run,
+/// in wall-clock time, whose frames are logged as the script's are.
+///
+/// # Errors
+/// As [`run_firmware`].
+pub fn run_firmware_live<F: Firmware, P: SimPlant>(
+    scenario: &Scenario,
+    firmware: &mut F,
+    plant: &mut P,
+    log: Option<&mut McapLog>,
+    options: LogOptions,
+    inbox: Option<&Receiver<CanFrame>>,
+    observe: impl FnMut(&Step<'_, F>) -> ControlFlow<()>,
+) -> Result<Outcome, F::Error> {
     // The scenario's IMU node and pod node, if any, on the plant (without them, a
     // pass-through).
     let mut with_imu = crate::nodes::imu::WithImu::new(plant, scenario.imu.as_ref(), scenario.seed);
     let plant = nodes::with_pods(&mut with_imu, scenario);
-    Engine::new(scenario, plant, log, options).run(firmware, observe)
+    let mut engine = Engine::new(scenario, plant, log, options);
+    engine.inbox = inbox;
+    engine.run(firmware, observe)
 }
 
 /// One run's moving parts.
@@ -285,6 +308,8 @@ struct Engine<'s, 'l, P> {
     options: LogOptions,
     bus: Bus,
     host: HostNode,
+    /// Frames the host sends besides its script ([`run_firmware_live`]).
+    inbox: Option<&'l Receiver<CanFrame>>,
     host_frames: Vec<(u64, CanFrame)>,
     twists: Vec<(u64, [f32; 3])>,
     feedback: Vec<(u64, CanFrame)>,
@@ -316,6 +341,7 @@ impl<'s, 'l, P: SimPlant> Engine<'s, 'l, P> {
             options,
             bus: Bus::new(1_000_000, scenario.bus_faults.clone(), scenario.seed),
             host: nodes::host(scenario),
+            inbox: None,
             host_frames: Vec::new(),
             twists: Vec::new(),
             feedback: Vec::with_capacity(16),
@@ -378,6 +404,10 @@ impl<'s, 'l, P: SimPlant> Engine<'s, 'l, P> {
         self.host_frames.clear();
         self.host
             .frames_until(t_us, &mut self.host_frames, &mut self.twists);
+        if let Some(inbox) = self.inbox {
+            self.host_frames
+                .extend(inbox.try_iter().map(|frame| (t_ns, frame)));
+        }
         for &(at_ns, frame) in &self.host_frames {
             self.bus.send(at_ns, Node::Host, frame);
         }

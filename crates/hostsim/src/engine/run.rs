@@ -10,6 +10,7 @@
 
 use std::collections::BTreeMap;
 use std::ops::ControlFlow;
+use std::sync::mpsc::Receiver;
 
 use firmware::CanFrame;
 use firmware::control::{Controller, Snapshot};
@@ -146,19 +147,44 @@ pub fn run_until<P: SimPlant>(
     plant: &mut P,
     log: Option<&mut McapLog>,
     options: LogOptions,
+    observe: impl FnMut(&StepView<'_>) -> ControlFlow<()>,
+) -> Result<RunSummary, SimError> {
+    run_live(scenario, plant, log, options, None, observe)
+}
+
+/// [`run_until`], the host also sending the frames that come on `inbox`
+/// ([`run_firmware_live`](crate::engine::run_firmware_live)): `hostsim run --live`'s
+/// parameter requests.
+///
+/// # Errors
+/// As [`run_until`].
+pub fn run_live<P: SimPlant>(
+    scenario: &Scenario,
+    plant: &mut P,
+    log: Option<&mut McapLog>,
+    options: LogOptions,
+    inbox: Option<&Receiver<CanFrame>>,
     mut observe: impl FnMut(&StepView<'_>) -> ControlFlow<()>,
 ) -> Result<RunSummary, SimError> {
     let mut core = InProcess::new(scenario, options)?;
-    let run = crate::engine::run_firmware(scenario, &mut core, plant, log, options, |step| {
-        observe(&StepView {
-            t_us: step.t_us,
-            controller: step.firmware.controller(),
-            delivered: step.delivered,
-            sent: step.sent,
-            down: step.firmware.is_down(),
-            truth: step.truth,
-        })
-    })?;
+    let run = crate::engine::run_firmware_live(
+        scenario,
+        &mut core,
+        plant,
+        log,
+        options,
+        inbox,
+        |step| {
+            observe(&StepView {
+                t_us: step.t_us,
+                controller: step.firmware.controller(),
+                delivered: step.delivered,
+                sent: step.sent,
+                down: step.firmware.is_down(),
+                truth: step.truth,
+            })
+        },
+    )?;
     let record = run.record;
     let (odometry, truth) = record.pose.unwrap_or((run.truth, run.truth));
     Ok(RunSummary {

@@ -125,7 +125,12 @@ async fn client_task(
     let read = async {
         while let Some(message) = source.next().await {
             match message {
-                Ok(Message::Text(text)) => shared.on_text(&client, text.as_str()),
+                Ok(Message::Text(text)) => {
+                    if let Some(request) = shared.on_text(&client, text.as_str()) {
+                        // In order: the client's next message waits for this answer.
+                        shared.answer(&client, request).await;
+                    }
+                }
                 Ok(Message::Binary(_)) => shared.count_cut(client.status(&Status::warning(
                     "not supported by this server (it serves a log, read-only): binary messages",
                 ))),

@@ -8,12 +8,17 @@ use std::sync::{Arc, Mutex};
 use drivelog::Channel;
 use drivelog::msg::{DiagnosticStatus, KeyValue};
 use foxglove::websocket::ws_protocol::client::{ClientMessage, Subscription};
+use foxglove::websocket::ws_protocol::parameter::Parameter;
 use foxglove::websocket::ws_protocol::schema::Schema;
-use foxglove::websocket::ws_protocol::server::{self as proto, MessageData, ServerInfo, Status};
+use foxglove::websocket::ws_protocol::server::server_info::Capability;
+use foxglove::websocket::ws_protocol::server::{
+    self as proto, MessageData, ParameterValues, ServerInfo, Status,
+};
 use foxglove::websocket::ws_protocol::{BinaryMessage as _, JsonMessage as _};
 
 use super::client::{Client, lock};
 use super::{ClientReport, LiveReport, LiveStats};
+use crate::params::{Answer, ParamService};
 use crate::{LiveOptions, STATUS_NAME};
 
 /// What the server's thread and the log's tap share.
@@ -27,6 +32,15 @@ pub(crate) struct Shared {
     pub(super) clients_seen: AtomicU64,
     pub(super) refused: AtomicU64,
     pub(super) cut_off: AtomicU64,
+    /// The robot's parameters, when the program serves them.
+    pub(super) params: Option<Arc<ParamService>>,
+}
+
+/// A client's request the robot's parameter service answers (off the server's thread: it
+/// waits on the bus).
+pub(super) enum ParamRequest {
+    Get(Vec<String>, Option<String>),
+    Set(Vec<Parameter>, Option<String>),
 }
 
 /// The channels (once the tap has them) and the clients: one lock, so that a client that
@@ -179,7 +193,10 @@ impl Shared {
             return None;
         }
         let client = Arc::new(Client::new(addr, subprotocol));
-        let info = ServerInfo::new(self.options.name.clone()).with_session_id(&self.session_id);
+        let mut info = ServerInfo::new(self.options.name.clone()).with_session_id(&self.session_id);
+        if self.params.is_some() {
+            info = info.with_capabilities([Capability::Parameters]);
+        }
         client.push_control(info.to_string());
         if !state.channels.is_empty() {
             client.push_control(advertise(&state.channels));
@@ -220,9 +237,17 @@ impl Shared {
         }
     }
 
-    /// A text message from a client: subscriptions; anything else is answered with a status.
-    pub(super) fn on_text(&self, client: &Client, text: &str) {
+    /// A text message from a client: subscriptions, and the parameters' requests when the
+    /// server has them (returned: the caller has them answered off this thread); anything
+    /// else is answered with a status.
+    pub(super) fn on_text(&self, client: &Client, text: &str) -> Option<ParamRequest> {
         match ClientMessage::parse_json(text) {
+            Ok(ClientMessage::GetParameters(g)) if self.params.is_some() => {
+                return Some(ParamRequest::Get(g.parameter_names, g.id));
+            }
+            Ok(ClientMessage::SetParameters(s)) if self.params.is_some() => {
+                return Some(ParamRequest::Set(s.parameters, s.id));
+            }
             Ok(ClientMessage::Subscribe(s)) => self.subscribe(client, &s.subscriptions),
             Ok(ClientMessage::Unsubscribe(u)) => {
                 let mut subscriptions = lock(&client.subscriptions);
@@ -233,13 +258,52 @@ impl Shared {
                 }
             }
             Ok(other) => self.count_cut(client.status(&Status::warning(format!(
-                "not supported by this server (it serves a log, read-only): {}",
+                "not supported by this server (it serves a log{}): {}",
+                if self.params.is_some() {
+                    " and the robot's parameters"
+                } else {
+                    ", read-only"
+                },
                 op_name(&other)
             )))),
             Err(e) => {
                 self.count_cut(client.status(&Status::error(format!("invalid message: {e}"))));
             }
         }
+        None
+    }
+
+    /// Answers a parameters' request: waits (on a thread of the runtime's blocking pool, not
+    /// the server's) for the robot, then queues a `status` error per refusal or failure and
+    /// `parameterValues` (with the request's id), in that order.
+    pub(super) async fn answer(&self, client: &Client, request: ParamRequest) {
+        let Some(service) = self.params.clone() else {
+            return;
+        };
+        let (answer, id) = match tokio::task::spawn_blocking(move || match request {
+            ParamRequest::Get(names, id) => (service.get(&names), id),
+            ParamRequest::Set(values, id) => (service.set(&values), id),
+        })
+        .await
+        {
+            Ok(done) => done,
+            Err(e) => (
+                Answer {
+                    values: Vec::new(),
+                    errors: vec![format!("the parameters' request failed: {e}")],
+                },
+                None,
+            ),
+        };
+        // The statuses first: a client that reads up to the answer has them all.
+        let mut cut = false;
+        for error in answer.errors {
+            cut |= client.status(&Status::error(error));
+        }
+        let mut values = ParameterValues::new(answer.values);
+        values.id = id;
+        cut |= client.push_control(values.to_string());
+        self.count_cut(cut);
     }
 
     /// A `subscribe`: a subscription to an unknown channel is answered with an error; more
