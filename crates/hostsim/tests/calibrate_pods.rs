@@ -67,14 +67,14 @@ fn run(group: &str, scenario: &Scenario) -> PathBuf {
 }
 
 /// The true pods of `config` under `errors`.
-fn true_pods(config: &Config, errors: &[PodErrors]) -> Vec<TruePod> {
+fn true_pods(config: &Config, params: &PodsParams) -> Vec<TruePod> {
     config
         .odometry
         .pods
         .as_slice()
         .iter()
-        .zip(errors)
-        .map(|(p, e)| TruePod::new(p, e))
+        .enumerate()
+        .map(|(i, p)| TruePod::new(p, &params.errors(i)))
         .collect()
 }
 
@@ -101,7 +101,11 @@ fn the_fit_recovers_pods_built_unlike_their_configuration() {
         "recovery (fitted - true; in standard errors):\n  pod  radius                  \
          direction                 lever"
     );
-    for (f, t) in c.pods.iter().zip(true_pods(&config, &ERRORS)) {
+    let truth = PodsParams {
+        pod: ERRORS.to_vec(),
+        ..PodsParams::default()
+    };
+    for (f, t) in c.pods.iter().zip(true_pods(&config, &truth)) {
         let true_deg = t.direction.to_degrees();
         let true_lever = t.x * t.direction.sin() - t.y * t.direction.cos();
         let (dr, dd, dm) = (
@@ -227,9 +231,13 @@ fn per_lap(scenario: &Scenario) -> (f64, f64) {
 fn the_calibrated_pods_keep_the_square_within_1_percent_per_lap() {
     let mut square = Scenario::from_file(&repo_file("scenarios/square_60s_pods.toml")).unwrap();
     let pods = square.pods.as_mut().unwrap();
-    for (p, e) in pods.pod.iter_mut().zip([0.01, -0.01, 0.006]) {
-        p.radius_error = e;
-    }
+    pods.radius_error = 0.0;
+    pods.pod = [0.01, -0.01, 0.006]
+        .map(|radius_error| PodErrors {
+            radius_error,
+            ..PodErrors::default()
+        })
+        .to_vec();
     let params = pods.clone();
     let (before, heading_before) = per_lap(&square);
 
@@ -240,15 +248,20 @@ fn the_calibrated_pods_keep_the_square_within_1_percent_per_lap() {
     let c = fit(&log);
     print_fit("calibration of the square's pods", &c);
     // The same robot (its true pods), the firmware with the calibrated pods.
-    let truth = true_pods(&square.config, &square.pods.as_ref().unwrap().pod);
+    let truth = true_pods(&square.config, square.pods.as_ref().unwrap());
     let mut calibrated = square.clone();
     calibrated.config.odometry.pods = c.config.odometry.pods;
     calibrated.config.validate().unwrap();
-    calibrated.pods.as_mut().unwrap().pod =
-        errors_against(calibrated.config.odometry.pods.as_slice(), &truth);
+    // The same true pods, as errors against the calibrated ones (each pod's whole error).
+    *calibrated.pods.as_mut().unwrap() = PodsParams {
+        pod: errors_against(calibrated.config.odometry.pods.as_slice(), &truth),
+        radius_error: 0.0,
+        misalignment_deg: 0.0,
+        ..square.pods.clone().unwrap()
+    };
     for (a, b) in truth.iter().zip(&true_pods(
         &calibrated.config,
-        &calibrated.pods.as_ref().unwrap().pod,
+        calibrated.pods.as_ref().unwrap(),
     )) {
         assert!((a.radius - b.radius).abs() < 1e-12 && (a.direction - b.direction).abs() < 1e-9);
         assert!((a.x - b.x).abs() < 1e-9 && (a.y - b.y).abs() < 1e-9);

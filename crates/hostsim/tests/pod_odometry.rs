@@ -9,11 +9,10 @@ mod common;
 
 use std::path::Path;
 
-use firmware::config::{Config, HeadingMode, OdometryMode, Pods};
+use firmware::config::{Config, HeadingMode, OdometryMode};
 use firmware::control::OdometrySource;
-use hostsim::bus::SplitMix64;
+use hostsim::analysis::sweep::{self, Param};
 use hostsim::engine::{LogOptions, run_observed};
-use hostsim::nodes::pods::PodErrors;
 use hostsim::replay::replay_mcap;
 use hostsim::scenario::Scenario;
 use rayon::prelude::*;
@@ -37,18 +36,14 @@ fn pods3() -> Scenario {
     Scenario::from_file(&repo_file("scenarios/square_60s_pods.toml")).unwrap()
 }
 
-/// The same run with two pods and the gyro: pods 0 and 2 of the file's layout (a forward
-/// and a leftward counting one) and their errors.
+/// The same run with two pods and the gyro, as the command line runs it:
+/// `--config config/dji_m3508_pods2_gyro.toml` (pods 0 and 2 of the three-pod layout).
 fn pods2_gyro() -> Scenario {
-    let mut s = pods3();
-    let o = &mut s.config.odometry;
-    let all = o.pods.as_slice().to_vec();
-    o.pods = Pods::new(&[all[0], all[2]]).unwrap();
-    o.source = OdometryMode::Pods2Gyro;
-    o.heading_source = HeadingMode::Gyro;
-    let p = s.pods.as_mut().unwrap();
-    p.pod = vec![p.pod[0], p.pod[2]];
-    s.config.validate().unwrap();
+    let config = Config::from_toml_file(&repo_file("config/dji_m3508_pods2_gyro.toml")).unwrap();
+    let path = repo_file("scenarios/square_60s_pods.toml");
+    let s = Scenario::load(path.to_str().unwrap(), Some(config)).unwrap();
+    assert_eq!(s.config.odometry.source, OdometryMode::Pods2Gyro);
+    assert_eq!(s.config.odometry.heading_source, HeadingMode::Gyro);
     s
 }
 
@@ -178,26 +173,39 @@ struct ScaleDraw {
     own: f64,
 }
 
-/// Draws a run of the square: its seed, and each pod's errors from a SplitMix64 stream of
-/// the seed: the scale as `scale` says, the pod block's misalignment uniform in ±0.5° plus
-/// each pod's own in ±0.1°, contact points off by up to ±2 mm.
-fn drawn(base: &Scenario, seed: u64, scale: ScaleDraw) -> Scenario {
-    let mut rng = SplitMix64(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0x5EED);
-    let mut uniform = |half: f64| (rng.unit() * 2.0 - 1.0) * half;
-    let mut s = base.clone();
-    s.seed = seed;
-    let block = uniform(0.5);
-    let common = uniform(scale.common);
-    let p = s.pods.as_mut().unwrap();
-    for pod in &mut p.pod {
-        *pod = PodErrors {
-            radius_error: common + uniform(scale.own),
-            misalignment_deg: block + uniform(0.1),
-            offset_x: uniform(0.002),
-            offset_y: uniform(0.002),
-        };
+/// The sweep's `--set` arguments that draw a run's pod errors (docs/simulator.md, "Tracking
+/// pods", gives the `hostsim sweep` command): the scale as `scale` says, the pod block's
+/// misalignment uniform in ±0.5° plus each pod's own in ±0.1°, contact points off by up to
+/// ±2 mm.
+fn pod_draws(pods: usize, scale: ScaleDraw) -> Vec<String> {
+    let range = |key: &str, half: f64| format!("{key}={}..{half}", -half);
+    let mut sets = vec![
+        range("pods.misalignment_deg", 0.5),
+        range("pods.radius_error", scale.common),
+    ];
+    for i in 0..pods {
+        sets.push(range(&format!("pods.pod[{i}].radius_error"), scale.own));
+        sets.push(range(&format!("pods.pod[{i}].misalignment_deg"), 0.1));
+        sets.push(range(&format!("pods.pod[{i}].offset_x"), 0.002));
+        sets.push(range(&format!("pods.pod[{i}].offset_y"), 0.002));
     }
-    s
+    sets
+}
+
+/// The runs of `hostsim sweep SCENARIO --seeds 1..RUNS` with [`pod_draws`]: each scenario as
+/// the sweep runs it (the same draws, by the run's index).
+fn drawn(base: &Scenario, runs: u64, scale: ScaleDraw) -> Vec<Scenario> {
+    let params: Vec<Param> = pod_draws(base.config.odometry.pods.len(), scale)
+        .iter()
+        .map(|a| Param::parse(a).unwrap())
+        .collect();
+    let seeds: Vec<u64> = (1..=runs).collect();
+    let specs = sweep::expand(&seeds, &params).unwrap();
+    sweep::check(base, &specs, &params).unwrap();
+    specs
+        .iter()
+        .map(|r| sweep::apply(base, r.seed, &r.values).unwrap())
+        .collect()
 }
 
 /// Two pods and the gyro hold with every pod's scale drawn on its own (±1 %). Three pods
@@ -227,9 +235,9 @@ fn over_200_seeds_and_drawn_pod_errors_95_percent_of_runs_hold() {
             },
         ),
     ] {
-        let results: Vec<Accuracy> = (1..=RUNS)
-            .into_par_iter()
-            .map(|seed| measure(&drawn(&base, seed, scale)).0)
+        let results: Vec<Accuracy> = drawn(&base, RUNS, scale)
+            .par_iter()
+            .map(|s| measure(s).0)
             .collect();
         let held = results.iter().filter(|a| a.holds()).count();
         let worst = |f: fn(&Accuracy) -> f64| results.iter().map(f).fold(0.0, f64::max);

@@ -293,7 +293,13 @@ fn the_scenario_pages_pods_example_parses_as_written() {
     let s = scenario(&block);
     let p = s.pods.unwrap();
     assert_eq!((p.rate_hz, p.noise), (200.0, 0.0));
+    assert_eq!((p.radius_error, p.misalignment_deg), (0.01, 0.5));
     assert_eq!(p.pod.len(), 1);
-    assert_eq!(p.pod[0].radius_error, 0.01);
+    assert_eq!(p.pod[0].radius_error, 0.002);
     assert_eq!((p.pod[0].offset_x, p.pod[0].offset_y), (0.002, -0.001));
+    // The first pod's errors in all: the block's and its own; the others the block's.
+    let (first, second) = (p.errors(0), p.errors(1));
+    assert_eq!(first.radius_error, 0.01 + 0.002);
+    assert_eq!(first.misalignment_deg, 0.5 - 0.1);
+    assert_eq!((second.radius_error, second.offset_x), (0.01, 0.0));
 }

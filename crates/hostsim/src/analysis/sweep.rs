@@ -288,6 +288,11 @@ pub struct Row {
     pub drift_final_m: f64,
     /// Largest odometry error over the run, m.
     pub drift_max_m: f64,
+    /// The ground truth's path length, m: `drift_max_m / distance_m` is the error as a share
+    /// of the distance driven (the pods' measure, docs/simulator.md, "Tracking pods").
+    pub distance_m: f64,
+    /// The odometry's heading less the true heading at the end, degrees.
+    pub heading_error_deg: f64,
     /// RMS of the commanded minus the measured body speed (the firmware's own odometry),
     /// m/s, over the steps while enabled.
     pub tracking_rms_m_s: f64,
@@ -317,6 +322,7 @@ pub fn run_one(scenario: &Scenario, spec: &RunSpec) -> Result<Row, SweepError> {
     let mut stood_at: Option<f64> = None;
     let mut last_pos: Option<[f64; 2]> = None;
     let (mut sq, mut n) = (0.0f64, 0u64);
+    let mut distance_m = 0.0;
     let summary = run_observed(scenario, &mut plant, None, LogOptions::default(), |v| {
         let t = v.t_us as f64 * 1e-6;
         let snap = v.controller.snapshot();
@@ -325,7 +331,9 @@ pub fn run_one(scenario: &Scenario, spec: &RunSpec) -> Result<Row, SweepError> {
             fault = Some((snap.fault.to_string(), t));
         }
         let pos = [v.truth[0], v.truth[1]];
-        let speed = last_pos.map_or(0.0, |p| (pos[0] - p[0]).hypot(pos[1] - p[1]) / period_s);
+        let moved = last_pos.map_or(0.0, |p| (pos[0] - p[0]).hypot(pos[1] - p[1]));
+        distance_m += moved;
+        let speed = moved / period_s;
         last_pos = Some(pos);
         if fault.is_some() && stood_at.is_none() && speed < STANDING_M_S {
             stood_at = Some(t);
@@ -355,6 +363,8 @@ pub fn run_one(scenario: &Scenario, spec: &RunSpec) -> Result<Row, SweepError> {
         },
         drift_final_m: summary.final_position_error,
         drift_max_m: summary.max_position_error,
+        distance_m,
+        heading_error_deg: summary.final_heading_error.to_degrees(),
         tracking_rms_m_s: tracking,
         steps: summary.steps,
     })
@@ -423,6 +433,8 @@ pub fn csv_header(keys: &[String]) -> String {
             "stop_after_fault_s",
             "drift_final_m",
             "drift_max_m",
+            "distance_m",
+            "heading_error_deg",
             "tracking_rms_m_s",
             "steps",
         ]
@@ -444,6 +456,8 @@ impl Row {
             self.stop_after_fault_s.to_string(),
             self.drift_final_m.to_string(),
             self.drift_max_m.to_string(),
+            self.distance_m.to_string(),
+            self.heading_error_deg.to_string(),
             self.tracking_rms_m_s.to_string(),
             self.steps.to_string(),
         ]);
@@ -475,6 +489,8 @@ impl Row {
             "stop_after_fault_s": num(self.stop_after_fault_s),
             "drift_final_m": self.drift_final_m,
             "drift_max_m": self.drift_max_m,
+            "distance_m": self.distance_m,
+            "heading_error_deg": self.heading_error_deg,
             "tracking_rms_m_s": self.tracking_rms_m_s,
             "steps": self.steps,
         })
@@ -616,6 +632,96 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("expected a whole number"), "{e}");
+    }
+
+    #[test]
+    fn pod_errors_and_the_gyro_bias_are_values_checked_against_the_pods_configured() {
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../scenarios/square_60s_pods.toml"
+        );
+        let base = Scenario::from_file(std::path::Path::new(path)).unwrap();
+        let s = apply(
+            &base,
+            1,
+            &[
+                ("pods.radius_error".into(), -0.002),
+                ("pods.pod[2].radius_error".into(), 0.003),
+                ("pods.pod[2].offset_y".into(), 0.001),
+                ("pods.misalignment_deg".into(), 0.25),
+                ("pods.noise".into(), 0.0),
+                ("imu.bias_deg_s".into(), -0.3),
+            ],
+        )
+        .unwrap();
+        let pods = s.pods.as_ref().unwrap();
+        // The block's errors for every pod; pod 2's own added (pods 0 and 1 have none).
+        assert_eq!(pods.pod.len(), 3);
+        assert_eq!(pods.errors(0).radius_error, -0.002);
+        assert_eq!(pods.errors(2).radius_error, -0.002 + 0.003);
+        assert_eq!(
+            (pods.errors(2).misalignment_deg, pods.errors(2).offset_y),
+            (0.25, 0.001)
+        );
+        assert_eq!(s.imu.unwrap().bias_deg_s, -0.3);
+        for (key, value, says) in [
+            (
+                "pods.pod[3].radius_error",
+                0.0,
+                "pods.pod[3].radius_error: no such field; the configuration has 3 pods \
+                 ([[odometry.pods]]): pod[0] to pod[2]",
+            ),
+            (
+                "pods.pod[0].radius",
+                0.0,
+                "pods.pod[0].radius: no such field; pods fields: noise, radius_error, \
+                 misalignment_deg, and pod[I].{radius_error, misalignment_deg, offset_x, \
+                 offset_y} for I in 0..3",
+            ),
+            (
+                "pods.pod[1].radius_error",
+                0.6,
+                "pods.pod[1].radius_error = 0.6: expected a fraction in [-0.5, 0.5]",
+            ),
+            (
+                "pods.radius_error",
+                -0.51,
+                "pods.radius_error = -0.51: expected a fraction in [-0.5, 0.5]",
+            ),
+            (
+                "imu.bias",
+                0.0,
+                "imu.bias: no such field; imu fields: bias_deg_s",
+            ),
+        ] {
+            let e = apply(&base, 0, &[(key.into(), value)])
+                .unwrap_err()
+                .to_string();
+            assert!(e.starts_with(says), "{key}: {e}");
+        }
+        // The sum of the block's and a pod's own is checked too.
+        let e = apply(
+            &base,
+            0,
+            &[
+                ("pods.radius_error".into(), 0.4),
+                ("pods.pod[1].radius_error".into(), 0.2),
+            ],
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.starts_with(
+                "pods.pod[1].radius_error = 0.6000000000000001: expected with the block's"
+            ),
+            "{e}"
+        );
+        // Without a pod node (the built-in square) there is nothing to set.
+        let square = Scenario::builtin("square").unwrap();
+        let e = apply(&square, 0, &[("pods.noise".into(), 0.0)])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("the scenario has no [pods] table"), "{e}");
     }
 
     #[test]

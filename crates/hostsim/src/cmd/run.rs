@@ -50,8 +50,9 @@ pub struct Args {
     #[arg(long)]
     pub seed: Option<u64>,
     /// Set a field, KEY=VALUE: of the drive configuration as its TOML names it
-    /// (gains.kp, limits.max_current, ...) or of the plant (plant.mass_kg, ...), as a
-    /// `sweep` row prints it. Repeatable.
+    /// (gains.kp, limits.max_current, ...), of the plant (plant.mass_kg, ...), of the pod
+    /// node (pods.radius_error, pods.pod[1].offset_x, ...) or of the IMU (imu.bias_deg_s),
+    /// as a `sweep` row prints it. Repeatable.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub set: Vec<String>,
     /// Do not write the MCAP log.

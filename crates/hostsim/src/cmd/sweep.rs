@@ -20,13 +20,17 @@ use super::*;
 /// at random for each run, from a generator seeded by the run's index. At most 1,000,000
 /// runs (seeds times grid values), counted before any is planned. Names: a field of
 /// the drive configuration as its TOML names it (gains.kp, limits.max_current,
-/// timing.command_timeout_ms, ...) or plant.wheel_radius, plant.lx, plant.ly,
-/// plant.roller_drag, plant.mass_kg; every name and value is checked before the first
+/// timing.command_timeout_ms, ...); plant.wheel_radius, plant.lx, plant.ly,
+/// plant.roller_drag, plant.mass_kg; with a [pods] table pods.noise, the pod block's
+/// pods.radius_error and pods.misalignment_deg, and each pod's own
+/// pods.pod[I].{radius_error,misalignment_deg,offset_x,offset_y}; with an [imu] table
+/// imu.bias_deg_s, imu.noise_density. Every name and value is checked before the first
 /// run. No logs (--log-worst N writes the N worst runs' logs afterwards).
 ///
 /// Writes OUT/sweep.csv and OUT/sweep.jsonl (one row per run: index, seed, the values,
 /// final state, first fault and when, time from it until the body stood, odometry drift
-/// at the end and at most, RMS of the commanded minus the measured speed, steps) and
+/// at the end and at most, the distance driven, the heading error at the end, RMS of the
+/// commanded minus the measured speed, steps) and
 /// OUT/sweep.png (the largest drift of each run against the first swept parameter, or
 /// the seed), and prints percentiles and the worst runs, each with the command that runs
 /// it alone. The table is the same on any number of threads. Ctrl-C stops starting runs
@@ -384,13 +388,24 @@ fn write_tables(
     }
 }
 
-/// The percentiles of the drift, the tracking error and the stop, and the faults' counts.
+/// The percentiles of the drift (in metres and as a share of the distance driven), the final
+/// heading error, the tracking error and the stop, and the faults' counts.
 fn print_figures(rows: &[crate::analysis::sweep::Row]) {
     use crate::analysis::sweep as sw;
     let column = |f: fn(&sw::Row) -> f64| rows.iter().map(f).collect::<Vec<f64>>();
     for (name, unit, values) in [
         ("drift, largest", "m", column(|r| r.drift_max_m)),
         ("drift, final", "m", column(|r| r.drift_final_m)),
+        (
+            "drift / distance",
+            "%",
+            column(|r| 100.0 * r.drift_max_m / r.distance_m),
+        ),
+        (
+            "heading error, end",
+            "°",
+            column(|r| r.heading_error_deg.abs()),
+        ),
         ("tracking error RMS", "m/s", column(|r| r.tracking_rms_m_s)),
         ("stop after a fault", "s", column(|r| r.stop_after_fault_s)),
     ] {

@@ -43,8 +43,14 @@ pub struct PodsParams {
     /// White noise on each pod's measured travel rate, m/s/√Hz (default 0): each pod's
     /// travel random-walks by `noise · √t` m. In `[0, 1]`.
     pub noise: f64,
-    /// The true pods' errors (`[[pods.pod]]`), in the configuration's order; pods without
-    /// an entry are as configured.
+    /// An error of every pod's scale, added to each pod's own (a batch of wheels, a worn
+    /// tread): true radius = nominal × (1 + `radius_error` + the pod's). In `[-0.5, 0.5]`.
+    pub radius_error: f64,
+    /// A turn of the whole pod block, degrees counter-clockwise, added to each pod's own
+    /// misalignment. In `[-180, 180]`.
+    pub misalignment_deg: f64,
+    /// The true pods' own errors (`[[pods.pod]]`), in the configuration's order; pods
+    /// without an entry have only the block's.
     pub pod: Vec<PodErrors>,
 }
 
@@ -53,18 +59,22 @@ impl Default for PodsParams {
         Self {
             rate_hz: 200.0,
             noise: 0.0,
+            radius_error: 0.0,
+            misalignment_deg: 0.0,
             pod: Vec::new(),
         }
     }
 }
 
-/// How one true pod differs from its configuration (a `[[pods.pod]]` table). All default 0.
+/// How one true pod differs from its configuration (a `[[pods.pod]]` table: its own errors,
+/// beside the block's in `[pods]`; [`PodsParams::errors`] adds them). All default 0.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct PodErrors {
-    /// True radius = nominal × (1 + `radius_error`). In `[-0.5, 0.5]`.
+    /// True radius = nominal × (1 + `radius_error`). In `[-0.5, 0.5]`, and with the block's.
     pub radius_error: f64,
-    /// True direction = nominal + this, degrees counter-clockwise. In `[-180, 180]`.
+    /// True direction = nominal + this, degrees counter-clockwise. In `[-180, 180]`, and
+    /// with the block's.
     pub misalignment_deg: f64,
     /// True contact point less the nominal, forward, m. In `[-1, 1]`.
     pub offset_x: f64,
@@ -88,21 +98,44 @@ impl PodsParams {
                 "a travel-rate noise density in [0, 1] m/s/√Hz",
             ));
         }
-        for (i, e) in self.pod.iter().enumerate() {
+        for (field, value, lo, hi, expected) in [
+            ("radius_error", self.radius_error, -0.5, 0.5, RADIUS_ERROR),
+            (
+                "misalignment_deg",
+                self.misalignment_deg,
+                -180.0,
+                180.0,
+                MISALIGNMENT,
+            ),
+        ] {
+            if !in_range(value, lo, hi) {
+                return Some((field.into(), value, expected));
+            }
+        }
+        for (i, own) in self.pod.iter().enumerate() {
+            let e = self.errors(i);
             for (field, value, lo, hi, expected) in [
+                ("radius_error", own.radius_error, -0.5, 0.5, RADIUS_ERROR),
+                (
+                    "misalignment_deg",
+                    own.misalignment_deg,
+                    -180.0,
+                    180.0,
+                    MISALIGNMENT,
+                ),
                 (
                     "radius_error",
                     e.radius_error,
                     -0.5,
                     0.5,
-                    "a fraction in [-0.5, 0.5] (true radius = nominal × (1 + radius_error))",
+                    "with the block's radius_error, a fraction in [-0.5, 0.5]",
                 ),
                 (
                     "misalignment_deg",
                     e.misalignment_deg,
                     -180.0,
                     180.0,
-                    "an angle in [-180, 180] °",
+                    "with the block's misalignment_deg, an angle in [-180, 180] °",
                 ),
                 ("offset_x", e.offset_x, -1.0, 1.0, "an offset in [-1, 1] m"),
                 ("offset_y", e.offset_y, -1.0, 1.0, "an offset in [-1, 1] m"),
@@ -115,6 +148,18 @@ impl PodsParams {
         None
     }
 
+    /// Pod `i`'s errors in all: its own (`[[pods.pod]]`, none if it has no entry) and the
+    /// block's.
+    #[must_use]
+    pub fn errors(&self, i: usize) -> PodErrors {
+        let own = self.pod.get(i).copied().unwrap_or_default();
+        PodErrors {
+            radius_error: self.radius_error + own.radius_error,
+            misalignment_deg: self.misalignment_deg + own.misalignment_deg,
+            ..own
+        }
+    }
+
     /// The standard deviation of the noise one sample adds to each pod's travel, m:
     /// `noise / √rate_hz` (the travel-rate noise integrated over one sample period).
     #[must_use]
@@ -122,6 +167,9 @@ impl PodsParams {
         self.noise / libm::sqrt(self.rate_hz)
     }
 }
+
+const RADIUS_ERROR: &str = "a fraction in [-0.5, 0.5] (true radius = nominal × (1 + radius_error))";
+const MISALIGNMENT: &str = "an angle in [-180, 180] °";
 
 /// The pods' generator seed for a scenario seed: the seed through one SplitMix64 step with a
 /// constant of its own, so the pods' noise, the IMU's and the bus's faults are independent
@@ -222,7 +270,7 @@ impl PodNode {
             .iter()
             .take(PODS_MAX)
             .enumerate()
-            .map(|(i, p)| TruePod::new(p, &params.pod.get(i).copied().unwrap_or_default()))
+            .map(|(i, p)| TruePod::new(p, &params.errors(i)))
             .collect();
         let mut node = Self {
             rate_hz: params.rate_hz,

@@ -1,12 +1,16 @@
 //! `--set KEY=VALUE`: one field of a scenario's drive configuration (as its TOML names it,
-//! `gains.kp`) or of its simulated robot (`plant.mass_kg`) changed, checked as a file would
+//! `gains.kp`), of its simulated robot (`plant.mass_kg`), of its pod node (`pods.noise`, the
+//! block's `pods.radius_error` and `pods.misalignment_deg`, a pod's own
+//! `pods.pod[1].offset_x`) or of its IMU (`imu.bias_deg_s`) changed, checked as a file would
 //! be. `hostsim run --set` and every run of `hostsim sweep` go through here.
 
 use firmware::Config;
 
 use super::Scenario;
 use crate::nodes::drives::SimDrives;
+use crate::nodes::imu::ImuParams;
 use crate::nodes::plant::PlantSpec;
+use crate::nodes::pods::{PodErrors, PodsParams};
 
 /// Why a value cannot be set.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -43,8 +47,8 @@ pub enum SetError {
 }
 
 impl Scenario {
-    /// This scenario with `values` set (`plant.*` on the robot, every other name on the drive
-    /// configuration) and its seed `seed`.
+    /// This scenario with `values` set (`plant.*` on the robot, `pods.*` on its pod node,
+    /// `imu.*` on its IMU, every other name on the drive configuration) and its seed `seed`.
     ///
     /// # Errors
     /// [`SetError::UnknownField`] for a name that names nothing, [`SetError::Refused`] or
@@ -58,6 +62,11 @@ impl Scenario {
         for (key, value) in values {
             if let Some(field) = key.strip_prefix("plant.") {
                 set_plant(&mut s.plant, key, field, *value)?;
+            } else if let Some(field) = key.strip_prefix("pods.") {
+                let configured = s.config.odometry.pods.len();
+                set_pods(s.pods.as_mut(), configured, key, field, *value)?;
+            } else if let Some(field) = key.strip_prefix("imu.") {
+                set_imu(s.imu.as_mut(), key, field, *value)?;
             } else {
                 set_config(&mut config, key, *value)?;
                 config_changed = true;
@@ -77,6 +86,20 @@ impl Scenario {
                     other => other.to_string(),
                 },
             })?;
+        }
+        if let Some((field, value, expected)) = s.pods.as_ref().and_then(|p| p.invalid()) {
+            return Err(SetError::Invalid {
+                key: format!("pods.{field}"),
+                value,
+                why: format!("expected {expected}"),
+            });
+        }
+        if let Some((field, value, expected)) = s.imu.as_ref().and_then(|i| i.invalid()) {
+            return Err(SetError::Invalid {
+                key: format!("imu.{field}"),
+                value,
+                why: format!("expected {expected}"),
+            });
         }
         if let Some((field, value, expected)) = s.plant.first_invalid() {
             return Err(SetError::Invalid {
@@ -112,6 +135,95 @@ fn set_plant(plant: &mut PlantSpec, key: &str, field: &str, value: f64) -> Resul
         }
     };
     *slot = Some(value);
+    Ok(())
+}
+
+/// The `pods.*` names a sweep can set: the pod node's noise, the block's errors, and each
+/// pod's own (`pods.pod[I].<field>`, I from 0 in the configuration's order).
+pub const PODS_FIELDS: [&str; 3] = ["noise", "radius_error", "misalignment_deg"];
+/// The fields of one pod, `pods.pod[I].<field>`.
+pub const POD_FIELDS: [&str; 4] = ["radius_error", "misalignment_deg", "offset_x", "offset_y"];
+/// The `imu.*` names a sweep can set.
+pub const IMU_FIELDS: [&str; 2] = ["bias_deg_s", "noise_density"];
+
+fn set_pods(
+    pods: Option<&mut PodsParams>,
+    configured: usize,
+    key: &str,
+    field: &str,
+    value: f64,
+) -> Result<(), SetError> {
+    let unknown = |hint: String| SetError::UnknownField {
+        key: key.to_string(),
+        hint,
+    };
+    let Some(pods) = pods else {
+        return Err(unknown(
+            "the scenario has no [pods] table (no pod node: scenarios/square_60s_pods.toml has one)"
+                .into(),
+        ));
+    };
+    let fields = || {
+        format!(
+            "pods fields: {}, and pod[I].{{{}}} for I in 0..{configured}",
+            PODS_FIELDS.join(", "),
+            POD_FIELDS.join(", ")
+        )
+    };
+    let slot = match field {
+        "noise" => &mut pods.noise,
+        "radius_error" => &mut pods.radius_error,
+        "misalignment_deg" => &mut pods.misalignment_deg,
+        _ => {
+            let (index, pod_field) = field
+                .strip_prefix("pod[")
+                .and_then(|rest| rest.split_once("]."))
+                .ok_or_else(|| unknown(fields()))?;
+            let i: usize = index.parse().map_err(|_| unknown(fields()))?;
+            if i >= configured {
+                return Err(unknown(format!(
+                    "the configuration has {configured} pods ([[odometry.pods]]): pod[0] to pod[{}]",
+                    configured.saturating_sub(1)
+                )));
+            }
+            if pods.pod.len() <= i {
+                pods.pod.resize(i + 1, PodErrors::default());
+            }
+            let pod = &mut pods.pod[i];
+            match pod_field {
+                "radius_error" => &mut pod.radius_error,
+                "misalignment_deg" => &mut pod.misalignment_deg,
+                "offset_x" => &mut pod.offset_x,
+                "offset_y" => &mut pod.offset_y,
+                _ => return Err(unknown(fields())),
+            }
+        }
+    };
+    *slot = value;
+    Ok(())
+}
+
+fn set_imu(
+    imu: Option<&mut ImuParams>,
+    key: &str,
+    field: &str,
+    value: f64,
+) -> Result<(), SetError> {
+    let unknown = |hint: String| SetError::UnknownField {
+        key: key.to_string(),
+        hint,
+    };
+    let Some(imu) = imu else {
+        return Err(unknown(
+            "the scenario has no [imu] table (no IMU node)".into(),
+        ));
+    };
+    let slot = match field {
+        "bias_deg_s" => &mut imu.bias_deg_s,
+        "noise_density" => &mut imu.noise_density,
+        _ => return Err(unknown(format!("imu fields: {}", IMU_FIELDS.join(", ")))),
+    };
+    *slot = value;
     Ok(())
 }
 
