@@ -262,9 +262,10 @@ if wanted prepare; then
     fi
     .venv/bin/python -m pip install --quiet --disable-pip-version-check -r tests/requirements.txt
     # The package's ros2 extra, for the ROS 2 bridge's tests: ROS 2 Jazzy's Python client and
-    # message packages, as wheels from PyPI (x86-64 Linux; some 150 MB in .venv). Without
+    # message packages, as wheels from PyPI (x86-64 Linux; some 150 MB in .venv); and its ray
+    # extra, for `mecanum-drive sweep --ray`'s tests on a local cluster (some 280 MB). Without
     # --force-reinstall pip leaves what is installed alone: only the first run downloads them.
-    .venv/bin/python -m pip install --quiet --disable-pip-version-check './python[ros2]'
+    .venv/bin/python -m pip install --quiet --disable-pip-version-check './python[ros2,ray]'
     # The project's own Python package (python/), as a user installs it: its wheel carries the
     # robot DBC from dbc/. Reinstalled every run, so the tests see this checkout's code.
     .venv/bin/python -m pip install --quiet --disable-pip-version-check --force-reinstall --no-deps ./python

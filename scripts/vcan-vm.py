@@ -246,7 +246,7 @@ def with_libraries(elves: list[pathlib.Path]) -> list[pathlib.Path]:
 def tree_files(root: pathlib.Path, binaries: list[pathlib.Path]) -> list[pathlib.Path]:
     """What the lane runs from, to be in the guest's memory: the repository's tracked files,
     its Python bytecode (pytest's rewritten test modules among it) and `binaries`; its .venv
-    whole; the interpreter the .venv was made from and its standard library (without its own
+    but Ray; the interpreter the .venv was made from and its standard library (without its own
     tests, site-packages, build configuration and -O bytecode); the programs of LANE_TOOLS, and
     the system libraries all of those load. Everything else stays the host's, read through 9p
     when asked for."""
@@ -265,7 +265,8 @@ def tree_files(root: pathlib.Path, binaries: list[pathlib.Path]) -> list[pathlib
             files.extend(here / f for f in filenames if ".opt-" not in f)
 
     venv = root / ".venv"
-    walk(venv)
+    # Ray (the package's ray extra, 240 MB) is for `mecanum-drive sweep --ray`, not the lane.
+    walk(venv, ("*/site-packages/ray",))
     python = (venv / "bin" / "python").resolve()
     if python.is_file() and venv not in python.parents:
         prefix = python.parent.parent

@@ -14,7 +14,7 @@ from typing import Any
 
 import can
 
-from . import params, protocol, ros2
+from . import params, protocol, ros2, sweep
 from .robot import NotResponding, Robot, RobotError
 
 #: Teleop: a key held down repeats (the terminal's auto-repeat); when no key has come for
@@ -562,6 +562,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ros2.add_arguments(p, dest_prefix="ros2_")
     p.set_defaults(func=cmd_ros2)
+
+    p = sub.add_parser(
+        "sweep", help="a hostsim sweep shared out over a Ray cluster (--ray local: this machine's cores)",
+        description="Runs `hostsim sweep SCENARIO ...` over a Ray cluster: the local hostsim checks the "
+        "sweep and says its runs, each shard of --shard-size runs is a Ray task (hostsim on one CPU of a "
+        "node, the binary shipped with the job unless --hostsim-on-nodes), each finished shard is written "
+        "to OUT/parts as it comes, and the local hostsim merges them into OUT/sweep.csv, sweep.jsonl and "
+        "sweep.png, byte for byte as one hostsim sweep writes them. A shard whose worker died is run "
+        "again (--retries); Ctrl-C keeps the finished shards, --resume runs the rest. Needs the ray "
+        "extra: pip install './python[ray]'. docs/sweeps-on-ray.md: KubeRay and Slurm.",
+    )
+    sweep.add_arguments(p)
+    p.set_defaults(func=sweep.run)
     return parser
 
 

@@ -79,6 +79,13 @@ pub struct Args {
     /// rows of part K.
     #[arg(long, value_name = "K/N")]
     pub shard: Option<String>,
+    /// Check the sweep and run nothing: the configuration, the scenario, the seeds and every
+    /// --set value (both ends of each range), and --runs or --shard against the plan; then
+    /// print one JSON line: the scenario's name, the plan's runs, the rows asked and the
+    /// table's CSV header. What a driver that shares the sweep out asks first
+    /// (`mecanum-drive sweep --ray`).
+    #[arg(long, conflicts_with_all = ["merge", "log_worst"])]
+    pub check: bool,
     /// Put the parts of one sweep together: the output folders of its --runs or --shard
     /// runs, checked to be of one plan and to hold each of its rows once; writes the whole
     /// table (and PNG) into --out, byte for byte as one run writes it.
@@ -236,6 +243,19 @@ pub fn execute(args: &Args) -> Result<ExitCode> {
     let plan = prepare(args)?;
     let asked = rows_asked(args.runs.as_deref(), args.shard.as_deref(), plan.count)?;
     let all = plan.runs()?;
+    if args.check {
+        let keys: Vec<String> = plan.params.iter().map(|p| p.key.clone()).collect();
+        println!(
+            "{}",
+            serde_json::json!({
+                "scenario": plan.base.name,
+                "runs": plan.count,
+                "rows": [asked.start, asked.end],
+                "header": sw::csv_header(&keys),
+            })
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
     let runs = &all[asked.start as usize..asked.end as usize];
     let Plan {
         base,

@@ -1,0 +1,160 @@
+"""`mecanum-drive sweep --ray local`: a hostsim sweep shared out over a real Ray cluster of
+this machine (the package's ray extra), with one `hostsim sweep` as the oracle: the merged
+table is the single-machine table byte for byte (CSV, JSON lines, PNG); a worker killed
+mid-shard has its shard run again; a shard that fails stops the sweep with the finished
+shards kept, and `--resume` runs only the rest; Ctrl-C keeps what finished (exit 130); bad
+input fails at once with hostsim's own message, before Ray starts.
+
+The scenario is a file (its configuration shipped beside it): the straight pods leg, 13 s
+simulated, a handful of seeds.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+from typing import Any
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+SCENARIO = str(ROOT / "scenarios" / "straight_pods.toml")
+SWEEP = ["--seeds", "1..5", "--set", "pods.radius_error=-0.01..0.01", "--set", "gains.kp=1.0,1.4"]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def ray_installed() -> None:
+    """The package's ray extra (scripts/test.sh installs it): looked up, not imported, so
+    that collecting this module (the vcan lane collects every module) costs nothing; in CI a
+    missing extra is a failure, not a skip."""
+    if importlib.util.find_spec("ray") is None:
+        why = "Ray is not installed: pip install './python[ray]'"
+        if os.environ.get("CI"):
+            pytest.fail(why)
+        pytest.skip(why)
+
+
+def drive(tmp: pathlib.Path, hostsim: pathlib.Path, *args: str, nodes: pathlib.Path | None = None,
+          **popen: Any) -> subprocess.CompletedProcess[str]:
+    """`mecanum-drive sweep SCENARIO SWEEP --ray local` into tmp/ray, on two CPUs."""
+    cmd = [sys.executable, "-m", "mecanum_drive", "sweep", SCENARIO, *SWEEP, "--ray", "local", "--cpus", "2",
+           "--shard-size", "3", "--out", str(tmp / "ray"), "--hostsim", str(hostsim), *args]
+    if nodes is not None:
+        cmd += ["--hostsim-on-nodes", str(nodes)]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=300, check=False, **popen)
+
+
+@pytest.fixture(scope="module")
+def oracle(hostsim_bin: pathlib.Path, tmp_path_factory: pytest.TempPathFactory) -> pathlib.Path:
+    """The same sweep by one hostsim on this machine."""
+    out = tmp_path_factory.mktemp("oracle")
+    proc = subprocess.run([str(hostsim_bin), "sweep", SCENARIO, *SWEEP, "--out", str(out)],
+                          capture_output=True, text=True, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr
+    return out
+
+
+def assert_same_tables(got: pathlib.Path, oracle: pathlib.Path) -> None:
+    for name in ("sweep.csv", "sweep.jsonl", "sweep.png"):
+        assert (got / name).read_bytes() == (oracle / name).read_bytes(), name
+
+
+def wrapper(tmp: pathlib.Path, hostsim: pathlib.Path, on_rows: str, act: str) -> pathlib.Path:
+    """A hostsim on the nodes that does `act` (shell) the first time it is given `--runs
+    on_rows`, and is hostsim otherwise; each call is logged in tmp/calls."""
+    script = tmp / "hostsim-node"
+    script.write_text(f"""#!/bin/sh
+echo "$@" >> {tmp}/calls
+case " $* " in
+  *" --runs {on_rows} "*) if [ ! -e {tmp}/acted ]; then touch {tmp}/acted; {act}; fi ;;
+esac
+exec {hostsim} "$@"
+""")
+    script.chmod(0o755)
+    return script
+
+
+def test_the_merged_table_is_one_hostsims_byte_for_byte(hostsim_bin: pathlib.Path, tmp_path: pathlib.Path,
+                                                         oracle: pathlib.Path) -> None:
+    proc = drive(tmp_path, hostsim_bin)
+    assert proc.returncode == 0, proc.stderr
+    # 10 runs in shards of 3: four parts, each written as it came, with its progress line.
+    parts = sorted(p.name for p in (tmp_path / "ray" / "parts").iterdir())
+    assert parts == ["rows-0-2", "rows-3-5", "rows-6-8", "rows-9-9"], parts
+    assert "sweep: 4 of 4 shards, 10 of 10 runs here" in proc.stderr, proc.stderr
+    assert_same_tables(tmp_path / "ray", oracle)
+
+
+def test_a_shard_whose_worker_was_killed_runs_again(hostsim_bin: pathlib.Path, tmp_path: pathlib.Path,
+                                                     oracle: pathlib.Path) -> None:
+    # The first hostsim of rows 3..5 kills the Ray worker that runs it (its parent), as a node
+    # lost mid-shard: Ray runs the task again, and the table is whole.
+    nodes = wrapper(tmp_path, hostsim_bin, "3..5", "kill -9 $PPID; exit 1")
+    proc = drive(tmp_path, hostsim_bin, nodes=nodes)
+    assert proc.returncode == 0, proc.stderr
+    calls = (tmp_path / "calls").read_text().splitlines()
+    assert sum(" --runs 3..5 " in f" {c} " for c in calls) == 2, calls
+    assert_same_tables(tmp_path / "ray", oracle)
+
+
+def test_a_failed_shard_stops_the_sweep_and_resume_runs_only_the_rest(
+        hostsim_bin: pathlib.Path, tmp_path: pathlib.Path, oracle: pathlib.Path) -> None:
+    nodes = wrapper(tmp_path, hostsim_bin, "9..9", "echo 'disk full' >&2; exit 3")
+    proc = drive(tmp_path, hostsim_bin, nodes=nodes)
+    assert proc.returncode == 1, proc.stderr
+    assert "rows-9-9 failed" in proc.stderr and "disk full" in proc.stderr, proc.stderr
+    assert "--resume runs the rest" in proc.stderr
+    assert not (tmp_path / "ray" / "sweep.csv").exists()
+    # Without --resume the parts are not overwritten; with it only rows 9..9 run again.
+    again = drive(tmp_path, hostsim_bin, nodes=nodes)
+    assert again.returncode == 2 and "--resume to go on with it" in again.stderr, again.stderr
+    # The shards that finished before the failure was seen are kept (the rest were cancelled).
+    kept = {p.name for p in (tmp_path / "ray" / "parts").iterdir()}
+    shards = {"rows-0-2": "0..2", "rows-3-5": "3..5", "rows-6-8": "6..8", "rows-9-9": "9..9"}
+    assert kept <= set(shards) - {"rows-9-9"}, kept
+    before = len((tmp_path / "calls").read_text().splitlines())
+    resumed = drive(tmp_path, hostsim_bin, "--resume", nodes=nodes)
+    assert resumed.returncode == 0, resumed.stderr
+    assert f"{len(kept)} done already" in resumed.stderr, resumed.stderr
+    ran = sorted(c.split(" --runs ")[1].split()[0] for c in (tmp_path / "calls").read_text().splitlines()[before:])
+    assert ran == sorted(rows for name, rows in shards.items() if name not in kept), (ran, kept)
+    assert_same_tables(tmp_path / "ray", oracle)
+
+
+def test_ctrl_c_keeps_the_finished_shards(hostsim_bin: pathlib.Path, tmp_path: pathlib.Path) -> None:
+    # Rows 9..9 hang (until their worker is cancelled: hostsim dies with its worker); the
+    # others finish; SIGINT once three shards are in.
+    nodes = wrapper(tmp_path, hostsim_bin, "9..9", "exec sleep 120")
+    cmd = [sys.executable, "-m", "mecanum_drive", "sweep", SCENARIO, *SWEEP, "--ray", "local", "--cpus", "2",
+           "--shard-size", "3", "--out", str(tmp_path / "ray"), "--hostsim", str(hostsim_bin),
+           "--hostsim-on-nodes", str(nodes)]
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    assert proc.stderr is not None
+    seen = []
+    for line in proc.stderr:
+        seen.append(line)
+        if line.startswith("sweep: 3 of 4 shards"):
+            proc.send_signal(signal.SIGINT)
+            break
+    rest = proc.communicate(timeout=60)[1]
+    assert proc.returncode == 130, "".join(seen) + rest
+    assert "INTERRUPTED: 3 of 4 shards kept" in rest, rest
+    assert sorted(p.name for p in (tmp_path / "ray" / "parts").iterdir()) == ["rows-0-2", "rows-3-5", "rows-6-8"]
+
+
+def test_bad_input_fails_at_once_with_hostsims_message(hostsim_bin: pathlib.Path, tmp_path: pathlib.Path) -> None:
+    cmd = [sys.executable, "-m", "mecanum_drive", "sweep", SCENARIO, "--set", "gains.kq=1", "--ray", "local",
+           "--out", str(tmp_path), "--hostsim", str(hostsim_bin)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=60, check=False)
+    assert proc.returncode == 2, proc.stderr
+    assert "gains.kq: no such field; [gains] has: " in proc.stderr, proc.stderr
+    assert "Ray" not in proc.stderr, "before Ray starts"
+    for bad, says in [(["--shard-size", "0"], "--shard-size 0: expected 1 to 1000000"),
+                      (["--hostsim", str(tmp_path / "none")], "no hostsim binary at")]:
+        proc = subprocess.run([*cmd[:5], "--ray", "local", "--out", str(tmp_path), "--hostsim", str(hostsim_bin),
+                               *bad], capture_output=True, text=True, timeout=60, check=False)
+        assert proc.returncode == 2 and says in proc.stderr, (bad, proc.stderr)
