@@ -125,9 +125,12 @@ def test_a_failed_shard_stops_the_sweep_and_resume_runs_only_the_rest(
     assert_same_tables(tmp_path / "ray", oracle)
 
 
-def test_ctrl_c_keeps_the_finished_shards(hostsim_bin: pathlib.Path, tmp_path: pathlib.Path) -> None:
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_ctrl_c_keeps_the_finished_shards(hostsim_bin: pathlib.Path, tmp_path: pathlib.Path,
+                                          sig: signal.Signals) -> None:
     # Rows 9..9 hang (until their worker is cancelled: hostsim dies with its worker); the
-    # others finish; SIGINT once three shards are in.
+    # others finish; the signal once three shards are in (SIGTERM, a job's time limit, as
+    # Ctrl-C).
     nodes = wrapper(tmp_path, hostsim_bin, "9..9", "exec sleep 120")
     cmd = [sys.executable, "-m", "mecanum_drive", "sweep", SCENARIO, *SWEEP, "--ray", "local", "--cpus", "2",
            "--shard-size", "3", "--out", str(tmp_path / "ray"), "--hostsim", str(hostsim_bin),
@@ -135,12 +138,23 @@ def test_ctrl_c_keeps_the_finished_shards(hostsim_bin: pathlib.Path, tmp_path: p
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
     assert proc.stderr is not None
     seen = []
-    for line in proc.stderr:
-        seen.append(line)
-        if line.startswith("sweep: 3 of 4 shards"):
-            proc.send_signal(signal.SIGINT)
-            break
-    rest = proc.communicate(timeout=60)[1]
+    try:
+        for line in proc.stderr:
+            seen.append(line)
+            if line.startswith("sweep: 3 of 4 shards"):
+                proc.send_signal(sig)
+                break
+        rest = proc.communicate(timeout=60)[1]
+    finally:
+        # A driver that did not stop is ended as a job's time limit ends it (SIGTERM: the
+        # same clean-up, its Ray with it), then killed.
+        if proc.poll() is None:
+            proc.terminate()
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
     assert proc.returncode == 130, "".join(seen) + rest
     assert "INTERRUPTED: 3 of 4 shards kept" in rest, rest
     assert sorted(p.name for p in (tmp_path / "ray" / "parts").iterdir()) == ["rows-0-2", "rows-3-5", "rows-6-8"]

@@ -12,8 +12,9 @@ what one `hostsim sweep` on one machine writes.
 
 - A shard whose worker died (a node lost, a process killed) is run again by Ray, up to
   `--retries` times; a shard that hostsim refuses is an error, named with hostsim's message.
-- Ctrl-C cancels the shards not finished and keeps the finished ones; `--resume` runs only
-  the shards missing from `OUT/parts` (of the same plan: another sweep's parts are refused).
+- Ctrl-C (or SIGTERM) cancels the shards not finished and keeps the finished ones; `--resume`
+  runs only the shards missing from `OUT/parts` (of the same plan: another sweep's parts are
+  refused).
 - The binary: shipped with the job by default (the local hostsim, through Ray's object store,
   so the nodes need nothing but Ray and a compatible glibc: docs/sweeps-on-ray.md), or found
   on each node at `--hostsim-on-nodes PATH`. The scenario file and its configuration file are
@@ -29,6 +30,7 @@ import json
 import os
 import pathlib
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -48,6 +50,8 @@ DEFAULT_SHARD_SIZE = 250
 EXIT_INTERRUPTED = 130
 #: The folder of the finished shards inside --out.
 PARTS = "parts"
+#: How often the driver leaves Ray's wait to see whether it was told to stop, s.
+POLL_S = 0.2
 
 
 class SweepError(Exception):
@@ -137,7 +141,6 @@ def _die_with_parent() -> None:
     """In the child, before hostsim starts: SIGKILL when the worker that started it dies (Linux
     `prctl(PR_SET_PDEATHSIG)`), so a cancelled or killed task leaves no hostsim running."""
     import ctypes
-    import signal
 
     ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1: PR_SET_PDEATHSIG
 
@@ -248,12 +251,17 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
 def _run_on_ray(args: argparse.Namespace, hostsim: pathlib.Path, files: dict[str, bytes], argv: list[str],
                 plan: dict[str, Any], parts: pathlib.Path, pending: list[Shard], total: int, done: int) -> int:
     """The pending shards as Ray tasks, each written as it finishes; 0, 1 (a shard failed)
     or 130 (Ctrl-C)."""
     # Nothing leaves the machine unasked: no usage statistics, and a local cluster on loopback.
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+
     try:
         import ray
     except ImportError:
@@ -269,6 +277,10 @@ def _run_on_ray(args: argparse.Namespace, hostsim: pathlib.Path, files: dict[str
                  _node_ip_address="127.0.0.1", runtime_env=runtime_env)
     else:
         ray.init(address=args.ray, log_to_driver=False, runtime_env=runtime_env)
+    # SIGTERM (a Slurm job's time limit, a pod stopped) ends the sweep as Ctrl-C does: the
+    # finished shards kept, the rest cancelled, a local cluster shut down. Set after
+    # ray.init, which installs a handler of its own.
+    signal.signal(signal.SIGTERM, _interrupt)
     try:
         task = ray.remote(num_cpus=1, max_retries=args.retries)(run_shard)
         binary: Any = args.hostsim_on_nodes or ray.put(hostsim.read_bytes())
@@ -280,7 +292,11 @@ def _run_on_ray(args: argparse.Namespace, hostsim: pathlib.Path, files: dict[str
         rows_done = 0
         try:
             while futures:
-                ready, _ = ray.wait(list(futures), num_returns=1)
+                # Back in Python every POLL_S: a signal (Ctrl-C, SIGTERM) is handled only here,
+                # not inside Ray's wait.
+                ready, _ = ray.wait(list(futures), num_returns=1, timeout=POLL_S)
+                if not ready:
+                    continue
                 shard = futures.pop(ready[0])
                 try:
                     tables = ray.get(ready[0])
