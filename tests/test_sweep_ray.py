@@ -17,6 +17,7 @@ import pathlib
 import signal
 import subprocess
 import sys
+import time
 from typing import Any
 
 import pytest
@@ -128,23 +129,26 @@ def test_a_failed_shard_stops_the_sweep_and_resume_runs_only_the_rest(
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
 def test_ctrl_c_keeps_the_finished_shards(hostsim_bin: pathlib.Path, tmp_path: pathlib.Path,
                                           sig: signal.Signals) -> None:
-    # Rows 9..9 hang (until their worker is cancelled: hostsim dies with its worker); the
-    # others finish; the signal once three shards are in (SIGTERM, a job's time limit, as
-    # Ctrl-C).
-    nodes = wrapper(tmp_path, hostsim_bin, "9..9", "exec sleep 120")
+    # Rows 9..9 hang until their worker is gone (the hanging program's pid kept); the others
+    # finish; the signal once three shards are in (SIGTERM, a job's time limit, as Ctrl-C).
+    hung = tmp_path / "hung.pid"
+    nodes = wrapper(tmp_path, hostsim_bin, "9..9",
+                    f"echo $$ > {hung}; while kill -0 $PPID 2>/dev/null; do sleep 0.1; done; exit 1")
     cmd = [sys.executable, "-m", "mecanum_drive", "sweep", SCENARIO, *SWEEP, "--ray", "local", "--cpus", "2",
            "--shard-size", "3", "--out", str(tmp_path / "ray"), "--hostsim", str(hostsim_bin),
            "--hostsim-on-nodes", str(nodes)]
-    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
-    assert proc.stderr is not None
-    seen = []
+    # stderr to a file, not a pipe: Ray's own processes inherit it and may outlive the driver
+    # by seconds, which would hold a pipe open.
+    log = tmp_path / "stderr"
+    with open(log, "w") as err:
+        proc = subprocess.Popen(cmd, stderr=err, stdout=subprocess.DEVNULL, text=True)
     try:
-        for line in proc.stderr:
-            seen.append(line)
-            if line.startswith("sweep: 3 of 4 shards"):
-                proc.send_signal(sig)
-                break
-        rest = proc.communicate(timeout=60)[1]
+        deadline = time.monotonic() + 240
+        while "sweep: 3 of 4 shards" not in log.read_text():
+            assert proc.poll() is None and time.monotonic() < deadline, log.read_text()
+            time.sleep(0.1)
+        proc.send_signal(sig)
+        proc.wait(timeout=60)
     finally:
         # A driver that did not stop is ended as a job's time limit ends it (SIGTERM: the
         # same clean-up, its Ray with it), then killed.
@@ -155,9 +159,16 @@ def test_ctrl_c_keeps_the_finished_shards(hostsim_bin: pathlib.Path, tmp_path: p
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
-    assert proc.returncode == 130, "".join(seen) + rest
-    assert "INTERRUPTED: 3 of 4 shards kept" in rest, rest
+    text = log.read_text()
+    assert proc.returncode == 130, text
+    assert "INTERRUPTED: 3 of 4 shards kept" in text, text
     assert sorted(p.name for p in (tmp_path / "ray" / "parts").iterdir()) == ["rows-0-2", "rows-3-5", "rows-6-8"]
+    # The cancelled shard's program ended with its worker.
+    pid = int(hung.read_text())
+    deadline = time.monotonic() + 10
+    while pathlib.Path(f"/proc/{pid}").exists() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not pathlib.Path(f"/proc/{pid}").exists(), f"the hung shard's program {pid} outlived its worker"
 
 
 def test_bad_input_fails_at_once_with_hostsims_message(hostsim_bin: pathlib.Path, tmp_path: pathlib.Path) -> None:
