@@ -251,10 +251,6 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _interrupt(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt(f"signal {signum}")
-
-
 def _run_on_ray(args: argparse.Namespace, hostsim: pathlib.Path, files: dict[str, bytes], argv: list[str],
                 plan: dict[str, Any], parts: pathlib.Path, pending: list[Shard], total: int, done: int) -> int:
     """The pending shards as Ray tasks, each written as it finishes; 0, 1 (a shard failed)
@@ -277,10 +273,13 @@ def _run_on_ray(args: argparse.Namespace, hostsim: pathlib.Path, files: dict[str
                  _node_ip_address="127.0.0.1", runtime_env=runtime_env)
     else:
         ray.init(address=args.ray, log_to_driver=False, runtime_env=runtime_env)
-    # SIGTERM (a Slurm job's time limit, a pod stopped) ends the sweep as Ctrl-C does: the
-    # finished shards kept, the rest cancelled, a local cluster shut down. Set after
-    # ray.init, which installs a handler of its own.
-    signal.signal(signal.SIGTERM, _interrupt)
+    # Ctrl-C and SIGTERM (a Slurm job's time limit, a pod stopped) end the sweep alike: the
+    # finished shards kept, the rest cancelled, a local cluster shut down. Both only set a
+    # flag the loop reads between its waits: set after ray.init, which installs handlers of
+    # its own, and independent of whether Ray's code lets a KeyboardInterrupt through.
+    stop: list[int] = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, frame: stop.append(signum))
     try:
         task = ray.remote(num_cpus=1, max_retries=args.retries)(run_shard)
         binary: Any = args.hostsim_on_nodes or ray.put(hostsim.read_bytes())
@@ -292,7 +291,9 @@ def _run_on_ray(args: argparse.Namespace, hostsim: pathlib.Path, files: dict[str
         rows_done = 0
         try:
             while futures:
-                # Back in Python every POLL_S: a signal (Ctrl-C, SIGTERM) is handled only here,
+                if stop:
+                    raise KeyboardInterrupt
+                # Back in Python every POLL_S: a signal (Ctrl-C, SIGTERM) is seen only here,
                 # not inside Ray's wait.
                 ready, _ = ray.wait(list(futures), num_returns=1, timeout=POLL_S)
                 if not ready:
