@@ -46,6 +46,16 @@ pub enum SetError {
     },
 }
 
+impl SetError {
+    /// [`SetError::UnknownField`]: `key` names nothing; `hint` says what there is.
+    fn unknown(key: &str, hint: impl Into<String>) -> Self {
+        Self::UnknownField {
+            key: key.to_string(),
+            hint: hint.into(),
+        }
+    }
+}
+
 impl Scenario {
     /// This scenario with `values` set (`plant.*` on the robot, `pods.*` on its pod node,
     /// `imu.*` on its IMU, every other name on the drive configuration) and its seed `seed`.
@@ -128,10 +138,10 @@ fn set_plant(plant: &mut PlantSpec, key: &str, field: &str, value: f64) -> Resul
         "roller_drag" => &mut plant.roller_drag,
         "mass_kg" => &mut plant.mass_kg,
         _ => {
-            return Err(SetError::UnknownField {
-                key: key.to_string(),
-                hint: format!("plant fields: {}", PLANT_FIELDS.join(", ")),
-            });
+            return Err(SetError::unknown(
+                key,
+                format!("plant fields: {}", PLANT_FIELDS.join(", ")),
+            ));
         }
     };
     *slot = Some(value);
@@ -153,10 +163,7 @@ fn set_pods(
     field: &str,
     value: f64,
 ) -> Result<(), SetError> {
-    let unknown = |hint: String| SetError::UnknownField {
-        key: key.to_string(),
-        hint,
-    };
+    let unknown = |hint: String| SetError::unknown(key, hint);
     let Some(pods) = pods else {
         return Err(unknown(
             "the scenario has no [pods] table (no pod node: scenarios/square_60s_pods.toml has one)"
@@ -209,10 +216,7 @@ fn set_imu(
     field: &str,
     value: f64,
 ) -> Result<(), SetError> {
-    let unknown = |hint: String| SetError::UnknownField {
-        key: key.to_string(),
-        hint,
-    };
+    let unknown = |hint: String| SetError::unknown(key, hint);
     let Some(imu) = imu else {
         return Err(unknown(
             "the scenario has no [imu] table (no IMU node)".into(),
@@ -228,12 +232,14 @@ fn set_imu(
 }
 
 fn set_config(config: &mut toml::Table, key: &str, value: f64) -> Result<(), SetError> {
-    let unknown = |table: &toml::Table, at: &str| SetError::UnknownField {
-        key: key.to_string(),
-        hint: format!(
-            "{at} has: {}",
-            table.keys().cloned().collect::<Vec<_>>().join(", ")
-        ),
+    let unknown = |table: &toml::Table, at: &str| {
+        SetError::unknown(
+            key,
+            format!(
+                "{at} has: {}",
+                table.keys().cloned().collect::<Vec<_>>().join(", ")
+            ),
+        )
     };
     let mut parts: Vec<&str> = key.split('.').collect();
     let last = parts.pop().unwrap_or_default();
