@@ -15,9 +15,11 @@ from __future__ import annotations
 import importlib.util
 import os
 import pathlib
+import shutil
 import subprocess
 import sys
-from typing import Any
+import tempfile
+from typing import Any, Iterator
 
 import pytest
 
@@ -36,6 +38,22 @@ def ray_installed() -> None:
         if os.environ.get("CI"):
             pytest.fail(why)
         pytest.skip(why)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def ray_temp() -> Iterator[None]:
+    """Ray's session folders and the shards' work folders in a folder of this module's,
+    removed at its end: a worker killed mid-shard cannot remove its own. Short, under the
+    system's temporary folder, as Ray's sockets there must fit a Unix socket's 107 bytes."""
+    folder = tempfile.mkdtemp(prefix="ray-test-")
+    before = os.environ.get("TMPDIR")
+    os.environ["TMPDIR"] = folder
+    yield
+    if before is None:
+        del os.environ["TMPDIR"]
+    else:
+        os.environ["TMPDIR"] = before
+    shutil.rmtree(folder, ignore_errors=True)
 
 
 def drive(tmp: pathlib.Path, hostsim: pathlib.Path, *args: str, nodes: pathlib.Path | None = None,
