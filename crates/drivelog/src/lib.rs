@@ -20,8 +20,9 @@
 //!
 //! [`McapLog`] is what a run calls: it records each message's values in a batch (a few
 //! dozen bytes a message, no encoding), and hands each batch to a thread of its own, which
-//! encodes the messages in CDR ([`msg`]) and writes them with the `mcap` crate's [`Writer`]
-//! (zstd chunks with message indexes, the summary section with chunk indexes and statistics).
+//! encodes the messages in CDR ([`msg`]) and writes the MCAP file (zstd chunks, each
+//! compressed whole, with message indexes; the summary section with chunk indexes and
+//! statistics) with the `mcap` crate's record types.
 //! A chunk ends at least every quarter second of log time, a killed run loses at most the last
 //! second, and the log is `NAME.mcap.part` until it is finished (`docs/logs.md`, section
 //! "Crash safety"); every other output file is written as a `.part` too ([`output`]).
@@ -60,7 +61,6 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 //!
-//! [`Writer`]: mcap::Writer
 
 pub mod candump;
 pub mod core_log;

@@ -4,14 +4,12 @@
 
 use std::io;
 
-use firmware::CanFrame;
-use firmware::control::Snapshot;
-use mcap::records::MessageHeader;
-
-use super::thread::{Writer, mcap_err};
+use super::thread::Writer;
 use super::{Direction, MessageTap, OdometrySource};
 use crate::msg::{self, Header, RosMsg};
 use crate::{Channel, POD_NAMES, WHEEL_NAMES, frames};
+use firmware::CanFrame;
+use firmware::control::Snapshot;
 
 /// A logged message, or the two of an odometry, as values: the writing thread encodes them.
 #[derive(Clone, Copy)]
@@ -87,11 +85,25 @@ impl Batch {
     }
 }
 
-/// The writing thread's state: the `mcap` writer, the encoding buffer and the tap.
+/// The writing thread's state: the file, the tap, and the messages of a snapshot, refilled
+/// for each (their names and keys are the same from one to the next: 6,000 of each in the
+/// 60 s square, which allocated some 300,000 strings when built anew).
 pub(super) struct Encoder {
     pub(super) writer: Writer,
-    pub(super) buf: Vec<u8>,
     pub(super) tap: Option<Box<dyn MessageTap>>,
+    joints: msg::JointState,
+    diagnostics: msg::DiagnosticArray,
+}
+
+impl Encoder {
+    pub(super) fn new(writer: Writer) -> Self {
+        Self {
+            writer,
+            tap: None,
+            joints: msg::JointState::default(),
+            diagnostics: msg::DiagnosticArray::default(),
+        }
+    }
 }
 
 impl Encoder {
@@ -102,9 +114,9 @@ impl Encoder {
             self.tap = Some(tap);
         }
         for event in &batch.events {
-            self.event(batch, event).map_err(mcap_err)?;
+            self.event(batch, event)?;
         }
-        self.writer.flush().map_err(mcap_err)?;
+        self.writer.flush()?;
         if let Some(tap) = self.tap.as_mut() {
             tap.end_batch();
         }
@@ -118,26 +130,30 @@ impl Encoder {
         log_ns: u64,
         publish_ns: u64,
         msg: &M,
-    ) -> mcap::McapResult<()> {
-        self.buf.clear();
-        msg::encode(&mut self.buf, msg);
-        let header = MessageHeader {
-            channel_id: channel.id(),
-            // Not numbered: the specification's "recorded as zero" for messages whose
-            // publisher assigns no sequence. A global count costs 0.9 MB (8 %) of the 60 s
-            // square's log, whose messages compress to about 20 bytes each.
-            sequence: 0,
-            log_time: log_ns,
-            publish_time: publish_ns,
-        };
-        self.writer.write_to_known_channel(&header, &self.buf)?;
+    ) -> io::Result<()> {
+        self.write_with(channel, log_ns, publish_ns, |buf| msg::encode(buf, msg))
+    }
+
+    /// Writes the message that `encode` appends to the file's open chunk, and shows it to the
+    /// tap.
+    #[inline]
+    fn write_with(
+        &mut self,
+        channel: Channel,
+        log_ns: u64,
+        publish_ns: u64,
+        encode: impl FnOnce(&mut Vec<u8>),
+    ) -> io::Result<()> {
+        let cdr = self
+            .writer
+            .message(channel.id(), log_ns, publish_ns, encode)?;
         if let Some(tap) = self.tap.as_mut() {
-            tap.message(channel, log_ns, publish_ns, &self.buf);
+            tap.message(channel, log_ns, publish_ns, cdr);
         }
         Ok(())
     }
 
-    fn event(&mut self, batch: &Batch, event: &Event) -> mcap::McapResult<()> {
+    fn event(&mut self, batch: &Batch, event: &Event) -> io::Result<()> {
         match *event {
             Event::Frame {
                 log_ns,
@@ -150,8 +166,9 @@ impl Encoder {
                     Direction::Rx => Channel::CanRx,
                     Direction::Tx => Channel::CanTx,
                 };
-                let m = msg::Frame::from_can(stamp_ns, &frame);
-                self.write(channel, log_ns, publish_ns, &m)
+                self.write_with(channel, log_ns, publish_ns, |buf| {
+                    msg::Frame::encode_can(buf, stamp_ns, &frame);
+                })
             }
             Event::Fault { t_ns, index } => {
                 let f = &batch.faults[index as usize];
@@ -173,12 +190,20 @@ impl Encoder {
             }
             Event::Snapshot { t_ns, index } => {
                 let s = &batch.snapshots[index as usize];
-                self.write(Channel::JointStates, t_ns, t_ns, &joint_state(t_ns, s))?;
-                let mut m = diagnostics(t_ns, s);
+                let mut joints = std::mem::take(&mut self.joints);
+                joint_state(&mut joints, t_ns, s);
+                let written = self.write(Channel::JointStates, t_ns, t_ns, &joints);
+                self.joints = joints;
+                written?;
+                let mut m = std::mem::take(&mut self.diagnostics);
+                diagnostics(&mut m, t_ns, s);
                 if let Some(status) = self.tap.as_mut().and_then(|tap| tap.status()) {
                     m.status.push(status);
                 }
-                self.write(Channel::Diagnostics, t_ns, t_ns, &m)
+                let written = self.write(Channel::Diagnostics, t_ns, t_ns, &m);
+                m.status.truncate(1);
+                self.diagnostics = m;
+                written
             }
             Event::Odometry { t_ns, index } => {
                 let o = batch.odometry[index as usize];
@@ -251,29 +276,32 @@ impl Encoder {
     }
 }
 
-/// `/joint_states` of a snapshot.
+/// `/joint_states` of a snapshot, in `m` (its names kept from the last one when the same).
 /// A robot with tracking pods adds them after the wheels (`pod0`...), with a position only:
 /// ROS allows `velocity` and `effort` shorter than `name`, and no speed or effort of a pod is
 /// known to the core.
-fn joint_state(t_ns: u64, s: &Snapshot) -> msg::JointState {
+fn joint_state(m: &mut msg::JointState, t_ns: u64, s: &Snapshot) {
     let pods = usize::from(s.pods).min(POD_NAMES.len());
-    let mut name = WHEEL_NAMES.map(str::to_string).to_vec();
-    name.extend(POD_NAMES[..pods].iter().map(|n| (*n).to_string()));
-    let mut position = s.wheel_angles.map(f64::from).to_vec();
-    position.extend(s.pod_angles[..pods].iter().map(|&a| f64::from(a)));
-    msg::JointState {
-        header: Header::new(t_ns, ""),
-        name,
-        position,
-        velocity: s.wheel_speeds.0.map(f64::from).to_vec(),
-        effort: s.currents.map(f64::from).to_vec(),
+    let names = WHEEL_NAMES.iter().chain(&POD_NAMES[..pods]);
+    if !m.name.iter().eq(names.clone()) {
+        m.name = names.map(|n| (*n).to_string()).collect();
     }
+    m.header.stamp = msg::Time::from_ns(t_ns);
+    m.header.frame_id.clear();
+    m.position.clear();
+    m.position.extend(s.wheel_angles.map(f64::from));
+    m.position
+        .extend(s.pod_angles[..pods].iter().map(|&a| f64::from(a)));
+    m.velocity.clear();
+    m.velocity.extend(s.wheel_speeds.0.map(f64::from));
+    m.effort.clear();
+    m.effort.extend(s.currents.map(f64::from));
 }
 
 /// The name of the firmware's [`msg::DiagnosticStatus`].
 pub const DIAGNOSTIC_NAME: &str = "mecanum_drive: firmware";
 
-/// `/diagnostics` of a snapshot: one status, [`DIAGNOSTIC_NAME`] (and a tap's after it,
+/// `/diagnostics` of a snapshot, in `m` (the last one's strings reused): one status, [`DIAGNOSTIC_NAME`] (and a tap's after it,
 /// [`MessageTap::status`]), whose values are named
 /// `state`, `fault`, `motors_online` (a mask, wheel i at bit i), `steps`, `commanded_vx`...,
 /// `measured_vx`..., `setpoint_fl`... (rad/s), one counter per rejected-frame kind
@@ -284,20 +312,33 @@ pub const DIAGNOSTIC_NAME: &str = "mecanum_drive: firmware";
 /// `gyro_bias_samples`; without a gyro these keys are absent, as before they existed. A robot
 /// with tracking pods adds `odometry_source` (`PODS2_GYRO`, `PODS3`, or `WHEELS_PODS_SILENT`, a
 /// warning) and the slip estimate `slip_vx`, `slip_vy` (m/s), `slip_wz` (rad/s).
-fn diagnostics(t_ns: u64, s: &Snapshot) -> msg::DiagnosticArray {
+fn diagnostics(m: &mut msg::DiagnosticArray, t_ns: u64, s: &Snapshot) {
     use firmware::protocol::robot::{HeadingSource, OdometrySource, RobotState};
+    use std::fmt::Write as _;
     let gyro_silent = s.heading_source == HeadingSource::WheelsGyroSilent;
     let pods_silent = s.odometry_source == OdometrySource::WheelsPodsSilent;
-    let level = match s.state {
+    m.header.stamp = msg::Time::from_ns(t_ns);
+    m.header.frame_id.clear();
+    m.status.truncate(1);
+    if m.status.is_empty() {
+        m.status.push(msg::DiagnosticStatus {
+            name: DIAGNOSTIC_NAME.to_string(),
+            ..msg::DiagnosticStatus::default()
+        });
+    }
+    let status = &mut m.status[0];
+    status.level = match s.state {
         RobotState::Fault => msg::DiagnosticStatus::ERROR,
         RobotState::Estop => msg::DiagnosticStatus::WARN,
         _ if gyro_silent || pods_silent => msg::DiagnosticStatus::WARN,
         _ => msg::DiagnosticStatus::OK,
     };
-    let mut message = if s.fault == firmware::protocol::robot::Fault::None {
-        s.state.to_string()
+    let message = &mut status.message;
+    message.clear();
+    let _ = if s.fault == firmware::protocol::robot::Fault::None {
+        write!(message, "{}", s.state)
     } else {
-        format!("{}, fault {}", s.state, s.fault)
+        write!(message, "{}, fault {}", s.state, s.fault)
     };
     if gyro_silent {
         message.push_str(", heading from the wheels: gyro silent");
@@ -305,24 +346,24 @@ fn diagnostics(t_ns: u64, s: &Snapshot) -> msg::DiagnosticArray {
     if pods_silent {
         message.push_str(", odometry from the wheels: pods silent");
     }
-    let mut values = Vec::with_capacity(24);
-    let mut kv = |key: &str, value: String| {
-        values.push(msg::KeyValue {
-            key: key.to_string(),
-            value,
-        });
+    let mut kv = Values {
+        values: &mut status.values,
+        n: 0,
     };
-    kv("state", s.state.to_string());
-    kv("fault", s.fault.to_string());
-    kv("motors_online", format!("{:#06b}", s.motors_online));
-    kv("steps", s.steps.to_string());
+    kv.set(("state", ""), s.state);
+    kv.set(("fault", ""), s.fault);
+    kv.set(
+        ("motors_online", ""),
+        format_args!("{:#06b}", s.motors_online),
+    );
+    kv.set(("steps", ""), s.steps);
     for (prefix, v) in [("commanded", &s.commanded), ("measured", &s.measured)] {
-        kv(&format!("{prefix}_vx"), v.vx.to_string());
-        kv(&format!("{prefix}_vy"), v.vy.to_string());
-        kv(&format!("{prefix}_wz"), v.wz.to_string());
+        kv.set((prefix, "_vx"), v.vx);
+        kv.set((prefix, "_vy"), v.vy);
+        kv.set((prefix, "_wz"), v.wz);
     }
     for (name, sp) in WHEEL_NAMES.iter().zip(s.wheel_setpoints.0) {
-        kv(&format!("setpoint_{name}"), sp.to_string());
+        kv.set(("setpoint_", name), sp);
     }
     let e = &s.rx_errors;
     for (key, n) in [
@@ -334,34 +375,99 @@ fn diagnostics(t_ns: u64, s: &Snapshot) -> msg::DiagnosticArray {
         ("rx_out_of_range", e.out_of_range),
         ("repeated_seq", s.repeated_seq),
     ] {
-        kv(key, n.to_string());
+        kv.set((key, ""), n);
     }
     if s.heading_source != HeadingSource::Wheels {
-        kv("heading_source", s.heading_source.to_string());
-        kv("gyro_bias", s.gyro_bias.to_string());
-        kv("gyro_bias_samples", s.gyro_bias_samples.to_string());
+        kv.set(("heading_source", ""), s.heading_source);
+        kv.set(("gyro_bias", ""), s.gyro_bias);
+        kv.set(("gyro_bias_samples", ""), s.gyro_bias_samples);
     }
     if s.pods > 0 {
-        kv("odometry_source", s.odometry_source.to_string());
-        kv("slip_vx", s.slip.vx.to_string());
-        kv("slip_vy", s.slip.vy.to_string());
-        kv("slip_wz", s.slip.wz.to_string());
+        kv.set(("odometry_source", ""), s.odometry_source);
+        kv.set(("slip_vx", ""), s.slip.vx);
+        kv.set(("slip_vy", ""), s.slip.vy);
+        kv.set(("slip_wz", ""), s.slip.wz);
     }
-    msg::DiagnosticArray {
-        header: Header::new(t_ns, ""),
-        status: vec![msg::DiagnosticStatus {
-            level,
-            name: DIAGNOSTIC_NAME.to_string(),
-            message,
-            hardware_id: String::new(),
-            values,
-        }],
+    let n = kv.n;
+    status.values.truncate(n);
+}
+
+/// A status's values, set in order over the last message's: a key that is the same keeps its
+/// string, and the value is written into the old value's.
+struct Values<'a> {
+    values: &'a mut Vec<msg::KeyValue>,
+    /// Values set so far.
+    n: usize,
+}
+
+impl Values<'_> {
+    /// Sets the next value: its key is `key.0` then `key.1`.
+    fn set(&mut self, (a, b): (&str, &str), value: impl std::fmt::Display) {
+        use std::fmt::Write as _;
+        match self.values.get_mut(self.n) {
+            Some(kv)
+                if kv.key.len() == a.len() + b.len()
+                    && kv.key.starts_with(a)
+                    && kv.key.ends_with(b) =>
+            {
+                kv.value.clear();
+                let _ = write!(kv.value, "{value}");
+            }
+            _ => {
+                self.values.truncate(self.n);
+                self.values.push(msg::KeyValue {
+                    key: format!("{a}{b}"),
+                    value: value.to_string(),
+                });
+            }
+        }
+        self.n += 1;
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_snapshot_refilled_over_another_is_the_one_built_anew() {
+        use firmware::protocol::robot::{Fault, HeadingSource, OdometrySource, RobotState};
+        let plain = firmware::Controller::new(&firmware::Config::dji_m3508_example())
+            .unwrap()
+            .snapshot();
+        let gyro = Snapshot {
+            heading_source: HeadingSource::WheelsGyroSilent,
+            gyro_bias: 0.25,
+            ..plain
+        };
+        let pods = Snapshot {
+            pods: 3,
+            pod_angles: [1.5, -2.0, 3.25],
+            odometry_source: OdometrySource::WheelsPodsSilent,
+            state: RobotState::Fault,
+            fault: Fault::MotorStale,
+            steps: 12_345,
+            ..gyro
+        };
+        let two_pods = Snapshot { pods: 2, ..plain };
+        let (mut joints, mut diag) = Default::default();
+        // Keys and names appear, change and go, in both directions.
+        for (i, s) in [plain, gyro, pods, two_pods, pods, plain]
+            .iter()
+            .enumerate()
+        {
+            let t = 1_000_000 * i as u64;
+            joint_state(&mut joints, t, s);
+            diagnostics(&mut diag, t, s);
+            let (mut fresh_joints, mut fresh_diag) = Default::default();
+            joint_state(&mut fresh_joints, t, s);
+            diagnostics(&mut fresh_diag, t, s);
+            assert_eq!(joints, fresh_joints, "{i}");
+            assert_eq!(diag, fresh_diag, "{i}");
+        }
+        assert_eq!(joints.name, ["fl", "fr", "rl", "rr"]);
+        assert!(!diag.status[0].values.iter().any(|kv| kv.key == "slip_vx"));
+    }
 
     #[test]
     fn an_event_is_small() {

@@ -2,12 +2,13 @@
 //!
 //! The caller's thread (a simulation, a control loop) only records each message's values in
 //! a batch, and hands the batch over to a second thread at each flush
-//! ([`McapLog::maybe_flush`]). That thread encodes the messages in CDR ([`crate::msg`]) and
-//! writes them with the `mcap` crate's [`Writer`](mcap::Writer), in zstd chunks of at most
-//! [`CHUNK_SIZE`] uncompressed bytes. The file is written as [`crate::part_path`] and
-//! renamed when the log is finished; an error of the writing thread
-//! comes back as a [`LogError`] from the next hand-over. After [`McapLog::drop_when_behind`] a hand-over never blocks: messages are
-//! dropped and counted instead.
+//! ([`McapLog::maybe_flush`]). That thread encodes the messages in CDR ([`crate::msg`])
+//! straight into the open chunk of the file (`file`), which compresses each chunk whole with
+//! zstd when it closes, at each hand-over or at [`CHUNK_SIZE`] uncompressed bytes. The file is
+//! written as [`crate::part_path`] and renamed when the log is finished; an error of the
+//! writing thread comes back as a [`LogError`] from the next hand-over. After
+//! [`McapLog::drop_when_behind`] a hand-over never blocks: messages are dropped and counted
+//! instead.
 //!
 //! A [`MessageTap`] installed with [`McapLog::set_tap`] sees every message on that thread,
 //! as it is written: the channel, the log and publish times, and the very CDR bytes of the
@@ -22,8 +23,8 @@
 //! last second lost, the log a `.part` until finished) and "A control loop that must not
 //! wait: dropping instead of blocking".
 //!
-//! The file holds the API; `encode` the recorded events and their CDR encoding, `thread`
-//! the file under the `mcap` writer and the thread that writes it.
+//! The file holds the API; `encode` the recorded events and their CDR encoding, `file` the
+//! MCAP file's records, `thread` the file's start and the thread that writes it.
 
 use std::collections::BTreeMap;
 use std::io::{self, BufWriter, Write};
@@ -39,12 +40,13 @@ use crate::msg;
 use crate::{Channel, output::Staged};
 
 mod encode;
+mod file;
 mod thread;
 
 pub use encode::DIAGNOSTIC_NAME;
 use encode::{Batch, Event, FaultRecord, OdometryRecord};
 pub use thread::step_aside;
-use thread::{BatchWriter, Writer, mcap_err, start_file};
+use thread::{BatchWriter, Writer, start_file};
 
 /// Why a log could not be written.
 #[derive(Debug, thiserror::Error)]
@@ -129,9 +131,8 @@ const MAX_BATCH_EVENTS: usize = 1 << 16;
 /// at the hand-overs.
 pub const CHUNK_SIZE: u64 = 1 << 20;
 
-/// zstd level of the chunks (the `mcap` crate takes levels from 1). See `docs/benchmarks.md`
-/// for the level against size and time.
-pub const ZSTD_LEVEL: u32 = 1;
+/// zstd level of the chunks. See `docs/benchmarks.md` for the level against size and time.
+pub const ZSTD_LEVEL: i32 = 1;
 
 /// An MCAP log being written. See the [module documentation](self) and `docs/logs.md`.
 pub struct McapLog {
@@ -698,12 +699,9 @@ impl McapLog {
             return handed;
         };
         handed?;
-        let mut mcap = writer.finish().map_err(|e| self.io_err(e))?;
-        mcap.finish().map_err(|e| self.io_err(mcap_err(e)))?;
-        mcap.into_inner()
-            .into_inner()
-            .flush()
-            .map_err(|e| self.io_err(e))
+        let mut file = writer.finish().map_err(|e| self.io_err(e))?;
+        file.finish().map_err(|e| self.io_err(e))?;
+        file.into_inner().flush().map_err(|e| self.io_err(e))
     }
 }
 

@@ -10,15 +10,15 @@ use std::sync::mpsc::{Receiver, SyncSender, TryRecvError, TrySendError, sync_cha
 use std::thread::JoinHandle;
 
 use mcap::records::Metadata;
-use mcap::write::NoSeek;
 
 use super::ZSTD_LEVEL;
 use super::encode::{Batch, Encoder};
+use super::file::McapFile;
 use crate::{Channel, METADATA_NAME, PROFILE};
 
-/// The file under the `mcap` writer: passes writes on until the first error, then refuses
-/// every later one (so that nothing follows a failed write, not even the summary the `mcap`
-/// writer tries to write when dropped), and refuses to write while its thread panics.
+/// The file under the [`McapFile`]: passes writes on until the first error, then refuses
+/// every later one (so that nothing follows a failed write, not even the summary written when
+/// a log is dropped), and refuses to write while its thread panics.
 pub(super) struct Out {
     inner: Box<dyn Write + Send>,
     failed: bool,
@@ -49,16 +49,9 @@ impl Write for Out {
     }
 }
 
-pub(super) type Writer = mcap::Writer<NoSeek<Out>>;
+pub(super) type Writer = McapFile<Out>;
 
-pub(super) fn mcap_err(e: mcap::McapError) -> io::Error {
-    match e {
-        mcap::McapError::Io(e) => e,
-        other => io::Error::other(other),
-    }
-}
-
-/// Starts an MCAP file on `out`: the header, the schemas and channels, the metadata, all on
+/// Starts an MCAP file on `out`: the header, the metadata, the schemas and channels, all on
 /// disk when this returns.
 pub(super) fn start_file(
     out: Box<dyn Write + Send>,
@@ -66,41 +59,34 @@ pub(super) fn start_file(
     chunk_size: u64,
     written: Arc<AtomicU64>,
 ) -> io::Result<Writer> {
-    let options = mcap::WriteOptions::new()
-        .profile(PROFILE)
-        .library(concat!("drivelog ", env!("CARGO_PKG_VERSION")))
-        .compression(Some(mcap::Compression::Zstd))
-        .compression_level(ZSTD_LEVEL)
-        // The writing thread is the one extra core a run has; zstd's own workers would
-        // compete with the run for it.
-        .compression_threads(0)
-        .chunk_size(Some(chunk_size))
-        .disable_seeking(true);
-    let mut writer = options
-        .create(NoSeek::new(Out {
-            inner: out,
-            failed: false,
-            written,
-        }))
-        .map_err(mcap_err)?;
+    let out = Out {
+        inner: out,
+        failed: false,
+        written,
+    };
+    let library = concat!("drivelog ", env!("CARGO_PKG_VERSION"));
+    let mut writer = McapFile::new(out, PROFILE, library, ZSTD_LEVEL, chunk_size)?;
     // The metadata first: a log cut anywhere after it still has its configuration.
-    writer
-        .write_metadata(&Metadata {
-            name: METADATA_NAME.to_string(),
-            metadata: metadata.clone(),
-        })
-        .map_err(mcap_err)?;
+    writer.write_metadata(&Metadata {
+        name: METADATA_NAME.to_string(),
+        metadata: metadata.clone(),
+    })?;
+    // One schema per message type, from id 1, shared by the channels of that type.
+    let mut schemas: Vec<&str> = Vec::new();
     for channel in Channel::ALL {
         let def = channel.def();
-        let schema = writer
-            .add_schema(def.name, "ros2msg", def.schema_text().as_bytes())
-            .map_err(mcap_err)?;
-        let id = channel.id();
-        writer
-            .add_channel_with_id(id, schema, channel.topic(), "cdr", &BTreeMap::new())
-            .map_err(mcap_err)?;
+        let schema = match schemas.iter().position(|name| *name == def.name) {
+            Some(i) => i,
+            None => {
+                schemas.push(def.name);
+                let id = schemas.len() as u16;
+                writer.add_schema(id, def.name, "ros2msg", def.schema_text().as_bytes())?;
+                schemas.len() - 1
+            }
+        };
+        writer.add_channel(channel.id(), schema as u16 + 1, channel.topic(), "cdr")?;
     }
-    writer.flush().map_err(mcap_err)?;
+    writer.flush()?;
     Ok(writer)
 }
 
@@ -141,11 +127,7 @@ pub(super) struct BatchWriter {
 impl BatchWriter {
     /// Starts the thread, which writes with `writer`.
     pub(super) fn start(writer: Writer) -> io::Result<Self> {
-        let mut encoder = Encoder {
-            writer,
-            buf: Vec::with_capacity(1024),
-            tap: None,
-        };
+        let mut encoder = Encoder::new(writer);
         // One batch waits while the thread writes the one before it; two answers at most are
         // pending (the previous batch's, and the waiting one's if the thread is quick).
         let (to_thread, batches) = sync_channel::<Batch>(1);
