@@ -4,12 +4,13 @@
 
 use std::io;
 
+use firmware::CanFrame;
+use firmware::control::Snapshot;
+
 use super::thread::Writer;
 use super::{Direction, MessageTap, OdometrySource};
 use crate::msg::{self, Header, RosMsg};
 use crate::{Channel, POD_NAMES, WHEEL_NAMES, frames};
-use firmware::CanFrame;
-use firmware::control::Snapshot;
 
 /// A logged message, or the two of an odometry, as values: the writing thread encodes them.
 #[derive(Clone, Copy)]
@@ -104,9 +105,7 @@ impl Encoder {
             diagnostics: msg::DiagnosticArray::default(),
         }
     }
-}
 
-impl Encoder {
     /// Encodes and writes `batch`'s messages, then ends the chunk and flushes the file
     /// (installing the tap that came with it first).
     pub(super) fn batch(&mut self, batch: &mut Batch) -> io::Result<()> {

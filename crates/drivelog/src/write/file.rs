@@ -172,14 +172,19 @@ impl<W: Write> McapFile<W> {
             name: name.to_string(),
             encoding: encoding.to_string(),
         };
+        self.schema_record(&header, text)?;
+        self.schemas.insert(id, (header, text.to_vec()));
+        Ok(())
+    }
+
+    /// A Schema record: the header, then the text with its length.
+    fn schema_record(&mut self, header: &SchemaHeader, text: &[u8]) -> io::Result<()> {
         let mut tail = u32::try_from(text.len())
             .map_err(io::Error::other)?
             .to_le_bytes()
             .to_vec();
         tail.extend_from_slice(text);
-        self.record_with(op::SCHEMA, &header, &tail)?;
-        self.schemas.insert(id, (header, text.to_vec()));
-        Ok(())
+        self.record_with(op::SCHEMA, header, &tail)
     }
 
     /// A Channel record, without channel metadata.
@@ -369,9 +374,7 @@ impl<W: Write> McapFile<W> {
         let schema_count = self.schemas.len() as u16;
         let start = self.pos;
         for (header, text) in std::mem::take(&mut self.schemas).into_values() {
-            let mut tail = (text.len() as u32).to_le_bytes().to_vec();
-            tail.extend_from_slice(&text);
-            self.record_with(op::SCHEMA, &header, &tail)?;
+            self.schema_record(&header, &text)?;
         }
         group(self, op::SCHEMA, start);
         let start = self.pos;
