@@ -303,7 +303,11 @@ class Bench:
         for node in self.peers:
             self.recorder.wait(mark, 0x700 + node, lambda f: f.data == b"\x00")
             self.master.configure(node)
+            started = self.recorder.mark()
             self.master.nmt(0x01, node)
+            # Operational when its heartbeat says so: a change of state goes out at once (0x1017
+            # is set), from the peer's own thread, after the command has reached it.
+            self.recorder.wait(started, 0x700 + node, lambda f: f.data == b"\x05")
 
     def statuswords(self, node: int, mark: int) -> list[int]:
         return [struct.unpack_from("<H", f.data)[0] for f in self.recorder.since(mark, 0x180 + node)]
@@ -689,9 +693,14 @@ def test_nmt_commands(vcan: str) -> None:
         b.master.start_heartbeat()
         b.boot()
         m, peer = b.master, b.peers[DUAL]
+        stopped = b.recorder.mark()
         m.nmt(0x02, DUAL)
         m.nmt(0x02, SINGLE + 1)  # another node's: ignored
-        time.sleep(0.05)
+        # Each peer reads its frames in order, on a thread of its own: DUAL's stop shows in its
+        # heartbeat (sent at once on a change), and SINGLE answers an SDO only after it has
+        # handled the command to the other node.
+        b.recorder.wait(stopped, 0x700 + DUAL, lambda f: f.data == b"\x04")
+        assert m.read(SINGLE, 0x1017) == HEARTBEAT_MS
         assert peer.nmt_state == 0x04 and b.peers[SINGLE].nmt_state == 0x05
         mark = b.recorder.mark()
         b.run(0x06, 5)
