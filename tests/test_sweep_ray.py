@@ -2,9 +2,10 @@
 this machine (the package's ray extra), with one `hostsim sweep` as the oracle: the merged
 table is the single-machine table byte for byte (CSV, JSON lines, PNG); a worker killed
 mid-shard has its shard run again; a shard that fails stops the sweep with the finished
-shards kept, and `--resume` runs only the rest; bad input fails at once with hostsim's own
-message, before Ray starts. (Ctrl-C's path is not here: its test was not stable beside the
-whole suite, where the driver's local Ray took minutes to shut down; see the module's doc.)
+shards kept, and `--resume` runs only the rest (another sweep's parts refused); bad input
+fails at once with hostsim's own message, before Ray starts. (Ctrl-C's path is not here: its
+test was not stable beside the whole suite, where the driver's local Ray took minutes to shut
+down.)
 
 The scenario is a file (its configuration shipped beside it): the straight pods leg, 13 s
 simulated, a handful of seeds.
@@ -56,14 +57,18 @@ def ray_temp() -> Iterator[None]:
     shutil.rmtree(folder, ignore_errors=True)
 
 
+def drive_cmd(tmp: pathlib.Path, hostsim: pathlib.Path, *args: str, nodes: pathlib.Path | None = None,
+              sweep: list[str] = SWEEP) -> list[str]:
+    """`mecanum-drive sweep SCENARIO SWEEP --ray local` into tmp/ray, on two CPUs."""
+    cmd = [sys.executable, "-m", "mecanum_drive", "sweep", SCENARIO, *sweep, "--ray", "local", "--cpus", "2",
+           "--shard-size", "3", "--out", str(tmp / "ray"), "--hostsim", str(hostsim), *args]
+    return cmd + ["--hostsim-on-nodes", str(nodes)] if nodes is not None else cmd
+
+
 def drive(tmp: pathlib.Path, hostsim: pathlib.Path, *args: str, nodes: pathlib.Path | None = None,
           **popen: Any) -> subprocess.CompletedProcess[str]:
-    """`mecanum-drive sweep SCENARIO SWEEP --ray local` into tmp/ray, on two CPUs."""
-    cmd = [sys.executable, "-m", "mecanum_drive", "sweep", SCENARIO, *SWEEP, "--ray", "local", "--cpus", "2",
-           "--shard-size", "3", "--out", str(tmp / "ray"), "--hostsim", str(hostsim), *args]
-    if nodes is not None:
-        cmd += ["--hostsim-on-nodes", str(nodes)]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=300, check=False, **popen)
+    return subprocess.run(drive_cmd(tmp, hostsim, *args, nodes=nodes), capture_output=True, text=True,
+                          timeout=300, check=False, **popen)
 
 
 @pytest.fixture(scope="module")
@@ -101,7 +106,7 @@ def test_the_merged_table_is_one_hostsims_byte_for_byte(hostsim_bin: pathlib.Pat
     proc = drive(tmp_path, hostsim_bin)
     assert proc.returncode == 0, proc.stderr
     # 10 runs in shards of 3: four parts, each written as it came, with its progress line.
-    parts = sorted(p.name for p in (tmp_path / "ray" / "parts").iterdir())
+    parts = sorted(p.name for p in (tmp_path / "ray" / "parts").iterdir() if p.is_dir())
     assert parts == ["rows-0-2", "rows-3-5", "rows-6-8", "rows-9-9"], parts
     assert "sweep: 4 of 4 shards, 10 of 10 runs here" in proc.stderr, proc.stderr
     assert_same_tables(tmp_path / "ray", oracle)
@@ -131,9 +136,16 @@ def test_a_failed_shard_stops_the_sweep_and_resume_runs_only_the_rest(
     again = drive(tmp_path, hostsim_bin, nodes=nodes)
     assert again.returncode == 2 and "--resume to go on with it" in again.stderr, again.stderr
     # The shards that finished before the failure was seen are kept (the rest were cancelled).
-    kept = {p.name for p in (tmp_path / "ray" / "parts").iterdir()}
+    kept = {p.name for p in (tmp_path / "ray" / "parts").iterdir() if p.is_dir()}
     shards = {"rows-0-2": "0..2", "rows-3-5": "3..5", "rows-6-8": "6..8", "rows-9-9": "9..9"}
     assert kept <= set(shards) - {"rows-9-9"}, kept
+    # Another sweep's --resume is refused before anything runs: the same count of runs and
+    # the same header, other values.
+    other_values = [*SWEEP[:-1], "gains.kp=1.0,1.2"]
+    other = subprocess.run([*drive_cmd(tmp_path, hostsim_bin, "--resume", nodes=nodes, sweep=other_values)],
+                           capture_output=True, text=True, timeout=300, check=False)
+    assert other.returncode == 2 and "holds parts of another sweep (hostsim's arguments differ" in other.stderr, \
+        other.stderr
     before = len((tmp_path / "calls").read_text().splitlines())
     resumed = drive(tmp_path, hostsim_bin, "--resume", nodes=nodes)
     assert resumed.returncode == 0, resumed.stderr

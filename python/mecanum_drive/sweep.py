@@ -13,8 +13,9 @@ what one `hostsim sweep` on one machine writes.
 - A shard whose worker died (a node lost, a process killed) is run again by Ray, up to
   `--retries` times; a shard that hostsim refuses is an error, named with hostsim's message.
 - Ctrl-C (or SIGTERM) cancels the shards not finished and keeps the finished ones; `--resume`
-  runs only the shards missing from `OUT/parts` (of the same plan: another sweep's parts are
-  refused).
+  runs only the shards missing from `OUT/parts`, of the same sweep: `OUT/parts/request.json`
+  holds hostsim's arguments and a digest of the files shipped, and parts of another sweep
+  are refused.
 - The binary: shipped with the job by default (the local hostsim, through Ray's object store,
   so the nodes need nothing but Ray and a compatible glibc: docs/sweeps-on-ray.md), or found
   on each node at `--hostsim-on-nodes PATH`. The scenario file and its configuration file are
@@ -26,6 +27,7 @@ Ray is the package's optional extra `ray` (`pip install './python[ray]'`), impor
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import pathlib
@@ -50,6 +52,8 @@ DEFAULT_SHARD_SIZE = 250
 EXIT_INTERRUPTED = 130
 #: The folder of the finished shards inside --out.
 PARTS = "parts"
+# In OUT/parts: what the parts are rows of (`request_of`).
+REQUEST = "request.json"
 #: How often the driver leaves Ray's wait to see whether it was told to stop, s.
 POLL_S = 0.2
 
@@ -153,6 +157,38 @@ def write_part(parts: pathlib.Path, shard: Shard, tables: dict[str, bytes]) -> N
     staging.rename(parts / shard.name)
 
 
+def request_of(argv: list[str], files: dict[str, bytes]) -> dict[str, Any]:
+    """What a sweep's parts are rows of: hostsim's arguments as the tasks get them, and the
+    SHA-256 of each file shipped with them (the scenario, its configuration)."""
+    return {"argv": argv, "files": {name: hashlib.sha256(data).hexdigest() for name, data in sorted(files.items())}}
+
+
+def same_request(parts: pathlib.Path, request: dict[str, Any], resume: bool) -> None:
+    """Refuses `parts` if it holds parts of another sweep than `request` (or, without
+    `resume`, any parts at all); records `request` there when it holds nothing yet."""
+    path = parts / REQUEST
+    if path.is_file():
+        if not resume:
+            raise SweepError(f"{parts} holds parts of a sweep already: --resume to go on with it, "
+                             "or give another --out")
+        try:
+            got = json.loads(path.read_text())
+        except ValueError as err:
+            raise SweepError(f"{path}: not a sweep's request ({err}); give another --out, or remove {parts}") from err
+        if got != request:
+            what = ("hostsim's arguments differ: " f"{' '.join(got.get('argv', []))!r} there, "
+                    f"{' '.join(request['argv'])!r} here") if got.get("argv") != request["argv"] else \
+                "the scenario or configuration file changed since"
+            raise SweepError(f"{parts} holds parts of another sweep ({what}); give another --out, or remove {parts}")
+        return
+    if any(not p.name.startswith(".") for p in parts.iterdir()):
+        raise SweepError(f"{parts} holds parts without {REQUEST} (a sweep of an older version): "
+                         f"give another --out, or remove {parts}")
+    staging = parts / f".{REQUEST}"
+    staging.write_text(json.dumps(request, indent=1) + "\n")
+    staging.rename(path)
+
+
 def finished(parts: pathlib.Path, shard: Shard, plan: dict[str, Any]) -> bool:
     """Whether `parts` holds `shard` whole, of this plan (a part of another one is refused)."""
     plan_file = parts / shard.name / "sweep.plan.json"
@@ -224,11 +260,9 @@ def run(args: argparse.Namespace) -> int:
         shutil.rmtree(stale)  # a shard's folder not yet whole when a sweep was stopped
     todo = shards(plan["runs"], args.shard_size)
     try:
+        same_request(parts, request_of(remote_argv, files), args.resume)
         done = [s for s in todo if finished(parts, s, plan)] if args.resume else []
-        if not args.resume and any(parts.iterdir()):
-            raise SweepError(f"{parts} holds parts of a sweep already: --resume to go on with it, "
-                             "or give another --out")
-    except SweepError as err:
+    except (SweepError, OSError) as err:
         print(f"mecanum-drive sweep: {err}", file=sys.stderr)
         return 2
     pending = [s for s in todo if s not in done]
