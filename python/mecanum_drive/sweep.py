@@ -52,7 +52,7 @@ DEFAULT_SHARD_SIZE = 250
 EXIT_INTERRUPTED = 130
 #: The folder of the finished shards inside --out.
 PARTS = "parts"
-# In OUT/parts: what the parts are rows of (`request_of`).
+#: In OUT/parts: what the parts are rows of (`request_of`).
 REQUEST = "request.json"
 #: How often the driver leaves Ray's wait to see whether it was told to stop, s.
 POLL_S = 0.2
@@ -176,9 +176,11 @@ def same_request(parts: pathlib.Path, request: dict[str, Any], resume: bool) -> 
         except ValueError as err:
             raise SweepError(f"{path}: not a sweep's request ({err}); give another --out, or remove {parts}") from err
         if got != request:
-            what = ("hostsim's arguments differ: " f"{' '.join(got.get('argv', []))!r} there, "
-                    f"{' '.join(request['argv'])!r} here") if got.get("argv") != request["argv"] else \
-                "the scenario or configuration file changed since"
+            if got.get("argv") != request["argv"]:
+                what = (f"hostsim's arguments differ: {' '.join(got.get('argv', []))!r} there, "
+                        f"{' '.join(request['argv'])!r} here")
+            else:
+                what = "the scenario or configuration file changed since"
             raise SweepError(f"{parts} holds parts of another sweep ({what}); give another --out, or remove {parts}")
         return
     if any(not p.name.startswith(".") for p in parts.iterdir()):
