@@ -45,6 +45,13 @@ const MESSAGE_HEADER_LEN: usize = 2 + 4 + 8 + 8;
 /// The opcode and the length before a record's body.
 const RECORD_PREFIX_LEN: usize = 1 + 8;
 
+/// A channel's messages: the open chunk's index entries, and the count in the file.
+#[derive(Default)]
+struct Slot {
+    entries: Vec<MessageIndexEntry>,
+    messages: u64,
+}
+
 /// An MCAP file being written to `W`, sequentially (no seeking).
 pub(super) struct McapFile<W: Write> {
     out: W,
@@ -58,8 +65,8 @@ pub(super) struct McapFile<W: Write> {
     chunk_size: usize,
     /// Log times of the open chunk's earliest and latest message.
     chunk_times: Option<(u64, u64)>,
-    /// The open chunk's message index entries, by channel id.
-    index: Vec<Vec<MessageIndexEntry>>,
+    /// Each added channel's messages, by channel id (`None`: no such channel).
+    slots: Vec<Option<Slot>>,
     zstd: zstd::bulk::Compressor<'static>,
     compressed: Vec<u8>,
     /// A record body being encoded.
@@ -69,10 +76,6 @@ pub(super) struct McapFile<W: Write> {
     channels: BTreeMap<u16, records::Channel>,
     chunk_indexes: Vec<ChunkIndex>,
     metadata_indexes: Vec<MetadataIndex>,
-    /// Messages per channel id.
-    counts: Vec<u64>,
-    /// Whether each channel id was added.
-    known: Vec<bool>,
     /// Log times of the file's earliest and latest message.
     times: Option<(u64, u64)>,
     finished: bool,
@@ -103,7 +106,7 @@ impl<W: Write> McapFile<W> {
             chunk: Vec::new(),
             chunk_size: usize::try_from(chunk_size).unwrap_or(usize::MAX),
             chunk_times: None,
-            index: Vec::new(),
+            slots: Vec::new(),
             zstd: zstd::bulk::Compressor::new(level)?,
             compressed: Vec::new(),
             scratch: Vec::new(),
@@ -111,8 +114,6 @@ impl<W: Write> McapFile<W> {
             channels: BTreeMap::new(),
             chunk_indexes: Vec::new(),
             metadata_indexes: Vec::new(),
-            counts: Vec::new(),
-            known: Vec::new(),
             times: None,
             finished: false,
         };
@@ -204,13 +205,11 @@ impl<W: Write> McapFile<W> {
         };
         self.record(op::CHANNEL, &channel)?;
         self.channels.insert(id, channel);
-        let slots = usize::from(id) + 1;
-        if self.index.len() < slots {
-            self.index.resize_with(slots, Vec::new);
-            self.counts.resize(slots, 0);
-            self.known.resize(slots, false);
+        let id = usize::from(id);
+        if self.slots.len() <= id {
+            self.slots.resize_with(id + 1, || None);
         }
-        self.known[usize::from(id)] = true;
+        self.slots[id].get_or_insert_with(Slot::default);
         Ok(())
     }
 
@@ -241,7 +240,7 @@ impl<W: Write> McapFile<W> {
         encode: impl FnOnce(&mut Vec<u8>),
     ) -> io::Result<&[u8]> {
         let id = usize::from(channel_id);
-        if !self.known.get(id).is_some_and(|known| *known) {
+        if !matches!(self.slots.get(id), Some(Some(_))) {
             return Err(io::Error::other(format!(
                 "no channel {channel_id} in this log"
             )));
@@ -264,11 +263,13 @@ impl<W: Write> McapFile<W> {
         encode(&mut self.chunk);
         let len = (self.chunk.len() - start - RECORD_PREFIX_LEN) as u64;
         self.chunk[start + 1..start + RECORD_PREFIX_LEN].copy_from_slice(&len.to_le_bytes());
-        self.index[id].push(MessageIndexEntry {
-            log_time: log_ns,
-            offset: start as u64,
-        });
-        self.counts[id] += 1;
+        if let Some(Some(slot)) = self.slots.get_mut(id) {
+            slot.entries.push(MessageIndexEntry {
+                log_time: log_ns,
+                offset: start as u64,
+            });
+            slot.messages += 1;
+        }
         self.chunk_times = Some(span(self.chunk_times, log_ns));
         self.times = Some(span(self.times, log_ns));
         Ok(&self.chunk[data..])
@@ -302,10 +303,13 @@ impl<W: Write> McapFile<W> {
         let chunk_length = self.pos - chunk_start_offset;
         let index_start = self.pos;
         let mut message_index_offsets = BTreeMap::new();
-        let mut index = std::mem::take(&mut self.index);
+        let mut slots = std::mem::take(&mut self.slots);
         let mut buf = std::mem::take(&mut self.scratch);
         let mut result = Ok(());
-        for (id, entries) in index.iter_mut().enumerate() {
+        for (id, slot) in slots.iter_mut().enumerate() {
+            let Some(Slot { entries, .. }) = slot else {
+                continue;
+            };
             if entries.is_empty() || result.is_err() {
                 entries.clear();
                 continue;
@@ -324,7 +328,7 @@ impl<W: Write> McapFile<W> {
             message_index_offsets.insert(id as u16, self.pos);
             result = self.put(&buf);
         }
-        self.index = index;
+        self.slots = slots;
         self.scratch = buf;
         result?;
         self.chunk_indexes.push(ChunkIndex {
@@ -385,9 +389,9 @@ impl<W: Write> McapFile<W> {
         group(self, op::CHANNEL, start);
         let start = self.pos;
         let (message_start_time, message_end_time) = self.times.unwrap_or((0, 0));
-        let channel_message_counts: BTreeMap<u16, u64> = (self.counts.iter().enumerate())
-            .filter(|(_, n)| **n > 0)
-            .map(|(id, n)| (id as u16, *n))
+        let channel_message_counts: BTreeMap<u16, u64> = (self.slots.iter().enumerate())
+            .filter_map(|(id, slot)| Some((id as u16, slot.as_ref()?.messages)))
+            .filter(|(_, n)| *n > 0)
             .collect();
         let stats = Statistics {
             message_count: channel_message_counts.values().sum(),
