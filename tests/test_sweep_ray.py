@@ -2,10 +2,9 @@
 this machine (the package's ray extra), with one `hostsim sweep` as the oracle: the merged
 table is the single-machine table byte for byte (CSV, JSON lines, PNG); a worker killed
 mid-shard has its shard run again; a shard that fails stops the sweep with the finished
-shards kept, and `--resume` runs only the rest (another sweep's parts refused); bad input
-fails at once with hostsim's own message, before Ray starts. (Ctrl-C's path is not here: its
-test was not stable beside the whole suite, where the driver's local Ray took minutes to shut
-down.)
+shards kept, and `--resume` runs only the rest (another sweep's parts refused); Ctrl-C keeps
+the finished shards (exit 130) and `--resume` runs only the one that was cut off; bad input
+fails at once with hostsim's own message, before Ray starts.
 
 The scenario is a file (its configuration shipped beside it): the straight pods leg, 13 s
 simulated, a handful of seeds.
@@ -17,9 +16,11 @@ import importlib.util
 import os
 import pathlib
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
+import time
 from typing import Any, Iterator
 
 import pytest
@@ -152,6 +153,60 @@ def test_a_failed_shard_stops_the_sweep_and_resume_runs_only_the_rest(
     assert f"{len(kept)} done already" in resumed.stderr, resumed.stderr
     ran = sorted(c.split(" --runs ")[1].split()[0] for c in (tmp_path / "calls").read_text().splitlines()[before:])
     assert ran == sorted(rows for name, rows in shards.items() if name not in kept), (ran, kept)
+    assert_same_tables(tmp_path / "ray", oracle)
+
+
+def test_ctrl_c_keeps_the_finished_shards_and_resume_runs_the_rest(
+        hostsim_bin: pathlib.Path, tmp_path: pathlib.Path, oracle: pathlib.Path) -> None:
+    # Rows 9..9 hang (their program's pid kept) until their worker is gone; the other three
+    # shards finish, and Ctrl-C comes once they are in.
+    hung = tmp_path / "hung.pid"
+    nodes = wrapper(tmp_path, hostsim_bin, "9..9",
+                    f"echo $$ > {hung}; while kill -0 $PPID 2>/dev/null; do sleep 0.1; done; exit 1")
+    # stderr to a file, not a pipe: Ray's own processes inherit it and may outlive the driver.
+    log = tmp_path / "stderr"
+    with open(log, "w") as err:
+        proc = subprocess.Popen(drive_cmd(tmp_path, hostsim_bin, nodes=nodes), stderr=err,
+                                stdout=subprocess.DEVNULL)
+    try:
+        # The same bound as every other sweep of this module, Ray's start included.
+        deadline = time.monotonic() + 300
+        while "sweep: 3 of 4 shards" not in log.read_text():
+            assert proc.poll() is None and time.monotonic() < deadline, log.read_text()
+            time.sleep(0.1)
+        proc.send_signal(signal.SIGINT)
+        sent = time.monotonic()
+        proc.wait(timeout=max(deadline - sent, 60))
+        print(f"Ctrl-C: the driver exited {time.monotonic() - sent:.1f} s after it", file=sys.stderr)
+    finally:
+        # A driver that did not stop is ended as a job's time limit ends it (SIGTERM: the same
+        # clean-up, its local Ray with it), then killed.
+        if proc.poll() is None:
+            proc.terminate()
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+    text = log.read_text()
+    assert proc.returncode == 130, text
+    assert "INTERRUPTED: 3 of 4 shards kept" in text and "with --resume runs the rest" in text, text
+    parts = tmp_path / "ray" / "parts"
+    assert sorted(p.name for p in parts.iterdir() if p.is_dir()) == ["rows-0-2", "rows-3-5", "rows-6-8"]
+    assert not (tmp_path / "ray" / "sweep.csv").exists()
+    # The cut-off shard's program ended with its worker (killed with it: PR_SET_PDEATHSIG).
+    pid = int(hung.read_text())
+    deadline = time.monotonic() + 60
+    while pathlib.Path(f"/proc/{pid}").exists() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not pathlib.Path(f"/proc/{pid}").exists(), f"the cut-off shard's program {pid} outlived its worker"
+    # --resume runs rows 9..9 alone (the wrapper hangs only once), and the table is whole.
+    before = len((tmp_path / "calls").read_text().splitlines())
+    resumed = drive(tmp_path, hostsim_bin, "--resume", nodes=nodes)
+    assert resumed.returncode == 0, resumed.stderr
+    assert "3 done already" in resumed.stderr, resumed.stderr
+    ran = [c.split(" --runs ")[1].split()[0] for c in (tmp_path / "calls").read_text().splitlines()[before:]]
+    assert ran == ["9..9"], ran
     assert_same_tables(tmp_path / "ray", oracle)
 
 
