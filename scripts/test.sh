@@ -291,10 +291,11 @@ if wanted vcan; then
     # The lane's limits, in wall time, from what it measured on the 2-core reference machine
     # (docs/reliability.md, "Where the suite's time goes"): 612 s alone, its longest test (the
     # ROS 2 session) 100-130 s, when they were set; two and a half times the one, three times
-    # the other. Kept since the lane fell to 455 s (its longest test 83 s): runs on a machine
-    # kept busy, with QEMU now held to one CPU, are still to be measured. The lane keeps its
-    # core on a busy machine (the stages below run niced), so only a hang, or a machine far
-    # slower, reaches them; then the lane names the test and what the guest did.
+    # the other. Kept since the lane fell to 455 s (its longest test 83 s): on the same
+    # machine's slow evenings (its emulator three times slower) the lane took 1,069-1,124 s
+    # idle and 1,096 s beside stress-ng, a third under the limit. The lane keeps its core on a
+    # busy machine (the stages below run niced), so only a hang, or a machine far slower,
+    # reaches them; then the lane names the test and what the guest did.
     # (pytest-xdist, the python stage's, is not loaded there: its import costs the guest's CPU.)
     start_background env VCAN_VM_TIMEOUT="${VCAN_VM_TIMEOUT:-1530}" VCAN_TEST_TIMEOUT="${VCAN_TEST_TIMEOUT:-390}" \
         scripts/vcan.sh -- .venv/bin/python -m pytest "${lane_modules[@]}" -m vcan -q -s -p no:cacheprovider -rs --color=no \
