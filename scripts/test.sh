@@ -293,7 +293,7 @@ if wanted vcan; then
     # ROS 2 session) 100-130 s, when they were set; two and a half times the one, three times
     # the other. Kept since the lane fell to 455 s (its longest test 83 s): on the same
     # machine's slow evenings (its emulator three times slower) the lane took 1,069-1,124 s
-    # idle and 1,096 s beside stress-ng, a third under the limit. The lane keeps its core on a
+    # idle and 1,096 s beside stress-ng, some 400 s under the limit. The lane keeps its core on a
     # busy machine (the stages below run niced), so only a hang, or a machine far slower,
     # reaches them; then the lane names the test and what the guest did.
     # (pytest-xdist, the python stage's, is not loaded there: its import costs the guest's CPU.)
