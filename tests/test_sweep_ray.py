@@ -147,6 +147,15 @@ def test_a_failed_shard_stops_the_sweep_and_resume_runs_only_the_rest(
                            capture_output=True, text=True, timeout=300, check=False)
     assert other.returncode == 2 and "holds parts of another sweep (hostsim's arguments differ" in other.stderr, \
         other.stderr
+    # A request file that is JSON but not a sweep's is refused with its name, and kept.
+    request = tmp_path / "ray" / "parts" / "request.json"
+    good = request.read_text()
+    for bad in ("[1]\n", '{"argv": 3}\n'):
+        request.write_text(bad)
+        proc = drive(tmp_path, hostsim_bin, "--resume", nodes=nodes)
+        assert proc.returncode == 2 and f"{request}: not a sweep's request" in proc.stderr, (bad, proc.stderr)
+        assert request.read_text() == bad
+    request.write_text(good)
     before = len((tmp_path / "calls").read_text().splitlines())
     resumed = drive(tmp_path, hostsim_bin, "--resume", nodes=nodes)
     assert resumed.returncode == 0, resumed.stderr

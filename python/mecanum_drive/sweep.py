@@ -175,9 +175,13 @@ def same_request(parts: pathlib.Path, request: dict[str, Any], resume: bool) -> 
             got = json.loads(path.read_text())
         except ValueError as err:
             raise SweepError(f"{path}: not a sweep's request ({err}); give another --out, or remove {parts}") from err
+        argv = got.get("argv") if isinstance(got, dict) else None
+        if not (isinstance(argv, list) and all(isinstance(a, str) for a in argv)):
+            raise SweepError(f"{path}: not a sweep's request (no list of hostsim's arguments); give another "
+                             f"--out, or remove {parts}")
         if got != request:
-            if got.get("argv") != request["argv"]:
-                what = (f"hostsim's arguments differ: {' '.join(got.get('argv', []))!r} there, "
+            if argv != request["argv"]:
+                what = (f"hostsim's arguments differ: {' '.join(argv)!r} there, "
                         f"{' '.join(request['argv'])!r} here")
             else:
                 what = "the scenario or configuration file changed since"
