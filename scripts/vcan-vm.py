@@ -14,7 +14,8 @@ each line that starts with `lane:` or `vcan-guest:` (the pytest progress lines o
 tests/conftest.py, the guest script's own) also goes to LANE/timeline.tsv with the host's wall
 time since the VM started, so a run's guest and wall times can be set side by side
 (scripts/lane-times.py). At the time-out (the whole VM's, or one test's: wall time, kept here
-because the guest's own clock jumps while it waits on the host) the test that was running is
+because the guest's own clock jumps while it waits on the host; with --limits-pace both grow
+with the emulator's measured slowness, so a slower host is not a hang) the test that was running is
 named, the guest is asked through its PS/2 keyboard (magic SysRq, over QMP) for its blocked
 tasks and what its CPU runs, and only then is QEMU stopped (exit 124).
 """
@@ -29,6 +30,7 @@ import json
 import lzma
 import os
 import pathlib
+import re
 import selectors
 import shlex
 import shutil
@@ -40,6 +42,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 
 # The modules the lane needs (with what they depend on, from the kernel's modules.dep): the
 # 9p shares on virtio-pci, the overlay, vcan, CAN_RAW and CAN_BCM (python-can's periodic sends)
@@ -54,6 +57,21 @@ LANE_TOOLS = ["bash", "candump", "cansend", "canplayer", "ip", "chrt", "tmux", "
 CPU_MODEL = "max,-erms,-fsrm"
 # How long the guest gets to print its dump after the time-out's SysRq keys.
 DUMP_GRACE_S = 15.0
+# The guest time in a progress line of tests/lane.py: `(guest 123.4 s)`.
+GUEST_TIME = re.compile(r"\(guest (\d+(?:\.\d+)?) s\)")
+# The guest time the finished tests must span before their pace scales the limits.
+MIN_PACE_SPAN_S = 20.0
+
+
+def scaled_limits(timeout: float, test_timeout: float, pace: float | None, limits_pace: float) -> tuple[float, float]:
+    """The VM's and one test's limits (wall s) for an emulator measured at `pace` wall seconds per
+    guest second, the limits having been set for one at `limits_pace` (0: fixed limits). A slower
+    emulator stretches the guest's fixed work in proportion, so the limits grow with it, never
+    below those set. A hung test prints nothing, so the pace of the tests before it bounds it."""
+    if limits_pace <= 0 or pace is None or pace <= limits_pace:
+        return timeout, test_timeout
+    scale = pace / limits_pace
+    return timeout * scale, test_timeout * scale
 
 
 def log(msg: str) -> None:
@@ -342,14 +360,27 @@ class Console:
 
     PREFIXES = (b"lane: ", b"vcan-guest: ", b"vcan-init: ")
 
-    def __init__(self, lane: pathlib.Path, t0: float) -> None:
+    def __init__(self, lane: pathlib.Path, t0: float, clock: Callable[[], float] = time.monotonic) -> None:
         self.t0 = t0
+        self.clock = clock
         self.log = open(lane / "output.log", "wb")  # noqa: SIM115 (closed in close)
         self.timeline = open(lane / "timeline.tsv", "w")  # noqa: SIM115
         self.partial = b""
         self.last_start = ""  # the last `lane: start` line: the test now running
         self.test_started: float | None = None  # its wall time (monotonic); None between tests
         self.setup_failed = ""
+        # (wall s since t0, guest s) at the first test's start and at the last progress line.
+        self.first: tuple[float, float] | None = None
+        self.last: tuple[float, float] | None = None
+
+    def pace(self) -> float | None:
+        """Wall seconds per guest second over the tests so far (from the first test's start to
+        the last progress line), once they span MIN_PACE_SPAN_S of guest time; else None. The
+        boot is left out: its waits on the host make the guest's clock leap (85 s in 0.5 s)."""
+        if self.first is None or self.last is None:
+            return None
+        guest = self.last[1] - self.first[1]
+        return (self.last[0] - self.first[0]) / guest if guest >= MIN_PACE_SPAN_S else None
 
     def feed(self, data: bytes) -> None:
         sys.stdout.buffer.write(data)
@@ -363,11 +394,17 @@ class Console:
             at = min((i for i in (raw.find(p) for p in self.PREFIXES) if i >= 0), default=-1)
             if at >= 0:
                 line = raw[at:].decode(errors="replace").rstrip("\r")
-                self.timeline.write(f"{time.monotonic() - self.t0:.2f}\t{line}\n")
+                wall = self.clock() - self.t0
+                self.timeline.write(f"{wall:.2f}\t{line}\n")
                 self.timeline.flush()
+                guest = GUEST_TIME.search(line) if line.startswith("lane: ") else None
+                if guest:
+                    self.last = (wall, float(guest.group(1)))
+                    if self.first is None and line.startswith("lane: start "):
+                        self.first = self.last
                 if line.startswith("lane: start "):
                     self.last_start = line
-                    self.test_started = time.monotonic()
+                    self.test_started = self.clock()
                 elif line.startswith("lane: end "):
                     self.test_started = None
                 elif line.startswith("vcan-init: setup failed: "):
@@ -449,6 +486,9 @@ def main() -> int:
     ap.add_argument("--timeout", type=float, required=True, help="wall seconds for the whole VM")
     ap.add_argument("--test-timeout", type=float, default=0.0,
                     help="wall seconds for one test (its `lane: start` to its `lane: end`); 0: none")
+    ap.add_argument("--limits-pace", type=float, default=0.0,
+                    help="the emulator's pace (wall s per guest s) the two limits were set for: when "
+                         "the tests so far ran slower, both grow in proportion; 0: fixed limits")
     ap.add_argument("--append", default="", help="more kernel command-line arguments")
     args = ap.parse_args()
     if not 1 <= args.cpus <= 64:
@@ -456,6 +496,8 @@ def main() -> int:
     if not 0 < args.timeout < 1e7 or not 0 <= args.test_timeout < 1e7:
         ap.error(f"--timeout {args.timeout} must be positive and --test-timeout {args.test_timeout} "
                  "zero (none) or positive, both below 1e7 s")
+    if not 0 <= args.limits_pace < 1e3:
+        ap.error(f"--limits-pace {args.limits_pace}: must be 0 (fixed limits) or positive, below 1000")
     lane, root = args.lane.resolve(), args.root.resolve()
     kver = args.kernel.name.removeprefix("vmlinuz-")
     here = pathlib.Path(__file__).resolve().parent
@@ -541,21 +583,29 @@ def main() -> int:
     assert proc.stdout is not None
     os.set_blocking(proc.stdout.fileno(), False)
     sel.register(proc.stdout, selectors.EVENT_READ)
-    deadline = t0 + args.timeout
     dump_until = None
     fd = proc.stdout.fileno()
+    told_scale = 1.0
     while True:
         now = time.monotonic()
         if stop["signal"] and proc.poll() is None:
             proc.terminate()
-        test_over = (args.test_timeout > 0 and console.test_started is not None
-                     and now - console.test_started >= args.test_timeout)
-        if dump_until is None and (now >= deadline or test_over) and proc.poll() is None:
+        pace = console.pace()
+        vm_limit, test_limit = scaled_limits(args.timeout, args.test_timeout, pace, args.limits_pace)
+        if pace is not None and vm_limit >= told_scale * 1.1 * args.timeout:
+            told_scale = vm_limit / args.timeout
+            per_test = f", a test's {test_limit:.0f} s" if test_limit > 0 else ""
+            log(f"the tests so far ran {pace:.2f} wall s per guest s, slower than the {args.limits_pace:g} "
+                f"the limits were set for: the VM's limit is now {vm_limit:.0f} s{per_test}")
+        test_over = (test_limit > 0 and console.test_started is not None
+                     and now - console.test_started >= test_limit)
+        if dump_until is None and (now >= t0 + vm_limit or test_over) and proc.poll() is None:
             running = console.last_start.removeprefix("lane: start ") or "no test had started"
+            measured = f" (the tests' pace {pace:.2f} wall s per guest s)" if pace is not None else ""
             if test_over:
-                log(f"TIME-OUT: a test ran longer than its limit of {args.test_timeout:.0f} s: {running}")
+                log(f"TIME-OUT: a test ran longer than its limit of {test_limit:.0f} s{measured}: {running}")
             else:
-                log(f"TIME-OUT: the VM's limit of {args.timeout:.0f} s is reached; running: {running}")
+                log(f"TIME-OUT: the VM's limit of {vm_limit:.0f} s is reached{measured}; running: {running}")
             log("asking the guest for its blocked tasks and its CPU's backtrace (SysRq w, l)")
             problem = send_sysrq(qmp, "wl")
             if problem:

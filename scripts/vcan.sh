@@ -13,6 +13,7 @@ DEB_PACKAGES=(qemu-system-x86 linux-image-amd64 busybox-static can-utils iproute
 MODE=${VCAN_MODE:-auto}
 VM_TIMEOUT=${VCAN_VM_TIMEOUT:-1800}
 TEST_TIMEOUT=${VCAN_TEST_TIMEOUT:-0}
+LIMITS_PACE=${VCAN_LIMITS_PACE:-0}
 VM_MEMORY=${VCAN_VM_MEMORY:-4G}
 VM_CLOCK=${VCAN_VM_CLOCK:-icount}
 VM_CPUS=${VCAN_VM_CPUS:-}
@@ -76,7 +77,9 @@ Options:
 
 Environment: VCAN_VM_TIMEOUT (wall seconds, default 1800; bounds a native COMMAND too),
 VCAN_TEST_TIMEOUT (wall seconds one test may take in the VM, from its \`lane: start\` line to
-its \`lane: end\`; default 0, none),
+its \`lane: end\`; default 0, none), VCAN_LIMITS_PACE (the emulator's pace, wall seconds per
+guest second, those two were set for: when the tests so far ran slower, the VM's limits grow
+in proportion, and the time-out line says so; default 0, fixed),
 VCAN_VM_MEMORY (default 4G), VCAN_VM_CLOCK (icount or host; see above),
 VCAN_VM_CPUS (default 1 with icount, else host CPUs up to 4), VCAN_KERNEL (a vmlinuz to boot
 instead of the one linux-image-amd64 installed; its modules must be in /lib/modules),
@@ -382,7 +385,7 @@ cd "$ROOT"
 vm_rc=0
 run_forwarding python3 "$SCRIPT_DIR/vcan-vm.py" --kernel "$KERNEL" --lane "$LANE" --root "$ROOT" \
     --iface "$IFACE" --txqueuelen "$TXQUEUELEN" --memory "$VM_MEMORY" --clock "$VM_CLOCK" \
-    --cpus "$VM_CPUS" --timeout "$VM_TIMEOUT" --test-timeout "$TEST_TIMEOUT" \
+    --cpus "$VM_CPUS" --timeout "$VM_TIMEOUT" --test-timeout "$TEST_TIMEOUT" --limits-pace "$LIMITS_PACE" \
     --append "${VCAN_VM_APPEND:-}" || vm_rc=$?
 exit_if_interrupted
 T_END=$(now)
@@ -395,7 +398,7 @@ fi
 log "vm: prepare $(elapsed "$T_START" "$T_BOOT") s, VM $(elapsed "$T_BOOT" "$T_END") s$timing"
 
 if [ "$vm_rc" = 124 ]; then
-    log "FAIL: a time-out (VCAN_VM_TIMEOUT=$VM_TIMEOUT s for the VM, VCAN_TEST_TIMEOUT=$TEST_TIMEOUT s a test); the TIME-OUT line above names the test"
+    log "FAIL: a time-out (VCAN_VM_TIMEOUT=$VM_TIMEOUT s for the VM, VCAN_TEST_TIMEOUT=$TEST_TIMEOUT s a test, VCAN_LIMITS_PACE=$LIMITS_PACE); the TIME-OUT line above names the test and the limit it met"
     exit 124
 fi
 if [ -s "$LANE/exit-code" ]; then
