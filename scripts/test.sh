@@ -54,9 +54,9 @@ rest of the machine at a lower priority (niceness 10, and 15 for the builds besi
 tests, whose threads keep wall-clock rates); at each stage this script says which
 test the lane is at, and its output is printed when it ends (and kept in $LOGS/vcan.log;
 scripts/lane-times.py tables its times). Its limits, in wall time: VCAN_VM_TIMEOUT (1530 s)
-and, per test, VCAN_TEST_TIMEOUT (390 s), both grown in proportion when the emulator runs slower
-than VCAN_LIMITS_PACE (3.6 wall seconds per guest second). Without vcan0 and without the VM's packages it is
-skipped, or fails when CI is set (.ci/run sets it).
+and, per test, VCAN_TEST_TIMEOUT (390 s), both grown in proportion when the emulator runs
+slower than VCAN_LIMITS_PACE (3.6 wall seconds per guest second). Without vcan0 and without the
+VM's packages it is skipped, or fails when CI is set (.ci/run sets it).
 
 Options:
   --only STAGES  run only these stages (comma-separated names from the list), e.g.
