@@ -394,7 +394,8 @@ class Console:
             at = min((i for i in (raw.find(p) for p in self.PREFIXES) if i >= 0), default=-1)
             if at >= 0:
                 line = raw[at:].decode(errors="replace").rstrip("\r")
-                wall = self.clock() - self.t0
+                now = self.clock()
+                wall = now - self.t0
                 self.timeline.write(f"{wall:.2f}\t{line}\n")
                 self.timeline.flush()
                 guest = GUEST_TIME.search(line) if line.startswith("lane: ") else None
@@ -404,7 +405,7 @@ class Console:
                         self.first = self.last
                 if line.startswith("lane: start "):
                     self.last_start = line
-                    self.test_started = self.clock()
+                    self.test_started = now
                 elif line.startswith("lane: end "):
                     self.test_started = None
                 elif line.startswith("vcan-init: setup failed: "):
